@@ -1,0 +1,21 @@
+# The README's two commands: `make demo` and `make test`. Both set up first.
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.setup-done
+
+.PHONY: setup test demo clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt scripts/setup.sh
+	bash scripts/setup.sh
+	touch $@
+
+test: setup
+	$(PY) -m pytest -q -p no:cacheprovider tests
+
+demo: setup
+	$(VENV)/bin/dtx demo --out out/demo
+
+clean:
+	rm -rf $(VENV) out

@@ -1,0 +1,23 @@
+"""One written (tactile image, depth-map) pair, as the collector announces it."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from msgs.base import Message, empty
+
+
+@dataclasses.dataclass
+class DatasetSample(Message):
+    SCHEMA = "dtx.dataset.DatasetSample"
+    VERSION = 1
+
+    sample_id: str = ""
+    object_name: str = ""
+    grasp_id: int = 0
+    finger: str = ""
+    grasp_pose: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
+    tactile_image: np.ndarray = empty((0, 0, 3), np.uint8)
+    depth_map_m: np.ndarray = empty((0, 0), np.float32)
+    path: str = ""

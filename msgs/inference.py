@@ -1,0 +1,41 @@
+"""The grasp planner's questions to the inference server, and its answers."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from msgs.base import Message, empty
+
+
+@dataclasses.dataclass
+class TactileEstimateRequest(Message):
+    """Estimate tactile images for N candidate regions.
+
+    Either ``depth_maps`` (N x 100 x 100 float32, metres in the gel frame, as the patch
+    extractor makes them) or ``points`` (P x 3 float32/float64, metres in ``world``) with
+    ``gel_poses`` (N x 4 x 4, gel to ``world``), from which the server extracts depth-maps.
+    ``dropout_samples`` > 1 asks for a per-pixel uncertainty from that many stochastic passes.
+    """
+
+    SCHEMA = "dtx.inference.TactileEstimateRequest"
+    VERSION = 1
+
+    depth_maps: np.ndarray = empty((0, 100, 100), np.float32)
+    points: np.ndarray = empty((0, 3), np.float32)
+    gel_poses: np.ndarray = empty((0, 4, 4), np.float64)
+    dropout_samples: int = 1
+
+
+@dataclasses.dataclass
+class TactileEstimateReply(Message):
+    """N x H x W x 3 uint8 estimated tactile images; N x H x W float32 uncertainty (std of
+    the dropout samples in image units, zeros when one sample was asked for)."""
+
+    SCHEMA = "dtx.inference.TactileEstimateReply"
+    VERSION = 1
+
+    images: np.ndarray = empty((0, 100, 100, 3), np.uint8)
+    uncertainty: np.ndarray = empty((0, 100, 100), np.float32)
+    model: str = ""
+    latency_ms: float = 0.0

@@ -1,0 +1,74 @@
+"""Patch extractor messages: registration and contact depth-maps."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from msgs.base import Message, empty
+
+
+@dataclasses.dataclass
+class DepthMap(Message):
+    """Contact depth-map of one finger in frame ``gel_<finger>``.
+
+    ``depth_map_m`` is m x k float32: for each x-z bin the minimum y (metres) of the model
+    points in the crop volume (y > 0 not touching, y < 0 indenting); empty bins hold
+    ``empty_value_m``. ``crop_m`` is the crop volume (x, y, z) in metres.
+    """
+
+    SCHEMA = "dtx.perception.DepthMap"
+    VERSION = 1
+
+    depth_map_m: np.ndarray = empty((0, 0), np.float32)
+    finger: str = ""
+    crop_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    empty_value_m: float = 0.0
+    point_count: int = 0
+
+
+@dataclasses.dataclass
+class RegisterRequest(Message):
+    """Ask the patch extractor to segment and register ``object_name``'s model."""
+
+    SCHEMA = "dtx.perception.RegisterRequest"
+    VERSION = 1
+
+    object_name: str = ""
+    seed: int = 0
+
+
+@dataclasses.dataclass
+class RegisterReply(Message):
+    """Registered model pose (4x4, model to ``world``) with its quality figures."""
+
+    SCHEMA = "dtx.perception.RegisterReply"
+    VERSION = 1
+
+    object_name: str = ""
+    model_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    fitness: float = 0.0
+    inlier_rmse_m: float = 0.0
+    centroid_world: np.ndarray = empty((3,), np.float64)
+    point_counts: dict[str, int] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass
+class PatchRequest(Message):
+    """Ask for both fingers' depth-maps given the gel poses (4x4, gel to ``world``)."""
+
+    SCHEMA = "dtx.perception.PatchRequest"
+    VERSION = 1
+
+    object_name: str = ""
+    gel_left_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    gel_right_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+
+
+@dataclasses.dataclass
+class PatchReply(Message):
+    SCHEMA = "dtx.perception.PatchReply"
+    VERSION = 1
+
+    left: DepthMap = dataclasses.field(default_factory=DepthMap)
+    right: DepthMap = dataclasses.field(default_factory=DepthMap)

@@ -1,0 +1,42 @@
+"""Depth-map normalisation for learning, and its inverse.
+
+A depth-map holds, per x-z bin of the gel frame, the minimum y in metres (y > 0: the surface
+is that far from the gel, y < 0: it indents the gel). The network sees values in [-1, 1]:
+``depth_range_m = (y_near, y_far)`` maps y_near -> -1 and y_far -> +1, values outside are
+clipped. Empty bins are stored as y_far (nothing within reach), so they read as "no contact".
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class NormalisationError(ValueError):
+    """The depth range cannot define a normalisation."""
+
+
+def _check_range(depth_range_m: tuple[float, float]) -> tuple[float, float]:
+    y_near, y_far = float(depth_range_m[0]), float(depth_range_m[1])
+    if not (np.isfinite(y_near) and np.isfinite(y_far)):
+        raise NormalisationError(f"depth range must be finite, got {depth_range_m}")
+    if not y_far > y_near:
+        raise NormalisationError(f"depth range must have y_far > y_near, got {depth_range_m}")
+    if np.float32(y_far) - np.float32(y_near) <= 0:
+        raise NormalisationError(f"depth range {depth_range_m} is below float32 resolution")
+    return y_near, y_far
+
+
+def normalise_depth_map(depth_map_m: np.ndarray, depth_range_m: tuple[float, float]) -> np.ndarray:
+    """Metres in the gel frame -> float32 in [-1, 1]; NaN (empty bin) -> +1 (far)."""
+    y_near, y_far = _check_range(depth_range_m)
+    scaled = (np.asarray(depth_map_m, dtype=np.float64) - y_near) * (2.0 / (y_far - y_near)) - 1.0
+    scaled = np.where(np.isnan(scaled), 1.0, scaled)
+    return np.clip(scaled, -1.0, 1.0).astype(np.float32)
+
+
+def denormalise_depth_map(normalised: np.ndarray, depth_range_m: tuple[float, float]) -> np.ndarray:
+    """Inverse of :func:`normalise_depth_map` for values inside the range (metres, float32)."""
+    y_near, y_far = _check_range(depth_range_m)
+    values = np.asarray(normalised, dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        raise NormalisationError("normalised depth-map contains NaN or inf")
+    return ((values + 1.0) * 0.5 * (y_far - y_near) + y_near).astype(np.float32)
