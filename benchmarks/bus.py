@@ -1,0 +1,150 @@
+"""Bus latency and throughput: dtx messages next to raw pyzmq zero-copy multipart (the limit).
+
+Each row: a publisher here, a subscriber in another process, one transport, one payload.
+One-way latency uses CLOCK_MONOTONIC stamps (shared by processes on one machine) on messages
+paced so that no queue builds up; throughput sends back to back and counts what arrives.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import tempfile
+import time
+from typing import Any
+
+import numpy as np
+import zmq
+
+import msgs
+from msgs.base import Header, Message
+from nodes.bus import Bus, TransportConfig
+from nodes.registry import Registry
+
+PAYLOADS = {  # bytes -> the message a real node sends at that size
+    1024: "1 KiB",
+    512 * 424 * 2: "434 KiB depth frame",
+    640 * 480 * 3: "900 KiB RGB frame",
+    200_000 * 3 * 4: "2.4 MiB 200k-point cloud",
+}
+TOPIC = "/bench"
+
+
+def make_message(payload_bytes: int) -> Message:
+    """A real message type of (about) the payload size."""
+    if payload_bytes == 512 * 424 * 2:
+        return msgs.DepthImage(depth=np.ones((424, 512), np.uint16))
+    if payload_bytes == 640 * 480 * 3:
+        return msgs.TactileImage(image=np.ones((480, 640, 3), np.uint8))
+    return msgs.PointCloud(points=np.ones((payload_bytes // 12, 3), np.float32))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--latency-messages", type=int, default=300)
+    parser.add_argument("--throughput-mb", type=float, default=400.0, help="MB sent per throughput run")
+    parser.add_argument("--transports", nargs="+", default=["ipc", "tcp"], choices=["ipc", "tcp"])
+
+
+def _receiver(impl: str, transport: str, address: str, bus_dir: str, expected: int, out: Any) -> None:
+    """Child process: receive ``expected`` messages, report latencies (us) and the span."""
+    latencies, first, last, received, nbytes = [], 0.0, 0.0, 0, 0
+    if impl == "dtx":
+        bus = Bus("bench_sub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
+        subscriber = bus.subscriber(TOPIC, None)
+        out.put("ready")
+        while received < expected:
+            envelope = subscriber.receive(timeout_s=5.0)
+            if envelope is None:
+                break
+            now = time.monotonic_ns()
+            latencies.append((now - envelope.message.header.stamp_ns) / 1e3)
+            nbytes += envelope.size_bytes
+            first = first or now
+            last = now
+            received += 1
+        bus.close()
+    else:
+        context = zmq.Context()
+        sock = context.socket(zmq.SUB)
+        sock.setsockopt(zmq.RCVHWM, 100_000)
+        sock.setsockopt(zmq.SUBSCRIBE, b"")
+        sock.connect(address)
+        out.put("ready")
+        while received < expected and sock.poll(5000):
+            frames = sock.recv_multipart(copy=False)
+            now = time.monotonic_ns()
+            latencies.append((now - int.from_bytes(frames[1].bytes, "little")) / 1e3)
+            nbytes += sum(len(f.buffer) for f in frames)
+            first = first or now
+            last = now
+            received += 1
+        context.destroy(linger=0)
+    out.put({"latencies_us": latencies, "span_s": (last - first) / 1e9, "received": received, "bytes": nbytes})
+
+
+def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Namespace, bus_dir: str) -> dict:
+    message = make_message(payload_bytes)
+    n_latency = args.latency_messages
+    n_throughput = max(20, int(args.throughput_mb * 1e6 / payload_bytes))
+    n_throughput = min(n_throughput, 20_000)
+    context_mp = mp.get_context("spawn")
+    results: list[dict] = []
+    for phase, count, pause_s in (("latency", n_latency, 0.002 + payload_bytes / 2e9), ("throughput", n_throughput, 0.0)):
+        out = context_mp.Queue()
+        if impl == "dtx":
+            bus = Bus("bench_pub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
+            publisher = bus.publisher(TOPIC, type(message))
+            child = context_mp.Process(target=_receiver, args=(impl, transport, "", bus_dir, count, out))
+            child.start()
+            out.get(timeout=60)
+            publisher.wait_for_subscribers(1, 30)
+            time.sleep(0.2)
+            for _ in range(count):
+                message.header = Header(stamp_ns=time.monotonic_ns())
+                publisher.publish(message)
+                if pause_s:
+                    time.sleep(pause_s)
+            result = out.get(timeout=120)
+            publisher.close()
+            bus.close()
+        else:
+            context = zmq.Context()
+            sock = context.socket(zmq.XPUB)
+            sock.setsockopt(zmq.SNDHWM, 100_000)
+            address = f"ipc://{bus_dir}/raw.sock" if transport == "ipc" else "tcp://127.0.0.1:*"
+            sock.bind(address)
+            address = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+            child = context_mp.Process(target=_receiver, args=(impl, transport, address, bus_dir, count, out))
+            child.start()
+            out.get(timeout=60)
+            sock.recv()  # the subscription arrives: the subscriber is connected
+            time.sleep(0.2)
+            payload = memoryview(np.ones(payload_bytes, np.uint8))
+            for _ in range(count):
+                sock.send_multipart([TOPIC.encode(), time.monotonic_ns().to_bytes(8, "little"), payload], copy=False)
+                if pause_s:
+                    time.sleep(pause_s)
+            result = out.get(timeout=120)
+            context.destroy(linger=1000)
+        child.join(timeout=30)
+        results.append(result)
+    latency, throughput = results
+    lat = np.array(latency["latencies_us"])
+    mb_per_s = throughput["bytes"] / throughput["span_s"] / 1e6 if throughput["span_s"] > 0 else float("nan")
+    return {
+        "impl": impl, "transport": transport, "payload_bytes": payload_bytes,
+        "p50_us": round(float(np.percentile(lat, 50)), 1), "p99_us": round(float(np.percentile(lat, 99)), 1),
+        "mb_per_s": round(mb_per_s, 1),
+        "throughput_received": throughput["received"], "throughput_sent": n_throughput,
+    }
+
+
+def run(args: argparse.Namespace) -> list[dict]:
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="dtxb") as bus_dir:
+        for transport in args.transports:
+            for payload_bytes in PAYLOADS:
+                for impl in ("raw_pyzmq", "dtx"):
+                    rows.append(_run_row(impl, transport, payload_bytes, args, bus_dir))
+    os.environ.pop("DTX_BUS_DIR", None)
+    return rows

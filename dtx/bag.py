@@ -1,0 +1,330 @@
+"""MCAP bags: record the bus, read bags back (also ones cut short by a crash), replay them.
+
+A dtx message is stored in its own encoding: the channel's message encoding is
+``dtx/msgpack+buffers``, the data is the wire header and array buffers each prefixed by its
+length (uint64 little-endian), and the schema record holds the message's field layout as
+JSON, so a bag explains itself. Images, point clouds and transforms are also written to a
+``<topic>/foxglove`` channel in Foxglove's well-known protobuf schemas, so Foxglove Studio
+shows them directly.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import struct
+import time
+import typing
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import foxglove.messages as fox
+import numpy as np
+import zmq
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Message as McapMessage, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+import msgs
+from msgs.base import Message
+from msgs.codec import Envelope, decode
+from nodes.bus import Bus, Publisher, Subscriber
+
+MESSAGE_ENCODING = "dtx/msgpack+buffers"
+SCHEMA_ENCODING = "dtx/fields+json"
+FOXGLOVE_SUFFIX = "/foxglove"
+COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
+_LENGTH = struct.Struct("<Q")
+
+
+class BagError(ValueError):
+    """A bag that cannot be written or read."""
+
+
+def pack_frames(frames: list[Any]) -> bytes:
+    """Header and buffers (everything after the topic frame) as one length-prefixed blob."""
+    parts: list[Any] = []
+    for frame in frames:
+        view = memoryview(getattr(frame, "buffer", frame)).cast("B")
+        parts += [_LENGTH.pack(view.nbytes), view]
+    return b"".join(parts)
+
+
+def unpack_frames(topic: str, data: bytes | memoryview) -> list[Any]:
+    view = memoryview(data).cast("B")
+    frames: list[Any] = [topic.encode()]
+    offset = 0
+    while offset < view.nbytes:
+        if offset + 8 > view.nbytes:
+            raise BagError(f"{topic}: record ends inside a length prefix")
+        (length,) = _LENGTH.unpack_from(view, offset)
+        offset += 8
+        if offset + length > view.nbytes:
+            raise BagError(f"{topic}: record announces {length} bytes, {view.nbytes - offset} left")
+        frames.append(view[offset:offset + length])
+        offset += length
+    return frames
+
+
+def schema_description(msg_type: type[Message]) -> bytes:
+    hints = typing.get_type_hints(msg_type)
+    fields = {f.name: str(hints[f.name]) for f in dataclasses.fields(msg_type)}
+    return json.dumps({"schema": msg_type.SCHEMA, "version": msg_type.VERSION, "fields": fields}).encode()
+
+
+def _foxglove_time(stamp_ns: int) -> fox.Timestamp:
+    return fox.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+
+
+def foxglove_view(message: Message) -> Any | None:
+    """The Foxglove well-known message showing ``message``, or None if it has none."""
+    header = message.header
+    if isinstance(message, msgs.DepthImage):
+        depth = np.ascontiguousarray(message.depth)
+        encoding = "16UC1" if depth.dtype == np.uint16 else "32FC1"
+        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
+                            width=depth.shape[1], height=depth.shape[0], encoding=encoding,
+                            step=depth.strides[0], data=depth.tobytes())
+    if isinstance(message, msgs.TactileImage):
+        image = np.ascontiguousarray(message.image)
+        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
+                            width=image.shape[1], height=image.shape[0], encoding="rgb8",
+                            step=image.strides[0], data=image.tobytes())
+    if isinstance(message, msgs.PointCloud):
+        points = np.ascontiguousarray(message.points, dtype=np.float32)
+        fields = [fox.PackedElementField(name=axis, offset=4 * i, type=fox.PackedElementFieldNumericType.Float32)
+                  for i, axis in enumerate("xyz")]
+        return fox.PointCloud(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
+                              point_stride=12, fields=fields, data=points.tobytes())
+    if isinstance(message, msgs.FrameTransform):
+        t, q = message.translation, message.rotation
+        return fox.FrameTransform(
+            timestamp=_foxglove_time(header.stamp_ns), parent_frame_id=header.frame_id,
+            child_frame_id=message.child_frame_id,
+            translation=fox.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+            rotation=fox.Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    return None
+
+
+class BagWriter:
+    """Writes envelopes (with their raw frames) to an MCAP file, chunked and compressed."""
+
+    def __init__(self, path: str | Path, compression: str = "lz4", foxglove: bool = True,
+                 chunk_size: int = 4 * 1024 * 1024) -> None:
+        if compression not in COMPRESSIONS:
+            raise BagError(f"compression {compression!r} unknown; allowed: {sorted(COMPRESSIONS)}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+        self._writer.start(profile="dtx", library="dtx")
+        self.foxglove = foxglove
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+
+    def _channel(self, topic: str, schema_name: str, encoding: str, schema_data: bytes,
+                 message_encoding: str) -> int:
+        if topic not in self._channels:
+            if schema_name not in self._schemas:
+                self._schemas[schema_name] = self._writer.register_schema(schema_name, encoding, schema_data)
+            self._channels[topic] = self._writer.register_channel(
+                topic, message_encoding, self._schemas[schema_name])
+        return self._channels[topic]
+
+    def write(self, envelope: Envelope, frames: list[Any], log_time_ns: int | None = None) -> None:
+        message = envelope.message
+        log_time = log_time_ns if log_time_ns is not None else time.time_ns()
+        channel = self._channel(envelope.topic, message.SCHEMA, SCHEMA_ENCODING,
+                                schema_description(type(message)), MESSAGE_ENCODING)
+        self._writer.add_message(channel, log_time, pack_frames(frames[1:]),
+                                 message.header.stamp_ns, message.header.seq)
+        self.counts[envelope.topic] = self.counts.get(envelope.topic, 0) + 1
+        if self.foxglove:
+            view = foxglove_view(message)
+            if view is not None:
+                schema = view.get_schema()
+                fox_channel = self._channel(envelope.topic + FOXGLOVE_SUFFIX, schema.name, schema.encoding,
+                                            schema.data, "protobuf")
+                self._writer.add_message(fox_channel, log_time, view.encode(),
+                                         message.header.stamp_ns, message.header.seq)
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+
+@dataclasses.dataclass
+class BagInfo:
+    path: str
+    truncated: bool
+    message_count: int
+    start_ns: int
+    end_ns: int
+    topics: dict[str, dict[str, Any]]
+    compression: str
+
+    @property
+    def duration_s(self) -> float:
+        return max(0, self.end_ns - self.start_ns) / 1e9
+
+
+@dataclasses.dataclass
+class BagRecord:
+    topic: str
+    schema: str
+    message_encoding: str
+    log_time_ns: int
+    data: bytes
+
+
+def read_records(path: str | Path) -> tuple[Iterator[BagRecord], Callable[[], bool]]:
+    """Iterate every message of a bag in file order; the second value tells, once the
+    iterator is exhausted, whether the file was cut short. The seeking reader needs the
+    summary a crash never wrote, so a bag is read as a stream instead: that works for both."""
+    state = {"truncated": False}
+
+    def records() -> Iterator[BagRecord]:
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        try:
+            with open(path, "rb") as stream:
+                for record in StreamReader(stream, skip_magic=False).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record
+                    elif isinstance(record, McapMessage):
+                        channel = channels[record.channel_id]
+                        schema = schemas.get(channel.schema_id)
+                        yield BagRecord(channel.topic, schema.name if schema else "",
+                                        channel.message_encoding, record.log_time, record.data)
+        except OSError as exc:
+            raise BagError(f"bag {path} cannot be read: {exc}") from exc
+        except (McapError, EOFError, struct.error, ValueError, KeyError):
+            state["truncated"] = True  # everything before the cut has been yielded
+
+    return records(), lambda: state["truncated"]
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    compression = "unknown"
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is not None and summary.chunk_indexes:
+            compression = summary.chunk_indexes[0].compression or "none"
+    except (McapError, EOFError, struct.error, ValueError, OSError):
+        summary = None
+    records, truncated = read_records(path)
+    topics: dict[str, dict[str, Any]] = {}
+    start = end = 0
+    count = 0
+    for record in records:
+        entry = topics.setdefault(record.topic, {"schema": record.schema, "encoding": record.message_encoding,
+                                                 "count": 0, "bytes": 0})
+        entry["count"] += 1
+        entry["bytes"] += len(record.data)
+        start = record.log_time_ns if count == 0 else min(start, record.log_time_ns)
+        end = max(end, record.log_time_ns)
+        count += 1
+    return BagInfo(str(path), truncated() or summary is None, count, start, end, topics, compression)
+
+
+def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
+    """(log time ns, decoded dtx message) for every dtx message of the bag, in file order."""
+    records, _ = read_records(path)
+    for record in records:
+        if record.message_encoding == MESSAGE_ENCODING:
+            yield record.log_time_ns, decode(unpack_frames(record.topic, record.data))
+
+
+def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[str] | None = None,
+           compression: str = "lz4", foxglove: bool = True,
+           on_message: Callable[[str], None] | None = None) -> dict[str, int]:
+    """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
+    Returns messages written per topic; the bag is closed properly when this returns."""
+    writer = BagWriter(path, compression, foxglove)
+    subscribers: dict[zmq.Socket, Subscriber[Any]] = {}
+    poller = zmq.Poller()
+    next_scan = 0.0
+    try:
+        while not stop():
+            if time.monotonic() >= next_scan:
+                next_scan = time.monotonic() + 0.5
+                for topic in topics or list(bus.registry.names("topic")):
+                    if topic not in {s.topic for s in subscribers.values()}:
+                        subscriber = bus.subscriber(topic, None)
+                        subscribers[subscriber.sock] = subscriber
+                        poller.register(subscriber.sock, zmq.POLLIN)
+                for subscriber in subscribers.values():
+                    subscriber.discover()
+            for sock, _ in poller.poll(50):
+                _drain(subscribers[sock], writer, on_message)
+        for subscriber in subscribers.values():  # what arrived before the stop is kept
+            _drain(subscriber, writer, on_message)
+    finally:
+        writer.close()
+        for subscriber in subscribers.values():
+            subscriber.close()
+    return dict(writer.counts)
+
+
+def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None) -> None:
+    while True:
+        try:
+            frames = subscriber.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            return
+        envelope = subscriber.handle(frames)
+        if envelope is not None:
+            writer.write(envelope, frames)
+            if on_message is not None:
+                on_message(envelope.topic)
+
+
+def play(path: str | Path, bus: Bus, rate: float | None = 1.0, clock: bool = False,
+         topics: list[str] | None = None, wait_for_subscribers_s: float = 0.0,
+         stop: Callable[[], bool] = lambda: False) -> dict[str, int]:
+    """Publish a bag's dtx messages with their recorded timing scaled by ``rate`` (None: as
+    fast as possible). With ``clock``, ``/clock`` carries the bag's time, like ROS's /clock.
+    Returns messages published per topic."""
+    if rate is not None and not rate > 0:
+        raise BagError(f"rate must be positive (or None for as fast as possible), got {rate}")
+    publishers: dict[str, Publisher[Any]] = {}
+    for topic, entry in bag_info(path).topics.items():
+        if entry["encoding"] == MESSAGE_ENCODING and (topics is None or topic in topics):
+            publishers[topic] = bus.publisher(topic, msgs.MESSAGE_TYPES[entry["schema"]])
+    deadline = time.monotonic() + wait_for_subscribers_s
+    for publisher in publishers.values():  # slow joiners: let subscribers connect first
+        publisher.wait_for_subscribers(1, max(0.0, deadline - time.monotonic()))
+    clock_publisher = bus.publisher("/clock", msgs.Clock) if clock else None
+    counts: dict[str, int] = {}
+    start_wall = time.monotonic()
+    start_bag: int | None = None
+    try:
+        for log_time_ns, envelope in iter_envelopes(path):
+            if stop():
+                break
+            if envelope.topic not in publishers:
+                continue
+            if start_bag is None:
+                start_bag = log_time_ns
+            if rate is not None:
+                due = start_wall + (log_time_ns - start_bag) / 1e9 / rate
+                while (delay := due - time.monotonic()) > 0:
+                    time.sleep(min(delay, 0.05))
+                    if stop():
+                        return counts
+            if clock_publisher is not None:
+                clock_publisher.publish(msgs.Clock(sim_time_ns=log_time_ns))
+            publishers[envelope.topic].publish(envelope.message)
+            counts[envelope.topic] = counts.get(envelope.topic, 0) + 1
+    finally:
+        for publisher in publishers.values():
+            publisher.close()
+        if clock_publisher is not None:
+            clock_publisher.close()
+    return counts

@@ -1,0 +1,287 @@
+"""Launch files (YAML, close to ROS 2's YAML launch) and the process supervisor.
+
+    launch:
+      - arg: {name: out, default: out/session}
+      - include: {file: sensors.yaml}
+      - node:
+          name: gripper
+          module: nodes.gripper
+          params: {backend: simulated, port: $(var port)}
+          remaps: {/gripper/state: /left_gripper/state}
+          respawn: true
+          required: false
+
+Every node runs as its own process; its output is prefixed with its name. A node marked
+``respawn`` is restarted when it dies; when a ``required`` node ends, everything stops. Every
+child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
+"""
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import importlib.util
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+
+NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required",
+             "transport", "bind_host", "curve_secret_key", "curve_authorized_keys"}
+ENTRY_KEYS = {"arg", "include", "node"}
+_VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
+
+
+class LaunchError(ValueError):
+    """A launch file that cannot be run; the message names the file and line."""
+
+
+@dataclasses.dataclass
+class NodeSpec:
+    name: str
+    module: str
+    params: dict[str, Any] = dataclasses.field(default_factory=dict)
+    remaps: dict[str, str] = dataclasses.field(default_factory=dict)
+    respawn: bool = False
+    respawn_delay_s: float = 1.0
+    required: bool = False
+    transport: str = "ipc"
+    bind_host: str = "127.0.0.1"
+    curve_secret_key: str = ""
+    curve_authorized_keys: str = ""
+
+    def command(self) -> list[str]:
+        command = [sys.executable, "-m", self.module, "--name", self.name,
+                   "--params", json.dumps(self.params), "--transport", self.transport,
+                   "--bind-host", self.bind_host]
+        for source, target in self.remaps.items():
+            command += ["--remap", f"{source}:={target}"]
+        if self.curve_secret_key:
+            command += ["--curve-secret-key", self.curve_secret_key,
+                        "--curve-authorized-keys", self.curve_authorized_keys]
+        return command
+
+
+@dataclasses.dataclass
+class LaunchDescription:
+    nodes: list[NodeSpec]
+    args: dict[str, str]
+
+
+def parse_launch_args(items: list[str]) -> dict[str, str]:
+    """``key:=value`` pairs from the command line."""
+    args = {}
+    for item in items:
+        if ":=" not in item:
+            raise LaunchError(f"launch argument {item!r} must look like name:=value")
+        key, value = item.split(":=", 1)
+        args[key] = value
+    return args
+
+
+def load_launch(path: str | Path, args: dict[str, str] | None = None) -> LaunchDescription:
+    """Read a launch file (and its includes), substitute ``$(var NAME)``, check every node."""
+    given = dict(args or {})
+    description = LaunchDescription(nodes=[], args={})
+    _load_into(Path(path), given, description, stack=())
+    unused = sorted(set(given) - set(description.args))
+    if unused:
+        raise LaunchError(f"{path}: unknown launch argument(s) {unused}; declared: {sorted(description.args)}")
+    names = [n.name for n in description.nodes]
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise LaunchError(f"{path}: node name(s) used twice: {duplicates}")
+    return description
+
+
+def _where(path: Path, node: yaml.Node) -> str:
+    return f"{path}:{node.start_mark.line + 1}"
+
+
+def _load_into(path: Path, given: dict[str, str], out: LaunchDescription, stack: tuple[Path, ...]) -> None:
+    path = path.resolve()
+    if path in stack:
+        raise LaunchError(f"{path}: included from itself ({' -> '.join(map(str, stack))})")
+    try:
+        root = yaml.compose(path.read_text())
+    except OSError as exc:
+        raise LaunchError(f"launch file {path} cannot be read: {exc}") from exc
+    except yaml.YAMLError as exc:
+        raise LaunchError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(root, yaml.MappingNode) or [k.value for k, _ in root.value] != ["launch"]:
+        raise LaunchError(f"{path}:1: a launch file is a mapping with the single key 'launch'")
+    entries = root.value[0][1]
+    if not isinstance(entries, yaml.SequenceNode):
+        raise LaunchError(f"{_where(path, entries)}: 'launch' must be a list of entries")
+    for entry in entries.value:
+        if not isinstance(entry, yaml.MappingNode) or len(entry.value) != 1:
+            raise LaunchError(f"{_where(path, entry)}: each entry is one of {sorted(ENTRY_KEYS)}")
+        key_node, body = entry.value[0]
+        kind = key_node.value
+        if kind not in ENTRY_KEYS:
+            raise LaunchError(f"{_where(path, key_node)}: unknown entry {kind!r}; allowed: {sorted(ENTRY_KEYS)}")
+        fields = _mapping(path, body)
+        values = {k: _substitute(path, v, out.args) for k, v in fields.items()}
+        if kind == "arg":
+            _check_keys(path, body, fields, {"name", "default", "description"}, required={"name"})
+            name = str(values["name"])
+            if name in given:
+                out.args[name] = given[name]
+            elif "default" in values:
+                out.args[name] = str(values["default"])
+            else:
+                raise LaunchError(f"{_where(path, body)}: argument {name!r} has no default; pass {name}:=VALUE")
+        elif kind == "include":
+            _check_keys(path, body, fields, {"file"}, required={"file"})
+            _load_into(path.parent / str(values["file"]), given, out, (*stack, path))
+        else:
+            _check_keys(path, body, fields, NODE_KEYS, required={"name", "module"})
+            spec = NodeSpec(**values)
+            if importlib.util.find_spec(spec.module) is None:
+                raise LaunchError(f"{_where(path, body)}: node {spec.name!r}: module {spec.module!r} not found")
+            out.nodes.append(spec)
+
+
+def _mapping(path: Path, node: yaml.Node) -> dict[str, yaml.Node]:
+    if not isinstance(node, yaml.MappingNode):
+        raise LaunchError(f"{_where(path, node)}: expected a mapping")
+    return {k.value: v for k, v in node.value}
+
+
+def _check_keys(path: Path, body: yaml.Node, fields: dict[str, yaml.Node], allowed: set[str],
+                required: set[str]) -> None:
+    for key_node, _ in body.value:  # type: ignore[union-attr]
+        if key_node.value not in allowed:
+            raise LaunchError(f"{_where(path, key_node)}: unknown key {key_node.value!r}; allowed: {sorted(allowed)}")
+    missing = sorted(required - set(fields))
+    if missing:
+        raise LaunchError(f"{_where(path, body)}: missing key(s) {missing}")
+
+
+def _substitute(path: Path, node: yaml.Node, args: dict[str, str]) -> Any:
+    """Python value of a YAML node with ``$(var NAME)`` replaced; a whole-value substitution is
+    re-read as YAML so that ``grasps: $(var grasps)`` stays an integer."""
+    if isinstance(node, yaml.MappingNode):
+        return {k.value: _substitute(path, v, args) for k, v in node.value}
+    if isinstance(node, yaml.SequenceNode):
+        return [_substitute(path, v, args) for v in node.value]
+    text = node.value
+    if isinstance(text, str) and "$(" in text:
+        def replace(match: re.Match[str]) -> str:
+            name = match.group(1)
+            if name not in args:
+                raise LaunchError(f"{_where(path, node)}: $(var {name}) used before its 'arg' entry")
+            return args[name]
+        replaced = _VAR.sub(replace, text)
+        if "$(" in replaced:
+            raise LaunchError(f"{_where(path, node)}: unknown substitution in {text!r} (only $(var NAME))")
+        return yaml.safe_load(replaced) if _VAR.fullmatch(text) else replaced
+    return yaml.safe_load(yaml.serialize(node))
+
+
+# -- supervision -------------------------------------------------------------------------
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+@dataclasses.dataclass
+class _Running:
+    spec: NodeSpec
+    process: subprocess.Popen[bytes]
+    started: float
+    respawns: int = 0
+
+
+class Launcher:
+    """Starts, watches and stops the nodes of one launch description."""
+
+    def __init__(self, description: LaunchDescription, output: TextIO = sys.stdout,
+                 stop_timeout_s: float = 5.0) -> None:
+        self.description = description
+        self.output = output
+        self.stop_timeout_s = stop_timeout_s
+        self.running: dict[str, _Running] = {}
+        self._print_lock = threading.Lock()
+        self._stop = threading.Event()
+        self.failures: list[str] = []
+
+    def say(self, text: str) -> None:
+        with self._print_lock:
+            print(text, file=self.output, flush=True)
+
+    def _start(self, spec: NodeSpec, respawns: int = 0) -> None:
+        process = subprocess.Popen(
+            spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.running[spec.name] = _Running(spec, process, time.monotonic(), respawns)
+        threading.Thread(target=self._relay, args=(spec.name, process), daemon=True).start()
+        self.say(f"[launch] started {spec.name} (pid {process.pid})")
+
+    def _relay(self, name: str, process: subprocess.Popen[bytes]) -> None:
+        assert process.stdout is not None
+        for raw in process.stdout:
+            self.say(f"[{name}] {raw.decode(errors='replace').rstrip()}")
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def run(self) -> int:
+        """Run until Ctrl-C, a required node ends, or every node has ended. Exit status."""
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, lambda *_: self._stop.set())
+        for spec in self.description.nodes:
+            self._start(spec)
+        try:
+            while not self._stop.is_set() and self.running:
+                self._watch()
+                self._stop.wait(0.1)
+        finally:
+            self.shutdown()
+        return 1 if self.failures else 0
+
+    def _watch(self) -> None:
+        for name, run in list(self.running.items()):
+            code = run.process.poll()
+            if code is None:
+                continue
+            spec = run.spec
+            del self.running[name]
+            if code != 0 and spec.respawn and not spec.required:
+                self.say(f"[launch] {name} exited with {code}; respawning in {spec.respawn_delay_s} s")
+                self._stop.wait(spec.respawn_delay_s)
+                if not self._stop.is_set():
+                    self._start(spec, run.respawns + 1)
+                continue
+            if code != 0:
+                self.failures.append(f"{name} exited with {code}")
+                self.say(f"[launch] {name} failed (exit {code})")
+            else:
+                self.say(f"[launch] {name} finished")
+            if spec.required:
+                self.say(f"[launch] required node {name} ended; stopping everything")
+                self._stop.set()
+
+    def shutdown(self) -> None:
+        for run in self.running.values():
+            if run.process.poll() is None:
+                run.process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + self.stop_timeout_s
+        for name, run in self.running.items():
+            try:
+                run.process.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.say(f"[launch] {name} did not stop in {self.stop_timeout_s} s; killing it")
+                run.process.kill()
+                run.process.wait()
+        self.running.clear()

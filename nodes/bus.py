@@ -1,0 +1,442 @@
+"""Publish/subscribe and services over ZeroMQ, with discovery through the registry.
+
+- Topics: a publisher binds an XPUB socket (so it sees subscriptions arrive) and advertises
+  it; subscribers connect to every live publisher of the topic. Latched topics resend their
+  last message when a subscriber joins (slow joiners get it); receivers drop the repeat by
+  sequence number. Gaps in sequence numbers are counted as drops.
+- Services: ROUTER servers, DEALER clients; a call has a time-out and retries, repeated
+  requests are answered from a reply cache (a retry never runs a handler twice), and a bad
+  request gets a ``ServiceError`` reply while the server keeps serving.
+- Anything malformed, oversized or of the wrong type is dropped, counted and logged.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import os
+import time
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+import zmq
+from zmq.utils.monitor import recv_monitor_message
+
+from msgs.base import Header, Message
+from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode, encode
+from msgs.system import ServiceError
+from nodes.registry import Endpoint, Registry
+from nodes.security import CurveConfig, secure_client, secure_server
+
+log = logging.getLogger("dtx.bus")
+M = TypeVar("M", bound=Message)
+R = TypeVar("R", bound=Message)
+
+DISCOVERY_PERIOD_S = 0.2
+
+
+class ServiceCallError(RuntimeError):
+    """The service answered with an error, or did not answer in time."""
+
+    def __init__(self, service: str, code: str, text: str) -> None:
+        super().__init__(f"service {service}: {code}: {text}")
+        self.service, self.code, self.text = service, code, text
+
+
+@dataclasses.dataclass
+class TransportConfig:
+    """Where this process's sockets listen. ``ipc`` (default) stays on this machine;
+    ``tcp`` binds ``bind_host`` (127.0.0.1 unless a launch file says otherwise), with CURVE
+    when ``curve`` is given."""
+
+    transport: str = "ipc"
+    bind_host: str = "127.0.0.1"
+    curve: CurveConfig | None = None
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    high_water_mark: int = 1000
+
+
+@dataclasses.dataclass
+class Counters:
+    received: int = 0
+    dropped: int = 0
+    duplicates: int = 0
+    malformed: int = 0
+    wrong_type: int = 0
+    connection_resets: int = 0
+    bytes: int = 0
+
+
+class Bus:
+    """One process's view of the bus: a ZeroMQ context, the registry and its settings."""
+
+    def __init__(self, node_name: str, registry: Registry | None = None,
+                 transport: TransportConfig | None = None, remaps: dict[str, str] | None = None) -> None:
+        self.node_name = node_name
+        self.registry = registry or Registry()
+        self.transport = transport or TransportConfig()
+        self.remaps = dict(remaps or {})
+        self.context = zmq.Context()
+        self._owner_count = 0
+
+    def resolve(self, name: str) -> str:
+        return self.remaps.get(name, name)
+
+    def new_owner_id(self) -> str:
+        self._owner_count += 1
+        return f"{self.node_name}.{os.getpid()}.{self._owner_count}"
+
+    def bind(self, sock: zmq.Socket, owner: str) -> tuple[str, str]:
+        """Bind per the transport config; returns (address, CURVE public key or "")."""
+        server_key = ""
+        if self.transport.transport == "ipc":
+            address = self.registry.socket_address(owner)
+        elif self.transport.transport == "tcp":
+            if self.transport.curve is not None:
+                server_key = secure_server(self.context, sock, self.transport.curve)
+            address = f"tcp://{self.transport.bind_host}:*"
+        else:
+            raise ValueError(f"transport {self.transport.transport!r} unknown (allowed: ipc, tcp)")
+        sock.bind(address)
+        return sock.getsockopt_string(zmq.LAST_ENDPOINT), server_key
+
+    def secure_connection(self, sock: zmq.Socket, endpoint: Endpoint) -> None:
+        if endpoint.curve_server_key:
+            if self.transport.curve is None:
+                raise ValueError(f"{endpoint.name} at {endpoint.address} needs CURVE keys; none configured")
+            secure_client(sock, self.transport.curve, endpoint.curve_server_key)
+
+    def publisher(self, topic: str, msg_type: type[M], latched: bool = False) -> "Publisher[M]":
+        return Publisher(self, self.resolve(topic), msg_type, latched)
+
+    def subscriber(self, topic: str, msg_type: type[M] | None,
+                   static_endpoints: list[Endpoint] | None = None) -> "Subscriber[M]":
+        return Subscriber(self, self.resolve(topic), msg_type, static_endpoints)
+
+    def service(self, name: str, request_type: type[M], reply_type: type[R],
+                handler: Callable[[M], R]) -> "ServiceServer[M, R]":
+        return ServiceServer(self, self.resolve(name), request_type, reply_type, handler)
+
+    def client(self, name: str, request_type: type[M], reply_type: type[R],
+               static_endpoints: list[Endpoint] | None = None) -> "ServiceClient[M, R]":
+        return ServiceClient(self, self.resolve(name), request_type, reply_type, static_endpoints)
+
+    def close(self) -> None:
+        self.context.destroy(linger=200)
+
+
+class Publisher(Generic[M]):
+    def __init__(self, bus: Bus, topic: str, msg_type: type[M], latched: bool) -> None:
+        self.bus, self.topic, self.msg_type, self.latched = bus, topic, msg_type, latched
+        self.id = bus.new_owner_id()
+        self.sock = bus.context.socket(zmq.XPUB)
+        self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # every join is seen, so latched resend works
+        self.sock.setsockopt(zmq.SNDHWM, bus.transport.high_water_mark)
+        self.sock.setsockopt(zmq.LINGER, 500)
+        self.address, server_key = bus.bind(self.sock, self.id)
+        self.seq = 0
+        self.subscriptions = 0
+        self._last_frames: list[Any] | None = None
+        self._entry = bus.registry.advertise(Endpoint(
+            "topic", topic, self.address, bus.node_name, os.getpid(), msg_type.SCHEMA,
+            latched=latched, curve_server_key=server_key))
+
+    def publish(self, message: M) -> None:
+        if not isinstance(message, self.msg_type):
+            raise TypeError(f"{self.topic} carries {self.msg_type.__name__}, not {type(message).__name__}")
+        self.seq += 1
+        header = message.header
+        stamped = dataclasses.replace(message, header=Header(
+            stamp_ns=header.stamp_ns or time.time_ns(), seq=self.seq, frame_id=header.frame_id))
+        frames = encode(self.topic, stamped, self.id)
+        self.service_subscriptions()
+        self.sock.send_multipart(frames, copy=False)
+        if self.latched:
+            self._last_frames = frames
+
+    def service_subscriptions(self) -> None:
+        """Count joins and leaves; a join on a latched topic gets the last message again."""
+        while self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a failing recv
+            event = self.sock.recv()
+            if event[:1] == b"\x01":
+                self.subscriptions += 1
+                if self._last_frames is not None:
+                    self.sock.send_multipart(self._last_frames, copy=False)
+            elif event[:1] == b"\x00":
+                self.subscriptions = max(0, self.subscriptions - 1)
+
+    def wait_for_subscribers(self, count: int = 1, timeout_s: float = 5.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.service_subscriptions()
+            if self.subscriptions >= count:
+                return True
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            self.sock.poll(min(remaining, 0.05) * 1000, zmq.POLLIN)
+
+    def close(self) -> None:
+        self._entry.unlink(missing_ok=True)
+        self.sock.close()
+
+
+class Subscriber(Generic[M]):
+    """Receives one topic from every publisher of it. ``msg_type`` None accepts any schema
+    (recorders, ``dtx topic echo``)."""
+
+    def __init__(self, bus: Bus, topic: str, msg_type: type[M] | None,
+                 static_endpoints: list[Endpoint] | None = None) -> None:
+        self.bus, self.topic, self.msg_type = bus, topic, msg_type
+        self.sock = bus.context.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.RCVHWM, bus.transport.high_water_mark)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, bus.transport.max_message_bytes)  # refused before allocation
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
+        self.counters = Counters()
+        self._static = list(static_endpoints or [])
+        self._connected: dict[str, Endpoint] = {}
+        self._last_seq: dict[str, int] = {}
+        self._next_discovery = 0.0
+        # ZeroMQ drops a connection that carries an oversized message (refused before it is
+        # allocated) and does not come back by itself; the monitor tells us so we reconnect.
+        self._monitor = self.sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self.discover()
+
+    def _reconnect_dropped(self) -> None:
+        while self._monitor.poll(0):
+            event = recv_monitor_message(self._monitor)
+            address = event["endpoint"].decode()
+            if address in self._connected:
+                self.counters.connection_resets += 1
+                log.warning("%s: connection to %s dropped (oversized or malformed data); reconnecting",
+                            self.topic, address)
+                self.sock.disconnect(address)
+                self.sock.connect(address)
+
+    def discover(self, force: bool = False) -> None:
+        """Connect to new publishers of the topic, forget dead ones (cheap; called often)."""
+        self._reconnect_dropped()
+        now = time.monotonic()
+        if not force and now < self._next_discovery:
+            return
+        self._next_discovery = now + DISCOVERY_PERIOD_S
+        endpoints = self._static + self.bus.registry.lookup("topic", self.topic)
+        live = {e.address: e for e in endpoints}
+        for address, endpoint in live.items():
+            if address not in self._connected:
+                if self.msg_type is not None and endpoint.schema != self.msg_type.SCHEMA:
+                    log.warning("%s: publisher %s sends %s, expected %s; not connecting",
+                                self.topic, endpoint.node, endpoint.schema, self.msg_type.SCHEMA)
+                    continue
+                self.bus.secure_connection(self.sock, endpoint)
+                self.sock.connect(address)
+                self._connected[address] = endpoint
+        for address in list(self._connected):
+            if address not in live:
+                self.sock.disconnect(address)
+                del self._connected[address]
+
+    @property
+    def publisher_count(self) -> int:
+        return len(self._connected)
+
+    def receive(self, timeout_s: float | None = None) -> Envelope | None:
+        """The next valid message, or None after ``timeout_s`` (None: wait forever)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            self.discover()
+            if self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                envelope = self.handle(self.sock.recv_multipart(copy=False))
+                if envelope is not None:
+                    return envelope
+                continue
+            wait = DISCOVERY_PERIOD_S if deadline is None else min(DISCOVERY_PERIOD_S, deadline - time.monotonic())
+            if wait > 0 and self.sock.poll(wait * 1000, zmq.POLLIN):
+                envelope = self.handle(self.sock.recv_multipart(copy=False))
+                if envelope is not None:
+                    return envelope
+                continue
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def receive_ready(self) -> Envelope | None:
+        """One message if one is waiting, without blocking (for executors)."""
+        while True:
+            try:
+                frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return None
+            envelope = self.handle(frames)
+            if envelope is not None:
+                return envelope
+
+    def handle(self, frames: list[Any]) -> Envelope | None:
+        try:
+            envelope = decode(frames, self.bus.transport.max_message_bytes)
+        except MessageError as exc:
+            self.counters.malformed += 1
+            log.warning("%s: dropped a malformed message (%s)", self.topic, exc)
+            return None
+        if envelope.topic != self.topic:
+            return None  # prefix match of the ZeroMQ filter, another topic
+        if self.msg_type is not None and not isinstance(envelope.message, self.msg_type):
+            self.counters.wrong_type += 1
+            log.warning("%s: dropped a %s, expected %s", self.topic,
+                        envelope.message.SCHEMA, self.msg_type.SCHEMA)
+            return None
+        seq = envelope.message.header.seq
+        last = self._last_seq.get(envelope.publisher)
+        if last is not None and seq <= last:
+            self.counters.duplicates += 1  # a latched resend this subscriber already has
+            return None
+        if last is not None and seq > last + 1:
+            self.counters.dropped += seq - last - 1
+        self._last_seq[envelope.publisher] = seq
+        self.counters.received += 1
+        self.counters.bytes += envelope.size_bytes
+        return envelope
+
+    def close(self) -> None:
+        self.sock.disable_monitor()
+        self._monitor.close()
+        self.sock.close()
+
+
+class ServiceServer(Generic[M, R]):
+    REPLY_CACHE = 256
+
+    def __init__(self, bus: Bus, name: str, request_type: type[M], reply_type: type[R],
+                 handler: Callable[[M], R]) -> None:
+        self.bus, self.name = bus, name
+        self.request_type, self.reply_type, self.handler = request_type, reply_type, handler
+        self.id = bus.new_owner_id()
+        self.sock = bus.context.socket(zmq.ROUTER)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, bus.transport.max_message_bytes)
+        self.sock.setsockopt(zmq.LINGER, 500)
+        self.address, server_key = bus.bind(self.sock, self.id)
+        self.counters = Counters()
+        self._replies: collections.OrderedDict[tuple[bytes, str, int], list[Any]] = collections.OrderedDict()
+        self._entry = bus.registry.advertise(Endpoint(
+            "service", name, self.address, bus.node_name, os.getpid(), request_type.SCHEMA,
+            reply_schema=reply_type.SCHEMA, curve_server_key=server_key))
+
+    def serve_ready(self) -> int:
+        """Answer every waiting request; returns how many were answered."""
+        answered = 0
+        while True:
+            try:
+                frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return answered
+            self._answer(frames)
+            answered += 1
+
+    def _answer(self, frames: list[Any]) -> None:
+        identity = frames[0].bytes
+        try:
+            envelope = decode(frames[1:], self.bus.transport.max_message_bytes)
+        except MessageError as exc:
+            self.counters.malformed += 1
+            log.warning("%s: malformed request (%s)", self.name, exc)
+            self._send(identity, ServiceError(code="malformed_request", text=str(exc)), "", 0)
+            return
+        key = (identity, envelope.publisher, envelope.message.header.seq)
+        if key in self._replies:
+            self.counters.duplicates += 1
+            self.sock.send_multipart([identity, *self._replies[key]], copy=False)
+            return
+        request = envelope.message
+        if not isinstance(request, self.request_type):
+            self.counters.wrong_type += 1
+            reply: Message = ServiceError(
+                code="wrong_type", text=f"{self.name} takes {self.request_type.SCHEMA}, got {request.SCHEMA}")
+        else:
+            self.counters.received += 1
+            try:
+                reply = self.handler(request)
+                if not isinstance(reply, (self.reply_type, ServiceError)):
+                    raise TypeError(f"handler returned {type(reply).__name__}, not {self.reply_type.__name__}")
+            except Exception as exc:  # a handler's failure is the caller's error reply, not our death
+                log.exception("%s: handler failed", self.name)
+                reply = ServiceError(code=getattr(exc, "code", "handler_error"), text=f"{type(exc).__name__}: {exc}")
+        self._replies[key] = self._send(identity, reply, envelope.publisher, envelope.message.header.seq)
+        while len(self._replies) > self.REPLY_CACHE:
+            self._replies.popitem(last=False)
+
+    def _send(self, identity: bytes, reply: Message, client: str, seq: int) -> list[Any]:
+        stamped = dataclasses.replace(reply, header=Header(
+            stamp_ns=time.time_ns(), seq=seq, frame_id=reply.header.frame_id))
+        frames = encode(self.name, stamped, client)
+        self.sock.send_multipart([identity, *frames], copy=False)
+        return frames
+
+    def close(self) -> None:
+        self._entry.unlink(missing_ok=True)
+        self.sock.close()
+
+
+class ServiceClient(Generic[M, R]):
+    def __init__(self, bus: Bus, name: str, request_type: type[M], reply_type: type[R],
+                 static_endpoints: list[Endpoint] | None = None) -> None:
+        self.bus, self.name = bus, name
+        self.request_type, self.reply_type = request_type, reply_type
+        self.id = bus.new_owner_id()
+        self.sock = bus.context.socket(zmq.DEALER)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.IMMEDIATE, 1)  # never queue a request for a server not there
+        self.sock.setsockopt(zmq.MAXMSGSIZE, bus.transport.max_message_bytes)
+        self._static = list(static_endpoints or [])
+        self._connected: set[str] = set()
+        self.seq = 0
+
+    def _discover(self) -> int:
+        for endpoint in self._static + self.bus.registry.lookup("service", self.name):
+            if endpoint.address not in self._connected:
+                self.bus.secure_connection(self.sock, endpoint)
+                self.sock.connect(endpoint.address)
+                self._connected.add(endpoint.address)
+        return len(self._connected)
+
+    def wait_for_service(self, timeout_s: float = 5.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while self._discover() == 0:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+        return True
+
+    def call(self, request: M, timeout_s: float = 5.0, retries: int = 2) -> R:
+        """Send ``request``; wait ``timeout_s`` per attempt, ``1 + retries`` attempts."""
+        if not isinstance(request, self.request_type):
+            raise TypeError(f"{self.name} takes {self.request_type.__name__}, not {type(request).__name__}")
+        if not self.wait_for_service(timeout_s):
+            raise ServiceCallError(self.name, "unavailable", "no server found on the bus")
+        self.seq += 1
+        stamped = dataclasses.replace(request, header=Header(
+            stamp_ns=time.time_ns(), seq=self.seq, frame_id=request.header.frame_id))
+        frames = encode(self.name, stamped, self.id)
+        for _attempt in range(1 + retries):
+            self._discover()
+            self.sock.send_multipart(frames, copy=False)
+            deadline = time.monotonic() + timeout_s
+            while (remaining := deadline - time.monotonic()) > 0:
+                if not self.sock.poll(remaining * 1000, zmq.POLLIN):
+                    break
+                try:
+                    envelope = decode(self.sock.recv_multipart(copy=False), self.bus.transport.max_message_bytes)
+                except MessageError as exc:
+                    log.warning("%s: malformed reply dropped (%s)", self.name, exc)
+                    continue
+                if envelope.message.header.seq != self.seq:
+                    continue  # the late answer to an earlier attempt of an earlier call
+                reply = envelope.message
+                if isinstance(reply, ServiceError):
+                    raise ServiceCallError(self.name, reply.code, reply.text)
+                if not isinstance(reply, self.reply_type):
+                    raise ServiceCallError(self.name, "wrong_type", f"reply is {reply.SCHEMA}")
+                return reply
+        raise ServiceCallError(self.name, "timeout", f"no reply in {1 + retries} attempts of {timeout_s} s")
+
+    def close(self) -> None:
+        self.sock.close()

@@ -1,0 +1,249 @@
+"""The node base: a process with a name, parameters, publishers, subscribers, services,
+timers, a heartbeat, and a clean shutdown on SIGINT/SIGTERM.
+
+A node runs a single-threaded executor (like ROS 2's): callbacks of subscriptions, services
+and timers run one at a time in ``spin``, so node code needs no locks. A node module ends with
+``if __name__ == "__main__": run_node(MyNode)``; ``dtx launch`` starts it as
+``python -m MODULE --name NAME --params JSON --remap FROM:=TO``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import heapq
+import json
+import logging
+import os
+import signal
+import sys
+import time
+import typing
+from collections.abc import Callable
+from typing import Any, ClassVar, TypeVar
+
+import zmq
+
+from msgs.base import Message
+from msgs.system import Heartbeat, Log
+from nodes.bus import Bus, Counters, Publisher, ServiceClient, ServiceServer, Subscriber, TransportConfig
+from nodes.registry import Registry
+from nodes.security import CurveConfig
+
+M = TypeVar("M", bound=Message)
+R = TypeVar("R", bound=Message)
+P = TypeVar("P")
+
+HEARTBEAT_PERIOD_S = 1.0
+
+
+class ParameterError(ValueError):
+    """A node parameter is unknown, missing or of the wrong type."""
+
+
+def parse_params(params_type: type[P], values: dict[str, Any], node: str = "") -> P:
+    """Build the node's parameter dataclass, refusing unknown keys and wrong types."""
+    fields = {f.name: f for f in dataclasses.fields(params_type)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ParameterError(f"node {node}: unknown parameter(s) {unknown}; allowed: {sorted(fields)}")
+    hints = typing.get_type_hints(params_type)
+    converted = {}
+    for key, value in values.items():
+        expected = hints[key]
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        base = typing.get_origin(expected) or expected
+        if isinstance(base, type) and not isinstance(value, base):
+            raise ParameterError(f"node {node}: parameter {key!r} must be {base.__name__}, got {value!r}")
+        converted[key] = value
+    try:
+        return params_type(**converted)
+    except TypeError as exc:
+        raise ParameterError(f"node {node}: {exc}") from exc
+
+
+@dataclasses.dataclass
+class NoParams:
+    pass
+
+
+class _BusLogHandler(logging.Handler):
+    def __init__(self, node: "Node") -> None:
+        super().__init__(logging.INFO)
+        self.node = node
+
+    def emit(self, record: logging.LogRecord) -> None:
+        publisher = self.node._log_publisher
+        if publisher is not None and not self.node._closing:
+            publisher.publish(Log(level=record.levelname.lower(), node=self.node.name, text=record.getMessage()))
+
+
+class Node:
+    """Subclass it, set ``Params`` to a dataclass of parameters, wire things in ``__init__``."""
+
+    Params: ClassVar[type] = NoParams
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, *,
+                 registry: Registry | None = None, transport: TransportConfig | None = None,
+                 remaps: dict[str, str] | None = None) -> None:
+        self.name = name
+        self.params = parse_params(self.Params, params or {}, name)
+        self.bus = Bus(name, registry, transport, remaps)
+        self.log = logging.getLogger(f"dtx.{name}")
+        self._publishers: list[Publisher[Any]] = []
+        self._subscriptions: list[tuple[Subscriber[Any], Callable[[Any], None]]] = []
+        self._services: list[ServiceServer[Any, Any]] = []
+        self._clients: list[ServiceClient[Any, Any]] = []
+        self._timers: list[tuple[float, int, float, Callable[[], None]]] = []
+        self._timer_count = 0
+        self._shutdown = False
+        self._closing = False
+        self.status = "ok"
+        self._log_publisher: Publisher[Log] | None = None
+        self._log_publisher = self.create_publisher("/log", Log)
+        self._bus_log_handler = _BusLogHandler(self)
+        self.log.addHandler(self._bus_log_handler)
+        self._heartbeat = self.create_publisher("/heartbeat", Heartbeat)
+        self.create_timer(HEARTBEAT_PERIOD_S, self._beat)
+
+    # -- wiring -------------------------------------------------------------------------
+    def create_publisher(self, topic: str, msg_type: type[M], latched: bool = False) -> Publisher[M]:
+        publisher = self.bus.publisher(topic, msg_type, latched)
+        self._publishers.append(publisher)
+        return publisher
+
+    def create_subscription(self, topic: str, msg_type: type[M], callback: Callable[[M], None]) -> Subscriber[M]:
+        subscriber = self.bus.subscriber(topic, msg_type)
+        self._subscriptions.append((subscriber, lambda envelope: callback(envelope.message)))
+        return subscriber
+
+    def create_service(self, name: str, request_type: type[M], reply_type: type[R],
+                       handler: Callable[[M], R]) -> ServiceServer[M, R]:
+        server = self.bus.service(name, request_type, reply_type, handler)
+        self._services.append(server)
+        return server
+
+    def create_client(self, name: str, request_type: type[M], reply_type: type[R]) -> ServiceClient[M, R]:
+        client = self.bus.client(name, request_type, reply_type)
+        self._clients.append(client)
+        return client
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> None:
+        if not period_s > 0:
+            raise ValueError(f"timer period must be positive, got {period_s}")
+        self._timer_count += 1
+        heapq.heappush(self._timers, (time.monotonic() + period_s, self._timer_count, period_s, callback))
+
+    # -- executor -----------------------------------------------------------------------
+    def spin_once(self, timeout_s: float = 0.1) -> None:
+        """Wait up to ``timeout_s`` for work, then run every callback that is due."""
+        poller = zmq.Poller()
+        for subscriber, _ in self._subscriptions:
+            subscriber.discover()
+            poller.register(subscriber.sock, zmq.POLLIN)
+        for server in self._services:
+            poller.register(server.sock, zmq.POLLIN)
+        for publisher in self._publishers:
+            poller.register(publisher.sock, zmq.POLLIN)
+        next_timer = self._timers[0][0] if self._timers else time.monotonic() + timeout_s
+        wait_s = max(0.0, min(timeout_s, next_timer - time.monotonic()))
+        ready = dict(poller.poll(wait_s * 1000))
+        for publisher in self._publishers:
+            if publisher.sock in ready:
+                publisher.service_subscriptions()
+        for server in self._services:
+            if server.sock in ready:
+                server.serve_ready()
+        for subscriber, callback in self._subscriptions:
+            if subscriber.sock in ready:
+                while (envelope := subscriber.receive_ready()) is not None:
+                    callback(envelope)
+        now = time.monotonic()
+        while self._timers and self._timers[0][0] <= now:
+            due, count, period_s, callback = heapq.heappop(self._timers)
+            # Re-arm from the due time so a periodic timer keeps its rate, unless it fell behind.
+            heapq.heappush(self._timers, (max(due + period_s, now), count, period_s, callback))
+            callback()
+
+    def spin(self, until: Callable[[], bool] | None = None) -> None:
+        while not self._shutdown and not (until is not None and until()):
+            self.spin_once()
+
+    def request_shutdown(self) -> None:
+        self._shutdown = True
+
+    @property
+    def shutting_down(self) -> bool:
+        return self._shutdown
+
+    def counters(self) -> dict[str, int]:
+        total = Counters()
+        for subscriber, _ in self._subscriptions:
+            for key, value in dataclasses.asdict(subscriber.counters).items():
+                setattr(total, key, getattr(total, key) + value)
+        return dataclasses.asdict(total)
+
+    def _beat(self) -> None:
+        info = Heartbeat(
+            node=self.name, pid=os.getpid(), status=self.status,
+            publishers=[p.topic for p in self._publishers],
+            subscribers=[s.topic for s, _ in self._subscriptions],
+            services=[s.name for s in self._services],
+            counters=self.counters(),
+        )
+        self._heartbeat.publish(info)
+        status = dataclasses.asdict(info)
+        status.pop("header")
+        status["stamp"] = time.time()
+        self.bus.registry.write_node_status(self.name, status)
+
+    def close(self) -> None:
+        self._closing = True
+        self.log.removeHandler(self._bus_log_handler)
+        self.status = "stopped"
+        self._beat()
+        for publisher in self._publishers:
+            publisher.close()
+        for server in self._services:
+            server.close()
+        for subscriber, _ in self._subscriptions:
+            subscriber.close()
+        for client in self._clients:
+            client.close()
+        self.bus.close()
+
+
+def _parse_remap(text: str) -> tuple[str, str]:
+    if ":=" not in text:
+        raise argparse.ArgumentTypeError(f"remap {text!r} must look like FROM:=TO")
+    source, target = text.split(":=", 1)
+    return source, target
+
+
+def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
+    """Entry point of a node process: parse the launcher's arguments, spin until a signal."""
+    parser = argparse.ArgumentParser(prog=node_class.__module__)
+    parser.add_argument("--name", default=node_class.__module__.rsplit(".", 1)[-1])
+    parser.add_argument("--params", default="{}", help="parameters as a JSON object")
+    parser.add_argument("--remap", action="append", type=_parse_remap, default=[])
+    parser.add_argument("--transport", choices=["ipc", "tcp"], default="ipc")
+    parser.add_argument("--bind-host", default="127.0.0.1")
+    parser.add_argument("--curve-secret-key", default="")
+    parser.add_argument("--curve-authorized-keys", default="")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")
+    curve = (CurveConfig(args.curve_secret_key, args.curve_authorized_keys)
+             if args.curve_secret_key else None)
+    try:
+        node = node_class(args.name, json.loads(args.params),
+                          transport=TransportConfig(args.transport, args.bind_host, curve),
+                          remaps=dict(args.remap))
+    except (ParameterError, ValueError) as exc:
+        print(f"{args.name}: cannot start: {exc}", file=sys.stderr)
+        raise SystemExit(2) from exc
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: node.request_shutdown())
+    try:
+        node.spin()
+    finally:
+        node.close()

@@ -1,0 +1,266 @@
+"""Topics and services between real ZeroMQ sockets: discovery, slow joiners, drops, bad peers."""
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+import zmq.auth
+
+import msgs
+from msgs.codec import decode, encode
+from nodes.bus import Bus, ServiceCallError, TransportConfig
+from nodes.registry import Endpoint, Registry
+from nodes.security import CurveConfig, SecurityError
+
+
+@pytest.fixture
+def buses(registry: Registry) -> Iterator[tuple[Bus, Bus]]:
+    a, b = Bus("a", registry), Bus("b", registry)
+    yield a, b
+    a.close()
+    b.close()
+
+
+@contextlib.contextmanager
+def pumping(*owners: object) -> Iterator[None]:
+    """Service publishers' join events and servers' requests, as a node's executor would."""
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.is_set():
+            for owner in owners:
+                if hasattr(owner, "serve_ready"):
+                    owner.serve_ready()
+                else:
+                    owner.service_subscriptions()
+            time.sleep(0.002)
+
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
+
+def test_subscriber_finds_publisher_by_topic_name(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    publisher = a.publisher("/gripper/state", msgs.GripperState)
+    subscriber = b.subscriber("/gripper/state", msgs.GripperState)
+    assert publisher.wait_for_subscribers(1, 5.0)
+    publisher.publish(msgs.GripperState(width_m=0.04, header=msgs.Header(frame_id="tcp")))
+    envelope = subscriber.receive(5.0)
+    assert envelope is not None
+    assert envelope.message.width_m == 0.04
+    assert envelope.message.header.frame_id == "tcp"
+    assert envelope.message.header.seq == 1 and envelope.message.header.stamp_ns > 0
+
+
+def test_latched_topic_reaches_a_late_subscriber(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    publisher = a.publisher("/scene", msgs.GripperState, latched=True)
+    publisher.publish(msgs.GripperState(width_m=1.0))
+    publisher.publish(msgs.GripperState(width_m=2.0))
+    with pumping(publisher):
+        first = b.subscriber("/scene", msgs.GripperState).receive(5.0)
+        late = b.subscriber("/scene", msgs.GripperState)
+        second = late.receive(5.0)
+    assert first is not None and first.message.width_m == 2.0
+    assert second is not None and second.message.width_m == 2.0
+
+
+def test_latched_resend_is_not_delivered_twice(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    publisher = a.publisher("/latched", msgs.GripperState, latched=True)
+    with pumping(publisher):
+        early = b.subscriber("/latched", msgs.GripperState)
+        early.receive(0.5)
+        publisher.publish(msgs.GripperState(width_m=3.0))
+        assert early.receive(5.0) is not None
+        b.subscriber("/latched", msgs.GripperState).receive(5.0)  # a join makes the publisher resend
+        assert early.receive(0.5) is None
+    assert early.counters.duplicates == 1
+
+
+def test_wait_for_subscribers_times_out_without_any(buses: tuple[Bus, Bus]) -> None:
+    publisher = buses[0].publisher("/nobody", msgs.Log)
+    assert not publisher.wait_for_subscribers(1, 0.2)
+
+
+def test_sequence_gaps_are_counted_as_drops(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    publisher = a.publisher("/arm", msgs.ArmState)
+    subscriber = b.subscriber("/arm", msgs.ArmState)
+    assert publisher.wait_for_subscribers(1, 5.0)
+    publisher.publish(msgs.ArmState())
+    publisher.seq += 4  # four messages lost on the way
+    publisher.publish(msgs.ArmState())
+    assert subscriber.receive(5.0) and subscriber.receive(5.0)
+    assert subscriber.counters.dropped == 4 and subscriber.counters.received == 2
+
+
+def test_a_stranger_sending_garbage_is_counted_and_ignored(buses: tuple[Bus, Bus], registry: Registry) -> None:
+    _, b = buses
+    stranger_context = zmq.Context()
+    stranger = stranger_context.socket(zmq.XPUB)
+    address = registry.socket_address("stranger")
+    stranger.bind(address)
+    registry.advertise(Endpoint("topic", "/depth", address, "stranger", os.getpid(),
+                                msgs.DepthImage.SCHEMA))
+    subscriber = b.subscriber("/depth", msgs.DepthImage)
+    stranger.recv()  # subscription arrived
+    stranger.send_multipart([b"/depth", b"\xff\x00garbage"])
+    stranger.send_multipart([b"/depth"])
+    good = msgs.DepthImage(depth=np.ones((2, 2), np.uint16))
+    stranger.send_multipart(encode("/depth", good, "stranger"))
+    envelope = subscriber.receive(5.0)
+    stranger_context.destroy(linger=0)
+    assert envelope is not None and envelope.message.depth.sum() == 4
+    assert subscriber.counters.malformed == 2
+
+
+def test_oversized_message_is_dropped_and_the_subscriber_lives_on(registry: Registry) -> None:
+    a = Bus("a", registry)
+    b = Bus("b", registry, TransportConfig(max_message_bytes=4096))
+    publisher = a.publisher("/cloud", msgs.PointCloud)
+    subscriber = b.subscriber("/cloud", msgs.PointCloud)
+    assert publisher.wait_for_subscribers(1, 5.0)
+    publisher.publish(msgs.PointCloud(points=np.zeros((10_000, 3), np.float32)))
+    received = None
+    deadline = time.monotonic() + 10
+    while received is None and time.monotonic() < deadline:  # ZeroMQ reconnects after the refusal
+        publisher.publish(msgs.PointCloud(points=np.zeros((10, 3), np.float32)))
+        received = subscriber.receive(0.2)
+    a.close()
+    b.close()
+    assert received is not None and received.message.points.shape == (10, 3)
+
+
+def test_a_publisher_of_another_type_is_not_heard(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    wrong = a.publisher("/state", msgs.Log)
+    subscriber = b.subscriber("/state", msgs.GripperState)
+    wrong.publish(msgs.Log(text="not a gripper state"))
+    assert subscriber.receive(0.3) is None
+    assert subscriber.publisher_count == 0
+
+
+def test_remapped_topic_is_used(registry: Registry) -> None:
+    a = Bus("a", registry, remaps={"/state": "/left/state"})
+    b = Bus("b", registry)
+    publisher = a.publisher("/state", msgs.GripperState)
+    assert publisher.topic == "/left/state"
+    subscriber = b.subscriber("/left/state", msgs.GripperState)
+    assert publisher.wait_for_subscribers(1, 5.0)
+    publisher.publish(msgs.GripperState())
+    assert subscriber.receive(5.0) is not None
+    a.close()
+    b.close()
+
+
+def _double(request: msgs.GripperCommand) -> msgs.GripperState:
+    if request.width_m < 0:
+        raise ValueError("width must be positive")
+    return msgs.GripperState(width_m=2 * request.width_m)
+
+
+def test_service_call_error_reply_and_recovery(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    server = a.service("/double", msgs.GripperCommand, msgs.GripperState, _double)
+    with pumping(server):
+        client = b.client("/double", msgs.GripperCommand, msgs.GripperState)
+        assert client.call(msgs.GripperCommand(width_m=0.02)).width_m == pytest.approx(0.04)
+        with pytest.raises(ServiceCallError, match="width must be positive") as failure:
+            client.call(msgs.GripperCommand(width_m=-1.0))
+        assert failure.value.code == "handler_error"
+        wrong = b.client("/double", msgs.Log, msgs.GripperState)
+        with pytest.raises(ServiceCallError) as wrong_type:
+            wrong.call(msgs.Log())
+        assert wrong_type.value.code == "wrong_type"
+        assert client.call(msgs.GripperCommand(width_m=0.5)).width_m == pytest.approx(1.0)
+
+
+def test_service_answers_garbage_with_an_error_reply(buses: tuple[Bus, Bus]) -> None:
+    a, _ = buses
+    server = a.service("/double", msgs.GripperCommand, msgs.GripperState, _double)
+    context = zmq.Context()
+    with pumping(server):
+        stranger = context.socket(zmq.DEALER)
+        stranger.connect(server.address)
+        stranger.send_multipart([b"/double", b"not msgpack at all \xc1"])
+        assert stranger.poll(5000)
+        reply = decode(stranger.recv_multipart()).message
+    context.destroy(linger=0)
+    assert isinstance(reply, msgs.ServiceError) and reply.code == "malformed_request"
+    assert server.counters.malformed == 1
+
+
+def test_service_without_server_fails_fast_with_a_clear_error(buses: tuple[Bus, Bus]) -> None:
+    client = buses[1].client("/absent", msgs.Empty, msgs.Empty)
+    with pytest.raises(ServiceCallError, match="no server found"):
+        client.call(msgs.Empty(), timeout_s=0.3)
+
+
+def test_a_retried_request_runs_the_handler_once(buses: tuple[Bus, Bus]) -> None:
+    a, b = buses
+    calls = []
+
+    def slow(request: msgs.GripperCommand) -> msgs.GripperState:
+        calls.append(request.width_m)
+        time.sleep(0.4)
+        return msgs.GripperState(width_m=request.width_m)
+
+    server = a.service("/slow", msgs.GripperCommand, msgs.GripperState, slow)
+    with pumping(server):
+        client = b.client("/slow", msgs.GripperCommand, msgs.GripperState)
+        reply = client.call(msgs.GripperCommand(width_m=0.07), timeout_s=0.25, retries=3)
+        time.sleep(0.5)
+    assert reply.width_m == pytest.approx(0.07)
+    assert calls == [0.07]
+    assert server.counters.duplicates >= 1
+
+
+def _keys(folder: Path, name: str) -> CurveConfig:
+    zmq.auth.create_certificates(folder, name)
+    return CurveConfig(secret_key_file=str(folder / f"{name}.key_secret"))
+
+
+def test_tcp_with_curve_admits_known_clients_only(registry: Registry, tmp_path: Path) -> None:
+    server_dir, clients_dir, strangers_dir = (tmp_path / d for d in ("server", "clients", "strangers"))
+    for folder in (server_dir, clients_dir, strangers_dir):
+        folder.mkdir()
+    server_keys = _keys(server_dir, "server")
+    client_keys = _keys(clients_dir, "planner")
+    stranger_keys = _keys(strangers_dir, "stranger")
+    server_config = CurveConfig(server_keys.secret_key_file, authorized_keys_dir=str(clients_dir))
+    a = Bus("server", registry, TransportConfig(transport="tcp", curve=server_config))
+    publisher = a.publisher("/estimates", msgs.Log)
+    assert publisher.address.startswith("tcp://127.0.0.1:")
+    friend = Bus("friend", registry, TransportConfig(curve=client_keys))
+    stranger = Bus("stranger", registry, TransportConfig(curve=stranger_keys))
+    heard = friend.subscriber("/estimates", msgs.Log)
+    not_heard = stranger.subscriber("/estimates", msgs.Log)
+    assert publisher.wait_for_subscribers(1, 5.0)
+    time.sleep(0.3)
+    publisher.publish(msgs.Log(text="secret"))
+    got = heard.receive(5.0)
+    assert got is not None and got.message.text == "secret"
+    assert not_heard.receive(0.5) is None
+    for bus in (a, friend, stranger):
+        bus.close()
+
+
+def test_missing_key_file_is_a_clear_error(registry: Registry, tmp_path: Path) -> None:
+    config = CurveConfig(str(tmp_path / "absent.key_secret"), authorized_keys_dir=str(tmp_path))
+    bus = Bus("x", registry, TransportConfig(transport="tcp", curve=config))
+    with pytest.raises(SecurityError, match="not found"):
+        bus.publisher("/t", msgs.Log)
+    bus.close()
