@@ -296,11 +296,13 @@ def play(path: str | Path, bus: Bus, rate: float | None = 1.0, clock: bool = Fal
     publishers: dict[str, Publisher[Any]] = {}
     for topic, entry in bag_info(path).topics.items():
         if entry["encoding"] == MESSAGE_ENCODING and (topics is None or topic in topics):
+            if entry["schema"] not in msgs.MESSAGE_TYPES:
+                raise BagError(f"{path}: topic {topic} holds {entry['schema']!r}, unknown to this build")
             publishers[topic] = bus.publisher(topic, msgs.MESSAGE_TYPES[entry["schema"]])
+    clock_publisher = bus.publisher("/clock", msgs.Clock) if clock else None
     deadline = time.monotonic() + wait_for_subscribers_s
     for publisher in publishers.values():  # slow joiners: let subscribers connect first
         publisher.wait_for_subscribers(1, max(0.0, deadline - time.monotonic()))
-    clock_publisher = bus.publisher("/clock", msgs.Clock) if clock else None
     counts: dict[str, int] = {}
     start_wall = time.monotonic()
     start_bag: int | None = None

@@ -11,6 +11,11 @@
           respawn: true
           required: false
 
+Crossing machines: ``transport: tcp`` with ``curve_secret_key``/``curve_authorized_keys``,
+``endpoints: {/inference/estimate: "tcp://0.0.0.0:7000"}`` on the serving machine, and
+``peers: {/inference/estimate: {address: "tcp://robot-pc:7000", server_key_file: keys/server.key}}``
+on the calling one.
+
 Every node runs as its own process; its output is prefixed with its name. A node marked
 ``respawn`` is restarted when it dies; when a ``required`` node ends, everything stops. Every
 child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
@@ -34,7 +39,7 @@ from typing import Any, TextIO
 import yaml
 
 NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required",
-             "transport", "bind_host", "curve_secret_key", "curve_authorized_keys"}
+             "transport", "bind_host", "curve_secret_key", "curve_authorized_keys", "endpoints", "peers"}
 ENTRY_KEYS = {"arg", "include", "node"}
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
 
@@ -56,6 +61,8 @@ class NodeSpec:
     bind_host: str = "127.0.0.1"
     curve_secret_key: str = ""
     curve_authorized_keys: str = ""
+    endpoints: dict[str, str] = dataclasses.field(default_factory=dict)
+    peers: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
 
     def command(self) -> list[str]:
         command = [sys.executable, "-m", self.module, "--name", self.name,
@@ -66,6 +73,10 @@ class NodeSpec:
         if self.curve_secret_key:
             command += ["--curve-secret-key", self.curve_secret_key,
                         "--curve-authorized-keys", self.curve_authorized_keys]
+        if self.endpoints:
+            command += ["--endpoints", json.dumps(self.endpoints)]
+        if self.peers:
+            command += ["--peers", json.dumps(self.peers)]
         return command
 
 

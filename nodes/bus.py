@@ -20,6 +20,7 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 import zmq
+import zmq.auth
 from zmq.utils.monitor import recv_monitor_message
 
 from msgs.base import Header, Message
@@ -33,6 +34,7 @@ M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
 
 DISCOVERY_PERIOD_S = 0.2
+FORGET_AFTER_S = 10.0
 
 
 class ServiceCallError(RuntimeError):
@@ -54,6 +56,18 @@ class TransportConfig:
     curve: CurveConfig | None = None
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     high_water_mark: int = 1000
+    # Crossing machines: fixed addresses to bind for some topics/services (name -> address,
+    # e.g. "tcp://0.0.0.0:7000"), and remote ones to connect to (name -> PeerConfig).
+    endpoints: dict[str, str] = dataclasses.field(default_factory=dict)
+    peers: dict[str, "PeerConfig"] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass
+class PeerConfig:
+    """A topic or service on another machine: its address and its CURVE public key file."""
+
+    address: str
+    server_key_file: str = ""
 
 
 @dataclasses.dataclass
@@ -86,10 +100,15 @@ class Bus:
         self._owner_count += 1
         return f"{self.node_name}.{os.getpid()}.{self._owner_count}"
 
-    def bind(self, sock: zmq.Socket, owner: str) -> tuple[str, str]:
+    def bind(self, sock: zmq.Socket, owner: str, name: str) -> tuple[str, str]:
         """Bind per the transport config; returns (address, CURVE public key or "")."""
         server_key = ""
-        if self.transport.transport == "ipc":
+        fixed = self.transport.endpoints.get(name)
+        if fixed is not None:
+            if fixed.startswith("tcp://") and self.transport.curve is not None:
+                server_key = secure_server(self.context, sock, self.transport.curve)
+            address = fixed
+        elif self.transport.transport == "ipc":
             address = self.registry.socket_address(owner)
         elif self.transport.transport == "tcp":
             if self.transport.curve is not None:
@@ -109,17 +128,29 @@ class Bus:
     def publisher(self, topic: str, msg_type: type[M], latched: bool = False) -> "Publisher[M]":
         return Publisher(self, self.resolve(topic), msg_type, latched)
 
-    def subscriber(self, topic: str, msg_type: type[M] | None,
-                   static_endpoints: list[Endpoint] | None = None) -> "Subscriber[M]":
-        return Subscriber(self, self.resolve(topic), msg_type, static_endpoints)
+    def peer_endpoints(self, kind: str, name: str, schema: str) -> list[Endpoint]:
+        """The launch file's remote endpoint for ``name``, if it names one."""
+        peer = self.transport.peers.get(name)
+        if peer is None:
+            return []
+        server_key = ""
+        if peer.server_key_file:
+            server_key = zmq.auth.load_certificate(peer.server_key_file)[0].decode()
+        return [Endpoint(kind, name, peer.address, "remote", os.getpid(), schema, curve_server_key=server_key)]
+
+    def subscriber(self, topic: str, msg_type: type[M] | None) -> "Subscriber[M]":
+        topic = self.resolve(topic)
+        schema = msg_type.SCHEMA if msg_type is not None else ""
+        return Subscriber(self, topic, msg_type, self.peer_endpoints("topic", topic, schema))
 
     def service(self, name: str, request_type: type[M], reply_type: type[R],
                 handler: Callable[[M], R]) -> "ServiceServer[M, R]":
         return ServiceServer(self, self.resolve(name), request_type, reply_type, handler)
 
-    def client(self, name: str, request_type: type[M], reply_type: type[R],
-               static_endpoints: list[Endpoint] | None = None) -> "ServiceClient[M, R]":
-        return ServiceClient(self, self.resolve(name), request_type, reply_type, static_endpoints)
+    def client(self, name: str, request_type: type[M], reply_type: type[R]) -> "ServiceClient[M, R]":
+        name = self.resolve(name)
+        return ServiceClient(self, name, request_type, reply_type,
+                             self.peer_endpoints("service", name, request_type.SCHEMA))
 
     def close(self) -> None:
         self.context.destroy(linger=200)
@@ -133,7 +164,7 @@ class Publisher(Generic[M]):
         self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # every join is seen, so latched resend works
         self.sock.setsockopt(zmq.SNDHWM, bus.transport.high_water_mark)
         self.sock.setsockopt(zmq.LINGER, 500)
-        self.address, server_key = bus.bind(self.sock, self.id)
+        self.address, server_key = bus.bind(self.sock, self.id, topic)
         self.seq = 0
         self.subscriptions = 0
         self._last_frames: list[Any] | None = None
@@ -196,6 +227,7 @@ class Subscriber(Generic[M]):
         self.counters = Counters()
         self._static = list(static_endpoints or [])
         self._connected: dict[str, Endpoint] = {}
+        self._missing_since: dict[str, float] = {}
         self._last_seq: dict[str, int] = {}
         self._next_discovery = 0.0
         # ZeroMQ drops a connection that carries an oversized message (refused before it is
@@ -207,7 +239,9 @@ class Subscriber(Generic[M]):
         while self._monitor.poll(0):
             event = recv_monitor_message(self._monitor)
             address = event["endpoint"].decode()
-            if address in self._connected:
+            still_advertised = any(e.address == address
+                                   for e in self._static + self.bus.registry.lookup("topic", self.topic))
+            if address in self._connected and still_advertised:  # not a publisher that ended
                 self.counters.connection_resets += 1
                 log.warning("%s: connection to %s dropped (oversized or malformed data); reconnecting",
                             self.topic, address)
@@ -233,9 +267,14 @@ class Subscriber(Generic[M]):
                 self.sock.connect(address)
                 self._connected[address] = endpoint
         for address in list(self._connected):
-            if address not in live:
+            if address in live:
+                self._missing_since.pop(address, None)
+            elif now - self._missing_since.setdefault(address, now) > FORGET_AFTER_S:
+                # Disconnecting discards what is still queued from that publisher, so a
+                # publisher that just finished (a bag player, a node that ended) gets time.
                 self.sock.disconnect(address)
                 del self._connected[address]
+                del self._missing_since[address]
 
     @property
     def publisher_count(self) -> int:
@@ -314,7 +353,7 @@ class ServiceServer(Generic[M, R]):
         self.sock = bus.context.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.MAXMSGSIZE, bus.transport.max_message_bytes)
         self.sock.setsockopt(zmq.LINGER, 500)
-        self.address, server_key = bus.bind(self.sock, self.id)
+        self.address, server_key = bus.bind(self.sock, self.id, name)
         self.counters = Counters()
         self._replies: collections.OrderedDict[tuple[bytes, str, int], list[Any]] = collections.OrderedDict()
         self._entry = bus.registry.advertise(Endpoint(

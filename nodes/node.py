@@ -25,7 +25,8 @@ import zmq
 
 from msgs.base import Message
 from msgs.system import Heartbeat, Log
-from nodes.bus import Bus, Counters, Publisher, ServiceClient, ServiceServer, Subscriber, TransportConfig
+from nodes.bus import (Bus, Counters, PeerConfig, Publisher, ServiceClient, ServiceServer, Subscriber,
+                       TransportConfig)
 from nodes.registry import Registry
 from nodes.security import CurveConfig
 
@@ -230,15 +231,18 @@ def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
     parser.add_argument("--bind-host", default="127.0.0.1")
     parser.add_argument("--curve-secret-key", default="")
     parser.add_argument("--curve-authorized-keys", default="")
+    parser.add_argument("--endpoints", default="{}", help="JSON: name -> address to bind")
+    parser.add_argument("--peers", default="{}", help="JSON: name -> {address, server_key_file}")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")
     curve = (CurveConfig(args.curve_secret_key, args.curve_authorized_keys)
              if args.curve_secret_key else None)
     try:
-        node = node_class(args.name, json.loads(args.params),
-                          transport=TransportConfig(args.transport, args.bind_host, curve),
-                          remaps=dict(args.remap))
-    except (ParameterError, ValueError) as exc:
+        peers = {name: PeerConfig(**peer) for name, peer in json.loads(args.peers).items()}
+        transport = TransportConfig(args.transport, args.bind_host, curve,
+                                    endpoints=json.loads(args.endpoints), peers=peers)
+        node = node_class(args.name, json.loads(args.params), transport=transport, remaps=dict(args.remap))
+    except (ParameterError, ValueError, TypeError) as exc:
         print(f"{args.name}: cannot start: {exc}", file=sys.stderr)
         raise SystemExit(2) from exc
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -15,7 +15,7 @@ import zmq.auth
 
 import msgs
 from msgs.codec import decode, encode
-from nodes.bus import Bus, ServiceCallError, TransportConfig
+from nodes.bus import Bus, PeerConfig, ServiceCallError, TransportConfig
 from nodes.registry import Endpoint, Registry
 from nodes.security import CurveConfig, SecurityError
 
@@ -264,3 +264,35 @@ def test_missing_key_file_is_a_clear_error(registry: Registry, tmp_path: Path) -
     with pytest.raises(SecurityError, match="not found"):
         bus.publisher("/t", msgs.Log)
     bus.close()
+
+
+def _free_port() -> int:
+    import socket
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_peer_on_another_machine_is_reached_through_the_launch_endpoints(tmp_path: Path) -> None:
+    """Two registries stand for two machines: only the configured address and keys connect them."""
+    keys = tmp_path / "keys"
+    keys.mkdir()
+    server_keys = _keys(keys, "robot_pc")
+    client_keys = _keys(keys, "planner_pc")
+    authorized = tmp_path / "authorized"
+    authorized.mkdir()
+    (authorized / "planner_pc.key").write_bytes((keys / "planner_pc.key").read_bytes())
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    robot = Bus("robot", Registry(tmp_path / "robot_machine"), TransportConfig(
+        curve=CurveConfig(server_keys.secret_key_file, authorized_keys_dir=str(authorized)),
+        endpoints={"/estimate": address, "/status": address.rsplit(":", 1)[0] + f":{_free_port()}"}))
+    planner = Bus("planner", Registry(tmp_path / "planner_machine"), TransportConfig(
+        curve=client_keys, peers={"/estimate": PeerConfig(address, str(keys / "robot_pc.key"))}))
+    server = robot.service("/estimate", msgs.GripperCommand, msgs.GripperState, _double)
+    assert server.address == address
+    with pumping(server):
+        reply = planner.client("/estimate", msgs.GripperCommand, msgs.GripperState).call(
+            msgs.GripperCommand(width_m=0.25), timeout_s=5.0)
+    assert reply.width_m == pytest.approx(0.5)
+    robot.close()
+    planner.close()

@@ -1,0 +1,142 @@
+"""MCAP bags: self-describing records, Foxglove copies, truncated files, record and replay."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+import msgs
+from dtx.bag import BagError, BagWriter, bag_info, iter_envelopes, play, record
+from msgs.codec import decode, encode
+from nodes.bus import Bus
+from nodes.registry import Registry
+
+
+def sample_messages() -> list[tuple[str, msgs.Message]]:
+    depth = msgs.DepthImage(header=msgs.Header(stamp_ns=1_000, frame_id="camera_left"),
+                            depth=np.arange(12, dtype=np.uint16).reshape(3, 4))
+    tactile = msgs.TactileImage(header=msgs.Header(stamp_ns=2_000, frame_id="gel_left"),
+                                image=np.full((2, 3, 3), 7, np.uint8), sensor="left")
+    cloud = msgs.PointCloud(header=msgs.Header(stamp_ns=3_000, frame_id="world"),
+                            points=np.random.default_rng(0).random((5, 3)).astype(np.float32))
+    state = msgs.GripperState(header=msgs.Header(stamp_ns=4_000), width_m=0.05)
+    return [("/camera/left/depth", depth), ("/gelsight/left/image", tactile), ("/cloud", cloud),
+            ("/gripper/state", state)]
+
+
+def write_bag(path: Path, compression: str = "lz4", repeat: int = 1, chunk_size: int = 1024 * 1024) -> None:
+    writer = BagWriter(path, compression=compression, chunk_size=chunk_size)
+    for i in range(repeat):
+        for topic, message in sample_messages():
+            frames = encode(topic, message, "test")
+            writer.write(decode(frames), frames, log_time_ns=message.header.stamp_ns + i * 10_000)
+    writer.close()
+
+
+@pytest.mark.parametrize("compression", ["none", "lz4", "zstd"])
+def test_bag_round_trip_is_exact_and_self_describing(tmp_path: Path, compression: str) -> None:
+    path = tmp_path / "session.mcap"
+    write_bag(path, compression)
+    read = [(e.topic, e.message) for _, e in iter_envelopes(path)]
+    for (topic, sent), (got_topic, got) in zip(sample_messages(), read, strict=True):
+        assert topic == got_topic and type(got) is type(sent)
+    np.testing.assert_array_equal(read[0][1].depth, sample_messages()[0][1].depth)
+    info = bag_info(path)
+    assert not info.truncated
+    assert info.compression == ("none" if compression == "none" else compression)
+    assert info.topics["/camera/left/depth"]["schema"] == "dtx.sensors.DepthImage"
+    with open(path, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    schemas = {s.name: s for s in summary.schemas.values()}
+    assert json.loads(schemas["dtx.sensors.DepthImage"].data)["fields"]["depth"].endswith("ndarray'>")
+    assert {"foxglove.RawImage", "foxglove.PointCloud"} <= set(schemas)
+    topics = {c.topic: c.message_encoding for c in summary.channels.values()}
+    assert topics["/camera/left/depth/foxglove"] == "protobuf"
+    assert "/gripper/state/foxglove" not in topics
+
+
+def test_truncated_bag_still_opens_and_says_so(tmp_path: Path) -> None:
+    path = tmp_path / "crashed.mcap"
+    write_bag(path, compression="none", repeat=20, chunk_size=512)  # a crash loses only the open chunk
+    whole = bag_info(path).message_count
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    info = bag_info(path)
+    assert info.truncated
+    assert 0 < info.message_count < whole
+    dtx_messages = sum(t["count"] for name, t in info.topics.items() if not name.endswith("/foxglove"))
+    assert len(list(iter_envelopes(path))) == dtx_messages
+    result = subprocess.run([sys.executable, "-m", "dtx.cli", "bag", "info", str(path)], capture_output=True,
+                            text=True, timeout=60)
+    assert result.returncode == 0 and "truncated:   yes" in result.stdout
+
+
+def test_a_file_that_is_not_a_bag_is_reported(tmp_path: Path) -> None:
+    path = tmp_path / "notes.mcap"
+    path.write_bytes(b"hello, not an mcap file at all")
+    assert bag_info(path).truncated and bag_info(path).message_count == 0
+    with pytest.raises(BagError, match="cannot be read"):
+        bag_info(tmp_path / "absent.mcap")
+
+
+def test_unknown_compression_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match="compression 'gzip' unknown"):
+        BagWriter(tmp_path / "x.mcap", compression="gzip")
+
+
+def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Path) -> None:
+    path = tmp_path / "live.mcap"
+    source = Bus("source", registry)
+    publisher = source.publisher("/gripper/state", msgs.GripperState)
+    recorder_bus = Bus("recorder", registry)
+    stop = threading.Event()
+    counts: dict[str, int] = {}
+    thread = threading.Thread(target=lambda: counts.update(record(path, recorder_bus, stop.is_set)))
+    thread.start()
+    assert publisher.wait_for_subscribers(1, 10.0)
+    for i in range(50):
+        publisher.publish(msgs.GripperState(width_m=i / 1000))
+        time.sleep(0.002)
+    time.sleep(0.5)
+    stop.set()
+    thread.join()
+    assert counts["/gripper/state"] == 50
+
+    listener_bus, player_bus = Bus("listener", registry), Bus("player", registry)
+    subscriber = listener_bus.subscriber("/gripper/state", msgs.GripperState)
+    clock = listener_bus.subscriber("/clock", msgs.Clock)
+    widths: list[float] = []
+    ticks: list[int] = []
+
+    def listen() -> None:
+        while (envelope := subscriber.receive(3.0)) is not None:
+            widths.append(envelope.message.width_m)
+            tick = clock.receive(1.0)
+            if tick is not None:
+                ticks.append(tick.message.sim_time_ns)
+
+    listener = threading.Thread(target=listen)
+    listener.start()
+    published = play(path, player_bus, rate=None, clock=True, wait_for_subscribers_s=10.0)
+    listener.join()
+    assert published == {"/gripper/state": 50}
+    assert widths == [i / 1000 for i in range(50)]
+    assert ticks and ticks == sorted(ticks)  # /clock carried the bag's time, in order
+    for bus in (source, recorder_bus, listener_bus, player_bus):
+        bus.close()
+
+
+def test_play_refuses_a_non_positive_rate(registry: Registry, tmp_path: Path) -> None:
+    path = tmp_path / "b.mcap"
+    write_bag(path)
+    bus = Bus("p", registry)
+    with pytest.raises(BagError, match="rate must be positive"):
+        play(path, bus, rate=0.0)
+    bus.close()

@@ -1,0 +1,153 @@
+"""Launch files and the supervisor, with real node processes."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dtx.launch import LaunchError, load_launch
+from nodes.registry import Registry, pid_alive
+
+FIXTURES = Path(__file__).parent / "launch_fixtures"
+
+
+@pytest.fixture
+def launch_env(bus_dir: Path) -> dict[str, str]:
+    path = os.pathsep.join([str(FIXTURES), os.environ.get("PYTHONPATH", "")])
+    os.environ["PYTHONPATH"] = path  # load_launch looks modules up in this process too
+    sys.path.insert(0, str(FIXTURES))
+    return {**os.environ, "DTX_BUS_DIR": str(bus_dir), "PYTHONPATH": path, "PYTHONUNBUFFERED": "1"}
+
+
+def dtx(*args: str, env: dict[str, str], **kwargs: object) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "dtx.cli", *args], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kwargs)  # type: ignore[call-overload]
+
+
+def wait_for_nodes(registry: Registry, names: set[str], timeout_s: float = 30.0) -> dict[str, int]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        alive = {s["node"]: s["pid"] for s in registry.node_statuses() if s["alive"] and s["status"] == "ok"}
+        if names <= set(alive):
+            return alive
+        time.sleep(0.1)
+    raise AssertionError(f"nodes {names} did not come up; registry: {registry.node_statuses()}")
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "launch.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_unknown_key_error_names_file_and_line(tmp_path: Path, launch_env: dict[str, str]) -> None:
+    path = write(tmp_path, "launch:\n  - node:\n      name: a\n      module: fixture_nodes\n      respwan: true\n")
+    with pytest.raises(LaunchError, match=r"launch.yaml:5: unknown key 'respwan'"):
+        load_launch(path)
+
+
+def test_missing_module_error_names_the_line(tmp_path: Path, launch_env: dict[str, str]) -> None:
+    path = write(tmp_path, "launch:\n  - arg: {name: x, default: 1}\n  - node: {name: a, module: nodes.no_such_node}\n")
+    with pytest.raises(LaunchError, match=r"launch.yaml:3: node 'a': module 'nodes.no_such_node' not found"):
+        load_launch(path)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("nodes: []\n", "single key 'launch'"),
+    ("launch:\n  - group: {}\n", "launch.yaml:2: unknown entry 'group'"),
+    ("launch:\n  - node: {name: a, module: fixture_nodes, params: {p: $(var nope)}}\n", "used before its 'arg'"),
+    ("launch:\n  - node: {name: a, module: fixture_nodes, params: {p: $(env HOME)}}\n", "unknown substitution"),
+    ("launch:\n  - arg: {name: out}\n", "has no default"),
+    ("launch:\n  - node: {name: a}\n", "missing key(s) ['module']"),
+    ("launch: [\n", "not valid YAML"),
+])
+def test_malformed_launch_files_are_refused(tmp_path: Path, launch_env: dict[str, str], text: str, message: str) -> None:
+    with pytest.raises(LaunchError, match=__import__("re").escape(message)):
+        load_launch(write(tmp_path, text))
+
+
+def test_args_includes_and_typed_substitution(launch_env: dict[str, str]) -> None:
+    description = load_launch(FIXTURES / "two_counters.yaml", {"period": "0.2", "finish_after": "7"})
+    steady, finisher = description.nodes
+    assert steady.params == {"period_s": 0.2} and steady.respawn
+    assert finisher.params["finish_after"] == 7 and finisher.required
+    assert finisher.remaps == {"/count": "/finisher/count"}
+    with pytest.raises(LaunchError, match="unknown launch argument"):
+        load_launch(FIXTURES / "two_counters.yaml", {"perod": "1"})
+
+
+def test_launch_respawns_and_stops_cleanly_on_ctrl_c(registry: Registry, launch_env: dict[str, str]) -> None:
+    launcher = dtx("launch", str(FIXTURES / "two_counters.yaml"), env=launch_env)
+    try:
+        pids = wait_for_nodes(registry, {"steady", "finisher"})
+        os.kill(pids["steady"], signal.SIGKILL)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            respawned = wait_for_nodes(registry, {"steady"})
+            if respawned["steady"] != pids["steady"]:
+                break
+            time.sleep(0.2)
+        assert respawned["steady"] != pids["steady"]
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=30)
+    finally:
+        launcher.kill()
+    assert launcher.returncode == 0, output
+    assert "[steady] counter ready" in output and "respawning" in output
+    for pid in (*pids.values(), respawned["steady"]):
+        assert not pid_alive(pid)
+
+
+def test_required_node_finishing_ends_the_launch(registry: Registry, launch_env: dict[str, str]) -> None:
+    launcher = dtx("launch", str(FIXTURES / "two_counters.yaml"), "finish_after:=5", env=launch_env)
+    output, _ = launcher.communicate(timeout=60)
+    assert launcher.returncode == 0, output
+    assert "required node finisher ended" in output
+
+
+def test_required_node_failing_fails_the_launch(registry: Registry, launch_env: dict[str, str]) -> None:
+    launcher = dtx("launch", str(FIXTURES / "failing_required.yaml"), env=launch_env)
+    output, _ = launcher.communicate(timeout=60)
+    assert launcher.returncode == 1, output
+    assert "crasher failed (exit 3)" in output
+
+
+def test_nodes_die_with_a_killed_launcher(registry: Registry, launch_env: dict[str, str]) -> None:
+    launcher = dtx("launch", str(FIXTURES / "two_counters.yaml"), env=launch_env)
+    pids = wait_for_nodes(registry, {"steady", "finisher"})
+    launcher.kill()
+    launcher.wait()
+    deadline = time.monotonic() + 10
+    while any(pid_alive(p) for p in pids.values()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(pid_alive(p) for p in pids.values())
+
+
+def test_command_line_tools_see_the_running_graph(registry: Registry, launch_env: dict[str, str]) -> None:
+    launcher = dtx("launch", str(FIXTURES / "two_counters.yaml"), env=launch_env)
+    try:
+        wait_for_nodes(registry, {"steady", "finisher"})
+
+        def run(*args: str) -> str:
+            result = subprocess.run([sys.executable, "-m", "dtx.cli", *args], env=launch_env, text=True,
+                                    capture_output=True, timeout=60)
+            assert result.returncode == 0, result.stderr
+            return result.stdout
+
+        assert "steady" in run("node", "list") and "finisher" in run("node", "list")
+        topics = run("topic", "list")
+        assert "/count" in topics and "/finisher/count" in topics and "/heartbeat" in topics
+        echoed = run("topic", "echo", "/finisher/count", "--count", "1", "--timeout", "10")
+        assert "node: finisher" in echoed
+        assert "average rate" in run("topic", "hz", "/count", "--duration", "1.5")
+        assert "MB/s" in run("topic", "bw", "/count", "--duration", "1.5")
+        assert "state: echo" in run("service", "call", "/echo", "{width_m: 0.03}")
+        assert "/echo" in run("service", "list")
+    finally:
+        launcher.send_signal(signal.SIGINT)
+        launcher.communicate(timeout=30)
