@@ -233,6 +233,22 @@ def bag_info(path: str | Path) -> BagInfo:
     return BagInfo(str(path), truncated() or summary is None, count, start, end, topics, compression)
 
 
+def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:
+    """Topic -> (schema name, message encoding); from the summary when the bag has one
+    (instant), else by reading the whole stream."""
+    try:
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+    except (McapError, EOFError, struct.error, ValueError):
+        summary = None
+    except OSError as exc:
+        raise BagError(f"bag {path} cannot be read: {exc}") from exc
+    if summary is not None:
+        return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
+                          c.message_encoding) for c in summary.channels.values()}
+    return {topic: (entry["schema"], entry["encoding"]) for topic, entry in bag_info(path).topics.items()}
+
+
 def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
     """(log time ns, decoded dtx message) for every dtx message of the bag, in file order."""
     records, _ = read_records(path)
@@ -294,11 +310,11 @@ def play(path: str | Path, bus: Bus, rate: float | None = 1.0, clock: bool = Fal
     if rate is not None and not rate > 0:
         raise BagError(f"rate must be positive (or None for as fast as possible), got {rate}")
     publishers: dict[str, Publisher[Any]] = {}
-    for topic, entry in bag_info(path).topics.items():
-        if entry["encoding"] == MESSAGE_ENCODING and (topics is None or topic in topics):
-            if entry["schema"] not in msgs.MESSAGE_TYPES:
-                raise BagError(f"{path}: topic {topic} holds {entry['schema']!r}, unknown to this build")
-            publishers[topic] = bus.publisher(topic, msgs.MESSAGE_TYPES[entry["schema"]])
+    for topic, (schema, encoding) in bag_channels(path).items():
+        if encoding == MESSAGE_ENCODING and (topics is None or topic in topics):
+            if schema not in msgs.MESSAGE_TYPES:
+                raise BagError(f"{path}: topic {topic} holds {schema!r}, unknown to this build")
+            publishers[topic] = bus.publisher(topic, msgs.MESSAGE_TYPES[schema])
     clock_publisher = bus.publisher("/clock", msgs.Clock) if clock else None
     deadline = time.monotonic() + wait_for_subscribers_s
     for publisher in publishers.values():  # slow joiners: let subscribers connect first

@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 
 # Packages that add their own command groups (each has cli.add_commands(subparsers)).
-COMMAND_PACKAGES: list[str] = []
+COMMAND_PACKAGES: list[str] = ["drivers"]
 
 
 def _summarise(value: Any, full: bool) -> Any:

@@ -177,8 +177,8 @@ def _check_keys(path: Path, body: yaml.Node, fields: dict[str, yaml.Node], allow
 
 
 def _substitute(path: Path, node: yaml.Node, args: dict[str, str]) -> Any:
-    """Python value of a YAML node with ``$(var NAME)`` replaced; a whole-value substitution is
-    re-read as YAML so that ``grasps: $(var grasps)`` stays an integer."""
+    """Python value of a YAML node with ``$(var NAME)`` replaced; an unquoted whole-value
+    substitution is re-read as YAML so that ``grasps: $(var grasps)`` stays an integer."""
     if isinstance(node, yaml.MappingNode):
         return {k.value: _substitute(path, v, args) for k, v in node.value}
     if isinstance(node, yaml.SequenceNode):
@@ -193,7 +193,8 @@ def _substitute(path: Path, node: yaml.Node, args: dict[str, str]) -> Any:
         replaced = _VAR.sub(replace, text)
         if "$(" in replaced:
             raise LaunchError(f"{_where(path, node)}: unknown substitution in {text!r} (only $(var NAME))")
-        return yaml.safe_load(replaced) if _VAR.fullmatch(text) else replaced
+        plain = node.style is None  # a quoted "$(var serial)" stays text: 003726261447 is no octal number
+        return yaml.safe_load(replaced) if plain and _VAR.fullmatch(text) else replaced
     return yaml.safe_load(yaml.serialize(node))
 
 

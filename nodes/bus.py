@@ -6,7 +6,9 @@
   sequence number. Gaps in sequence numbers are counted as drops.
 - Services: ROUTER servers, DEALER clients; a call has a time-out and retries, repeated
   requests are answered from a reply cache (a retry never runs a handler twice), and a bad
-  request gets a ``ServiceError`` reply while the server keeps serving.
+  request gets a ``ServiceError`` reply while the server keeps serving. A handler may return
+  a ``concurrent.futures.Future`` (a motion running in the background): the reply goes out
+  when it completes, and the server keeps serving meanwhile.
 - Anything malformed, oversized or of the wrong type is dropped, counted and logged.
 """
 from __future__ import annotations
@@ -17,6 +19,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from typing import Any, Generic, TypeVar
 
 import zmq
@@ -250,11 +253,11 @@ class Subscriber(Generic[M]):
 
     def discover(self, force: bool = False) -> None:
         """Connect to new publishers of the topic, forget dead ones (cheap; called often)."""
-        self._reconnect_dropped()
         now = time.monotonic()
         if not force and now < self._next_discovery:
             return
         self._next_discovery = now + DISCOVERY_PERIOD_S
+        self._reconnect_dropped()
         endpoints = self._static + self.bus.registry.lookup("topic", self.topic)
         live = {e.address: e for e in endpoints}
         for address, endpoint in live.items():
@@ -356,13 +359,14 @@ class ServiceServer(Generic[M, R]):
         self.address, server_key = bus.bind(self.sock, self.id, name)
         self.counters = Counters()
         self._replies: collections.OrderedDict[tuple[bytes, str, int], list[Any]] = collections.OrderedDict()
+        self._pending: list[tuple[tuple[bytes, str, int], Future[Any]]] = []
         self._entry = bus.registry.advertise(Endpoint(
             "service", name, self.address, bus.node_name, os.getpid(), request_type.SCHEMA,
             reply_schema=reply_type.SCHEMA, curve_server_key=server_key))
 
     def serve_ready(self) -> int:
-        """Answer every waiting request; returns how many were answered."""
-        answered = 0
+        """Answer every waiting request and every finished background one; returns how many."""
+        answered = self._finish_pending()
         while True:
             try:
                 frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
@@ -370,6 +374,34 @@ class ServiceServer(Generic[M, R]):
                 return answered
             self._answer(frames)
             answered += 1
+
+    @property
+    def pending(self) -> int:
+        """Requests whose handler runs in the background (a motion, a grasp)."""
+        return len(self._pending)
+
+    def _finish_pending(self) -> int:
+        finished = [entry for entry in self._pending if entry[1].done()]
+        for entry in finished:
+            self._pending.remove(entry)
+            key, future = entry
+            error = future.exception()
+            reply = self._checked_reply(future.result() if error is None else None, error)
+            self._remember(key, self._send(key[0], reply, key[1], key[2]))
+        return len(finished)
+
+    def _checked_reply(self, reply: Any, error: BaseException | None) -> Message:
+        if error is None and not isinstance(reply, (self.reply_type, ServiceError)):
+            error = TypeError(f"handler returned {type(reply).__name__}, not {self.reply_type.__name__}")
+        if error is not None:
+            log.error("%s: handler failed: %s: %s", self.name, type(error).__name__, error)
+            return ServiceError(code=getattr(error, "code", "handler_error"), text=f"{type(error).__name__}: {error}")
+        return reply
+
+    def _remember(self, key: tuple[bytes, str, int], frames: list[Any]) -> None:
+        self._replies[key] = frames
+        while len(self._replies) > self.REPLY_CACHE:
+            self._replies.popitem(last=False)
 
     def _answer(self, frames: list[Any]) -> None:
         identity = frames[0].bytes
@@ -385,6 +417,9 @@ class ServiceServer(Generic[M, R]):
             self.counters.duplicates += 1
             self.sock.send_multipart([identity, *self._replies[key]], copy=False)
             return
+        if any(pending_key == key for pending_key, _ in self._pending):
+            self.counters.duplicates += 1  # a retry of a request still running: answered when done
+            return
         request = envelope.message
         if not isinstance(request, self.request_type):
             self.counters.wrong_type += 1
@@ -393,15 +428,15 @@ class ServiceServer(Generic[M, R]):
         else:
             self.counters.received += 1
             try:
-                reply = self.handler(request)
-                if not isinstance(reply, (self.reply_type, ServiceError)):
-                    raise TypeError(f"handler returned {type(reply).__name__}, not {self.reply_type.__name__}")
+                result = self.handler(request)
             except Exception as exc:  # a handler's failure is the caller's error reply, not our death
-                log.exception("%s: handler failed", self.name)
-                reply = ServiceError(code=getattr(exc, "code", "handler_error"), text=f"{type(exc).__name__}: {exc}")
-        self._replies[key] = self._send(identity, reply, envelope.publisher, envelope.message.header.seq)
-        while len(self._replies) > self.REPLY_CACHE:
-            self._replies.popitem(last=False)
+                reply = self._checked_reply(None, exc)
+            else:
+                if isinstance(result, Future):
+                    self._pending.append((key, result))
+                    return
+                reply = self._checked_reply(result, None)
+        self._remember(key, self._send(identity, reply, envelope.publisher, envelope.message.header.seq))
 
     def _send(self, identity: bytes, reply: Message, client: str, seq: int) -> list[Any]:
         stamped = dataclasses.replace(reply, header=Header(

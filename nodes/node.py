@@ -19,6 +19,7 @@ import sys
 import time
 import typing
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ClassVar, TypeVar
 
 import zmq
@@ -63,6 +64,12 @@ def parse_params(params_type: type[P], values: dict[str, Any], node: str = "") -
         raise ParameterError(f"node {node}: {exc}") from exc
 
 
+def split_params(params_type: type, values: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the node's own parameters, the rest) — hardware nodes hand the rest to their backend."""
+    own = {f.name for f in dataclasses.fields(params_type)}
+    return ({k: v for k, v in values.items() if k in own}, {k: v for k, v in values.items() if k not in own})
+
+
 @dataclasses.dataclass
 class NoParams:
     pass
@@ -96,6 +103,8 @@ class Node:
         self._services: list[ServiceServer[Any, Any]] = []
         self._clients: list[ServiceClient[Any, Any]] = []
         self._timers: list[tuple[float, int, float, Callable[[], None]]] = []
+        # Long device commands (a motion, a grasp) run here so the executor keeps publishing.
+        self.background = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
         self._timer_count = 0
         self._shutdown = False
         self._closing = False
@@ -147,13 +156,15 @@ class Node:
         for publisher in self._publishers:
             poller.register(publisher.sock, zmq.POLLIN)
         next_timer = self._timers[0][0] if self._timers else time.monotonic() + timeout_s
+        if any(server.pending for server in self._services):
+            next_timer = min(next_timer, time.monotonic() + 0.005)
         wait_s = max(0.0, min(timeout_s, next_timer - time.monotonic()))
         ready = dict(poller.poll(wait_s * 1000))
         for publisher in self._publishers:
             if publisher.sock in ready:
                 publisher.service_subscriptions()
         for server in self._services:
-            if server.sock in ready:
+            if server.sock in ready or server.pending:
                 server.serve_ready()
         for subscriber, callback in self._subscriptions:
             if subscriber.sock in ready:
@@ -199,6 +210,7 @@ class Node:
         self.bus.registry.write_node_status(self.name, status)
 
     def close(self) -> None:
+        self.background.shutdown(wait=True, cancel_futures=True)
         self._closing = True
         self.log.removeHandler(self._bus_log_handler)
         self.status = "stopped"

@@ -71,6 +71,14 @@ def test_malformed_launch_files_are_refused(tmp_path: Path, launch_env: dict[str
         load_launch(write(tmp_path, text))
 
 
+def test_quoted_substitution_stays_text(tmp_path: Path, launch_env: dict[str, str]) -> None:
+    path = write(tmp_path, 'launch:\n  - arg: {name: serial, default: "003726261447"}\n'
+                           '  - node: {name: a, module: fixture_nodes, params: {s: "$(var serial)", n: $(var serial)}}\n')
+    params = load_launch(path).nodes[0].params
+    assert params["s"] == "003726261447"
+    assert isinstance(params["n"], int)  # unquoted: YAML reads the value itself (here, as octal)
+
+
 def test_args_includes_and_typed_substitution(launch_env: dict[str, str]) -> None:
     description = load_launch(FIXTURES / "two_counters.yaml", {"period": "0.2", "finish_after": "7"})
     steady, finisher = description.nodes

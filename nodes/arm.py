@@ -1,0 +1,61 @@
+"""Arm node: publishes ``/arm/state`` (msgs.ArmState) at the state rate and serves
+``/arm/move`` (msgs.ArmMoveRequest -> the state on arrival) and ``/arm/stop``.
+
+Params: ``state_rate_hz`` and the backend's (``backend:`` ur_rtde or simulated and its
+config fields, see ``drivers.arm``). Targets outside the workspace or limits are refused by
+the backend before anything moves; a protective stop or a lost link makes the node report
+the error and stop (the session then stops safely).
+"""
+from __future__ import annotations
+
+import dataclasses
+from concurrent.futures import Future
+from typing import Any
+
+import drivers.arm
+import msgs
+from nodes.node import Node, run_node, split_params
+
+
+class ArmNode(Node):
+    @dataclasses.dataclass
+    class Params:
+        state_rate_hz: float = 125.0
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        own, backend_params = split_params(self.Params, params or {})
+        super().__init__(name, own, **kwargs)
+        self.arm = drivers.arm.make_backend(backend_params)
+        self.arm.connect()
+        self.state = self.create_publisher("/arm/state", msgs.ArmState)
+        self.create_service("/arm/move", msgs.ArmMoveRequest, msgs.ArmState, self.on_move)
+        self.create_service("/arm/stop", msgs.Empty, msgs.ArmState, self.on_stop)
+        self.create_timer(1.0 / self.params.state_rate_hz, self.publish_state)
+
+    def publish_state(self) -> None:
+        state = self.arm.read()
+        self.status = "ok" if state.safety_status == "normal" else state.safety_status
+        self.state.publish(state)
+
+    def on_move(self, request: msgs.ArmMoveRequest) -> Future[msgs.ArmState]:
+        if request.mode not in ("moveL", "moveJ"):
+            raise ValueError(f"mode {request.mode!r} unknown; allowed: moveL, moveJ")
+        move = self.arm.move_linear if request.mode == "moveL" else self.arm.move_joints
+        return self.background.submit(self._move_and_read, move, request)
+
+    def _move_and_read(self, move: Any, request: msgs.ArmMoveRequest) -> msgs.ArmState:
+        move(request.target, request.speed, request.acceleration)
+        return self.arm.read()
+
+    def on_stop(self, _request: msgs.Empty) -> msgs.ArmState:
+        self.arm.stop()
+        return self.arm.read()
+
+    def close(self) -> None:
+        self.arm.stop()
+        self.arm.disconnect()
+        super().close()
+
+
+if __name__ == "__main__":
+    run_node(ArmNode)

@@ -1,0 +1,91 @@
+"""Gripper node: publishes ``/gripper/state`` (msgs.GripperState) and serves
+``/gripper/command`` (msgs.GripperCommand: home, move, grasp, release, stop -> the state).
+
+Params: ``state_rate_hz``, ``scene`` (simulated backend only: where the fingers meet the
+object comes from this scene and ``/arm/state``) and the backend's (``backend:`` wsg50 or
+simulated, see ``drivers.gripper``). Commands run in the background so the state keeps
+flowing; the serial line is polled only between commands.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+from concurrent.futures import Future
+from typing import Any
+
+import drivers.gripper
+import msgs
+from nodes.node import Node, run_node, split_params
+
+
+class GripperNode(Node):
+    @dataclasses.dataclass
+    class Params:
+        state_rate_hz: float = 20.0
+        scene: str = "scenes/ycb_three.yaml"
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        own, backend_params = split_params(self.Params, params or {})
+        super().__init__(name, own, **kwargs)
+        self.tcp_pose: Any = None
+        self.force_n = 0.0
+        extras = {}
+        if backend_params.get("backend") == "simulated":
+            extras["contact_width_m"] = self.contact_width_m
+            self.create_subscription("/arm/state", msgs.ArmState, self.on_arm)
+        self.gripper = drivers.gripper.make_backend(backend_params, **extras)
+        self.gripper.connect()
+        self.line = threading.Lock()  # one command at a time on the serial line
+        self.last_state = msgs.GripperState()
+        self.state = self.create_publisher("/gripper/state", msgs.GripperState)
+        self.create_service("/gripper/command", msgs.GripperCommand, msgs.GripperState, self.on_command)
+        self.create_timer(1.0 / self.params.state_rate_hz, self.publish_state)
+
+    def on_arm(self, state: msgs.ArmState) -> None:
+        self.tcp_pose = state.tcp_pose
+
+    def contact_width_m(self) -> float | None:
+        """Where the closing fingers meet the object (simulated world), None if nothing."""
+        from sim.world import shared_world  # noqa: PLC0415 - only the simulation needs it
+
+        if self.tcp_pose is None:
+            return None
+        contact = shared_world(self.params.scene).grasp_contact(self.tcp_pose, max(self.force_n, 1e-3))
+        touching = any(finger.in_contact for finger in contact.fingers.values())
+        return contact.width_m if touching else None
+
+    def publish_state(self) -> None:
+        if self.line.acquire(blocking=False):
+            try:
+                self.last_state = self.gripper.read()
+            finally:
+                self.line.release()
+        self.state.publish(self.last_state)
+
+    def on_command(self, command: msgs.GripperCommand) -> Future[msgs.GripperState]:
+        actions = {
+            "home": lambda: self.gripper.home(),
+            "move": lambda: self.gripper.move(command.width_m, command.speed_m_s),
+            "grasp": lambda: self.gripper.grasp(command.width_m, command.speed_m_s, command.force_n),
+            "release": lambda: self.gripper.release(command.width_m, command.speed_m_s),
+            "stop": lambda: self.gripper.stop(),
+        }
+        if command.action not in actions:
+            raise ValueError(f"action {command.action!r} unknown; allowed: {sorted(actions)}")
+        if command.action == "grasp":
+            self.force_n = command.force_n
+        return self.background.submit(self._run, actions[command.action])
+
+    def _run(self, action: Any) -> msgs.GripperState:
+        with self.line:
+            action()
+            self.last_state = self.gripper.read()
+        return self.last_state
+
+    def close(self) -> None:
+        self.gripper.disconnect()
+        super().close()
+
+
+if __name__ == "__main__":
+    run_node(GripperNode)
