@@ -18,8 +18,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-import foxglove.messages as fox
-import numpy as np
 import zmq
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
@@ -30,6 +28,7 @@ from mcap.writer import CompressionType, Writer
 import msgs
 from msgs.base import Message
 from msgs.codec import Envelope, decode
+from msgs.foxglove import foxglove_view
 from nodes.bus import Bus, Publisher, Subscriber
 
 MESSAGE_ENCODING = "dtx/msgpack+buffers"
@@ -72,40 +71,6 @@ def schema_description(msg_type: type[Message]) -> bytes:
     hints = typing.get_type_hints(msg_type)
     fields = {f.name: str(hints[f.name]) for f in dataclasses.fields(msg_type)}
     return json.dumps({"schema": msg_type.SCHEMA, "version": msg_type.VERSION, "fields": fields}).encode()
-
-
-def _foxglove_time(stamp_ns: int) -> fox.Timestamp:
-    return fox.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
-
-
-def foxglove_view(message: Message) -> Any | None:
-    """The Foxglove well-known message showing ``message``, or None if it has none."""
-    header = message.header
-    if isinstance(message, msgs.DepthImage):
-        depth = np.ascontiguousarray(message.depth)
-        encoding = "16UC1" if depth.dtype == np.uint16 else "32FC1"
-        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
-                            width=depth.shape[1], height=depth.shape[0], encoding=encoding,
-                            step=depth.strides[0], data=depth.tobytes())
-    if isinstance(message, msgs.TactileImage):
-        image = np.ascontiguousarray(message.image)
-        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
-                            width=image.shape[1], height=image.shape[0], encoding="rgb8",
-                            step=image.strides[0], data=image.tobytes())
-    if isinstance(message, msgs.PointCloud):
-        points = np.ascontiguousarray(message.points, dtype=np.float32)
-        fields = [fox.PackedElementField(name=axis, offset=4 * i, type=fox.PackedElementFieldNumericType.Float32)
-                  for i, axis in enumerate("xyz")]
-        return fox.PointCloud(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
-                              point_stride=12, fields=fields, data=points.tobytes())
-    if isinstance(message, msgs.FrameTransform):
-        t, q = message.translation, message.rotation
-        return fox.FrameTransform(
-            timestamp=_foxglove_time(header.stamp_ns), parent_frame_id=header.frame_id,
-            child_frame_id=message.child_frame_id,
-            translation=fox.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-            rotation=fox.Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
-    return None
 
 
 class BagWriter:

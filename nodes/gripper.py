@@ -50,9 +50,7 @@ class GripperNode(Node):
 
         if self.tcp_pose is None:
             return None
-        contact = shared_world(self.params.scene).grasp_contact(self.tcp_pose, max(self.force_n, 1e-3))
-        touching = any(finger.in_contact for finger in contact.fingers.values())
-        return contact.width_m if touching else None
+        return shared_world(self.params.scene).contact_width_m(self.tcp_pose, self.force_n)
 
     def publish_state(self) -> None:
         if self.line.acquire(blocking=False):

@@ -115,17 +115,17 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     widths: list[float] = []
     ticks: list[int] = []
 
-    def listen() -> None:
-        while (envelope := subscriber.receive(3.0)) is not None:
-            widths.append(envelope.message.width_m)
-            tick = clock.receive(1.0)
-            if tick is not None:
-                ticks.append(tick.message.sim_time_ns)
+    def listen(source: object, into: list, field: str) -> None:
+        while (envelope := source.receive(3.0)) is not None:
+            into.append(getattr(envelope.message, field))
 
-    listener = threading.Thread(target=listen)
-    listener.start()
+    listeners = [threading.Thread(target=listen, args=(subscriber, widths, "width_m")),
+                 threading.Thread(target=listen, args=(clock, ticks, "sim_time_ns"))]
+    for listener in listeners:
+        listener.start()
     published = play(path, player_bus, rate=None, clock=True, wait_for_subscribers_s=10.0)
-    listener.join()
+    for listener in listeners:
+        listener.join()
     assert published == {"/gripper/state": 50}
     assert widths == [i / 1000 for i in range(50)]
     assert ticks and ticks == sorted(ticks)  # /clock carried the bag's time, in order

@@ -1,0 +1,102 @@
+"""UR arm figures through the real ur_rtde client against the fake UR controller
+(drivers/arm/ur_controller_sim.py): the RTDE state rate the
+client actually receives from a 500 Hz controller, and the time from ``stop()`` on the
+backend to the controller receiving the stopL command (both clocks are the machine's
+monotonic clock)."""
+from __future__ import annotations
+
+import argparse
+import random
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import rtde_receive
+
+from drivers.arm.base import MotionAbortedError
+from drivers.arm.ur import STATE_VARIABLES, URArm, URArmConfig
+
+from drivers.arm.ur_controller_sim import CMD_STOPL, FakeURController
+
+POLL_PERIOD_S = 50e-6
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--state-rate-hz", type=float, default=500.0,
+                        help="state rate of the fake controller (Hz)")
+    parser.add_argument("--rate-seconds", type=float, default=5.0,
+                        help="how long to count received states (s)")
+    parser.add_argument("--stop-trials", type=int, default=20, help="stop requests to time")
+
+
+def received_state_rate(host: str, frequency_hz: float, seconds: float) -> list[dict[str, Any]]:
+    """Distinct RTDE states seen by a receive interface subscribed like the backend's."""
+    receive = rtde_receive.RTDEReceiveInterface(host, frequency_hz, STATE_VARIABLES)
+    try:
+        timestamps = [receive.getTimestamp()]
+        start = time.monotonic()
+        while time.monotonic() - start < seconds:
+            timestamp = receive.getTimestamp()
+            if timestamp != timestamps[-1]:
+                timestamps.append(timestamp)
+            time.sleep(POLL_PERIOD_S)
+        elapsed = time.monotonic() - start
+    finally:
+        receive.disconnect()
+    received = len(timestamps) - 1
+    return [
+        {"figure": "RTDE states received by ur_rtde", "unit": "Hz", "samples": received,
+         "value": received / elapsed},
+        {"figure": "fake controller clock advance", "unit": "Hz", "samples": received,
+         "value": (timestamps[-1] - timestamps[0]) * frequency_hz / elapsed},
+    ]
+
+
+def stop_latency(fake: FakeURController, trials: int) -> dict[str, Any]:
+    """p50/p99 (ms) from URArm.stop() to the fake receiving stopL, during a moveL."""
+    arm = URArm(URArmConfig(robot_ip=fake.host))
+    arm.connect()
+    latencies_ms = []
+    try:
+        start = arm.read().tcp_pose
+        for trial in range(trials):
+            target = start + np.array([0.0, 0.2 if trial % 2 == 0 else -0.2, 0.0, 0.0, 0.0, 0.0])
+            mover = threading.Thread(target=_move_until_stopped, args=(arm, target))
+            mover.start()
+            _wait_until_moving(fake)
+            requested_ns = time.monotonic_ns()
+            arm.stop()
+            mover.join()
+            received_ns = min(t for t, cmd in fake.snapshot()["commands_received"]
+                              if cmd == CMD_STOPL and t >= requested_ns)
+            latencies_ms.append((received_ns - requested_ns) / 1e6)
+    finally:
+        arm.disconnect()
+    return {"figure": "stop() to controller receiving stopL", "unit": "ms", "samples": trials,
+            "p50": float(np.percentile(latencies_ms, 50)),
+            "p99": float(np.percentile(latencies_ms, 99))}
+
+
+def _move_until_stopped(arm: URArm, target: np.ndarray) -> None:
+    try:
+        arm.move_linear(target, speed_m_s=0.1, accel_m_s2=1.0)
+    except MotionAbortedError:
+        pass  # the stop this trial is timing
+
+
+def _wait_until_moving(fake: FakeURController) -> None:
+    """Until the fake arm moves and the client has cleared the move command."""
+    while True:
+        snapshot = fake.snapshot()
+        if snapshot["moving"] and snapshot["command_register"] == 0:
+            return
+        time.sleep(0.002)
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    host = f"127.{random.randint(32, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}"
+    with FakeURController(host, state_rate_hz=args.state_rate_hz) as fake:
+        rows = received_state_rate(host, args.state_rate_hz, args.rate_seconds)
+        rows.append(stop_latency(fake, args.stop_trials))
+    return rows

@@ -1,0 +1,282 @@
+"""Universal Robots backend through ur_rtde (``RTDEControlInterface``, ``RTDEReceiveInterface``).
+
+State comes from a receive interface at the RTDE rate; moves go through the control
+interface, which uploads ur_rtde's control script and passes commands in RTDE registers.
+Moves are sent *asynchronously* and awaited here, in Python: ur_rtde's compiled calls hold
+the GIL, so a blocking moveL would freeze every other thread of the node (state
+publishing, a stop request) for the whole motion.
+
+Known limit of ur_rtde 1.6.5: if the connection drops during the few milliseconds in which
+the client hands a command over (it waits for the script's "done" flag), the client keeps
+waiting on its stale state for up to its 300 s execution time-out, holding the GIL.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+import rtde_control
+import rtde_receive
+from scipy.spatial.transform import Rotation
+
+from drivers.arm.base import (
+    ArmConnectionError,
+    ArmError,
+    ConnectionLostError,
+    EmergencyStopError,
+    MotionAbortedError,
+    MotionLimits,
+    ProtectiveStopError,
+    WorkspaceBox,
+    WorkspaceError,
+    as_six_vector,
+)
+from drivers.arm.ur_kinematics import DH_PARAMETERS, tcp_pose
+from msgs.base import Header
+from msgs.robot import ArmState
+
+# What the receive interface subscribes to: only what read() needs, which keeps the RTDE
+# stream small (the controller drops clients that do not drain it).
+STATE_VARIABLES = [
+    "timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "robot_mode", "safety_status_bits",
+]
+ROBOT_MODE_RUNNING = 7
+ROBOT_MODE_NAMES = {
+    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+}
+UR_JOINT_RANGE_RAD = 2.0 * np.pi
+MOVING_SPEED_RAD_S = 1e-3
+POLL_PERIOD_S = 0.002
+SAFETY_REPORT_WAIT_S = 0.05
+
+
+@dataclasses.dataclass
+class URArmConfig:
+    """How to reach and drive a UR arm. Units: m, rad, s; speeds m/s or rad/s."""
+
+    robot_ip: str = "192.168.1.10"
+    rtde_frequency_hz: float = 500.0  # e-Series controllers stream at up to 500 Hz
+    model: str = "ur5e"  # DH parameters used to check joint-move targets
+    tcp_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # as set on the pendant
+    workspace: WorkspaceBox = dataclasses.field(default_factory=WorkspaceBox)
+    limits: MotionLimits = dataclasses.field(default_factory=MotionLimits)
+    stop_decel_m_s2: float = 2.0  # stopL deceleration of the TCP
+    stop_decel_rad_s2: float = 2.0  # stopJ deceleration of the joints
+    position_tolerance_m: float = 1e-3  # a linear move counts as arrived within this
+    orientation_tolerance_rad: float = 5e-3
+    joint_tolerance_rad: float = 2e-3  # a joint move counts as arrived within this
+    stale_state_s: float = 0.5  # no new RTDE state for this long means the link is lost
+    move_timeout_margin_s: float = 5.0  # added to the expected duration of a move
+
+    def __post_init__(self) -> None:
+        if self.model not in DH_PARAMETERS:
+            raise ValueError(f"unknown UR model {self.model!r}; known: {sorted(DH_PARAMETERS)}")
+        self.tcp_offset = tuple(as_six_vector(self.tcp_offset, "tcp_offset"))
+
+
+class URArm:
+    """A UR arm behind ur_rtde. Safe to call ``stop()`` and ``read()`` from another thread
+    while a move is waiting."""
+
+    def __init__(self, config: URArmConfig) -> None:
+        self.config = config
+        self._receive = None  # rtde_receive.RTDEReceiveInterface once connected
+        self._control = None  # rtde_control.RTDEControlInterface once connected
+        self._last_timestamp: float | None = None
+        self._last_fresh = 0.0
+        self._move_lock = threading.Lock()
+        self._moving_linearly = True  # which stop command fits the move in progress
+
+    def connect(self) -> None:
+        """Open the RTDE state stream, check the arm can move, and upload the control script.
+
+        Raises ArmConnectionError (unreachable, not powered), ProtectiveStopError,
+        EmergencyStopError.
+        """
+        ip, frequency = self.config.robot_ip, self.config.rtde_frequency_hz
+        try:
+            self._receive = rtde_receive.RTDEReceiveInterface(ip, frequency, STATE_VARIABLES)
+        except RuntimeError as error:
+            raise ArmConnectionError(f"cannot open RTDE to the UR controller at {ip}: {error}") from error
+        self._last_timestamp = None
+        try:
+            self._check_ready_to_move()
+        except ArmError:
+            self._receive.disconnect()
+            self._receive = None
+            raise
+        try:
+            self._control = rtde_control.RTDEControlInterface(
+                ip, frequency, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+        except RuntimeError as error:
+            self._receive.disconnect()
+            self._receive = None
+            raise ArmConnectionError(f"cannot start ur_rtde's control script on {ip}: {error}") from error
+
+    def _check_ready_to_move(self) -> None:
+        self._raise_if_unsafe(self.read(), "connect")
+        robot_mode = self._receive.getRobotMode()
+        if robot_mode != ROBOT_MODE_RUNNING:
+            name = ROBOT_MODE_NAMES.get(robot_mode, str(robot_mode))
+            raise ArmConnectionError(
+                f"UR at {self.config.robot_ip} is in robot mode {name}: power it on and release "
+                "the brakes (pendant, or dashboard 'power on' then 'brake release')")
+
+    def read(self) -> ArmState:
+        """Latest state: TCP pose (m, rotation vector rad, base frame), joints (rad, rad/s).
+
+        ``safety_status`` is "disconnected" when the stream closed or went stale.
+        """
+        receive = self._receive
+        if receive is None:
+            return ArmState(header=Header.now("base"), safety_status="disconnected")
+        now = time.monotonic()
+        timestamp = receive.getTimestamp()
+        if timestamp != self._last_timestamp:
+            self._last_timestamp, self._last_fresh = timestamp, now
+        joint_velocities = np.array(receive.getActualQd())
+        if not receive.isConnected() or now - self._last_fresh > self.config.stale_state_s:
+            safety_status = "disconnected"
+        elif receive.isEmergencyStopped():
+            safety_status = "emergency_stop"
+        elif receive.isProtectiveStopped():
+            safety_status = "protective_stop"
+        else:
+            safety_status = "normal"
+        return ArmState(
+            header=Header.now("base"),
+            tcp_pose=np.array(receive.getActualTCPPose()),
+            joint_positions=np.array(receive.getActualQ()),
+            joint_velocities=joint_velocities,
+            moving=self._move_lock.locked() or bool(np.any(np.abs(joint_velocities) > MOVING_SPEED_RAD_S)),
+            safety_status=safety_status,
+        )
+
+    def move_linear(self, tcp_pose: np.ndarray, speed_m_s: float, accel_m_s2: float) -> None:
+        """Move the TCP in a straight line to ``tcp_pose`` [x, y, z, rx, ry, rz] (m, rad)
+        at ``speed_m_s`` (m/s) and ``accel_m_s2`` (m/s²); block until it arrives.
+
+        Checked before sending: workspace (WorkspaceError) and limits (MotionLimitError).
+        """
+        target = as_six_vector(tcp_pose, "tcp_pose")
+        self.config.workspace.check(target)
+        self.config.limits.check_linear(speed_m_s, accel_m_s2)
+        start = self.read().tcp_pose
+        travel = max(float(np.linalg.norm(target[:3] - start[:3])), _rotation_between(start, target))
+
+        def arrived(state: ArmState) -> bool:
+            return (float(np.linalg.norm(state.tcp_pose[:3] - target[:3])) <= self.config.position_tolerance_m
+                    and _rotation_between(state.tcp_pose, target) <= self.config.orientation_tolerance_rad)
+
+        self._execute(
+            f"moveL to {np.round(target, 4).tolist()}", linear=True,
+            send=lambda: self._control.moveL(target.tolist(), speed_m_s, accel_m_s2, True),
+            arrived=arrived, expected_s=travel / speed_m_s + speed_m_s / accel_m_s2)
+
+    def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Move the joints to ``q_rad`` (rad) at ``speed_rad_s`` (rad/s) and
+        ``accel_rad_s2`` (rad/s²); block until it arrives.
+
+        Checked before sending: the UR joint range and that the TCP at ``q_rad`` is inside
+        the workspace (WorkspaceError), and limits (MotionLimitError).
+        """
+        target = as_six_vector(q_rad, "q_rad")
+        for joint, angle in enumerate(target):
+            if abs(angle) > UR_JOINT_RANGE_RAD:
+                raise WorkspaceError(f"joint {joint} = {angle:.4f} rad is outside the UR range of ±2π rad")
+        self.config.workspace.check(tcp_pose(target, self.config.model, np.array(self.config.tcp_offset)))
+        self.config.limits.check_joint(speed_rad_s, accel_rad_s2)
+        travel = float(np.max(np.abs(target - self.read().joint_positions)))
+
+        def arrived(state: ArmState) -> bool:
+            return float(np.max(np.abs(state.joint_positions - target))) <= self.config.joint_tolerance_rad
+
+        self._execute(
+            f"moveJ to {np.round(target, 4).tolist()}", linear=False,
+            send=lambda: self._control.moveJ(target.tolist(), speed_rad_s, accel_rad_s2, True),
+            arrived=arrived, expected_s=travel / speed_rad_s + speed_rad_s / accel_rad_s2)
+
+    def stop(self) -> None:
+        """Decelerate the arm to rest (stopL or stopJ, matching the move in progress) and
+        return once the controller reports it stopped. A move waiting in another thread
+        then raises MotionAbortedError. Raises ConnectionLostError if the link is down."""
+        state = self.read()
+        if state.safety_status == "disconnected":
+            raise ConnectionLostError("cannot send stop: no live connection to the UR controller")
+        if state.safety_status != "normal":
+            return  # a protective or emergency stop has already brought the arm to rest
+        if self._moving_linearly:
+            self._control.stopL(self.config.stop_decel_m_s2, False)
+        else:
+            self._control.stopJ(self.config.stop_decel_rad_s2, False)
+
+    def disconnect(self) -> None:
+        """Stop ur_rtde's control script and close both RTDE connections."""
+        control, receive = self._control, self._receive
+        self._control = self._receive = None
+        if control is not None:
+            if receive is not None and receive.isConnected() and control.isConnected():
+                control.stopScript()
+            control.disconnect()
+        if receive is not None:
+            receive.disconnect()
+
+    def _execute(self, description: str, linear: bool, send: Callable[[], bool],
+                 arrived: Callable[[ArmState], bool], expected_s: float) -> None:
+        if self._control is None:
+            raise ArmConnectionError(f"{description}: connect() first")
+        if not self._move_lock.acquire(blocking=False):
+            raise ArmError(f"{description}: another move is in progress")
+        try:
+            self._raise_if_unsafe(self.read(), description)
+            self._moving_linearly = linear
+            # The script's operation id changes when the move starts, so a move counts
+            # as finished only once it has started and then stopped running.
+            operation_before = self._control.getAsyncOperationProgressEx().operationId()
+            if not send():
+                self._raise_if_unsafe(self.read(), description)
+                raise ArmError(f"{description}: the controller refused the command")
+            deadline = time.monotonic() + expected_s + self.config.move_timeout_margin_s
+            while True:
+                self._raise_if_unsafe(self.read(), description)
+                if not self._control.isProgramRunning():
+                    # A safety stop also stops the script; the receive stream may report it
+                    # a few packages after the control stream, and it is the better error.
+                    time.sleep(SAFETY_REPORT_WAIT_S)
+                    self._raise_if_unsafe(self.read(), description)
+                    raise MotionAbortedError(f"{description}: ur_rtde's control script stopped "
+                                             "running (program stopped on the pendant?)")
+                status = self._control.getAsyncOperationProgressEx()
+                if status.operationId() != operation_before and not status.isAsyncOperationRunning():
+                    break
+                if time.monotonic() > deadline:
+                    self.stop()
+                    raise MotionAbortedError(f"{description}: not finished after {expected_s:.1f} s "
+                                             f"+ {self.config.move_timeout_margin_s} s; stopped")
+                time.sleep(POLL_PERIOD_S)
+            final = self.read()
+            if not arrived(final):
+                raise MotionAbortedError(f"{description}: stopped short at TCP "
+                                         f"{np.round(final.tcp_pose, 4).tolist()}")
+        finally:
+            self._move_lock.release()
+
+    @staticmethod
+    def _raise_if_unsafe(state: ArmState, action: str) -> None:
+        if state.safety_status == "disconnected":
+            raise ConnectionLostError(f"{action}: lost the RTDE connection to the UR controller")
+        if state.safety_status == "protective_stop":
+            raise ProtectiveStopError(f"{action}: the UR controller is in a protective stop; "
+                                      "inspect the cause, then unlock it on the pendant")
+        if state.safety_status == "emergency_stop":
+            raise EmergencyStopError(f"{action}: the UR emergency stop is active; release it "
+                                     "and restart the arm")
+
+
+def _rotation_between(pose_a: np.ndarray, pose_b: np.ndarray) -> float:
+    """Angle (rad) of the rotation taking the orientation of pose_a to that of pose_b."""
+    return float((Rotation.from_rotvec(pose_b[3:6]) * Rotation.from_rotvec(pose_a[3:6]).inv()).magnitude())

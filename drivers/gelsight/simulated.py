@@ -1,0 +1,145 @@
+"""Simulated GelSight: renders the contact of its finger with the scene through
+``sim.gelsight.GelSightRenderer`` (with the scene's GelSight effects).
+
+The node tells the sensor where the robot is with :meth:`SimulatedGelSight.observe_robot`
+(latest TCP pose, gripper width and grasp force); :meth:`SimulatedGelSight.read` then
+returns the tactile image of the current contact, or of the untouched gel when the finger
+touches nothing.
+
+Contact rule: with a positive force and the gripper closed to (about) the width at which
+the fingers meet the object, the gel presses in as ``SimWorld.grasp_contact`` computes
+(the force on the gel's compliance); otherwise the gel sits where the kinematics put it and
+only geometry counts (no press).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from drivers.gelsight.base import GelSightError
+from msgs import Header, TactileImage
+
+
+__all__ = ["SimulatedGelSight", "SimulatedGelSightConfig", "GelSightError"]
+
+SENSORS = ("left", "right")
+
+
+@dataclasses.dataclass
+class SimulatedGelSightConfig:
+    scene: str = "scenes/ycb_three.yaml"
+    sensor: str = "left"
+    seed: int | None = None  # default: the scene's seed
+    rate_hz: float = 30.0
+    pace: bool = True  # read() waits for the next frame time, like the real camera
+    image_height: int | None = None  # default: the scene's gelsight.image_height
+    image_width: int | None = None
+    width_tolerance_m: float = 0.002  # gripper within this of the contact width = holding
+
+    def __post_init__(self) -> None:
+        if self.sensor not in SENSORS:
+            raise ValueError(f"sensor {self.sensor!r} not one of {SENSORS}")
+        if not (np.isfinite(self.rate_hz) and 0.0 < self.rate_hz <= 1000.0):
+            raise ValueError(f"rate_hz {self.rate_hz} outside (0, 1000]")
+
+
+class SimulatedGelSight:
+    def __init__(self, config: SimulatedGelSightConfig):
+        self.config = config
+        self.world = None
+        self.renderer = None
+        self._gap: np.ndarray | None = None
+        self._robot: tuple | None = None
+        self._seq = 0
+        self._next_t = 0.0
+        self.last_contact = None  # the last sim.world.GraspContact used (ground truth)
+
+    def connect(self) -> None:
+        from sim.gelsight import GelSightConfig, GelSightRenderer  # noqa: PLC0415
+        from sim.gelsight_effects import make_effect  # noqa: PLC0415
+        from sim.scene import SceneError  # noqa: PLC0415
+        from sim.world import shared_world  # noqa: PLC0415
+
+        try:
+            self.world = shared_world(self.config.scene, self.config.seed)
+        except SceneError as exc:
+            raise GelSightError(str(exc)) from exc
+        scene = self.world.scene
+        gs = scene.gelsight
+        h = self.config.image_height or gs.image_height
+        w = self.config.image_width or gs.image_width
+        self.size = (h, w)
+        # the image covers the same field of view on the gel whatever its pixel count
+        self.mm_per_px = gs.mm_per_px * gs.image_width / w
+        self.extent_mm = (gs.image_height * gs.mm_per_px, gs.image_width * gs.mm_per_px)
+        effects = [make_effect(e.name, e.params) for e in scene.effects_of("gelsight")]
+        seed = self.world.seed
+        rng = np.random.default_rng([seed, 11, SENSORS.index(self.config.sensor)])
+        cfg = GelSightConfig(image_height=h, image_width=w, mm_per_px=self.mm_per_px,
+                             elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3)
+        self.renderer = GelSightRenderer(cfg, effects=effects, rng=rng)
+        self._background = self.renderer.background()
+        self._gap = None
+        self._next_t = time.monotonic()
+
+    def disconnect(self) -> None:
+        self.world = None
+        self.renderer = None
+
+    @property
+    def is_connected(self) -> bool:
+        return self.renderer is not None
+
+    def observe_robot(self, tcp_pose_world: np.ndarray, gripper_width_m: float, force_n: float) -> None:
+        """Latest robot state: TCP pose (UR pose, world), gripper width (m), grasp force (N)."""
+        if self.world is None:
+            raise GelSightError("simulated GelSight is not connected")
+        pose = np.asarray(tcp_pose_world, dtype=np.float64)
+        key = (pose.tobytes(), float(gripper_width_m), float(force_n))
+        if key == self._robot:
+            return
+        self._robot = key
+        from perception.kinematics import gel_poses_world  # noqa: PLC0415
+
+        scene = self.world.scene
+        sensor = self.config.sensor
+        if force_n > 0:
+            contact = self.world.grasp_contact(pose, force_n, self.size, self.extent_mm, gap_fingers=(sensor,))
+            fc = contact.fingers[sensor]
+            if fc.in_contact and gripper_width_m <= contact.width_m + self.config.width_tolerance_m:
+                self.last_contact = contact
+                self._gap = contact.gap_mm[sensor]
+                return
+        width = float(np.clip(gripper_width_m, 0.0, scene.gripper.max_width_m))
+        gel = gel_poses_world(pose, width, scene.gripper_geometry())[sensor]
+        self.last_contact = None
+        if self.world.near_gel(gel, self.extent_mm):
+            self._gap = self.world.gap_map(gel, self.size, self.extent_mm)
+        else:  # nothing within reach of the gel: no cast needed
+            self._gap = np.full(self.size, np.inf, dtype=np.float32)
+
+    def gap_mm(self) -> np.ndarray | None:
+        """The gel gap map of the current state (mm; None before any observe_robot). When no
+        object comes within 1 cm of the gel it is all +inf (the cast is skipped)."""
+        return None if self._gap is None else self._gap.copy()
+
+    def read(self) -> TactileImage:
+        if self.renderer is None:
+            raise GelSightError("simulated GelSight is not connected")
+        if self.config.pace:
+            now = time.monotonic()
+            if self._next_t > now:
+                time.sleep(self._next_t - now)
+            self._next_t = max(self._next_t, now) + 1.0 / self.config.rate_hz
+        if self._gap is None or not np.any(self._gap < 0):
+            # nothing presses: the untouched gel (through the renderer so its effects apply)
+            gap = np.full(self.size, np.inf, dtype=np.float32)
+        else:
+            gap = self._gap
+        image = self.renderer.render(gap)
+        self._seq += 1
+        header = Header(stamp_ns=time.time_ns(), seq=self._seq, frame_id=f"gel_{self.config.sensor}")
+        return TactileImage(header=header, image=image, background=self._background.copy(),
+                            sensor=self.config.sensor, mm_per_px=float(self.mm_per_px))

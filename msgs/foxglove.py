@@ -1,0 +1,46 @@
+"""Foxglove's well-known message for each dtx message that has one (images, clouds,
+transforms): bags carry them beside the dtx encoding and the live bridge serves them, so
+Foxglove Studio shows a session without any plug-in."""
+from __future__ import annotations
+
+from typing import Any
+
+import foxglove.messages as fox
+import numpy as np
+
+import msgs
+from msgs.base import Message
+
+
+def _foxglove_time(stamp_ns: int) -> fox.Timestamp:
+    return fox.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+
+
+def foxglove_view(message: Message) -> Any | None:
+    """The Foxglove well-known message showing ``message``, or None if it has none."""
+    header = message.header
+    if isinstance(message, msgs.DepthImage):
+        depth = np.ascontiguousarray(message.depth)
+        encoding = "16UC1" if depth.dtype == np.uint16 else "32FC1"
+        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
+                            width=depth.shape[1], height=depth.shape[0], encoding=encoding,
+                            step=depth.strides[0], data=depth.tobytes())
+    if isinstance(message, msgs.TactileImage):
+        image = np.ascontiguousarray(message.image)
+        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
+                            width=image.shape[1], height=image.shape[0], encoding="rgb8",
+                            step=image.strides[0], data=image.tobytes())
+    if isinstance(message, msgs.PointCloud):
+        points = np.ascontiguousarray(message.points, dtype=np.float32)
+        fields = [fox.PackedElementField(name=axis, offset=4 * i, type=fox.PackedElementFieldNumericType.Float32)
+                  for i, axis in enumerate("xyz")]
+        return fox.PointCloud(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
+                              point_stride=12, fields=fields, data=points.tobytes())
+    if isinstance(message, msgs.FrameTransform):
+        t, q = message.translation, message.rotation
+        return fox.FrameTransform(
+            timestamp=_foxglove_time(header.stamp_ns), parent_frame_id=header.frame_id,
+            child_frame_id=message.child_frame_id,
+            translation=fox.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+            rotation=fox.Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    return None

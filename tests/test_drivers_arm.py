@@ -1,0 +1,261 @@
+"""The UR backend driving the real ur_rtde client against a fake UR controller.
+
+Each test runs its own fake controller process on its own 127.x.y.z address (the client's
+ports are fixed), and every test has a time-out so a hung client fails instead of blocking.
+"""
+from __future__ import annotations
+
+import random
+import threading
+import time
+from typing import Callable, Iterator
+
+import dashboard_client
+import numpy as np
+import pytest
+import rtde_receive
+
+from drivers.arm import make_backend
+from drivers.arm.base import (
+    ArmConnectionError,
+    ConnectionLostError,
+    EmergencyStopError,
+    MotionAbortedError,
+    MotionLimitError,
+    ProtectiveStopError,
+    WorkspaceError,
+)
+from drivers.arm.ur import URArm
+from drivers.arm.ur_kinematics import tcp_pose
+from drivers.arm.ur_controller_sim import CMD_MOVEL, CMD_STOPL, HOME_Q, FakeURController
+
+pytestmark = pytest.mark.timeout(90)
+
+WORKSPACE = {"x_min_m": -0.8, "x_max_m": 0.8, "y_min_m": -0.8, "y_max_m": 0.8,
+             "z_min_m": 0.1, "z_max_m": 0.8}
+
+
+def start_fake_controller() -> FakeURController:
+    """Start a fake on a free random loopback address (another run may hold one)."""
+    for _ in range(10):
+        host = f"127.{random.randint(32, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}"
+        controller = FakeURController(host)
+        try:
+            controller.start()
+        except OSError:
+            continue
+        return controller
+    raise RuntimeError("no free loopback address for the fake UR controller")
+
+
+@pytest.fixture
+def fake() -> Iterator[FakeURController]:
+    controller = start_fake_controller()
+    try:
+        yield controller
+    finally:
+        controller.close()
+
+
+@pytest.fixture
+def arm(fake: FakeURController) -> Iterator[URArm]:
+    backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host, "workspace": WORKSPACE})
+    backend.connect()
+    try:
+        yield backend
+    finally:
+        backend.disconnect()
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting until {what}")
+        time.sleep(0.005)
+
+
+def move_in_thread(move: Callable[[], None]) -> tuple[threading.Thread, list[BaseException]]:
+    """Run a blocking move in a thread; the list receives the error it raises, if any."""
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            move()
+        except BaseException as error:  # handed to the test thread to assert on
+            errors.append(error)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, errors
+
+
+def wait_until_moving(fake: FakeURController) -> None:
+    """Wait until the fake arm moves and the client has finished handing over the command:
+    a cut inside that handshake would leave ur_rtde waiting out its 300 s time-out."""
+    def moving_and_handed_over() -> bool:
+        snapshot = fake.snapshot()
+        return snapshot["moving"] and snapshot["command_register"] == 0
+
+    wait_until(moving_and_handed_over, "the fake arm moves and the client cleared the command")
+
+
+def commands(fake: FakeURController, number: int) -> list[int]:
+    return [cmd for _, cmd in fake.snapshot()["commands_received"] if cmd == number]
+
+
+def test_connect_reads_the_controller_state(fake: FakeURController, arm: URArm) -> None:
+    state = arm.read()
+    snapshot = fake.snapshot()
+    assert snapshot["program_running"], "connect() should have started the control script"
+    np.testing.assert_allclose(state.joint_positions, HOME_Q, atol=1e-12)
+    np.testing.assert_allclose(state.tcp_pose, snapshot["tcp_pose"], atol=1e-12)
+    np.testing.assert_allclose(state.tcp_pose, tcp_pose(np.array(HOME_Q)), atol=1e-9)
+    assert state.safety_status == "normal"
+    assert not state.moving
+
+
+def test_move_linear_reaches_the_target(fake: FakeURController, arm: URArm) -> None:
+    target = arm.read().tcp_pose + np.array([0.05, -0.03, -0.1, 0.0, 0.0, 0.0])
+    arm.move_linear(target, speed_m_s=0.25, accel_m_s2=1.2)
+    snapshot = fake.snapshot()
+    np.testing.assert_allclose(snapshot["tcp_pose"], target, atol=1e-6)
+    np.testing.assert_allclose(arm.read().tcp_pose, target, atol=1e-6)
+    np.testing.assert_allclose(tcp_pose(np.array(snapshot["q"])), target, atol=1e-6)
+    assert commands(fake, CMD_MOVEL) == [CMD_MOVEL]
+
+
+def test_move_joints_reaches_the_target(fake: FakeURController, arm: URArm) -> None:
+    target = np.array(HOME_Q) + np.array([0.3, -0.1, 0.2, 0.0, 0.1, -0.2])
+    arm.move_joints(target, speed_rad_s=1.0, accel_rad_s2=1.4)
+    snapshot = fake.snapshot()
+    np.testing.assert_allclose(snapshot["q"], target, atol=1e-9)
+    np.testing.assert_allclose(snapshot["tcp_pose"], tcp_pose(target), atol=1e-9)
+    np.testing.assert_allclose(arm.read().joint_positions, target, atol=1e-9)
+
+
+def test_a_target_outside_the_workspace_is_refused_before_sending(
+        fake: FakeURController, arm: URArm) -> None:
+    below_the_table = arm.read().tcp_pose.copy()
+    below_the_table[2] = 0.05
+    with pytest.raises(WorkspaceError, match=r"z = 0\.0500 m is below z_min_m = 0\.1 m"):
+        arm.move_linear(below_the_table, speed_m_s=0.1, accel_m_s2=1.0)
+    folded_into_the_table = np.array(HOME_Q) + np.array([0.0, 1.2, 0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(WorkspaceError, match="z_min_m"):
+        arm.move_joints(folded_into_the_table, speed_rad_s=0.5, accel_rad_s2=1.0)
+    assert fake.snapshot()["commands_received"] == []
+
+
+def test_a_speed_over_the_limit_is_refused_before_sending(
+        fake: FakeURController, arm: URArm) -> None:
+    target = arm.read().tcp_pose + np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])
+    with pytest.raises(MotionLimitError, match="TCP speed 0.5 m/s exceeds the limit of 0.25 m/s"):
+        arm.move_linear(target, speed_m_s=0.5, accel_m_s2=1.0)
+    with pytest.raises(MotionLimitError, match="joint acceleration"):
+        arm.move_joints(np.array(HOME_Q), speed_rad_s=0.5, accel_rad_s2=10.0)
+    assert fake.snapshot()["commands_received"] == []
+
+
+def test_a_move_is_refused_while_the_controller_is_in_protective_stop(
+        fake: FakeURController, arm: URArm) -> None:
+    fake.set_safety("protective_stop")
+    wait_until(lambda: arm.read().safety_status == "protective_stop", "the stop is reported")
+    target = arm.read().tcp_pose + np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])
+    with pytest.raises(ProtectiveStopError, match="protective stop"):
+        arm.move_linear(target, speed_m_s=0.1, accel_m_s2=1.0)
+    assert commands(fake, CMD_MOVEL) == []
+
+
+def test_a_protective_stop_during_a_move_raises(fake: FakeURController, arm: URArm) -> None:
+    target = arm.read().tcp_pose + np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
+    thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))
+    wait_until_moving(fake)
+    fake.set_safety("protective_stop")
+    thread.join()
+    assert len(errors) == 1 and isinstance(errors[0], ProtectiveStopError)
+    assert arm.read().safety_status == "protective_stop"
+
+
+def test_connect_to_a_controller_in_protective_stop_says_so(fake: FakeURController) -> None:
+    fake.set_safety("protective_stop")
+    backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host})
+    with pytest.raises(ProtectiveStopError, match="unlock it on the pendant"):
+        backend.connect()
+    assert not fake.snapshot()["program_running"]
+
+
+def test_a_connection_cut_mid_motion_raises_connection_lost(
+        fake: FakeURController, arm: URArm) -> None:
+    target = arm.read().tcp_pose + np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
+    thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))
+    wait_until_moving(fake)
+    fake.cut_connections()
+    thread.join(timeout=30.0)
+    assert not thread.is_alive(), "the move hung after the connection was cut"
+    assert len(errors) == 1 and isinstance(errors[0], ConnectionLostError)
+    assert arm.read().safety_status == "disconnected"
+    with pytest.raises(ConnectionLostError):
+        arm.stop()
+
+
+def test_stop_interrupts_a_move(fake: FakeURController, arm: URArm) -> None:
+    start = arm.read().tcp_pose
+    target = start + np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
+    thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))
+    wait_until_moving(fake)
+    arm.stop()
+    thread.join()
+    assert len(errors) == 1 and isinstance(errors[0], MotionAbortedError)
+    snapshot = fake.snapshot()
+    assert commands(fake, CMD_STOPL) == [CMD_STOPL]
+    assert not snapshot["moving"]
+    assert 0.0 < snapshot["tcp_pose"][1] - start[1] < 0.3
+    assert not arm.read().moving
+
+
+def test_an_unreachable_controller_is_a_connection_error() -> None:
+    backend = make_backend({"backend": "ur_rtde", "robot_ip": "127.0.0.254"})
+    with pytest.raises(ArmConnectionError, match="127.0.0.254"):
+        backend.connect()
+
+
+def test_the_fake_packs_every_variable_of_the_clients_default_recipe(
+        fake: FakeURController) -> None:
+    # With no variable list, RTDEReceiveInterface subscribes to everything it knows for the
+    # controller version; one wrongly sized type would shift every value after it.
+    receive = rtde_receive.RTDEReceiveInterface(fake.host, 500.0)
+    try:
+        wait_until(lambda: receive.getTimestamp() > 0.0, "states arrive")
+        np.testing.assert_allclose(receive.getActualQ(), HOME_Q, atol=1e-12)
+        np.testing.assert_allclose(receive.getActualTCPPose(), tcp_pose(np.array(HOME_Q)), atol=1e-9)
+        assert receive.getRobotMode() == 7  # RUNNING
+        assert receive.getSafetyMode() == 1  # NORMAL
+        assert receive.getSafetyStatusBits() == 1  # normal mode bit
+        assert receive.getSpeedScaling() == 1.0
+        assert receive.getRuntimeState() == 1  # STOPPED: no program uploaded yet
+    finally:
+        receive.disconnect()
+
+
+def test_read_reports_an_emergency_stop(fake: FakeURController, arm: URArm) -> None:
+    fake.set_safety("emergency_stop")
+    wait_until(lambda: arm.read().safety_status == "emergency_stop", "the stop is reported")
+    with pytest.raises(EmergencyStopError, match="emergency stop"):
+        arm.move_joints(np.array(HOME_Q), speed_rad_s=0.5, accel_rad_s2=1.0)
+
+
+def test_connect_to_a_powered_off_arm_says_how_to_fix_it(fake: FakeURController) -> None:
+    dashboard = dashboard_client.DashboardClient(fake.host)
+    dashboard.connect()
+    try:
+        dashboard.powerOff()
+        backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host})
+        with pytest.raises(ArmConnectionError, match="POWER_OFF: power it on and release the brakes"):
+            backend.connect()
+        dashboard.powerOn()
+        dashboard.brakeRelease()
+        assert dashboard.robotmode() == "Robotmode: RUNNING"
+        backend.connect()
+        backend.disconnect()
+    finally:
+        dashboard.disconnect()
