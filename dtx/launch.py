@@ -17,7 +17,9 @@ Crossing machines: ``transport: tcp`` with ``curve_secret_key``/``curve_authoriz
 on the calling one.
 
 Every node runs as its own process; its output is prefixed with its name. A node marked
-``respawn`` is restarted when it dies; when a ``required`` node ends, everything stops. Every
+``respawn`` is restarted when it dies (exits non-zero); when a ``required`` node ends
+otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
+left out. Every
 child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
 """
 from __future__ import annotations
@@ -38,7 +40,7 @@ from typing import Any, TextIO
 
 import yaml
 
-NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required",
+NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required", "if",
              "transport", "bind_host", "curve_secret_key", "curve_authorized_keys", "endpoints", "peers"}
 ENTRY_KEYS = {"arg", "include", "node"}
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
@@ -154,6 +156,11 @@ def _load_into(path: Path, given: dict[str, str], out: LaunchDescription, stack:
             _load_into(path.parent / str(values["file"]), given, out, (*stack, path))
         else:
             _check_keys(path, body, fields, NODE_KEYS, required={"name", "module"})
+            enabled = values.pop("if", True)
+            if not isinstance(enabled, bool):
+                raise LaunchError(f"{_where(path, body)}: 'if' must be true or false, got {enabled!r}")
+            if not enabled:
+                continue
             spec = NodeSpec(**values)
             if importlib.util.find_spec(spec.module) is None:
                 raise LaunchError(f"{_where(path, body)}: node {spec.name!r}: module {spec.module!r} not found")
@@ -269,7 +276,7 @@ class Launcher:
                 continue
             spec = run.spec
             del self.running[name]
-            if code != 0 and spec.respawn and not spec.required:
+            if code != 0 and spec.respawn:
                 self.say(f"[launch] {name} exited with {code}; respawning in {spec.respawn_delay_s} s")
                 self._stop.wait(spec.respawn_delay_s)
                 if not self._stop.is_set():

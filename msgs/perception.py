@@ -13,8 +13,9 @@ class DepthMap(Message):
     """Contact depth-map of one finger in frame ``gel_<finger>``.
 
     ``depth_map_m`` is m x k float32: for each x-z bin the minimum y (metres) of the model
-    points in the crop volume (y > 0 not touching, y < 0 indenting); empty bins hold
-    ``empty_value_m``. ``crop_m`` is the crop volume (x, y, z) in metres.
+    points in the crop volume (y > 0 not touching, y < 0 indenting); empty bins hold the far
+    end of ``y_range_m`` (y_near, y_far), which is also the range normalised for learning.
+    ``crop_m`` is the crop volume's extent (x, y, z) in metres.
     """
 
     SCHEMA = "dtx.perception.DepthMap"
@@ -23,7 +24,7 @@ class DepthMap(Message):
     depth_map_m: np.ndarray = empty((0, 0), np.float32)
     finger: str = ""
     crop_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    empty_value_m: float = 0.0
+    y_range_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0])
     point_count: int = 0
 
 

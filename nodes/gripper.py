@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from concurrent.futures import Future
 from typing import Any
 
@@ -28,9 +29,14 @@ class GripperNode(Node):
         own, backend_params = split_params(self.Params, params or {})
         super().__init__(name, own, **kwargs)
         self.tcp_pose: Any = None
+        self.arm_stamp_ns = 0
+        self.simulated = backend_params.get("backend") == "simulated"
         self.force_n = 0.0
         extras = {}
-        if backend_params.get("backend") == "simulated":
+        if self.simulated:
+            from sim.world import shared_world  # noqa: PLC0415 - only the simulation needs it
+
+            shared_world(self.params.scene)  # loaded now, not while the firmware must answer
             extras["contact_width_m"] = self.contact_width_m
             self.create_subscription("/arm/state", msgs.ArmState, self.on_arm)
         self.gripper = drivers.gripper.make_backend(backend_params, **extras)
@@ -43,6 +49,14 @@ class GripperNode(Node):
 
     def on_arm(self, state: msgs.ArmState) -> None:
         self.tcp_pose = state.tcp_pose
+        self.arm_stamp_ns = state.header.stamp_ns
+
+    def wait_for_arm_state_after(self, stamp_ns: int, timeout_s: float = 2.0) -> None:
+        """Simulation only: a real gripper feels the object; the simulated one must know where
+        the arm is, so a command waits for an arm state newer than itself."""
+        deadline = time.monotonic() + timeout_s
+        while self.arm_stamp_ns < stamp_ns and time.monotonic() < deadline:
+            time.sleep(0.002)
 
     def contact_width_m(self) -> float | None:
         """Where the closing fingers meet the object (simulated world), None if nothing."""
@@ -72,9 +86,11 @@ class GripperNode(Node):
             raise ValueError(f"action {command.action!r} unknown; allowed: {sorted(actions)}")
         if command.action == "grasp":
             self.force_n = command.force_n
-        return self.background.submit(self._run, actions[command.action])
+        return self.background.submit(self._run, actions[command.action], command.header.stamp_ns)
 
-    def _run(self, action: Any) -> msgs.GripperState:
+    def _run(self, action: Any, requested_ns: int) -> msgs.GripperState:
+        if self.simulated:
+            self.wait_for_arm_state_after(requested_ns)
         with self.line:
             action()
             self.last_state = self.gripper.read()

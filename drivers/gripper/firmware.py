@@ -34,9 +34,10 @@ class _Motion:
     start_time_s: float
     final_status: Status
     final_state: GraspingState
+    time_scale: float = 1.0
 
     def duration_s(self) -> float:
-        return abs(self.end_width_m - self.start_width_m) / self.speed_m_s
+        return self.time_scale * abs(self.end_width_m - self.start_width_m) / self.speed_m_s
 
     def width_at(self, now_s: float) -> float:
         fraction = min(1.0, (now_s - self.start_time_s) / max(self.duration_s(), 1e-9))
@@ -48,8 +49,12 @@ class GripperFirmware:
 
     def __init__(self, contact_width_m: Callable[[], float | None] = lambda: None, *,
                  max_width_m: float = 0.110, max_speed_m_s: float = 0.42,
-                 max_force_n: float = 80.0, initial_width_m: float = 0.110) -> None:
-        """Limits as the WSG 50-110 data sheet: stroke 110 mm, 420 mm/s, 80 N."""
+                 max_force_n: float = 80.0, initial_width_m: float = 0.110, time_scale: float = 1.0) -> None:
+        """Limits as the WSG 50-110 data sheet: stroke 110 mm, 420 mm/s, 80 N. ``time_scale``
+        stretches finger motions in wall time (0: instantaneous, for fast simulated sessions)."""
+        if not 0.0 <= time_scale <= 100.0:
+            raise ValueError(f"time_scale {time_scale} outside [0, 100]")
+        self.time_scale = time_scale
         self._contact_width_m = contact_width_m
         self.max_width_m = max_width_m
         self.max_speed_m_s = max_speed_m_s
@@ -150,7 +155,7 @@ class GripperFirmware:
                       moving_state: GraspingState, final_status: Status,
                       final_state: GraspingState) -> None:
         self._motion = _Motion(command, self._width_m, target_m, speed_m_s, time.monotonic(),
-                               final_status, final_state)
+                               final_status, final_state, self.time_scale)
         self._state = moving_state
         self._holding_force_n = 0.0
         self._send(command, Status.E_CMD_PENDING)

@@ -23,6 +23,7 @@ class SimulatedGripperConfig:
     response_timeout_s: float = 0.3
     motion_timeout_s: float = 10.0
     frame_id: str = "tcp"
+    time_scale: float = 1.0  # finger motions in wall time (0: instantaneous)
 
 
 class SimulatedGripper(WSG50Gripper):
@@ -33,7 +34,7 @@ class SimulatedGripper(WSG50Gripper):
                  contact_width_m: Callable[[], float | None] = lambda: None) -> None:
         self._firmware = GripperFirmware(
             contact_width_m, max_width_m=config.max_width_m, max_speed_m_s=config.max_speed_m_s,
-            max_force_n=config.max_force_n, initial_width_m=config.initial_width_m)
+            max_force_n=config.max_force_n, initial_width_m=config.initial_width_m, time_scale=config.time_scale)
         super().__init__(WSG50Config(port=self._firmware.port,
                                      response_timeout_s=config.response_timeout_s,
                                      motion_timeout_s=config.motion_timeout_s,

@@ -1,0 +1,326 @@
+"""Collector node: Algorithm 1 of the paper, end to end, through the other nodes' services.
+
+For each object: register it (``/perception/register``). For each grasp: draw
+(x, y, z, theta_z) = registered centroid + a seeded random offset (palm parallel to the
+table, only theta_z free), approach from above, close the gripper to the constant contact
+force, wait for both GelSight frames at contact, get both fingers' depth-maps
+(``/perception/patch``), write one (tactile image, depth-map) pair per finger, release and
+retreat.
+
+Policy for what goes wrong (counted, never a half sample): a grasp whose fingers find
+nothing, or whose gel does not reach the registered model, is retried with a fresh draw,
+up to ``max_attempts``, then skipped. A device or node that fails (a service time-out, a
+respawned node) makes the collector wait for it and redo the grasp with the same draw. A
+grasp's pairs are written only once both are in hand; every draw is seeded by
+(seed, grasp id, attempt), so a resumed session redoes exactly the grasps that are missing.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+import msgs
+from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, subtract_background
+from nodes.bus import ServiceCallError
+from nodes.node import Node, run_node
+from perception.kinematics import gel_poses_world, grasp_to_tcp_pose
+from sim.scene import load_scene
+
+FINGERS = ("left", "right")
+
+
+class GraspFailed(Exception):
+    """This draw gave no usable contact; another draw may."""
+
+
+@dataclasses.dataclass
+class Stats:
+    grasps_done: int = 0
+    pairs_written: int = 0
+    failed_draws: int = 0
+    device_retries: int = 0
+    skipped: int = 0
+
+
+class CollectorNode(Node):
+    @dataclasses.dataclass
+    class Params:
+        out: str = "out/session"
+        grasps: int = 289
+        seed: int = 0
+        scene: str = "scenes/ycb_three.yaml"
+        objects: list = dataclasses.field(default_factory=list)  # default: every mesh object of the scene
+        resume: bool = False
+        force_n: float = 10.0
+        offset_xy_m: float = 0.015
+        offset_closing_m: float = 0.003
+        offset_z_m: float = 0.02
+        approach_height_m: float = 0.08
+        min_gel_height_m: float = 0.006  # lowest edge of the gel above the table
+        gripper_speed_m_s: float = 0.4
+        arm_speed_m_s: float = 0.25
+        arm_accel_m_s2: float = 1.2
+        settle_s: float = 0.05
+        max_attempts: int = 5
+        call_timeout_s: float = 10.0
+        node_wait_s: float = 60.0
+        tactile_topics: list = dataclasses.field(
+            default_factory=lambda: ["/gelsight_left/image", "/gelsight_right/image"])
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        super().__init__(name, params, **kwargs)
+        p = self.params
+        if p.grasps < 1:
+            raise ValueError(f"grasps must be at least 1, got {p.grasps}")
+        self.scene = load_scene(p.scene, check_geometry=False)
+        meshes = [o.name for o in self.scene.objects if o.mesh]
+        self.objects = list(p.objects) or meshes
+        unknown = sorted(set(self.objects) - set(meshes))
+        if unknown:
+            raise ValueError(f"objects {unknown} are not in {p.scene}; it has {meshes}")
+        self.geometry = self.scene.gripper_geometry()
+        out = Path(p.out)
+        if (out / "manifest.jsonl").exists() and not p.resume:
+            raise ValueError(f"{out} already holds a dataset; pass resume:=true to continue it, or choose another out")
+        # A new dataset is created with the first pair, whose depth-map says the normalisation range.
+        self.writer: DatasetWriter | None = DatasetWriter(out) if (out / "dataset.json").exists() else None
+        self.tactile: dict[str, msgs.TactileImage] = {}
+        for finger, topic in zip(FINGERS, p.tactile_topics, strict=True):
+            self.create_subscription(topic, msgs.TactileImage, lambda m, f=finger: self.tactile.__setitem__(f, m))
+        self.move = self.create_client("/arm/move", msgs.ArmMoveRequest, msgs.ArmState)
+        self.gripper = self.create_client("/gripper/command", msgs.GripperCommand, msgs.GripperState)
+        self.register = self.create_client("/perception/register", msgs.RegisterRequest, msgs.RegisterReply)
+        self.patch = self.create_client("/perception/patch", msgs.PatchRequest, msgs.PatchReply)
+        self.samples = self.create_publisher("/collector/sample", msgs.DatasetSample)
+        self.stats = Stats()
+        self.stage_s: dict[str, list[float]] = {}
+        self.registered: dict[str, msgs.RegisterReply] = {}
+        self.last_arm: msgs.ArmState | None = None
+        self.started = time.monotonic()
+
+    # -- the session ---------------------------------------------------------------------
+    def grasp_plan(self) -> list[tuple[int, str]]:
+        """(grasp id, object) for the whole session: consecutive blocks per object."""
+        per_object, extra = divmod(self.params.grasps, len(self.objects))
+        plan = []
+        for index, name in enumerate(self.objects):
+            plan += [(len(plan) + i, name) for i in range(per_object + (1 if index < extra else 0))]
+        return plan
+
+    def written(self, sample_id: str) -> bool:
+        return self.writer is not None and sample_id in self.writer
+
+    def spin(self, until: Any = None) -> None:  # the session replaces the idle executor loop
+        plan = self.grasp_plan()
+        todo = [(g, o) for g, o in plan if not all(self.written(self.sample_id(g, f)) for f in FINGERS)]
+        self.stats.grasps_done = len(plan) - len(todo)
+        self.log.info("session: %d grasps of %s into %s (%d already there)", len(plan), self.objects,
+                      self.params.out, self.stats.grasps_done)
+        self.wait_for_nodes()
+        self.started = time.monotonic()
+        for grasp_id, object_name in todo:
+            if self.shutting_down:
+                self.log.info("stopped by request after %d grasps; resume:=true continues", self.stats.grasps_done)
+                return
+            self.collect_grasp(grasp_id, object_name)
+            self.report_progress(len(plan), len(plan) - len(todo))
+        summary = {"stats": dataclasses.asdict(self.stats), "wall_s": round(time.monotonic() - self.started, 2),
+                   "stage_median_ms": {k: round(1e3 * float(np.median(v)), 2) for k, v in self.stage_s.items()}}
+        (Path(self.params.out) / "session.json").write_text(json.dumps(summary, indent=2) + "\n")
+        self.log.info("session complete: %d pairs in %s %s", self.pairs(), self.params.out, json.dumps(summary))
+        self.request_shutdown()
+
+    def pairs(self) -> int:
+        return 0 if self.writer is None else len(self.writer)
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        started = time.perf_counter()
+        yield
+        self.stage_s.setdefault(name, []).append(time.perf_counter() - started)
+
+    def sample_id(self, grasp_id: int, finger: str) -> str:
+        return f"g{grasp_id:05d}_{finger}"
+
+    def report_progress(self, total: int, done_before: int) -> None:
+        elapsed = time.monotonic() - self.started
+        rate = (self.stats.grasps_done - done_before + self.stats.skipped) / max(elapsed, 1e-9)
+        remaining = total - self.stats.grasps_done - self.stats.skipped
+        eta = f"{remaining / rate:.0f} s" if rate > 0 else "?"
+        filled = int(30 * (self.stats.grasps_done + self.stats.skipped) / total)
+        print(f"[{'#' * filled}{'.' * (30 - filled)}] grasps {self.stats.grasps_done}/{total} | "
+              f"pairs {self.pairs()} | failed draws {self.stats.failed_draws} | skipped {self.stats.skipped} | "
+              f"device retries {self.stats.device_retries} | {rate * 60:.0f} grasps/min | ETA {eta}", flush=True)
+
+    def collect_grasp(self, grasp_id: int, object_name: str) -> None:
+        attempt = 0
+        while attempt < self.params.max_attempts and not self.shutting_down:
+            try:
+                self.try_grasp(grasp_id, attempt, object_name)
+                self.stats.grasps_done += 1
+                return
+            except GraspFailed as reason:
+                self.stats.failed_draws += 1
+                self.log.info("grasp %d draw %d: %s", grasp_id, attempt, reason)
+                attempt += 1
+            except ServiceCallError as error:  # a node died or a device failed: same draw again
+                self.stats.device_retries += 1
+                self.log.warning("grasp %d: %s; waiting for the node and redoing the grasp", grasp_id, error)
+                if error.code == "handler_error" and "not registered" in error.text:
+                    self.registered.pop(object_name, None)
+                self.wait_for_nodes()
+            finally:
+                self.release_and_retreat()
+        if not self.shutting_down:
+            self.stats.skipped += 1
+            self.log.warning("grasp %d on %s skipped after %d draws", grasp_id, object_name, attempt)
+
+    def wait_for_nodes(self) -> None:
+        for client in (self.move, self.gripper, self.register, self.patch):
+            if not client.wait_for_service(self.params.node_wait_s):
+                raise RuntimeError(f"service {client.name} did not come back in {self.params.node_wait_s} s")
+        self.spin_once(0.5)
+
+    def registration(self, object_name: str) -> msgs.RegisterReply:
+        if object_name not in self.registered:
+            self.wait_for_tactile_and_depth()
+            reply = self.register.call(msgs.RegisterRequest(object_name=object_name, seed=self.params.seed),
+                                       timeout_s=60.0, retries=1)
+            self.log.info("%s registered: fitness %.3f, centroid %s", object_name, reply.fitness,
+                          np.round(reply.centroid_world, 3).tolist())
+            self.registered[object_name] = reply
+        return self.registered[object_name]
+
+    def wait_for_tactile_and_depth(self) -> None:
+        """Spin until both GelSights have published (their backgrounds are needed)."""
+        deadline = time.monotonic() + self.params.node_wait_s
+        while not all(f in self.tactile for f in FINGERS):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no tactile images on {self.params.tactile_topics}")
+            self.spin_once(0.05)
+
+    def draw(self, grasp_id: int, attempt: int, centroid: np.ndarray) -> np.ndarray:
+        """(x, y, z of the gel centres, theta_z), seeded by (seed, grasp, attempt).
+
+        The offset is drawn in the gripper's frame: wide along the gels, small along the
+        closing axis. A parallel gripper centres what it grasps, so a large offset along the
+        closing axis would push the object away from where it was registered."""
+        p = self.params
+        rng = np.random.default_rng([p.seed, grasp_id, attempt])
+        theta = rng.uniform(-np.pi, np.pi)
+        along_gel, along_closing = rng.uniform(-p.offset_xy_m, p.offset_xy_m), \
+            rng.uniform(-p.offset_closing_m, p.offset_closing_m)
+        closing_axis = np.array([-np.sin(theta), np.cos(theta)])  # tool y after the turn about world z
+        gel_axis = np.array([np.cos(theta), np.sin(theta)])
+        x, y = centroid[:2] + along_gel * gel_axis + along_closing * closing_axis
+        lowest = p.min_gel_height_m + self.geometry.gel_size_m[1] / 2
+        z = max(lowest, centroid[2] + rng.uniform(-p.offset_z_m, p.offset_z_m))
+        return np.array([x, y, z, theta])
+
+    def try_grasp(self, grasp_id: int, attempt: int, object_name: str) -> None:
+        p = self.params
+        with self.stage("register"):
+            registered = self.registration(object_name)
+        x, y, z, theta = self.draw(grasp_id, attempt, registered.centroid_world)
+        tcp = grasp_to_tcp_pose(x, y, z + self.geometry.tcp_to_gel_centre_m, theta)
+        above = tcp.copy()
+        above[2] += p.approach_height_m
+        with self.stage("approach"):
+            self.arm_to(above)
+            self.gripper.call(msgs.GripperCommand(action="move", width_m=self.geometry.max_width_m,
+                                                  speed_m_s=p.gripper_speed_m_s), timeout_s=p.call_timeout_s)
+            arrived = self.arm_to(tcp)
+        with self.stage("close"):
+            held = self.gripper.call(msgs.GripperCommand(action="grasp", width_m=0.0, speed_m_s=p.gripper_speed_m_s,
+                                                         force_n=p.force_n), timeout_s=p.call_timeout_s)
+        if held.state != "holding":
+            raise GraspFailed(f"fingers found nothing ({held.state})")
+        with self.stage("capture"):
+            images = self.capture_at_contact(time.time_ns())
+        gels = gel_poses_world(arrived.tcp_pose, held.width_m, self.geometry)
+        with self.stage("depth_maps"):
+            try:
+                patches = self.patch.call(msgs.PatchRequest(object_name=object_name, gel_left_to_world=gels["left"],
+                                                            gel_right_to_world=gels["right"]),
+                                          timeout_s=p.call_timeout_s)
+            except ServiceCallError as error:
+                if "does not reach the object" in error.text:
+                    raise GraspFailed("the registered model is out of the gel's reach") from error
+                raise
+        pose = [float(x), float(y), float(z), float(theta)]
+        with self.stage("write"):
+            for finger, depth_map in (("left", patches.left), ("right", patches.right)):
+                self.write_pair(grasp_id, finger, object_name, pose, images[finger], depth_map, registered.fitness)
+
+    def arm_to(self, tcp_pose: np.ndarray) -> msgs.ArmState:
+        self.last_arm = self.move.call(
+            msgs.ArmMoveRequest(target=tcp_pose, mode="moveL", speed=self.params.arm_speed_m_s,
+                                acceleration=self.params.arm_accel_m_s2), timeout_s=self.params.call_timeout_s)
+        return self.last_arm
+
+    def capture_at_contact(self, contact_ns: int) -> dict[str, msgs.TactileImage]:
+        """The first frame of each GelSight taken after contact plus the settling time."""
+        after = contact_ns + int(self.params.settle_s * 1e9)
+        deadline = time.monotonic() + self.params.settle_s + 5.0
+        while not all(f in self.tactile and self.tactile[f].header.stamp_ns > after for f in FINGERS):
+            if time.monotonic() > deadline:
+                raise ServiceCallError("gelsight", "timeout", "no tactile frame after contact")
+            self.spin_once(0.01)
+        return dict(self.tactile)
+
+    def write_pair(self, grasp_id: int, finger: str, object_name: str, pose: list[float],
+                   image: msgs.TactileImage, depth_map: msgs.DepthMap, fitness: float) -> None:
+        sample_id = self.sample_id(grasp_id, finger)
+        if self.written(sample_id):
+            return  # written before a crash; the other finger is what was missing
+        if self.writer is None:
+            p = self.params
+            self.writer = DatasetWriter(p.out, DatasetInfo(
+                image_height=100, image_width=100, depth_range_m=(depth_map.y_range_m[0], depth_map.y_range_m[1]),
+                scene=p.scene, effects=tuple(e.name for e in self.scene.effects), code_version=code_version(),
+                split_seed=p.seed))
+        size = (self.writer.info.image_width, self.writer.info.image_height)
+        tactile = cv2.resize(np.ascontiguousarray(image.image), size, interpolation=cv2.INTER_AREA)
+        background = cv2.resize(np.ascontiguousarray(image.background), size, interpolation=cv2.INTER_AREA)
+        try:
+            record = self.writer.write(
+                sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
+                tactile_rgb=tactile, tactile_diff_rgb=subtract_background(tactile, background),
+                depth_map_m=depth_map.depth_map_m, registration_fitness=fitness,
+                stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()})
+        except DatasetError as error:
+            self.log.error("cannot write %s: %s — stopping; the dataset is intact", sample_id, error)
+            raise SystemExit(3) from error
+        self.stats.pairs_written += 1
+        self.samples.publish(msgs.DatasetSample(
+            sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
+            tactile_image=tactile, depth_map_m=depth_map.depth_map_m, path=str(record.files["tactile"])))
+
+    def release_and_retreat(self) -> None:
+        """Open the fingers and lift; on the way out of any grasp, failed or not."""
+        with self.stage("release"):
+            self._release_and_retreat()
+
+    def _release_and_retreat(self) -> None:
+        try:
+            self.gripper.call(msgs.GripperCommand(action="release", width_m=self.geometry.max_width_m,
+                                                  speed_m_s=self.params.gripper_speed_m_s),
+                              timeout_s=self.params.call_timeout_s)
+            if self.last_arm is not None:
+                above = np.array(self.last_arm.tcp_pose, dtype=np.float64)
+                above[2] += self.params.approach_height_m
+                self.arm_to(above)
+        except ServiceCallError as error:
+            self.log.warning("release or retreat failed: %s", error)
+
+
+if __name__ == "__main__":
+    run_node(CollectorNode)

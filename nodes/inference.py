@@ -1,0 +1,308 @@
+"""Inference server node: serves ``/inference/estimate`` (msgs.TactileEstimateRequest ->
+msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp planner.
+
+- A request holds N regions: ``depth_maps`` (N x 100 x 100 float32, metres in the gel
+  frame), or ``points`` (P x 3, world) with ``gel_poses`` (N x 4 x 4, gel to world), from
+  which the depth-maps are cut with the patch extractor's function
+  (perception.depthmap.contact_depth_map, y range = the checkpoint's depth_range_m).
+- Batching: requests from every client that arrive within ``batch_window_ms`` of the oldest
+  waiting one (and all that queued while the previous batch ran) go through the network
+  together, in forward passes of at most ``max_batch`` regions; each client gets its own
+  reply when the batch is done.
+- ``images``: the deterministic estimate (dropout off). ``uncertainty``: with
+  ``dropout_samples`` = S > 1, the per-pixel standard deviation (0..255 image units, mean of
+  the three channels) of S extra passes with dropout on — pix2pix's noise z; zeros for S = 1.
+- A bad request (shape, dtype, NaN/inf, empty, too many regions or points, both or neither
+  input, gel poses that are not rigid transforms) gets an error reply with code
+  ``bad_request``; a wrong schema is refused by the bus. The node keeps serving.
+- Scaling out: start several of these nodes; clients' DEALER sockets round-robin over every
+  server of the name (launch/serve.yaml).
+
+Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), ``precision``
+(fp32 | bf16, bf16 with eager only), ``threads``, ``max_regions``, ``max_points``,
+``max_batch``, ``batch_window_ms``, ``max_dropout_samples``, ``scene`` (gripper geometry for
+the points path), ``margin_m`` (crop margin, as the patch extractor's).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import io
+import threading
+import time
+import warnings
+from collections.abc import Callable
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from models.data import depth_input
+from models.networks import UNetGenerator
+from models.ssim import to_uint8_rgb
+from models.train import load_generator
+from msgs.inference import TactileEstimateReply, TactileEstimateRequest
+from nodes.node import Node, run_node
+from perception.depthmap import DepthMapParams, contact_depth_map
+from perception.errors import PerceptionError
+from perception.pointcloud import check_transform
+
+RUNTIMES = ("onnxrt", "eager")
+PRECISIONS = ("fp32", "bf16")
+
+
+class BadRequest(ValueError):
+    """A request the server cannot answer; the bus sends it back as ServiceError(code, text)."""
+
+    code = "bad_request"
+
+
+class _SampledDropout(nn.Module):
+    """Dropout that stays on at inference. Written with rand_like because the ONNX exporter
+    removes nn.Dropout from an eval graph, and an eval graph keeps BatchNorm's running stats."""
+
+    def __init__(self, p: float) -> None:
+        super().__init__()
+        self.p = p
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        keep = (torch.rand_like(x) >= self.p).to(x.dtype)
+        return x * keep * (1.0 / (1.0 - self.p))
+
+
+class _Unchecked(nn.Module):
+    """The generator without its input check, which the ONNX tracer cannot follow."""
+
+    def __init__(self, generator: UNetGenerator) -> None:
+        super().__init__()
+        self.generator = generator
+
+    def forward(self, depth: torch.Tensor) -> torch.Tensor:
+        return self.generator.forward_unchecked(depth)
+
+
+def _sampling_copy(generator: UNetGenerator) -> UNetGenerator:
+    sampled = copy.deepcopy(generator).eval()
+    for block in sampled.modules():
+        for name, child in block.named_children():
+            if isinstance(child, nn.Dropout):
+                setattr(block, name, _SampledDropout(child.p))
+    return sampled
+
+
+Forward = Callable[[np.ndarray], np.ndarray]
+
+
+def _forward(module: nn.Module, runtime: str, precision: str, threads: int) -> Forward:
+    """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1], on the chosen runtime."""
+    wrapped = _Unchecked(module).eval()
+    if runtime == "eager":
+        bf16 = precision == "bf16"
+
+        def run_eager(x: np.ndarray) -> np.ndarray:
+            with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                return wrapped(torch.from_numpy(x)).float().numpy()
+        return run_eager
+    import onnxruntime as ort  # noqa: PLC0415 - only this runtime needs it
+
+    graph = io.BytesIO()
+    size = module.config.image_size  # type: ignore[union-attr]
+    with warnings.catch_warnings():  # the tracer warns about shape arithmetic it handles
+        warnings.simplefilter("ignore")
+        torch.onnx.export(wrapped, (torch.zeros(1, module.config.in_channels, size, size),),  # type: ignore[union-attr]
+                          graph, dynamo=False, input_names=["depth"], output_names=["image"],
+                          dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    session = ort.InferenceSession(graph.getvalue(), options, providers=["CPUExecutionProvider"])
+    return lambda x: session.run(None, {"depth": x})[0]
+
+
+@dataclasses.dataclass
+class _Job:
+    request: TactileEstimateRequest
+    regions: int
+    arrived: float  # time.monotonic()
+    future: Future[TactileEstimateReply]
+
+
+class InferenceNode(Node):
+    @dataclasses.dataclass
+    class Params:
+        checkpoint: str = ""
+        runtime: str = "onnxrt"  # measured faster than eager on 2 busy cores (dtx bench inference)
+        precision: str = "fp32"
+        threads: int = 2
+        max_regions: int = 256
+        max_points: int = 2_000_000
+        max_batch: int = 32
+        batch_window_ms: float = 2.0
+        max_dropout_samples: int = 16
+        scene: str = "scenes/ycb_three.yaml"
+        margin_m: float = 0.002
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        super().__init__(name, params, **kwargs)
+        p = self.params
+        if p.runtime not in RUNTIMES or p.precision not in PRECISIONS:
+            raise ValueError(f"runtime must be one of {RUNTIMES} and precision one of {PRECISIONS}, "
+                             f"got {p.runtime!r}, {p.precision!r}")
+        if p.precision == "bf16" and p.runtime != "eager":
+            raise ValueError("precision bf16 needs runtime eager")
+        if min(p.threads, p.max_regions, p.max_points, p.max_batch, p.max_dropout_samples) < 1 or p.batch_window_ms < 0:
+            raise ValueError("threads, max_regions, max_points, max_batch, max_dropout_samples must be >= 1 "
+                             "and batch_window_ms >= 0")
+        if not p.checkpoint:
+            raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")
+        started = time.perf_counter()
+        torch.set_num_threads(p.threads)
+        torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
+        generator, self.depth_range_m = load_generator(p.checkpoint)
+        self.config = generator.config
+        self.deterministic = _forward(generator, p.runtime, p.precision, p.threads)
+        self.sampled = _forward(_sampling_copy(generator), p.runtime, p.precision, p.threads)
+        from sim.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
+
+        self.geometry = load_scene(p.scene, check_geometry=False).gripper_geometry()
+        size = self.config.image_size
+        self.depth_map_params = DepthMapParams(shape=(size, size), margin_m=p.margin_m, y_range_m=self.depth_range_m)
+        self.model = (f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {p.runtime} {p.precision}) "
+                      f"on {self.name}")
+        self.forward_passes = 0
+        self._lock = threading.Condition()
+        self._waiting: list[_Job] = []
+        self._flush_queued = False
+        self.create_service("/inference/estimate", TactileEstimateRequest, TactileEstimateReply, self.on_estimate)
+        self.log.info("loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms", self.model,
+                      time.perf_counter() - started, self.depth_range_m, p.max_batch, p.batch_window_ms)
+
+    # -- requests ---------------------------------------------------------------------------
+    def on_estimate(self, request: TactileEstimateRequest) -> Future[TactileEstimateReply]:
+        job = _Job(request, self._check(request), time.monotonic(), Future())
+        with self._lock:
+            self._waiting.append(job)
+            self._lock.notify()  # a flush waiting for a full batch counts again
+            start = not self._flush_queued
+            self._flush_queued = True
+        if start:
+            self.background.submit(self._flush)
+        return job.future
+
+    def _check(self, request: TactileEstimateRequest) -> int:
+        """Number of regions of a well-formed request; BadRequest otherwise."""
+        p, size = self.params, self.config.image_size
+        maps, points, poses = request.depth_maps, request.points, request.gel_poses
+        if not 1 <= request.dropout_samples <= p.max_dropout_samples:
+            raise BadRequest(f"dropout_samples must be 1..{p.max_dropout_samples}, got {request.dropout_samples}")
+        if maps.size and (points.size or poses.size):
+            raise BadRequest("give either depth_maps or points with gel_poses, not both")
+        if maps.size:
+            if maps.ndim != 3 or maps.shape[1:] != (size, size):
+                raise BadRequest(f"depth_maps must be N x {size} x {size}, got shape {maps.shape}")
+            _check_count(maps.shape[0], p.max_regions, "regions")
+            if maps.dtype != np.float32:
+                raise BadRequest(f"depth_maps must be float32 metres, got {maps.dtype}")
+            _check_finite(maps, "depth_maps")
+            return int(maps.shape[0])
+        if not points.size or not poses.size:
+            raise BadRequest("empty request: give depth_maps (N x 100 x 100), or points (P x 3) with gel_poses "
+                             "(N x 4 x 4)")
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise BadRequest(f"points must be P x 3, got shape {points.shape}")
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise BadRequest(f"gel_poses must be N x 4 x 4, got shape {poses.shape}")
+        _check_count(points.shape[0], p.max_points, "points")
+        _check_count(poses.shape[0], p.max_regions, "regions")
+        for array, what in ((points, "points"), (poses, "gel_poses")):
+            if array.dtype not in (np.float32, np.float64):
+                raise BadRequest(f"{what} must be float32 or float64, got {array.dtype}")
+            _check_finite(array, what)
+        for i, pose in enumerate(poses):
+            try:
+                check_transform(pose, f"gel_poses[{i}]")
+            except PerceptionError as exc:
+                raise BadRequest(str(exc)) from exc
+        return int(poses.shape[0])
+
+    # -- batches (in the background thread) -------------------------------------------------
+    def _flush(self) -> None:
+        """Wait out the batch window of the oldest request (or a full batch), then run all."""
+        window_s = self.params.batch_window_ms / 1e3
+        with self._lock:
+            self._lock.wait_for(lambda: sum(j.regions for j in self._waiting) >= self.params.max_batch,
+                                timeout=max(0.0, self._waiting[0].arrived + window_s - time.monotonic()))
+            jobs, self._waiting, self._flush_queued = self._waiting, [], False
+        try:
+            self._run(jobs)
+        except Exception as exc:  # an unexpected failure answers every waiting client, never hangs one
+            for job in jobs:
+                if not job.future.done():
+                    job.future.set_exception(exc)
+
+    def _run(self, jobs: list[_Job]) -> None:
+        ready, maps = [], []
+        for job in jobs:
+            try:
+                maps.append(self._depth_maps(job.request))
+                ready.append(job)
+            except BadRequest as exc:
+                job.future.set_exception(exc)
+        if not ready:
+            return
+        x = depth_input(np.concatenate(maps), self.depth_range_m, self.config.in_channels).numpy()
+        images = to_uint8_rgb(torch.from_numpy(self._batched(self.deterministic, x)))
+        samples = [job.request.dropout_samples for job in ready]
+        offsets = np.cumsum([0] + [m.shape[0] for m in maps])
+        # Every region of a job asking for S samples is repeated S times, all in one pass.
+        repeated = [np.repeat(x[offsets[i]:offsets[i + 1]], s, axis=0) for i, s in enumerate(samples) if s > 1]
+        sampled = self._batched(self.sampled, np.concatenate(repeated)) if repeated else np.zeros((0,))
+        cursor = 0
+        for i, job in enumerate(ready):
+            n, s = offsets[i + 1] - offsets[i], samples[i]
+            uncertainty = np.zeros((n, *x.shape[2:]), np.float32)
+            if s > 1:
+                draws = (sampled[cursor:cursor + n * s] + 1.0) * 127.5  # image units, as images
+                cursor += n * s
+                uncertainty = draws.reshape(n, s, *draws.shape[1:]).std(axis=1).mean(axis=1).astype(np.float32)
+            job.future.set_result(TactileEstimateReply(
+                images=images[offsets[i]:offsets[i + 1]], uncertainty=uncertainty, model=self.model,
+                latency_ms=(time.monotonic() - job.arrived) * 1e3))  # queue, window and passes
+
+    def _depth_maps(self, request: TactileEstimateRequest) -> np.ndarray:
+        if request.depth_maps.size:
+            return request.depth_maps
+        maps = []
+        for i, pose in enumerate(request.gel_poses):
+            try:
+                patch = contact_depth_map(request.points, np.eye(4), pose, self.geometry, self.depth_map_params)
+            except PerceptionError as exc:
+                raise BadRequest(f"region {i}: {exc}") from exc
+            maps.append(patch.depth_map_m)
+        return np.stack(maps)
+
+    def _batched(self, forward: Forward, x: np.ndarray) -> np.ndarray:
+        step = self.params.max_batch
+        outputs = []
+        for start in range(0, len(x), step):
+            outputs.append(forward(np.ascontiguousarray(x[start:start + step])))
+            self.forward_passes += 1
+        return np.concatenate(outputs)
+
+
+def _check_count(count: int, limit: int, what: str) -> None:
+    if count > limit:
+        raise BadRequest(f"too many {what}: {count} > {limit} per request")
+
+
+def _check_finite(array: np.ndarray, what: str) -> None:
+    bad = ~np.isfinite(array)
+    if bad.any():
+        raise BadRequest(f"{what} contain NaN or inf (first at index {tuple(int(i) for i in np.argwhere(bad)[0])})")
+
+
+if __name__ == "__main__":
+    run_node(InferenceNode)

@@ -1,0 +1,77 @@
+"""The grasp planner's side of ``/inference/estimate``: what would the gel feel here?
+
+    with TactileClient() as client:                    # or TactileClient(node.bus) inside a node
+        images, uncertainty = client.estimate(depth_maps, dropout_samples=8)
+        images, uncertainty = client.estimate_at(cloud_world, gel_poses)
+
+Every server of the name on the bus is used in turn (round robin), local or, with the
+launch file's ``peers:``, remote.
+"""
+from __future__ import annotations
+
+from types import TracebackType
+
+import numpy as np
+
+from msgs.inference import TactileEstimateReply, TactileEstimateRequest
+from nodes.bus import Bus, ServiceCallError
+
+SERVICE = "/inference/estimate"
+
+
+class InferenceError(RuntimeError):
+    """The inference server refused the request (``code`` bad_request, ...), was not found
+    (``unavailable``) or did not answer in time (``timeout``)."""
+
+    def __init__(self, code: str, text: str) -> None:
+        super().__init__(f"{SERVICE}: {code}: {text}")
+        self.code, self.text = code, text
+
+
+class TactileClient:
+    """Estimated tactile images (N x H x W x 3 uint8) and their per-pixel uncertainty
+    (N x H x W float32, 0..255 units; zeros for one sample) for N candidate regions."""
+
+    def __init__(self, bus: Bus | None = None, timeout_s: float = 10.0, retries: int = 0,
+                 dropout_samples: int = 1, service: str = SERVICE) -> None:
+        self._own_bus = bus is None  # a planner that is a node lends its bus; a script gets its own
+        self.bus = bus if bus is not None else Bus("tactile_client")
+        # No retry by default: a retried batch may reach another worker and run twice.
+        self.timeout_s, self.retries, self.dropout_samples = timeout_s, retries, dropout_samples
+        self.client = self.bus.client(service, TactileEstimateRequest, TactileEstimateReply)
+        self.last_reply: TactileEstimateReply | None = None
+
+    def estimate(self, depth_maps: np.ndarray, dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """From depth-maps: N x 100 x 100 metres in the gel frame (a single 100 x 100 map is one region)."""
+        maps = np.asarray(depth_maps, dtype=np.float32)
+        return self._call(TactileEstimateRequest(depth_maps=maps[None] if maps.ndim == 2 else maps,
+                                                 dropout_samples=dropout_samples or self.dropout_samples))
+
+    def estimate_at(self, points_world: np.ndarray, gel_poses: np.ndarray,
+                    dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """From the object's cloud (P x 3, world, metres) and candidate gel poses (N x 4 x 4, gel to world)."""
+        points, poses = np.asarray(points_world), np.asarray(gel_poses, dtype=np.float64)
+        points = points if points.dtype == np.float32 else points.astype(np.float64)  # float32 halves the bytes
+        return self._call(TactileEstimateRequest(points=points,
+                                                 gel_poses=poses[None] if poses.ndim == 2 else poses,
+                                                 dropout_samples=dropout_samples or self.dropout_samples))
+
+    def _call(self, request: TactileEstimateRequest) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            reply = self.client.call(request, timeout_s=self.timeout_s, retries=self.retries)
+        except ServiceCallError as exc:
+            raise InferenceError(exc.code, exc.text) from exc
+        self.last_reply = reply
+        return reply.images, reply.uncertainty
+
+    def close(self) -> None:
+        self.client.close()
+        if self._own_bus:
+            self.bus.close()
+
+    def __enter__(self) -> "TactileClient":
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None) -> None:
+        self.close()

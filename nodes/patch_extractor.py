@@ -1,0 +1,113 @@
+"""Patch extractor node: turns the depth cameras' frames into what Algorithm 1 needs.
+
+- ``/perception/register`` (RegisterRequest -> RegisterReply): segment the named object in
+  the latest frame of every camera (merged in ``world``), register its complete model cloud
+  (FPFH + RANSAC, then point-to-plane ICP) and keep the pose.
+- ``/perception/patch`` (PatchRequest -> PatchReply): both fingers' contact depth-maps of
+  the registered model cloud for the given gel poses.
+- Publishes what it extracted (``/perception/object_cloud``, ``/perception/depth_map``) so a
+  session bag holds it.
+
+Params: ``scene`` (which objects exist, their meshes and nominal places, the gripper
+geometry — for the lab, a scene file describing the real table), ``cameras`` (depth topics),
+``depth_map_rows``/``depth_map_cols``, ``margin_m``, ``seed``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from concurrent.futures import Future
+from typing import Any
+
+import numpy as np
+
+import msgs
+from nodes.node import Node, run_node
+from perception.depthmap import DepthMapParams, contact_depth_map
+from perception.evaluation import segmentation_params_for
+from perception.pointcloud import depth_images_to_world
+from perception.registration import ModelCloud, PreparedModel, prepare_model, register_model, sample_model_cloud
+from perception.segmentation import segment_object
+from sim.scene import load_scene
+
+
+@dataclasses.dataclass
+class Registered:
+    model_points_m: np.ndarray
+    model_to_world: np.ndarray
+
+
+class PatchExtractorNode(Node):
+    @dataclasses.dataclass
+    class Params:
+        scene: str = "scenes/ycb_three.yaml"
+        cameras: list = dataclasses.field(default_factory=lambda: ["/camera_left/depth", "/camera_right/depth"])
+        depth_map_rows: int = 100
+        depth_map_cols: int = 100
+        # The crop is larger than the gel, as the paper's: a few mm of camera-to-robot
+        # calibration offset must stay inside it for the learner to absorb.
+        margin_m: float = 0.004
+        y_range_m: list = dataclasses.field(default_factory=lambda: [-0.005, 0.010])
+        seed: int = 0
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        super().__init__(name, params, **kwargs)
+        self.scene = load_scene(self.params.scene, check_geometry=False)
+        self.geometry = self.scene.gripper_geometry()
+        self.depth_map_params = DepthMapParams(shape=(self.params.depth_map_rows, self.params.depth_map_cols),
+                                               margin_m=self.params.margin_m,
+                                               y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]))
+        self.latest: dict[str, msgs.DepthImage] = {}
+        for topic in self.params.cameras:
+            self.create_subscription(topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image}))
+        self.models: dict[str, tuple[ModelCloud, PreparedModel]] = {}
+        self.registered: dict[str, Registered] = {}
+        self.cloud = self.create_publisher("/perception/object_cloud", msgs.PointCloud, latched=True)
+        self.depth_maps = self.create_publisher("/perception/depth_map", msgs.DepthMap)
+        self.create_service("/perception/register", msgs.RegisterRequest, msgs.RegisterReply, self.on_register)
+        self.create_service("/perception/patch", msgs.PatchRequest, msgs.PatchReply, self.on_patch)
+
+    def on_register(self, request: msgs.RegisterRequest) -> Future[msgs.RegisterReply]:
+        objects = {o.name: o for o in self.scene.objects if o.mesh}
+        if request.object_name not in objects:
+            raise ValueError(f"object {request.object_name!r} unknown; this scene has {sorted(objects)}")
+        missing = [t for t in self.params.cameras if t not in self.latest]
+        if missing:
+            raise RuntimeError(f"no depth frame yet from {missing}")
+        frames = [self.latest[t] for t in self.params.cameras]
+        return self.background.submit(self._register, objects[request.object_name], frames, request.seed)
+
+    def _register(self, spec: Any, frames: list[msgs.DepthImage], seed: int) -> msgs.RegisterReply:
+        if spec.name not in self.models:
+            model = sample_model_cloud(spec.mesh, seed=self.params.seed)
+            self.models[spec.name] = (model, prepare_model(model))
+        model, prepared = self.models[spec.name]
+        segmented = segment_object(depth_images_to_world(frames), segmentation_params_for(self.scene),
+                                   hint_world_m=np.array([spec.x_m, spec.y_m, 0.0]), seed=seed)
+        result = register_model(prepared, segmented.points_world_m, seed=seed)
+        self.registered[spec.name] = Registered(model.points_m, result.model_to_world)
+        self.cloud.publish(msgs.PointCloud(header=msgs.Header(frame_id="world"),
+                                           points=segmented.points_world_m.astype(np.float32)))
+        self.log.info("registered %s: fitness %.3f, rmse %.2f mm, %d points", spec.name, result.fitness,
+                      result.inlier_rmse_m * 1e3, len(segmented.points_world_m))
+        return msgs.RegisterReply(
+            header=msgs.Header(frame_id="world"), object_name=spec.name, model_to_world=result.model_to_world,
+            fitness=result.fitness, inlier_rmse_m=result.inlier_rmse_m,
+            centroid_world=segmented.centroid_world_m, point_counts=segmented.point_counts)
+
+    def on_patch(self, request: msgs.PatchRequest) -> msgs.PatchReply:
+        registered = self.registered.get(request.object_name)
+        if registered is None:
+            raise ValueError(f"object {request.object_name!r} is not registered; call /perception/register first")
+        maps = {}
+        for finger, gel_to_world in (("left", request.gel_left_to_world), ("right", request.gel_right_to_world)):
+            patch = contact_depth_map(registered.model_points_m, registered.model_to_world, gel_to_world,
+                                      self.geometry, self.depth_map_params)
+            maps[finger] = msgs.DepthMap(header=msgs.Header(frame_id=f"gel_{finger}"), depth_map_m=patch.depth_map_m,
+                                         finger=finger, crop_m=list(patch.crop_m), y_range_m=list(patch.y_range_m),
+                                         point_count=patch.point_count)
+            self.depth_maps.publish(maps[finger])
+        return msgs.PatchReply(left=maps["left"], right=maps["right"])
+
+
+if __name__ == "__main__":
+    run_node(PatchExtractorNode)
