@@ -1,0 +1,385 @@
+"""GelSight renderer: from what touches the gel to the RGB image the sensor's camera sees.
+
+Input is the gel gap map (HxW float mm, gel frame of DESIGN.md §1.2): per pixel, the y of
+the object's surface, negative where the object reaches into the gel, +inf where there is
+nothing. The image is made in four steps, all in mm and pixels:
+
+1. Indentation: how far the object reaches past the gel's rest surface, ``max(-gap, 0)``.
+2. Gel deformation: the elastomer does not follow the object only where it touches; it is
+   dragged down around the contact too. The gel's response to the indentation is modelled as
+   a smooth elastic spread (a Gaussian of width ``spreading_length_mm``: a thin layer bonded
+   to rigid acrylic responds within about its thickness), and where the object is deeper
+   than that response the gel lies on the object (contact re-imposed):
+   ``max(indentation, spread)``. A small optical blur follows (the camera does not resolve
+   finer).
+3. Shading with the real calibration (Taxim, assets/gelsight/ATTRIBUTION.md): the surface
+   slope is binned by magnitude ``atan|grad h|`` and direction ``atan2``, and each bin's
+   polynomial in pixel position gives the colour change (the table is interpolated between
+   bin centres, :func:`_refine_bins`). Two physical corrections, fitted on
+   real frames: the pressed gel also changes colour where it is flat (the calibration's
+   zero-slope colour, applied in proportion to the local compression up to
+   ``compression_saturation_mm``), and a global ``shading_gain``.
+4. Background: the sensor's no-contact frame, smoothed (``background_smoothing_mm``) because
+   the camera's fringe pattern changes from frame to frame and is not predictable from the
+   contact, so its expectation is the smooth frame.
+
+The calibration was made on 120x160 images at ``calibration_mm_per_px``; other image sizes
+map each pixel to its position on the gel and evaluate the calibration there.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sim.gelsight_effects import EFFECTS, GelSightError, LightingDrift, Markers, SensorNoise, make_effect
+
+__all__ = ["EFFECTS", "GelSightConfig", "GelSightError", "GelSightRenderer", "LightingDrift", "Markers",
+           "PolyCalibration", "SensorNoise", "gel_surface_depth_mm", "indentation_mm", "load_calibration",
+           "make_effect"]
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+POLYNOMIAL_FILE = "polycalib_small.npz"
+# A real no-contact frame of the calibrated sensor (not real_bg_small.npy: that is Taxim's
+# base image with its gel-dome shading removed, values up to 369, not a camera frame).
+BACKGROUND_FILE = "ball_presses.npz"
+# Coarse-grid points per spreading sigma when the spread is computed on a coarser grid.
+SPREAD_GRID_PER_SIGMA = 3.0
+# Working-grid points per optical blur sigma (see GelSightRenderer).
+SHADING_GRID_PER_SIGMA = 3.0
+# The calibration's slope bins are split in this many, interpolated (a finer split changes
+# the gelsight-check SSIMs by less than 0.001).
+BIN_REFINEMENT = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class GelSightConfig:
+    """Image size, scale and the renderer's physical parameters.
+
+    ``mm_per_px`` is the pixel pitch along the image width; the image is centred on the gel
+    and always shows a field of view of the calibration frame's shape (4:3), so it is
+    ``image_width * mm_per_px`` wide and 3/4 of that high. At the 4:3 sizes (120x160,
+    480x640) pixels are square; a 100x100 image (the learning size) is the camera's field
+    resampled, as the paper resized its GelSight frames, so its rows are 0.75 * mm_per_px
+    apart (:attr:`GelSightRenderer.pixel_pitch_mm` gives both pitches).
+
+    The five parameters after ``elastomer_thickness_mm`` were fitted on the even frames of
+    the 30 real ball presses in assets/gelsight/ball_presses.npz, by maximising mean crop +
+    full-frame SSIM from neutral start values (``sim.gelsight_check.fit_parameters``), and
+    rounded to 0.01; the odd frames, not used in the fit, score within 0.005 of the even ones
+    (``dtx sim gelsight-check --holdout``).
+    """
+
+    image_height: int = 120
+    image_width: int = 160
+    mm_per_px: float = 0.1245
+    calibration_dir: str = "assets/gelsight"
+    calibration_mm_per_px: float = 0.1245  # pixel pitch of the calibration images
+    # The rigid acrylic under the gel stops any indentation deeper than this.
+    elastomer_thickness_mm: float = 3.0
+    spreading_length_mm: float = 0.68  # sigma of the gel's elastic spread around a contact
+    optical_blur_mm: float = 0.20  # sigma of what the camera cannot resolve
+    compression_saturation_mm: float = 0.94  # press depth at which flat-gel colour change is full
+    shading_gain: float = 0.93  # scale of all colour changes from the contact
+    background_smoothing_mm: float = 0.80  # sigma of the no-contact frame's smoothing
+
+    def __post_init__(self) -> None:
+        for name in ("image_height", "image_width"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or not 3 <= value <= 4096:
+                raise GelSightError(f"GelSightConfig.{name} must be an integer in [3, 4096], got {value!r}")
+        positive = ("mm_per_px", "calibration_mm_per_px", "elastomer_thickness_mm", "spreading_length_mm",
+                    "optical_blur_mm", "compression_saturation_mm", "background_smoothing_mm")
+        for name in positive + ("shading_gain",):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise GelSightError(f"GelSightConfig.{name} must be a finite number, got {value!r}")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise GelSightError(f"GelSightConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.shading_gain <= 2.0:
+            raise GelSightError(f"GelSightConfig.shading_gain must be in [0, 2], got {self.shading_gain!r}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.image_height), int(self.image_width)
+
+
+@dataclasses.dataclass(frozen=True)
+class PolyCalibration:
+    """The photometric calibration of one sensor.
+
+    ``coeffs[i_mag, i_dir, channel]`` are the 6 coefficients of the colour change, in 8-bit
+    levels, as a polynomial ``[x^2, y^2, xy, x, y, 1]`` of the pixel position (x column,
+    y row) in the ``native_shape`` image, for ``n_bins`` equal bins of the slope magnitude
+    ``atan|grad h|`` over [0, pi/2) and of its direction over [-pi, pi). ``background`` is
+    that sensor's no-contact frame.
+    """
+
+    coeffs: np.ndarray  # (n_bins, n_bins, 3, 6) float32
+    background: np.ndarray  # native_shape + (3,) uint8
+
+    @property
+    def n_bins(self) -> int:
+        return self.coeffs.shape[0]
+
+    @property
+    def native_shape(self) -> tuple[int, int]:
+        return self.background.shape[0], self.background.shape[1]
+
+
+def _repo_path(path: str | Path) -> Path:
+    path = Path(path)
+    return path if path.is_absolute() else REPO_ROOT / path
+
+
+def load_calibration(calibration_dir: str | Path) -> PolyCalibration:
+    """Read the per-slope-bin polynomials and the no-contact frame from ``calibration_dir``
+    (relative paths are from the repository root). Read once per directory; the arrays are
+    read-only."""
+    return _load_calibration(str(_repo_path(calibration_dir).resolve()))
+
+
+@functools.lru_cache(maxsize=8)
+def _load_calibration(directory_name: str) -> PolyCalibration:
+    directory = Path(directory_name)
+    poly_path, bg_path = directory / POLYNOMIAL_FILE, directory / BACKGROUND_FILE
+    for path in (poly_path, bg_path):
+        if not path.is_file():
+            raise GelSightError(f"GelSight calibration file missing: {path}")
+    with np.load(poly_path) as poly:
+        missing = sorted({"bins", "grad_r", "grad_g", "grad_b"} - set(poly.files))
+        if missing:
+            raise GelSightError(f"{poly_path}: missing keys {missing}")
+        n = int(poly["bins"])
+        tables = [np.asarray(poly[k], np.float64) for k in ("grad_r", "grad_g", "grad_b")]
+    for table in tables:
+        if table.shape != (n, n, 6) or not np.all(np.isfinite(table)):
+            raise GelSightError(f"{poly_path}: each grad_* must be a finite ({n}, {n}, 6) array, "
+                                f"got shape {table.shape}")
+    # Taxim's n bins are n - 1 bins of width range / (n - 1) plus one for the range's end
+    # point alone; keep the n - 1 (the end point falls in the last of them).
+    coeffs = np.stack(tables, axis=2)[:n - 1, :n - 1]  # (n - 1, n - 1, 3, 6)
+    # The calibration saw almost no pixels at zero slope (only each press's centre), so the
+    # direction bins of magnitude 0 disagree by noise; a flat gel has no direction, so use
+    # their mean: the colour is then continuous at zero slope and the same for every flat pixel.
+    coeffs[0] = coeffs[0].mean(axis=0, keepdims=True)
+    coeffs = _refine_bins(coeffs.astype(np.float32), BIN_REFINEMENT)
+    with np.load(bg_path) as data:
+        if "background" not in data.files:
+            raise GelSightError(f"{bg_path}: missing key 'background'")
+        background = np.asarray(data["background"])
+    if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
+        raise GelSightError(f"{bg_path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
+    coeffs.flags.writeable = False
+    background.flags.writeable = False
+    return PolyCalibration(coeffs, background)
+
+
+def _refine_bins(coeffs: np.ndarray, factor: int) -> np.ndarray:
+    """The table on bins ``factor`` times narrower, linearly interpolated between the
+    calibration's bin centres: the colour is a continuous function of the surface normal, and
+    a nearest-bin look-up would print the bins' steps into the image. The direction wraps
+    around; below the first magnitude bin centre the zero-slope bin is kept."""
+    n_mag, n_dir = coeffs.shape[:2]
+    table = coeffs.reshape(n_mag, n_dir, -1)
+    wrapped = np.concatenate([table[:, -1:], table, table[:, :1]], axis=1)
+    # cv2.resize samples at pixel centres, so fine bin centres interpolate coarse bin centres.
+    fine = cv2.resize(wrapped, ((n_dir + 2) * factor, n_mag * factor), interpolation=cv2.INTER_LINEAR)
+    fine = fine[:, factor:(n_dir + 1) * factor]
+    return np.ascontiguousarray(fine.reshape(n_mag * factor, n_dir * factor, *coeffs.shape[2:]))
+
+
+def indentation_mm(gel_gap_mm: np.ndarray, max_mm: float) -> np.ndarray:
+    """How far the object reaches past the gel's rest surface (HxW float32 mm, >= 0),
+    limited to ``max_mm`` (the elastomer's thickness: the acrylic under it is rigid)."""
+    if not isinstance(gel_gap_mm, np.ndarray):
+        raise GelSightError(f"gel gap map must be a numpy array, got {type(gel_gap_mm).__name__}")
+    if gel_gap_mm.ndim != 2 or min(gel_gap_mm.shape) < 3:
+        raise GelSightError(f"gel gap map must be HxW with H, W >= 3, got shape {gel_gap_mm.shape}")
+    if not np.issubdtype(gel_gap_mm.dtype, np.floating):
+        raise GelSightError(f"gel gap map must be float (mm, +inf = nothing there), got {gel_gap_mm.dtype}")
+    if np.isnan(gel_gap_mm).any():
+        raise GelSightError("gel gap map contains NaN (use +inf where nothing is there)")
+    if np.isneginf(gel_gap_mm).any():
+        raise GelSightError("gel gap map contains -inf: an object cannot reach infinitely deep")
+    # -(+inf) = -inf, so "nothing there" becomes zero indentation without a special case.
+    return np.clip(-gel_gap_mm, 0.0, max_mm).astype(np.float32)
+
+
+def gel_surface_depth_mm(indentation: np.ndarray, spreading_sigma_px: tuple[float, float],
+                         blur_sigma_px: tuple[float, float]) -> np.ndarray:
+    """Depth (mm, >= 0) of the deformed gel surface below its rest plane.
+
+    The elastic spread of the indentation, with the contact re-imposed where the object is
+    deeper than the spread (the gel cannot pass through the object), then the optical blur.
+    Sigmas are in pixels, (along rows, along columns).
+    """
+    h, w = indentation.shape
+    # The spread is smooth on its own length, so on large images it is computed on a grid a
+    # few times coarser than that length and interpolated back: the same field, far cheaper.
+    coarsening = max(1, int(min(spreading_sigma_px) // SPREAD_GRID_PER_SIGMA))
+    if coarsening > 1:
+        coarse = cv2.resize(indentation, (max(1, w // coarsening), max(1, h // coarsening)),
+                            interpolation=cv2.INTER_AREA)
+        spread = _gaussian_blur(coarse, (spreading_sigma_px[0] * coarse.shape[0] / h,
+                                         spreading_sigma_px[1] * coarse.shape[1] / w))
+        spread = cv2.resize(spread, (w, h), interpolation=cv2.INTER_LINEAR)
+    else:
+        spread = _gaussian_blur(indentation, spreading_sigma_px)
+    return _gaussian_blur(np.maximum(indentation, spread), blur_sigma_px)
+
+
+def _gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
+    """Gaussian blur with sigma (along rows, along columns) in pixels; the gel continues
+    beyond the image edge as it is at the edge."""
+    return cv2.GaussianBlur(image, (0, 0), sigmaX=sigma_px[1], sigmaY=sigma_px[0], borderType=cv2.BORDER_REPLICATE)
+
+
+class GelSightRenderer:
+    """Renders gel gap maps into GelSight images at ``config``'s size.
+
+    ``effects`` (from :mod:`sim.gelsight_effects`) are applied in order; with none the image
+    is the noise-free rendering, deterministic. ``rng`` drives the effects (default: seeded
+    with 0, so a run is reproducible). ``background`` is the sensor's no-contact frame at the
+    calibration's size (default: the calibration's own); render against the background
+    captured at start.
+
+    The camera does not resolve the gel finer than ``optical_blur_mm``, so on large images
+    (480x640) the deformation and the colour change are computed on a coarser working grid
+    (:data:`SHADING_GRID_PER_SIGMA` points per blur sigma) and interpolated to the image; the
+    background keeps the image's full resolution.
+    """
+
+    def __init__(self, config: GelSightConfig = GelSightConfig(), effects: Sequence = (),
+                 rng: np.random.Generator | None = None, background: np.ndarray | None = None):
+        if not isinstance(config, GelSightConfig):
+            raise GelSightError(f"config must be a GelSightConfig, got {type(config).__name__}")
+        for effect in effects:
+            if not callable(getattr(effect, "apply", None)):
+                raise GelSightError(f"effect {effect!r} has no apply(image, gel_depth_mm, pixel_pitch_mm, rng)")
+        self.config = config
+        self.effects = tuple(effects)
+        self.rng = np.random.default_rng(0) if rng is None else rng
+        self.calibration = load_calibration(config.calibration_dir)
+        native = self.calibration.native_shape
+        if background is None:
+            background = self.calibration.background
+        if not (isinstance(background, np.ndarray) and background.dtype == np.uint8
+                and background.shape == native + (3,)):
+            raise GelSightError(f"background must be a {native[0]}x{native[1]}x3 uint8 frame (the calibration's "
+                                f"size), got {getattr(background, 'shape', None)} {getattr(background, 'dtype', None)}")
+
+        h, w = config.shape
+        row_mm = config.mm_per_px * (w / h) * (native[0] / native[1])
+        self.pixel_pitch_mm = (row_mm, config.mm_per_px)  # along rows, along columns
+        coarsening = max(1, int(config.optical_blur_mm / max(self.pixel_pitch_mm) // SHADING_GRID_PER_SIGMA))
+        self._work_shape = (max(3, round(h / coarsening)), max(3, round(w / coarsening)))
+        work_pitch_mm = (row_mm * h / self._work_shape[0], config.mm_per_px * w / self._work_shape[1])
+
+        xx, yy = self._calibration_positions(self._work_shape, work_pitch_mm)
+        # The polynomial terms depend only on pixel position: computed once per size.
+        self._terms = np.stack([xx * xx, yy * yy, xx * yy, xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 6)
+        n = self.calibration.n_bins
+        self._coeffs = self.calibration.coeffs.reshape(n * n, 3, 6)
+        # Colour change of the flat pressed gel (the zero-slope bin) at each working pixel,
+        # (pixels, 3); fully pressed it adds shading_gain times this.
+        self._flat_colour = self._terms @ self.calibration.coeffs[0, 0].T
+        self._flat_change = np.float32(config.shading_gain) * self._flat_colour.reshape(*self._work_shape, 3)
+        self._mag_step = 0.5 * math.pi / n
+        self._dir_step = 2.0 * math.pi / n
+        # Slopes below the first magnitude bin edge use the zero-slope bin: no tilt colour.
+        self._tilted_tan = np.float32(math.tan(self._mag_step))
+        self._work_pitch_mm = work_pitch_mm
+        # Gaussian sigmas in working pixels, (along rows, along columns).
+        self._spread_px = tuple(config.spreading_length_mm / p for p in work_pitch_mm)
+        self._blur_px = tuple(config.optical_blur_mm / p for p in work_pitch_mm)
+
+        smoothed = cv2.GaussianBlur(background.astype(np.float32), (0, 0),
+                                    config.background_smoothing_mm / config.calibration_mm_per_px,
+                                    borderType=cv2.BORDER_REPLICATE)
+        xx, yy = self._calibration_positions((h, w), self.pixel_pitch_mm)
+        self._background = cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def _calibration_positions(self, shape: tuple[int, int], pitch_mm: tuple[float, float]):
+        """Positions (x column, y row; float32 grids) in the calibration image of the pixel
+        centres of a grid of ``shape`` and ``pitch_mm``, centred on the gel."""
+        native = self.calibration.native_shape
+        to_native = [p / self.config.calibration_mm_per_px for p in pitch_mm]
+        y = (np.arange(shape[0]) - (shape[0] - 1) / 2.0) * to_native[0] + (native[0] - 1) / 2.0
+        x = (np.arange(shape[1]) - (shape[1] - 1) / 2.0) * to_native[1] + (native[1] - 1) / 2.0
+        xx, yy = np.meshgrid(x.astype(np.float32), y.astype(np.float32))
+        return xx, yy
+
+    def background(self) -> np.ndarray:
+        """The image of the untouched gel (HxWx3 uint8): what ``render`` gives for nothing there."""
+        return _to_uint8(self._background.copy())
+
+    def gel_depth_mm(self, gel_gap_mm: np.ndarray) -> np.ndarray:
+        """The deformed gel surface (HxW float32 mm below rest, image size) for a gap map.
+
+        A gap map of another size is taken to cover the image's field of view and is
+        resampled (area-averaged when shrinking, bilinear when enlarging).
+        """
+        return self._to_image_size(self._work_depth(gel_gap_mm))
+
+    def render(self, gel_gap_mm: np.ndarray) -> np.ndarray:
+        """The GelSight image (HxWx3 uint8 RGB) of a gel gap map (mm; < 0 pressing, +inf none)."""
+        depth = self._work_depth(gel_gap_mm)
+        image = self._background + self._to_image_size(self._colour_change(depth))
+        gel_depth = self._to_image_size(depth) if self.effects else None
+        for effect in self.effects:
+            image = effect.apply(image, gel_depth, self.pixel_pitch_mm, self.rng)
+        return _to_uint8(image)
+
+    def _work_depth(self, gel_gap_mm: np.ndarray) -> np.ndarray:
+        """The deformed gel surface on the working grid."""
+        indentation = indentation_mm(gel_gap_mm, self.config.elastomer_thickness_mm)
+        h, w = self._work_shape
+        if indentation.shape != (h, w):
+            shrink = indentation.shape[0] > h or indentation.shape[1] > w
+            indentation = cv2.resize(indentation, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+        return gel_surface_depth_mm(indentation, self._spread_px, self._blur_px)
+
+    def _to_image_size(self, grid: np.ndarray) -> np.ndarray:
+        h, w = self.config.shape
+        if grid.shape[:2] == (h, w):
+            return grid
+        return cv2.resize(grid, (w, h), interpolation=cv2.INTER_LINEAR)
+
+    def _colour_change(self, depth: np.ndarray) -> np.ndarray:
+        """Colour change (float32 levels, working grid x 3) of the gel surface ``depth``."""
+        compression = np.minimum(depth * np.float32(1.0 / self.config.compression_saturation_mm), 1.0)
+        change = self._flat_change * compression[:, :, None]
+        # Slopes are dimensionless (mm per mm), as the calibration's (pixels per pixel);
+        # Sobel with ksize 1 is the central difference times 2.
+        row_mm, col_mm = self._work_pitch_mm
+        slope_x = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=1, scale=0.5 / col_mm, borderType=cv2.BORDER_REPLICATE)
+        slope_y = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=1, scale=0.5 / row_mm, borderType=cv2.BORDER_REPLICATE)
+        # Only tilted pixels need their polynomial; usually the contact is a small part of the gel.
+        tilted = np.flatnonzero(cv2.magnitude(slope_x, slope_y) >= self._tilted_tan)
+        if tilted.size:
+            n = self.calibration.n_bins
+            slope_x, slope_y = slope_x.ravel()[tilted], slope_y.ravel()[tilted]
+            magnitude = np.arctan(np.hypot(slope_x, slope_y))
+            direction = np.arctan2(slope_y, slope_x)
+            i_mag = np.minimum((magnitude / self._mag_step).astype(np.intp), n - 1)
+            i_dir = np.minimum(((direction + math.pi) / self._dir_step).astype(np.intp), n - 1)
+            # np.take on rows and 1-D element indices: several times faster than 2-D fancy indexing.
+            coeffs = np.take(self._coeffs, i_mag * n + i_dir, axis=0)  # (tilted, 3, 6)
+            tilt_colour = np.einsum("pck,pk->pc", coeffs, np.take(self._terms, tilted, axis=0))
+            tilt_change = tilt_colour - np.take(self._flat_colour, tilted, axis=0)
+            elements = (tilted[:, None] * 3 + np.arange(3)).ravel()
+            change.reshape(-1)[elements] += np.float32(self.config.shading_gain) * tilt_change.ravel()
+        return change
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    """Rounds to 8-bit levels, saturating; overwrites ``image``."""
+    np.clip(image, 0.0, 255.0, out=image)
+    return np.rint(image, out=image).astype(np.uint8)
