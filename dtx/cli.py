@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 
 # Packages that add their own command groups (each has cli.add_commands(subparsers)).
-COMMAND_PACKAGES: list[str] = ["drivers", "sim"]
+COMMAND_PACKAGES: list[str] = ["drivers", "sim", "perception"]
 
 
 def _summarise(value: Any, full: bool) -> Any:

@@ -240,9 +240,10 @@ class Launcher:
             print(text, file=self.output, flush=True)
 
     def _start(self, spec: NodeSpec, respawns: int = 0) -> None:
+        # DTX_RESPAWN tells a node it is being restarted (a collector then resumes its dataset).
         process = subprocess.Popen(
             spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)})
         self.running[spec.name] = _Running(spec, process, time.monotonic(), respawns)
         threading.Thread(target=self._relay, args=(spec.name, process), daemon=True).start()
         self.say(f"[launch] started {spec.name} (pid {process.pid})")

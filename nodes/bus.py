@@ -346,7 +346,10 @@ class Subscriber(Generic[M]):
 
 
 class ServiceServer(Generic[M, R]):
+    # Replies kept for retried requests: the newest, within both bounds (an inference reply
+    # can be many MB, so the count alone would not bound the memory).
     REPLY_CACHE = 256
+    REPLY_CACHE_BYTES = 64 * 1024 * 1024
 
     def __init__(self, bus: Bus, name: str, request_type: type[M], reply_type: type[R],
                  handler: Callable[[M], R]) -> None:
@@ -358,7 +361,9 @@ class ServiceServer(Generic[M, R]):
         self.sock.setsockopt(zmq.LINGER, 500)
         self.address, server_key = bus.bind(self.sock, self.id, name)
         self.counters = Counters()
-        self._replies: collections.OrderedDict[tuple[bytes, str, int], list[Any]] = collections.OrderedDict()
+        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int]] = \
+            collections.OrderedDict()
+        self._reply_bytes = 0
         self._pending: list[tuple[tuple[bytes, str, int], Future[Any]]] = []
         self._entry = bus.registry.advertise(Endpoint(
             "service", name, self.address, bus.node_name, os.getpid(), request_type.SCHEMA,
@@ -399,9 +404,13 @@ class ServiceServer(Generic[M, R]):
         return reply
 
     def _remember(self, key: tuple[bytes, str, int], frames: list[Any]) -> None:
-        self._replies[key] = frames
-        while len(self._replies) > self.REPLY_CACHE:
-            self._replies.popitem(last=False)
+        size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
+        self._replies[key] = (frames, size)
+        self._reply_bytes += size
+        while len(self._replies) > self.REPLY_CACHE or (self._reply_bytes > self.REPLY_CACHE_BYTES
+                                                         and len(self._replies) > 1):
+            _, (_, dropped) = self._replies.popitem(last=False)
+            self._reply_bytes -= dropped
 
     def _answer(self, frames: list[Any]) -> None:
         identity = frames[0].bytes
@@ -415,7 +424,7 @@ class ServiceServer(Generic[M, R]):
         key = (identity, envelope.publisher, envelope.message.header.seq)
         if key in self._replies:
             self.counters.duplicates += 1
-            self.sock.send_multipart([identity, *self._replies[key]], copy=False)
+            self.sock.send_multipart([identity, *self._replies[key][0]], copy=False)
             return
         if any(pending_key == key for pending_key, _ in self._pending):
             self.counters.duplicates += 1  # a retry of a request still running: answered when done

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -88,7 +89,8 @@ class CollectorNode(Node):
             raise ValueError(f"objects {unknown} are not in {p.scene}; it has {meshes}")
         self.geometry = self.scene.gripper_geometry()
         out = Path(p.out)
-        if (out / "manifest.jsonl").exists() and not p.resume:
+        respawned = int(os.environ.get("DTX_RESPAWN", "0")) > 0
+        if (out / "manifest.jsonl").exists() and not (p.resume or respawned):
             raise ValueError(f"{out} already holds a dataset; pass resume:=true to continue it, or choose another out")
         # A new dataset is created with the first pair, whose depth-map says the normalisation range.
         self.writer: DatasetWriter | None = DatasetWriter(out) if (out / "dataset.json").exists() else None

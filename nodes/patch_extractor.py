@@ -47,6 +47,9 @@ class PatchExtractorNode(Node):
         # calibration offset must stay inside it for the learner to absorb.
         margin_m: float = 0.004
         y_range_m: list = dataclasses.field(default_factory=lambda: [-0.005, 0.010])
+        # Registration works on a 2 mm cloud; a depth-map needs a far denser one (0.2 mm fills
+        # a 100 x 100 map of a ~25 mm gel).
+        depth_map_point_spacing_m: float = 0.0002
         seed: int = 0
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
@@ -78,13 +81,13 @@ class PatchExtractorNode(Node):
 
     def _register(self, spec: Any, frames: list[msgs.DepthImage], seed: int) -> msgs.RegisterReply:
         if spec.name not in self.models:
-            model = sample_model_cloud(spec.mesh, seed=self.params.seed)
-            self.models[spec.name] = (model, prepare_model(model))
-        model, prepared = self.models[spec.name]
+            dense = sample_model_cloud(spec.mesh, self.params.depth_map_point_spacing_m, seed=self.params.seed)
+            self.models[spec.name] = (dense, prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)))
+        dense, prepared = self.models[spec.name]
         segmented = segment_object(depth_images_to_world(frames), segmentation_params_for(self.scene),
                                    hint_world_m=np.array([spec.x_m, spec.y_m, 0.0]), seed=seed)
         result = register_model(prepared, segmented.points_world_m, seed=seed)
-        self.registered[spec.name] = Registered(model.points_m, result.model_to_world)
+        self.registered[spec.name] = Registered(dense.points_m, result.model_to_world)
         self.cloud.publish(msgs.PointCloud(header=msgs.Header(frame_id="world"),
                                            points=segmented.points_world_m.astype(np.float32)))
         self.log.info("registered %s: fitness %.3f, rmse %.2f mm, %d points", spec.name, result.fitness,

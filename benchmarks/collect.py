@@ -1,0 +1,91 @@
+"""The simulated collection session, timed, and the kill -9 test.
+
+Runs ``dtx launch launch/collect_sim.yaml`` as an operator would and reports wall time,
+grasps per minute and the median time per stage of a grasp (from the collector's
+session.json). With ``--kill NODE ...`` it runs one more session per node, kills that node
+with SIGKILL a third of the way through (the launcher respawns it), and checks the dataset
+that comes out: complete, exactly the requested size, sound by ``dtx dataset check``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from dataset.check import check_dataset
+from nodes.registry import Registry
+
+NODES = ["collector", "patch_extractor", "arm", "gripper", "gelsight_left", "gelsight_right",
+         "camera_left", "camera_right", "recorder"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--grasps", type=int, default=289)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--kill", nargs="*", default=[], choices=NODES + ["all"],
+                        help="nodes to kill -9 mid-session, one session each ('all': every node)")
+    parser.add_argument("--kill-grasps", type=int, default=30, help="session size for the kill -9 runs")
+    parser.add_argument("--record", action="store_true", help="record the session bag too")
+
+
+def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "") -> dict:
+    with tempfile.TemporaryDirectory(prefix="dtxc") as bus_dir:
+        env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
+        started = time.monotonic()
+        launcher = subprocess.Popen(
+            [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
+             f"grasps:={grasps}", f"seed:={seed}", f"record:={'true' if record else 'false'}"],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        killed = None
+        if kill:
+            killed = _kill_when_a_third_is_done(Registry(Path(bus_dir)), out, grasps, kill, launcher)
+        output, _ = launcher.communicate(timeout=1800)
+        wall_s = time.monotonic() - started
+    report = check_dataset(out)
+    session = json.loads((out / "session.json").read_text()) if (out / "session.json").exists() else {}
+    result = {"grasps": grasps, "exit_code": launcher.returncode, "wall_s": round(wall_s, 1),
+              "pairs": report.samples,
+              "dataset_check_ok": report.ok, "session": session}
+    if kill:
+        result.update(killed=kill, killed_pid=killed, respawned=f"[launch] {kill} exited with -9; respawning" in output)
+    if launcher.returncode != 0 or not report.ok:
+        result["log_tail"] = output.splitlines()[-15:]
+    return result
+
+
+def _kill_when_a_third_is_done(registry: Registry, out: Path, grasps: int, node: str,
+                               launcher: subprocess.Popen[str]) -> int | None:
+    manifest = out / "manifest.jsonl"
+    deadline = time.monotonic() + 600
+    while time.monotonic() < deadline and launcher.poll() is None:
+        written = len(manifest.read_text().splitlines()) if manifest.exists() else 0
+        if written >= 2 * grasps // 3:
+            for status in registry.node_statuses():
+                if status["node"] == node and status["alive"]:
+                    os.kill(status["pid"], signal.SIGKILL)
+                    return int(status["pid"])
+        time.sleep(0.05)
+    return None
+
+
+def run(args: argparse.Namespace) -> dict:
+    kills = NODES if "all" in args.kill else args.kill
+    with tempfile.TemporaryDirectory(prefix="dtxsession") as tmp:
+        main = run_session(Path(tmp) / "main", args.grasps, args.seed, args.record)
+        grasps_per_min = main["session"].get("stats", {}).get("grasps_done", 0) / max(
+            main["session"].get("wall_s", 1e9), 1e-9) * 60
+        results = {"session": main, "grasps_per_min_collector": round(grasps_per_min, 1),
+                   "grasps_per_min_wall": round(args.grasps / main["wall_s"] * 60, 1), "kill_tests": []}
+        for node in kills:
+            outcome = run_session(Path(tmp) / f"kill_{node}", args.kill_grasps, args.seed, record=node == "recorder",
+                                  kill=node)
+            outcome["complete"] = outcome["dataset_check_ok"] and outcome["exit_code"] == 0 and \
+                len((Path(tmp) / f"kill_{node}" / "manifest.jsonl").read_text().splitlines()) == 2 * args.kill_grasps
+            results["kill_tests"].append(outcome)
+    return results

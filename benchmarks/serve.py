@@ -1,0 +1,177 @@
+"""``dtx bench serve``: the inference server node end to end through the bus.
+
+The real node (nodes.inference; ``--workers`` of them, as launch/serve.yaml starts them) runs
+in its own process on a private bus directory; this process is the grasp planner (nodes.inference_client.TactileClient). Figures:
+- ``p50_ms``/``p99_ms``: one region per request, requests one after another, measured from
+  the call to the decoded reply (encode, ipc, batching window, network, reply);
+- ``regions_per_s``: ``--clients`` planners sending ``--regions`` regions per request back to
+  back for ``--seconds``; the node batches across them.
+Weights: a trained ``--checkpoint``, or a fresh seeded generator of ``--width`` (untrained,
+PyTorch's default initialisation; same cost as a trained one of that width).
+Targets (issue 7): p50 <= 25 ms, >= 150 regions/s on 2 cores.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import torch
+
+from dataset.synth import SHAPES, depth_map_from_surface, random_surface
+from models.networks import GeneratorConfig, UNetGenerator
+from models.train import TrainConfig
+from nodes.bus import Bus
+from nodes.inference_client import SERVICE, InferenceError, TactileClient
+from nodes.registry import Registry
+
+DEPTH_RANGE_M = (-0.0015, 0.0025)  # the synthetic dataset's (dataset.synth)
+
+
+def write_checkpoint(path: Path, width: int, seed: int = 0,
+                     depth_range_m: tuple[float, float] = DEPTH_RANGE_M) -> Path:
+    """A checkpoint in models/train.py's format (what load_generator reads) holding a fresh,
+    seeded generator of width ``width``."""
+    torch.manual_seed(seed)
+    config = TrainConfig(generator=GeneratorConfig(ngf=width))
+    torch.save({"generator": UNetGenerator(config.generator).state_dict(), "train_config": config.to_dict(),
+                "depth_range_m": list(depth_range_m)}, path)
+    return path
+
+
+def depth_maps(count: int, seed: int, y_far_m: float = DEPTH_RANGE_M[1]) -> np.ndarray:
+    """count x 100 x 100 float32 contact depth-maps (metres) of random analytic contacts."""
+    rng = np.random.default_rng(seed)
+    return np.stack([depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0,
+                                            y_far_m=y_far_m) for i in range(count)]).astype(np.float32)
+
+
+def start_server(name: str, checkpoint: Path, params: dict[str, Any], env: dict[str, str],
+                 log: TextIO) -> subprocess.Popen[bytes]:
+    return subprocess.Popen([sys.executable, "-m", "nodes.inference", "--name", name,
+                             "--params", json.dumps({"checkpoint": str(checkpoint), **params})],
+                            env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _throughput(registry: Registry, maps: np.ndarray, clients: int, seconds: float) -> tuple[float, int]:
+    """(regions per second while every client sends, regions served in all with the warm-ups)."""
+    counts = [0] * clients
+    errors: list[Exception] = []
+    start = threading.Barrier(clients + 1)
+
+    def planner(index: int) -> None:
+        try:
+            with contextlib.closing(Bus(f"planner{index}", registry)) as bus, TactileClient(bus, 60.0) as client:
+                client.estimate(maps)  # connected and warm before the clock starts
+                start.wait()
+                deadline = time.monotonic() + seconds
+                while time.monotonic() < deadline:
+                    client.estimate(maps)
+                    counts[index] += len(maps)
+        except (InferenceError, threading.BrokenBarrierError) as exc:
+            errors.append(exc)
+            start.abort()  # nobody waits for a client that failed
+
+    threads = [threading.Thread(target=planner, args=(i,)) for i in range(clients)]
+    for thread in threads:
+        thread.start()
+    with contextlib.suppress(threading.BrokenBarrierError):
+        start.wait()
+    began = time.monotonic()
+    for thread in threads:
+        thread.join()
+    if errors:
+        raise errors[0]
+    return sum(counts) / (time.monotonic() - began), sum(counts) + clients * len(maps)
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="dtxb") as tmp:
+        if args.checkpoint:
+            checkpoint, weights = Path(args.checkpoint), f"checkpoint {args.checkpoint}"
+            y_far = float(torch.load(checkpoint, map_location="cpu", weights_only=True)["depth_range_m"][1])
+        else:
+            checkpoint = write_checkpoint(Path(tmp) / "fresh.pt", args.width, args.seed)
+            weights, y_far = f"fresh generator, width {args.width} (seeded, untrained)", DEPTH_RANGE_M[1]
+        bus_dir = Path(tmp) / "bus"
+        registry = Registry(bus_dir)
+        params = {"runtime": args.runtime, "precision": args.precision, "threads": args.threads,
+                  "max_batch": args.max_batch, "batch_window_ms": args.window_ms}
+        log_path = Path(tmp) / "server.log"
+        with open(log_path, "w") as log:
+            servers = [start_server(f"inference_bench_{i + 1}", checkpoint, params,
+                                    {**os.environ, "DTX_BUS_DIR": str(bus_dir)}, log) for i in range(args.workers)]
+        try:
+            maps = depth_maps(max(args.regions, 16), args.seed, y_far)
+            while len(registry.lookup("service", SERVICE)) < args.workers:  # loading the model
+                if any(server.poll() is not None for server in servers):
+                    raise RuntimeError(f"an inference node failed to start: {log_path.read_text()[-2000:]}")
+                time.sleep(0.1)
+            with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, 120.0) as client:
+                for _ in servers:
+                    client.estimate(maps[:1])  # warm-up: lazy allocations in every worker
+                model = client.last_reply.model.rsplit(" on ", 1)[0] if client.last_reply else ""
+                latencies = []
+                for i in range(args.requests):
+                    started = time.perf_counter()
+                    client.estimate(maps[i % len(maps)])
+                    latencies.append((time.perf_counter() - started) * 1e3)
+            cpu_before = sum(_cpu_seconds(server.pid) for server in servers)
+            throughput, served = _throughput(registry, maps[:args.regions], args.clients, args.seconds)
+            # On a shared machine the wall-clock rate depends on the neighbours; the servers'
+            # own CPU time per region much less (2 free cores serve at most 2 / that).
+            cpu_per_region = (sum(_cpu_seconds(server.pid) for server in servers) - cpu_before) / served
+        finally:
+            for server in servers:
+                server.send_signal(signal.SIGINT)
+            for server in servers:
+                try:
+                    server.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    server.kill()
+                    server.wait()
+        failed = [server.returncode for server in servers if server.returncode not in (0, -signal.SIGINT)]
+        if failed:
+            raise RuntimeError(f"an inference node failed ({failed}): {log_path.read_text()[-2000:]}")
+    return {"weights": weights, "model": model, "workers": args.workers, "threads_per_worker": args.threads,
+            "p50_ms": round(statistics.median(latencies), 2),
+            "p99_ms": round(float(np.percentile(latencies, 99)), 2),
+            "regions_per_s": round(throughput, 1),
+            "server_cpu_ms_per_region": round(cpu_per_region * 1e3, 2),
+            "server_bound_regions_per_s_2_cores": round(2.0 / cpu_per_region, 1),
+            "throughput_setup": f"{args.clients} clients x {args.regions} regions/request, max_batch {args.max_batch}",
+            "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``dtx bench serve``."""
+    parser.add_argument("--checkpoint", help="serve this trained generator instead of a fresh one")
+    parser.add_argument("--width", type=int, default=32, help="ngf of the fresh generator")
+    parser.add_argument("--runtime", choices=["onnxrt", "eager"], default="onnxrt")
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--workers", type=int, default=1, help="inference node processes (round robin)")
+    parser.add_argument("--threads", type=int, default=2, help="compute threads per worker")
+    parser.add_argument("--max-batch", type=int, default=32)
+    parser.add_argument("--window-ms", type=float, default=2.0)
+    parser.add_argument("--requests", type=int, default=200, help="single-region requests for the latency")
+    parser.add_argument("--regions", type=int, default=32, help="regions per request for the throughput")
+    parser.add_argument("--clients", type=int, default=2)
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--seed", type=int, default=0)

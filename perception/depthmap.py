@@ -1,0 +1,155 @@
+"""Contact depth-maps: the registered model cloud seen from one gel (paper §III-B.3, DESIGN §1.2).
+
+Gel frame (see perception.kinematics): origin at the centre of the gel surface, x-z in the
+surface, y along the outward normal; y > 0 is free space, y < 0 indents the elastomer.
+
+Crop volume: |x| <= gel_x/2 + margin, |z| <= gel_z/2 + margin, y_near <= y <= y_far (all
+inclusive). The margin makes the patch larger than the gel so a learner can absorb the
+systematic camera-to-robot calibration offset the paper reports.
+
+Bins: the x-z rectangle is split into ``shape = (rows, cols)`` equal bins, rows along gel z,
+columns along gel x — the image a camera would take looking at the gel from the object side
+(its optical z along -y, x right, z down). The bin edges are ``linspace(-half, half, n + 1)``
+(float64) on each axis; bin i holds [edge_i, edge_i+1), and points on the far crop edge belong
+to the last bin, so every cropped point lands in exactly one bin. The value of a bin is the
+minimum y of its points.
+
+Empty bins: a bin with no points holds y_far, the far limit of the crop ("no surface within
+reach") — the same value normalisation gives an empty bin, so the map, its normalised form and
+the DepthMap message agree. ``occupied`` tells real y_far values from empty ones. A patch with
+no point at all has no right answer and raises DepthMapError.
+
+Model density: default bins are 0.23 x 0.29 mm, so the model cloud must be sampled finer than
+that (``sample_model_cloud(mesh, point_spacing_m=0.0002)``: ~75 % of bins filled on a can, where
+the 2 mm registration cloud fills ~2 %); the paper's 1-80 points/cm³ clouds fill under 6 %.
+
+Precision: model points are moved to the gel frame with one float64 transform composed from
+model_to_world and gel_to_world, so a scene far from the world origin loses nothing.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from perception.errors import DepthMapError
+from perception.kinematics import GripperGeometry
+from perception.normalisation import normalise_depth_map
+from perception.pointcloud import check_transform
+
+
+@dataclasses.dataclass(frozen=True)
+class DepthMapParams:
+    shape: tuple[int, int] = (100, 100)           # (rows along gel z, columns along gel x)
+    margin_m: float = 0.002                        # added to each side of the gel in x and z
+    # Default y range: one elastomer thickness in front of the gel to full indentation behind it.
+    y_range_m: tuple[float, float] | None = None   # (y_near, y_far); None: (-t, +t), t = elastomer
+
+
+@dataclasses.dataclass
+class ContactPatch:
+    depth_map_m: np.ndarray        # (rows, cols) float32, min y per bin, empty bins = y_far
+    normalised: np.ndarray         # (rows, cols) float32 in [-1, 1] (perception.normalisation)
+    occupied: np.ndarray           # (rows, cols) bool, the bin holds at least one point
+    crop_m: tuple[float, float, float]        # full crop extent along gel x, y, z
+    y_range_m: tuple[float, float]
+    point_count: int
+
+
+def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[float, float, float, float]:
+    """(half_x, half_z, y_near, y_far) of the crop volume in metres, validated."""
+    half_x = 0.5 * geometry.gel_size_m[0] + params.margin_m
+    half_z = 0.5 * geometry.gel_size_m[1] + params.margin_m
+    thickness = geometry.elastomer_thickness_m
+    y_near, y_far = params.y_range_m if params.y_range_m is not None else (-thickness, thickness)
+    values = np.array([half_x, half_z, y_near, y_far], dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        raise DepthMapError(f"crop bounds must be finite, got half x {half_x}, half z {half_z}, y {y_near}..{y_far}")
+    if not (half_x > 0 and half_z > 0):
+        raise DepthMapError(f"crop must have positive extent, got half x {half_x} m, half z {half_z} m")
+    if not y_far > y_near:
+        raise DepthMapError(f"depth range must have y_far > y_near, got ({y_near}, {y_far}) m")
+    rows, cols = params.shape
+    if int(rows) != rows or int(cols) != cols or rows < 1 or cols < 1:
+        raise DepthMapError(f"bin shape must be two positive integers, got {params.shape}")
+    # The map and its crop are stored as float32: bins narrower than float32 can tell apart at
+    # the crop edge would alias, so such a map is refused rather than silently merged.
+    for half, count, axis in ((half_x, cols, "x"), (half_z, rows, "z")):
+        if 2.0 * half / count <= 4 * np.spacing(np.float32(half)):
+            raise DepthMapError(f"bin size {2.0 * half / count:.3g} m along {axis} is below float32 "
+                                f"resolution at {half:.3g} m")
+    if not np.float32(y_far) > np.float32(y_near):
+        raise DepthMapError(f"depth range ({y_near}, {y_far}) m is below float32 resolution")
+    return half_x, half_z, float(y_near), float(y_far)
+
+
+def _bin_index(values_m: np.ndarray, half_m: float, count: int) -> np.ndarray:
+    """Index of the bin [edge_i, edge_i+1) holding each value, edges = linspace(-half, half, count + 1);
+    a value on the far edge belongs to the last bin. Values must lie in [-half, half]."""
+    scaled = values_m + half_m
+    scaled *= count / (2.0 * half_m)
+    floored = np.floor(scaled)
+    scaled -= floored  # position inside the bin, 0..1
+    index = floored.astype(np.intp)
+    # The scaled floor can be one bin off for a value within rounding of an edge, and a value on
+    # the far edge lands on index ``count``. Only those few values (within 1e-6 bin of an edge;
+    # rounding is < 1e-9 bin as crop_bounds keeps bins wide) are compared with the edge array,
+    # which keeps the rule exact at full speed.
+    near = np.flatnonzero((scaled < 1e-6) | (scaled > 1.0 - 1e-6))
+    if near.size:
+        edges = np.linspace(-half_m, half_m, count + 1)
+        values = values_m[near]
+        candidate = np.minimum(index[near], count - 1)
+        candidate -= values < edges[candidate]
+        candidate += (values >= edges[candidate + 1]) & (candidate < count - 1)
+        index[near] = candidate
+    return index
+
+
+def min_y_per_bin(x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: float, half_z_m: float,
+                  shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum y per x-z bin of points already inside the crop; returns (min_y, occupied).
+
+    ``min_y`` is float64 (rows, cols) with +inf in empty bins. np.minimum.at does the reduction:
+    measured on NumPy 2.4 at ~200 M points/s, it beats sort-based (argsort + reduceat) versions
+    by an order of magnitude (benchmarks/perception.py, binning).
+    """
+    rows, cols = shape
+    flat = _bin_index(z_m, half_z_m, rows) * cols + _bin_index(x_m, half_x_m, cols)
+    min_y = np.full(rows * cols, np.inf)
+    np.minimum.at(min_y, flat, y_m)
+    min_y = min_y.reshape(rows, cols)
+    return min_y, np.isfinite(min_y)
+
+
+def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_to_world: np.ndarray,
+                      geometry: GripperGeometry = GripperGeometry(),
+                      params: DepthMapParams = DepthMapParams()) -> ContactPatch:
+    """Depth-map of the model cloud (model frame, metres) in the contact volume of one gel."""
+    half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
+    points = np.asarray(points_model_m, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise DepthMapError(f"model points must be (N, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise DepthMapError("model points contain NaN or inf")
+    model_to_gel = np.linalg.inv(check_transform(gel_to_world, "gel_to_world")) @ \
+        check_transform(model_to_world, "model_to_world")
+    # The depth window (a few mm) keeps a small slice of the model, so y is computed first and x, z
+    # only for the points in that slice.
+    y = points @ model_to_gel[1, :3] + model_to_gel[1, 3]
+    in_depth = np.flatnonzero((y >= y_near) & (y <= y_far))
+    y, points = y[in_depth], np.take(points, in_depth, axis=0)  # take: 4x faster than points[in_depth]
+    x = points @ model_to_gel[0, :3] + model_to_gel[0, 3]
+    z = points @ model_to_gel[2, :3] + model_to_gel[2, 3]
+    inside = (np.abs(x) <= half_x) & (np.abs(z) <= half_z)
+    count = int(np.count_nonzero(inside))
+    if count == 0:
+        raise DepthMapError(f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
+                            f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
+                            "the gel does not reach the object")
+    min_y, occupied = min_y_per_bin(x[inside], z[inside], y[inside], half_x, half_z, params.shape)
+    depth_map_m = np.where(occupied, min_y, y_far).astype(np.float32)
+    return ContactPatch(depth_map_m=depth_map_m,
+                        normalised=normalise_depth_map(depth_map_m, (y_near, y_far)),
+                        occupied=occupied, crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
+                        y_range_m=(y_near, y_far), point_count=count)

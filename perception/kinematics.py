@@ -1,0 +1,96 @@
+"""Grasp kinematics: UR tool poses for top-down grasps and the gel poses they imply.
+
+Frames (DESIGN §2): ``world`` has the table top at z = 0, z up. The tool (``tcp``) frame of
+a top-down grasp has its z axis pointing down at the table; the fingers close along tool y.
+The gel frame ``gel_<finger>`` has its origin at the centre of the gel surface, its x-z plane
+in that surface and +y along the outward normal, i.e. from the gel toward the other finger
+(into the object): y > 0 is free space in front of the gel, y < 0 indents it.
+
+Conventions chosen here (and relied on by the simulated world and the patch extractor):
+- ``gripper_width_m`` is the distance between the two gel surfaces.
+- the left gel sits at +width/2 along tool y, the right gel at -width/2;
+- each gel's z axis is the tool z axis (along the finger, toward the fingertip) and its
+  x axis completes a right-handed frame (x = y cross z).
+
+UR poses are [x, y, z, rx, ry, rz]: position in metres and a rotation vector in radians.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# Tool z pointing down at the table: a half turn about world x (tool x = world x).
+_TOOL_DOWN = Rotation.from_euler("x", np.pi)
+
+
+@dataclasses.dataclass(frozen=True)
+class GripperGeometry:
+    """Where the gels sit relative to the TCP, and how big they are (metres)."""
+
+    tcp_to_gel_centre_m: float = 0.16
+    gel_size_m: tuple[float, float] = (0.0186, 0.0249)  # extent along gel x, gel z
+    elastomer_thickness_m: float = 0.002
+    max_width_m: float = 0.11
+
+
+def grasp_to_tcp_pose(x_m: float, y_m: float, z_m: float, theta_z_rad: float) -> np.ndarray:
+    """TCP pose (UR [x, y, z, rx, ry, rz], world) of a top-down grasp with yaw ``theta_z_rad``.
+
+    The palm is parallel to the table (tool z = -world z); only the yaw about world z is free.
+    """
+    rotation = Rotation.from_euler("z", float(theta_z_rad)) * _TOOL_DOWN
+    return np.concatenate([[float(x_m), float(y_m), float(z_m)], rotation.as_rotvec()])
+
+
+def pose_to_matrix(pose6: np.ndarray) -> np.ndarray:
+    """UR pose [x, y, z, rx, ry, rz] -> 4x4 homogeneous transform (float64)."""
+    pose = np.asarray(pose6, dtype=np.float64)
+    if pose.shape != (6,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"pose must be 6 finite numbers, got {pose6!r}")
+    transform = np.eye(4)
+    transform[:3, :3] = Rotation.from_rotvec(pose[3:]).as_matrix()
+    transform[:3, 3] = pose[:3]
+    return transform
+
+
+def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform -> UR pose [x, y, z, rx, ry, rz].
+
+    The rotation block is projected onto the nearest rotation (scipy does this), so a matrix
+    that drifted slightly from orthonormal still gives a valid rotation vector.
+    """
+    matrix = np.asarray(transform, dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ValueError(f"transform must be a finite 4x4 matrix, got shape {matrix.shape}")
+    rotvec = Rotation.from_matrix(matrix[:3, :3]).as_rotvec()
+    return np.concatenate([matrix[:3, 3], rotvec])
+
+
+def gel_poses_world(tcp_pose_world: np.ndarray, gripper_width_m: float,
+                    geometry: GripperGeometry = GripperGeometry()) -> dict[str, np.ndarray]:
+    """Gel-to-world transforms (4x4) of both fingers, keys ``"left"`` and ``"right"``.
+
+    ``tcp_pose_world`` is a UR pose (6,) or a 4x4 tcp-to-world transform.
+    """
+    width = float(gripper_width_m)
+    if not (np.isfinite(width) and 0.0 <= width <= geometry.max_width_m):
+        raise ValueError(f"gripper width {gripper_width_m!r} m outside [0, {geometry.max_width_m}] m")
+    tcp_pose = np.asarray(tcp_pose_world, dtype=np.float64)
+    tcp_to_world = tcp_pose if tcp_pose.shape == (4, 4) else pose_to_matrix(tcp_pose)
+    # Re-orthonormalise so an accumulated transform cannot skew the gel frames.
+    tcp_to_world = tcp_to_world.copy()
+    tcp_to_world[:3, :3] = Rotation.from_matrix(tcp_to_world[:3, :3]).as_matrix()
+
+    tool_x, tool_y, tool_z = np.eye(3)
+    poses = {}
+    for finger, side in (("left", 1.0), ("right", -1.0)):
+        gel_y = -side * tool_y  # toward the other finger
+        gel_z = tool_z
+        gel_x = np.cross(gel_y, gel_z)
+        gel_to_tcp = np.eye(4)
+        gel_to_tcp[:3, :3] = np.column_stack([gel_x, gel_y, gel_z])
+        gel_to_tcp[:3, 3] = side * 0.5 * width * tool_y + geometry.tcp_to_gel_centre_m * tool_z
+        poses[finger] = tcp_to_world @ gel_to_tcp
+    return poses

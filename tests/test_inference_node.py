@@ -1,0 +1,196 @@
+"""The inference server node in this process: replies, uncertainty, the points path, bad
+requests, and batching across clients. Weights: a tiny untrained generator (ngf 8) saved in
+models/train.py's checkpoint format."""
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+import msgs
+from benchmarks.serve import depth_maps, write_checkpoint
+from models.data import depth_input
+from models.ssim import to_uint8_rgb
+from models.train import load_generator
+from msgs.inference import TactileEstimateReply, TactileEstimateRequest
+from nodes.bus import Bus, ServiceCallError
+from nodes.inference import InferenceNode
+from nodes.inference_client import SERVICE, InferenceError, TactileClient
+from nodes.registry import Registry
+from perception.depthmap import DepthMapParams, contact_depth_map
+from perception.kinematics import GripperGeometry
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
+
+
+@contextlib.contextmanager
+def serving(registry: Registry, checkpoint: Path, **params: Any) -> Iterator[InferenceNode]:
+    node = InferenceNode("inference", {"checkpoint": str(checkpoint), "threads": 1, **params}, registry=registry)
+    thread = threading.Thread(target=node.spin)
+    thread.start()
+    try:
+        yield node
+    finally:
+        node.request_shutdown()
+        thread.join()
+        node.close()
+
+
+@contextlib.contextmanager
+def planner(registry: Registry, name: str = "planner") -> Iterator[TactileClient]:
+    with contextlib.closing(Bus(name, registry)) as bus, TactileClient(bus, timeout_s=30.0) as client:
+        yield client
+
+
+def reference(checkpoint: Path, maps: np.ndarray) -> np.ndarray:
+    """The generator's own estimate (eager PyTorch, dropout off)."""
+    generator, depth_range_m = load_generator(checkpoint)
+    with torch.inference_mode():
+        return to_uint8_rgb(generator(depth_input(maps, depth_range_m, generator.config.in_channels)))
+
+
+@pytest.mark.parametrize("runtime", ["onnxrt", "eager"])
+def test_estimates_are_the_generators_and_one_sample_is_deterministic(registry: Registry, checkpoint: Path,
+                                                                      runtime: str) -> None:
+    maps = depth_maps(3, seed=1)
+    with serving(registry, checkpoint, runtime=runtime), planner(registry) as client:
+        images, uncertainty = client.estimate(maps)
+        again, _ = client.estimate(maps)
+        model = client.last_reply.model if client.last_reply else ""
+    assert images.shape == (3, 100, 100, 3) and images.dtype == np.uint8
+    assert uncertainty.shape == (3, 100, 100) and uncertainty.dtype == np.float32 and not uncertainty.any()
+    np.testing.assert_array_equal(images, again)
+    # ONNX Runtime may round a few pixels the other way.
+    assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
+    assert "tiny.pt" in model and runtime in model
+
+
+def test_dropout_samples_give_an_uncertainty_and_leave_the_image(registry: Registry, checkpoint: Path) -> None:
+    maps = depth_maps(2, seed=2)
+    with serving(registry, checkpoint), planner(registry) as client:
+        single, _ = client.estimate(maps)
+        images, uncertainty = client.estimate(maps, dropout_samples=6)
+    np.testing.assert_array_equal(images, single)
+    assert uncertainty.shape == (2, 100, 100) and (uncertainty >= 0).all()
+    assert (uncertainty > 0).mean() > 0.5  # dropout in the decoder moves most pixels (a little: untrained)
+
+
+def test_points_and_gel_poses_give_the_patch_extractors_depth_maps(registry: Registry, checkpoint: Path) -> None:
+    _, depth_range_m = load_generator(checkpoint)
+    # A bumpy surface 0.5 mm into the gel, seen by two gels placed somewhere in the world.
+    x, z = np.meshgrid(np.linspace(-0.012, 0.012, 150), np.linspace(-0.015, 0.015, 150))
+    y = -0.0005 + 0.0008 * np.sin(x * 600) * np.cos(z * 400)
+    points_gel = np.stack([x.ravel(), y.ravel(), z.ravel(), np.ones(x.size)], axis=1)
+    poses = []
+    for angle, offset in ((0.3, [0.4, -0.2, 0.1]), (-1.1, [0.1, 0.3, 0.05])):
+        pose = np.eye(4)
+        pose[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+        pose[:3, 3] = offset
+        poses.append(pose)
+    cloud = (poses[0] @ points_gel.T).T[:, :3]  # the same surface in front of gel 0 ...
+    cloud = np.concatenate([cloud, (poses[1] @ points_gel.T).T[:, :3]])  # ... and of gel 1
+    params = DepthMapParams(y_range_m=depth_range_m)
+    expected = np.stack([contact_depth_map(cloud, np.eye(4), pose, GripperGeometry(), params).depth_map_m
+                         for pose in poses])
+    with serving(registry, checkpoint), planner(registry) as client:
+        images, _ = client.estimate_at(cloud, np.stack(poses))
+        from_maps, _ = client.estimate(expected)
+    np.testing.assert_array_equal(images, from_maps)
+
+
+def _maps(n: int = 1, value: float = 0.001, dtype: Any = np.float32) -> np.ndarray:
+    return np.full((n, 100, 100), value, dtype)
+
+
+BAD_REQUESTS = [
+    (TactileEstimateRequest(), "empty request"),
+    (TactileEstimateRequest(depth_maps=_maps()[:, :50, :50]), "must be N x 100 x 100"),
+    (TactileEstimateRequest(depth_maps=_maps()[0]), "must be N x 100 x 100"),
+    (TactileEstimateRequest(depth_maps=_maps(dtype=np.float64)), "must be float32"),
+    (TactileEstimateRequest(depth_maps=_maps(value=np.nan)), "NaN or inf"),
+    (TactileEstimateRequest(depth_maps=_maps(value=np.inf)), "NaN or inf"),
+    (TactileEstimateRequest(depth_maps=_maps(5)), "too many regions: 5 > 4"),
+    (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=0), "dropout_samples must be 1..3"),
+    (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=4), "dropout_samples must be 1..3"),
+    (TactileEstimateRequest(depth_maps=_maps(3), dropout_samples=3), "too many sampled regions: 3 regions x 3"),
+    (TactileEstimateRequest(depth_maps=_maps(), points=np.zeros((10, 3)), gel_poses=np.eye(4)[None]),
+     "not both"),
+    (TactileEstimateRequest(points=np.zeros((10, 3))), "empty request"),
+    (TactileEstimateRequest(gel_poses=np.eye(4)[None]), "empty request"),
+    (TactileEstimateRequest(points=np.zeros((10, 2)), gel_poses=np.eye(4)[None]), "points must be P x 3"),
+    (TactileEstimateRequest(points=np.zeros((1001, 3)), gel_poses=np.eye(4)[None]), "too many points"),
+    (TactileEstimateRequest(points=np.zeros((10, 3), np.int32), gel_poses=np.eye(4)[None]), "float32 or float64"),
+    (TactileEstimateRequest(points=np.full((10, 3), np.nan), gel_poses=np.eye(4)[None]), "NaN or inf"),
+    (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.eye(3)[None]), "gel_poses must be N x 4 x 4"),
+    (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=2 * np.eye(4)[None]), "not a proper rotation"),
+    (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.stack([np.eye(4), np.ones((4, 4))])),
+     r"gel_poses\[1\]"),
+    # Well formed, but this gel does not reach the cloud: found while cutting the depth-map.
+    (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.array([[[1, 0, 0, 0], [0, 1, 0, -1.0],
+                                                                             [0, 0, 1, 0], [0, 0, 0, 1]]])),
+     "region 0: no model point in the contact volume"),
+]
+
+
+def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry,
+                                                                         checkpoint: Path) -> None:
+    limits = {"max_regions": 4, "max_points": 1000, "max_dropout_samples": 3, "max_sampled_regions": 8}
+    with serving(registry, checkpoint, **limits), contextlib.closing(Bus("planner", registry)) as bus:
+        raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
+        for request, message in BAD_REQUESTS:
+            with pytest.raises(ServiceCallError, match=message) as failure:
+                raw.call(request, timeout_s=30.0, retries=0)
+            assert failure.value.code == "bad_request"
+            assert raw.call(TactileEstimateRequest(depth_maps=_maps()), timeout_s=30.0).images.shape == (1, 100, 100, 3)
+        wrong_schema = bus.client(SERVICE, msgs.GripperCommand, msgs.GripperState)
+        with pytest.raises(ServiceCallError) as failure:
+            wrong_schema.call(msgs.GripperCommand(), timeout_s=30.0)
+        assert failure.value.code == "wrong_type"
+        with TactileClient(bus, timeout_s=30.0) as client:
+            with pytest.raises(InferenceError, match="too many regions") as refused:
+                client.estimate(_maps(5))
+            assert refused.value.code == "bad_request"
+            assert client.estimate(_maps(4))[0].shape == (4, 100, 100, 3)
+
+
+def test_requests_of_two_clients_share_one_forward_pass(registry: Registry, checkpoint: Path) -> None:
+    maps = {"a": depth_maps(2, seed=3), "b": depth_maps(3, seed=4)}
+    replies: dict[str, np.ndarray] = {}
+    # A long window: the second request surely comes while the first waits for company.
+    with serving(registry, checkpoint, runtime="eager", batch_window_ms=1500.0, max_batch=8) as node:
+        ready = threading.Barrier(2)
+
+        def ask(name: str) -> None:
+            with planner(registry, name) as client:
+                assert client.client.wait_for_service(30.0)
+                ready.wait()
+                replies[name] = client.estimate(maps[name])[0]
+
+        threads = [threading.Thread(target=ask, args=(name,)) for name in maps]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        passes = node.forward_passes
+    assert passes == 1
+    for name, images in replies.items():
+        assert np.abs(images.astype(int) - reference(checkpoint, maps[name])).max() <= 1
+
+
+def test_a_request_larger_than_max_batch_runs_in_several_passes(registry: Registry, checkpoint: Path) -> None:
+    maps = depth_maps(5, seed=5)
+    with serving(registry, checkpoint, runtime="eager", max_batch=2) as node, planner(registry) as client:
+        images, uncertainty = client.estimate(maps, dropout_samples=2)
+        passes = node.forward_passes
+    assert passes == 3 + 5  # 5 regions in batches of 2, then 10 sampled regions in batches of 2
+    assert images.shape == (5, 100, 100, 3) and uncertainty.shape == (5, 100, 100)
+    assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1

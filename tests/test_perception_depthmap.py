@@ -1,0 +1,235 @@
+"""Contact depth-maps: binning rules, empty-bin policy, normalisation, and the hard cases."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, min_y_per_bin
+from perception.errors import DepthMapError, PerceptionError
+from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from perception.normalisation import denormalise_depth_map
+
+GEOMETRY = GripperGeometry()
+SMALL = DepthMapParams(shape=(4, 5), margin_m=0.0)   # bins of 4.98 mm (z) x 3.72 mm (x)
+HALF_X, HALF_Z = 0.5 * GEOMETRY.gel_size_m[0], 0.5 * GEOMETRY.gel_size_m[1]
+T = GEOMETRY.elastomer_thickness_m
+
+
+def depth_map(points_gel_m, params=SMALL, gel_to_world=np.eye(4), model_to_world=np.eye(4)):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return contact_depth_map(np.asarray(points_gel_m, dtype=np.float64), model_to_world, gel_to_world,
+                                 GEOMETRY, params)
+
+
+def reference_min_y(points, half_x, half_z, y_range, shape):
+    """Brute force: loop over bins with the documented half-open / closed-far-edge rules."""
+    rows, cols = shape
+    out = np.full(shape, np.nan)
+    x_edges = np.linspace(-half_x, half_x, cols + 1)
+    z_edges = np.linspace(-half_z, half_z, rows + 1)
+    for r in range(rows):
+        for c in range(cols):
+            x_hi_ok = points[:, 0] <= x_edges[c + 1] if c == cols - 1 else points[:, 0] < x_edges[c + 1]
+            z_hi_ok = points[:, 2] <= z_edges[r + 1] if r == rows - 1 else points[:, 2] < z_edges[r + 1]
+            mask = ((points[:, 0] >= x_edges[c]) & x_hi_ok & (points[:, 2] >= z_edges[r]) & z_hi_ok
+                    & (points[:, 1] >= y_range[0]) & (points[:, 1] <= y_range[1]))
+            if mask.any():
+                out[r, c] = points[mask, 1].min()
+    return out
+
+
+def check_clean(patch):
+    for array in (patch.depth_map_m, patch.normalised):
+        assert array.dtype == np.float32
+        assert np.all(np.isfinite(array))
+    assert np.all(patch.normalised >= -1) and np.all(patch.normalised <= 1)
+    y_near, y_far = patch.y_range_m
+    assert np.all(patch.depth_map_m >= np.float32(y_near)) and np.all(patch.depth_map_m <= np.float32(y_far))
+    assert np.all(patch.depth_map_m[~patch.occupied] == np.float32(y_far))
+
+
+def test_min_of_points_per_bin_and_empty_bins_read_far():
+    points = np.array([[0.0005, 0.001, 0.0005], [0.0006, -0.0005, 0.0006], [-0.008, 0.0015, -0.011]])
+    patch = depth_map(points)
+    check_clean(patch)
+    # x = 0.5 mm is in column 2 (edges at -9.3, -5.58, -1.86, 1.86 mm), z in row 2.
+    assert patch.depth_map_m[2, 2] == np.float32(-0.0005)
+    assert patch.depth_map_m[0, 0] == np.float32(0.0015)
+    assert patch.occupied.sum() == 2 and patch.point_count == 3
+    assert np.all(patch.depth_map_m[~patch.occupied] == np.float32(T))
+
+
+def test_points_exactly_on_bin_edges_go_to_the_upper_bin_and_far_edge_to_the_last():
+    x_edges = np.linspace(-HALF_X, HALF_X, 6)
+    points = np.array([[x_edges[1], 0.0, 0.0], [x_edges[5], 0.001, HALF_Z], [-HALF_X, -0.001, -HALF_Z]])
+    patch = depth_map(points)
+    expected = reference_min_y(points, HALF_X, HALF_Z, (-T, T), SMALL.shape)
+    np.testing.assert_array_equal(np.isfinite(expected), patch.occupied)
+    np.testing.assert_array_equal(patch.depth_map_m[patch.occupied], expected[patch.occupied].astype(np.float32))
+    assert patch.occupied[2, 1] and patch.occupied[3, 4] and patch.occupied[0, 0]
+
+
+def test_crop_boundary_is_inclusive_and_just_outside_is_dropped():
+    on = [[HALF_X, T, HALF_Z], [-HALF_X, -T, -HALF_Z]]
+    outside = [[np.nextafter(HALF_X, 1.0), 0.0, 0.0], [0.0, np.nextafter(T, 1.0), 0.0],
+               [0.0, np.nextafter(-T, -1.0), 0.0], [0.0, 0.0, np.nextafter(-HALF_Z, -1.0)]]
+    patch = depth_map(on + outside)
+    check_clean(patch)
+    assert patch.point_count == 2
+    assert patch.depth_map_m[3, 4] == np.float32(T) and patch.occupied[3, 4]
+    assert patch.depth_map_m[0, 0] == np.float32(-T)
+
+
+def test_every_point_in_one_bin_and_duplicates():
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(0.0001, 0.001, 500), rng.uniform(-T, T, 500), rng.uniform(0.0001, 0.004, 500)])
+    points = np.concatenate([points, points])  # every point twice
+    patch = depth_map(points)
+    check_clean(patch)
+    assert patch.occupied.sum() == 1 and patch.point_count == 1000
+    assert patch.depth_map_m[patch.occupied][0] == np.float32(points[:, 1].min())
+
+
+def test_one_point():
+    patch = depth_map([[0.0, 0.0003, 0.0]])
+    check_clean(patch)
+    assert patch.occupied.sum() == 1 and patch.depth_map_m[patch.occupied][0] == np.float32(0.0003)
+
+
+def test_empty_patch_is_an_error_not_a_flat_map():
+    with pytest.raises(DepthMapError, match="no model point in the contact volume"):
+        depth_map([[0.0, 0.01, 0.0]])
+    with pytest.raises(DepthMapError, match="no model point"):
+        depth_map(np.zeros((0, 3)))
+
+
+@pytest.mark.parametrize("bad", [[[np.nan, 0, 0]], [[0, np.inf, 0]], [[0, 0, -np.inf]]])
+def test_nan_or_inf_model_points_are_refused(bad):
+    with pytest.raises(DepthMapError, match="NaN or inf"):
+        depth_map(bad)
+
+
+@pytest.mark.parametrize("y_range", [(0.001, 0.001), (0.002, -0.002), (0.0, np.nan), (1.0, 1.0 + 1e-12)])
+def test_zero_negative_or_unresolvable_depth_range_is_refused(y_range):
+    with pytest.raises(DepthMapError):
+        depth_map([[0.0, 0.0, 0.0]], DepthMapParams(y_range_m=y_range))
+
+
+def test_bin_size_below_float32_resolution_is_refused():
+    # 18.6 mm over 10^7 columns: 1.9 nm bins, under 4 float32 steps (4 x 0.93 nm) at 9.3 mm.
+    with pytest.raises(DepthMapError, match="below float32 resolution"):
+        depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10 ** 7), margin_m=0.0))
+    patch = depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10 ** 5), margin_m=0.0))  # 0.19 um bins
+    check_clean(patch)
+
+
+def test_bad_shapes_are_refused():
+    for shape in [(0, 10), (10, -1), (2.5, 3)]:
+        with pytest.raises(DepthMapError, match="bin shape"):
+            depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=shape))
+    with pytest.raises(DepthMapError, match="positive extent"):
+        depth_map([[0.0, 0.0, 0.0]], DepthMapParams(margin_m=-0.05))
+
+
+def test_scene_a_kilometre_from_the_origin_gives_the_same_map():
+    """Model and gel poses near (1 km, 1 km, 0): float32 world coordinates would be 61 um apart,
+    but the map is computed through one float64 model-to-gel transform."""
+    rng = np.random.default_rng(1)
+    points_model = np.column_stack([rng.uniform(-0.012, 0.012, 2000), rng.uniform(-0.0015, 0.0015, 2000),
+                                    rng.uniform(-0.015, 0.015, 2000)])
+    near = depth_map(points_model, DepthMapParams())
+    shift = np.eye(4)
+    shift[:3, 3] = [1000.0, 1000.0, 0.0]
+    rotation = np.eye(4)
+    rotation[:3, :3] = Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix()
+    far = depth_map(points_model, DepthMapParams(), gel_to_world=shift @ rotation, model_to_world=shift @ rotation)
+    check_clean(far)
+    np.testing.assert_array_equal(near.occupied, far.occupied)
+    np.testing.assert_allclose(far.depth_map_m, near.depth_map_m, atol=1e-9)
+
+
+def test_gel_frame_from_kinematics_sees_the_object_it_grasps():
+    """A 40 mm cube at the origin, grasped at its centre with both gels 1 mm inside its faces."""
+    grid = np.linspace(-0.02, 0.02, 201)
+    a, b = np.meshgrid(grid, grid)
+    faces = [np.column_stack([np.full(a.size, s * 0.02), a.ravel(), b.ravel()]) for s in (-1, 1)]
+    faces += [np.column_stack([a.ravel(), np.full(a.size, s * 0.02), b.ravel()]) for s in (-1, 1)]
+    cube = np.concatenate(faces)
+    tcp = grasp_to_tcp_pose(0.0, 0.0, GEOMETRY.tcp_to_gel_centre_m, 0.0)
+    for finger, gel_to_world in gel_poses_world(tcp, 0.038, GEOMETRY).items():
+        patch = contact_depth_map(cube, np.eye(4), gel_to_world, GEOMETRY, DepthMapParams(shape=(20, 20)))
+        check_clean(patch)
+        assert patch.occupied.all(), finger
+        np.testing.assert_allclose(patch.depth_map_m, -0.001, atol=1e-7)
+
+
+def test_grasp_at_the_object_edge_with_few_points():
+    """Only a corner of the surface reaches the crop: the rest of the map reads 'far'."""
+    points = np.array([[HALF_X - 0.0001, 0.0002, HALF_Z - 0.0001], [HALF_X, -0.0001, HALF_Z],
+                       [HALF_X + 0.005, -0.0005, 0.0]])  # last one outside the crop
+    patch = depth_map(points, DepthMapParams(shape=(100, 100), margin_m=0.0))
+    check_clean(patch)
+    assert patch.point_count == 2 and patch.occupied.sum() == 1
+    assert patch.depth_map_m[99, 99] == np.float32(-0.0001)
+
+
+def test_normalisation_round_trip_gives_millimetres_back():
+    rng = np.random.default_rng(2)
+    points = np.column_stack([rng.uniform(-HALF_X, HALF_X, 3000), rng.uniform(-T, T, 3000),
+                              rng.uniform(-HALF_Z, HALF_Z, 3000)])
+    patch = depth_map(points, DepthMapParams(shape=(10, 10), margin_m=0.0))
+    back = denormalise_depth_map(patch.normalised, patch.y_range_m)
+    np.testing.assert_allclose(back, patch.depth_map_m, atol=2 * T * 1e-6)
+
+
+def test_crop_bounds_and_errors_are_perception_errors():
+    half_x, half_z, y_near, y_far = crop_bounds(GEOMETRY, DepthMapParams(margin_m=0.003))
+    assert half_x == pytest.approx(0.0093 + 0.003) and half_z == pytest.approx(0.01245 + 0.003)
+    assert (y_near, y_far) == (-T, T)
+    assert issubclass(DepthMapError, PerceptionError) and issubclass(DepthMapError, ValueError)
+
+
+finite_coordinate = st.floats(-0.03, 0.03, allow_nan=False, width=64)
+special = st.sampled_from([-HALF_X, HALF_X, -HALF_Z, HALF_Z, -T, T, 0.0, np.linspace(-HALF_X, HALF_X, 6)[2]])
+
+
+@settings(max_examples=150, deadline=None)
+@given(points=st.lists(st.tuples(st.one_of(finite_coordinate, special), st.one_of(finite_coordinate, special),
+                                 st.one_of(finite_coordinate, special)), min_size=1, max_size=60),
+       shape=st.tuples(st.integers(1, 7), st.integers(1, 7)))
+def test_property_matches_brute_force_and_stays_finite(points, shape):
+    points = np.array(points, dtype=np.float64)
+    params = DepthMapParams(shape=shape, margin_m=0.0)
+    expected = reference_min_y(points, HALF_X, HALF_Z, (-T, T), shape)
+    if np.all(np.isnan(expected)):
+        with pytest.raises(DepthMapError):
+            depth_map(points, params)
+        return
+    patch = depth_map(points, params)
+    check_clean(patch)
+    np.testing.assert_array_equal(patch.occupied, np.isfinite(expected))
+    np.testing.assert_array_equal(patch.depth_map_m[patch.occupied], expected[patch.occupied].astype(np.float32))
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 2000), rows=st.integers(1, 50), cols=st.integers(1, 50), seed=st.integers(0, 2 ** 32 - 1))
+def test_property_min_y_per_bin_equals_sorting_reference(n, rows, cols, seed):
+    rng = np.random.default_rng(seed)
+    x, z = rng.uniform(-HALF_X, HALF_X, n), rng.uniform(-HALF_Z, HALF_Z, n)
+    y = rng.uniform(-T, T, n)
+    min_y, occupied = min_y_per_bin(x, z, y, HALF_X, HALF_Z, (rows, cols))
+    col = np.minimum(np.floor((x + HALF_X) / (2 * HALF_X) * cols).astype(int), cols - 1)
+    row = np.minimum(np.floor((z + HALF_Z) / (2 * HALF_Z) * rows).astype(int), rows - 1)
+    flat = row * cols + col
+    order = np.lexsort((y, flat))
+    first = np.r_[True, flat[order][1:] != flat[order][:-1]]
+    reference = np.full(rows * cols, np.inf)
+    reference[flat[order][first]] = y[order][first]
+    np.testing.assert_array_equal(min_y.ravel(), reference)
+    np.testing.assert_array_equal(occupied.ravel(), np.isfinite(reference))
