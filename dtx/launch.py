@@ -17,8 +17,8 @@ Crossing machines: ``transport: tcp`` with ``curve_secret_key``/``curve_authoriz
 on the calling one.
 
 Every node runs as its own process; its output is prefixed with its name. A node marked
-``respawn`` is restarted when it dies (exits non-zero); when a ``required`` node ends
-otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
+``respawn`` is restarted when it dies (exits non-zero, but not 2: a node says with 2 that
+restarting cannot help); when a ``required`` node ends otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
 left out. Every
 child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
 """
@@ -43,6 +43,8 @@ import yaml
 NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required", "if",
              "transport", "bind_host", "curve_secret_key", "curve_authorized_keys", "endpoints", "peers"}
 ENTRY_KEYS = {"arg", "include", "node"}
+# A node exiting with this status (bad parameters, an unwritable output) would only fail again.
+EXIT_DO_NOT_RESPAWN = 2
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
 
 
@@ -211,7 +213,8 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _die_with_parent() -> None:
-    ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    # SIGKILL: a node stuck in a blocking call must not outlive a launcher that was killed.
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 @dataclasses.dataclass
@@ -277,7 +280,7 @@ class Launcher:
                 continue
             spec = run.spec
             del self.running[name]
-            if code != 0 and spec.respawn:
+            if code not in (0, EXIT_DO_NOT_RESPAWN) and spec.respawn:
                 self.say(f"[launch] {name} exited with {code}; respawning in {spec.respawn_delay_s} s")
                 self._stop.wait(spec.respawn_delay_s)
                 if not self._stop.is_set():

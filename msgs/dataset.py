@@ -10,6 +10,9 @@ from msgs.base import Message, empty
 
 @dataclasses.dataclass
 class DatasetSample(Message):
+    """Everything one dataset sample holds, as the collector wrote it: a session bag can
+    rebuild the dataset from these alone (``launch/replay.yaml``)."""
+
     SCHEMA = "dtx.dataset.DatasetSample"
     VERSION = 1
 
@@ -19,5 +22,11 @@ class DatasetSample(Message):
     finger: str = ""
     grasp_pose: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0])
     tactile_image: np.ndarray = empty((0, 0, 3), np.uint8)
+    tactile_diff_image: np.ndarray = empty((0, 0, 3), np.uint8)
     depth_map_m: np.ndarray = empty((0, 0), np.float32)
-    path: str = ""
+    depth_range_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0])
+    registration_fitness: float = 0.0
+    stamps_ns: dict[str, int] = dataclasses.field(default_factory=dict)
+    scene: str = ""
+    effects: list[str] = dataclasses.field(default_factory=list)
+    split_seed: int = 0

@@ -481,6 +481,19 @@ class ServiceClient(Generic[M, R]):
                 self._connected.add(endpoint.address)
         return len(self._connected)
 
+    def _send_when_connected(self, frames: list[Any], deadline: float) -> bool:
+        """Send once a server is connected (a DEALER would block forever with none), looking
+        for new servers meanwhile, e.g. the respawn of one that died."""
+        while True:
+            self._discover()
+            try:
+                self.sock.send_multipart(frames, zmq.NOBLOCK, copy=False)
+                return True
+            except zmq.Again:
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.02)
+
     def wait_for_service(self, timeout_s: float = 5.0) -> bool:
         deadline = time.monotonic() + timeout_s
         while self._discover() == 0:
@@ -500,9 +513,9 @@ class ServiceClient(Generic[M, R]):
             stamp_ns=time.time_ns(), seq=self.seq, frame_id=request.header.frame_id))
         frames = encode(self.name, stamped, self.id)
         for _attempt in range(1 + retries):
-            self._discover()
-            self.sock.send_multipart(frames, copy=False)
             deadline = time.monotonic() + timeout_s
+            if not self._send_when_connected(frames, deadline):
+                continue  # every known server is gone; the next attempt looks again
             while (remaining := deadline - time.monotonic()) > 0:
                 if not self.sock.poll(remaining * 1000, zmq.POLLIN):
                     break

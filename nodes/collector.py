@@ -22,14 +22,14 @@ import json
 import os
 import time
 from collections.abc import Iterator
+from typing import Any, NoReturn
 from pathlib import Path
-from typing import Any
-
 import cv2
 import numpy as np
 
 import msgs
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, subtract_background
+from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
 from perception.kinematics import gel_poses_world, grasp_to_tcp_pose
@@ -89,6 +89,10 @@ class CollectorNode(Node):
             raise ValueError(f"objects {unknown} are not in {p.scene}; it has {meshes}")
         self.geometry = self.scene.gripper_geometry()
         out = Path(p.out)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise ValueError(f"cannot create the output directory {out}: {error}") from error
         respawned = int(os.environ.get("DTX_RESPAWN", "0")) > 0
         if (out / "manifest.jsonl").exists() and not (p.resume or respawned):
             raise ValueError(f"{out} already holds a dataset; pass resume:=true to continue it, or choose another out")
@@ -285,26 +289,37 @@ class CollectorNode(Node):
             return  # written before a crash; the other finger is what was missing
         if self.writer is None:
             p = self.params
-            self.writer = DatasetWriter(p.out, DatasetInfo(
+            self.writer = self.open_writer(DatasetInfo(
                 image_height=100, image_width=100, depth_range_m=(depth_map.y_range_m[0], depth_map.y_range_m[1]),
                 scene=p.scene, effects=tuple(e.name for e in self.scene.effects), code_version=code_version(),
                 split_seed=p.seed))
         size = (self.writer.info.image_width, self.writer.info.image_height)
         tactile = cv2.resize(np.ascontiguousarray(image.image), size, interpolation=cv2.INTER_AREA)
         background = cv2.resize(np.ascontiguousarray(image.background), size, interpolation=cv2.INTER_AREA)
-        try:
-            record = self.writer.write(
-                sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
-                tactile_rgb=tactile, tactile_diff_rgb=subtract_background(tactile, background),
-                depth_map_m=depth_map.depth_map_m, registration_fitness=fitness,
-                stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()})
-        except DatasetError as error:
-            self.log.error("cannot write %s: %s — stopping; the dataset is intact", sample_id, error)
-            raise SystemExit(3) from error
-        self.stats.pairs_written += 1
-        self.samples.publish(msgs.DatasetSample(
+        sample = msgs.DatasetSample(
             sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
-            tactile_image=tactile, depth_map_m=depth_map.depth_map_m, path=str(record.files["tactile"])))
+            tactile_image=tactile, tactile_diff_image=subtract_background(tactile, background),
+            depth_map_m=depth_map.depth_map_m, depth_range_m=list(self.writer.info.depth_range_m),
+            registration_fitness=fitness, stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()},
+            scene=self.writer.info.scene, effects=list(self.writer.info.effects), split_seed=self.writer.info.split_seed)
+        try:
+            write_sample(self.writer, sample)
+        except DatasetError as error:
+            self.fail_on_disk(f"cannot write {sample_id}: {error}")
+        self.stats.pairs_written += 1
+        self.samples.publish(sample)
+
+
+    def open_writer(self, info: DatasetInfo) -> DatasetWriter:
+        try:
+            return DatasetWriter(self.params.out, info)
+        except DatasetError as error:
+            self.fail_on_disk(str(error))
+
+    def fail_on_disk(self, reason: str) -> NoReturn:
+        """A full disk or an unwritable directory: stop the session; what is written stays."""
+        self.log.error("%s — stopping the session; the dataset on disk is intact", reason)
+        raise SystemExit(EXIT_DO_NOT_RESPAWN)
 
     def release_and_retreat(self) -> None:
         """Open the fingers and lift; on the way out of any grasp, failed or not."""
@@ -322,6 +337,22 @@ class CollectorNode(Node):
                 self.arm_to(above)
         except ServiceCallError as error:
             self.log.warning("release or retreat failed: %s", error)
+
+
+def write_sample(writer: DatasetWriter, sample: msgs.DatasetSample) -> None:
+    """One announced sample into the dataset (the collector and the replay share this)."""
+    writer.write(sample_id=sample.sample_id, object_name=sample.object_name, grasp_id=sample.grasp_id,
+                 finger=sample.finger, grasp_pose=sample.grasp_pose, tactile_rgb=sample.tactile_image,
+                 tactile_diff_rgb=sample.tactile_diff_image, depth_map_m=sample.depth_map_m,
+                 registration_fitness=sample.registration_fitness, stamps_ns=sample.stamps_ns)
+
+
+def dataset_info(sample: msgs.DatasetSample) -> DatasetInfo:
+    """The dataset-wide facts an announced sample carries."""
+    height, width = sample.tactile_image.shape[:2]
+    return DatasetInfo(image_height=height, image_width=width,
+                       depth_range_m=(sample.depth_range_m[0], sample.depth_range_m[1]), scene=sample.scene,
+                       effects=tuple(sample.effects), code_version=code_version(), split_seed=sample.split_seed)
 
 
 if __name__ == "__main__":
