@@ -55,7 +55,7 @@ def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "")
     if kill:
         result.update(killed=kill, killed_pid=killed, respawned=f"[launch] {kill} exited with -9; respawning" in output)
     if launcher.returncode != 0 or not report.ok:
-        result["log_tail"] = output.splitlines()[-15:]
+        result["collector_log"] = [line for line in output.splitlines() if line.startswith("[collector]")][-15:]
     return result
 
 
