@@ -15,8 +15,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from dtx import demo
+
 # Packages that add their own command groups (each has cli.add_commands(subparsers)).
-COMMAND_PACKAGES: list[str] = ["drivers", "sim", "perception"]
+COMMAND_PACKAGES: list[str] = ["drivers", "sim", "perception", "models", "dataset"]
 
 
 def _summarise(value: Any, full: bool) -> Any:
@@ -354,6 +356,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_keys_create)
 
     _add_bench(sub)
+    demo.add_commands(sub)
     for package in COMMAND_PACKAGES:
         importlib.import_module(f"{package}.cli").add_commands(sub)
     return parser

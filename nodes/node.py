@@ -19,7 +19,7 @@ import sys
 import time
 import typing
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, ClassVar, TypeVar
 
 import zmq
@@ -103,8 +103,11 @@ class Node:
         self._services: list[ServiceServer[Any, Any]] = []
         self._clients: list[ServiceClient[Any, Any]] = []
         self._timers: list[tuple[float, int, float, Callable[[], None]]] = []
-        # Long device commands (a motion, a grasp) run here so the executor keeps publishing.
+        # Long device commands (a motion, a grasp) run here so the executor keeps publishing;
+        # a pipe wakes the executor when one completes (a pipe, as any thread may write it).
         self.background = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+        self._wake_read, self._wake_write = os.pipe()
+        os.set_blocking(self._wake_read, False)
         self._timer_count = 0
         self._shutdown = False
         self._closing = False
@@ -128,8 +131,16 @@ class Node:
         return subscriber
 
     def create_service(self, name: str, request_type: type[M], reply_type: type[R],
-                       handler: Callable[[M], R]) -> ServiceServer[M, R]:
-        server = self.bus.service(name, request_type, reply_type, handler)
+                       handler: Callable[[M], R | Future[R]]) -> ServiceServer[M, R]:
+        """``handler`` may return a Future (work in ``self.background``): the executor is
+        woken the moment it completes, and its reply goes out then."""
+        def wake_when_done(request: M) -> R | Future[R]:
+            result = handler(request)
+            if isinstance(result, Future):
+                result.add_done_callback(lambda _: os.write(self._wake_write, b"x"))
+            return result
+
+        server = self.bus.service(name, request_type, reply_type, wake_when_done)
         self._services.append(server)
         return server
 
@@ -155,11 +166,12 @@ class Node:
             poller.register(server.sock, zmq.POLLIN)
         for publisher in self._publishers:
             poller.register(publisher.sock, zmq.POLLIN)
+        poller.register(self._wake_read, zmq.POLLIN)
         next_timer = self._timers[0][0] if self._timers else time.monotonic() + timeout_s
-        if any(server.pending for server in self._services):
-            next_timer = min(next_timer, time.monotonic() + 0.005)
         wait_s = max(0.0, min(timeout_s, next_timer - time.monotonic()))
         ready = dict(poller.poll(wait_s * 1000))
+        if self._wake_read in ready:
+            os.read(self._wake_read, 4096)
         for publisher in self._publishers:
             if publisher.sock in ready:
                 publisher.service_subscriptions()
@@ -224,6 +236,8 @@ class Node:
         for client in self._clients:
             client.close()
         self.bus.close()
+        os.close(self._wake_read)
+        os.close(self._wake_write)
 
 
 def _parse_remap(text: str) -> tuple[str, str]:

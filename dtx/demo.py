@@ -1,0 +1,85 @@
+"""``dtx demo``: the main job on the simulated scene, end to end, as an operator would run it.
+
+1. collect the paper's 289 grasps (578 pairs) with ``launch/collect_sim.yaml``;
+2. train the cGAN with ``configs/quick.yaml``;
+3. evaluate it like the paper and print the table; figures go to ``OUT/figures``.
+
+Each step is the real command, run as a process; a step whose result is already there
+(a complete dataset, a finished checkpoint) is continued or skipped, so running the demo
+again resumes it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/depth_map,/arm/state,/gripper/state]"
+
+
+def _run(step: str, command: list[str], capture: bool = False) -> str:
+    print(f"\n== {step}\n$ dtx {' '.join(command)}", flush=True)
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, "-m", "dtx.cli", *command], text=True,
+                            stdout=subprocess.PIPE if capture else None)
+    if result.returncode != 0:
+        raise SystemExit(f"demo: step '{step}' failed (exit {result.returncode})")
+    print(f"== {step}: done in {time.monotonic() - started:.0f} s", flush=True)
+    return result.stdout or ""
+
+
+def paper_table(evaluation: dict) -> str:
+    """The paper's comparison, with its figures beside ours."""
+    template = evaluation.get("template_match", {})
+    rows = [
+        ("SSIM, estimate vs ground truth", f"{evaluation['ssim_model_mean']:.3f} ± {evaluation['ssim_model_se']:.4f}",
+         "0.84 ± 0.0056"),
+        ("SSIM, baseline (15 random ground truths)",
+         f"{evaluation['ssim_baseline_mean']:.3f} ± {evaluation['ssim_baseline_se']:.4f}", "0.80 ± 0.0036"),
+        ("dissimilarity ratio (1-SSIM model)/(1-SSIM base)", f"{evaluation['dissimilarity_ratio']:.2f}", "0.80"),
+        ("p-value, Wilcoxon signed-rank", f"{evaluation['p_value_wilcoxon']:.2e}", "< 0.05"),
+        ("p-value, paired t", f"{evaluation['p_value_t']:.2e}", ""),
+        ("template match score (TM_CCOEFF_NORMED), mean", f"{template.get('score_mean', float('nan')):.3f}", ""),
+        ("template match distance, median (px)", f"{template.get('distance_px_median', float('nan')):.1f}", ""),
+    ]
+    for row in evaluation.get("density", []):
+        rows.append((f"SSIM at {row['points_per_cm3']} points/cm^3", f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
+                     {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], "")))
+    width = max(len(r[0]) for r in rows)
+    lines = [f"{'':{width}}  {'this run':>18}  {'paper':>14}"]
+    lines += [f"{name:{width}}  {ours:>18}  {paper:>14}" for name, ours, paper in rows]
+    return "\n".join(lines)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    session, train_dir, figures = out / "session", out / "train", out / "figures"
+    collect = ["launch", "launch/collect_sim.yaml", f"out:={session}", f"grasps:={args.grasps}",
+               f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
+    if (session / "manifest.jsonl").exists():
+        collect.append("resume:=true")
+    _run("1/3 collect (Algorithm 1 on the simulated scene)", collect)
+    _run("1/3 check the dataset", ["dataset", "check", str(session)])
+    train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]
+    if (train_dir / "checkpoint.pt").exists():
+        train.append("--resume")
+    _run("2/3 train the cGAN", train)
+    report = _run("3/3 evaluate like the paper", ["evaluate", str(train_dir / "checkpoint.pt"), str(session), "--json",
+                                                  "--figures", str(figures)], capture=True)
+    evaluation = json.loads(report)
+    (out / "evaluation.json").write_text(json.dumps(evaluation, indent=2) + "\n")
+    print("\n" + paper_table(evaluation))
+    print(f"\nfigures in {figures}; full results in {out / 'evaluation.json'}")
+    return 0
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    demo = subparsers.add_parser("demo", help="collect, train and evaluate on the simulated scene")
+    demo.add_argument("--out", default="out/demo")
+    demo.add_argument("--grasps", type=int, default=289)
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--config", default="configs/quick.yaml")
+    demo.set_defaults(func=cmd_demo)

@@ -1,0 +1,83 @@
+"""The node base: parameters, timers, background service work, heartbeats."""
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import msgs
+from dtx.launch import load_launch
+from nodes.bus import Bus
+from nodes.node import Node, ParameterError
+from nodes.registry import Registry
+
+
+class SlowMover(Node):
+    @dataclasses.dataclass
+    class Params:
+        move_s: float = 0.3
+        rate_hz: float = 50.0
+
+    def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        super().__init__(name, params, **kwargs)
+        self.state = self.create_publisher("/mover/state", msgs.GripperState)
+        self.create_service("/mover/move", msgs.GripperCommand, msgs.GripperState, self.on_move)
+        self.create_timer(1.0 / self.params.rate_hz, lambda: self.state.publish(msgs.GripperState()))
+
+    def on_move(self, command: msgs.GripperCommand) -> Any:
+        def move() -> msgs.GripperState:
+            time.sleep(self.params.move_s)
+            return msgs.GripperState(width_m=command.width_m, state="holding")
+        return self.background.submit(move)
+
+
+def test_unknown_or_mistyped_parameters_are_refused(registry: Registry) -> None:
+    with pytest.raises(ParameterError, match=r"unknown parameter\(s\) \['speed'\]; allowed: \['move_s', 'rate_hz'\]"):
+        SlowMover("m", {"speed": 1}, registry=registry)
+    with pytest.raises(ParameterError, match="must be float"):
+        SlowMover("m", {"move_s": "fast"}, registry=registry)
+
+
+def test_state_keeps_flowing_while_a_service_works_in_the_background(registry: Registry) -> None:
+    node = SlowMover("mover", {"move_s": 0.4}, registry=registry)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: node.spin(until=stop.is_set))
+    spinner.start()
+    caller = Bus("caller", registry)
+    try:
+        states = caller.subscriber("/mover/state", msgs.GripperState)
+        assert states.receive(5.0) is not None
+        before = states.counters.received
+        reply = caller.client("/mover/move", msgs.GripperCommand, msgs.GripperState).call(
+            msgs.GripperCommand(width_m=0.03), timeout_s=5.0)
+        during = states.counters.received
+        while states.receive_ready() is not None:
+            during = states.counters.received
+    finally:
+        stop.set()
+        spinner.join()
+        caller.close()
+        node.close()
+    assert reply.state == "holding" and reply.width_m == pytest.approx(0.03)
+    assert during - before >= 5  # 0.4 s of motion at 50 Hz kept publishing
+
+
+def test_heartbeat_reaches_the_registry(registry: Registry) -> None:
+    node = SlowMover("beating", registry=registry)
+    node.spin(until=lambda: any(s["node"] == "beating" for s in registry.node_statuses()))
+    status = next(s for s in registry.node_statuses() if s["node"] == "beating")
+    node.close()
+    assert status["alive"] and "/mover/move" in status["services"] and "/mover/state" in status["publishers"]
+
+
+def test_a_launch_entry_can_be_switched_off(tmp_path: Path) -> None:
+    path = tmp_path / "l.yaml"
+    path.write_text("launch:\n  - arg: {name: viewer, default: 'false'}\n"
+                    "  - node: {name: a, module: nodes.recorder}\n"
+                    "  - node: {name: b, module: nodes.foxglove_bridge, if: $(var viewer)}\n")
+    assert [n.name for n in load_launch(path).nodes] == ["a"]
+    assert [n.name for n in load_launch(path, {"viewer": "true"}).nodes] == ["a", "b"]
