@@ -30,7 +30,7 @@ from msgs.base import Header, Message
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode, encode
 from msgs.system import ServiceError
 from nodes.registry import Endpoint, Registry
-from nodes.security import CurveConfig, secure_client, secure_server
+from nodes.security import CurveConfig, secure_client, secure_server, stop_authenticator
 
 log = logging.getLogger("dtx.bus")
 M = TypeVar("M", bound=Message)
@@ -156,6 +156,7 @@ class Bus:
                              self.peer_endpoints("service", name, request_type.SCHEMA))
 
     def close(self) -> None:
+        stop_authenticator(self.context)
         self.context.destroy(linger=200)
 
 

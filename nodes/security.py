@@ -71,7 +71,8 @@ def secure_client(sock: zmq.Socket, config: CurveConfig, server_key: str = "") -
     sock.curve_serverkey = server_key.encode()
 
 
-def stop_authenticators() -> None:
-    for authenticator in _authenticators.values():
+def stop_authenticator(context: zmq.Context) -> None:
+    """Stop ``context``'s authenticator thread, before the context itself goes."""
+    authenticator = _authenticators.pop(id(context), None)
+    if authenticator is not None:
         authenticator.stop()
-    _authenticators.clear()
