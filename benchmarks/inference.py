@@ -1,0 +1,189 @@
+"""``dtx bench inference``: generator width x precision x runtime on this machine's CPU.
+
+For each combination: regions per second with batches of ``--batch`` depth-maps, the median
+(p50) latency of one region alone, and the SSIM of its output against the fp32 eager output
+of the same weights on the same inputs (how much the faster variant changes the estimate).
+
+* widths: the generator's ngf; weights are the trained model of ``--checkpoint`` (then
+  only its own width is measured) or seeded random ones with PyTorch's default
+  initialisation (pix2pix's N(0, 0.02) would make an untrained output nearly constant and
+  every SSIM trivially 1);
+* precisions: fp32; bf16 (autocast, eager and compiled); int8 (static post-training QDQ
+  quantisation in ONNX Runtime, calibrated on the inputs). PyTorch's own int8 path,
+  torch.ao FX quantisation, is deprecated in torch 2.13 (its successor, torchao, is not a
+  dependency) and measured SSIM 0.07-0.39 against fp32 on this generator: left out;
+* runtimes: eager PyTorch, ``torch.compile`` (inductor), ONNX Runtime (CPU provider).
+Combinations left out: int8 in PyTorch (above), bf16 in ONNX Runtime (no bf16 CPU kernels).
+Inputs are depth-maps of the synthetic analytic contacts (dataset.synth).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from dataset.synth import SHAPES, depth_map_from_surface, random_surface
+from models.data import depth_input
+from models.networks import GeneratorConfig, UNetGenerator
+from models.ssim import ssim_rgb, to_uint8_rgb
+
+DEPTH_RANGE_M = (-0.0015, 0.0025)
+Runner = Callable[[np.ndarray], np.ndarray]
+OFFERED = {"eager": ("fp32", "bf16"), "compile": ("fp32", "bf16"), "onnxrt": ("fp32", "int8")}
+
+
+class _Traceable(nn.Module):
+    """The generator without its input check, for FX quantisation and ONNX export."""
+
+    def __init__(self, generator: UNetGenerator) -> None:
+        super().__init__()
+        self.generator = generator
+
+    def forward(self, depth: torch.Tensor) -> torch.Tensor:
+        return self.generator.forward_unchecked(depth)
+
+
+def synthetic_inputs(count: int, seed: int, in_channels: int, depth_range_m: tuple[float, float]) -> np.ndarray:
+    """count x C x 100 x 100 float32 network inputs from random analytic contacts."""
+    rng = np.random.default_rng(seed)
+    maps = [depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0,
+                                   y_far_m=depth_range_m[1])
+            for i in range(count)]
+    return depth_input(np.stack(maps), depth_range_m, in_channels).numpy()
+
+
+def _torch_runner(module: nn.Module, bf16: bool) -> Runner:
+    def run(x: np.ndarray) -> np.ndarray:
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            return module(torch.from_numpy(x)).float().numpy()
+    return run
+
+
+def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int,
+                 workdir: Path) -> Runner:
+    import onnxruntime as ort  # noqa: PLC0415
+
+    path = workdir / "generator.onnx"
+    with warnings.catch_warnings():
+        # The torch.export-based exporter needs onnxscript, which is not a dependency; the
+        # TorchScript one still works but warns about its deprecation and its internal
+        # passes (constant folding, tracing), none of which concerns the exported model.
+        warnings.simplefilter("ignore")
+        torch.onnx.export(_Traceable(generator).eval(), (torch.from_numpy(calibration[:1]),), str(path),
+                          dynamo=False, input_names=["depth"], output_names=["image"],
+                          dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
+    if int8:
+        from onnxruntime import quantization as oq  # noqa: PLC0415
+
+        class Calibration(oq.CalibrationDataReader):
+            def __init__(self) -> None:
+                self.batches = iter([{"depth": calibration[i:i + 8]} for i in range(0, len(calibration), 8)])
+
+            def get_next(self) -> dict[str, np.ndarray] | None:
+                return next(self.batches, None)
+
+        quantised = workdir / "generator_int8.onnx"
+        oq.quantize_static(str(path), str(quantised), Calibration(), quant_format=oq.QuantFormat.QDQ,
+                           activation_type=oq.QuantType.QUInt8, weight_type=oq.QuantType.QInt8)
+        path = quantised
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    return lambda x: session.run(None, {"depth": x})[0]
+
+
+def _measure(run: Runner, inputs: np.ndarray, batch: int, seconds: float) -> tuple[float, float]:
+    """(regions per second at ``batch``, p50 ms for one region), each measured ~``seconds``."""
+    run(inputs[:batch])  # warm-up: allocation, lazy initialisation
+    regions, started = 0, time.perf_counter()
+    while time.perf_counter() - started < seconds or regions == 0:
+        run(inputs[:batch])
+        regions += batch
+    throughput = regions / (time.perf_counter() - started)
+    run(inputs[:1])
+    latencies, started = [], time.perf_counter()
+    while time.perf_counter() - started < seconds or len(latencies) < 5:
+        t0 = time.perf_counter()
+        run(inputs[len(latencies) % len(inputs)][None])
+        latencies.append((time.perf_counter() - t0) * 1e3)
+    return throughput, statistics.median(latencies)
+
+
+def _generator(width: int, checkpoint: str | None, seed: int) -> tuple[UNetGenerator, tuple[float, float]]:
+    if checkpoint:
+        from models.train import load_generator  # noqa: PLC0415
+
+        return load_generator(checkpoint)
+    torch.manual_seed(seed)
+    return UNetGenerator(GeneratorConfig(ngf=width)).eval(), DEPTH_RANGE_M
+
+
+def run(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """The benchmark table: one row per (width, precision, runtime)."""
+    torch.set_num_threads(args.threads)
+    # Denormal floats (tiny activations) make CPU convolutions orders of magnitude slower;
+    # flushing them is process-wide state, so it is switched back off afterwards.
+    torch.set_flush_denormal(True)
+    try:
+        return _run_table(args)
+    finally:
+        torch.set_flush_denormal(False)
+
+
+def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
+    rows = []
+    widths = [None] if args.checkpoint else args.widths
+    with tempfile.TemporaryDirectory() as tmp:
+        for width in widths:
+            generator, depth_range_m = _generator(width, args.checkpoint, args.seed)
+            inputs = synthetic_inputs(max(args.batch, 16), args.seed, generator.config.in_channels, depth_range_m)
+            reference = to_uint8_rgb(torch.from_numpy(_torch_runner(generator, bf16=False)(inputs)))
+            for runtime in args.runtimes:
+                for precision in args.precisions:
+                    if precision not in OFFERED[runtime]:
+                        continue
+                    if runtime == "eager":
+                        runner = _torch_runner(generator, bf16=precision == "bf16")
+                    elif runtime == "compile":
+                        runner = _torch_runner(torch.compile(_Traceable(generator)), bf16=precision == "bf16")
+                    else:
+                        runner = _onnx_runner(generator, inputs, precision == "int8", args.threads, Path(tmp))
+                    output = to_uint8_rgb(torch.from_numpy(runner(inputs)))
+                    throughput, p50 = _measure(runner, inputs, args.batch, args.seconds)
+                    rows.append({"width": generator.config.ngf, "precision": precision, "runtime": runtime,
+                                 "ssim": round(float(ssim_rgb(reference, output).mean()), 4),
+                                 "regions_per_s": round(throughput, 1), "p50_ms": round(p50, 2)})
+                    # Progress on stderr: ``dtx bench`` prints the table (or JSON) on stdout.
+                    print(_format_row(rows[-1]), file=sys.stderr, flush=True)
+    return rows
+
+
+def _format_row(row: dict[str, Any]) -> str:
+    return (f"width {row['width']:3d}  {row['precision']:5s} {row['runtime']:8s} ssim {row['ssim']:.4f}  "
+            f"{row['regions_per_s']:8.1f} regions/s  p50 {row['p50_ms']:7.2f} ms")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``dtx bench inference`` (which adds ``--json`` itself)."""
+    parser.add_argument("--checkpoint", help="benchmark this trained generator instead of seeded random widths")
+    parser.add_argument("--widths", type=int, nargs="+", default=[16, 32, 64])
+    parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16", "int8"], choices=["fp32", "bf16", "int8"])
+    # torch.compile is opt-in: compiling one model takes about a minute on 2 cores, and it
+    # measured slower than ONNX Runtime here (width 16 fp32: 72 vs 110-140 regions/s).
+    parser.add_argument("--runtimes", nargs="+", default=["eager", "onnxrt"], choices=["eager", "compile", "onnxrt"])
+    parser.add_argument("--batch", type=int, default=32, help="regions per batch for the throughput")
+    parser.add_argument("--seconds", type=float, default=1.5, help="measuring time per figure")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+

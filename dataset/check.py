@@ -1,0 +1,92 @@
+"""Verify a dataset directory sample by sample (``dtx dataset check``)."""
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from dataset.format import FILE_KINDS, FINGERS, DatasetError, DatasetReader, SampleRecord
+from dataset.splits import SPLITS, split_records
+
+
+@dataclasses.dataclass
+class CheckReport:
+    """What a check found; the dataset is sound when ``problems`` is empty."""
+
+    root: Path
+    problems: list[str]
+    samples: int = 0
+    grasps: int = 0
+    objects: dict[str, int] = dataclasses.field(default_factory=dict)
+    split_samples: dict[str, int] = dataclasses.field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def summary(self) -> str:
+        lines = [f"dataset {self.root}: {self.samples} samples, {self.grasps} grasps"]
+        lines += [f"  object {name}: {count} samples" for name, count in sorted(self.objects.items())]
+        lines.append("  split " + ", ".join(f"{k} {v}" for k, v in self.split_samples.items()))
+        lines.append("OK" if self.ok else f"{len(self.problems)} problem(s):")
+        lines += [f"  - {p}" for p in self.problems]
+        return "\n".join(lines)
+
+
+def _grasp_problems(records: list[SampleRecord]) -> list[str]:
+    """Both finger samples of a grasp must agree on the grasp and name distinct fingers."""
+    problems = []
+    by_grasp: dict[str, list[SampleRecord]] = defaultdict(list)
+    for record in records:
+        by_grasp[record.grasp_key].append(record)
+    for key, group in by_grasp.items():
+        fingers = Counter(r.finger for r in group)
+        repeated = [f for f, n in fingers.items() if n > 1]
+        if repeated:
+            problems.append(f"grasp {key}: finger(s) {repeated} recorded more than once")
+        if len({r.grasp_pose for r in group}) > 1:
+            problems.append(f"grasp {key}: its samples disagree on the grasp pose")
+        if any(r.finger not in FINGERS for r in group):
+            problems.append(f"grasp {key}: finger not in {FINGERS}")
+    return problems
+
+
+def check_dataset(root: str | os.PathLike[str]) -> CheckReport:
+    """Check format, every file's presence, checksum and shape, duplicates and the split
+    (the fingers of a grasp agree with each other, so the grasp is one split unit; no split
+    is empty)."""
+    report = CheckReport(root=Path(root), problems=[])
+    try:
+        reader = DatasetReader(root)
+    except DatasetError as err:
+        report.problems.append(str(err))
+        return report
+    records = reader.records
+    report.samples = len(records)
+    report.grasps = len({r.grasp_key for r in records})
+    report.objects = dict(Counter(r.object_name for r in records))
+    if not records:
+        report.problems.append("the dataset has no samples")
+        return report
+
+    paths = Counter(r.files[kind] for r in records for kind in FILE_KINDS)
+    report.problems += [f"file {p} is claimed by {n} samples" for p, n in paths.items() if n > 1]
+    for record in records:
+        try:
+            sample = reader.load(record, verify=True)
+        except DatasetError as err:
+            report.problems.append(str(err))
+            continue
+        depth = sample.depth_map_m
+        if np.all(~np.isfinite(depth)):
+            report.problems.append(f"sample {record.sample_id}: depth-map has no occupied bin")
+    report.problems += _grasp_problems(records)
+
+    splits = split_records(records, reader.info.split_seed)
+    report.split_samples = {name: len(splits[name]) for name in SPLITS}
+    if report.grasps >= 3 and not all(report.split_samples.values()):
+        report.problems.append(f"a split is empty: {report.split_samples}")
+    return report

@@ -1,0 +1,58 @@
+"""``dtx dataset check | export-pix2pix | synth``."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from dataset.check import check_dataset
+from dataset.export import export_pix2pix
+from dataset.format import DatasetError
+
+
+def _check(args: argparse.Namespace) -> int:
+    report = check_dataset(args.dir)
+    print(report.summary())
+    return 0 if report.ok else 1
+
+
+def _export(args: argparse.Namespace) -> int:
+    try:
+        counts = export_pix2pix(args.dir, args.out)
+    except (DatasetError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print(f"wrote {sum(counts.values())} A|B images to {args.out}: {counts}")
+    return 0
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from dataset.synth import write_synthetic_dataset  # noqa: PLC0415 (imports the renderer)
+
+    try:
+        writer = write_synthetic_dataset(args.out, args.samples, args.seed, progress=True)
+    except (DatasetError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print(f"{args.out}: {len(writer)} samples")
+    return 0
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``dataset`` command group to the ``dtx`` parser."""
+    parser = subparsers.add_parser("dataset", help="check, export or synthesise tactile datasets")
+    commands = parser.add_subparsers(dest="dataset_command", required=True)
+
+    check = commands.add_parser("check", help="verify every sample; exit 0 only for a sound dataset")
+    check.add_argument("dir", help="dataset directory")
+    check.set_defaults(func=_check)
+
+    export = commands.add_parser("export-pix2pix", help="write aligned A|B images for the reference pix2pix")
+    export.add_argument("dir", help="dataset directory")
+    export.add_argument("out", help="output directory (train/, val/, test/ are created)")
+    export.set_defaults(func=_export)
+
+    synth = commands.add_parser("synth", help="render a synthetic dataset of analytic contacts")
+    synth.add_argument("out", help="dataset directory to create or resume")
+    synth.add_argument("--samples", type=int, default=578, help="number of pairs (default: the paper's 578)")
+    synth.add_argument("--seed", type=int, default=0)
+    synth.set_defaults(func=_synth)

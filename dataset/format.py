@@ -1,0 +1,467 @@
+"""The on-disk tactile experience dataset: writer, reader and checks.
+
+Layout of a dataset directory ``DIR``::
+
+    DIR/dataset.json          format name + version, image size, depth_range_m, scene,
+                              effects, code version, split seed (written once)
+    DIR/manifest.jsonl        one JSON object per sample, appended after its files exist
+    DIR/tactile/<id>.png      GelSight image, RGB, as captured (viewable)
+    DIR/tactile_diff/<id>.png background-subtracted copy: image - background + 128, RGB
+    DIR/depth/<id>.npy        contact depth-map, float32 metres in the gel frame
+                              (min y per bin; NaN or +inf = empty bin), np.save format
+
+Crash safety: every file of a sample goes to a temporary name, is fsynced and renamed into
+place; only then is the manifest line appended and fsynced. A sample therefore exists
+exactly when its manifest line does. Files left without a manifest line by a crash are
+overwritten when the sample is written again on resume. A torn last manifest line (the
+process died mid-append) is cut off when a writer reopens the dataset.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import os
+import re
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+FORMAT_NAME = "dtx-tactile-dataset"
+FORMAT_VERSION = 1
+FINGERS = ("left", "right")
+FILE_KINDS = ("tactile", "tactile_diff", "depth")
+_FILE_SUFFIX = {"tactile": ".png", "tactile_diff": ".png", "depth": ".npy"}
+_SAMPLE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+_DIFF_OFFSET = 128
+
+
+class DatasetError(ValueError):
+    """The dataset on disk, or a sample given to it, is not what the format requires."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetInfo:
+    """Dataset-wide facts, stored once in ``dataset.json``."""
+
+    image_height: int = 100
+    image_width: int = 100
+    depth_range_m: tuple[float, float] = (-0.002, 0.003)
+    scene: str = ""
+    effects: tuple[str, ...] = ()
+    code_version: str = ""
+    split_seed: int = 0
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "image_height": self.image_height,
+            "image_width": self.image_width,
+            "depth_range_m": list(self.depth_range_m),
+            "scene": self.scene,
+            "effects": list(self.effects),
+            "code_version": self.code_version,
+            "split_seed": self.split_seed,
+        }
+
+    @staticmethod
+    def from_json(data: dict[str, Any]) -> "DatasetInfo":
+        if data.get("format") != FORMAT_NAME:
+            raise DatasetError(f"dataset.json: format is {data.get('format')!r}, expected {FORMAT_NAME!r}")
+        if data.get("version") != FORMAT_VERSION:
+            raise DatasetError(f"dataset.json: version {data.get('version')!r} is not supported "
+                               f"(this code reads version {FORMAT_VERSION})")
+        try:
+            info = DatasetInfo(
+                image_height=int(data["image_height"]),
+                image_width=int(data["image_width"]),
+                depth_range_m=(float(data["depth_range_m"][0]), float(data["depth_range_m"][1])),
+                scene=str(data["scene"]),
+                effects=tuple(str(e) for e in data["effects"]),
+                code_version=str(data["code_version"]),
+                split_seed=int(data["split_seed"]),
+            )
+        except (KeyError, TypeError, IndexError, ValueError) as err:
+            raise DatasetError(f"dataset.json: missing or malformed field ({err!r})") from err
+        if info.image_height <= 0 or info.image_width <= 0:
+            raise DatasetError(f"dataset.json: image size must be positive, got "
+                               f"{info.image_height}x{info.image_width}")
+        if not info.depth_range_m[1] > info.depth_range_m[0]:
+            raise DatasetError(f"dataset.json: depth_range_m must be (near, far) with far > near, "
+                               f"got {info.depth_range_m}")
+        return info
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleRecord:
+    """One manifest line. ``grasp_pose`` is (x, y, z [m], theta_z [rad]) in ``world``;
+    ``stamps_ns`` names capture times (e.g. ``tactile``, ``depth``) in ns."""
+
+    sample_id: str
+    object_name: str
+    grasp_id: int
+    finger: str
+    grasp_pose: tuple[float, float, float, float]
+    stamps_ns: dict[str, int]
+    registration_fitness: float
+    files: dict[str, str]
+    sha256: dict[str, str]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "sample_id": self.sample_id,
+            "object": self.object_name,
+            "grasp_id": self.grasp_id,
+            "finger": self.finger,
+            "grasp_pose": list(self.grasp_pose),
+            "stamps_ns": dict(self.stamps_ns),
+            "registration_fitness": self.registration_fitness,
+            "files": dict(self.files),
+            "sha256": dict(self.sha256),
+        }
+
+    @staticmethod
+    def from_json(data: Any) -> "SampleRecord":
+        if not isinstance(data, dict):
+            raise DatasetError(f"manifest line is not a JSON object: {data!r}")
+        try:
+            pose = tuple(float(v) for v in data["grasp_pose"])
+            record = SampleRecord(
+                sample_id=str(data["sample_id"]),
+                object_name=str(data["object"]),
+                grasp_id=int(data["grasp_id"]),
+                finger=str(data["finger"]),
+                grasp_pose=pose,  # type: ignore[arg-type]
+                stamps_ns={str(k): int(v) for k, v in data["stamps_ns"].items()},
+                registration_fitness=float(data["registration_fitness"]),
+                files={str(k): str(v) for k, v in data["files"].items()},
+                sha256={str(k): str(v) for k, v in data["sha256"].items()},
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            raise DatasetError(f"manifest line has a missing or malformed field ({err!r})") from err
+        if len(pose) != 4:
+            raise DatasetError(f"sample {record.sample_id}: grasp_pose needs 4 values, got {len(pose)}")
+        if set(record.files) != set(FILE_KINDS) or set(record.sha256) != set(FILE_KINDS):
+            raise DatasetError(f"sample {record.sample_id}: files and sha256 must name {FILE_KINDS}")
+        return record
+
+    @property
+    def grasp_key(self) -> str:
+        """Identifies the grasp: both fingers of a grasp share it."""
+        return f"{self.object_name}/{self.grasp_id}"
+
+
+@dataclasses.dataclass
+class Sample:
+    """A record with its arrays: tactile images H x W x 3 uint8 RGB, depth-map H x W float32 m."""
+
+    record: SampleRecord
+    tactile_rgb: np.ndarray
+    tactile_diff_rgb: np.ndarray
+    depth_map_m: np.ndarray
+
+
+def subtract_background(image_rgb: np.ndarray, background_rgb: np.ndarray) -> np.ndarray:
+    """The background-subtracted copy stored beside each image: image - background + 128,
+    clipped to uint8, so that no change reads as mid-grey and the file stays viewable."""
+    image = _check_rgb(image_rgb, "image")
+    background = _check_rgb(background_rgb, "background")
+    if image.shape != background.shape:
+        raise DatasetError(f"image {image.shape} and background {background.shape} differ in shape")
+    diff = image.astype(np.int16) - background.astype(np.int16) + _DIFF_OFFSET
+    return np.clip(diff, 0, 255).astype(np.uint8)
+
+
+def deformation_map(tactile_diff_rgb: np.ndarray) -> np.ndarray:
+    """Per-pixel deformation strength (H x W float32): summed |change| over RGB from the
+    background-subtracted copy."""
+    diff = _check_rgb(tactile_diff_rgb, "tactile_diff").astype(np.float32) - _DIFF_OFFSET
+    return np.abs(diff).sum(axis=2)
+
+
+def code_version() -> str:
+    """Package version plus the git commit of the checkout when there is one."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        text = f"dtx {version('dtx')}"
+    except PackageNotFoundError:
+        text = "dtx (not installed)"
+    head = Path(__file__).resolve().parent.parent / ".git" / "HEAD"
+    try:
+        ref = head.read_text().strip()
+        if ref.startswith("ref: "):
+            ref = (head.parent / ref[5:]).read_text().strip()
+        text += f" git {ref[:12]}"
+    except OSError:
+        pass
+    return text
+
+
+def _check_rgb(array: np.ndarray, name: str) -> np.ndarray:
+    array = np.asarray(array)
+    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3:
+        raise DatasetError(f"{name} must be H x W x 3 uint8 RGB, got {array.shape} {array.dtype}")
+    return array
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _encode_png(rgb: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise DatasetError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def _decode_png(data: bytes, name: str) -> np.ndarray:
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
+        raise DatasetError(f"{name}: not an 8-bit RGB PNG")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _encode_npy(depth_map_m: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, depth_map_m, allow_pickle=False)
+    return buf.getvalue()
+
+
+def _decode_npy(data: bytes, name: str) -> np.ndarray:
+    try:
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as err:
+        raise DatasetError(f"{name}: not a readable .npy array ({err})") from err
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a crash leaves either the old file or the new one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _check_sample_arrays(info: DatasetInfo, tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
+                         depth_map_m: np.ndarray, sample_id: str) -> None:
+    shape = (info.image_height, info.image_width)
+    for name, image in (("tactile", tactile_rgb), ("tactile_diff", tactile_diff_rgb)):
+        image = _check_rgb(image, f"sample {sample_id}: {name}")
+        if image.shape[:2] != shape:
+            raise DatasetError(f"sample {sample_id}: {name} is {image.shape[:2]}, dataset images are {shape}")
+    depth = np.asarray(depth_map_m)
+    if depth.dtype != np.float32 or depth.shape != shape:
+        raise DatasetError(f"sample {sample_id}: depth-map must be {shape} float32 metres, "
+                           f"got {depth.shape} {depth.dtype}")
+    if np.any(np.isneginf(depth)):
+        raise DatasetError(f"sample {sample_id}: depth-map contains -inf (empty bins are NaN or +inf)")
+
+
+class DatasetWriter:
+    """Appends samples to a dataset directory; reopening an existing dataset resumes it.
+
+    ``info`` is required for a new dataset; for an existing one it may be omitted, and if
+    given must equal what is stored (one dataset, one normalisation and one scene).
+    """
+
+    def __init__(self, root: str | os.PathLike[str], info: DatasetInfo | None = None) -> None:
+        self.root = Path(root)
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            for kind in FILE_KINDS:
+                (self.root / kind).mkdir(exist_ok=True)
+            meta_path = self.root / "dataset.json"
+            if meta_path.exists():
+                stored = _read_info(meta_path)
+                if info is not None and info != stored:
+                    raise DatasetError(f"{self.root}: dataset.json holds {stored}, not the given {info}")
+                self.info = stored
+            else:
+                if info is None:
+                    raise DatasetError(f"{self.root} is not a dataset yet: DatasetInfo is required")
+                _write_atomic(meta_path, (json.dumps(info.to_json(), indent=2) + "\n").encode())
+                _fsync_dir(self.root)
+                self.info = info
+            self._manifest = self.root / "manifest.jsonl"
+            self._manifest.touch(exist_ok=True)
+            self._repair_torn_tail()
+        except OSError as err:
+            raise DatasetError(f"cannot open dataset {self.root} for writing: {err}") from err
+        self.records: list[SampleRecord] = _read_manifest(self._manifest)
+        self._ids = {r.sample_id for r in self.records}
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __contains__(self, sample_id: str) -> bool:
+        return sample_id in self._ids
+
+    def _repair_torn_tail(self) -> None:
+        data = self._manifest.read_bytes()
+        if data and not data.endswith(b"\n"):
+            keep = data.rfind(b"\n") + 1
+            with open(self._manifest, "r+b") as f:
+                f.truncate(keep)
+                os.fsync(f.fileno())
+
+    def write(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
+              grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
+              depth_map_m: np.ndarray, registration_fitness: float,
+              stamps_ns: dict[str, int] | None = None) -> SampleRecord:
+        """Write one sample atomically and return its manifest record.
+
+        Raises DatasetError for a repeated ``sample_id``, bad arrays or fields, and for a
+        disk error (full disk, read-only directory); the dataset is left as it was.
+        """
+        if not isinstance(sample_id, str) or not _SAMPLE_ID.match(sample_id):
+            raise DatasetError(f"sample id {sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-], "
+                               "not starting with '.', '_' or '-'")
+        if sample_id in self._ids:
+            raise DatasetError(f"sample {sample_id} is already in {self.root}: refusing a duplicate")
+        if finger not in FINGERS:
+            raise DatasetError(f"sample {sample_id}: finger must be one of {FINGERS}, got {finger!r}")
+        pose = tuple(float(v) for v in grasp_pose)
+        if len(pose) != 4 or not all(np.isfinite(pose)):
+            raise DatasetError(f"sample {sample_id}: grasp_pose must be 4 finite numbers "
+                               f"(x, y, z [m], theta_z [rad]), got {grasp_pose}")
+        if not np.isfinite(registration_fitness):
+            raise DatasetError(f"sample {sample_id}: registration_fitness must be finite, "
+                               f"got {registration_fitness}")
+        _check_sample_arrays(self.info, tactile_rgb, tactile_diff_rgb, depth_map_m, sample_id)
+
+        payloads = {
+            "tactile": _encode_png(np.asarray(tactile_rgb)),
+            "tactile_diff": _encode_png(np.asarray(tactile_diff_rgb)),
+            "depth": _encode_npy(np.asarray(depth_map_m)),
+        }
+        files = {kind: f"{kind}/{sample_id}{_FILE_SUFFIX[kind]}" for kind in FILE_KINDS}
+        record = SampleRecord(
+            sample_id=sample_id, object_name=str(object_name), grasp_id=int(grasp_id), finger=finger,
+            grasp_pose=pose, stamps_ns={str(k): int(v) for k, v in (stamps_ns or {}).items()},  # type: ignore[arg-type]
+            registration_fitness=float(registration_fitness), files=files,
+            sha256={kind: _sha256(data) for kind, data in payloads.items()},
+        )
+        line = (json.dumps(record.to_json(), allow_nan=False) + "\n").encode()
+        try:
+            for kind, data in payloads.items():
+                _write_atomic(self.root / files[kind], data)
+            for kind in FILE_KINDS:
+                _fsync_dir(self.root / kind)
+            self._append_manifest(line)
+        except OSError as err:
+            raise DatasetError(f"could not write sample {sample_id} to {self.root}: {err} "
+                               "(the dataset is intact; free space or fix permissions and resume)") from err
+        self.records.append(record)
+        self._ids.add(sample_id)
+        return record
+
+    def _append_manifest(self, line: bytes) -> None:
+        with open(self._manifest, "ab") as f:
+            size = f.tell()
+            try:
+                f.write(line)
+                f.flush()
+                os.fsync(f.fileno())
+            except OSError:
+                # A partial line would corrupt the manifest: cut back to the last whole one.
+                f.truncate(size)
+                raise
+
+
+def _read_info(path: Path) -> DatasetInfo:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError as err:
+        raise DatasetError(f"{path.parent} is not a dataset: {path.name} is missing") from err
+    except (OSError, json.JSONDecodeError) as err:
+        raise DatasetError(f"{path}: unreadable ({err})") from err
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: not a JSON object")
+    return DatasetInfo.from_json(data)
+
+
+def _read_manifest(path: Path) -> list[SampleRecord]:
+    try:
+        text = path.read_text()
+    except FileNotFoundError as err:
+        raise DatasetError(f"{path.parent}: manifest.jsonl is missing") from err
+    if text and not text.endswith("\n"):
+        raise DatasetError(f"{path}: last line is incomplete (a writer died mid-append; "
+                           "reopening the dataset with DatasetWriter repairs it)")
+    records = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        try:
+            records.append(SampleRecord.from_json(json.loads(line)))
+        except (json.JSONDecodeError, DatasetError) as err:
+            raise DatasetError(f"{path}:{number}: corrupt manifest line ({err})") from err
+    return records
+
+
+class DatasetReader:
+    """Reads a dataset; ``load`` verifies the checksums of the files it reads."""
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DatasetError(f"dataset directory {self.root} does not exist")
+        self.info = _read_info(self.root / "dataset.json")
+        self.records = _read_manifest(self.root / "manifest.jsonl")
+        self._by_id: dict[str, SampleRecord] = {}
+        for record in self.records:
+            if record.sample_id in self._by_id:
+                raise DatasetError(f"{self.root}: sample {record.sample_id} appears twice in the manifest")
+            self._by_id[record.sample_id] = record
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __iter__(self) -> Iterator[Sample]:
+        return (self.load(record) for record in self.records)
+
+    def record(self, sample_id: str) -> SampleRecord:
+        try:
+            return self._by_id[sample_id]
+        except KeyError as err:
+            raise DatasetError(f"{self.root}: no sample {sample_id!r}") from err
+
+    def load(self, sample: SampleRecord | str, verify: bool = True) -> Sample:
+        record = self.record(sample) if isinstance(sample, str) else sample
+        raw = {}
+        for kind in FILE_KINDS:
+            path = self.root / record.files[kind]
+            try:
+                raw[kind] = path.read_bytes()
+            except OSError as err:
+                raise DatasetError(f"sample {record.sample_id}: cannot read {path} ({err})") from err
+            if verify and _sha256(raw[kind]) != record.sha256[kind]:
+                raise DatasetError(f"sample {record.sample_id}: checksum mismatch for {path}")
+        sample_obj = Sample(
+            record=record,
+            tactile_rgb=_decode_png(raw["tactile"], record.files["tactile"]),
+            tactile_diff_rgb=_decode_png(raw["tactile_diff"], record.files["tactile_diff"]),
+            depth_map_m=_decode_npy(raw["depth"], record.files["depth"]),
+        )
+        _check_sample_arrays(self.info, sample_obj.tactile_rgb, sample_obj.tactile_diff_rgb,
+                             sample_obj.depth_map_m, record.sample_id)
+        return sample_obj

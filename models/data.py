@@ -1,0 +1,66 @@
+"""From dataset samples and depth-maps to network tensors, and back."""
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from dataset.format import DatasetReader, SampleRecord
+from dataset.splits import leave_one_object_out, split_records
+from models.networks import ModelConfigError
+from perception.normalisation import normalise_depth_map
+
+
+def depth_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], in_channels: int) -> torch.Tensor:
+    """N x H x W depth-maps in metres (NaN/+inf = empty bin) -> N x C x H x W float32 network
+    input: channel 0 the normalised depth in [-1, 1]; channel 1 (when ``in_channels`` is 2)
+    the validity mask, +1 where the bin holds surface nearer than y_far and -1 where it is
+    empty (perception.depthmap stores y_far there, other sources NaN or +inf)."""
+    maps = np.asarray(depth_maps_m)
+    if maps.ndim != 3 or maps.shape[0] == 0 or not np.issubdtype(maps.dtype, np.floating):
+        raise ModelConfigError(f"depth-maps must be a non-empty N x H x W float array in metres, "
+                               f"got {maps.shape} {maps.dtype}")
+    if np.any(np.isneginf(maps)):
+        raise ModelConfigError("depth-maps contain -inf (empty bins are NaN or +inf)")
+    channels = [normalise_depth_map(maps, depth_range_m)]
+    if in_channels == 2:
+        with np.errstate(invalid="ignore"):  # NaN compares False: an empty bin
+            occupied = maps < depth_range_m[1]
+        channels.append(np.where(occupied, 1.0, -1.0).astype(np.float32))
+    elif in_channels != 1:
+        raise ModelConfigError(f"in_channels must be 1 or 2, got {in_channels}")
+    return torch.from_numpy(np.stack(channels, axis=1))
+
+
+def image_target(images_rgb: np.ndarray) -> torch.Tensor:
+    """N x H x W x 3 uint8 RGB -> N x 3 x H x W float32 in [-1, 1] (the tanh range)."""
+    images = np.asarray(images_rgb)
+    if images.dtype != np.uint8 or images.ndim != 4 or images.shape[-1] != 3:
+        raise ModelConfigError(f"tactile images must be N x H x W x 3 uint8, got {images.shape} {images.dtype}")
+    return torch.from_numpy(images).permute(0, 3, 1, 2).float() / 127.5 - 1.0
+
+
+def select_records(reader: DatasetReader, split: str, hold_out_object: str = "") -> list[SampleRecord]:
+    """Records of one split: the dataset's 70/15/15 split, or with ``hold_out_object`` the
+    leave-one-object-out split (its "test" is every sample of that object)."""
+    seed = reader.info.split_seed
+    splits = (leave_one_object_out(reader.records, hold_out_object, seed) if hold_out_object
+              else split_records(reader.records, seed))
+    if split not in splits:
+        raise ModelConfigError(f"unknown split {split!r}; known: {sorted(splits)}")
+    return splits[split]
+
+
+def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[SampleRecord] | None,
+               in_channels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Network input and target (N x C x H x W, N x 3 x H x W) for ``records`` (all if None),
+    checksums verified."""
+    reader = root if isinstance(root, DatasetReader) else DatasetReader(root)
+    chosen = reader.records if records is None else list(records)
+    if not chosen:
+        raise ModelConfigError(f"no samples selected from {reader.root}")
+    samples = [reader.load(r) for r in chosen]
+    depth = depth_input(np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, in_channels)
+    return depth, image_target(np.stack([s.tactile_rgb for s in samples]))

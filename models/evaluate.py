@@ -1,0 +1,261 @@
+"""Evaluate a trained generator like the paper (``dtx evaluate CHECKPOINT DATASET``).
+
+* SSIM (models.ssim) of every estimate against its ground truth, and the baseline: the
+  same estimate against ``baseline_draws`` (15) random other ground-truth images of the
+  evaluated set, averaged per estimate. Mean +- standard error of both, paired Wilcoxon
+  signed-rank and paired t-test p-values (two-sided), and the dissimilarity ratio
+  (1 - SSIM_model) / (1 - SSIM_baseline) (paper: 0.16 / 0.20 = 0.80).
+* Template matching (OpenCV TM_CCOEFF_NORMED): the template is the ground truth's most
+  deformed ``template_px`` square (largest summed |change| of the background-subtracted
+  copy), searched for in the estimate; score and distance (px) from the template's place.
+* Density table: the same SSIM on datasets whose depth-maps were made from clouds
+  downsampled to given densities (points/cm^3) - inputs from the collection session.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from scipy import stats
+
+from dataset.format import DatasetReader, deformation_map
+from models.data import depth_input, select_records
+from models.networks import ModelConfigError, UNetGenerator
+from models.ssim import ssim_rgb, to_uint8_rgb
+
+PAPER = {"ssim_model_mean": 0.84, "ssim_model_se": 0.0056, "ssim_baseline_mean": 0.80, "ssim_baseline_se": 0.0036,
+         "dissimilarity_ratio": 0.80,
+         "density": {1: 0.8238, 10: 0.8278, 20: 0.8478, 40: 0.8480, 80: 0.8476}}
+
+
+@dataclasses.dataclass
+class Predictions:
+    """Ground truth and estimates (N x H x W x 3 uint8) of one evaluated set."""
+
+    sample_ids: list[str]
+    objects: list[str]
+    depth_maps_m: np.ndarray
+    truth: np.ndarray
+    truth_deformation: np.ndarray
+    estimate: np.ndarray
+
+
+@torch.no_grad()
+def predict(generator: UNetGenerator, depth_maps_m: np.ndarray, depth_range_m: tuple[float, float],
+            batch: int = 64) -> np.ndarray:
+    """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates (generator in eval mode)."""
+    generator.eval()
+    x = depth_input(depth_maps_m, depth_range_m, generator.config.in_channels)
+    return np.concatenate([to_uint8_rgb(generator(x[i:i + batch])) for i in range(0, len(x), batch)])
+
+
+def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float], root: str | os.PathLike[str],
+                    split: str = "test", hold_out_object: str = "") -> Predictions:
+    """Estimates for one split of a dataset (``split="all"``: every sample)."""
+    reader = DatasetReader(root)
+    if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
+        raise ModelConfigError(f"{root} normalises depth with {reader.info.depth_range_m}, the model was "
+                               f"trained with {depth_range_m}")
+    records = reader.records if split == "all" else select_records(reader, split, hold_out_object)
+    if len(records) < 2:
+        raise ModelConfigError(f"the {split} set of {root} has {len(records)} sample(s); need at least 2")
+    samples = [reader.load(r) for r in records]
+    depth = np.stack([s.depth_map_m for s in samples])
+    return Predictions(sample_ids=[r.sample_id for r in records], objects=[r.object_name for r in records],
+                       depth_maps_m=depth, truth=np.stack([s.tactile_rgb for s in samples]),
+                       truth_deformation=np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
+                       estimate=predict(generator, depth, depth_range_m))
+
+
+def _mean_se(values: np.ndarray) -> tuple[float, float]:
+    return float(np.mean(values)), float(np.std(values, ddof=1) / np.sqrt(len(values)))
+
+
+def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15,
+                    seed: int = 0) -> dict[str, Any]:
+    """Model vs baseline SSIM statistics (see module docstring) for N >= 2 image pairs."""
+    n = len(truth)
+    if n < 2 or truth.shape != estimate.shape:
+        raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
+    model = ssim_rgb(truth, estimate)
+    rng = np.random.default_rng(seed)
+    baseline = np.empty(n)
+    for i in range(n):
+        # Random *other* ground truths: the estimate's own would favour the baseline.
+        others = np.delete(np.arange(n), i)
+        draws = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
+        baseline[i] = ssim_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0)).mean()
+    model_mean, model_se = _mean_se(model)
+    base_mean, base_se = _mean_se(baseline)
+    diff = model - baseline
+    # Degenerate differences have no test statistic: all zero means no evidence (p = 1),
+    # a constant non-zero difference is as certain as it gets (p = 0).
+    p_wilcoxon = float(stats.wilcoxon(model, baseline).pvalue) if np.any(diff != 0) else 1.0
+    p_t = float(stats.ttest_rel(model, baseline).pvalue) if np.std(diff) > 0 else float(np.all(diff == 0))
+    return {
+        "n": n,
+        "ssim_model_mean": model_mean, "ssim_model_se": model_se,
+        "ssim_baseline_mean": base_mean, "ssim_baseline_se": base_se,
+        "p_value_wilcoxon": p_wilcoxon, "p_value_t": p_t,
+        "dissimilarity_ratio": (1.0 - model_mean) / (1.0 - base_mean),
+        "ssim_model": model.tolist(), "ssim_baseline": baseline.tolist(),
+    }
+
+
+def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
+    """Top-left (x, y) of the size_px square with the largest summed deformation."""
+    h, w = deformation.shape
+    if not 0 < size_px <= min(h, w):
+        raise ModelConfigError(f"template size {size_px} px does not fit a {h} x {w} image")
+    sums = cv2.boxFilter(deformation.astype(np.float32), -1, (size_px, size_px), normalize=False,
+                         anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)[: h - size_px + 1, : w - size_px + 1]
+    y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
+    return int(x), int(y)
+
+
+def template_match(truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray,
+                   size_px: int = 32) -> list[dict[str, Any]]:
+    """Per pair: the template box in the truth, the best match in the estimate, its score
+    (TM_CCOEFF_NORMED, -1..1) and the distance between the two boxes in pixels."""
+    results = []
+    for gt, deform, est in zip(truth, truth_deformation, estimate):
+        x, y = most_deformed_box(deform, size_px)
+        template = np.ascontiguousarray(gt[y:y + size_px, x:x + size_px])
+        scores = cv2.matchTemplate(np.ascontiguousarray(est), template, cv2.TM_CCOEFF_NORMED)
+        # A flat template or estimate has no correlation coefficient: OpenCV gives inf/NaN.
+        scores = np.nan_to_num(scores, nan=0.0, posinf=0.0, neginf=0.0)
+        _, score, _, (mx, my) = cv2.minMaxLoc(scores)
+        results.append({"template_xy": [x, y], "match_xy": [int(mx), int(my)], "score": float(score),
+                        "distance_px": float(np.hypot(mx - x, my - y))})
+    return results
+
+
+def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root: str | os.PathLike[str],
+             split: str = "test", hold_out_object: str = "", density: Mapping[float, str | os.PathLike[str]] | None = None,
+             baseline_draws: int = 15, template_px: int = 32, seed: int = 0) -> tuple[dict[str, Any], Predictions]:
+    """The paper's analysis on one split, plus the density table for the datasets given
+    (points per cm^3 -> dataset made at that density; its ``split`` is evaluated too)."""
+    predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
+    result = ssim_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
+    matches = template_match(predictions.truth, predictions.truth_deformation, predictions.estimate, template_px)
+    result["template_match"] = {
+        "template_px": template_px,
+        "score_mean": float(np.mean([m["score"] for m in matches])),
+        "distance_px_median": float(np.median([m["distance_px"] for m in matches])),
+        "per_sample": matches,
+    }
+    result["density"] = []
+    for points_per_cm3, density_root in sorted((density or {}).items()):
+        at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
+        mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
+        result["density"].append({"points_per_cm3": float(points_per_cm3), "ssim_mean": mean, "ssim_se": se,
+                                  "paper_ssim_mean": PAPER["density"].get(points_per_cm3)})
+    result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
+    return result, predictions
+
+
+def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_m: tuple[float, float],
+                  out: str | os.PathLike[str], rows: int = 8) -> list[Path]:
+    """qualitative.png (object, depth-map, truth with template box in blue, estimate with
+    matched box in red), ssim_bars.png (model vs baseline, standard-error bars) and, when
+    the result has a density table, density.png. Returns the written paths."""
+    import matplotlib  # noqa: PLC0415 (only evaluation with --figures needs it)
+
+    matplotlib.use("Agg")
+    from matplotlib import patches  # noqa: PLC0415
+    from matplotlib import pyplot as plt  # noqa: PLC0415
+
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    size = result["template_match"]["template_px"]
+    count = min(rows, len(predictions.sample_ids))
+    fig, axes = plt.subplots(count, 4, figsize=(8, 2 * count), squeeze=False)
+    for row, ax in enumerate(axes):
+        match = result["template_match"]["per_sample"][row]
+        ax[0].text(0.5, 0.5, f"{predictions.objects[row]}\n{predictions.sample_ids[row]}", ha="center",
+                   va="center", fontsize=7)
+        ax[1].imshow(np.nan_to_num(predictions.depth_maps_m[row], nan=depth_range_m[1]) * 1e3, cmap="viridis",
+                     vmin=depth_range_m[0] * 1e3, vmax=depth_range_m[1] * 1e3)
+        ax[2].imshow(predictions.truth[row])
+        ax[2].add_patch(patches.Rectangle(match["template_xy"], size, size, fill=False, color="blue"))
+        ax[3].imshow(predictions.estimate[row])
+        ax[3].add_patch(patches.Rectangle(match["match_xy"], size, size, fill=False, color="red"))
+        ax[3].set_xlabel(f"SSIM {result['ssim_model'][row]:.3f}, match {match['score']:.2f}", fontsize=7)
+        for a in ax:
+            a.set_xticks([])
+            a.set_yticks([])
+    for a, title in zip(axes[0], ("object", "depth-map (mm)", "ground truth", "estimate")):
+        a.set_title(title, fontsize=9)
+    fig.tight_layout()
+    written.append(out_dir / "qualitative.png")
+    fig.savefig(written[-1], dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(3, 3.5))
+    ax.bar(["baseline", "model"], [result["ssim_baseline_mean"], result["ssim_model_mean"]],
+           yerr=[result["ssim_baseline_se"], result["ssim_model_se"]], capsize=6, color=["grey", "tab:blue"])
+    ax.set_ylabel("SSIM (mean ± s.e.)")
+    ax.set_ylim(0, 1)
+    ax.set_title(f"ratio {result['dissimilarity_ratio']:.2f}, p {result['p_value_wilcoxon']:.1e}", fontsize=9)
+    fig.tight_layout()
+    written.append(out_dir / "ssim_bars.png")
+    fig.savefig(written[-1], dpi=100)
+    plt.close(fig)
+
+    if result["density"]:
+        rows_d = result["density"]
+        fig, ax = plt.subplots(figsize=(4, 3))
+        ax.errorbar([r["points_per_cm3"] for r in rows_d], [r["ssim_mean"] for r in rows_d],
+                    yerr=[r["ssim_se"] for r in rows_d], marker="o", capsize=4, label="this model")
+        paper = sorted(PAPER["density"].items())
+        ax.plot([d for d, _ in paper], [v for _, v in paper], "s--", color="grey", label="paper")
+        ax.set_xscale("log")
+        ax.set_xlabel("point-cloud density (points/cm³)")
+        ax.set_ylabel("SSIM")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        written.append(out_dir / "density.png")
+        fig.savefig(written[-1], dpi=100)
+        plt.close(fig)
+    return written
+
+
+def summary_table(result: dict[str, Any]) -> str:
+    """The paper-style table, beside the paper's numbers."""
+    lines = [f"{'':28s}{'this model':>22s}{'paper':>18s}",
+             f"{'SSIM model':28s}{result['ssim_model_mean']:>13.4f} ± {result['ssim_model_se']:.4f}"
+             f"{PAPER['ssim_model_mean']:>11.2f} ± {PAPER['ssim_model_se']}",
+             f"{'SSIM baseline (15 random)':28s}{result['ssim_baseline_mean']:>13.4f} ± {result['ssim_baseline_se']:.4f}"
+             f"{PAPER['ssim_baseline_mean']:>11.2f} ± {PAPER['ssim_baseline_se']}",
+             f"{'dissimilarity ratio':28s}{result['dissimilarity_ratio']:>22.3f}{PAPER['dissimilarity_ratio']:>18.2f}",
+             f"{'p (Wilcoxon / t)':28s}{result['p_value_wilcoxon']:>12.2e} / {result['p_value_t']:.2e}",
+             f"{'template match score':28s}{result['template_match']['score_mean']:>22.3f}",
+             f"{'template distance (px, med)':28s}{result['template_match']['distance_px_median']:>22.1f}",
+             f"samples evaluated: {result['n']}"]
+    for row in result["density"]:
+        paper = row["paper_ssim_mean"]
+        lines.append(f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"
+                     f"{row['ssim_mean']:>13.4f} ± {row['ssim_se']:.4f}{'' if paper is None else format(paper, '>18.4f')}")
+    return "\n".join(lines)
+
+
+def parse_density(items: Sequence[str]) -> dict[float, str]:
+    """``["1=DIR1", "10=DIR10"]`` -> {1.0: "DIR1", 10.0: "DIR10"}."""
+    out = {}
+    for item in items:
+        density, sep, path = item.partition("=")
+        try:
+            value = float(density)
+        except ValueError:
+            value = float("nan")
+        if not sep or not path or not value > 0:
+            raise ModelConfigError(f"--density takes POINTS_PER_CM3=DATASET_DIR, got {item!r}")
+        out[value] = path
+    return out

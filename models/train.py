@@ -1,0 +1,325 @@
+"""Training the cGAN (``dtx train DATASET --config CONFIG``).
+
+Paper settings by default: vanilla cGAN loss on logits (BCE), L1 weighted by lambda = 100,
+Adam lr 2e-4, betas (0.5, 0.999); the learning rate is constant for ``epochs`` and then
+decays linearly to zero over ``epochs_decay`` (as in pix2pix).
+
+Reproducible: the seed fixes the initial weights, the sample order of every epoch (a
+permutation seeded by seed and epoch) and dropout; on CPU the same seed gives the same
+weights, and a resumed run continues exactly where the checkpoint left off.
+
+Runs unchanged under ``torchrun``: with WORLD_SIZE > 1 it joins the process group (NCCL on
+CUDA, gloo on CPU), wraps both networks in DistributedDataParallel and gives each rank every
+WORLD_SIZE-th sample of the epoch's permutation; rank 0 alone logs and saves. BatchNorm
+statistics stay per rank, as in pix2pix.
+
+Outputs in ``--out``: ``checkpoint.pt`` (state dicts, configs and progress, loadable with
+``torch.load(weights_only=True)``), ``train_log.csv`` (losses every ``log_every`` steps),
+``val_log.csv`` (validation L1 and SSIM after every epoch).
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+from torch import nn
+from tqdm import tqdm
+
+from dataset.format import DatasetReader
+from models.data import load_pairs, select_records
+from models.networks import (DiscriminatorConfig, GeneratorConfig, ModelConfigError, PatchDiscriminator,
+                             UNetGenerator, config_from_dict, init_weights)
+from models.ssim import ssim_torch
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training settings; ``configs/paper.yaml`` and ``configs/quick.yaml`` are examples."""
+
+    seed: int = 0
+    epochs: int = 100
+    epochs_decay: int = 100
+    batch_size: int = 1
+    lr: float = 2e-4
+    beta1: float = 0.5
+    beta2: float = 0.999
+    lambda_l1: float = 100.0
+    ndf: int = 64
+    hold_out_object: str = ""
+    max_steps: int = 0
+    log_every: int = 10
+    threads: int = 0
+    generator: GeneratorConfig = GeneratorConfig()
+
+    def validate(self) -> "TrainConfig":
+        if self.epochs < 0 or self.epochs_decay < 0 or self.epochs + self.epochs_decay == 0:
+            raise ModelConfigError(f"epochs and epochs_decay must be >= 0 with a positive sum, "
+                                   f"got {self.epochs}, {self.epochs_decay}")
+        for name in ("batch_size", "ndf", "log_every"):
+            if getattr(self, name) < 1:
+                raise ModelConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_steps < 0 or self.threads < 0:
+            raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
+        if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
+            raise ModelConfigError(f"need lr > 0, betas in [0, 1), lambda_l1 >= 0; got lr={self.lr}, "
+                                   f"betas=({self.beta1}, {self.beta2}), lambda_l1={self.lambda_l1}")
+        self.generator.validate()
+        return self
+
+    @property
+    def discriminator(self) -> DiscriminatorConfig:
+        return DiscriminatorConfig(in_channels=self.generator.in_channels + self.generator.out_channels,
+                                   ndf=self.ndf)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> "TrainConfig":
+        if not isinstance(data, dict):
+            raise ModelConfigError(f"a training config is a mapping, got {type(data).__name__}")
+        data = dict(data)
+        generator = GeneratorConfig.from_dict(data.pop("generator", {}) or {})
+        return dataclasses.replace(config_from_dict(TrainConfig, data, "training config"), generator=generator).validate()
+
+    @staticmethod
+    def load(path: str | os.PathLike[str]) -> "TrainConfig":
+        try:
+            data = yaml.safe_load(Path(path).read_text())
+        except OSError as err:
+            raise ModelConfigError(f"cannot read training config {path}: {err}") from err
+        except yaml.YAMLError as err:
+            raise ModelConfigError(f"training config {path} is not valid YAML: {err}") from err
+        return TrainConfig.from_dict(data or {})
+
+
+def lr_factor(config: TrainConfig, epoch: int) -> float:
+    """Learning-rate multiplier for a 0-based epoch: 1 for ``epochs``, then linear to 0."""
+    if epoch < config.epochs:
+        return 1.0
+    return 1.0 - (epoch - config.epochs + 1) / (config.epochs_decay + 1)
+
+
+@dataclasses.dataclass
+class _Dist:
+    rank: int = 0
+    world: int = 1
+    device: torch.device = torch.device("cpu")
+
+
+def _setup_distributed() -> _Dist:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world == 1:
+        return _Dist(device=torch.device("cuda" if torch.cuda.is_available() else "cpu"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if torch.cuda.is_available():
+        torch.cuda.set_device(local_rank)
+        device = torch.device("cuda", local_rank)
+    else:
+        device = torch.device("cpu")
+    torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return _Dist(rank=torch.distributed.get_rank(), world=world, device=device)
+
+
+def _unwrap(module: nn.Module) -> nn.Module:
+    return module.module if isinstance(module, nn.parallel.DistributedDataParallel) else module
+
+
+def _save_atomic(state: dict[str, Any], path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The checkpoint dictionary (tensors and plain values only: ``weights_only=True``)."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError as err:
+        raise ModelConfigError(f"checkpoint {path} does not exist") from err
+    except Exception as err:  # torch raises several types for a corrupt or foreign file
+        raise ModelConfigError(f"{path} is not a readable dtx checkpoint: {err}") from err
+    missing = {"generator", "train_config", "depth_range_m"} - set(state)
+    if missing:
+        raise ModelConfigError(f"{path} is not a dtx checkpoint: missing {sorted(missing)}")
+    return state
+
+
+def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[float, float]]:
+    """The trained generator (eval mode, CPU) and the depth_range_m it was trained with."""
+    state = load_checkpoint(path)
+    config = TrainConfig.from_dict(state["train_config"])
+    generator = UNetGenerator(config.generator)
+    generator.load_state_dict(state["generator"])
+    generator.eval()
+    low, high = state["depth_range_m"]
+    return generator, (float(low), float(high))
+
+
+def _append_csv(path: Path, header: list[str], row: list[Any]) -> None:
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        writer = csv.writer(f)
+        if new:
+            writer.writerow(header)
+        writer.writerow(row)
+
+
+@torch.no_grad()
+def _validate(generator: nn.Module, x: torch.Tensor, y: torch.Tensor, batch: int = 32) -> tuple[float, float]:
+    """Mean L1 (in [-1, 1] image units) and mean SSIM (0..255 images) of eval-mode output."""
+    was_training = generator.training
+    generator.eval()
+    l1, ssim = [], []
+    for start in range(0, len(x), batch):
+        fake = generator(x[start:start + batch])
+        real = y[start:start + batch]
+        l1.append((fake - real).abs().mean(dim=(1, 2, 3)))
+        ssim.append(ssim_torch(((fake + 1) * 127.5).round().clamp(0, 255).double(),
+                               ((real + 1) * 127.5).round().double()))
+    generator.train(was_training)
+    return float(torch.cat(l1).mean()), float(torch.cat(ssim).mean())
+
+
+def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.PathLike[str],
+          resume: bool = False, progress: bool = True, stop_after_epochs: int | None = None) -> Path:
+    """Train on the dataset's train split (or, with ``hold_out_object``, on the other
+    objects); returns the checkpoint path. ``stop_after_epochs`` ends this run early (the
+    checkpoint can be resumed) without changing the schedule."""
+    config.validate()
+    out_dir = Path(out)
+    dist = _setup_distributed()
+    try:
+        if config.threads:
+            torch.set_num_threads(config.threads)
+        reader = DatasetReader(dataset)
+        in_ch = config.generator.in_channels
+        x_train, y_train = load_pairs(reader, select_records(reader, "train", config.hold_out_object), in_ch)
+        x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), in_ch)
+        x_train, y_train = x_train.to(dist.device), y_train.to(dist.device)
+        x_val, y_val = x_val.to(dist.device), y_val.to(dist.device)
+
+        torch.manual_seed(config.seed)
+        generator = UNetGenerator(config.generator).to(dist.device)
+        discriminator = PatchDiscriminator(config.discriminator).to(dist.device)
+        init_weights(generator)
+        init_weights(discriminator)
+        betas = (config.beta1, config.beta2)
+        opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
+        opt_d = torch.optim.Adam(discriminator.parameters(), lr=config.lr, betas=betas)
+        start_epoch, step = 0, 0
+        checkpoint_path = out_dir / CHECKPOINT
+        if resume and checkpoint_path.exists():
+            state = load_checkpoint(checkpoint_path)
+            if TrainConfig.from_dict(state["train_config"]) != config:
+                raise ModelConfigError(f"{checkpoint_path} was trained with a different config; "
+                                       "resume with the same config or train into a new --out")
+            generator.load_state_dict(state["generator"])
+            discriminator.load_state_dict(state["discriminator"])
+            opt_g.load_state_dict(state["opt_generator"])
+            opt_d.load_state_dict(state["opt_discriminator"])
+            start_epoch, step = int(state["epoch"]), int(state["step"])
+            torch.set_rng_state(state["rng_cpu"])
+        elif dist.rank == 0:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            for log in ("train_log.csv", "val_log.csv"):
+                (out_dir / log).unlink(missing_ok=True)
+
+        if dist.world > 1:
+            device_ids = [dist.device.index] if dist.device.type == "cuda" else None
+            generator = nn.parallel.DistributedDataParallel(generator, device_ids=device_ids)
+            discriminator = nn.parallel.DistributedDataParallel(discriminator, device_ids=device_ids)
+        bce = nn.BCEWithLogitsLoss()
+        total_epochs = config.epochs + config.epochs_decay
+        per_rank = len(x_train) // dist.world
+        if per_rank == 0:
+            raise ModelConfigError(f"{len(x_train)} training samples cannot be shared by {dist.world} ranks")
+        steps_per_epoch = -(-per_rank // config.batch_size)
+        total_steps = total_epochs * steps_per_epoch
+        if config.max_steps:
+            total_steps = min(total_steps, config.max_steps)
+        bar = tqdm(total=total_steps, initial=step, desc="train", disable=not progress or dist.rank != 0)
+        window: list[list[float]] = []
+        last_epoch = total_epochs if stop_after_epochs is None else min(total_epochs, start_epoch + stop_after_epochs)
+        started = time.monotonic()
+
+        for epoch in range(start_epoch, last_epoch):
+            if step >= total_steps:
+                break
+            for opt in (opt_g, opt_d):
+                for group in opt.param_groups:
+                    group["lr"] = config.lr * lr_factor(config, epoch)
+            order = torch.randperm(len(x_train), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
+            mine = order[: per_rank * dist.world][dist.rank::dist.world].to(dist.device)
+            for start in range(0, per_rank, config.batch_size):
+                if step >= total_steps:
+                    break
+                index = mine[start:start + config.batch_size]
+                x, y = x_train[index], y_train[index]
+                fake = generator(x)
+
+                # Discriminator: real pairs -> 1, generated pairs -> 0. One backward per
+                # forward, so that DistributedDataParallel reduces each pass cleanly.
+                discriminator.requires_grad_(True)
+                opt_d.zero_grad(set_to_none=True)
+                pred_real = discriminator(x, y)
+                loss_d_real = bce(pred_real, torch.ones_like(pred_real))
+                (0.5 * loss_d_real).backward()
+                pred_fake = discriminator(x, fake.detach())
+                loss_d_fake = bce(pred_fake, torch.zeros_like(pred_fake))
+                (0.5 * loss_d_fake).backward()
+                opt_d.step()
+
+                # Generator: fool the discriminator (its unwrapped module: no gradient
+                # reduction for D here) and stay close to the target in L1.
+                discriminator.requires_grad_(False)
+                opt_g.zero_grad(set_to_none=True)
+                pred = _unwrap(discriminator)(x, fake)
+                loss_g_gan = bce(pred, torch.ones_like(pred))
+                loss_g_l1 = (fake - y).abs().mean()
+                (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
+                opt_g.step()
+
+                step += 1
+                bar.update(1)
+                window.append([loss.item() for loss in (loss_d_real, loss_d_fake, loss_g_gan, loss_g_l1)])
+                if step % config.log_every == 0 or step == total_steps:
+                    means = np.mean(window, axis=0)
+                    window.clear()
+                    bar.set_postfix(d_real=f"{means[0]:.3f}", d_fake=f"{means[1]:.3f}",
+                                    g_gan=f"{means[2]:.3f}", g_l1=f"{means[3]:.4f}")
+                    if dist.rank == 0:
+                        _append_csv(out_dir / "train_log.csv",
+                                    ["epoch", "step", "lr", "loss_d_real", "loss_d_fake", "loss_g_gan", "loss_g_l1"],
+                                    [epoch, step, opt_g.param_groups[0]["lr"], *[f"{m:.6g}" for m in means]])
+
+            if dist.rank == 0:
+                val_l1, val_ssim = _validate(_unwrap(generator), x_val, y_val)
+                _append_csv(out_dir / "val_log.csv", ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
+                            [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - started:.1f}"])
+                _save_atomic({
+                    "generator": _unwrap(generator).state_dict(),
+                    "discriminator": _unwrap(discriminator).state_dict(),
+                    "opt_generator": opt_g.state_dict(),
+                    "opt_discriminator": opt_d.state_dict(),
+                    "epoch": epoch + 1,
+                    "step": step,
+                    "rng_cpu": torch.get_rng_state(),
+                    "train_config": config.to_dict(),
+                    "depth_range_m": list(reader.info.depth_range_m),
+                    "dataset": str(Path(dataset).resolve()),
+                }, checkpoint_path)
+        bar.close()
+        return checkpoint_path
+    finally:
+        if dist.world > 1:
+            torch.distributed.destroy_process_group()

@@ -1,0 +1,303 @@
+"""The on-disk dataset: atomic writes, resume, failures, checks, splits, export."""
+from __future__ import annotations
+
+import errno
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dataset import format as fmt
+from dataset.check import check_dataset
+from dataset.cli import add_commands
+from dataset.export import export_pix2pix
+from dataset.format import DatasetError, DatasetInfo, DatasetReader, DatasetWriter, subtract_background
+from dataset.splits import leave_one_object_out, split_grasps, split_records
+from dataset.synth import SHAPES, depth_map_from_surface, random_surface, write_synthetic_dataset
+
+INFO = DatasetInfo(image_height=100, image_width=100, depth_range_m=(-0.0015, 0.0025), scene="test",
+                   effects=("none",), code_version="test", split_seed=3)
+
+
+class ShadingRenderer:
+    """Stand-in for the simulated GelSight: colour follows the indentation's slope and depth."""
+
+    def render(self, gel_gap_mm: np.ndarray) -> np.ndarray:
+        depth = np.clip(-np.nan_to_num(gel_gap_mm, posinf=1.0), 0.0, 1.5)
+        grad_z, grad_x = np.gradient(depth)
+        rgb = np.stack([128 + 400 * grad_x, 128 + 400 * grad_z, 90 + 100 * depth], axis=-1)
+        return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+def sample_arrays(seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    image = rng.integers(0, 256, (100, 100, 3), dtype=np.uint8)
+    depth = rng.uniform(-0.001, 0.002, (100, 100)).astype(np.float32)
+    depth[:5] = np.nan
+    return {"tactile_rgb": image, "tactile_diff_rgb": subtract_background(image, np.full_like(image, 100)),
+            "depth_map_m": depth}
+
+
+def write_sample(writer: DatasetWriter, grasp: int, finger: str, obj: str = "mug") -> fmt.SampleRecord:
+    return writer.write(sample_id=f"{obj}-g{grasp:03d}-{finger}", object_name=obj, grasp_id=grasp, finger=finger,
+                        grasp_pose=(0.1, 0.2, 0.05, 0.3), registration_fitness=0.9,
+                        stamps_ns={"tactile": 1, "depth": 2}, **sample_arrays(grasp * 2 + (finger == "right")))
+
+
+def test_round_trip_preserves_arrays_and_manifest(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    record = write_sample(writer, 1, "left")
+    reader = DatasetReader(tmp_path)
+    assert reader.info == INFO and reader.records == [record]
+    sample = reader.load(record.sample_id)
+    expected = sample_arrays(2)
+    np.testing.assert_array_equal(sample.tactile_rgb, expected["tactile_rgb"])
+    np.testing.assert_array_equal(sample.tactile_diff_rgb, expected["tactile_diff_rgb"])
+    np.testing.assert_array_equal(sample.depth_map_m, expected["depth_map_m"])  # NaN == NaN here
+    line = json.loads((tmp_path / "manifest.jsonl").read_text().splitlines()[0])
+    assert line["grasp_pose"] == [0.1, 0.2, 0.05, 0.3] and set(line["sha256"]) == set(fmt.FILE_KINDS)
+    assert cv2.imread(str(tmp_path / record.files["tactile"])).shape == (100, 100, 3)
+
+
+def test_resume_continues_and_refuses_duplicates(tmp_path: Path) -> None:
+    write_sample(DatasetWriter(tmp_path, INFO), 1, "left")
+    writer = DatasetWriter(tmp_path)  # reopened: info comes from dataset.json
+    assert len(writer) == 1 and "mug-g001-left" in writer
+    with pytest.raises(DatasetError, match="duplicate"):
+        write_sample(writer, 1, "left")
+    write_sample(writer, 1, "right")
+    assert [r.sample_id for r in DatasetReader(tmp_path).records] == ["mug-g001-left", "mug-g001-right"]
+    with pytest.raises(DatasetError, match="dataset.json holds"):
+        DatasetWriter(tmp_path, DatasetInfo(depth_range_m=(-0.01, 0.01)))
+
+
+def test_torn_manifest_tail_is_refused_by_reader_and_repaired_by_writer(tmp_path: Path) -> None:
+    write_sample(DatasetWriter(tmp_path, INFO), 1, "left")
+    with open(tmp_path / "manifest.jsonl", "a") as f:
+        f.write('{"sample_id": "mug-g001-ri')
+    with pytest.raises(DatasetError, match="incomplete"):
+        DatasetReader(tmp_path)
+    writer = DatasetWriter(tmp_path)
+    write_sample(writer, 1, "right")
+    assert len(DatasetReader(tmp_path)) == 2
+
+
+def test_corrupt_manifest_line_and_checksum_mismatch_are_reported(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    record = write_sample(writer, 1, "left")
+    write_sample(writer, 1, "right")
+    depth_file = tmp_path / record.files["depth"]
+    data = bytearray(depth_file.read_bytes())
+    data[-1] ^= 0xFF
+    depth_file.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="checksum mismatch"):
+        DatasetReader(tmp_path).load(record.sample_id)
+    report = check_dataset(tmp_path)
+    assert not report.ok and any("checksum" in p for p in report.problems)
+
+    manifest = tmp_path / "manifest.jsonl"
+    lines = manifest.read_text().splitlines()
+    manifest.write_text("not json\n" + lines[1] + "\n")
+    with pytest.raises(DatasetError, match=r"manifest.jsonl:1: corrupt"):
+        DatasetReader(tmp_path)
+
+
+def test_missing_file_fails_the_check(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    record = write_sample(writer, 1, "left")
+    (tmp_path / record.files["tactile"]).unlink()
+    report = check_dataset(tmp_path)
+    assert not report.ok and "cannot read" in report.problems[0]
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"tactile_rgb": np.zeros((100, 100, 3), np.float32)}, "uint8"),
+    ({"tactile_rgb": np.zeros((64, 100, 3), np.uint8)}, "dataset images are"),
+    ({"depth_map_m": np.zeros((100, 100), np.float64)}, "float32"),
+    ({"depth_map_m": np.full((100, 100), -np.inf, np.float32)}, "-inf"),
+    ({"finger": "thumb"}, "finger"),
+    ({"grasp_pose": (0.0, 0.0, np.nan, 0.0)}, "grasp_pose"),
+    ({"registration_fitness": float("nan")}, "registration_fitness"),
+    ({"sample_id": "../escape"}, "sample id"),
+])
+def test_bad_samples_are_refused_with_a_clear_error(tmp_path: Path, change: dict, message: str) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    kwargs = dict(sample_id="s-1", object_name="mug", grasp_id=1, finger="left", grasp_pose=(0, 0, 0, 0),
+                  registration_fitness=1.0, **sample_arrays(0))
+    kwargs.update(change)
+    with pytest.raises(DatasetError, match=message):
+        writer.write(**kwargs)
+    assert len(DatasetReader(tmp_path)) == 0
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores directory permissions")
+def test_read_only_directory_gives_clear_error_and_intact_dataset(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    write_sample(writer, 1, "left")
+    for sub in ("tactile", "tactile_diff", "depth"):
+        (tmp_path / sub).chmod(0o555)
+    try:
+        with pytest.raises(DatasetError, match="could not write sample mug-g001-right"):
+            write_sample(writer, 1, "right")
+    finally:
+        for sub in ("tactile", "tactile_diff", "depth"):
+            (tmp_path / sub).chmod(0o755)
+    assert check_dataset(tmp_path).ok and len(DatasetReader(tmp_path)) == 1
+
+
+def test_permission_denied_is_a_clear_error_even_as_root(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Root ignores chmod, so the refusal of an unwritable directory is simulated here."""
+    writer = DatasetWriter(tmp_path, INFO)
+    write_sample(writer, 1, "left")
+
+    def refuse(path: object, mode: str = "r", *args: object, **kwargs: object) -> object:
+        if any(c in mode for c in "wa+"):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return open(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(fmt, "open", refuse, raising=False)
+    with pytest.raises(DatasetError, match="Permission denied"):
+        write_sample(writer, 1, "right")
+    monkeypatch.undo()
+    assert check_dataset(tmp_path).ok and len(DatasetReader(tmp_path)) == 1
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(DatasetError, match="cannot open dataset"):
+        DatasetWriter(blocker / "ds", INFO)
+
+
+@pytest.mark.parametrize("failing_call", [1, 3, 4])
+def test_full_disk_leaves_dataset_intact_and_resumable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                       failing_call: int) -> None:
+    """ENOSPC at the first file, the third file, or the manifest append (4th fsync of files)."""
+    writer = DatasetWriter(tmp_path, INFO)
+    write_sample(writer, 1, "left")
+    real_fsync, calls = os.fsync, {"n": 0}
+
+    def fsync(fd: int) -> None:
+        if not os.path.isdir(f"/proc/self/fd/{fd}"):
+            calls["n"] += 1
+            if calls["n"] == failing_call:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(DatasetError, match="No space left"):
+        write_sample(writer, 1, "right")
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    assert check_dataset(tmp_path).ok and len(DatasetReader(tmp_path)) == 1
+    assert not list(tmp_path.rglob(".*.tmp"))
+    write_sample(DatasetWriter(tmp_path), 1, "right")
+    assert check_dataset(tmp_path).ok and len(DatasetReader(tmp_path)) == 2
+
+
+def test_missing_dataset_and_bad_info_are_clear(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="does not exist"):
+        DatasetReader(tmp_path / "nope")
+    with pytest.raises(DatasetError, match="DatasetInfo is required"):
+        DatasetWriter(tmp_path / "new")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "dataset.json").write_text(json.dumps({"format": "other"}))
+    with pytest.raises(DatasetError, match="format is 'other'"):
+        DatasetReader(tmp_path / "bad")
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(1, 300), seed=st.integers(0, 2 ** 31), shift=st.integers(0, 50))
+def test_split_is_deterministic_order_free_and_proportional(n: int, seed: int, shift: int) -> None:
+    keys = [f"obj/{i}" for i in range(n)]
+    rotated = keys[shift % n:] + keys[: shift % n]
+    a, b = split_grasps(keys, seed), split_grasps(rotated, seed)
+    assert a == b
+    counts = {name: sum(v == name for v in a.values()) for name in ("train", "val", "test")}
+    assert abs(counts["train"] - 0.7 * n) <= 1.5 and abs(counts["test"] - 0.15 * n) <= 1.5
+    if n >= 3:
+        assert min(counts.values()) >= 1
+
+
+def test_split_keeps_fingers_together_and_loo_holds_out_one_object(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    for grasp in range(10):
+        for finger in ("left", "right"):
+            write_sample(writer, grasp, finger, obj="mug" if grasp < 6 else "can")
+    records = DatasetReader(tmp_path).records
+    splits = split_records(records, seed=3)
+    for name, members in splits.items():
+        for record in members:
+            partner = {"left": "right", "right": "left"}[record.finger]
+            assert record.sample_id.replace(record.finger, partner) in {r.sample_id for r in members}
+    assert split_records(records, seed=3) == splits and split_records(records, seed=4) != splits
+    loo = leave_one_object_out(records, "can", seed=3)
+    assert {r.object_name for r in loo["test"]} == {"can"} and len(loo["test"]) == 8
+    assert {r.object_name for r in loo["train"] + loo["val"]} == {"mug"} and loo["val"]
+    with pytest.raises(DatasetError, match="not in the dataset"):
+        leave_one_object_out(records, "drill", seed=3)
+
+
+def test_check_cli_and_pix2pix_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    root = tmp_path / "ds"
+    writer = DatasetWriter(root, INFO)
+    for grasp in range(6):
+        for finger in ("left", "right"):
+            write_sample(writer, grasp, finger)
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    args = parser.parse_args(["dataset", "check", str(root)])
+    assert args.func(args) == 0 and "12 samples, 6 grasps" in capsys.readouterr().out
+
+    counts = export_pix2pix(root, tmp_path / "ab")
+    assert sum(counts.values()) == 12 and counts["test"] >= 1
+    record = DatasetReader(root).records[0]
+    split = next(name for name in counts if (tmp_path / "ab" / name / f"{record.sample_id}.png").exists())
+    pair = cv2.cvtColor(cv2.imread(str(tmp_path / "ab" / split / f"{record.sample_id}.png")), cv2.COLOR_BGR2RGB)
+    assert pair.shape == (100, 200, 3)
+    np.testing.assert_array_equal(pair[:, 100:], DatasetReader(root).load(record).tactile_rgb)
+    assert np.all(pair[:5, :100] == 255)  # NaN rows = empty bins = far = white
+
+    (root / record.files["depth"]).write_bytes(b"garbage")
+    args = parser.parse_args(["dataset", "check", str(root)])
+    assert args.func(args) == 1
+
+
+def test_synthetic_dataset_is_reproducible_and_resumable(tmp_path: Path) -> None:
+    renderer = ShadingRenderer()
+    write_synthetic_dataset(tmp_path / "a", 10, seed=5, renderer=renderer, pixel_pitch_mm=(0.15, 0.2))
+    write_synthetic_dataset(tmp_path / "b", 4, seed=5, renderer=renderer, pixel_pitch_mm=(0.15, 0.2))
+    write_synthetic_dataset(tmp_path / "b", 10, seed=5, renderer=renderer, pixel_pitch_mm=(0.15, 0.2))
+    a, b = DatasetReader(tmp_path / "a"), DatasetReader(tmp_path / "b")
+    assert [r.sha256 for r in a.records] == [r.sha256 for r in b.records] and len(a) == 10
+    assert check_dataset(tmp_path / "a").ok
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_synthetic_surfaces_press_into_the_gel(shape: str) -> None:
+    surface = random_surface(shape, np.random.default_rng(1))
+    depth = depth_map_from_surface(surface, 100, crop_mm=24.0, y_far_m=0.0025)
+    assert depth.dtype == np.float32 and depth.shape == (100, 100) and depth.max() <= 0.0025
+    lowest = depth.min()
+    assert -0.0011 < lowest < -0.00019  # pressed 0.2-1.0 mm, sampled on a grid
+
+
+def test_check_finds_duplicate_lines_and_inconsistent_grasps(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    write_sample(writer, 1, "left")
+    write_sample(writer, 1, "right")
+    manifest = tmp_path / "manifest.jsonl"
+    lines = manifest.read_text().splitlines()
+    manifest.write_text("\n".join(lines + [lines[0]]) + "\n")
+    report = check_dataset(tmp_path)
+    assert not report.ok and "appears twice" in report.problems[0]
+
+    right = json.loads(lines[1])
+    right["grasp_pose"] = [0.0, 0.0, 0.0, 0.0]
+    right["finger"] = "left"
+    manifest.write_text(lines[0] + "\n" + json.dumps(right) + "\n")
+    problems = check_dataset(tmp_path).problems
+    assert any("more than once" in p for p in problems) and any("grasp pose" in p for p in problems)

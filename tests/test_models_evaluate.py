@@ -1,0 +1,101 @@
+"""Evaluation: SSIM statistics, baseline, template matching, figures and the CLI."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dataset.synth import write_synthetic_dataset
+from models.cli import add_commands
+from models.evaluate import most_deformed_box, parse_density, ssim_statistics, template_match
+from models.networks import GeneratorConfig, ModelConfigError
+from models.train import TrainConfig, train
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_dataset_format import ShadingRenderer  # noqa: E402
+
+
+def blob_images(n: int, seed: int) -> np.ndarray:
+    """n distinct smooth RGB images: a bright Gaussian blob at a random place."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:64, 0:64]
+    images = []
+    for _ in range(n):
+        cy, cx = rng.uniform(12, 52, size=2)
+        blob = np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * rng.uniform(3, 8) ** 2))
+        images.append(np.stack([60 + 180 * blob, 90 + 120 * blob, 120 - 80 * blob], axis=-1))
+    return np.round(images).astype(np.uint8)
+
+
+def test_good_estimates_beat_the_random_baseline_significantly() -> None:
+    truth = blob_images(40, seed=0)
+    noise = np.random.default_rng(1).integers(-6, 7, truth.shape)
+    estimate = np.clip(truth.astype(int) + noise, 0, 255).astype(np.uint8)
+    result = ssim_statistics(truth, estimate, baseline_draws=15, seed=0)
+    assert result["ssim_model_mean"] > result["ssim_baseline_mean"] + 0.05
+    assert result["p_value_wilcoxon"] < 1e-6 and result["p_value_t"] < 1e-6
+    assert result["dissimilarity_ratio"] == pytest.approx(
+        (1 - result["ssim_model_mean"]) / (1 - result["ssim_baseline_mean"]))
+    assert result["ssim_model_se"] > 0 and len(result["ssim_baseline"]) == 40
+
+
+def test_estimates_unrelated_to_their_truth_are_not_better_than_baseline() -> None:
+    truth = blob_images(40, seed=0)
+    shuffled = truth[np.roll(np.arange(40), 7)]
+    result = ssim_statistics(truth, shuffled, seed=0)
+    assert result["dissimilarity_ratio"] > 0.8 and result["p_value_t"] > 1e-3
+
+
+@settings(max_examples=20, deadline=None)
+@given(dy=st.integers(-6, 6), dx=st.integers(-6, 6), seed=st.integers(0, 1000))
+def test_template_is_the_most_deformed_region_and_is_found_where_it_moved(dy: int, dx: int, seed: int) -> None:
+    truth = blob_images(1, seed)
+    background = np.array([60, 90, 120])
+    deformation = np.abs(truth[0].astype(float) - background).sum(axis=2)
+    x, y = most_deformed_box(deformation, 16)
+    peak_y, peak_x = np.unravel_index(np.argmax(deformation), deformation.shape)
+    assert x <= peak_x < x + 16 and y <= peak_y < y + 16
+    moved = np.roll(truth, (dy, dx), axis=(1, 2))
+    match = template_match(truth, deformation[None], moved, size_px=16)[0]
+    inside = 0 <= x + dx <= 64 - 16 and 0 <= y + dy <= 64 - 16
+    if inside:
+        assert match["score"] > 0.99 and match["distance_px"] == pytest.approx(np.hypot(dx, dy))
+
+
+def test_bad_inputs_are_refused() -> None:
+    with pytest.raises(ModelConfigError, match="at least 2"):
+        ssim_statistics(blob_images(1, 0), blob_images(1, 0))
+    with pytest.raises(ModelConfigError, match="does not fit"):
+        most_deformed_box(np.zeros((10, 10)), 32)
+    with pytest.raises(ModelConfigError, match="POINTS_PER_CM3=DATASET_DIR"):
+        parse_density(["ten=/tmp/x"])
+    assert parse_density(["1=a", "80=b"]) == {1.0: "a", 80.0: "b"}
+
+
+def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    dataset = tmp_path / "ds"
+    write_synthetic_dataset(dataset, 32, seed=2, renderer=ShadingRenderer(), pixel_pitch_mm=(0.15, 0.2))
+    config = TrainConfig(epochs=1, epochs_decay=0, batch_size=8, ndf=8, threads=1, max_steps=2,
+                         generator=GeneratorConfig(ngf=8))
+    checkpoint = train(dataset, config, tmp_path / "run", progress=False)
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    args = parser.parse_args(["evaluate", str(checkpoint), str(dataset), "--json", "--figures",
+                              str(tmp_path / "fig"), "--density", f"20={dataset}"])
+    assert args.func(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    for key in ("ssim_model_mean", "ssim_model_se", "ssim_baseline_mean", "ssim_baseline_se", "p_value_wilcoxon",
+                "p_value_t", "dissimilarity_ratio"):
+        assert np.isfinite(result[key])
+    assert set(result["template_match"]) >= {"score_mean", "distance_px_median"}
+    assert result["density"][0]["points_per_cm3"] == 20 and result["density"][0]["paper_ssim_mean"] == 0.8478
+    assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["density.png", "qualitative.png",
+                                                                     "ssim_bars.png"]
+    args = parser.parse_args(["evaluate", str(tmp_path / "missing.pt"), str(dataset)])
+    assert args.func(args) == 1 and "does not exist" in capsys.readouterr().err

@@ -1,0 +1,122 @@
+"""Training: reproducibility, resume, checkpoints, configs, DistributedDataParallel."""
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from dataset.synth import write_synthetic_dataset
+from models.networks import GeneratorConfig, ModelConfigError
+from models.train import TrainConfig, load_checkpoint, load_generator, lr_factor, train
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_dataset_format import ShadingRenderer  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = TrainConfig(epochs=1, epochs_decay=1, batch_size=8, ndf=8, threads=1, log_every=1,
+                   generator=GeneratorConfig(ngf=8))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("train") / "ds"
+    write_synthetic_dataset(root, 32, seed=1, renderer=ShadingRenderer(), pixel_pitch_mm=(0.15, 0.2))
+    return root
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return load_checkpoint(path)["generator"]
+
+
+def test_same_seed_same_weights_and_a_different_seed_differs(dataset: Path, tmp_path: Path) -> None:
+    a = _weights(train(dataset, TINY, tmp_path / "a", progress=False))
+    b = _weights(train(dataset, TINY, tmp_path / "b", progress=False))
+    c = _weights(train(dataset, TrainConfig(**{**TINY.__dict__, "seed": 1}), tmp_path / "c", progress=False))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_resume_continues_exactly_where_it_stopped(dataset: Path, tmp_path: Path) -> None:
+    whole = _weights(train(dataset, TINY, tmp_path / "whole", progress=False))
+    train(dataset, TINY, tmp_path / "split", progress=False, stop_after_epochs=1)
+    assert load_checkpoint(tmp_path / "split" / "checkpoint.pt")["epoch"] == 1
+    resumed = _weights(train(dataset, TINY, tmp_path / "split", resume=True, progress=False))
+    assert all(torch.equal(whole[k], resumed[k]) for k in whole)
+    with open(tmp_path / "split" / "val_log.csv") as f:
+        assert [row["epoch"] for row in csv.DictReader(f)] == ["0", "1"]
+    with pytest.raises(ModelConfigError, match="different config"):
+        train(dataset, TrainConfig(**{**TINY.__dict__, "lr": 1e-3}), tmp_path / "split", resume=True, progress=False)
+
+
+def test_checkpoint_loads_with_weights_only_and_gives_an_eval_generator(dataset: Path, tmp_path: Path) -> None:
+    config = TrainConfig(**{**TINY.__dict__, "max_steps": 2})
+    path = train(dataset, config, tmp_path, progress=False)
+    state = torch.load(path, weights_only=True)
+    assert state["step"] == 2 and state["train_config"]["generator"]["ngf"] == 8
+    generator, depth_range = load_generator(path)
+    assert not generator.training and depth_range == (-0.0015, 0.0025)
+    with open(tmp_path / "train_log.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["step"] for r in rows] == ["1", "2"] and all(float(r["loss_g_l1"]) > 0 for r in rows)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ModelConfigError, match="not a readable"):
+        load_generator(tmp_path / "bad.pt")
+
+
+def test_learning_rate_is_constant_then_decays_linearly() -> None:
+    config = TrainConfig(epochs=2, epochs_decay=3)
+    assert [lr_factor(config, e) for e in range(5)] == pytest.approx([1, 1, 0.75, 0.5, 0.25])
+
+
+def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
+    for name in ("paper", "quick"):
+        assert TrainConfig.load(REPO / "configs" / f"{name}.yaml").lambda_l1 == 100.0
+    paper = TrainConfig.load(REPO / "configs" / "paper.yaml")
+    assert (paper.lr, paper.beta1, paper.beta2) == (2e-4, 0.5, 0.999)
+    bad = tmp_path / "bad.yaml"
+    for text, message in [("lr: -1\n", "lr > 0"), ("epochs: 0\nepochs_decay: 0\n", "positive sum"),
+                          ("learning_rate: 1\n", "unknown training config"), ("generator: {ngf: 0}\n", "ngf"),
+                          ("[1, 2]\n", "mapping"), ("a: [\n", "not valid YAML")]:
+        bad.write_text(text)
+        with pytest.raises(ModelConfigError, match=message):
+            TrainConfig.load(bad)
+    with pytest.raises(ModelConfigError, match="cannot read"):
+        TrainConfig.load(tmp_path / "missing.yaml")
+
+
+def test_runs_under_torchrun_with_two_gloo_processes(dataset: Path, tmp_path: Path) -> None:
+    script = tmp_path / "ddp_train.py"
+    script.write_text(textwrap.dedent(f"""
+        import torch
+        from models.networks import GeneratorConfig
+        from models.train import TrainConfig, train
+        config = TrainConfig(epochs=1, epochs_decay=0, batch_size=4, ndf=8, threads=1, max_steps=2,
+                             generator=GeneratorConfig(ngf=8))
+        train({str(dataset)!r}, config, {str(tmp_path / 'out')!r}, progress=False)
+    """))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+                           str(script)], env=env, capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stderr[-3000:]
+    state = load_checkpoint(tmp_path / "out" / "checkpoint.pt")
+    assert state["step"] == 2 and state["epoch"] == 1
+
+
+def test_leave_one_object_out_trains_without_the_held_out_object(dataset: Path, tmp_path: Path) -> None:
+    from dataset.format import DatasetReader
+    from models.data import select_records
+
+    reader = DatasetReader(dataset)
+    held_out = reader.records[0].object_name
+    assert {r.object_name for r in select_records(reader, "test", held_out)} == {held_out}
+    assert held_out not in {r.object_name for r in select_records(reader, "train", held_out)}
+    config = TrainConfig(**{**TINY.__dict__, "max_steps": 1, "hold_out_object": held_out})
+    assert load_checkpoint(train(dataset, config, tmp_path, progress=False))["train_config"]["hold_out_object"] == held_out
+    with pytest.raises(ModelConfigError, match="unknown split"):
+        select_records(reader, "holdout")
