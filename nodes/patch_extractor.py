@@ -15,6 +15,7 @@ geometry — for the lab, a scene file describing the real table), ``cameras`` (
 from __future__ import annotations
 
 import dataclasses
+import time
 from concurrent.futures import Future
 from typing import Any
 
@@ -73,13 +74,19 @@ class PatchExtractorNode(Node):
         objects = {o.name: o for o in self.scene.objects if o.mesh}
         if request.object_name not in objects:
             raise ValueError(f"object {request.object_name!r} unknown; this scene has {sorted(objects)}")
-        missing = [t for t in self.params.cameras if t not in self.latest]
-        if missing:
-            raise RuntimeError(f"no depth frame yet from {missing}")
-        frames = [self.latest[t] for t in self.params.cameras]
-        return self.background.submit(self._register, objects[request.object_name], frames, request.seed)
+        return self.background.submit(self._register, objects[request.object_name], request.seed)
 
-    def _register(self, spec: Any, frames: list[msgs.DepthImage], seed: int) -> msgs.RegisterReply:
+    def latest_frames(self, timeout_s: float = 30.0) -> list[msgs.DepthImage]:
+        """The newest frame of every camera, waiting for cameras that are still starting."""
+        deadline = time.monotonic() + timeout_s
+        while missing := [t for t in self.params.cameras if t not in self.latest]:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no depth frame from {missing} in {timeout_s} s")
+            time.sleep(0.05)
+        return [self.latest[t] for t in self.params.cameras]
+
+    def _register(self, spec: Any, seed: int) -> msgs.RegisterReply:
+        frames = self.latest_frames()
         if spec.name not in self.models:
             dense = sample_model_cloud(spec.mesh, self.params.depth_map_point_spacing_m, seed=self.params.seed)
             self.models[spec.name] = (dense, prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)))
