@@ -18,7 +18,7 @@ import yaml
 from dtx import demo
 
 # Packages that add their own command groups (each has cli.add_commands(subparsers)).
-COMMAND_PACKAGES: list[str] = ["drivers", "sim", "perception", "models", "dataset"]
+COMMAND_PACKAGES: list[str] = ["drivers", "sim", "perception", "models", "dataset", "report"]
 
 
 def _summarise(value: Any, full: bool) -> Any:

@@ -1,0 +1,1 @@
+"""``dtx report``: reports assembled from measurements across the pipeline."""

@@ -1,0 +1,140 @@
+"""report.md, one PNG per sweep (accuracy against time, Pareto front drawn) and points.json."""
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from report.pareto import pareto_front, recommend
+from report.specs import SPECS, Spec
+
+PARETO_MARK = "◆"
+DEFAULT_MARK = "**default**"
+
+
+def annotate(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Copies of the points with ``pareto`` and ``recommended`` set, sweep by sweep."""
+    out = []
+    for sweep, spec in SPECS.items():
+        mine = [dict(p) for p in points if p["sweep"] == sweep]
+        if not mine:
+            continue
+        pairs = [(p["time"], spec.score(p["accuracy"])) for p in mine]
+        chosen = recommend(pairs, spec.tolerance)
+        if spec.realism and _spread(spec, mine) > spec.tolerance:
+            chosen = next((i for i, p in enumerate(mine) if p["setting"] == "all"), chosen)
+        for index, (point, on_front) in enumerate(zip(mine, pareto_front(pairs))):
+            point.update(pareto=on_front, recommended=index == chosen)
+        out += mine
+    return out
+
+
+def _spread(spec: Spec, points: Sequence[dict[str, Any]]) -> float:
+    """Best minus worst score: how much the setting changes the accuracy."""
+    scores = [spec.score(p["accuracy"]) for p in points if not math.isnan(p["accuracy"])]
+    return max(scores) - min(scores) if scores else 0.0
+
+
+def dumps(points: Sequence[dict[str, Any]]) -> str:
+    """Strict JSON: a failed measurement (NaN) is written as null."""
+    clean = [{k: None if isinstance(v, float) and math.isnan(v) else v for k, v in p.items()} for p in points]
+    return json.dumps(clean, indent=1, allow_nan=False) + "\n"
+
+
+def loads(text: str) -> list[dict[str, Any]]:
+    """Points written by :func:`dumps`, a null accuracy back to NaN."""
+    return [{**p, "accuracy": math.nan if p["accuracy"] is None else p["accuracy"]} for p in json.loads(text)]
+
+
+def _format(value: Any) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def reason(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
+    """Why the recommended point: its figures next to the most accurate and fastest points."""
+    chosen = next((p for p in points if p["recommended"]), None)
+    if chosen is None:
+        return "no setting gave a valid measurement."
+    valid = [p for p in points if not math.isnan(p["accuracy"])]
+    best = max(valid, key=lambda p: spec.score(p["accuracy"]))
+    if spec.realism and _spread(spec, points) > spec.tolerance:
+        worst = min(valid, key=lambda p: spec.score(p["accuracy"]))
+        plain = min(valid, key=lambda p: p["time"])
+        return (f"**{chosen['setting']}** — with {worst['setting']} the {spec.accuracy} is "
+                f"{_format(worst['accuracy'])} "
+                f"against {_format(best['accuracy'])} with {best['setting']}: figures measured without the effects "
+                f"would not hold on real data, and simulating them costs {_format(chosen['time'])} instead of "
+                f"{_format(plain['time'])} {spec.time}.")
+    text = (f"**{chosen['setting']}** — {spec.accuracy} {_format(chosen['accuracy'])} at "
+            f"{_format(chosen['time'])} {spec.time}: the fastest Pareto setting within {spec.tolerance:g} of the "
+            f"best {spec.accuracy} ({_format(best['accuracy'])}, {best['setting']})")
+    if best is not chosen and chosen["time"] > 0:
+        text += f", which takes {best['time'] / chosen['time']:.2g}x as long"
+    return text + "."
+
+
+def table(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
+    header = [spec.setting, spec.accuracy, spec.time, *(title for _, title in spec.extras), "Pareto", "default"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for p in points:
+        cells = [p["setting"], _format(p["accuracy"]), _format(p["time"]),
+                 *(_format(p.get(key)) for key, _ in spec.extras),
+                 PARETO_MARK if p["pareto"] else "", DEFAULT_MARK if p["recommended"] else ""]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(spec: Spec, points: Sequence[dict[str, Any]], path: Path) -> None:
+    import matplotlib  # noqa: PLC0415 (only writing a report needs it)
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt  # noqa: PLC0415
+
+    valid = [p for p in points if not math.isnan(p["accuracy"])]
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    ax.scatter([p["time"] for p in valid], [p["accuracy"] for p in valid], color="grey", label="setting")
+    front = sorted((p for p in valid if p["pareto"]), key=lambda p: p["time"])
+    ax.plot([p["time"] for p in front], [p["accuracy"] for p in front], "o-", color="tab:blue", label="Pareto front")
+    for p in valid:
+        ax.annotate(p["setting"], (p["time"], p["accuracy"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        if p["recommended"]:
+            ax.scatter([p["time"]], [p["accuracy"]], s=160, facecolors="none", edgecolors="tab:red",
+                       label="recommended")
+    times = [p["time"] for p in valid if p["time"] > 0]
+    if times and max(times) / min(times) > 20:
+        ax.set_xscale("log")
+    ax.set_xlabel(spec.time)
+    ax.set_ylabel(spec.accuracy + ("" if spec.higher_is_better else " (lower is better)"))
+    ax.set_title(spec.title, fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_report(out: Path, points: Sequence[dict[str, Any]], header: Sequence[str]) -> Path:
+    """Write report.md, <sweep>.png and points.json under ``out``; ``header`` lines (mode,
+    duration, what was reduced) open the report. Returns the report's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    marked = annotate(points)
+    lines = ["# What accuracy costs in time", "", *header, "",
+             f"In every table {PARETO_MARK} marks a Pareto-optimal setting (no other setting is both at least as "
+             f"fast and at least as accurate, and better in one) and {DEFAULT_MARK} the recommended one. "
+             "Every measured point is in points.json.", ""]
+    for sweep, spec in SPECS.items():
+        mine = [p for p in marked if p["sweep"] == sweep]
+        if not mine:
+            continue
+        plot(spec, mine, out / f"{sweep}.png")
+        lines += [f"## {spec.title}", "", spec.question, "", table(spec, mine), "",
+                  "Recommended: " + reason(spec, mine), "", f"![{spec.title}]({sweep}.png)", ""]
+    (out / "points.json").write_text(dumps(marked))
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path

@@ -1,0 +1,76 @@
+"""``dtx report accuracy-time``: argument errors (nothing is measured here)."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from report.cli import add_commands
+from report.plan import FULL, QUICK, SWEEP_NAMES
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dtx")
+    add_commands(parser.add_subparsers(dest="command"))
+    return parser
+
+
+def _error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    with pytest.raises(SystemExit) as exit_info:
+        _parser().parse_args(argv)
+    assert exit_info.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_out_is_required(capsys: pytest.CaptureFixture[str]) -> None:
+    assert "--out" in _error(["report", "accuracy-time", "--quick"], capsys)
+
+
+def test_out_must_not_be_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    afile = tmp_path / "report.md"
+    afile.write_text("")
+    assert "not a directory" in _error(["report", "accuracy-time", "--out", str(afile)], capsys)
+
+
+def test_unknown_sweep_and_option(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert "invalid choice" in _error(["report", "accuracy-time", "--out", str(tmp_path), "--only", "nope"], capsys)
+    assert "unrecognized" in _error(["report", "accuracy-time", "--out", str(tmp_path), "--fast"], capsys)
+    assert "invalid choice" in _error(["report", "accuracy-tim", "--out", str(tmp_path)], capsys)
+
+
+def test_reuse_without_cache_fails_before_measuring(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = _parser().parse_args(["report", "accuracy-time", "--out", str(tmp_path / "new"), "--reuse", "--quick"])
+    assert args.func(args) == 2
+    assert "nothing cached" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+
+
+def test_quick_plan_states_its_reductions() -> None:
+    reductions = QUICK.reductions(FULL)
+    assert any(r.startswith("samples: 120 (full: 578)") for r in reductions)
+    assert FULL.reductions(FULL) == []
+    assert len(set(SWEEP_NAMES)) == len(SWEEP_NAMES) == 9
+
+
+def test_every_named_sweep_exists() -> None:
+    from report.sweeps import SWEEPS
+
+    assert tuple(SWEEPS) == SWEEP_NAMES
+
+
+def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
+    (tmp_path / "cache").mkdir()
+    points = [{"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.8},
+              {"sweep": "density", "setting": "80 pts/cm³", "time": 0.3, "accuracy": None}]
+    entry = {"plan": dataclasses.asdict(QUICK), "seconds": 5.0, "measured_at": "then", "points": points}
+    (tmp_path / "cache" / "density.json").write_text(json.dumps(entry))
+    args = _parser().parse_args(["report", "accuracy-time", "--out", str(tmp_path), "--quick", "--reuse",
+                                 "--only", "density"])
+    assert args.func(args) == 0
+    report = (tmp_path / "report.md").read_text()
+    assert "density reused (5 s on then)" in report
+    assert "| 1 pts/cm³ | 0.8 | 0.2 |" in report and "**default**" in report
+    assert not (tmp_path / "work").exists()  # nothing was measured

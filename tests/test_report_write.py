@@ -1,0 +1,67 @@
+"""report.write on a small fixed set of points: tables carry the Pareto and default marks,
+plots and points.json are written, effects sweeps recommend realism when it matters."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from report.write import DEFAULT_MARK, PARETO_MARK, annotate, dumps, loads, write_report
+
+POINTS = [
+    {"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.70, "points_median": 7},
+    {"sweep": "density", "setting": "40 pts/cm³", "time": 0.3, "accuracy": 0.835, "points_median": 70},
+    {"sweep": "density", "setting": "80 pts/cm³", "time": 0.5, "accuracy": 0.84, "points_median": 97},
+    {"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.83, "points_median": 38000},
+    {"sweep": "registration_voxel", "setting": "4 mm", "time": 430.0, "accuracy": 2.0},
+    {"sweep": "registration_voxel", "setting": "8 mm", "time": 170.0, "accuracy": 4.0},
+    {"sweep": "registration_voxel", "setting": "10 mm", "time": 150.0, "accuracy": math.nan},
+    {"sweep": "gelsight_effects", "setting": "none", "time": 1.4, "accuracy": 0.75},
+    {"sweep": "gelsight_effects", "setting": "markers", "time": 1.8, "accuracy": 0.15},
+    {"sweep": "gelsight_effects", "setting": "all", "time": 2.3, "accuracy": 0.14},
+]
+
+
+def _rows(report: str, title: str) -> dict[str, str]:
+    section = report.split(f"## {title}")[1].split("\n## ")[0]
+    return {line.split(" | ")[0].lstrip("| "): line for line in section.splitlines()
+            if line.startswith("| ") and not line.startswith("| density |")}
+
+
+def test_marks_front_and_default() -> None:
+    marked = {(p["sweep"], p["setting"]): p for p in annotate(POINTS)}
+    assert [marked["density", s]["pareto"] for s in ("1 pts/cm³", "40 pts/cm³", "80 pts/cm³", "unfiltered")] == \
+        [True, True, True, False]
+    # 40 is within 0.01 SSIM of the best (80) and faster: the default.
+    assert marked["density", "40 pts/cm³"]["recommended"]
+    # Lower ADD-S is better; a failed measurement is on no front.
+    assert marked["registration_voxel", "4 mm"]["pareto"] and marked["registration_voxel", "8 mm"]["pareto"]
+    assert not marked["registration_voxel", "10 mm"]["pareto"]
+    assert marked["registration_voxel", "4 mm"]["recommended"]
+    # Leaving markers out loses 0.6 SSIM: the effects are recommended although slower.
+    assert marked["gelsight_effects", "all"]["recommended"]
+
+
+def test_report_tables_plots_and_points(tmp_path: Path) -> None:
+    path = write_report(tmp_path, POINTS, ["Mode: test"])
+    report = path.read_text()
+    assert "Mode: test" in report
+    density = _rows(report, "Point-cloud density")
+    assert PARETO_MARK in density["40 pts/cm³"] and DEFAULT_MARK in density["40 pts/cm³"]
+    assert PARETO_MARK not in density["unfiltered"] and DEFAULT_MARK not in density["unfiltered"]
+    assert DEFAULT_MARK not in density["80 pts/cm³"] and PARETO_MARK in density["80 pts/cm³"]
+    assert "Recommended: **40 pts/cm³**" in report
+    assert "Recommended: **all**" in report
+    assert "| 10 mm | – |" in report
+    for sweep in ("density", "registration_voxel", "gelsight_effects"):
+        assert (tmp_path / f"{sweep}.png").read_bytes()[:4] == b"\x89PNG"
+    saved = json.loads((tmp_path / "points.json").read_text())
+    assert len(saved) == len(POINTS)
+    assert {p["setting"] for p in saved if p["recommended"]} == {"40 pts/cm³", "4 mm", "all"}
+    assert next(p for p in saved if p["setting"] == "10 mm")["accuracy"] is None
+
+
+def test_points_round_trip_with_failed_measurements() -> None:
+    again = loads(dumps(POINTS))
+    assert math.isnan(again[6]["accuracy"])
+    assert again[:6] == POINTS[:6]
