@@ -3,6 +3,7 @@ session leaves an MCAP bag of every topic beside its dataset."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 from dtx.bag import record
@@ -22,9 +23,20 @@ class RecorderNode(Node):
         self.bus.transport.high_water_mark = 100_000  # a recorder queues rather than drops
 
     def spin(self, until: Any = None) -> None:
-        counts = record(self.params.bag, self.bus, lambda: self.shutting_down, topics=self.params.topics or None,
+        bag = free_bag_path(Path(self.params.bag))
+        counts = record(bag, self.bus, lambda: self.shutting_down, topics=self.params.topics or None,
                         compression=self.params.compression, foxglove=self.params.foxglove)
-        self.log.info("bag %s closed: %d messages on %d topics", self.params.bag, sum(counts.values()), len(counts))
+        self.log.info("bag %s closed: %d messages on %d topics", bag, sum(counts.values()), len(counts))
+
+
+def free_bag_path(path: Path) -> Path:
+    """``path``, or ``name.1.mcap``, ``name.2.mcap``... when it exists: a respawned recorder
+    must not overwrite the bag its previous life wrote."""
+    candidate, number = path, 0
+    while candidate.exists():
+        number += 1
+        candidate = path.with_name(f"{path.stem}.{number}{path.suffix}")
+    return candidate
 
 
 if __name__ == "__main__":

@@ -81,3 +81,15 @@ def test_a_launch_entry_can_be_switched_off(tmp_path: Path) -> None:
                     "  - node: {name: b, module: nodes.foxglove_bridge, if: $(var viewer)}\n")
     assert [n.name for n in load_launch(path).nodes] == ["a"]
     assert [n.name for n in load_launch(path, {"viewer": "true"}).nodes] == ["a", "b"]
+
+
+def test_a_respawned_recorder_never_overwrites_a_bag(tmp_path: Path) -> None:
+    from nodes.recorder import free_bag_path
+    first = tmp_path / "session.mcap"
+    assert free_bag_path(first) == first
+    first.write_bytes(b"bag of the first life")
+    second = free_bag_path(first)
+    assert second.name == "session.1.mcap"
+    second.write_bytes(b"bag of the second life")
+    assert free_bag_path(first).name == "session.2.mcap"
+    assert first.read_bytes() == b"bag of the first life"
