@@ -30,7 +30,7 @@ class BagPlayerNode(Node):
     def spin(self, until: Any = None) -> None:
         counts = play(self.params.bag, self.bus, rate=self.params.rate or None, clock=self.params.clock,
                       topics=self.params.topics or None, wait_for_subscribers_s=self.params.wait_for_subscribers_s,
-                      stop=lambda: self.shutting_down)
+                      stop=self.keep_alive)
         self.done.publish(msgs.Log(node=self.name, text=json.dumps(counts)))
         self.log.info("played %s: %s", self.params.bag, counts)
         super().spin()  # stay up so late joiners get /bag/done, until the launch ends

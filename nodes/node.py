@@ -193,6 +193,12 @@ class Node:
         while not self._shutdown and not (until is not None and until()):
             self.spin_once()
 
+    def keep_alive(self) -> bool:
+        """For nodes whose work is one long loop (recording, playing a bag): run what is due
+        (heartbeat, services) without waiting, and say whether to stop."""
+        self.spin_once(0.0)
+        return self._shutdown
+
     def request_shutdown(self) -> None:
         self._shutdown = True
 

@@ -24,7 +24,7 @@ class RecorderNode(Node):
 
     def spin(self, until: Any = None) -> None:
         bag = free_bag_path(Path(self.params.bag))
-        counts = record(bag, self.bus, lambda: self.shutting_down, topics=self.params.topics or None,
+        counts = record(bag, self.bus, self.keep_alive, topics=self.params.topics or None,
                         compression=self.params.compression, foxglove=self.params.foxglove)
         self.log.info("bag %s closed: %d messages on %d topics", bag, sum(counts.values()), len(counts))
 
