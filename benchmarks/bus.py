@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
-import os
 import tempfile
 import time
 from typing import Any
@@ -43,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency-messages", type=int, default=300)
     parser.add_argument("--throughput-mb", type=float, default=400.0, help="MB sent per throughput run")
     parser.add_argument("--transports", nargs="+", default=["ipc", "tcp"], choices=["ipc", "tcp"])
+    parser.add_argument("--repeats", type=int, default=3, help="runs per row; figures are their medians")
 
 
 def _receiver(impl: str, transport: str, address: str, bus_dir: str, expected: int, out: Any) -> None:
@@ -140,11 +140,21 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
 
 
 def run(args: argparse.Namespace) -> list[dict]:
+    """Each (transport, payload) pair is measured ``--repeats`` times, raw and dtx taking turns,
+    and each figure is the median over the repeats: on a shared machine one run's scheduling
+    noise can exceed the difference being measured."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="dtxb") as bus_dir:
         for transport in args.transports:
             for payload_bytes in PAYLOADS:
-                for impl in ("raw_pyzmq", "dtx"):
-                    rows.append(_run_row(impl, transport, payload_bytes, args, bus_dir))
-    os.environ.pop("DTX_BUS_DIR", None)
+                trials: dict[str, list[dict]] = {"raw_pyzmq": [], "dtx": []}
+                for _ in range(args.repeats):
+                    for impl in trials:
+                        trials[impl].append(_run_row(impl, transport, payload_bytes, args, bus_dir))
+                for impl, runs in trials.items():
+                    row = dict(runs[0])
+                    for key in ("p50_us", "p99_us", "mb_per_s"):
+                        row[key] = round(float(np.median([r[key] for r in runs])), 1)
+                    row["repeats"] = len(runs)
+                    rows.append(row)
     return rows
