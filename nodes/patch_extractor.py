@@ -51,6 +51,7 @@ class PatchExtractorNode(Node):
         # Registration works on a 2 mm cloud; a depth-map needs a far denser one (0.2 mm fills
         # a 100 x 100 map of a ~25 mm gel).
         depth_map_point_spacing_m: float = 0.0002
+        fill_gaps_min_neighbours: int = 5  # random sampling leaves ~10 % of 0.3 mm bins empty
         seed: int = 0
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
@@ -59,7 +60,8 @@ class PatchExtractorNode(Node):
         self.geometry = self.scene.gripper_geometry()
         self.depth_map_params = DepthMapParams(shape=(self.params.depth_map_rows, self.params.depth_map_cols),
                                                margin_m=self.params.margin_m,
-                                               y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]))
+                                               y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]),
+                                               fill_gaps_min_neighbours=self.params.fill_gaps_min_neighbours)
         self.latest: dict[str, msgs.DepthImage] = {}
         for topic in self.params.cameras:
             self.create_subscription(topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image}))

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy import ndimage
 
 from perception.errors import DepthMapError
 from perception.kinematics import GripperGeometry
@@ -44,6 +45,9 @@ class DepthMapParams:
     margin_m: float = 0.002                        # added to each side of the gel in x and z
     # Default y range: one elastomer thickness in front of the gel to full indentation behind it.
     y_range_m: tuple[float, float] | None = None   # (y_near, y_far); None: (-t, +t), t = elastomer
+    # An empty bin with at least this many occupied neighbours (of 8) is a gap in a sampled
+    # surface, not free space: it takes the nearest surface of its neighbours. 0: leave gaps.
+    fill_gaps_min_neighbours: int = 0
 
 
 @dataclasses.dataclass
@@ -149,7 +153,20 @@ def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, ge
                             "the gel does not reach the object")
     min_y, occupied = min_y_per_bin(x[inside], z[inside], y[inside], half_x, half_z, params.shape)
     depth_map_m = np.where(occupied, min_y, y_far).astype(np.float32)
+    if params.fill_gaps_min_neighbours > 0:
+        depth_map_m = fill_sampling_gaps(depth_map_m, occupied, params.fill_gaps_min_neighbours)
     return ContactPatch(depth_map_m=depth_map_m,
                         normalised=normalise_depth_map(depth_map_m, (y_near, y_far)),
                         occupied=occupied, crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
                         y_range_m=(y_near, y_far), point_count=count)
+
+
+def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighbours: int) -> np.ndarray:
+    """Empty bins inside a sampled surface (at least ``min_neighbours`` of their 8 neighbours
+    occupied) take the nearest (minimum y) of their occupied neighbours; others are unchanged."""
+    if not 1 <= min_neighbours <= 8:
+        raise DepthMapError(f"min_neighbours must be in 1..8, got {min_neighbours}")
+    neighbours = ndimage.convolve(occupied.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant") - occupied
+    nearest = ndimage.minimum_filter(np.where(occupied, depth_map_m, np.inf), size=3, mode="constant", cval=np.inf)
+    gaps = ~occupied & (neighbours >= min_neighbours)
+    return np.where(gaps, nearest, depth_map_m).astype(np.float32)

@@ -233,3 +233,19 @@ def test_property_min_y_per_bin_equals_sorting_reference(n, rows, cols, seed):
     reference[flat[order][first]] = y[order][first]
     np.testing.assert_array_equal(min_y.ravel(), reference)
     np.testing.assert_array_equal(occupied.ravel(), np.isfinite(reference))
+
+
+def test_sampling_gaps_inside_a_surface_are_filled_and_free_space_is_not() -> None:
+    from perception.depthmap import fill_sampling_gaps
+    depth = np.full((6, 6), 0.002, np.float32)
+    occupied = np.zeros((6, 6), bool)
+    occupied[:, :3] = True
+    depth[:, :3] = -0.001
+    occupied[2, 1] = False  # a gap inside the sampled surface
+    depth[2, 1] = 0.002
+    depth[1, 0] = -0.0015  # its nearest neighbour
+    filled = fill_sampling_gaps(depth, occupied, 5)
+    assert filled[2, 1] == pytest.approx(-0.0015)
+    np.testing.assert_array_equal(filled[:, 4:], depth[:, 4:])  # free space keeps y_far
+    with pytest.raises(DepthMapError, match="1..8"):
+        fill_sampling_gaps(depth, occupied, 0)
