@@ -18,6 +18,7 @@ import dataclasses
 import logging
 import os
 import time
+import weakref
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Generic, TypeVar
@@ -37,6 +38,9 @@ M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
 
 DISCOVERY_PERIOD_S = 0.2
+# Every Bus not yet closed: a context left to the garbage collector can block it forever in
+# zmq_term, so whoever owns a process's lifetime (a test run) closes what is left here.
+OPEN_BUSES: "weakref.WeakSet[Bus]" = weakref.WeakSet()
 FORGET_AFTER_S = 10.0
 
 
@@ -95,6 +99,8 @@ class Bus:
         self.remaps = dict(remaps or {})
         self.context = zmq.Context()
         self._owner_count = 0
+        self.closed = False
+        OPEN_BUSES.add(self)
 
     def resolve(self, name: str) -> str:
         return self.remaps.get(name, name)
@@ -156,6 +162,10 @@ class Bus:
                              self.peer_endpoints("service", name, request_type.SCHEMA))
 
     def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        OPEN_BUSES.discard(self)
         stop_authenticator(self.context)
         self.context.destroy(linger=200)
 

@@ -8,7 +8,17 @@ from pathlib import Path
 
 import pytest
 
+from nodes.bus import OPEN_BUSES
 from nodes.registry import Registry
+
+
+@pytest.fixture(autouse=True)
+def close_leftover_buses() -> Iterator[None]:
+    """A test that fails half-way leaves its buses open; close them now rather than let the
+    garbage collector meet a ZeroMQ context in the middle of a later test."""
+    yield
+    for bus in list(OPEN_BUSES):
+        bus.close()
 
 
 @pytest.fixture

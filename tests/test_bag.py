@@ -98,13 +98,17 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     recorder_bus = Bus("recorder", registry)
     stop = threading.Event()
     counts: dict[str, int] = {}
-    thread = threading.Thread(target=lambda: counts.update(record(path, recorder_bus, stop.is_set)))
+    seen: list[str] = []
+    thread = threading.Thread(target=lambda: counts.update(record(path, recorder_bus, stop.is_set,
+                                                                  on_message=seen.append)))
     thread.start()
     assert publisher.wait_for_subscribers(1, 10.0)
     for i in range(50):
         publisher.publish(msgs.GripperState(width_m=i / 1000))
         time.sleep(0.002)
-    time.sleep(0.5)
+    deadline = time.monotonic() + 10.0
+    while len(seen) < 50 and time.monotonic() < deadline:  # the recorder may lag on a busy machine
+        time.sleep(0.05)
     stop.set()
     thread.join()
     assert counts["/gripper/state"] == 50
