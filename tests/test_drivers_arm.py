@@ -59,7 +59,10 @@ def fake() -> Iterator[FakeURController]:
 
 @pytest.fixture
 def arm(fake: FakeURController) -> Iterator[URArm]:
-    backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host, "workspace": WORKSPACE})
+    # The simulated controller shares two busy cores with the test run and can pause for a
+    # moment; only a longer silence than a real cell would tolerate counts as a lost link here.
+    backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host, "workspace": WORKSPACE,
+                            "stale_state_s": 3.0})
     backend.connect()
     try:
         yield backend
