@@ -221,7 +221,6 @@ def _die_with_parent() -> None:
 class _Running:
     spec: NodeSpec
     process: subprocess.Popen[bytes]
-    started: float
     respawns: int = 0
 
 
@@ -247,7 +246,7 @@ class Launcher:
         process = subprocess.Popen(
             spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)})
-        self.running[spec.name] = _Running(spec, process, time.monotonic(), respawns)
+        self.running[spec.name] = _Running(spec, process, respawns)
         threading.Thread(target=self._relay, args=(spec.name, process), daemon=True).start()
         self.say(f"[launch] started {spec.name} (pid {process.pid})")
 
@@ -255,9 +254,6 @@ class Launcher:
         assert process.stdout is not None
         for raw in process.stdout:
             self.say(f"[{name}] {raw.decode(errors='replace').rstrip()}")
-
-    def request_stop(self) -> None:
-        self._stop.set()
 
     def run(self) -> int:
         """Run until Ctrl-C, a required node ends, or every node has ended. Exit status."""

@@ -110,7 +110,6 @@ class CollectorNode(Node):
         self.stage_s: dict[str, list[float]] = {}
         self.registered: dict[str, msgs.RegisterReply] = {}
         self.last_arm: msgs.ArmState | None = None
-        self.started = time.monotonic()
 
     # -- the session ---------------------------------------------------------------------
     def grasp_plan(self) -> list[tuple[int, str]]:
