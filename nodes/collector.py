@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 import msgs
+from dataset.announced import write_sample
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, subtract_background
 from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
@@ -336,22 +337,6 @@ class CollectorNode(Node):
                 self.arm_to(above)
         except ServiceCallError as error:
             self.log.warning("release or retreat failed: %s", error)
-
-
-def write_sample(writer: DatasetWriter, sample: msgs.DatasetSample) -> None:
-    """One announced sample into the dataset (the collector and the replay share this)."""
-    writer.write(sample_id=sample.sample_id, object_name=sample.object_name, grasp_id=sample.grasp_id,
-                 finger=sample.finger, grasp_pose=sample.grasp_pose, tactile_rgb=sample.tactile_image,
-                 tactile_diff_rgb=sample.tactile_diff_image, depth_map_m=sample.depth_map_m,
-                 registration_fitness=sample.registration_fitness, stamps_ns=sample.stamps_ns)
-
-
-def dataset_info(sample: msgs.DatasetSample) -> DatasetInfo:
-    """The dataset-wide facts an announced sample carries."""
-    height, width = sample.tactile_image.shape[:2]
-    return DatasetInfo(image_height=height, image_width=width,
-                       depth_range_m=(sample.depth_range_m[0], sample.depth_range_m[1]), scene=sample.scene,
-                       effects=tuple(sample.effects), code_version=code_version(), split_seed=sample.split_seed)
 
 
 if __name__ == "__main__":

@@ -9,8 +9,8 @@ import json
 from typing import Any
 
 import msgs
+from dataset.announced import dataset_info, write_sample
 from dataset.format import DatasetWriter
-from nodes.collector import dataset_info, write_sample
 from nodes.node import Node, run_node
 
 
