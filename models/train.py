@@ -15,13 +15,15 @@ statistics stay per rank, as in pix2pix.
 
 Outputs in ``--out``: ``checkpoint.pt`` (state dicts, configs and progress, loadable with
 ``torch.load(weights_only=True)``), ``train_log.csv`` (losses every ``log_every`` steps),
-``val_log.csv`` (validation L1 and SSIM after every epoch).
+``val_log.csv`` (validation L1 and SSIM after every epoch), and the same scalars as TensorBoard
+events in ``tensorboard/`` (``tensorboard --logdir OUT/tensorboard``).
 """
 from __future__ import annotations
 
 import csv
 import dataclasses
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -30,6 +32,7 @@ import numpy as np
 import torch
 import yaml
 from torch import nn
+from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from dataset.format import DatasetReader
@@ -233,6 +236,9 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
             out_dir.mkdir(parents=True, exist_ok=True)
             for log in ("train_log.csv", "val_log.csv"):
                 (out_dir / log).unlink(missing_ok=True)
+            shutil.rmtree(out_dir / "tensorboard", ignore_errors=True)
+        # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
+        board = SummaryWriter(out_dir / "tensorboard", purge_step=step) if dist.rank == 0 else None
 
         if dist.world > 1:
             device_ids = [dist.device.index] if dist.device.type == "cuda" else None
@@ -297,15 +303,21 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                     window.clear()
                     bar.set_postfix(d_real=f"{means[0]:.3f}", d_fake=f"{means[1]:.3f}",
                                     g_gan=f"{means[2]:.3f}", g_l1=f"{means[3]:.4f}")
-                    if dist.rank == 0:
-                        _append_csv(out_dir / "train_log.csv",
-                                    ["epoch", "step", "lr", "loss_d_real", "loss_d_fake", "loss_g_gan", "loss_g_l1"],
+                    if board is not None:
+                        names = ["loss_d_real", "loss_d_fake", "loss_g_gan", "loss_g_l1"]
+                        _append_csv(out_dir / "train_log.csv", ["epoch", "step", "lr", *names],
                                     [epoch, step, opt_g.param_groups[0]["lr"], *[f"{m:.6g}" for m in means]])
+                        for name, value in zip(names, means):
+                            board.add_scalar(f"train/{name}", value, step)
+                        board.add_scalar("train/lr", opt_g.param_groups[0]["lr"], step)
 
-            if dist.rank == 0:
+            if board is not None:
                 val_l1, val_ssim = _validate(_unwrap(generator), x_val, y_val)
                 _append_csv(out_dir / "val_log.csv", ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
                             [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - started:.1f}"])
+                board.add_scalar("val/l1", val_l1, step)
+                board.add_scalar("val/ssim", val_ssim, step)
+                board.flush()
                 _save_atomic({
                     "generator": _unwrap(generator).state_dict(),
                     "discriminator": _unwrap(discriminator).state_dict(),
@@ -319,6 +331,8 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                     "dataset": str(Path(dataset).resolve()),
                 }, checkpoint_path)
         bar.close()
+        if board is not None:
+            board.close()
         return checkpoint_path
     finally:
         if dist.world > 1:

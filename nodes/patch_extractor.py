@@ -4,7 +4,9 @@
   the latest frame of every camera (merged in ``world``), register its complete model cloud
   (FPFH + RANSAC, then point-to-plane ICP) and keep the pose.
 - ``/perception/patch`` (PatchRequest -> PatchReply): both fingers' contact depth-maps of
-  the registered model cloud for the given gel poses.
+  the registered model cloud for the given gel poses, the model first centred between the
+  gels (a grasp pushes a free-standing object there; ``centre_between_gels: false`` for an
+  object that cannot move).
 - Publishes what it extracted (``/perception/object_cloud``, ``/perception/depth_map``) so a
   session bag holds it.
 
@@ -23,17 +25,17 @@ import numpy as np
 
 import msgs
 from nodes.node import Node, run_node
-from perception.depthmap import DepthMapParams, contact_depth_map
+from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
 from perception.evaluation import segmentation_params_for
-from perception.pointcloud import depth_images_to_world
-from perception.registration import ModelCloud, PreparedModel, prepare_model, register_model, sample_model_cloud
+from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
+from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud
 from perception.segmentation import segment_object
 from sim.scene import load_scene
 
 
 @dataclasses.dataclass
 class Registered:
-    model_points_m: np.ndarray
+    model: VoxelIndex  # the dense depth-map cloud, in the model frame
     model_to_world: np.ndarray
 
 
@@ -44,14 +46,16 @@ class PatchExtractorNode(Node):
         cameras: list = dataclasses.field(default_factory=lambda: ["/camera_left/depth", "/camera_right/depth"])
         depth_map_rows: int = 100
         depth_map_cols: int = 100
-        # The crop is larger than the gel, as the paper's: a few mm of camera-to-robot
-        # calibration offset must stay inside it for the learner to absorb.
-        margin_m: float = 0.004
+        # The crop is larger than the sensed area, as the paper's: a calibration residual of a
+        # mm or two must stay inside it for the learner to absorb.
+        margin_m: float = 0.002
         y_range_m: list = dataclasses.field(default_factory=lambda: [-0.005, 0.010])
-        # Registration works on a 2 mm cloud; a depth-map needs a far denser one (0.2 mm fills
-        # a 100 x 100 map of a ~25 mm gel).
-        depth_map_point_spacing_m: float = 0.0002
-        fill_gaps_min_neighbours: int = 5  # random sampling leaves ~10 % of 0.3 mm bins empty
+        # Registration works on a 2 mm cloud; a depth-map needs a far denser one: uniform random
+        # points at 0.1 mm put ~4.5 in each 0.24 x 0.19 mm bin, leaving ~1 % of bins empty
+        # (0.2 mm left a third), which gap filling closes.
+        depth_map_point_spacing_m: float = 0.0001
+        fill_gaps_min_neighbours: int = DepthMapParams.fill_gaps_min_neighbours
+        centre_between_gels: bool = True
         seed: int = 0
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
@@ -62,10 +66,17 @@ class PatchExtractorNode(Node):
                                                margin_m=self.params.margin_m,
                                                y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]),
                                                fill_gaps_min_neighbours=self.params.fill_gaps_min_neighbours)
+        # Every model point a gel's depth-map or centring can use lies within this distance of
+        # the gel centre: the crop's corners, or the gel face up to the crop's depth.
+        half_x, half_z, y_near, y_far = crop_bounds(self.geometry, self.depth_map_params)
+        deepest = max(abs(y_near), abs(y_far))
+        self.reach_m = float(max(np.linalg.norm([half_x, half_z, deepest]),
+                                 np.linalg.norm([0.5 * self.geometry.gel_size_m[0], 0.5 * self.geometry.gel_size_m[1],
+                                                 deepest])))
         self.latest: dict[str, msgs.DepthImage] = {}
         for topic in self.params.cameras:
             self.create_subscription(topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image}))
-        self.models: dict[str, tuple[ModelCloud, PreparedModel]] = {}
+        self.models: dict[str, tuple[VoxelIndex, PreparedModel]] = {}
         self.registered: dict[str, Registered] = {}
         self.cloud = self.create_publisher("/perception/object_cloud", msgs.PointCloud, latched=True)
         self.depth_maps = self.create_publisher("/perception/depth_map", msgs.DepthMap)
@@ -90,13 +101,14 @@ class PatchExtractorNode(Node):
     def _register(self, spec: Any, seed: int) -> msgs.RegisterReply:
         frames = self.latest_frames()
         if spec.name not in self.models:
-            dense = sample_model_cloud(spec.mesh, self.params.depth_map_point_spacing_m, seed=self.params.seed)
-            self.models[spec.name] = (dense, prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)))
+            dense = sample_model_cloud(spec.mesh, self.params.depth_map_point_spacing_m, seed=self.params.seed).points_m
+            self.models[spec.name] = (VoxelIndex(dense),
+                                      prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)))
         dense, prepared = self.models[spec.name]
         segmented = segment_object(depth_images_to_world(frames), segmentation_params_for(self.scene),
                                    hint_world_m=np.array([spec.x_m, spec.y_m, 0.0]), seed=seed)
         result = register_model(prepared, segmented.points_world_m, seed=seed)
-        self.registered[spec.name] = Registered(dense.points_m, result.model_to_world)
+        self.registered[spec.name] = Registered(dense, result.model_to_world)
         self.cloud.publish(msgs.PointCloud(header=msgs.Header(frame_id="world"),
                                            points=segmented.points_world_m.astype(np.float32)))
         self.log.info("registered %s: fitness %.3f, rmse %.2f mm, %d points", spec.name, result.fitness,
@@ -110,10 +122,17 @@ class PatchExtractorNode(Node):
         registered = self.registered.get(request.object_name)
         if registered is None:
             raise ValueError(f"object {request.object_name!r} is not registered; call /perception/register first")
+        gels = {"left": request.gel_left_to_world, "right": request.gel_right_to_world}
+        model_to_world = registered.model_to_world
+        near = {finger: registered.model.within(transform_points(gel[:3, 3][None], np.linalg.inv(model_to_world))[0],
+                                              self.reach_m)
+                for finger, gel in gels.items()}
+        if self.params.centre_between_gels:
+            model_to_world = centre_between_gels(np.concatenate(list(near.values())), model_to_world,
+                                                 gels["left"], gels["right"], self.geometry)
         maps = {}
-        for finger, gel_to_world in (("left", request.gel_left_to_world), ("right", request.gel_right_to_world)):
-            patch = contact_depth_map(registered.model_points_m, registered.model_to_world, gel_to_world,
-                                      self.geometry, self.depth_map_params)
+        for finger, gel_to_world in gels.items():
+            patch = contact_depth_map(near[finger], model_to_world, gel_to_world, self.geometry, self.depth_map_params)
             maps[finger] = msgs.DepthMap(header=msgs.Header(frame_id=f"gel_{finger}"), depth_map_m=patch.depth_map_m,
                                          finger=finger, crop_m=list(patch.crop_m), y_range_m=list(patch.y_range_m),
                                          point_count=patch.point_count)

@@ -33,6 +33,13 @@ class GripperGeometry:
     gel_size_m: tuple[float, float] = (0.0186, 0.0249)  # extent along gel x, gel z
     elastomer_thickness_m: float = 0.002
     max_width_m: float = 0.11
+    # The part of the gel the tactile camera images (extent along gel x, gel z), centred on the
+    # gel: what a depth-map must cover to line up with the tactile image. None: the whole gel.
+    sensed_area_m: tuple[float, float] | None = None
+
+    @property
+    def sensed_extent_m(self) -> tuple[float, float]:
+        return self.sensed_area_m if self.sensed_area_m is not None else self.gel_size_m
 
 
 def grasp_to_tcp_pose(x_m: float, y_m: float, z_m: float, theta_z_rad: float) -> np.ndarray:

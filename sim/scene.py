@@ -277,12 +277,16 @@ class Scene:
                          [c.name for c in self.cameras])
 
     def gripper_geometry(self):
-        """The perception module's :class:`GripperGeometry` for this scene's gripper."""
+        """The perception module's :class:`GripperGeometry` for this scene's gripper; its sensed
+        area is the GelSight image's field of view (``image_width`` x ``image_height`` pixels
+        of ``mm_per_px``, centred on the gel)."""
         from perception.kinematics import GripperGeometry  # noqa: PLC0415
+        gs = self.gelsight
         return GripperGeometry(tcp_to_gel_centre_m=self.gripper.tcp_to_gel_centre_m,
                                gel_size_m=tuple(self.gripper.gel_size_m),
                                elastomer_thickness_m=self.gripper.elastomer_thickness_m,
-                               max_width_m=self.gripper.max_width_m)
+                               max_width_m=self.gripper.max_width_m,
+                               sensed_area_m=(gs.image_width * gs.mm_per_px * 1e-3, gs.image_height * gs.mm_per_px * 1e-3))
 
 
 # --------------------------------------------------------------------------------------

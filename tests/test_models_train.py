@@ -9,6 +9,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 import torch
 
 from dataset.synth import write_synthetic_dataset
@@ -64,6 +65,12 @@ def test_checkpoint_loads_with_weights_only_and_gives_an_eval_generator(dataset:
     with open(tmp_path / "train_log.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["step"] for r in rows] == ["1", "2"] and all(float(r["loss_g_l1"]) > 0 for r in rows)
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("train/loss_g_l1")] == [1, 2]
+    assert [float(e.value) for e in events.Scalars("train/loss_g_l1")] == pytest.approx(
+        [float(r["loss_g_l1"]) for r in rows], rel=1e-4)
+    assert len(events.Scalars("val/ssim")) == 1
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ModelConfigError, match="not a readable"):
         load_generator(tmp_path / "bad.pt")

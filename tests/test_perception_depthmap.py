@@ -1,15 +1,17 @@
 """Contact depth-maps: binning rules, empty-bin policy, normalisation, and the hard cases."""
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, min_y_per_bin
+from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds, min_y_per_bin
 from perception.errors import DepthMapError, PerceptionError
 from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import denormalise_depth_map
@@ -51,7 +53,11 @@ def check_clean(patch):
     assert np.all(patch.normalised >= -1) and np.all(patch.normalised <= 1)
     y_near, y_far = patch.y_range_m
     assert np.all(patch.depth_map_m >= np.float32(y_near)) and np.all(patch.depth_map_m <= np.float32(y_far))
-    assert np.all(patch.depth_map_m[~patch.occupied] == np.float32(y_far))
+    # An empty bin reads y_far unless it is a gap inside a sampled surface, filled from its
+    # occupied neighbours (at least DepthMapParams.fill_gaps_min_neighbours of 8).
+    neighbours = ndimage.convolve(patch.occupied.astype(int), np.ones((3, 3), int), mode="constant") - patch.occupied
+    filled = ~patch.occupied & (patch.depth_map_m != np.float32(y_far))
+    assert np.all(neighbours[filled] >= DepthMapParams.fill_gaps_min_neighbours)
 
 
 def test_min_of_points_per_bin_and_empty_bins_read_far():
@@ -249,3 +255,76 @@ def test_sampling_gaps_inside_a_surface_are_filled_and_free_space_is_not() -> No
     np.testing.assert_array_equal(filled[:, 4:], depth[:, 4:])  # free space keeps y_far
     with pytest.raises(DepthMapError, match="1..8"):
         fill_sampling_gaps(depth, occupied, 0)
+
+
+def test_crop_covers_the_sensed_area_plus_margin():
+    """A tactile camera that sees less than the whole gel: the crop follows what it sees."""
+    sensed = GripperGeometry(sensed_area_m=(0.0199, 0.0149))
+    half_x, half_z, _, _ = crop_bounds(sensed, DepthMapParams(margin_m=0.002))
+    assert (half_x, half_z) == pytest.approx((0.5 * 0.0199 + 0.002, 0.5 * 0.0149 + 0.002))
+    half_x, half_z, _, _ = crop_bounds(GEOMETRY, DepthMapParams(margin_m=0.002))
+    assert (half_x, half_z) == pytest.approx((HALF_X + 0.002, HALF_Z + 0.002))
+
+
+def test_sampling_gaps_are_filled_but_free_space_is_not():
+    """A plane sampled with a few bins missing: the holes take the plane's y; bins beyond the
+    sampled edge stay y_far."""
+    params = DepthMapParams(shape=(10, 10), margin_m=0.0)
+    x_edges = np.linspace(-HALF_X, HALF_X, 11)
+    z_edges = np.linspace(-HALF_Z, HALF_Z, 11)
+    centres = [(0.5 * (x_edges[c] + x_edges[c + 1]), 0.5 * (z_edges[r] + z_edges[r + 1]))
+               for r in range(10) for c in range(5) if (r, c) not in {(3, 2), (6, 1)}]
+    points = np.array([[x, -0.0005, z] for x, z in centres])
+    patch = depth_map(points, params)
+    check_clean(patch)
+    assert patch.depth_map_m[3, 2] == np.float32(-0.0005) and patch.depth_map_m[6, 1] == np.float32(-0.0005)
+    assert not patch.occupied[3, 2]
+    assert np.all(patch.depth_map_m[:, 6:] == np.float32(patch.y_range_m[1]))
+    exact = depth_map(points, dataclasses.replace(params, fill_gaps_min_neighbours=0))
+    assert exact.depth_map_m[3, 2] == np.float32(exact.y_range_m[1])
+
+
+def _box_points(size_m, spacing_m=0.001):
+    """Points on the surface of an axis-aligned box centred on the origin."""
+    axes = [np.arange(-h, h + 1e-12, spacing_m) for h in 0.5 * np.asarray(size_m)]
+    points = []
+    for axis in range(3):
+        others = [a for i, a in enumerate(axes) if i != axis]
+        grid = np.stack(np.meshgrid(*others, indexing="ij"), -1).reshape(-1, 2)
+        for side in (-0.5, 0.5):
+            face = np.insert(grid, axis, side * size_m[axis], axis=1)
+            points.append(face)
+    return np.concatenate(points)
+
+
+@settings(max_examples=30, deadline=None)
+@given(offset_m=st.floats(-0.01, 0.01), along_m=st.floats(-0.005, 0.005), yaw=st.floats(-np.pi, np.pi))
+def test_centring_puts_the_object_midway_between_the_gels(offset_m, along_m, yaw):
+    """A 40 mm box held at width 39 mm, registered off-centre along the closing axis: after
+    centring both gels press it 0.5 mm; nothing moves along the gel faces."""
+    box = _box_points((0.04, 0.04, 0.06))
+    tcp = grasp_to_tcp_pose(0.1, -0.05, 0.03 + GEOMETRY.tcp_to_gel_centre_m, yaw)
+    gels = gel_poses_world(tcp, 0.039, GEOMETRY)
+    closing = gels["left"][:3, 1]
+    along = gels["left"][:3, 0]
+    registered = np.eye(4)
+    registered[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
+    registered[:3, 3] = [0.1, -0.05, 0.03]
+    registered[:3, 3] += offset_m * closing + along_m * along
+    centred = centre_between_gels(box, registered, gels["left"], gels["right"], GEOMETRY)
+    assert centred[:3, :3] == pytest.approx(registered[:3, :3])
+    moved = centred[:3, 3] - registered[:3, 3]
+    assert moved == pytest.approx(-offset_m * closing, abs=1e-9)
+    for finger in ("left", "right"):
+        patch = contact_depth_map(box, centred, gels[finger], GEOMETRY, DepthMapParams(margin_m=0.0))
+        assert patch.depth_map_m.min() == pytest.approx(-0.0005, abs=1e-6)
+
+
+def test_centring_leaves_the_pose_when_a_gel_faces_nothing():
+    box = _box_points((0.02, 0.02, 0.02))
+    gels = gel_poses_world(grasp_to_tcp_pose(0.0, 0.0, 0.01 + GEOMETRY.tcp_to_gel_centre_m, 0.0), 0.03, GEOMETRY)
+    far = np.eye(4)
+    far[:3, 3] = [0.5, 0.0, 0.01]  # beside the gripper, in front of neither gel
+    assert np.array_equal(centre_between_gels(box, far, gels["left"], gels["right"], GEOMETRY), far)
+    with pytest.raises(DepthMapError, match="finite"):
+        centre_between_gels(np.array([[0.0, np.nan, 0.0]]), far, gels["left"], gels["right"], GEOMETRY)

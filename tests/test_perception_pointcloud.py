@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density, voxel_size_for_density
 from perception.errors import PerceptionError, PointCloudError
-from perception.pointcloud import (depth_images_to_world, depth_to_points_camera, merge_depth_images,
+from perception.pointcloud import (VoxelIndex, depth_images_to_world, depth_to_points_camera, merge_depth_images,
                                    pixel_rays, transform_points)
 
 DISTORTED = CameraIntrinsics(width=64, height=48, fx=60.0, fy=58.0, cx=31.7, cy=24.2,
@@ -134,3 +134,29 @@ def test_property_only_finite_in_range_points_come_out(values, offset):
     assert len(points) == int(np.count_nonzero(valid))
     assert np.all(np.isfinite(points))
     np.testing.assert_allclose(points[:, 2] - offset, depth[valid].astype(np.float64), atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), radius_m=st.floats(0.0, 0.05), cell_m=st.floats(0.001, 0.02),
+       offset_m=st.floats(-1e3, 1e3))
+def test_voxel_index_hands_out_every_point_of_the_ball(seed, radius_m, cell_m, offset_m):
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-0.05, 0.05, size=(2000, 3)) + offset_m
+    index = VoxelIndex(points, cell_m)
+    centre = points[rng.integers(len(points))] + rng.uniform(-0.02, 0.02, 3)
+    near = index.within(centre, radius_m)
+    inside = points[np.linalg.norm(points - centre, axis=1) <= radius_m]
+    assert {tuple(p) for p in inside} <= {tuple(p) for p in near}
+    assert len(near) == len({tuple(p) for p in near})  # no point twice
+    assert np.array_equal(index.within(centre, radius_m), near)
+
+
+def test_voxel_index_edge_cases():
+    index = VoxelIndex(np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]))
+    assert len(index.within([5.0, 5.0, 5.0], 0.01)) == 0
+    assert len(index.within([0.0, 0.0, 0.0], 0.0)) == 1
+    assert len(VoxelIndex(np.zeros((0, 3))).within([0.0, 0.0, 0.0], 1.0)) == 0
+    with pytest.raises(PointCloudError, match="finite"):
+        VoxelIndex(np.array([[0.0, np.nan, 0.0]]))
+    with pytest.raises(PointCloudError, match="cell size"):
+        VoxelIndex(np.zeros((1, 3)), cell_m=0.0)

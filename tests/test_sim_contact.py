@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.kinematics import grasp_to_tcp_pose
+from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
+from perception.kinematics import gel_poses_world, grasp_to_tcp_pose
 from sim.scene import parse_scene
 from sim.world import SimWorld
 
@@ -145,3 +146,32 @@ def test_sphere_contact_point_press() -> None:
     gap = c.gap_mm["left"].astype(np.float64)
     assert gap.min() == pytest.approx(-d, abs=0.01)
     assert c.width_m == pytest.approx(0.08 - 2 * f.indentation_mm * 1e-3, abs=1e-6)
+
+
+def test_depth_map_of_a_grasp_lines_up_with_what_the_gel_feels() -> None:
+    """What the patch extractor computes from the object's model and the gripper's reading
+    (symmetric gels at the held width, model centred between them) is, bin for bin, the gel
+    gap the simulated GelSight renders from: same frame, same orientation, same place."""
+    w = make_world(CYL)
+    geometry = w.scene.gripper_geometry()
+    params = DepthMapParams(shape=(60, 80), margin_m=0.002, y_range_m=(-0.005, 0.01))
+    half_x, half_z, _, y_far = crop_bounds(geometry, params)
+    # The cylinder's side where the gels can reach it, on a 0.1 mm grid.
+    theta, z = np.meshgrid(np.arange(0, 2 * np.pi, 1e-4 / 0.03), np.arange(0.03, 0.07, 1e-4))
+    model = np.column_stack([0.03 * np.cos(theta.ravel()), 0.03 * np.sin(theta.ravel()), z.ravel()])
+    registered = np.eye(4)
+    registered[1, 3] = 0.004  # registered 4 mm off along the closing axis
+    tcp = grasp_to_tcp_pose(0.005, 0.0, 0.16 + 0.05, 0.0)  # 5 mm off the axis along the gels
+    contact = w.grasp_contact(tcp, 10.0, size=(60, 80), extent_mm=(2e3 * half_z, 2e3 * half_x))
+    gels = gel_poses_world(tcp, contact.width_m, geometry)
+    centred = centre_between_gels(model, registered, gels["left"], gels["right"], geometry)
+    for finger in ("left", "right"):
+        gap_mm = contact.gap_mm[finger]
+        depth_mm = contact_depth_map(model, centred, gels[finger], geometry, params).depth_map_m * 1e3
+        pressed = gap_mm < 0
+        assert 0.1 < pressed.mean() < 0.6
+        # A bin holds the minimum over its width, the gap map the value at its centre: they may
+        # disagree on the bins the contact's edge crosses, and by a slope times half a bin.
+        assert np.mean((depth_mm < 0) != pressed) < 0.03
+        assert np.median(np.abs(depth_mm[pressed] - gap_mm[pressed])) < 0.02
+        assert np.all(depth_mm[np.isinf(gap_mm)] == np.float32(y_far * 1e3))
