@@ -1,4 +1,4 @@
-"""``dtx dataset check | export-pix2pix | synth``."""
+"""``dtx dataset check | export-pix2pix | synth | redepth``."""
 from __future__ import annotations
 
 import argparse
@@ -37,6 +37,28 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _redepth(args: argparse.Namespace) -> int:
+    from dataset.redepth import density_dirs, redepth_dataset  # noqa: PLC0415 (imports Open3D)
+
+    targets: dict[float | None, object] = dict(density_dirs(args.dir, args.density)) if args.density else {}
+    if args.out:
+        if len(args.density) > 1:
+            print("error: --out takes one density; leave it out to get DIR_density_D for each", file=sys.stderr)
+            return 2
+        targets = {args.density[0] if args.density else None: args.out}
+    if not targets:
+        print("error: give --density D [D ...] or --out DIR (full density)", file=sys.stderr)
+        return 2
+    for density, out in targets.items():
+        try:
+            writer = redepth_dataset(args.dir, out, density)
+        except (DatasetError, OSError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 1
+        print(f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}")
+    return 0
+
+
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``dataset`` command group to the ``dtx`` parser."""
     parser = subparsers.add_parser("dataset", help="check, export or synthesise tactile datasets")
@@ -56,3 +78,11 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     synth.add_argument("--samples", type=int, default=578, help="number of pairs (default: the paper's 578)")
     synth.add_argument("--seed", type=int, default=0)
     synth.set_defaults(func=_synth)
+
+    redepth = commands.add_parser("redepth", help="make a collected dataset's depth-maps again, e.g. at the "
+                                                  "paper's point densities (1 10 20 40 80 points/cm³)")
+    redepth.add_argument("dir", help="collected dataset directory")
+    redepth.add_argument("--density", type=float, nargs="+", default=[],
+                         help="points/cm³ after a voxel-grid filter; each goes to DIR_density_D")
+    redepth.add_argument("--out", help="output directory for one density (or, without --density, full density)")
+    redepth.set_defaults(func=_redepth)

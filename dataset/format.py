@@ -55,9 +55,12 @@ class DatasetInfo:
     effects: tuple[str, ...] = ()
     code_version: str = ""
     split_seed: int = 0
+    # The depth-maps' crop volume (x, y, z extent in the gel frame, m); None where unknown
+    # (datasets not made from a model, e.g. the synthetic ones).
+    depth_crop_m: tuple[float, float, float] | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        data = {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
             "image_height": self.image_height,
@@ -68,6 +71,9 @@ class DatasetInfo:
             "code_version": self.code_version,
             "split_seed": self.split_seed,
         }
+        if self.depth_crop_m is not None:
+            data["depth_crop_m"] = list(self.depth_crop_m)
+        return data
 
     @staticmethod
     def from_json(data: dict[str, Any]) -> "DatasetInfo":
@@ -85,9 +91,14 @@ class DatasetInfo:
                 effects=tuple(str(e) for e in data["effects"]),
                 code_version=str(data["code_version"]),
                 split_seed=int(data["split_seed"]),
+                depth_crop_m=None if "depth_crop_m" not in data else
+                tuple(float(v) for v in data["depth_crop_m"]),  # type: ignore[arg-type]
             )
         except (KeyError, TypeError, IndexError, ValueError) as err:
             raise DatasetError(f"dataset.json: missing or malformed field ({err!r})") from err
+        if info.depth_crop_m is not None and (len(info.depth_crop_m) != 3 or not all(
+                np.isfinite(v) and v > 0 for v in info.depth_crop_m)):
+            raise DatasetError(f"dataset.json: depth_crop_m must be 3 positive extents (m), got {info.depth_crop_m}")
         if info.image_height <= 0 or info.image_width <= 0:
             raise DatasetError(f"dataset.json: image size must be positive, got "
                                f"{info.image_height}x{info.image_width}")
@@ -111,9 +122,11 @@ class SampleRecord:
     registration_fitness: float
     files: dict[str, str]
     sha256: dict[str, str]
+    # The object's model in the gel frame as the depth-map was made (4x4), None where unknown.
+    model_to_gel: tuple[tuple[float, ...], ...] | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        data = {
             "sample_id": self.sample_id,
             "object": self.object_name,
             "grasp_id": self.grasp_id,
@@ -124,6 +137,9 @@ class SampleRecord:
             "files": dict(self.files),
             "sha256": dict(self.sha256),
         }
+        if self.model_to_gel is not None:
+            data["model_to_gel"] = [list(row) for row in self.model_to_gel]
+        return data
 
     @staticmethod
     def from_json(data: Any) -> "SampleRecord":
@@ -141,6 +157,7 @@ class SampleRecord:
                 registration_fitness=float(data["registration_fitness"]),
                 files={str(k): str(v) for k, v in data["files"].items()},
                 sha256={str(k): str(v) for k, v in data["sha256"].items()},
+                model_to_gel=None if "model_to_gel" not in data else _transform_tuple(data["model_to_gel"]),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise DatasetError(f"manifest line has a missing or malformed field ({err!r})") from err
@@ -154,6 +171,15 @@ class SampleRecord:
     def grasp_key(self) -> str:
         """Identifies the grasp: both fingers of a grasp share it."""
         return f"{self.object_name}/{self.grasp_id}"
+
+
+def _transform_tuple(value: Any) -> tuple[tuple[float, ...], ...]:
+    """A 4x4 rigid transform as nested tuples of floats; DatasetError unless it is one."""
+    matrix = np.asarray(value, dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not np.allclose(matrix[3], [0, 0, 0, 1]) \
+            or not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-6):
+        raise DatasetError(f"model_to_gel must be a finite 4x4 rigid transform, got {value!r}")
+    return tuple(tuple(float(v) for v in row) for row in matrix)
 
 
 @dataclasses.dataclass
@@ -328,7 +354,7 @@ class DatasetWriter:
     def write(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
               grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
               depth_map_m: np.ndarray, registration_fitness: float,
-              stamps_ns: dict[str, int] | None = None) -> SampleRecord:
+              stamps_ns: dict[str, int] | None = None, model_to_gel: np.ndarray | None = None) -> SampleRecord:
         """Write one sample atomically and return its manifest record.
 
         Raises DatasetError for a repeated ``sample_id``, bad arrays or fields, and for a
@@ -349,6 +375,10 @@ class DatasetWriter:
             raise DatasetError(f"sample {sample_id}: registration_fitness must be finite, "
                                f"got {registration_fitness}")
         _check_sample_arrays(self.info, tactile_rgb, tactile_diff_rgb, depth_map_m, sample_id)
+        try:
+            transform = None if model_to_gel is None else _transform_tuple(model_to_gel)
+        except DatasetError as err:
+            raise DatasetError(f"sample {sample_id}: {err}") from err
 
         payloads = {
             "tactile": _encode_png(np.asarray(tactile_rgb)),
@@ -361,6 +391,7 @@ class DatasetWriter:
             grasp_pose=pose, stamps_ns={str(k): int(v) for k, v in (stamps_ns or {}).items()},  # type: ignore[arg-type]
             registration_fitness=float(registration_fitness), files=files,
             sha256={kind: _sha256(data) for kind, data in payloads.items()},
+            model_to_gel=transform,
         )
         line = (json.dumps(record.to_json(), allow_nan=False) + "\n").encode()
         try:

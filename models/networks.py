@@ -26,7 +26,9 @@ class ModelConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class GeneratorConfig:
-    """in_channels: 1 (depth) or 2 (depth + validity mask); ngf: width of the first layer."""
+    """in_channels: 1 (depth) or 2 (depth + validity mask); ngf: width of the first layer;
+    background: add a learned image (the sensor's no-contact frame, in tanh's input units)
+    to the last layer's output, so the network draws only what the contact changes."""
 
     in_channels: int = 1
     out_channels: int = 3
@@ -36,6 +38,7 @@ class GeneratorConfig:
     image_size: int = 100
     dropout: float = 0.5
     dropout_blocks: int = 3
+    background: bool = False
 
     def validate(self) -> "GeneratorConfig":
         if self.in_channels not in (1, 2):
@@ -101,6 +104,12 @@ class UNetGenerator(nn.Module):
     conv 4x4 stride 2 - BatchNorm, with dropout in the ``dropout_blocks`` blocks right above
     the bottleneck (pix2pix's noise z); each decoder block after the first takes its input
     concatenated with the mirrored encoder output (skip connection); tanh at the end.
+
+    With ``config.background`` a learned 3 x 100 x 100 image is added before the tanh. A
+    GelSight frame is mostly the sensor's own colour gradient, the same in every sample; the
+    stock U-Net must rebuild it at every pixel from a depth-map that says nothing about it, and
+    what it gets wrong there is noise in every estimate. :meth:`set_background` starts it at
+    the mean training image.
     """
 
     def __init__(self, config: GeneratorConfig = GeneratorConfig()) -> None:
@@ -126,8 +135,16 @@ class UNetGenerator(nn.Module):
             if 1 <= config.num_downs - 1 - depth <= config.dropout_blocks and config.dropout > 0:
                 layers.append(nn.Dropout(config.dropout))
             self.decoder.append(nn.Sequential(*layers))
-        self.output = nn.Sequential(nn.ReLU(), nn.ConvTranspose2d(widths[0] * 2, config.out_channels, 4, 2, 1),
-                                    nn.Tanh())
+        self.output = nn.Sequential(nn.ReLU(), nn.ConvTranspose2d(widths[0] * 2, config.out_channels, 4, 2, 1))
+        if config.background:
+            self.background = nn.Parameter(torch.zeros(config.out_channels, config.image_size, config.image_size))
+
+    @torch.no_grad()
+    def set_background(self, mean_image: torch.Tensor) -> None:
+        """Start the learned background at ``mean_image`` (C x H x W in [-1, 1])."""
+        if not self.config.background:
+            raise ModelConfigError("this generator has no learned background (config.background is false)")
+        self.background.copy_(torch.atanh(mean_image.clamp(-0.99, 0.99)))
 
     def forward(self, depth: torch.Tensor) -> torch.Tensor:
         size = self.config.image_size
@@ -146,8 +163,10 @@ class UNetGenerator(nn.Module):
             skips.append(x)
         for i, block in enumerate(self.decoder):
             x = block(x if i == 0 else torch.cat([x, skips[-1 - i]], dim=1))
-        x = self.output(torch.cat([x, skips[0]], dim=1))
-        return x[:, :, pad // 2: pad // 2 + size, pad // 2: pad // 2 + size]
+        x = self.output(torch.cat([x, skips[0]], dim=1))[:, :, pad // 2: pad // 2 + size, pad // 2: pad // 2 + size]
+        if self.config.background:
+            x = x + self.background
+        return torch.tanh(x)
 
 
 class PatchDiscriminator(nn.Module):

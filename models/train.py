@@ -216,6 +216,8 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         discriminator = PatchDiscriminator(config.discriminator).to(dist.device)
         init_weights(generator)
         init_weights(discriminator)
+        if config.generator.background:
+            generator.set_background(y_train.mean(dim=0))
         betas = (config.beta1, config.beta2)
         opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
         opt_d = torch.optim.Adam(discriminator.parameters(), lr=config.lr, betas=betas)

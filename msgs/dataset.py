@@ -14,7 +14,7 @@ class DatasetSample(Message):
     rebuild the dataset from these alone (``launch/replay.yaml``)."""
 
     SCHEMA = "dtx.dataset.DatasetSample"
-    VERSION = 1
+    VERSION = 2
 
     sample_id: str = ""
     object_name: str = ""
@@ -26,6 +26,8 @@ class DatasetSample(Message):
     depth_map_m: np.ndarray = empty((0, 0), np.float32)
     depth_range_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0])
     registration_fitness: float = 0.0
+    model_to_gel: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    depth_crop_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
     stamps_ns: dict[str, int] = dataclasses.field(default_factory=dict)
     scene: str = ""
     effects: list[str] = dataclasses.field(default_factory=list)

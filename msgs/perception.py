@@ -15,17 +15,20 @@ class DepthMap(Message):
     ``depth_map_m`` is m x k float32: for each x-z bin the minimum y (metres) of the model
     points in the crop volume (y > 0 not touching, y < 0 indenting); empty bins hold the far
     end of ``y_range_m`` (y_near, y_far), which is also the range normalised for learning.
-    ``crop_m`` is the crop volume's extent (x, y, z) in metres.
+    ``crop_m`` is the crop volume's extent (x, y, z) in metres. ``model_to_gel`` (4x4) places
+    the object's model cloud in this gel's frame as the map was made from it: with the model,
+    a map can be made again (other densities, other bins).
     """
 
     SCHEMA = "dtx.perception.DepthMap"
-    VERSION = 1
+    VERSION = 2
 
     depth_map_m: np.ndarray = empty((0, 0), np.float32)
     finger: str = ""
     crop_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
     y_range_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0])
     point_count: int = 0
+    model_to_gel: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
 
 
 @dataclasses.dataclass

@@ -292,7 +292,7 @@ class CollectorNode(Node):
             self.writer = self.open_writer(DatasetInfo(
                 image_height=100, image_width=100, depth_range_m=(depth_map.y_range_m[0], depth_map.y_range_m[1]),
                 scene=p.scene, effects=tuple(e.name for e in self.scene.effects), code_version=code_version(),
-                split_seed=p.seed))
+                split_seed=p.seed, depth_crop_m=(depth_map.crop_m[0], depth_map.crop_m[1], depth_map.crop_m[2])))
         size = (self.writer.info.image_width, self.writer.info.image_height)
         tactile = cv2.resize(np.ascontiguousarray(image.image), size, interpolation=cv2.INTER_AREA)
         background = cv2.resize(np.ascontiguousarray(image.background), size, interpolation=cv2.INTER_AREA)
@@ -300,8 +300,9 @@ class CollectorNode(Node):
             sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
             tactile_image=tactile, tactile_diff_image=subtract_background(tactile, background),
             depth_map_m=depth_map.depth_map_m, depth_range_m=list(self.writer.info.depth_range_m),
-            registration_fitness=fitness, stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()},
-            scene=self.writer.info.scene, effects=list(self.writer.info.effects), split_seed=self.writer.info.split_seed)
+            registration_fitness=fitness, model_to_gel=depth_map.model_to_gel,
+            depth_crop_m=list(depth_map.crop_m),
+            stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()}, scene=self.writer.info.scene, effects=list(self.writer.info.effects), split_seed=self.writer.info.split_seed)
         try:
             write_sample(self.writer, sample)
         except DatasetError as error:

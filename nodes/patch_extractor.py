@@ -25,7 +25,8 @@ import numpy as np
 
 import msgs
 from nodes.node import Node, run_node
-from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
+from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, centre_between_gels,
+                                 contact_depth_map, crop_bounds)
 from perception.evaluation import segmentation_params_for
 from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
 from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud
@@ -50,10 +51,6 @@ class PatchExtractorNode(Node):
         # mm or two must stay inside it for the learner to absorb.
         margin_m: float = 0.002
         y_range_m: list = dataclasses.field(default_factory=lambda: [-0.005, 0.010])
-        # Registration works on a 2 mm cloud; a depth-map needs a far denser one: uniform random
-        # points at 0.1 mm put ~4.5 in each 0.24 x 0.19 mm bin, leaving ~1 % of bins empty
-        # (0.2 mm left a third), which gap filling closes.
-        depth_map_point_spacing_m: float = 0.0001
         fill_gaps_min_neighbours: int = DepthMapParams.fill_gaps_min_neighbours
         centre_between_gels: bool = True
         seed: int = 0
@@ -101,7 +98,8 @@ class PatchExtractorNode(Node):
     def _register(self, spec: Any, seed: int) -> msgs.RegisterReply:
         frames = self.latest_frames()
         if spec.name not in self.models:
-            dense = sample_model_cloud(spec.mesh, self.params.depth_map_point_spacing_m, seed=self.params.seed).points_m
+            # Registration works on a 2 mm cloud; a depth-map needs a far denser one.
+            dense = sample_model_cloud(spec.mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
             self.models[spec.name] = (VoxelIndex(dense),
                                       prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)))
         dense, prepared = self.models[spec.name]
@@ -135,7 +133,8 @@ class PatchExtractorNode(Node):
             patch = contact_depth_map(near[finger], model_to_world, gel_to_world, self.geometry, self.depth_map_params)
             maps[finger] = msgs.DepthMap(header=msgs.Header(frame_id=f"gel_{finger}"), depth_map_m=patch.depth_map_m,
                                          finger=finger, crop_m=list(patch.crop_m), y_range_m=list(patch.y_range_m),
-                                         point_count=patch.point_count)
+                                         point_count=patch.point_count,
+                                         model_to_gel=np.linalg.inv(gel_to_world) @ model_to_world)
             self.depth_maps.publish(maps[finger])
         return msgs.PatchReply(left=maps["left"], right=maps["right"])
 

@@ -9,11 +9,14 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from benchmarks.collect import run_session
 from dataset.check import check_dataset
-from dataset.format import DatasetReader
+from dataset.format import DatasetError, DatasetReader
+from dataset.redepth import redepth_dataset
+from dataset.synth import write_synthetic_dataset
 
 SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 
@@ -58,3 +61,23 @@ def test_replaying_the_shipped_bag_twice_gives_identical_datasets(tmp_path: Path
     report = check_dataset(tmp_path / "a")
     assert report.ok and report.samples == 8
     assert tree_digest(tmp_path / "a") == tree_digest(tmp_path / "b")
+
+
+def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> None:
+    """A collected dataset records each model's pose in the gel frame: at full density the
+    depth-maps come back bit for bit; thinned to the paper's densities they hold fewer points."""
+    assert replay(SMALL_BAG, tmp_path / "collected").returncode == 0
+    collected = DatasetReader(tmp_path / "collected")
+    again = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "again", progress=False).root)
+    sparse = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "sparse", 10.0, progress=False).root)
+    y_far = np.float32(collected.info.depth_range_m[1])
+    for record in collected.records:
+        original = collected.load(record)
+        np.testing.assert_array_equal(again.load(record.sample_id).depth_map_m, original.depth_map_m)
+        np.testing.assert_array_equal(sparse.load(record.sample_id).tactile_rgb, original.tactile_rgb)
+        thinned = sparse.load(record.sample_id).depth_map_m
+        assert np.count_nonzero(thinned != y_far) < 0.1 * np.count_nonzero(original.depth_map_m != y_far)
+    assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [r.sample_id for r in collected.records]
+    write_synthetic_dataset(tmp_path / "synthetic", 2, seed=0, progress=False)
+    with pytest.raises(DatasetError, match="records no depth-map crop"):
+        redepth_dataset(tmp_path / "synthetic", tmp_path / "x", 10.0, progress=False)

@@ -301,3 +301,30 @@ def test_check_finds_duplicate_lines_and_inconsistent_grasps(tmp_path: Path) -> 
     manifest.write_text(lines[0] + "\n" + json.dumps(right) + "\n")
     problems = check_dataset(tmp_path).problems
     assert any("more than once" in p for p in problems) and any("grasp pose" in p for p in problems)
+
+
+def test_model_pose_and_crop_round_trip_and_bad_ones_are_refused(tmp_path: Path) -> None:
+    """What a depth-map can be made again from: the crop in dataset.json, the model's pose in
+    the gel frame per sample; both optional, so datasets without models still read."""
+    info = DatasetInfo(**{**INFO.__dict__, "depth_crop_m": (0.0239, 0.015, 0.0189)})
+    writer = DatasetWriter(tmp_path, info)
+    pose = np.eye(4)
+    pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    pose[:3, 3] = [0.01, -0.02, 0.123456789012345]
+    arrays = sample_arrays(0)
+    record = writer.write(sample_id="a", object_name="mug", grasp_id=0, finger="left", grasp_pose=(0, 0, 0, 0),
+                          registration_fitness=1.0, model_to_gel=pose, **arrays)
+    reader = DatasetReader(tmp_path)
+    assert reader.info.depth_crop_m == (0.0239, 0.015, 0.0189)
+    assert np.array_equal(np.array(reader.record("a").model_to_gel), pose) and reader.records == [record]
+    skewed = pose.copy()
+    skewed[0, 0] = 2.0
+    for bad in (skewed, np.full((4, 4), np.nan), np.eye(3)):
+        with pytest.raises(DatasetError, match="sample b: model_to_gel must be a finite 4x4 rigid transform"):
+            writer.write(sample_id="b", object_name="mug", grasp_id=1, finger="left", grasp_pose=(0, 0, 0, 0),
+                         registration_fitness=1.0, model_to_gel=bad, **arrays)
+    assert len(DatasetReader(tmp_path)) == 1
+    meta = json.loads((tmp_path / "dataset.json").read_text())
+    (tmp_path / "dataset.json").write_text(json.dumps({**meta, "depth_crop_m": [0.02, -1.0, 0.02]}))
+    with pytest.raises(DatasetError, match="depth_crop_m must be 3 positive extents"):
+        DatasetReader(tmp_path)

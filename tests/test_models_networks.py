@@ -127,3 +127,18 @@ def test_network_input_refuses_bad_depth_maps() -> None:
 @given(images=arrays(np.uint8, (2, 5, 7, 3)))
 def test_image_scaling_round_trips(images: np.ndarray) -> None:
     np.testing.assert_array_equal(to_uint8_rgb(image_target(images)), images)
+
+
+def test_learned_background_is_where_the_generator_starts() -> None:
+    """With ``background`` the generator draws only the change from a learned image: with its
+    last layer silent it returns exactly the image it was started from."""
+    generator = UNetGenerator(GeneratorConfig(ngf=4, background=True))
+    mean_image = torch.linspace(-0.9, 0.9, 3 * 100 * 100).reshape(3, 100, 100)
+    generator.set_background(mean_image)
+    last = generator.output[1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    out = generator.eval()(torch.zeros(2, 1, 100, 100))
+    torch.testing.assert_close(out, mean_image.expand(2, -1, -1, -1), atol=1e-6, rtol=0)
+    with pytest.raises(ModelConfigError, match="no learned background"):
+        UNetGenerator(GeneratorConfig(ngf=4)).set_background(mean_image)
