@@ -2,7 +2,8 @@
 
 1. collect the paper's 289 grasps (578 pairs) with ``launch/collect_sim.yaml``;
 2. train the cGAN with ``configs/quick.yaml``;
-3. evaluate it like the paper and print the table; figures go to ``OUT/figures``.
+3. make the depth-maps again at the paper's densities (``dtx dataset redepth``);
+4. evaluate it like the paper and print the table; figures go to ``OUT/figures``.
 
 Each step is the real command, run as a process; a step whose result is already there
 (a complete dataset, a finished checkpoint) is continued or skipped, so running the demo
@@ -46,7 +47,7 @@ def paper_table(evaluation: dict) -> str:
         ("template match distance, median (px)", f"{template.get('distance_px_median', float('nan')):.1f}", ""),
     ]
     for row in evaluation.get("density", []):
-        rows.append((f"SSIM at {row['points_per_cm3']} points/cm^3", f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
+        rows.append((f"SSIM at {row['points_per_cm3']:g} points/cm^3", f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
                      {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], "")))
     width = max(len(r[0]) for r in rows)
     lines = [f"{'':{width}}  {'this run':>18}  {'paper':>14}"]
@@ -55,20 +56,27 @@ def paper_table(evaluation: dict) -> str:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from dataset.redepth import density_dirs  # noqa: PLC0415 (Open3D; only when the demo runs)
+    from perception.density import PAPER_DENSITIES_PER_CM3  # noqa: PLC0415
+
     out = Path(args.out)
     session, train_dir, figures = out / "session", out / "train", out / "figures"
     collect = ["launch", "launch/collect_sim.yaml", f"out:={session}", f"grasps:={args.grasps}",
                f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
     if (session / "manifest.jsonl").exists():
         collect.append("resume:=true")
-    _run("1/3 collect (Algorithm 1 on the simulated scene)", collect)
-    _run("1/3 check the dataset", ["dataset", "check", str(session)])
+    _run("1/4 collect (Algorithm 1 on the simulated scene)", collect)
+    _run("1/4 check the dataset", ["dataset", "check", str(session)])
     train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]
     if (train_dir / "checkpoint.pt").exists():
         train.append("--resume")
-    _run("2/3 train the cGAN", train)
-    report = _run("3/3 evaluate like the paper", ["evaluate", str(train_dir / "checkpoint.pt"), str(session), "--json",
-                                                  "--figures", str(figures)], capture=True)
+    _run("2/4 train the cGAN", train)
+    densities = density_dirs(session, list(PAPER_DENSITIES_PER_CM3))
+    _run("3/4 depth-maps at the paper's point densities",
+         ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities]])
+    report = _run("4/4 evaluate like the paper",
+                  ["evaluate", str(train_dir / "checkpoint.pt"), str(session), "--json", "--figures", str(figures),
+                   *[f"--density={d:g}={path}" for d, path in densities.items()]], capture=True)
     evaluation = json.loads(report)
     (out / "evaluation.json").write_text(json.dumps(evaluation, indent=2) + "\n")
     print("\n" + paper_table(evaluation))

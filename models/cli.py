@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -15,6 +16,8 @@ def _train(args: argparse.Namespace) -> int:
 
     try:
         config = TrainConfig.load(args.config)
+        if args.hold_out_object:
+            config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
         started = time.monotonic()
         path = train(args.dataset, config, args.out, resume=args.resume)
     except (ModelConfigError, DatasetError, OSError) as err:
@@ -50,6 +53,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--config", required=True, help="training config (YAML), e.g. configs/quick.yaml")
     train.add_argument("--out", default="out/train", help="checkpoint and log directory (default: out/train)")
     train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    train.add_argument("--hold-out-object", default="", metavar="NAME",
+                       help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)")
     train.set_defaults(func=_train)
 
     evaluate = subparsers.add_parser("evaluate", help="the paper's SSIM, baseline and template-matching analysis")

@@ -289,7 +289,7 @@ def inference(ws: Workspace) -> list[Point]:
     """benchmarks.inference: width x precision x runtime -> SSIM against fp32 eager of the same
     weights, and time per region at batch 16."""
     threads = torch.get_num_threads()
-    args = argparse.Namespace(checkpoint=None, widths=list(ws.plan.widths), precisions=list(ws.plan.precisions),
+    args = argparse.Namespace(checkpoint=[], dataset=None, widths=list(ws.plan.widths), precisions=list(ws.plan.precisions),
                               runtimes=list(ws.plan.runtimes), batch=16, seconds=ws.plan.inference_seconds,
                               threads=threads, seed=ws.plan.seed, json=True)
     try:

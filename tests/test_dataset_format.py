@@ -328,3 +328,20 @@ def test_model_pose_and_crop_round_trip_and_bad_ones_are_refused(tmp_path: Path)
     (tmp_path / "dataset.json").write_text(json.dumps({**meta, "depth_crop_m": [0.02, -1.0, 0.02]}))
     with pytest.raises(DatasetError, match="depth_crop_m must be 3 positive extents"):
         DatasetReader(tmp_path)
+
+
+def test_redepth_cli_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    root = tmp_path / "ds"
+    write_sample(DatasetWriter(root, INFO), 0, "left")  # no crop, no model pose: not made from a model
+    for argv, code, message in (
+            ([], 2, "give --density"),
+            (["--density", "1", "10", "--out", str(tmp_path / "x")], 2, "--out takes one density"),
+            (["--density", "10"], 1, "records no depth-map crop")):
+        args = parser.parse_args(["dataset", "redepth", str(root), *argv])
+        assert args.func(args) == code
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "ds_density_10").exists()
