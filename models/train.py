@@ -20,6 +20,7 @@ events in ``tensorboard/`` (``tensorboard --logdir OUT/tensorboard``).
 """
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import os
@@ -61,6 +62,10 @@ class TrainConfig:
     max_steps: int = 0
     log_every: int = 10
     threads: int = 0
+    # Exponential moving average of the generator's weights (0: off, as the paper). A GAN's
+    # generator wanders from step to step; the average is what is validated, saved as
+    # ``generator`` and served, while training continues on the raw weights.
+    ema_decay: float = 0.0
     generator: GeneratorConfig = GeneratorConfig()
 
     def validate(self) -> "TrainConfig":
@@ -72,6 +77,8 @@ class TrainConfig:
                 raise ModelConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.max_steps < 0 or self.threads < 0:
             raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
             raise ModelConfigError(f"need lr > 0, betas in [0, 1), lambda_l1 >= 0; got lr={self.lr}, "
                                    f"betas=({self.beta1}, {self.beta2}), lambda_l1={self.lambda_l1}")
@@ -168,6 +175,16 @@ def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[f
     return generator, (float(low), float(high))
 
 
+@torch.no_grad()
+def _update_average(average: nn.Module, model: nn.Module, decay: float) -> None:
+    """average <- decay * average + (1 - decay) * model, weights only; BatchNorm statistics are
+    the model's own (they describe activations, not a direction of descent)."""
+    for mean, value in zip(average.parameters(), model.parameters()):
+        mean.lerp_(value, 1.0 - decay)
+    for mean, value in zip(average.buffers(), model.buffers()):
+        mean.copy_(value)
+
+
 def _append_csv(path: Path, header: list[str], row: list[Any]) -> None:
     new = not path.exists()
     with open(path, "a", newline="") as f:
@@ -228,7 +245,7 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
             if TrainConfig.from_dict(state["train_config"]) != config:
                 raise ModelConfigError(f"{checkpoint_path} was trained with a different config; "
                                        "resume with the same config or train into a new --out")
-            generator.load_state_dict(state["generator"])
+            generator.load_state_dict(state["generator_raw"] if config.ema_decay else state["generator"])
             discriminator.load_state_dict(state["discriminator"])
             opt_g.load_state_dict(state["opt_generator"])
             opt_d.load_state_dict(state["opt_discriminator"])
@@ -242,6 +259,11 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
         board = SummaryWriter(out_dir / "tensorboard", purge_step=step) if dist.rank == 0 else None
 
+        average = None
+        if config.ema_decay:
+            average = copy.deepcopy(generator).requires_grad_(False)
+            if resume and checkpoint_path.exists():
+                average.load_state_dict(state["generator"])
         if dist.world > 1:
             device_ids = [dist.device.index] if dist.device.type == "cuda" else None
             generator = nn.parallel.DistributedDataParallel(generator, device_ids=device_ids)
@@ -296,6 +318,8 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                 loss_g_l1 = (fake - y).abs().mean()
                 (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
                 opt_g.step()
+                if average is not None:
+                    _update_average(average, _unwrap(generator), config.ema_decay)
 
                 step += 1
                 bar.update(1)
@@ -314,14 +338,17 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                         board.add_scalar("train/lr", opt_g.param_groups[0]["lr"], step)
 
             if board is not None:
-                val_l1, val_ssim = _validate(_unwrap(generator), x_val, y_val)
+                served = average if average is not None else _unwrap(generator)
+                val_l1, val_ssim = _validate(served, x_val, y_val)
                 _append_csv(out_dir / "val_log.csv", ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
                             [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - started:.1f}"])
                 board.add_scalar("val/l1", val_l1, step)
                 board.add_scalar("val/ssim", val_ssim, step)
                 board.flush()
+                raw = {"generator_raw": _unwrap(generator).state_dict()} if average is not None else {}
                 _save_atomic({
-                    "generator": _unwrap(generator).state_dict(),
+                    "generator": served.state_dict(),
+                    **raw,
                     "discriminator": _unwrap(discriminator).state_dict(),
                     "opt_generator": opt_g.state_dict(),
                     "opt_discriminator": opt_d.state_dict(),

@@ -127,3 +127,17 @@ def test_leave_one_object_out_trains_without_the_held_out_object(dataset: Path, 
     assert load_checkpoint(train(dataset, config, tmp_path, progress=False))["train_config"]["hold_out_object"] == held_out
     with pytest.raises(ModelConfigError, match="unknown split"):
         select_records(reader, "holdout")
+
+
+def test_weight_average_is_what_is_saved_and_resumes_exactly(dataset: Path, tmp_path: Path) -> None:
+    config = TrainConfig(**{**TINY.__dict__, "ema_decay": 0.9})
+    whole = load_checkpoint(train(dataset, config, tmp_path / "whole", progress=False))
+    assert not all(torch.equal(whole["generator"][k], whole["generator_raw"][k]) for k in whole["generator"])
+    train(dataset, config, tmp_path / "split", progress=False, stop_after_epochs=1)
+    resumed = load_checkpoint(train(dataset, config, tmp_path / "split", resume=True, progress=False))
+    for key in ("generator", "generator_raw"):
+        assert all(torch.equal(whole[key][k], resumed[key][k]) for k in whole[key])
+    generator, _ = load_generator(tmp_path / "whole" / "checkpoint.pt")
+    assert all(torch.equal(v, whole["generator"][k]) for k, v in generator.state_dict().items())
+    with pytest.raises(ModelConfigError, match="ema_decay"):
+        TrainConfig(ema_decay=1.0).validate()
