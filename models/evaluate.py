@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -44,6 +45,11 @@ class Predictions:
     truth: np.ndarray
     truth_deformation: np.ndarray
     estimate: np.ndarray
+    # Where each sample's gel was on its object (model in the gel frame), when the dataset
+    # records it; with the scene's meshes the qualitative figure draws the object.
+    model_to_gel: list[np.ndarray | None] = dataclasses.field(default_factory=list)
+    scene: str = ""
+    depth_crop_m: tuple[float, float, float] | None = None
 
 
 @torch.no_grad()
@@ -70,7 +76,9 @@ def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float]
     return Predictions(sample_ids=[r.sample_id for r in records], objects=[r.object_name for r in records],
                        depth_maps_m=depth, truth=np.stack([s.tactile_rgb for s in samples]),
                        truth_deformation=np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
-                       estimate=predict(generator, depth, depth_range_m))
+                       estimate=predict(generator, depth, depth_range_m),
+                       model_to_gel=[None if r.model_to_gel is None else np.array(r.model_to_gel) for r in records],
+                       scene=reader.info.scene, depth_crop_m=reader.info.depth_crop_m)
 
 
 def _mean_se(values: np.ndarray) -> tuple[float, float]:
@@ -179,8 +187,7 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
     fig, axes = plt.subplots(count, 4, figsize=(8, 2 * count), squeeze=False)
     for row, ax in enumerate(axes):
         match = result["template_match"]["per_sample"][row]
-        ax[0].text(0.5, 0.5, f"{predictions.objects[row]}\n{predictions.sample_ids[row]}", ha="center",
-                   va="center", fontsize=7)
+        _draw_object(ax[0], predictions, row)
         ax[1].imshow(np.nan_to_num(predictions.depth_maps_m[row], nan=depth_range_m[1]) * 1e3, cmap="viridis",
                      vmin=depth_range_m[0] * 1e3, vmax=depth_range_m[1] * 1e3)
         ax[2].imshow(predictions.truth[row])
@@ -225,6 +232,42 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
         fig.savefig(written[-1], dpi=100)
         plt.close(fig)
     return written
+
+
+def _draw_object(ax: Any, predictions: Predictions, row: int) -> None:
+    """The object as the gel saw it: its model's points in the gel frame (x right, z down, as
+    the depth-map), the near side only, shaded by distance, and the depth-map's crop; or the
+    sample's name where the dataset does not say where the gel was."""
+    from matplotlib import patches  # noqa: PLC0415
+
+    label = f"{predictions.objects[row]}\n{predictions.sample_ids[row]}"
+    model_to_gel = predictions.model_to_gel[row] if predictions.model_to_gel else None
+    cloud = _model_cloud(predictions.scene, predictions.objects[row]) if model_to_gel is not None else None
+    if cloud is None or predictions.depth_crop_m is None:
+        ax.text(0.5, 0.5, label, ha="center", va="center", fontsize=7)
+        return
+    points_mm = (cloud @ model_to_gel[:3, :3].T + model_to_gel[:3, 3]) * 1e3
+    near = points_mm[points_mm[:, 1] < np.median(points_mm[:, 1])]
+    near = near[np.argsort(-near[:, 1])]  # nearest drawn last, on top
+    ax.scatter(near[:, 0], near[:, 2], c=near[:, 1], s=0.5, cmap="Greys")
+    crop_x, _, crop_z = (v * 1e3 for v in predictions.depth_crop_m)
+    ax.add_patch(patches.Rectangle((-crop_x / 2, -crop_z / 2), crop_x, crop_z, fill=False, color="tab:orange"))
+    ax.set_aspect("equal")
+    ax.invert_yaxis()
+    ax.set_xlabel(label.replace("\n", " "), fontsize=6)
+
+
+@functools.lru_cache(maxsize=16)
+def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
+    """The 2 mm model cloud of ``object_name`` in ``scene`` (None: not a mesh of that scene)."""
+    from perception.registration import sample_model_cloud  # noqa: PLC0415
+    from sim.scene import SceneError, load_scene  # noqa: PLC0415
+
+    try:
+        meshes = {o.name: o.mesh for o in load_scene(scene, check_geometry=False).objects if o.mesh}
+    except (SceneError, OSError):
+        return None
+    return sample_model_cloud(meshes[object_name]).points_m if object_name in meshes else None
 
 
 def summary_table(result: dict[str, Any]) -> str:
