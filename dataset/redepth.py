@@ -43,7 +43,7 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, object]:
 def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
                     points_per_cm3: float | None = None, progress: bool = True) -> DatasetWriter:
     """Write ``out``: ``source`` with every depth-map made again from the model cloud
-    (``point_spacing_m`` apart, seeded as the patch extractor's), voxel-thinned to
+    (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED), voxel-thinned to
     ``points_per_cm3`` unless None. A map whose thinned cloud leaves the crop empty holds
     y_far everywhere ("nothing within reach"), as an empty bin does."""
     reader = DatasetReader(source)

@@ -22,9 +22,10 @@ reach") — the same value normalisation gives an empty bin, so the map, its nor
 the DepthMap message agree. ``occupied`` tells real y_far values from empty ones. A patch with
 no point at all has no right answer and raises DepthMapError.
 
-Model density: default bins are 0.23 x 0.29 mm, so the model cloud must be sampled finer than
-that (``sample_model_cloud(mesh, point_spacing_m=0.0002)``: ~75 % of bins filled on a can, where
-the 2 mm registration cloud fills ~2 %); the paper's 1-80 points/cm³ clouds fill under 6 %.
+Model density: a 100 x 100 map of a GelSight's sensed area plus 2 mm has 0.24 x 0.19 mm bins,
+so the model cloud must be sampled finer than that (MODEL_POINT_SPACING_M, 0.1 mm: ~1 % of bins
+left empty and then filled as sampling gaps, where 0.2 mm left a third and the 2 mm
+registration cloud fills ~2 %); the paper's 1-80 points/cm³ clouds fill under 6 %.
 
 Precision: model points are moved to the gel frame with one float64 transform composed from
 model_to_world and gel_to_world, so a scene far from the world origin loses nothing.
