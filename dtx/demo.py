@@ -46,6 +46,13 @@ def paper_table(evaluation: dict) -> str:
         ("template match score (TM_CCOEFF_NORMED), mean", f"{template.get('score_mean', float('nan')):.3f}", ""),
         ("template match distance, median (px)", f"{template.get('distance_px_median', float('nan')):.1f}", ""),
     ]
+    contact = evaluation.get("contact", {})
+    if "ssim_model_mean" in contact:
+        rows += [
+            (f"SSIM on contact windows only ({contact['n']} pairs), model / baseline",
+             f"{contact['ssim_model_mean']:.3f} / {contact['ssim_baseline_mean']:.3f}", ""),
+            ("  its ratio (p Wilcoxon)", f"{contact['dissimilarity_ratio']:.2f} ({contact['p_value_wilcoxon']:.1e})", ""),
+        ]
     for row in evaluation.get("density", []):
         rows.append((f"SSIM at {row['points_per_cm3']:g} points/cm^3", f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
                      {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], "")))

@@ -37,6 +37,12 @@ def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
     H and W must be at least 11. Computed in the dtype of ``a`` (use float64 to match
     skimage to 1e-6)."""
+    return ssim_map_torch(a, b).mean(dim=(2, 3)).mean(dim=1)
+
+
+def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The SSIM of every 11 x 11 window: N x C x (H - 10) x (W - 10); window (i, j) is centred
+    on pixel (i + 5, j + 5). Inputs as :func:`ssim_torch`."""
     if a.shape != b.shape or a.ndim != 4:
         raise ValueError(f"SSIM needs two N x C x H x W batches of one shape, got {tuple(a.shape)} "
                          f"and {tuple(b.shape)}")
@@ -58,12 +64,14 @@ def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     var_b = blur(b * b) - mu_b * mu_b
     cov = blur(a * b) - mu_a * mu_b
     c1, c2 = (K1 * DATA_RANGE) ** 2, (K2 * DATA_RANGE) ** 2
-    ssim_map = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
-    return ssim_map.mean(dim=(2, 3)).mean(dim=1)
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
 
 
-def ssim_rgb(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """SSIM of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3 -> N values."""
+def ssim_rgb(a: np.ndarray, b: np.ndarray, windows: np.ndarray | None = None) -> np.ndarray:
+    """SSIM of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3 -> N values.
+
+    ``windows`` ((N x) H x W bool) restricts the mean to the windows centred on True pixels
+    (an image with none gets NaN); the 5-pixel border has no windows."""
     a, b = np.asarray(a), np.asarray(b)
     if a.dtype != np.uint8 or b.dtype != np.uint8:
         raise ValueError(f"ssim_rgb compares uint8 images, got {a.dtype} and {b.dtype}")
@@ -71,8 +79,15 @@ def ssim_rgb(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         raise ValueError(f"ssim_rgb needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
     batch_a = torch.from_numpy(a.reshape((-1,) + a.shape[-3:])).permute(0, 3, 1, 2).double()
     batch_b = torch.from_numpy(b.reshape((-1,) + b.shape[-3:])).permute(0, 3, 1, 2).double()
-    values = ssim_torch(batch_a, batch_b).numpy()
-    return values.reshape(a.shape[:-3])
+    if windows is None:
+        return ssim_torch(batch_a, batch_b).numpy().reshape(a.shape[:-3])
+    half = WINDOW // 2
+    mask = torch.from_numpy(np.asarray(windows, dtype=bool).reshape((-1,) + a.shape[-3:-1]))[:, half:-half, half:-half]
+    per_window = ssim_map_torch(batch_a, batch_b).mean(dim=1)
+    counts = mask.sum(dim=(1, 2))
+    sums = (per_window * mask).sum(dim=(1, 2))
+    values = torch.where(counts > 0, sums / counts.clamp(min=1), torch.tensor(float("nan"), dtype=sums.dtype))
+    return values.numpy().reshape(a.shape[:-3])
 
 
 def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:

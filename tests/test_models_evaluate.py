@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 
 from dataset.synth import write_synthetic_dataset
 from models.cli import add_commands
-from models.evaluate import most_deformed_box, parse_density, ssim_statistics, template_match
+from models.evaluate import (CONTACT_LEVELS, contact_ssim_statistics, most_deformed_box, parse_density,
+                             ssim_statistics, template_match)
 from models.networks import GeneratorConfig, ModelConfigError
 from models.train import TrainConfig, train
 
@@ -94,8 +95,25 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
                 "p_value_t", "dissimilarity_ratio"):
         assert np.isfinite(result[key])
     assert set(result["template_match"]) >= {"score_mean", "distance_px_median"}
+    assert result["contact"]["contact_levels"] == CONTACT_LEVELS
     assert result["density"][0]["points_per_cm3"] == 20 and result["density"][0]["paper_ssim_mean"] == 0.8478
     assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["density.png", "qualitative.png",
                                                                      "ssim_bars.png"]
     args = parser.parse_args(["evaluate", str(tmp_path / "missing.pt"), str(dataset)])
     assert args.func(args) == 1 and "does not exist" in capsys.readouterr().err
+
+
+def test_contact_ssim_does_not_reward_drawing_no_contact() -> None:
+    """On images that are mostly a shared background, the no-contact image scores well on the
+    whole-image SSIM; over the contact windows it loses to the true contacts."""
+    background = np.full((64, 64, 3), 120, np.uint8)
+    contacts = blob_images(8, 9)
+    truth = np.where(contacts.astype(int).sum(axis=-1, keepdims=True) > 400, contacts, background).astype(np.uint8)
+    deformation = np.abs(truth.astype(np.float32) - background).sum(axis=-1)
+    no_contact = np.repeat(background[None], len(truth), axis=0)
+    whole = ssim_statistics(truth, no_contact)
+    assert whole["ssim_model_mean"] > 0.5
+    perfect = contact_ssim_statistics(truth, deformation, truth)
+    assert perfect["ssim_model_mean"] == pytest.approx(1.0) and perfect["n"] == 8
+    assert contact_ssim_statistics(truth, deformation, no_contact)["ssim_model_mean"] < whole["ssim_model_mean"]
+    assert contact_ssim_statistics(truth, np.zeros_like(deformation), truth) == {"n": 0, "contact_levels": CONTACT_LEVELS}
