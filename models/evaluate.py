@@ -28,7 +28,7 @@ from scipy import stats
 from dataset.format import DatasetReader, deformation_map
 from models.data import depth_input, select_records
 from models.networks import ModelConfigError, UNetGenerator
-from models.ssim import ssim_rgb, to_uint8_rgb
+from models.ssim import WINDOW, ssim_rgb, to_uint8_rgb
 
 PAPER = {"ssim_model_mean": 0.84, "ssim_model_se": 0.0056, "ssim_baseline_mean": 0.80, "ssim_baseline_se": 0.0036,
          "dissimilarity_ratio": 0.80,
@@ -86,19 +86,22 @@ def _mean_se(values: np.ndarray) -> tuple[float, float]:
 
 
 def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15,
-                    seed: int = 0) -> dict[str, Any]:
-    """Model vs baseline SSIM statistics (see module docstring) for N >= 2 image pairs."""
+                    seed: int = 0, windows: np.ndarray | None = None) -> dict[str, Any]:
+    """Model vs baseline SSIM statistics (see module docstring) for N >= 2 image pairs.
+    ``windows`` (N x H x W bool) restricts each SSIM to the windows centred on a truth's True
+    pixels (models.ssim.ssim_rgb); the baseline then uses each random truth's own windows."""
     n = len(truth)
     if n < 2 or truth.shape != estimate.shape:
         raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
-    model = ssim_rgb(truth, estimate)
+    model = ssim_rgb(truth, estimate, windows)
     rng = np.random.default_rng(seed)
     baseline = np.empty(n)
     for i in range(n):
         # Random *other* ground truths: the estimate's own would favour the baseline.
         others = np.delete(np.arange(n), i)
         draws = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
-        baseline[i] = ssim_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0)).mean()
+        baseline[i] = ssim_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0),
+                               None if windows is None else windows[draws]).mean()
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)
     diff = model - baseline
@@ -129,26 +132,12 @@ def contact_ssim_statistics(truth: np.ndarray, truth_deformation: np.ndarray, es
     only the contact counts. Pairs whose truth shows no contact are left out; the baseline
     scores an estimate on each random truth's own contact windows."""
     contact = truth_deformation >= CONTACT_LEVELS
-    model = ssim_rgb(truth, estimate, contact)
-    keep = np.flatnonzero(np.isfinite(model))
+    keep = np.flatnonzero(contact[:, WINDOW // 2:-(WINDOW // 2), WINDOW // 2:-(WINDOW // 2)].any(axis=(1, 2)))
     if len(keep) < 2:
         return {"n": int(len(keep)), "contact_levels": CONTACT_LEVELS}
-    rng = np.random.default_rng(seed)
-    baseline = np.empty(len(keep))
-    for k, i in enumerate(keep):
-        draws = rng.choice(np.delete(keep, k), size=baseline_draws, replace=len(keep) - 1 < baseline_draws)
-        baseline[k] = ssim_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0), contact[draws]).mean()
-    model = model[keep]
-    model_mean, model_se = _mean_se(model)
-    base_mean, base_se = _mean_se(baseline)
-    diff = model - baseline
-    return {
-        "n": int(len(keep)), "contact_levels": CONTACT_LEVELS,
-        "ssim_model_mean": model_mean, "ssim_model_se": model_se,
-        "ssim_baseline_mean": base_mean, "ssim_baseline_se": base_se,
-        "p_value_wilcoxon": float(stats.wilcoxon(model, baseline).pvalue) if np.any(diff != 0) else 1.0,
-        "dissimilarity_ratio": (1.0 - model_mean) / (1.0 - base_mean),
-    }
+    result = ssim_statistics(truth[keep], estimate[keep], baseline_draws, seed, windows=contact[keep])
+    return {"contact_levels": CONTACT_LEVELS,
+            **{k: v for k, v in result.items() if k not in ("ssim_model", "ssim_baseline")}}
 
 
 def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
