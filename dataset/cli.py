@@ -7,6 +7,7 @@ import sys
 from dataset.check import check_dataset
 from dataset.export import export_pix2pix
 from dataset.format import DatasetError
+from dtx.errors import exit_1_on
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -15,28 +16,23 @@ def _check(args: argparse.Namespace) -> int:
     return 0 if report.ok else 1
 
 
+@exit_1_on(DatasetError, OSError)
 def _export(args: argparse.Namespace) -> int:
-    try:
-        counts = export_pix2pix(args.dir, args.out)
-    except (DatasetError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
+    counts = export_pix2pix(args.dir, args.out)
     print(f"wrote {sum(counts.values())} A|B images to {args.out}: {counts}")
     return 0
 
 
+@exit_1_on(DatasetError, OSError)
 def _synth(args: argparse.Namespace) -> int:
     from dataset.synth import write_synthetic_dataset  # noqa: PLC0415 (imports the renderer)
 
-    try:
-        writer = write_synthetic_dataset(args.out, args.samples, args.seed, progress=True)
-    except (DatasetError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
+    writer = write_synthetic_dataset(args.out, args.samples, args.seed, progress=True)
     print(f"{args.out}: {len(writer)} samples")
     return 0
 
 
+@exit_1_on(DatasetError, OSError)
 def _redepth(args: argparse.Namespace) -> int:
     from dataset.redepth import density_dirs, redepth_dataset  # noqa: PLC0415 (imports Open3D)
 
@@ -50,11 +46,7 @@ def _redepth(args: argparse.Namespace) -> int:
         print("error: give --density D [D ...] or --out DIR (full density)", file=sys.stderr)
         return 2
     for density, out in targets.items():
-        try:
-            writer = redepth_dataset(args.dir, out, density)
-        except (DatasetError, OSError) as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 1
+        writer = redepth_dataset(args.dir, out, density)
         print(f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}")
     return 0
 

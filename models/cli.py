@@ -4,44 +4,37 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 
 from dataset.format import DatasetError
+from dtx.errors import exit_1_on
+from models.errors import ModelConfigError
 
 
+@exit_1_on(ModelConfigError, DatasetError, OSError)
 def _train(args: argparse.Namespace) -> int:
-    from models.networks import ModelConfigError  # noqa: PLC0415 (torch import only when used)
-    from models.train import TrainConfig, train  # noqa: PLC0415
+    from models.train import TrainConfig, train  # noqa: PLC0415 (torch import only when used)
 
-    try:
-        config = TrainConfig.load(args.config)
-        if args.hold_out_object:
-            config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
-        started = time.monotonic()
-        path = train(args.dataset, config, args.out, resume=args.resume)
-    except (ModelConfigError, DatasetError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
+    config = TrainConfig.load(args.config)
+    if args.hold_out_object:
+        config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
+    started = time.monotonic()
+    path = train(args.dataset, config, args.out, resume=args.resume)
     print(f"checkpoint {path} ({time.monotonic() - started:.0f} s)")
     return 0
 
 
+@exit_1_on(ModelConfigError, DatasetError, OSError)
 def _evaluate(args: argparse.Namespace) -> int:
     from models.evaluate import evaluate, parse_density, summary_table, write_figures  # noqa: PLC0415
-    from models.networks import ModelConfigError  # noqa: PLC0415
     from models.train import load_generator  # noqa: PLC0415
 
-    try:
-        generator, depth_range_m = load_generator(args.checkpoint)
-        result, predictions = evaluate(generator, depth_range_m, args.dataset, split=args.split,
-                                       hold_out_object=args.hold_out_object, density=parse_density(args.density),
-                                       seed=args.seed)
-        if args.figures:
-            write_figures(result, predictions, depth_range_m, args.figures)
-    except (ModelConfigError, DatasetError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
+    generator, depth_range_m = load_generator(args.checkpoint)
+    result, predictions = evaluate(generator, depth_range_m, args.dataset, split=args.split,
+                                   hold_out_object=args.hold_out_object, density=parse_density(args.density),
+                                   seed=args.seed)
+    if args.figures:
+        write_figures(result, predictions, depth_range_m, args.figures)
     print(json.dumps(result, indent=2) if args.json else summary_table(result))
     return 0
 

@@ -19,9 +19,7 @@ from typing import Any
 import torch
 from torch import nn
 
-
-class ModelConfigError(ValueError):
-    """A network or training configuration value is out of range or inconsistent."""
+from models.errors import ModelConfigError
 
 
 @dataclasses.dataclass(frozen=True)
