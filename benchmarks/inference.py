@@ -147,14 +147,9 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 def test_split_inputs(dataset: str, in_channels: int, depth_range_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     """(network inputs, ground-truth uint8 images) of a dataset's test split."""
-    from dataset.format import DatasetReader  # noqa: PLC0415
-    from models.data import load_pairs, select_records  # noqa: PLC0415
-    from models.networks import ModelConfigError  # noqa: PLC0415
+    from models.data import load_pairs, reader_for_model, select_records  # noqa: PLC0415
 
-    reader = DatasetReader(dataset)
-    if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
-        raise ModelConfigError(f"{dataset} normalises depth with {reader.info.depth_range_m}, the model was "
-                               f"trained with {depth_range_m}")
+    reader = reader_for_model(dataset, depth_range_m)
     x, y = load_pairs(reader, select_records(reader, "test"), in_channels)
     return x.numpy(), to_uint8_rgb(y)
 

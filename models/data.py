@@ -53,6 +53,15 @@ def select_records(reader: DatasetReader, split: str, hold_out_object: str = "")
     return splits[split]
 
 
+def reader_for_model(root: str | os.PathLike[str], depth_range_m: tuple[float, float]) -> DatasetReader:
+    """The dataset at ``root``, refused unless it normalises depth as the model was trained."""
+    reader = DatasetReader(root)
+    if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
+        raise ModelConfigError(f"{root} normalises depth with {reader.info.depth_range_m}, the model was "
+                               f"trained with {depth_range_m}")
+    return reader
+
+
 def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[SampleRecord] | None,
                in_channels: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Network input and target (N x C x H x W, N x 3 x H x W) for ``records`` (all if None),

@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from scipy import stats
 
-from dataset.format import DatasetReader, deformation_map
-from models.data import depth_input, select_records
+from dataset.format import deformation_map
+from models.data import depth_input, reader_for_model, select_records
 from models.networks import ModelConfigError, UNetGenerator
 from models.ssim import WINDOW, ssim_rgb, to_uint8_rgb
 
@@ -64,10 +64,7 @@ def predict(generator: UNetGenerator, depth_maps_m: np.ndarray, depth_range_m: t
 def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float], root: str | os.PathLike[str],
                     split: str = "test", hold_out_object: str = "") -> Predictions:
     """Estimates for one split of a dataset (``split="all"``: every sample)."""
-    reader = DatasetReader(root)
-    if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
-        raise ModelConfigError(f"{root} normalises depth with {reader.info.depth_range_m}, the model was "
-                               f"trained with {depth_range_m}")
+    reader = reader_for_model(root, depth_range_m)
     records = reader.records if split == "all" else select_records(reader, split, hold_out_object)
     if len(records) < 2:
         raise ModelConfigError(f"the {split} set of {root} has {len(records)} sample(s); need at least 2")
