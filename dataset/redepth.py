@@ -9,7 +9,6 @@ are kept, so the splits are the same and one checkpoint evaluates every variant.
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
@@ -21,23 +20,24 @@ from perception.density import downsample_to_density
 from perception.depthmap import MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
 from perception.errors import DepthMapError
 from perception.registration import sample_model_cloud
-from sim.scene import load_scene
+from sim.scene import Scene, SceneError, load_scene
 
 
-def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, object]:
-    """The depth-map settings and gripper geometry the dataset's maps were made with."""
+def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
+    """The depth-map settings the dataset's maps were made with, and its scene."""
     info = reader.info
     if info.depth_crop_m is None:
         raise DatasetError(f"{reader.root} records no depth-map crop (dataset.json depth_crop_m): it was not "
                            "made from registered models and its depth-maps cannot be made again")
-    geometry = load_scene(info.scene, check_geometry=False).gripper_geometry()
+    scene = load_scene(info.scene, check_geometry=False)
+    geometry = scene.gripper_geometry()
     sensed_x, sensed_z = geometry.sensed_extent_m
     margin_x, margin_z = 0.5 * (info.depth_crop_m[0] - sensed_x), 0.5 * (info.depth_crop_m[2] - sensed_z)
     if abs(margin_x - margin_z) > 1e-9:
         raise DatasetError(f"{reader.root}: crop {info.depth_crop_m} m does not fit the scene's sensed area "
                            f"({sensed_x}, {sensed_z}) m with one margin")
     shape = reader.load(reader.records[0], verify=False).depth_map_m.shape
-    return DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m), geometry
+    return DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m), scene
 
 
 def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
@@ -47,21 +47,23 @@ def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
     ``points_per_cm3`` unless None. A map whose thinned cloud leaves the crop empty holds
     y_far everywhere ("nothing within reach"), as an empty bin does."""
     reader = DatasetReader(source)
-    params, geometry = depth_map_params(reader)
-    meshes = {o.name: o.mesh for o in load_scene(reader.info.scene, check_geometry=False).objects if o.mesh}
+    params, scene = depth_map_params(reader)
+    geometry = scene.gripper_geometry()
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
-    writer = DatasetWriter(out, dataclasses.replace(reader.info))
+    writer = DatasetWriter(out, reader.info)
     clouds: dict[str, np.ndarray] = {}
     y_far = np.float32(params.y_range_m[1])
     for record in tqdm(reader.records, desc=f"depth-maps {points_per_cm3 or 'full'} pts/cm³", disable=not progress):
         if record.sample_id in writer:  # resumed
             continue
         if record.object_name not in clouds:
-            if record.object_name not in meshes:
-                raise DatasetError(f"object {record.object_name!r} is not in {reader.info.scene}")
-            cloud = sample_model_cloud(meshes[record.object_name], MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
+            try:
+                mesh = scene.mesh(record.object_name)
+            except SceneError as err:
+                raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
+            cloud = sample_model_cloud(mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
             clouds[record.object_name] = cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3)
         sample = reader.load(record)
         try:

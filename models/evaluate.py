@@ -287,10 +287,10 @@ def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
     from sim.scene import SceneError, load_scene  # noqa: PLC0415
 
     try:
-        meshes = {o.name: o.mesh for o in load_scene(scene, check_geometry=False).objects if o.mesh}
+        mesh = load_scene(scene, check_geometry=False).mesh(object_name)
     except (SceneError, OSError):
         return None
-    return sample_model_cloud(meshes[object_name]).points_m if object_name in meshes else None
+    return sample_model_cloud(mesh).points_m
 
 
 def summary_table(result: dict[str, Any]) -> str:

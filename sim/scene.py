@@ -276,6 +276,14 @@ class Scene:
         raise SceneError(self.path, "cameras", f"no camera named {name!r}",
                          [c.name for c in self.cameras])
 
+    def mesh(self, object_name: str) -> str:
+        """The mesh path of the object named ``object_name`` (SceneError if it has none)."""
+        for obj in self.objects:
+            if obj.name == object_name and obj.mesh:
+                return obj.mesh
+        raise SceneError(self.path, "objects", f"no object with a mesh named {object_name!r}",
+                         [o.name for o in self.objects if o.mesh])
+
     def gripper_geometry(self):
         """The perception module's :class:`GripperGeometry` for this scene's gripper; its sensed
         area is the GelSight image's field of view (``image_width`` x ``image_height`` pixels

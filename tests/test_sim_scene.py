@@ -176,3 +176,10 @@ def test_gelsight_effects_validated(tmp_path: Path) -> None:
     data["effects"] = [{"name": "markers", "colour": "red"}]
     err = _error(tmp_path, data)
     assert err.key == "effects[0].colour" and "pitch_mm" in str(err.allowed)
+
+
+def test_an_objects_mesh_is_found_by_name() -> None:
+    scene = load_scene("scenes/ycb_three.yaml", check_geometry=False)
+    assert scene.mesh("mustard_bottle") == "assets/ycb/MustardBottle.obj"
+    with pytest.raises(SceneError, match="no object with a mesh named 'mug'"):
+        scene.mesh("mug")
