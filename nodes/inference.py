@@ -188,6 +188,12 @@ class InferenceNode(Node):
                       time.perf_counter() - started, self.depth_range_m, p.max_batch, p.batch_window_ms)
 
     # -- requests ---------------------------------------------------------------------------
+    def close(self) -> None:
+        super().close()
+        # Flush-to-zero is process state; leave the process as torch starts it (a node run
+        # inside another program, e.g. a test, must not change that program's arithmetic).
+        torch.set_flush_denormal(False)
+
     def on_estimate(self, request: TactileEstimateRequest) -> Future[TactileEstimateReply]:
         job = _Job(request, self._check(request), time.monotonic(), Future())
         with self._lock:

@@ -7,7 +7,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import torch
 
 from nodes.bus import OPEN_BUSES
 from nodes.registry import Registry
@@ -20,15 +19,6 @@ def close_leftover_buses() -> Iterator[None]:
     yield
     for bus in list(OPEN_BUSES):
         bus.close()
-
-
-@pytest.fixture(autouse=True)
-def restore_denormals() -> Iterator[None]:
-    """An inference node run in the test process turns on flush-to-zero for the whole process
-    (right for a server, where denormal activations slow convolutions); later tests must see
-    IEEE arithmetic again — hypothesis refuses to draw floats without it."""
-    yield
-    torch.set_flush_denormal(False)
 
 
 @pytest.fixture
