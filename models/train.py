@@ -235,6 +235,7 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         init_weights(discriminator)
         if config.generator.background:
             generator.set_background(y_train.mean(dim=0))
+        average = copy.deepcopy(generator).requires_grad_(False) if config.ema_decay else None
         betas = (config.beta1, config.beta2)
         opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
         opt_d = torch.optim.Adam(discriminator.parameters(), lr=config.lr, betas=betas)
@@ -245,7 +246,9 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
             if TrainConfig.from_dict(state["train_config"]) != config:
                 raise ModelConfigError(f"{checkpoint_path} was trained with a different config; "
                                        "resume with the same config or train into a new --out")
-            generator.load_state_dict(state["generator_raw"] if config.ema_decay else state["generator"])
+            generator.load_state_dict(state["generator_raw"] if average is not None else state["generator"])
+            if average is not None:
+                average.load_state_dict(state["generator"])
             discriminator.load_state_dict(state["discriminator"])
             opt_g.load_state_dict(state["opt_generator"])
             opt_d.load_state_dict(state["opt_discriminator"])
@@ -259,11 +262,6 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
         board = SummaryWriter(out_dir / "tensorboard", purge_step=step) if dist.rank == 0 else None
 
-        average = None
-        if config.ema_decay:
-            average = copy.deepcopy(generator).requires_grad_(False)
-            if resume and checkpoint_path.exists():
-                average.load_state_dict(state["generator"])
         if dist.world > 1:
             device_ids = [dist.device.index] if dist.device.type == "cuda" else None
             generator = nn.parallel.DistributedDataParallel(generator, device_ids=device_ids)
