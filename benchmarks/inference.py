@@ -27,34 +27,20 @@ import statistics
 import sys
 import tempfile
 import time
-import warnings
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
 from models.data import depth_input
 from models.networks import GeneratorConfig, UNetGenerator
+from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
 from models.ssim import ssim_rgb, to_uint8_rgb
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)
-Runner = Callable[[np.ndarray], np.ndarray]
 OFFERED = {"eager": ("fp32", "bf16"), "compile": ("fp32", "bf16"), "onnxrt": ("fp32", "int8")}
-
-
-class _Traceable(nn.Module):
-    """The generator without its input check, for FX quantisation and ONNX export."""
-
-    def __init__(self, generator: UNetGenerator) -> None:
-        super().__init__()
-        self.generator = generator
-
-    def forward(self, depth: torch.Tensor) -> torch.Tensor:
-        return self.generator.forward_unchecked(depth)
 
 
 def synthetic_inputs(count: int, seed: int, in_channels: int, depth_range_m: tuple[float, float]) -> np.ndarray:
@@ -66,26 +52,12 @@ def synthetic_inputs(count: int, seed: int, in_channels: int, depth_range_m: tup
     return depth_input(np.stack(maps), depth_range_m, in_channels).numpy()
 
 
-def _torch_runner(module: nn.Module, bf16: bool) -> Runner:
-    def run(x: np.ndarray) -> np.ndarray:
-        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            return module(torch.from_numpy(x)).float().numpy()
-    return run
-
-
 def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int,
                  workdir: Path) -> Runner:
     import onnxruntime as ort  # noqa: PLC0415
 
     path = workdir / "generator.onnx"
-    with warnings.catch_warnings():
-        # The torch.export-based exporter needs onnxscript, which is not a dependency; the
-        # TorchScript one still works but warns about its deprecation and its internal
-        # passes (constant folding, tracing), none of which concerns the exported model.
-        warnings.simplefilter("ignore")
-        torch.onnx.export(_Traceable(generator).eval(), (torch.from_numpy(calibration[:1]),), str(path),
-                          dynamo=False, input_names=["depth"], output_names=["image"],
-                          dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
+    export_onnx(generator, path)
     if int8:
         from onnxruntime import quantization as oq  # noqa: PLC0415
 
@@ -165,15 +137,15 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
             else:
                 inputs = synthetic_inputs(max(args.batch, 16), args.seed, generator.config.in_channels, depth_range_m)
                 truth = None
-            reference = to_uint8_rgb(torch.from_numpy(_torch_runner(generator, bf16=False)(inputs)))
+            reference = to_uint8_rgb(torch.from_numpy(eager_runner(generator, bf16=False)(inputs)))
             for runtime in args.runtimes:
                 for precision in args.precisions:
                     if precision not in OFFERED[runtime]:
                         continue
                     if runtime == "eager":
-                        runner = _torch_runner(generator, bf16=precision == "bf16")
+                        runner = eager_runner(generator, bf16=precision == "bf16")
                     elif runtime == "compile":
-                        runner = _torch_runner(torch.compile(_Traceable(generator)), bf16=precision == "bf16")
+                        runner = eager_runner(torch.compile(UncheckedGenerator(generator)), bf16=precision == "bf16")
                     else:
                         runner = _onnx_runner(generator, inputs, precision == "int8", args.threads, Path(tmp))
                     output = to_uint8_rgb(torch.from_numpy(runner(inputs)))

@@ -32,8 +32,6 @@ import dataclasses
 import io
 import threading
 import time
-import warnings
-from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
@@ -44,6 +42,7 @@ from torch import nn
 
 from models.data import depth_input
 from models.networks import UNetGenerator
+from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
 from models.ssim import to_uint8_rgb
 from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
@@ -75,17 +74,6 @@ class _SampledDropout(nn.Module):
         return x * keep * (1.0 / (1.0 - self.p))
 
 
-class _Unchecked(nn.Module):
-    """The generator without its input check, which the ONNX tracer cannot follow."""
-
-    def __init__(self, generator: UNetGenerator) -> None:
-        super().__init__()
-        self.generator = generator
-
-    def forward(self, depth: torch.Tensor) -> torch.Tensor:
-        return self.generator.forward_unchecked(depth)
-
-
 def _sampling_copy(generator: UNetGenerator) -> UNetGenerator:
     sampled = copy.deepcopy(generator).eval()
     for block in sampled.modules():
@@ -95,28 +83,16 @@ def _sampling_copy(generator: UNetGenerator) -> UNetGenerator:
     return sampled
 
 
-Forward = Callable[[np.ndarray], np.ndarray]
 
 
-def _forward(generator: UNetGenerator, runtime: str, precision: str, threads: int) -> Forward:
+def _forward(generator: UNetGenerator, runtime: str, precision: str, threads: int) -> Runner:
     """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1], on the chosen runtime."""
-    wrapped = _Unchecked(generator).eval()
     if runtime == "eager":
-        bf16 = precision == "bf16"
-
-        def run_eager(x: np.ndarray) -> np.ndarray:
-            with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                return wrapped(torch.from_numpy(x)).float().numpy()
-        return run_eager
+        return eager_runner(UncheckedGenerator(generator).eval(), bf16=precision == "bf16")
     import onnxruntime as ort  # noqa: PLC0415 - only this runtime needs it
 
     graph = io.BytesIO()
-    size = generator.config.image_size
-    with warnings.catch_warnings():  # the tracer warns about shape arithmetic it handles
-        warnings.simplefilter("ignore")
-        torch.onnx.export(wrapped, (torch.zeros(1, generator.config.in_channels, size, size),),
-                          graph, dynamo=False, input_names=["depth"], output_names=["image"],
-                          dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
+    export_onnx(generator, graph)
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
@@ -304,7 +280,7 @@ class InferenceNode(Node):
             maps.append(patch.depth_map_m)
         return np.stack(maps)
 
-    def _batched(self, forward: Forward, x: np.ndarray) -> np.ndarray:
+    def _batched(self, forward: Runner, x: np.ndarray) -> np.ndarray:
         step = self.params.max_batch
         outputs = []
         for start in range(0, len(x), step):

@@ -1,0 +1,52 @@
+"""Running a trained generator outside training: eager PyTorch (fp32 or bf16 autocast) and
+the ONNX graph ONNX Runtime loads. The inference node and the inference benchmark share these,
+so the benchmark measures the graphs the node serves."""
+from __future__ import annotations
+
+import io
+import os
+import warnings
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from models.networks import UNetGenerator
+
+Runner = Callable[[np.ndarray], np.ndarray]
+
+
+class UncheckedGenerator(nn.Module):
+    """The generator without its input check, which graph tracers (FX, ONNX, inductor) cannot follow."""
+
+    def __init__(self, generator: UNetGenerator) -> None:
+        super().__init__()
+        self.generator = generator
+
+    def forward(self, depth: torch.Tensor) -> torch.Tensor:
+        return self.generator.forward_unchecked(depth)
+
+
+def eager_runner(module: nn.Module, bf16: bool) -> Runner:
+    """N x C x H x W float32 -> the module's float32 output, under bf16 autocast if asked."""
+    def run(x: np.ndarray) -> np.ndarray:
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            return module(torch.from_numpy(x)).float().numpy()
+    return run
+
+
+def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.BytesIO) -> None:
+    """The generator (eval mode, batch dimension dynamic) as an ONNX graph: inputs ``depth``,
+    outputs ``image``."""
+    size = generator.config.image_size
+    with warnings.catch_warnings():
+        # The torch.export-based exporter needs onnxscript, which is not a dependency; the
+        # TorchScript one still works but warns about its deprecation and about shape
+        # arithmetic it handles, none of which concerns the exported model.
+        warnings.simplefilter("ignore")
+        torch.onnx.export(UncheckedGenerator(generator).eval(),
+                          (torch.zeros(1, generator.config.in_channels, size, size),),
+                          target if isinstance(target, io.BytesIO) else str(target), dynamo=False,
+                          input_names=["depth"], output_names=["image"],
+                          dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
