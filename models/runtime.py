@@ -3,6 +3,7 @@ the ONNX graph ONNX Runtime loads. The inference node and the inference benchmar
 so the benchmark measures the graphs the node serves."""
 from __future__ import annotations
 
+import copy
 import io
 import os
 import warnings
@@ -50,3 +51,27 @@ def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.By
                           target if isinstance(target, io.BytesIO) else str(target), dynamo=False,
                           input_names=["depth"], output_names=["image"],
                           dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
+
+
+class SampledDropout(nn.Module):
+    """Dropout that stays on at inference. Written with rand_like because the ONNX exporter
+    removes nn.Dropout from an eval graph, and an eval graph keeps BatchNorm's running stats."""
+
+    def __init__(self, p: float) -> None:
+        super().__init__()
+        self.p = p
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        keep = (torch.rand_like(x) >= self.p).to(x.dtype)
+        return x * keep * (1.0 / (1.0 - self.p))
+
+
+def sampling_copy(generator: UNetGenerator) -> UNetGenerator:
+    """A copy in eval mode whose dropout still samples: several passes give the spread the
+    inference node reports as per-pixel uncertainty."""
+    sampled = copy.deepcopy(generator).eval()
+    for block in sampled.modules():
+        for name, child in block.named_children():
+            if isinstance(child, nn.Dropout):
+                setattr(block, name, SampledDropout(child.p))
+    return sampled

@@ -27,7 +27,6 @@ extractor's).
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import io
 import threading
@@ -38,11 +37,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from models.data import depth_input
 from models.networks import UNetGenerator
-from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
+from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, sampling_copy
 from models.ssim import to_uint8_rgb
 from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
@@ -59,30 +57,6 @@ class BadRequest(ValueError):
     """A request the server cannot answer; the bus sends it back as ServiceError(code, text)."""
 
     code = "bad_request"
-
-
-class _SampledDropout(nn.Module):
-    """Dropout that stays on at inference. Written with rand_like because the ONNX exporter
-    removes nn.Dropout from an eval graph, and an eval graph keeps BatchNorm's running stats."""
-
-    def __init__(self, p: float) -> None:
-        super().__init__()
-        self.p = p
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        keep = (torch.rand_like(x) >= self.p).to(x.dtype)
-        return x * keep * (1.0 / (1.0 - self.p))
-
-
-def _sampling_copy(generator: UNetGenerator) -> UNetGenerator:
-    sampled = copy.deepcopy(generator).eval()
-    for block in sampled.modules():
-        for name, child in block.named_children():
-            if isinstance(child, nn.Dropout):
-                setattr(block, name, _SampledDropout(child.p))
-    return sampled
-
-
 
 
 def _forward(generator: UNetGenerator, runtime: str, precision: str, threads: int) -> Runner:
@@ -147,7 +121,7 @@ class InferenceNode(Node):
         generator, self.depth_range_m = load_generator(p.checkpoint)
         self.config = generator.config
         self.deterministic = _forward(generator, p.runtime, p.precision, p.threads)
-        self.sampled = _forward(_sampling_copy(generator), p.runtime, p.precision, p.threads)
+        self.sampled = _forward(sampling_copy(generator), p.runtime, p.precision, p.threads)
         from sim.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene, check_geometry=False).gripper_geometry()

@@ -26,9 +26,9 @@ from dataset.format import DatasetReader
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.data import depth_input, select_records
 from models.evaluate import PAPER, predict
+from models.runtime import sampling_copy
 from models.ssim import ssim_rgb
 from models.train import TrainConfig, load_generator, train
-from nodes.inference import _sampling_copy
 from perception.density import downsample_to_density
 from perception.depthmap import min_y_per_bin
 from perception.registration import RegistrationParams
@@ -308,7 +308,7 @@ def dropout(ws: Workspace) -> list[Point]:
     reader = DatasetReader(ws.dataset(REFERENCE_SIZE))
     depth = np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")])
     error = np.abs(predict(generator, depth, depth_range).astype(np.float32) - truth).mean(axis=-1)
-    sampled = _sampling_copy(generator)
+    sampled = sampling_copy(generator)
     x = depth_input(depth, depth_range, generator.config.in_channels)
     points = []
     for samples in ws.plan.dropout_samples:
