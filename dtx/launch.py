@@ -40,6 +40,8 @@ from typing import Any, TextIO
 
 import yaml
 
+from nodes.registry import Registry
+
 NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required", "if",
              "transport", "bind_host", "curve_secret_key", "curve_authorized_keys", "endpoints", "peers"}
 ENTRY_KEYS = {"arg", "include", "node"}
@@ -257,6 +259,14 @@ class Launcher:
 
     def run(self) -> int:
         """Run until Ctrl-C, a required node ends, or every node has ended. Exit status."""
+        registry = Registry()
+        taken = {spec.name: registry.live_node_pid(spec.name) for spec in self.description.nodes}
+        taken = {name: pid for name, pid in taken.items() if pid is not None}
+        if taken:
+            self.say(f"[launch] error: {', '.join(f'{n} (pid {p})' for n, p in taken.items())} already run on bus "
+                     f"{registry.root}: another graph is live in this domain. Stop it, or run this one on a bus of "
+                     "its own with DTX_DOMAIN=NAME")
+            return 1
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: self._stop.set())
         for spec in self.description.nodes:

@@ -96,6 +96,12 @@ class Node:
                  remaps: dict[str, str] | None = None) -> None:
         self.name = name
         self.params = parse_params(self.Params, params or {}, name)
+        registry = registry or Registry()
+        holder = registry.live_node_pid(name)
+        if holder is not None and holder != os.getpid():
+            # Two graphs in one domain would answer each other's requests and mix their data.
+            raise ValueError(f"a node named {name!r} already runs (pid {holder}) on bus {registry.root}; stop that "
+                             "graph, or give this one a bus of its own with DTX_DOMAIN=NAME")
         self.bus = Bus(name, registry, transport, remaps)
         self.log = logging.getLogger(f"dtx.{name}")
         self._publishers: list[Publisher[Any]] = []

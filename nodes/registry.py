@@ -87,6 +87,14 @@ class Registry:
     def write_node_status(self, node: str, status: dict) -> None:
         _write_json_atomic(self.root / "nodes" / f"{quote(node, safe='')}.json", status)
 
+    def live_node_pid(self, node: str) -> int | None:
+        """The pid of the running process that holds the name ``node`` on this bus, if any."""
+        status = _read_json(self.root / "nodes" / f"{quote(node, safe='')}.json")
+        if status is None or status.get("status") == "stopped":
+            return None
+        pid = int(status.get("pid", 0))
+        return pid if pid > 0 and pid_alive(pid) else None
+
     def node_statuses(self) -> list[dict]:
         statuses = []
         for path in sorted((self.root / "nodes").glob("*.json")):

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -123,6 +125,31 @@ def test_required_node_failing_fails_the_launch(registry: Registry, launch_env: 
     output, _ = launcher.communicate(timeout=60)
     assert launcher.returncode == 1, output
     assert "crasher failed (exit 3)" in output
+
+
+def test_a_second_graph_in_the_same_domain_is_refused(registry: Registry, launch_env: dict[str, str]) -> None:
+    """Two graphs on one bus would answer each other's services and mix their data: the second
+    launch, or a node started by hand under a taken name, stops before joining; another domain
+    is a bus of its own."""
+    elsewhere = {**launch_env, "DTX_BUS_DIR": tempfile.mkdtemp(prefix="dtxo")}  # ipc paths stay short
+    launcher = dtx("launch", str(FIXTURES / "two_counters.yaml"), env=launch_env)
+    try:
+        pids = wait_for_nodes(registry, {"steady", "finisher"})
+        second = dtx("launch", str(FIXTURES / "two_counters.yaml"), env=launch_env)
+        output, _ = second.communicate(timeout=60)
+        assert second.returncode == 1, output
+        assert f"steady (pid {pids['steady']})" in output and "DTX_DOMAIN" in output and "started" not in output
+        by_hand = subprocess.run([sys.executable, "-m", "fixture_nodes", "--name", "steady"], env=launch_env,
+                                 text=True, capture_output=True, timeout=60)
+        assert by_hand.returncode == 2 and "a node named 'steady' already runs" in by_hand.stderr
+        third = dtx("launch", str(FIXTURES / "two_counters.yaml"), "finish_after:=3", env=elsewhere)
+        output, _ = third.communicate(timeout=60)
+        assert third.returncode == 0, output
+        assert wait_for_nodes(registry, {"steady", "finisher"}) == pids  # the first graph never noticed
+    finally:
+        launcher.send_signal(signal.SIGINT)
+        launcher.communicate(timeout=30)
+        shutil.rmtree(elsewhere["DTX_BUS_DIR"], ignore_errors=True)
 
 
 def test_nodes_die_with_a_killed_launcher(registry: Registry, launch_env: dict[str, str]) -> None:
