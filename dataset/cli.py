@@ -45,9 +45,13 @@ def _redepth(args: argparse.Namespace) -> int:
     if not targets:
         print("error: give --density D [D ...] or --out DIR (full density)", file=sys.stderr)
         return 2
+    if args.bins is not None and not args.out:
+        print("error: --bins needs --out DIR (the default names say only the density)", file=sys.stderr)
+        return 2
     for density, out in targets.items():
-        writer = redepth_dataset(args.dir, out, density)
-        print(f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}")
+        writer = redepth_dataset(args.dir, out, density, args.bins)
+        print(f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
+              + ("" if args.bins is None else f", {args.bins} x {args.bins} bins"))
     return 0
 
 
@@ -77,4 +81,5 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     redepth.add_argument("--density", type=float, nargs="+", default=[],
                          help="points/cm³ after a voxel-grid filter; each goes to DIR_density_D")
     redepth.add_argument("--out", help="output directory for one density (or, without --density, full density)")
+    redepth.add_argument("--bins", type=int, help="bins per side (default: the source's); tactile images are resized to match")
     redepth.set_defaults(func=_redepth)

@@ -1,24 +1,31 @@
-"""Depth-maps made again from a collected dataset, e.g. at the paper's point densities.
+"""Depth-maps made again from a collected dataset, e.g. at the paper's point densities or at
+another number of bins.
 
 A collected sample records where the object's model sat in the gel frame when its depth-map
 was made (``model_to_gel``), and the dataset records the crop (``depth_crop_m``) and the scene
 whose meshes the models come from. That is enough to bin the model again: from a cloud thinned
 by a voxel-grid filter to 1-80 points/cm³ (paper Table II), or at full density, which gives
-back the collected maps bit for bit. Tactile images are copied unchanged and the sample ids
-are kept, so the splits are the same and one checkpoint evaluates every variant.
+back the collected maps bit for bit. Tactile images are copied unchanged (resized with the
+depth-map when the bins change, since the network maps one bin to one pixel) and the sample
+ids are kept, so the splits are the same and one checkpoint evaluates every variant of its size.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
 from dataset.format import DatasetError, DatasetReader, DatasetWriter
 from perception.density import downsample_to_density
-from perception.depthmap import MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
+from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
+                                 crop_reach_m)
 from perception.errors import DepthMapError
+from perception.kinematics import GripperGeometry
+from perception.pointcloud import VoxelIndex
 from perception.registration import sample_model_cloud
 from sim.scene import Scene, SceneError, load_scene
 
@@ -40,43 +47,74 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
     return DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m), scene
 
 
+def model_cloud(scene: Scene, object_name: str, points_per_cm3: float | None = None) -> VoxelIndex:
+    """The patch extractor's model cloud of one object (model frame, m), indexed as it indexes
+    it: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED, voxel-thinned to ``points_per_cm3``
+    unless None. Raises SceneError for an object the scene does not have."""
+    cloud = sample_model_cloud(scene.mesh(object_name), MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
+    return VoxelIndex(cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3))
+
+
+def depth_map_again(model: VoxelIndex, model_to_gel: np.ndarray, geometry: GripperGeometry,
+                    params: DepthMapParams) -> np.ndarray:
+    """The depth-map (m, float32) of a model cloud posed in the gel frame by ``model_to_gel``,
+    with a dataset's settings (:func:`depth_map_params`), from the points within reach of the
+    gel as the patch extractor takes them; y_far everywhere when nothing of the cloud falls in
+    the crop ("nothing within reach")."""
+    gel_centre_in_model = np.linalg.inv(model_to_gel)[:3, 3]
+    near = model.within(gel_centre_in_model, crop_reach_m(geometry, params))
+    try:
+        return contact_depth_map(near, model_to_gel, np.eye(4), geometry, params).depth_map_m
+    except DepthMapError:
+        return np.full(params.shape, params.y_range_m[1], np.float32)
+
+
 def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
-                    points_per_cm3: float | None = None, progress: bool = True) -> DatasetWriter:
+                    points_per_cm3: float | None = None, bins: int | None = None,
+                    progress: bool = True) -> DatasetWriter:
     """Write ``out``: ``source`` with every depth-map made again from the model cloud
     (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED), voxel-thinned to
-    ``points_per_cm3`` unless None. A map whose thinned cloud leaves the crop empty holds
-    y_far everywhere ("nothing within reach"), as an empty bin does."""
+    ``points_per_cm3`` unless None, over ``bins`` x ``bins`` bins of the same crop unless None
+    (the source's bins). A map whose thinned cloud leaves the crop empty holds y_far everywhere
+    ("nothing within reach"), as an empty bin does."""
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
+    info = reader.info
+    if bins is not None:
+        if not (isinstance(bins, int) and 8 <= bins <= 1024):
+            raise DatasetError(f"bins must be a whole number from 8 to 1024, got {bins!r}")
+        params = dataclasses.replace(params, shape=(bins, bins))
+        info = dataclasses.replace(info, image_height=bins, image_width=bins)
     geometry = scene.gripper_geometry()
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
-    writer = DatasetWriter(out, reader.info)
-    clouds: dict[str, np.ndarray] = {}
-    y_far = np.float32(params.y_range_m[1])
+    writer = DatasetWriter(out, info)
+    clouds: dict[str, VoxelIndex] = {}
     for record in tqdm(reader.records, desc=f"depth-maps {points_per_cm3 or 'full'} pts/cm³", disable=not progress):
         if record.sample_id in writer:  # resumed
             continue
         if record.object_name not in clouds:
             try:
-                mesh = scene.mesh(record.object_name)
+                clouds[record.object_name] = model_cloud(scene, record.object_name, points_per_cm3)
             except SceneError as err:
                 raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
-            cloud = sample_model_cloud(mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
-            clouds[record.object_name] = cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3)
         sample = reader.load(record)
-        try:
-            depth = contact_depth_map(clouds[record.object_name], np.array(record.model_to_gel), np.eye(4),
-                                      geometry, params).depth_map_m
-        except DepthMapError:
-            depth = np.full(params.shape, y_far, np.float32)
+        depth = depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params)
         writer.write(sample_id=record.sample_id, object_name=record.object_name, grasp_id=record.grasp_id,
-                     finger=record.finger, grasp_pose=record.grasp_pose, tactile_rgb=sample.tactile_rgb,
-                     tactile_diff_rgb=sample.tactile_diff_rgb, depth_map_m=depth,
+                     finger=record.finger, grasp_pose=record.grasp_pose,
+                     tactile_rgb=_resized(sample.tactile_rgb, params.shape),
+                     tactile_diff_rgb=_resized(sample.tactile_diff_rgb, params.shape), depth_map_m=depth,
                      registration_fitness=record.registration_fitness, stamps_ns=record.stamps_ns,
                      model_to_gel=np.array(record.model_to_gel))
     return writer
+
+
+def _resized(image_rgb: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    if image_rgb.shape[:2] == tuple(shape):
+        return image_rgb
+    shrink = image_rgb.shape[0] > shape[0]
+    return cv2.resize(image_rgb, (shape[1], shape[0]), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
 def density_dirs(root: str | os.PathLike[str], densities: list[float]) -> dict[float, Path]:

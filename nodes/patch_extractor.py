@@ -26,7 +26,7 @@ import numpy as np
 import msgs
 from nodes.node import Node, run_node
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, centre_between_gels,
-                                 contact_depth_map, crop_bounds)
+                                 contact_depth_map, crop_reach_m)
 from perception.evaluation import segmentation_params_for
 from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
 from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud
@@ -63,13 +63,7 @@ class PatchExtractorNode(Node):
                                                margin_m=self.params.margin_m,
                                                y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]),
                                                fill_gaps_min_neighbours=self.params.fill_gaps_min_neighbours)
-        # Every model point a gel's depth-map or centring can use lies within this distance of
-        # the gel centre: the crop's corners, or the gel face up to the crop's depth.
-        half_x, half_z, y_near, y_far = crop_bounds(self.geometry, self.depth_map_params)
-        deepest = max(abs(y_near), abs(y_far))
-        self.reach_m = float(max(np.linalg.norm([half_x, half_z, deepest]),
-                                 np.linalg.norm([0.5 * self.geometry.gel_size_m[0], 0.5 * self.geometry.gel_size_m[1],
-                                                 deepest])))
+        self.reach_m = crop_reach_m(self.geometry, self.depth_map_params)
         self.latest: dict[str, msgs.DepthImage] = {}
         for topic in self.params.cameras:
             self.create_subscription(topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image}))

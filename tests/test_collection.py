@@ -78,6 +78,18 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> 
         thinned = sparse.load(record.sample_id).depth_map_m
         assert np.count_nonzero(thinned != y_far) < 0.1 * np.count_nonzero(original.depth_map_m != y_far)
     assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [r.sample_id for r in collected.records]
+    coarse = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "coarse", bins=50, progress=False).root)
+    assert (coarse.info.image_height, coarse.info.image_width) == (50, 50)
+    for record in collected.records:
+        full, half = collected.load(record), coarse.load(record.sample_id)
+        assert half.depth_map_m.shape == (50, 50) and half.tactile_rgb.shape == (50, 50, 3)
+        # One 50-bin holds the points of 2 x 2 100-bins: its minimum is theirs, but where gap
+        # filling made a bin up at one size and not at the other.
+        block_min = full.depth_map_m.reshape(50, 2, 50, 2).min(axis=(1, 3))
+        assert np.mean(np.isclose(half.depth_map_m, block_min, atol=1e-6)) > 0.95
+    for bad in (0, 7, 2000, 50.5):
+        with pytest.raises(DatasetError, match="bins must be"):
+            redepth_dataset(tmp_path / "collected", tmp_path / f"bad{bad}", bins=bad, progress=False)
     write_synthetic_dataset(tmp_path / "synthetic", 2, seed=0, progress=False)
     with pytest.raises(DatasetError, match="records no depth-map crop"):
         redepth_dataset(tmp_path / "synthetic", tmp_path / "x", 10.0, progress=False)

@@ -340,6 +340,7 @@ def test_redepth_cli_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFi
     for argv, code, message in (
             ([], 2, "give --density"),
             (["--density", "1", "10", "--out", str(tmp_path / "x")], 2, "--out takes one density"),
+            (["--density", "10", "--bins", "50"], 2, "--bins needs --out"),
             (["--density", "10"], 1, "records no depth-map crop")):
         args = parser.parse_args(["dataset", "redepth", str(root), *argv])
         assert args.func(args) == code
