@@ -121,15 +121,24 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
 CONTACT_LEVELS = 15.0
 
 
+def contact_windows(truth_deformation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of the pairs whose truth shows contact, N x H x W bool contact pixels): the
+    SSIM windows centred on those pixels are the contact windows (``truth_deformation`` >=
+    CONTACT_LEVELS). A pair counts only if a contact pixel is far enough inside the image for
+    a whole window."""
+    contact = truth_deformation >= CONTACT_LEVELS
+    inner = contact[:, WINDOW // 2:-(WINDOW // 2), WINDOW // 2:-(WINDOW // 2)]
+    return np.flatnonzero(inner.any(axis=(1, 2))), contact
+
+
 def contact_ssim_statistics(truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray,
                             baseline_draws: int = 15, seed: int = 0) -> dict[str, Any]:
-    """The paper's comparison with SSIM taken only over the windows centred where the ground
-    truth is deformed (``truth_deformation`` >= CONTACT_LEVELS). The whole-image SSIM of these
-    images is mostly the sensor's own background, which a no-contact estimate gets right; here
-    only the contact counts. Pairs whose truth shows no contact are left out; the baseline
-    scores an estimate on each random truth's own contact windows."""
-    contact = truth_deformation >= CONTACT_LEVELS
-    keep = np.flatnonzero(contact[:, WINDOW // 2:-(WINDOW // 2), WINDOW // 2:-(WINDOW // 2)].any(axis=(1, 2)))
+    """The paper's comparison with SSIM taken only over the contact windows
+    (:func:`contact_windows`). The whole-image SSIM of these images is mostly the sensor's own
+    background, which a no-contact estimate gets right; here only the contact counts. Pairs
+    whose truth shows no contact are left out; the baseline scores an estimate on each random
+    truth's own contact windows."""
+    keep, contact = contact_windows(truth_deformation)
     if len(keep) < 2:
         return {"n": int(len(keep)), "contact_levels": CONTACT_LEVELS}
     result = ssim_statistics(truth[keep], estimate[keep], baseline_draws, seed, windows=contact[keep])
@@ -185,8 +194,13 @@ def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root:
     for points_per_cm3, density_root in sorted((density or {}).items()):
         at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
         mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
-        result["density"].append({"points_per_cm3": float(points_per_cm3), "ssim_mean": mean, "ssim_se": se,
-                                  "paper_ssim_mean": PAPER["density"].get(points_per_cm3)})
+        row = {"points_per_cm3": float(points_per_cm3), "ssim_mean": mean, "ssim_se": se,
+               "paper_ssim_mean": PAPER["density"].get(points_per_cm3)}
+        keep, contact = contact_windows(at_density.truth_deformation)
+        if len(keep) >= 2:
+            row["contact_ssim_mean"], row["contact_ssim_se"] = _mean_se(
+                ssim_rgb(at_density.truth[keep], at_density.estimate[keep], contact[keep]))
+        result["density"].append(row)
     result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
     return result, predictions
 
@@ -313,7 +327,8 @@ def summary_table(result: dict[str, Any]) -> str:
     for row in result["density"]:
         paper = row["paper_ssim_mean"]
         lines.append(f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"
-                     f"{row['ssim_mean']:>13.4f} ± {row['ssim_se']:.4f}{'' if paper is None else format(paper, '>18.4f')}")
+                     f"{row['ssim_mean']:>13.4f} ± {row['ssim_se']:.4f}{'' if paper is None else format(paper, '>18.4f')}"
+                     + (f"   contact {row['contact_ssim_mean']:.4f}" if "contact_ssim_mean" in row else ""))
     return "\n".join(lines)
 
 

@@ -97,6 +97,9 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
     assert set(result["template_match"]) >= {"score_mean", "distance_px_median"}
     assert result["contact"]["contact_levels"] == CONTACT_LEVELS
     assert result["density"][0]["points_per_cm3"] == 20 and result["density"][0]["paper_ssim_mean"] == 0.8478
+    # The density dataset is the test dataset itself: its contact-window SSIM is the contact block's.
+    assert result["contact"]["n"] >= 2
+    assert result["density"][0]["contact_ssim_mean"] == pytest.approx(result["contact"]["ssim_model_mean"])
     assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["density.png", "qualitative.png",
                                                                      "ssim_bars.png"]
     args = parser.parse_args(["evaluate", str(tmp_path / "missing.pt"), str(dataset)])
