@@ -1,6 +1,6 @@
 """Analytic contacts for the report: one deterministic list of surfaces, written as datasets
-at any depth-map resolution and rendered as point clouds, so that every sweep that needs
-ground truth sees the same contacts (the surfaces and renderer are dataset.synth's)."""
+at any depth-map resolution, so that every sweep that needs ground truth it can render again
+sees the same contacts (the surfaces and renderer are dataset.synth's)."""
 from __future__ import annotations
 
 import dataclasses
@@ -57,14 +57,3 @@ def write_dataset(out: Path, items: list[Contact], size: int, seed: int) -> Path
                      depth_map_m=depth_map_from_surface(c.surface, size, CROP_MM, DEPTH_RANGE_M[1]),
                      registration_fitness=1.0)
     return out
-
-
-def surface_cloud(surface: SurfaceMm, spacing_mm: float) -> np.ndarray:
-    """(N, 3) points in the gel frame (x, y, z in metres) sampled on a square grid over the
-    depth-map crop, keeping only surface within the depth range (what a sensor would crop)."""
-    n = int(round(CROP_MM / spacing_mm))
-    centres = (np.arange(n) + 0.5) * (CROP_MM / n) - CROP_MM / 2
-    z, x = np.meshgrid(centres, centres, indexing="ij")
-    y = surface(x, z)
-    keep = np.isfinite(y) & (y * 1e-3 <= DEPTH_RANGE_M[1])
-    return np.column_stack([x[keep], y[keep], z[keep]]) * 1e-3

@@ -27,10 +27,13 @@ class Spec:
 
 
 SPECS: dict[str, Spec] = {
-    "density": Spec("Point-cloud density", "How dense must the object cloud be for the estimate?",
-                    "density", "depth-map ms", "SSIM", True, 0.01,
-                    (("points_median", "points"), ("thinning_ms", "thinning ms (once per cloud)"),
-                     ("ssim_se", "SSIM s.e."), ("paper_ssim", "paper SSIM"))),
+    "density": Spec("Point-cloud density", "How dense must the object cloud be for the estimate? (collected "
+                    "session: depth-maps made again from the recorded model poses; SSIM on the contact windows, "
+                    "where a sparse map's no-contact estimate cannot score)", "density", "depth-map ms",
+                    "contact SSIM", True, 0.01,
+                    (("points_median", "model points"), ("thinning_ms", "thinning + index ms (once per cloud)"),
+                     ("contact_ssim_se", "contact s.e."), ("ssim", "whole-image SSIM"),
+                     ("paper_ssim", "paper SSIM"))),
     "registration_voxel": Spec("Registration voxel size", "Coarser FPFH voxels: faster, but how much pose error?",
                                "voxel", "ms per registration", "ADD-S median (mm)", False, 0.5,
                                (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted"))),
@@ -40,9 +43,11 @@ SPECS: dict[str, Spec] = {
     "registration_icp": Spec("ICP distance stages", "Which ICP correspondence distances?",
                              "stages", "ms per registration", "ADD-S median (mm)", False, 0.5,
                              (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted"))),
-    "resolution": Spec("Depth-map resolution", "Finer bins: do they pay for their training and inference time?",
-                       "bins", "training CPU s/epoch", "SSIM at 100 x 100", True, 0.01,
-                       (("inference_ms_per_region", "inference ms/region"), ("ssim_se", "SSIM s.e."))),
+    "resolution": Spec("Depth-map resolution", "Finer bins: do they pay for their training and inference time? "
+                       "(collected session, depth-maps made again at each size; SSIM at 100 x 100 on the contact "
+                       "windows)", "bins", "training CPU s/epoch", "contact SSIM", True, 0.01,
+                       (("inference_ms_per_region", "inference ms/region"), ("contact_ssim_se", "contact s.e."),
+                        ("ssim", "whole-image SSIM"))),
     "training_length": Spec("Training length", "When does more training stop paying?",
                             "epochs", "training CPU s", "validation SSIM", True, 0.01, (("val_l1", "val L1"),)),
     "depth_effects": Spec("Simulated depth effects", "What does realistic depth data cost per frame, and "

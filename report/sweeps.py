@@ -1,7 +1,12 @@
 """The measurements behind the accuracy-time report. Each sweep returns points
 ``{"sweep", "setting", "time", "accuracy", ...extra figures}``; what "time" and "accuracy"
-mean for a sweep is in report.specs. The work is done by the project's own code (dataset.synth
-contacts, models.train, perception, sim, benchmarks); this module only chooses settings.
+mean for a sweep is in report.specs. The work is done by the project's own code (a collection
+session on the simulated scene, dataset.redepth, dataset.synth contacts, models.train,
+perception, sim, benchmarks); this module only chooses settings.
+
+The density and resolution sweeps run on a collected session, since what they change is how
+the patch extractor makes depth-maps from registered models; the other learned sweeps compare
+networks and GelSight effects on analytic contacts, whose ground truth can be rendered again.
 """
 from __future__ import annotations
 
@@ -10,7 +15,12 @@ import csv
 import dataclasses
 import functools
 import json
+import os
+import shutil
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -22,17 +32,18 @@ import torch
 from benchmarks import inference as inference_bench
 from benchmarks.perception import _sweep_cases, _sweep_row
 from benchmarks.sim import DEPTH_EFFECTS
-from dataset.format import DatasetReader
+from dataset.format import DatasetReader, SampleRecord, deformation_map
+from dataset.redepth import depth_map_again, depth_map_params, model_cloud, redepth_dataset
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.data import depth_input, select_records
-from models.evaluate import PAPER, predict
+from models.evaluate import PAPER, contact_windows, predict
 from models.runtime import sampling_copy
 from models.ssim import ssim_rgb
 from models.train import TrainConfig, load_generator, train
 from perception.density import downsample_to_density
-from perception.depthmap import min_y_per_bin
+from perception.pointcloud import VoxelIndex
 from perception.registration import RegistrationParams
-from report.contacts import CROP_MM, DEPTH_RANGE_M, Contact, contacts, surface_cloud, write_dataset
+from report.contacts import Contact, contacts, write_dataset
 from report.plan import Plan
 from sim.gelsight import GelSightRenderer
 from sim.gelsight_effects import EFFECTS as GELSIGHT_EFFECTS
@@ -41,6 +52,7 @@ from sim.scene import load_scene
 from sim.world import SimWorld
 
 Point = dict[str, Any]
+REPO = Path(__file__).resolve().parent.parent
 SCENE = "scenes/ycb_three.yaml"
 REFERENCE_SIZE = 100  # the paper's depth-map and image size: every SSIM is taken at it
 
@@ -59,6 +71,15 @@ def _median_ms(function, runs: int) -> float:
     return statistics.median(walls)
 
 
+@dataclasses.dataclass(frozen=True)
+class SessionTest:
+    """The collected session's test split: records and 100 x 100 ground truth."""
+
+    records: list[SampleRecord]
+    truth: np.ndarray         # N x 100 x 100 x 3 uint8
+    deformation: np.ndarray   # N x 100 x 100, summed |change| from the no-contact image (levels)
+
+
 class Workspace:
     """Datasets and trained models under ``root``, made on first use and kept, so a rerun or
     a sweep that needs a model another sweep trained does not train it again."""
@@ -74,9 +95,44 @@ class Workspace:
     def dataset(self, size: int) -> Path:
         return write_dataset(self.root / f"data_{size}", self.contacts, size, self.plan.seed)
 
+    @functools.cached_property
+    def session(self) -> Path:
+        """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
+        operator runs (Algorithm 1), ``plan.session_grasps`` grasps; resumed if interrupted."""
+        out = (self.root / "session").resolve()
+        command = [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
+                   f"grasps:={self.plan.session_grasps}", f"seed:={self.plan.seed}", "record:=false"]
+        if (out / "manifest.jsonl").exists():
+            command.append("resume:=true")
+        # A bus of its own, so that a graph the lab is running meanwhile is never touched; the
+        # graph's progress goes to stderr with the report's own.
+        bus = tempfile.mkdtemp(prefix="dtxr")  # ipc socket paths must stay short
+        try:
+            result = subprocess.run(command, cwd=REPO, stdout=sys.stderr, env={**os.environ, "DTX_BUS_DIR": bus})
+        finally:
+            shutil.rmtree(bus, ignore_errors=True)
+        if result.returncode != 0:
+            raise RuntimeError(f"the collection session for the report failed (exit {result.returncode}): "
+                               f"dtx {' '.join(command[3:])}")
+        return out
+
+    def session_at(self, bins: int) -> Path:
+        """The session with its depth-maps made again over ``bins`` x ``bins`` bins."""
+        if bins == REFERENCE_SIZE:
+            return self.session  # collected at 100 x 100
+        return redepth_dataset(self.session, self.root / f"session_{bins}", bins=bins, progress=False).root
+
+    @functools.cached_property
+    def session_test(self) -> SessionTest:
+        reader = DatasetReader(self.session)
+        records = select_records(reader, "test")
+        samples = [reader.load(r) for r in records]
+        return SessionTest(records, np.stack([s.tactile_rgb for s in samples]),
+                           np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]))
+
     def config(self, size: int, width: int) -> TrainConfig:
         """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``."""
-        base = TrainConfig.load(Path(__file__).resolve().parent.parent / "configs" / "quick.yaml")
+        base = TrainConfig.load(REPO / "configs" / "quick.yaml")
         pad = -(-size // 128) * 128  # the U-Net's 7 halvings need a multiple of 128
         generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
         # One thread: on a shared machine extra OpenMP threads mostly wait for a core, and
@@ -85,18 +141,24 @@ class Workspace:
                                    epochs_decay=self.plan.epochs, generator=generator, threads=1)
 
     def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:
+        """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""
+        return self._trained(self.dataset(size), size, width, self.root / f"train_{size}_w{width}")
+
+    def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
+        """The width-16 model trained on the session at ``bins`` x ``bins``: see :meth:`_trained`."""
+        return self._trained(self.session_at(bins), bins, 16, self.root / f"train_session_{bins}")
+
+    def _trained(self, dataset: Path, size: int, width: int, out: Path) -> Path:
         """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
         seconds of each epoch, data loading included). Trained one epoch per call so that each
         epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
-        out = self.root / f"train_{size}_w{width}"
         cpu_log = out / "cpu_s.json"
         threads = torch.get_num_threads()
         try:
             while len(_cpu_s(out)) < 2 * self.plan.epochs:
                 fresh = not (out / "checkpoint.pt").exists()
                 started = time.process_time()
-                train(self.dataset(size), self.config(size, width), out, resume=True, progress=False,
-                      stop_after_epochs=1)
+                train(dataset, self.config(size, width), out, resume=True, progress=False, stop_after_epochs=1)
                 cpu = [] if fresh else _cpu_s(out)
                 cpu_log.write_text(json.dumps(cpu + [round(time.process_time() - started, 2)]))
         finally:
@@ -105,7 +167,7 @@ class Workspace:
 
     @functools.cached_property
     def test(self) -> tuple[list[Contact], np.ndarray]:
-        """The test split's contacts and their 100 x 100 ground-truth images."""
+        """The analytic test split's contacts and their 100 x 100 ground-truth images."""
         reader = DatasetReader(self.dataset(REFERENCE_SIZE))
         records = select_records(reader, "test")
         by_id = {c.sample_id: c for c in self.contacts}
@@ -117,21 +179,33 @@ def _resize(images: np.ndarray, size: int) -> np.ndarray:
     return np.stack([cv2.resize(image, (size, size), interpolation=interpolation) for image in images])
 
 
+def _session_scores(test: SessionTest, estimate: np.ndarray) -> dict[str, float]:
+    """SSIM of 100 x 100 estimates against the session's test truth on the contact windows
+    (models.evaluate.contact_windows: the accuracy these sweeps rank by) and over the whole
+    image (the paper's figure, which a no-contact estimate scores well on)."""
+    keep, windows = contact_windows(test.deformation)
+    contact = ssim_rgb(test.truth[keep], estimate[keep], windows[keep])
+    whole = ssim_rgb(test.truth, estimate)
+    return {"contact_ssim": float(contact.mean()), "contact_ssim_se": _se(contact), "contact_pairs": len(keep),
+            "ssim": round(float(whole.mean()), 4), "ssim_se": _se(whole)}
+
+
 def resolution(ws: Workspace) -> list[Point]:
-    """Depth-map bins per side -> SSIM (estimate resized to 100 x 100 against the 100 x 100
-    truth, so resolutions are compared on the same images), training CPU s/epoch, inference ms."""
-    _, truth = ws.test
+    """The session's depth-maps made again over 50, 100, 200 bins (tactile images resized to
+    match) and a model trained on each -> SSIM of its estimates resized to 100 x 100 against
+    the collected 100 x 100 truth, training CPU s/epoch, inference ms per region."""
+    test = ws.session_test
     points = []
     for size in ws.plan.resolutions:
-        model = ws.model(size)
+        model = ws.session_model(size)
         generator, depth_range = load_generator(model / "checkpoint.pt")
-        reader = DatasetReader(ws.dataset(size))
-        depth = np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")])
+        reader = DatasetReader(ws.session_at(size))
+        depth = np.stack([reader.load(r.sample_id).depth_map_m for r in test.records])
         estimate = predict(generator, depth, depth_range)
         inference_ms = _median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
-        ssim = ssim_rgb(truth, _resize(estimate, REFERENCE_SIZE))
-        points.append(_point("resolution", f"{size} x {size}", _epoch_s(model), ssim.mean(),
-                             ssim_se=_se(ssim), inference_ms_per_region=round(inference_ms, 3)))
+        scores = _session_scores(test, _resize(estimate, REFERENCE_SIZE))
+        points.append(_point("resolution", f"{size} x {size}", _epoch_s(model), scores.pop("contact_ssim"),
+                             inference_ms_per_region=round(inference_ms, 3), **scores))
     return points
 
 
@@ -182,32 +256,34 @@ def training_length(ws: Workspace) -> list[Point]:
 
 
 def density(ws: Workspace) -> list[Point]:
-    """Each test contact as a surface cloud (3 samples per bin, as the training depth-maps),
-    voxel-thinned to each density, binned to a 100 x 100 depth-map, estimated by the 100 x 100
-    model -> SSIM; time = binning one depth-map (the pipeline thins a model cloud once and
-    cuts many depth-maps from it, so thinning is reported beside, not added)."""
-    items, truth = ws.test
-    generator, depth_range = load_generator(ws.model() / "checkpoint.pt")
-    clouds = [surface_cloud(c.surface, CROP_MM / (3 * REFERENCE_SIZE)) for c in items]
-    half = CROP_MM * 1e-3 / 2
+    """The session's test grasps with each object's model cloud (the patch extractor's)
+    voxel-thinned to each density and their depth-maps made again from the recorded model
+    poses (dataset.redepth), estimated by the model trained on the session -> SSIM; time =
+    making one depth-map (the pipeline thins a model cloud once and cuts many depth-maps from
+    it, so thinning and indexing are reported beside, not added)."""
+    test = ws.session_test
+    params, scene = depth_map_params(DatasetReader(ws.session))
+    geometry = scene.gripper_geometry()
+    generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
+    full = {name: model_cloud(scene, name).points_m for name in sorted({r.object_name for r in test.records})}
     points = []
     for value in (None, *ws.plan.densities):
-        maps, walls, thinning, counts = [], [], [], []
-        for cloud in clouds:
+        clouds, thinning = {}, []
+        for name, cloud in full.items():
             started = time.perf_counter()
-            thinned = cloud if value is None else downsample_to_density(cloud, value)
+            clouds[name] = VoxelIndex(cloud if value is None else downsample_to_density(cloud, value))
             thinning.append((time.perf_counter() - started) * 1e3)
+        maps, walls = [], []
+        for record in test.records:
             started = time.perf_counter()
-            min_y, occupied = min_y_per_bin(thinned[:, 0], thinned[:, 2], thinned[:, 1], half, half,
-                                            (REFERENCE_SIZE, REFERENCE_SIZE))
-            maps.append(np.where(occupied, min_y, DEPTH_RANGE_M[1]).astype(np.float32))
+            maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
             walls.append((time.perf_counter() - started) * 1e3)
-            counts.append(len(thinned))
-        ssim = ssim_rgb(truth, predict(generator, np.stack(maps), depth_range))
+        scores = _session_scores(test, predict(generator, np.stack(maps), depth_range))
         points.append(_point("density", "unfiltered" if value is None else f"{value:g} pts/cm³",
-                             statistics.median(walls), ssim.mean(), ssim_se=_se(ssim),
-                             points_median=int(np.median(counts)), thinning_ms=round(statistics.median(thinning), 3),
-                             paper_ssim=None if value is None else PAPER["density"].get(int(value))))
+                             statistics.median(walls), scores.pop("contact_ssim"),
+                             points_median=int(np.median([len(c.points_m) for c in clouds.values()])),
+                             thinning_ms=round(statistics.median(thinning), 3),
+                             paper_ssim=None if value is None else PAPER["density"].get(int(value)), **scores))
     return points
 
 
