@@ -282,7 +282,9 @@ def play(path: str | Path, bus: Bus, rate: float | None = 1.0, clock: bool = Fal
             publishers[topic] = bus.publisher(topic, msgs.MESSAGE_TYPES[schema])
     clock_publisher = bus.publisher("/clock", msgs.Clock) if clock else None
     deadline = time.monotonic() + wait_for_subscribers_s
-    for publisher in publishers.values():  # slow joiners: let subscribers connect first
+    # Slow joiners: let subscribers connect first, /clock's too (a clock that starts late
+    # would leave a listener without the bag's time for the messages it already got).
+    for publisher in [*publishers.values(), *([clock_publisher] if clock_publisher else [])]:
         publisher.wait_for_subscribers(1, max(0.0, deadline - time.monotonic()))
     counts: dict[str, int] = {}
     start_wall = time.monotonic()
