@@ -28,6 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
+from scipy import stats
 
 from benchmarks import inference as inference_bench
 from benchmarks.perception import _sweep_cases, _sweep_row
@@ -179,15 +180,27 @@ def _resize(images: np.ndarray, size: int) -> np.ndarray:
     return np.stack([cv2.resize(image, (size, size), interpolation=interpolation) for image in images])
 
 
-def _session_scores(test: SessionTest, estimate: np.ndarray) -> dict[str, float]:
+def _session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarray) -> dict[str, float]:
     """SSIM of 100 x 100 estimates against the session's test truth on the contact windows
     (models.evaluate.contact_windows: the accuracy these sweeps rank by) and over the whole
-    image (the paper's figure, which a no-contact estimate scores well on)."""
+    image (the paper's figure, which a no-contact estimate scores well on). ``no_contact`` is
+    the same model's estimate from an empty depth-map: a setting whose estimates do not beat
+    it on the contact windows (one-sided Wilcoxon over the pairs, ``p_vs_no_contact``) gives
+    the model nothing it uses."""
     keep, windows = contact_windows(test.deformation)
     contact = ssim_rgb(test.truth[keep], estimate[keep], windows[keep])
+    floor = ssim_rgb(test.truth[keep], np.repeat(no_contact[None], len(keep), axis=0), windows[keep])
     whole = ssim_rgb(test.truth, estimate)
+    better = stats.wilcoxon(contact, floor, alternative="greater").pvalue if np.any(contact != floor) else 1.0
     return {"contact_ssim": float(contact.mean()), "contact_ssim_se": _se(contact), "contact_pairs": len(keep),
+            "no_contact_ssim": round(float(floor.mean()), 4), "p_vs_no_contact": float(better),
             "ssim": round(float(whole.mean()), 4), "ssim_se": _se(whole)}
+
+
+def _no_contact_estimate(generator: torch.nn.Module, depth_range: tuple[float, float], size: int) -> np.ndarray:
+    """The model's estimate (resized to 100 x 100) from a depth-map with nothing in reach."""
+    empty = np.full((1, size, size), depth_range[1], np.float32)
+    return _resize(predict(generator, empty, depth_range), REFERENCE_SIZE)[0]
 
 
 def resolution(ws: Workspace) -> list[Point]:
@@ -203,7 +216,8 @@ def resolution(ws: Workspace) -> list[Point]:
         depth = np.stack([reader.load(r.sample_id).depth_map_m for r in test.records])
         estimate = predict(generator, depth, depth_range)
         inference_ms = _median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
-        scores = _session_scores(test, _resize(estimate, REFERENCE_SIZE))
+        scores = _session_scores(test, _resize(estimate, REFERENCE_SIZE),
+                                 _no_contact_estimate(generator, depth_range, size))
         points.append(_point("resolution", f"{size} x {size}", _epoch_s(model), scores.pop("contact_ssim"),
                              inference_ms_per_region=round(inference_ms, 3), **scores))
     return points
@@ -265,6 +279,7 @@ def density(ws: Workspace) -> list[Point]:
     params, scene = depth_map_params(DatasetReader(ws.session))
     geometry = scene.gripper_geometry()
     generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
+    no_contact = _no_contact_estimate(generator, depth_range, REFERENCE_SIZE)
     full = {name: model_cloud(scene, name).points_m for name in sorted({r.object_name for r in test.records})}
     points = []
     for value in (None, *ws.plan.densities):
@@ -278,7 +293,7 @@ def density(ws: Workspace) -> list[Point]:
             started = time.perf_counter()
             maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
             walls.append((time.perf_counter() - started) * 1e3)
-        scores = _session_scores(test, predict(generator, np.stack(maps), depth_range))
+        scores = _session_scores(test, predict(generator, np.stack(maps), depth_range), no_contact)
         points.append(_point("density", "unfiltered" if value is None else f"{value:g} pts/cm³",
                              statistics.median(walls), scores.pop("contact_ssim"),
                              points_median=int(np.median([len(c.points_m) for c in clouds.values()])),

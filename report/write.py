@@ -23,12 +23,33 @@ def annotate(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             continue
         pairs = [(p["time"], spec.score(p["accuracy"])) for p in mine]
         chosen = recommend(pairs, spec.tolerance)
+        if spec.informative:
+            chosen = _informative_choice(spec, mine)
         if spec.realism and _spread(spec, mine) > spec.tolerance:
             chosen = next((i for i, p in enumerate(mine) if p["setting"] == "all"), chosen)
         for index, (point, on_front) in enumerate(zip(mine, pareto_front(pairs))):
             point.update(pareto=on_front, recommended=index == chosen)
         out += mine
     return out
+
+
+INFORMATIVE_P = 0.05
+
+
+def _informative(point: dict[str, Any]) -> bool:
+    p = point.get("p_vs_no_contact")
+    return p is not None and not math.isnan(p) and p < INFORMATIVE_P
+
+
+def _informative_choice(spec: Spec, points: Sequence[dict[str, Any]]) -> int | None:
+    """The recommendation among the settings whose estimates beat the empty map's; the most
+    accurate setting when none does (no setting then earns its time, and none should lose data)."""
+    eligible = [i for i, p in enumerate(points) if _informative(p)]
+    if eligible:
+        chosen = recommend([(points[i]["time"], spec.score(points[i]["accuracy"])) for i in eligible], spec.tolerance)
+        return None if chosen is None else eligible[chosen]
+    valid = [i for i, p in enumerate(points) if not math.isnan(p["accuracy"])]
+    return max(valid, key=lambda i: spec.score(points[i]["accuracy"])) if valid else None
 
 
 def _spread(spec: Spec, points: Sequence[dict[str, Any]]) -> float:
@@ -71,12 +92,26 @@ def reason(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
                 f"against {_format(best['accuracy'])} with {best['setting']}: figures measured without the effects "
                 f"would not hold on real data, and simulating them costs {_format(chosen['time'])} instead of "
                 f"{_format(plain['time'])} {spec.time}.")
+    left_out = ""
+    if spec.informative:
+        uninformative = [p["setting"] for p in valid if not _informative(p)]
+        valid = [p for p in valid if _informative(p)]
+        if uninformative:
+            left_out = (f" Left out: {', '.join(uninformative)} — the model's estimates from these maps do not beat "
+                        f"its estimate from an empty map on the contact windows (one-sided Wilcoxon p ≥ "
+                        f"{INFORMATIVE_P:g}), so their speed comes from dropping the contact.")
+        if not valid:
+            return (f"**{chosen['setting']}**, the most accurate — no setting's estimates beat the model's estimate "
+                    f"from an empty map on the contact windows (one-sided Wilcoxon p < {INFORMATIVE_P:g}), so none "
+                    "earns its time and none should throw data away; the model, not this setting, limits the "
+                    "accuracy." + left_out.replace(" Left out:", " Measured:", 1))
+        best = max(valid, key=lambda p: spec.score(p["accuracy"]))
     text = (f"**{chosen['setting']}** — {spec.accuracy} {_format(chosen['accuracy'])} at "
             f"{_format(chosen['time'])} {spec.time}: the fastest Pareto setting within {spec.tolerance:g} of the "
             f"best {spec.accuracy} ({_format(best['accuracy'])}, {best['setting']})")
     if best is not chosen and chosen["time"] > 0:
         text += f", which takes {best['time'] / chosen['time']:.2g}x as long"
-    return text + "."
+    return text + "." + left_out
 
 
 def table(spec: Spec, points: Sequence[dict[str, Any]]) -> str:

@@ -9,10 +9,16 @@ from pathlib import Path
 from report.write import DEFAULT_MARK, PARETO_MARK, annotate, dumps, loads, write_report
 
 POINTS = [
-    {"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.70, "points_median": 7},
-    {"sweep": "density", "setting": "40 pts/cm³", "time": 0.3, "accuracy": 0.835, "points_median": 70},
-    {"sweep": "density", "setting": "80 pts/cm³", "time": 0.5, "accuracy": 0.84, "points_median": 97},
-    {"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.83, "points_median": 38000},
+    # 1 pts/cm³ is fast and within 0.01 of the best, but its estimates do not beat the model's
+    # estimate from an empty map (p_vs_no_contact): it is no candidate.
+    {"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.832, "points_median": 7,
+     "p_vs_no_contact": 0.4},
+    {"sweep": "density", "setting": "40 pts/cm³", "time": 0.3, "accuracy": 0.835, "points_median": 70,
+     "p_vs_no_contact": 0.001},
+    {"sweep": "density", "setting": "80 pts/cm³", "time": 0.5, "accuracy": 0.84, "points_median": 97,
+     "p_vs_no_contact": 0.001},
+    {"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.83, "points_median": 38000,
+     "p_vs_no_contact": 0.002},
     {"sweep": "registration_voxel", "setting": "4 mm", "time": 430.0, "accuracy": 2.0},
     {"sweep": "registration_voxel", "setting": "8 mm", "time": 170.0, "accuracy": 4.0},
     {"sweep": "registration_voxel", "setting": "10 mm", "time": 150.0, "accuracy": math.nan},
@@ -32,7 +38,7 @@ def test_marks_front_and_default() -> None:
     marked = {(p["sweep"], p["setting"]): p for p in annotate(POINTS)}
     assert [marked["density", s]["pareto"] for s in ("1 pts/cm³", "40 pts/cm³", "80 pts/cm³", "unfiltered")] == \
         [True, True, True, False]
-    # 40 is within 0.01 SSIM of the best (80) and faster: the default.
+    # 40 is within 0.01 SSIM of the best (80) and the fastest that beats an empty map: the default.
     assert marked["density", "40 pts/cm³"]["recommended"]
     # Lower ADD-S is better; a failed measurement is on no front.
     assert marked["registration_voxel", "4 mm"]["pareto"] and marked["registration_voxel", "8 mm"]["pareto"]
@@ -50,7 +56,7 @@ def test_report_tables_plots_and_points(tmp_path: Path) -> None:
     assert PARETO_MARK in density["40 pts/cm³"] and DEFAULT_MARK in density["40 pts/cm³"]
     assert PARETO_MARK not in density["unfiltered"] and DEFAULT_MARK not in density["unfiltered"]
     assert DEFAULT_MARK not in density["80 pts/cm³"] and PARETO_MARK in density["80 pts/cm³"]
-    assert "Recommended: **40 pts/cm³**" in report
+    assert "Recommended: **40 pts/cm³**" in report and "Left out: 1 pts/cm³" in report
     assert "Recommended: **all**" in report
     assert "| 10 mm | – |" in report
     for sweep in ("density", "registration_voxel", "gelsight_effects"):
@@ -59,6 +65,16 @@ def test_report_tables_plots_and_points(tmp_path: Path) -> None:
     assert len(saved) == len(POINTS)
     assert {p["setting"] for p in saved if p["recommended"]} == {"40 pts/cm³", "4 mm", "all"}
     assert next(p for p in saved if p["setting"] == "10 mm")["accuracy"] is None
+
+
+def test_no_setting_beating_an_empty_map_keeps_the_most_accurate(tmp_path: Path) -> None:
+    """When no depth-map setting helps the model, the fastest would merely drop the contact:
+    the most accurate is kept, and the report says the model is what limits."""
+    points = [{**p, "p_vs_no_contact": 0.3} for p in POINTS if p["sweep"] == "density"]
+    marked = {p["setting"]: p for p in annotate(points)}
+    assert [s for s, p in marked.items() if p["recommended"]] == ["80 pts/cm³"]
+    report = write_report(tmp_path, points, ["Mode: test"]).read_text()
+    assert "Recommended: **80 pts/cm³**, the most accurate — no setting's estimates beat" in report
 
 
 def test_points_round_trip_with_failed_measurements() -> None:
