@@ -42,14 +42,13 @@ def _informative(point: dict[str, Any]) -> bool:
 
 
 def _informative_choice(spec: Spec, points: Sequence[dict[str, Any]]) -> int | None:
-    """The recommendation among the settings whose estimates beat the empty map's; the most
-    accurate setting when none does (no setting then earns its time, and none should lose data)."""
+    """The recommendation among the settings whose estimates beat the empty map's. When none
+    does, no setting earns its time: the pipeline's own setting (``spec.fallback``) stays."""
     eligible = [i for i, p in enumerate(points) if _informative(p)]
     if eligible:
         chosen = recommend([(points[i]["time"], spec.score(points[i]["accuracy"])) for i in eligible], spec.tolerance)
         return None if chosen is None else eligible[chosen]
-    valid = [i for i, p in enumerate(points) if not math.isnan(p["accuracy"])]
-    return max(valid, key=lambda i: spec.score(points[i]["accuracy"])) if valid else None
+    return next((i for i, p in enumerate(points) if p["setting"] == spec.fallback), None)
 
 
 def _spread(spec: Spec, points: Sequence[dict[str, Any]]) -> float:
@@ -101,10 +100,10 @@ def reason(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
                         f"its estimate from an empty map on the contact windows (one-sided Wilcoxon p ≥ "
                         f"{INFORMATIVE_P:g}), so their speed comes from dropping the contact.")
         if not valid:
-            return (f"**{chosen['setting']}**, the most accurate — no setting's estimates beat the model's estimate "
-                    f"from an empty map on the contact windows (one-sided Wilcoxon p < {INFORMATIVE_P:g}), so none "
-                    "earns its time and none should throw data away; the model, not this setting, limits the "
-                    "accuracy." + left_out.replace(" Left out:", " Measured:", 1))
+            return (f"**{chosen['setting']}**, the pipeline's own — in no row do the model's estimates beat its "
+                    f"estimate from an empty map on the contact windows (one-sided Wilcoxon p < {INFORMATIVE_P:g}), "
+                    "so no setting earns its time or its savings: the model, not this setting, limits the "
+                    "accuracy here. Measure again with a model that uses the contact.")
         best = max(valid, key=lambda p: spec.score(p["accuracy"]))
     text = (f"**{chosen['setting']}** — {spec.accuracy} {_format(chosen['accuracy'])} at "
             f"{_format(chosen['time'])} {spec.time}: the fastest Pareto setting within {spec.tolerance:g} of the "

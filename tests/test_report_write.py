@@ -67,14 +67,15 @@ def test_report_tables_plots_and_points(tmp_path: Path) -> None:
     assert next(p for p in saved if p["setting"] == "10 mm")["accuracy"] is None
 
 
-def test_no_setting_beating_an_empty_map_keeps_the_most_accurate(tmp_path: Path) -> None:
-    """When no depth-map setting helps the model, the fastest would merely drop the contact:
-    the most accurate is kept, and the report says the model is what limits."""
+def test_no_setting_beating_an_empty_map_keeps_the_pipelines_own(tmp_path: Path) -> None:
+    """When no depth-map setting helps the model, the fastest would merely drop the contact
+    and the most accurate would win by noise: the pipeline's own setting stays, and the report
+    says the model is what limits."""
     points = [{**p, "p_vs_no_contact": 0.3} for p in POINTS if p["sweep"] == "density"]
     marked = {p["setting"]: p for p in annotate(points)}
-    assert [s for s, p in marked.items() if p["recommended"]] == ["80 pts/cm³"]
+    assert [s for s, p in marked.items() if p["recommended"]] == ["unfiltered"]
     report = write_report(tmp_path, points, ["Mode: test"]).read_text()
-    assert "Recommended: **80 pts/cm³**, the most accurate — no setting's estimates beat" in report
+    assert "Recommended: **unfiltered**, the pipeline's own — in no row do the model's estimates beat" in report
 
 
 def test_points_round_trip_with_failed_measurements() -> None:
