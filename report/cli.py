@@ -85,6 +85,10 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
               f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}); "
               f"measuring every sweep shown took **{measured / 60:.1f} min**.",
               "", "Sweep times: " + "; ".join(timings) + "."]
+    if workspace.reused_models:
+        header += ["", f"Trained models reused from an earlier run in {workspace.root} (their training is not in "
+                   f"the times above; its CPU seconds per epoch are in the tables): "
+                   f"{', '.join(sorted(workspace.reused_models))}."]
     if plan.name != FULL.name:
         header += ["", "Reduced from the full report: " + "; ".join(plan.reductions(FULL)) + ". These figures check "
                    "the pipeline end to end; with so few contacts and epochs, SSIM differences within a few standard "

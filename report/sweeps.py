@@ -88,6 +88,7 @@ class Workspace:
     def __init__(self, root: Path, plan: Plan) -> None:
         self.root = root
         self.plan = plan
+        self.reused_models: set[str] = set()  # trained by an earlier run: not in this run's time
 
     @functools.cached_property
     def contacts(self) -> list[Contact]:
@@ -154,6 +155,8 @@ class Workspace:
         seconds of each epoch, data loading included). Trained one epoch per call so that each
         epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
         cpu_log = out / "cpu_s.json"
+        if len(_cpu_s(out)) >= 2 * self.plan.epochs:
+            self.reused_models.add(out.name)
         threads = torch.get_num_threads()
         try:
             while len(_cpu_s(out)) < 2 * self.plan.epochs:
