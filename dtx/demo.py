@@ -1,6 +1,9 @@
 """``dtx demo``: the main job on the simulated scene, end to end, as an operator would run it.
 
-1. collect the paper's 289 grasps (578 pairs) with ``launch/collect_sim.yaml``;
+1. collect 1,200 grasps (2,400 pairs) with ``launch/collect_sim.yaml`` — the paper had 289
+   (``--grasps 289``); simulated grasps are cheap, and on 4x the data the model's
+   dissimilarity ratio went from 0.85-0.90 to 0.82 and its test split is large enough to
+   tell it from the baseline;
 2. train the cGAN with ``configs/quick.yaml``;
 3. make the depth-maps again at the paper's densities (``dtx dataset redepth``);
 4. evaluate it like the paper and print the table; figures go to ``OUT/figures``.
@@ -96,7 +99,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser("demo", help="collect, train and evaluate on the simulated scene")
     demo.add_argument("--out", default="out/demo")
-    demo.add_argument("--grasps", type=int, default=289)
+    demo.add_argument("--grasps", type=int, default=1200, help="grasps to collect (the paper's session: 289)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--config", default="configs/quick.yaml")
     demo.set_defaults(func=cmd_demo)
