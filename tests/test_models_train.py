@@ -82,10 +82,10 @@ def test_learning_rate_is_constant_then_decays_linearly() -> None:
 
 
 def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
-    for name in ("paper", "quick"):
-        assert TrainConfig.load(REPO / "configs" / f"{name}.yaml").lambda_l1 == 100.0
     paper = TrainConfig.load(REPO / "configs" / "paper.yaml")
-    assert (paper.lr, paper.beta1, paper.beta2) == (2e-4, 0.5, 0.999)
+    assert (paper.lr, paper.beta1, paper.beta2, paper.lambda_l1) == (2e-4, 0.5, 0.999, 100.0)
+    quick = TrainConfig.load(REPO / "configs" / "quick.yaml")  # departs from the paper where it says why
+    assert (quick.lr, quick.beta1, quick.beta2) == (2e-4, 0.5, 0.999) and quick.lambda_l1 > 0
     bad = tmp_path / "bad.yaml"
     for text, message in [("lr: -1\n", "lr > 0"), ("epochs: 0\nepochs_decay: 0\n", "positive sum"),
                           ("learning_rate: 1\n", "unknown training config"), ("generator: {ngf: 0}\n", "ngf"),
