@@ -203,6 +203,16 @@ def subtract_background(image_rgb: np.ndarray, background_rgb: np.ndarray) -> np
     return np.clip(diff, 0, 255).astype(np.uint8)
 
 
+def resize_rgb(image_rgb: np.ndarray, height: int, width: int) -> np.ndarray:
+    """An H x W x 3 image at ``height`` x ``width``: area-averaged when it shrinks (no aliasing
+    of the gel's fine shading), bilinear when it grows; the same array when the size is right."""
+    if image_rgb.shape[:2] == (height, width):
+        return image_rgb
+    shrink = image_rgb.shape[0] > height
+    return cv2.resize(np.ascontiguousarray(image_rgb), (width, height),
+                      interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+
 def deformation_map(tactile_diff_rgb: np.ndarray) -> np.ndarray:
     """Per-pixel deformation strength (H x W float32): summed |change| over RGB from the
     background-subtracted copy."""

@@ -15,11 +15,10 @@ import dataclasses
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
-from dataset.format import DatasetError, DatasetReader, DatasetWriter
+from dataset.format import DatasetError, DatasetReader, DatasetWriter, resize_rgb
 from perception.density import downsample_to_density
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
                                  crop_reach_m)
@@ -47,20 +46,21 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
     return DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m), scene
 
 
-def model_cloud(scene: Scene, object_name: str, points_per_cm3: float | None = None) -> VoxelIndex:
-    """The patch extractor's model cloud of one object (model frame, m), indexed as it indexes
-    it: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED, voxel-thinned to ``points_per_cm3``
+def model_cloud(scene: Scene, object_name: str, points_per_cm3: float | None = None) -> np.ndarray:
+    """The patch extractor's model cloud of one object (N x 3, model frame, m):
+    MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED, voxel-thinned to ``points_per_cm3``
     unless None. Raises SceneError for an object the scene does not have."""
     cloud = sample_model_cloud(scene.mesh(object_name), MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
-    return VoxelIndex(cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3))
+    return cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3)
 
 
 def depth_map_again(model: VoxelIndex, model_to_gel: np.ndarray, geometry: GripperGeometry,
                     params: DepthMapParams) -> np.ndarray:
-    """The depth-map (m, float32) of a model cloud posed in the gel frame by ``model_to_gel``,
-    with a dataset's settings (:func:`depth_map_params`), from the points within reach of the
-    gel as the patch extractor takes them; y_far everywhere when nothing of the cloud falls in
-    the crop ("nothing within reach")."""
+    """The depth-map (m, float32) of a model cloud (indexed as the patch extractor indexes it)
+    posed in the gel frame by ``model_to_gel``, with a dataset's settings
+    (:func:`depth_map_params`), from the points within reach of the gel as the patch extractor
+    takes them; y_far everywhere when nothing of the cloud falls in the crop ("nothing within
+    reach")."""
     gel_centre_in_model = np.linalg.inv(model_to_gel)[:3, 3]
     near = model.within(gel_centre_in_model, crop_reach_m(geometry, params))
     try:
@@ -96,25 +96,18 @@ def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
             continue
         if record.object_name not in clouds:
             try:
-                clouds[record.object_name] = model_cloud(scene, record.object_name, points_per_cm3)
+                clouds[record.object_name] = VoxelIndex(model_cloud(scene, record.object_name, points_per_cm3))
             except SceneError as err:
                 raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
         sample = reader.load(record)
         depth = depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params)
         writer.write(sample_id=record.sample_id, object_name=record.object_name, grasp_id=record.grasp_id,
                      finger=record.finger, grasp_pose=record.grasp_pose,
-                     tactile_rgb=_resized(sample.tactile_rgb, params.shape),
-                     tactile_diff_rgb=_resized(sample.tactile_diff_rgb, params.shape), depth_map_m=depth,
+                     tactile_rgb=resize_rgb(sample.tactile_rgb, *params.shape),
+                     tactile_diff_rgb=resize_rgb(sample.tactile_diff_rgb, *params.shape), depth_map_m=depth,
                      registration_fitness=record.registration_fitness, stamps_ns=record.stamps_ns,
                      model_to_gel=np.array(record.model_to_gel))
     return writer
-
-
-def _resized(image_rgb: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    if image_rgb.shape[:2] == tuple(shape):
-        return image_rgb
-    shrink = image_rgb.shape[0] > shape[0]
-    return cv2.resize(image_rgb, (shape[1], shape[0]), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
 def density_dirs(root: str | os.PathLike[str], densities: list[float]) -> dict[float, Path]:

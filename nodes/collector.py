@@ -24,12 +24,11 @@ import time
 from collections.abc import Iterator
 from typing import Any, NoReturn
 from pathlib import Path
-import cv2
 import numpy as np
 
 import msgs
 from dataset.announced import write_sample
-from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, subtract_background
+from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
 from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
@@ -293,9 +292,8 @@ class CollectorNode(Node):
                 image_height=100, image_width=100, depth_range_m=(depth_map.y_range_m[0], depth_map.y_range_m[1]),
                 scene=p.scene, effects=tuple(e.name for e in self.scene.effects), code_version=code_version(),
                 split_seed=p.seed, depth_crop_m=(depth_map.crop_m[0], depth_map.crop_m[1], depth_map.crop_m[2])))
-        size = (self.writer.info.image_width, self.writer.info.image_height)
-        tactile = cv2.resize(np.ascontiguousarray(image.image), size, interpolation=cv2.INTER_AREA)
-        background = cv2.resize(np.ascontiguousarray(image.background), size, interpolation=cv2.INTER_AREA)
+        size = (self.writer.info.image_height, self.writer.info.image_width)
+        tactile, background = resize_rgb(image.image, *size), resize_rgb(image.background, *size)
         sample = msgs.DatasetSample(
             sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
             tactile_image=tactile, tactile_diff_image=subtract_background(tactile, background),

@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from scipy import stats
@@ -33,11 +32,11 @@ from scipy import stats
 from benchmarks import inference as inference_bench
 from benchmarks.perception import _sweep_cases, _sweep_row
 from benchmarks.sim import DEPTH_EFFECTS
-from dataset.format import DatasetReader, SampleRecord, deformation_map
+from dataset.format import DatasetReader, SampleRecord, deformation_map, resize_rgb
 from dataset.redepth import depth_map_again, depth_map_params, model_cloud, redepth_dataset
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.data import depth_input, select_records
-from models.evaluate import PAPER, contact_windows, predict
+from models.evaluate import PAPER, contact_ssim, predict
 from models.runtime import sampling_copy
 from models.ssim import ssim_rgb
 from models.train import TrainConfig, load_generator, train
@@ -179,23 +178,21 @@ class Workspace:
 
 
 def _resize(images: np.ndarray, size: int) -> np.ndarray:
-    interpolation = cv2.INTER_AREA if images.shape[1] > size else cv2.INTER_LINEAR
-    return np.stack([cv2.resize(image, (size, size), interpolation=interpolation) for image in images])
+    return np.stack([resize_rgb(image, size, size) for image in images])
 
 
 def _session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarray) -> dict[str, float]:
     """SSIM of 100 x 100 estimates against the session's test truth on the contact windows
-    (models.evaluate.contact_windows: the accuracy these sweeps rank by) and over the whole
+    (models.evaluate.contact_ssim: the accuracy these sweeps rank by) and over the whole
     image (the paper's figure, which a no-contact estimate scores well on). ``no_contact`` is
     the same model's estimate from an empty depth-map: a setting whose estimates do not beat
     it on the contact windows (one-sided Wilcoxon over the pairs, ``p_vs_no_contact``) gives
     the model nothing it uses."""
-    keep, windows = contact_windows(test.deformation)
-    contact = ssim_rgb(test.truth[keep], estimate[keep], windows[keep])
-    floor = ssim_rgb(test.truth[keep], np.repeat(no_contact[None], len(keep), axis=0), windows[keep])
+    contact = contact_ssim(test.truth, test.deformation, estimate)
+    floor = contact_ssim(test.truth, test.deformation, np.repeat(no_contact[None], len(test.truth), axis=0))
     whole = ssim_rgb(test.truth, estimate)
     better = stats.wilcoxon(contact, floor, alternative="greater").pvalue if np.any(contact != floor) else 1.0
-    return {"contact_ssim": float(contact.mean()), "contact_ssim_se": _se(contact), "contact_pairs": len(keep),
+    return {"contact_ssim": float(contact.mean()), "contact_ssim_se": _se(contact), "contact_pairs": len(contact),
             "no_contact_ssim": round(float(floor.mean()), 4), "p_vs_no_contact": float(better),
             "ssim": round(float(whole.mean()), 4), "ssim_se": _se(whole)}
 
@@ -283,7 +280,7 @@ def density(ws: Workspace) -> list[Point]:
     geometry = scene.gripper_geometry()
     generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
     no_contact = _no_contact_estimate(generator, depth_range, REFERENCE_SIZE)
-    full = {name: model_cloud(scene, name).points_m for name in sorted({r.object_name for r in test.records})}
+    full = {name: model_cloud(scene, name) for name in sorted({r.object_name for r in test.records})}
     points = []
     for value in (None, *ws.plan.densities):
         clouds, thinning = {}, []

@@ -16,7 +16,7 @@ from dataset import format as fmt
 from dataset.check import check_dataset
 from dataset.cli import add_commands
 from dataset.export import export_pix2pix
-from dataset.format import DatasetError, DatasetInfo, DatasetReader, DatasetWriter, subtract_background
+from dataset.format import DatasetError, DatasetInfo, DatasetReader, DatasetWriter, resize_rgb, subtract_background
 from dataset.splits import leave_one_object_out, split_grasps, split_records
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface, write_synthetic_dataset
 
@@ -346,3 +346,14 @@ def test_redepth_cli_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFi
         assert args.func(args) == code
         assert message in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "ds_density_10").exists()
+
+
+def test_resize_rgb_averages_when_shrinking_and_keeps_a_right_sized_image() -> None:
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (4, 6, 3), dtype=np.uint8)
+    assert resize_rgb(image, 4, 6) is image
+    halved = resize_rgb(image, 2, 3)
+    blocks = image.reshape(2, 2, 3, 2, 3).astype(np.float64).mean(axis=(1, 3))
+    assert halved.shape == (2, 3, 3) and np.all(np.abs(halved - blocks) <= 0.5 + 1e-9)
+    doubled = resize_rgb(image, 8, 12)
+    assert doubled.shape == (8, 12, 3) and doubled.min() >= image.min() and doubled.max() <= image.max()
