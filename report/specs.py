@@ -20,11 +20,16 @@ class Spec:
     # Effects sweeps: the fastest setting (effects off) is never the advice when leaving an
     # effect out changes the accuracy by more than the tolerance; then "all" (realism) is.
     realism: bool = False
-    # Depth-map sweeps: a setting is advised only if the model's estimates from its maps beat
-    # the same model's estimate from an empty map (points carry p_vs_no_contact); otherwise the
+    # Depth-map sweeps name the pipeline's own setting here: then a setting is advised only if
+    # the model's estimates from its maps beat the same model's estimate from an empty map
+    # (points carry p_vs_no_contact), and the pipeline's own stays when none does; otherwise the
     # fastest setting would always be the one that throws the contact away.
-    informative: bool = False
-    fallback: str = ""  # the setting kept when no setting is informative: the pipeline's own
+    pipeline_setting: str = ""
+
+    @property
+    def informative(self) -> bool:
+        """Whether only settings that beat the empty map may be advised."""
+        return bool(self.pipeline_setting)
 
     def score(self, accuracy: float) -> float:
         """Accuracy turned into higher-is-better for the Pareto front."""
@@ -38,8 +43,8 @@ SPECS: dict[str, Spec] = {
                     "contact SSIM", True, 0.01,
                     (("points_median", "model points"), ("thinning_ms", "thinning + index ms (once per cloud)"),
                      ("contact_ssim_se", "contact s.e."), ("p_vs_no_contact", "p vs empty map"),
-                     ("ssim", "whole-image SSIM"), ("paper_ssim", "paper SSIM")), informative=True,
-                    fallback="unfiltered"),
+                     ("ssim", "whole-image SSIM"), ("paper_ssim", "paper SSIM")),
+                    pipeline_setting="unfiltered"),
     "registration_voxel": Spec("Registration voxel size", "Coarser FPFH voxels: faster, but how much pose error?",
                                "voxel", "ms per registration", "ADD-S median (mm)", False, 0.5,
                                (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted"))),
@@ -53,8 +58,8 @@ SPECS: dict[str, Spec] = {
                        "(collected session, depth-maps made again at each size; SSIM at 100 x 100 on the contact "
                        "windows)", "bins", "training CPU s/epoch", "contact SSIM", True, 0.01,
                        (("inference_ms_per_region", "inference ms/region"), ("contact_ssim_se", "contact s.e."),
-                        ("p_vs_no_contact", "p vs empty map"), ("ssim", "whole-image SSIM")), informative=True,
-                       fallback="100 x 100"),
+                        ("p_vs_no_contact", "p vs empty map"), ("ssim", "whole-image SSIM")),
+                       pipeline_setting="100 x 100"),
     "training_length": Spec("Training length", "When does more training stop paying?",
                             "epochs", "training CPU s", "validation SSIM", True, 0.01, (("val_l1", "val L1"),)),
     "depth_effects": Spec("Simulated depth effects", "What does realistic depth data cost per frame, and "

@@ -22,9 +22,7 @@ def annotate(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         if not mine:
             continue
         pairs = [(p["time"], spec.score(p["accuracy"])) for p in mine]
-        chosen = recommend(pairs, spec.tolerance)
-        if spec.informative:
-            chosen = _informative_choice(spec, mine)
+        chosen = _informative_choice(spec, mine) if spec.informative else recommend(pairs, spec.tolerance)
         if spec.realism and _spread(spec, mine) > spec.tolerance:
             chosen = next((i for i, p in enumerate(mine) if p["setting"] == "all"), chosen)
         for index, (point, on_front) in enumerate(zip(mine, pareto_front(pairs))):
@@ -43,12 +41,12 @@ def _informative(point: dict[str, Any]) -> bool:
 
 def _informative_choice(spec: Spec, points: Sequence[dict[str, Any]]) -> int | None:
     """The recommendation among the settings whose estimates beat the empty map's. When none
-    does, no setting earns its time: the pipeline's own setting (``spec.fallback``) stays."""
+    does, no setting earns its time: the pipeline's own setting (``spec.pipeline_setting``) stays."""
     eligible = [i for i, p in enumerate(points) if _informative(p)]
     if eligible:
         chosen = recommend([(points[i]["time"], spec.score(points[i]["accuracy"])) for i in eligible], spec.tolerance)
         return None if chosen is None else eligible[chosen]
-    return next((i for i, p in enumerate(points) if p["setting"] == spec.fallback), None)
+    return next((i for i, p in enumerate(points) if p["setting"] == spec.pipeline_setting), None)
 
 
 def _spread(spec: Spec, points: Sequence[dict[str, Any]]) -> float:
