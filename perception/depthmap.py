@@ -103,7 +103,6 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
     return half_x, half_z, float(y_near), float(y_far)
 
 
-
 def crop_reach_m(geometry: GripperGeometry, params: DepthMapParams) -> float:
     """Every model point a gel's depth-map (or the centring between gels) can use lies within
     this distance of the gel centre: the crop's corners, or the gel face's, at the crop's depth."""
@@ -111,6 +110,7 @@ def crop_reach_m(geometry: GripperGeometry, params: DepthMapParams) -> float:
     deepest = max(abs(y_near), abs(y_far))
     return float(max(np.linalg.norm([half_x, half_z, deepest]),
                      np.linalg.norm([0.5 * geometry.gel_size_m[0], 0.5 * geometry.gel_size_m[1], deepest])))
+
 
 def _bin_index(values_m: np.ndarray, half_m: float, count: int) -> np.ndarray:
     """Index of the bin [edge_i, edge_i+1) holding each value, edges = linspace(-half, half, count + 1);
