@@ -101,6 +101,8 @@ class CollectorNode(Node):
         self.tactile: dict[str, msgs.TactileImage] = {}
         for finger, topic in zip(FINGERS, p.tactile_topics, strict=True):
             self.create_subscription(topic, msgs.TactileImage, lambda m, f=finger: self.tactile.__setitem__(f, m))
+        self.grip_seen_ns = 0  # when /gripper/state first reported the current grip
+        self.create_subscription("/gripper/state", msgs.GripperState, self.on_gripper_state)
         self.move = self.create_client("/arm/move", msgs.ArmMoveRequest, msgs.ArmState)
         self.gripper = self.create_client("/gripper/command", msgs.GripperCommand, msgs.GripperState)
         self.register = self.create_client("/perception/register", msgs.RegisterRequest, msgs.RegisterReply)
@@ -244,12 +246,13 @@ class CollectorNode(Node):
                                                   speed_m_s=p.gripper_speed_m_s), timeout_s=p.call_timeout_s)
             arrived = self.arm_to(tcp)
         with self.stage("close"):
+            self.grip_seen_ns = 0
             held = self.gripper.call(msgs.GripperCommand(action="grasp", width_m=0.0, speed_m_s=p.gripper_speed_m_s,
                                                          force_n=p.force_n), timeout_s=p.call_timeout_s)
         if held.state != "holding":
             raise GraspFailed(f"fingers found nothing ({held.state})")
         with self.stage("capture"):
-            images = self.capture_at_contact(time.time_ns())
+            images = self.capture_at_contact(self.grip_seen())
         gels = gel_poses_world(arrived.tcp_pose, held.width_m, self.geometry)
         with self.stage("depth_maps"):
             try:
@@ -270,6 +273,21 @@ class CollectorNode(Node):
             msgs.ArmMoveRequest(target=tcp_pose, mode="moveL", speed=self.params.arm_speed_m_s,
                                 acceleration=self.params.arm_accel_m_s2), timeout_s=self.params.call_timeout_s)
         return self.last_arm
+
+    def on_gripper_state(self, state: msgs.GripperState) -> None:
+        if state.state == "holding" and not self.grip_seen_ns:
+            self.grip_seen_ns = time.time_ns()
+
+    def grip_seen(self) -> int:
+        """When ``/gripper/state`` first reported the grip. The GelSights learn of it from that
+        stream too (a simulated gel presses only once its node has it), so the settling time
+        counts from here, not from the grasp reply, which can come a state period earlier."""
+        deadline = time.monotonic() + self.params.call_timeout_s
+        while not self.grip_seen_ns:
+            if time.monotonic() > deadline:
+                raise ServiceCallError("gripper", "timeout", "no /gripper/state reporting the grip")
+            self.spin_once(0.01)
+        return self.grip_seen_ns
 
     def capture_at_contact(self, contact_ns: int) -> dict[str, msgs.TactileImage]:
         """The first frame of each GelSight taken after contact plus the settling time."""

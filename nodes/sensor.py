@@ -27,8 +27,12 @@ class SensorNode(Node):
         self.sensor = type(self).make_backend(backend_params)
         self.sensor.connect()
         self.frames = self.create_publisher(f"/{name}/{self.STREAM}", self.MESSAGE)
-        self.create_timer(1e-3, self.publish_frame)  # read() blocks until the next frame
+        self.create_timer(self.frame_period_s(), self.publish_frame)
         self.errors = 0
+
+    def frame_period_s(self) -> float:
+        """How often ``publish_frame`` runs: at once again, as read() blocks until the next frame."""
+        return 1e-3
 
     def publish_frame(self) -> None:
         try:

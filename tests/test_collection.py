@@ -14,9 +14,10 @@ import pytest
 
 from benchmarks.collect import run_session
 from dataset.check import check_dataset
-from dataset.format import DatasetError, DatasetReader
+from dataset.format import DatasetError, DatasetReader, deformation_map
 from dataset.redepth import redepth_dataset
 from dataset.synth import write_synthetic_dataset
+from models.evaluate import CONTACT_LEVELS
 
 SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 
@@ -36,6 +37,20 @@ def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, nod
     ids = sorted(record.sample_id for record in reader.records)
     assert ids == sorted(f"g{g:05d}_{f}" for g in range(6) for f in ("left", "right"))
     assert check_dataset(tmp_path / "session").ok
+
+
+def test_every_pair_whose_depth_map_presses_shows_the_press(tmp_path: Path) -> None:
+    # The simulated gel presses only once its node has the grip from /gripper/state; a frame
+    # captured before that is the untouched gel beside a depth-map that presses (a third of
+    # the pairs did, when the settling time counted from the grasp reply).
+    result = run_session(tmp_path / "session", grasps=8, seed=2, record=False)
+    assert result["exit_code"] == 0, result.get("collector_log")
+    reader = DatasetReader(tmp_path / "session")
+    for record in reader.records:
+        sample = reader.load(record)
+        if np.mean(sample.depth_map_m < -0.001) > 0.05:
+            touched = np.mean(deformation_map(sample.tactile_diff_rgb) > CONTACT_LEVELS)
+            assert touched > 0.01, f"{record.sample_id}: the depth-map presses, the tactile image is untouched"
 
 
 def test_an_unwritable_output_stops_the_session_with_a_clear_error(tmp_path: Path) -> None:
