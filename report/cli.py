@@ -1,9 +1,10 @@
 """``dtx report accuracy-time --out DIR [--quick] [--reuse]``: what accuracy costs in time,
 across the pipeline, in DIR/report.md with a plot per sweep and DIR/points.json.
 
-Each sweep's points are cached in DIR/cache/<sweep>.json with the plan that made them;
---reuse takes a cached sweep made by the same plan instead of measuring it again. Datasets and
-trained models live in DIR/work/<plan> and are reused by later runs either way.
+Each sweep's points are cached in DIR/cache/<sweep>.json with the plan and the training
+config (configs/quick.yaml) that made them; --reuse takes a cached sweep made by the same plan
+and config instead of measuring it again. Datasets and trained models live in DIR/work/<plan>
+and are reused by later runs either way (a model only if trained with the current config).
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from report.plan import FULL, QUICK, SWEEP_NAMES, Plan
+from report.plan import FULL, QUICK, SWEEP_NAMES
 from report.write import dumps, loads, write_report
 
 
@@ -35,19 +36,19 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                             description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, type=_out_dir, metavar="DIR", help="where report.md, plots, points go")
     p.add_argument("--quick", action="store_true", help="reduced sweeps for CI (<= 10 min on 2 cores)")
-    p.add_argument("--reuse", action="store_true", help="take sweeps cached in DIR/cache by the same plan")
+    p.add_argument("--reuse", action="store_true", help="take sweeps cached in DIR/cache by the same plan and training config")
     p.add_argument("--only", action="append", choices=SWEEP_NAMES, metavar="SWEEP",
                    help=f"measure only these sweeps (repeatable): {', '.join(SWEEP_NAMES)}")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=run_accuracy_time)
 
 
-def _cached(path: Path, plan: Plan) -> dict | None:
+def _cached(path: Path, made_by: dict) -> dict | None:
     try:
         entry = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return entry if entry.get("plan") == json.loads(json.dumps(dataclasses.asdict(plan))) else None
+    return entry if all(entry.get(key) == value for key, value in made_by.items()) else None
 
 
 def run_accuracy_time(args: argparse.Namespace) -> int:
@@ -56,21 +57,22 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     if args.reuse and not cache.is_dir():
         print(f"dtx report: error: --reuse: nothing cached in {cache}", file=sys.stderr)
         return 2
-    from report.sweeps import SWEEPS, Workspace  # noqa: PLC0415 - torch, Open3D: only when measuring
+    from report.sweeps import SWEEPS, Workspace, training_config  # noqa: PLC0415 - torch, Open3D: only when measuring
 
     workspace = Workspace(args.out / "work" / plan.name, plan)
+    made_by = json.loads(json.dumps({"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}))
     cache.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     points, timings, entries = [], [], []
     for name, sweep in SWEEPS.items():
         if args.only and name not in args.only:
             continue
-        entry = _cached(cache / f"{name}.json", plan) if args.reuse else None
+        entry = _cached(cache / f"{name}.json", made_by) if args.reuse else None
         if entry is None:
             print(f"report: measuring {name} ...", file=sys.stderr, flush=True)
             sweep_started = time.monotonic()
             measured = sweep(workspace)
-            entry = {"plan": dataclasses.asdict(plan), "seconds": round(time.monotonic() - sweep_started, 1),
+            entry = {**made_by, "seconds": round(time.monotonic() - sweep_started, 1),
                      "measured_at": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
                      "points": json.loads(dumps(measured))}
             (cache / f"{name}.json").write_text(json.dumps(entry, indent=1) + "\n")

@@ -39,7 +39,7 @@ from models.data import depth_input, select_records
 from models.evaluate import PAPER, contact_ssim, predict
 from models.runtime import sampling_copy
 from models.ssim import ssim_rgb
-from models.train import TrainConfig, load_generator, train
+from models.train import TrainConfig, load_checkpoint, load_generator, train
 from perception.density import downsample_to_density
 from perception.pointcloud import VoxelIndex
 from perception.registration import RegistrationParams
@@ -78,6 +78,12 @@ class SessionTest:
     records: list[SampleRecord]
     truth: np.ndarray         # N x 100 x 100 x 3 uint8
     deformation: np.ndarray   # N x 100 x 100, summed |change| from the no-contact image (levels)
+
+
+def training_config() -> TrainConfig:
+    """The config every model of the report is trained with, before a sweep changes its size,
+    width or epochs: configs/quick.yaml."""
+    return TrainConfig.load(REPO / "configs" / "quick.yaml")
 
 
 class Workspace:
@@ -133,7 +139,7 @@ class Workspace:
 
     def config(self, size: int, width: int) -> TrainConfig:
         """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``."""
-        base = TrainConfig.load(REPO / "configs" / "quick.yaml")
+        base = training_config()
         pad = -(-size // 128) * 128  # the U-Net's 7 halvings need a multiple of 128
         generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
         # One thread: on a shared machine extra OpenMP threads mostly wait for a core, and
@@ -154,14 +160,19 @@ class Workspace:
         seconds of each epoch, data loading included). Trained one epoch per call so that each
         epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
         cpu_log = out / "cpu_s.json"
+        config = self.config(size, width)
+        checkpoint = out / "checkpoint.pt"
+        if checkpoint.exists() and TrainConfig.from_dict(load_checkpoint(checkpoint)["train_config"]) != config:
+            print(f"report: {out.name} was trained with another config; training it again", file=sys.stderr)
+            shutil.rmtree(out)
         if len(_cpu_s(out)) >= 2 * self.plan.epochs:
             self.reused_models.add(out.name)
         threads = torch.get_num_threads()
         try:
             while len(_cpu_s(out)) < 2 * self.plan.epochs:
-                fresh = not (out / "checkpoint.pt").exists()
+                fresh = not checkpoint.exists()
                 started = time.process_time()
-                train(dataset, self.config(size, width), out, resume=True, progress=False, stop_after_epochs=1)
+                train(dataset, config, out, resume=True, progress=False, stop_after_epochs=1)
                 cpu = [] if fresh else _cpu_s(out)
                 cpu_log.write_text(json.dumps(cpu + [round(time.process_time() - started, 2)]))
         finally:

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from report.cli import add_commands
+from report.cli import _cached, add_commands
 from report.plan import FULL, QUICK, SWEEP_NAMES
+from report.sweeps import training_config
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -65,7 +66,8 @@ def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     (tmp_path / "cache").mkdir()
     points = [{"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.8},
               {"sweep": "density", "setting": "80 pts/cm³", "time": 0.3, "accuracy": None}]
-    entry = {"plan": dataclasses.asdict(QUICK), "seconds": 5.0, "measured_at": "then", "points": points}
+    entry = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict(), "seconds": 5.0,
+             "measured_at": "then", "points": points}
     (tmp_path / "cache" / "density.json").write_text(json.dumps(entry))
     args = _parser().parse_args(["report", "accuracy-time", "--out", str(tmp_path), "--quick", "--reuse",
                                  "--only", "density"])
@@ -74,3 +76,17 @@ def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     assert "density reused (5 s on then)" in report
     assert "| 1 pts/cm³ | 0.8 | 0.2 |" in report and "**default**" in report
     assert not (tmp_path / "work").exists()  # nothing was measured
+
+
+def test_a_cached_sweep_counts_only_for_the_plan_and_training_config_that_made_it(tmp_path: Path) -> None:
+    config = training_config().to_dict()
+    made_by = json.loads(json.dumps({"plan": dataclasses.asdict(QUICK), "training_config": config}))
+    path = tmp_path / "density.json"
+    path.write_text(json.dumps({**made_by, "seconds": 1.0, "points": []}))
+    assert _cached(path, made_by) is not None
+    assert _cached(path, {**made_by, "plan": json.loads(json.dumps(dataclasses.asdict(FULL)))}) is None
+    assert _cached(path, {**made_by, "training_config": {**config, "lambda_l1": config["lambda_l1"] / 10}}) is None
+    path.write_text(json.dumps({"plan": made_by["plan"], "seconds": 1.0, "points": []}))  # made before the key
+    assert _cached(path, made_by) is None
+    path.write_text("{not json")
+    assert _cached(path, made_by) is None
