@@ -24,6 +24,18 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                        help="also refit the renderer's parameters on the even frames and score the odd ones "
                             "(a minute or two)")
     check.set_defaults(func=gelsight_check)
+    ceiling = commands.add_parser(
+        "ceiling", help="how well any model could estimate a simulated session's images from its depth-maps",
+        description="Render each pair of a simulated session again with what the simulated world knows and "
+                    "the depth-map hides (the true contact, the micro-relief) and score those estimates like "
+                    "dtx evaluate scores a model: the ceiling a model's SSIM and dissimilarity ratio can reach.")
+    ceiling.add_argument("dataset", help="a session collected on the simulated scene (launch/collect_sim.yaml)")
+    ceiling.add_argument("--split", default="test", choices=["train", "val", "test", "all"])
+    ceiling.add_argument("--force-n", type=float, default=None,
+                         help="grasp force of the session in N (default: the collector's, 10)")
+    ceiling.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws (default 0)")
+    ceiling.add_argument("--json", action="store_true", help="print the result as JSON")
+    ceiling.set_defaults(func=information_ceiling)
 
 
 def gelsight_check(args: argparse.Namespace) -> int:
@@ -33,6 +45,23 @@ def gelsight_check(args: argparse.Namespace) -> int:
         result = run_check(args.file, seed=args.seed, holdout=args.holdout)
     except GelSightError as exc:
         print(f"dtx sim gelsight-check: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(result, indent=2) if args.json else format_table(result))
+    return 0
+
+
+def information_ceiling(args: argparse.Namespace) -> int:
+    from dataset.format import DatasetError  # noqa: PLC0415 (Open3D and torch only here)
+    from models.errors import ModelConfigError  # noqa: PLC0415
+    from sim.ceiling import DEFAULT_FORCE_N, CeilingError, format_table  # noqa: PLC0415
+    from sim.ceiling import information_ceiling as ceiling  # noqa: PLC0415
+
+    force_n = DEFAULT_FORCE_N if args.force_n is None else args.force_n
+    try:
+        result = ceiling(args.dataset, args.split, force_n, args.seed,
+                         progress=lambda line: print(f"ceiling: {line}", file=sys.stderr, flush=True))
+    except (CeilingError, DatasetError, ModelConfigError) as exc:
+        print(f"dtx sim ceiling: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(result, indent=2) if args.json else format_table(result))
     return 0

@@ -3,7 +3,9 @@ crash safety under kill -9, a clear stop on an unwritable output, and replay fro
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -17,7 +19,10 @@ from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetReader, deformation_map
 from dataset.redepth import redepth_dataset
 from dataset.synth import write_synthetic_dataset
+from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS
+from sim.cli import main as sim_cli
+from sim.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 
 SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 
@@ -39,18 +44,58 @@ def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, nod
     assert check_dataset(tmp_path / "session").ok
 
 
-def test_every_pair_whose_depth_map_presses_shows_the_press(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("collected") / "session"
+    result = run_session(out, grasps=8, seed=2, record=False)
+    assert result["exit_code"] == 0, result.get("collector_log")
+    return out
+
+
+def test_every_pair_whose_depth_map_presses_shows_the_press(small_session: Path) -> None:
     # The simulated gel presses only once its node has the grip from /gripper/state; a frame
     # captured before that is the untouched gel beside a depth-map that presses (a third of
     # the pairs did, when the settling time counted from the grasp reply).
-    result = run_session(tmp_path / "session", grasps=8, seed=2, record=False)
-    assert result["exit_code"] == 0, result.get("collector_log")
-    reader = DatasetReader(tmp_path / "session")
+    reader = DatasetReader(small_session)
     for record in reader.records:
         sample = reader.load(record)
         if np.mean(sample.depth_map_m < -0.001) > 0.05:
             touched = np.mean(deformation_map(sample.tactile_diff_rgb) > CONTACT_LEVELS)
             assert touched > 0.01, f"{record.sample_id}: the depth-map presses, the tactile image is untouched"
+
+
+def test_the_information_ceiling_reproduces_the_session_and_orders_its_rungs(small_session: Path) -> None:
+    result = information_ceiling(small_session, split="all")
+    rungs = [result["rungs"][name] for name in RUNGS]
+    assert result["reproduces_session"] and rungs[0]["n"] == 16
+    # Knowing the true contact reproduces the images up to the sensor noise; knowing less costs.
+    assert rungs[0]["ssim_model_mean"] > 0.98
+    assert rungs[0]["ssim_model_mean"] >= rungs[1]["ssim_model_mean"] - 1e-3
+    assert rungs[0]["dissimilarity_ratio"] < rungs[2]["dissimilarity_ratio"]
+    assert "true contact, no relief" in format_table(result)
+    # At another force the true contact is rendered pressed differently: flagged, not trusted.
+    assert information_ceiling(small_session, split="all", force_n=40.0)["rungs"][RUNGS[0]]["ssim_model_mean"] < \
+        rungs[0]["ssim_model_mean"]
+
+
+def test_the_information_ceiling_refuses_what_it_cannot_score(small_session: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    assert sim_cli(["sim", "ceiling", str(tmp_path / "none")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert sim_cli(["sim", "ceiling", str(small_session), "--force-n", "-3"]) == 2
+    assert "positive number of newtons" in capsys.readouterr().err
+    with pytest.raises(CeilingError, match="positive number of newtons"):
+        information_ceiling(small_session, force_n=0.0)
+    with pytest.raises(CeilingError, match="positive number of newtons"):
+        information_ceiling(small_session, force_n=float("nan"))
+    with pytest.raises(ModelConfigError, match="unknown split"):
+        information_ceiling(small_session, split="holdout")
+    moved = tmp_path / "moved"
+    shutil.copytree(small_session, moved)
+    info = json.loads((moved / "dataset.json").read_text())
+    (moved / "dataset.json").write_text(json.dumps({**info, "scene": "scenes/no_such_scene.yaml"}))
+    with pytest.raises(CeilingError, match="no_such_scene.yaml.*cannot be loaded"):
+        information_ceiling(moved)
 
 
 def test_an_unwritable_output_stops_the_session_with_a_clear_error(tmp_path: Path) -> None:
