@@ -55,6 +55,10 @@ def paper_table(evaluation: dict) -> str:
              f"{contact['ssim_model_mean']:.3f} / {contact['ssim_baseline_mean']:.3f}", ""),
             ("  its ratio (p Wilcoxon)", f"{contact['dissimilarity_ratio']:.2f} ({contact['p_value_wilcoxon']:.1e})", ""),
         ]
+    for name, stats in evaluation.get("objects", {}).items():
+        rows.append((f"  {name} ({stats['n']} pairs): SSIM model / baseline, ratio",
+                     f"{stats['ssim_model_mean']:.3f} / {stats['ssim_baseline_mean']:.3f}, "
+                     f"{stats['dissimilarity_ratio']:.2f}", ""))
     for row in evaluation.get("density", []):
         rows.append((f"SSIM at {row['points_per_cm3']:g} points/cm^3", f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
                      {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], "")))

@@ -116,6 +116,20 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     }
 
 
+SUMMARY_KEYS = ("n", "ssim_model_mean", "ssim_model_se", "ssim_baseline_mean", "ssim_baseline_se", "p_value_wilcoxon",
+                "dissimilarity_ratio")
+
+
+def per_object_statistics(truth: np.ndarray, estimate: np.ndarray, objects: Sequence[str],
+                          baseline_draws: int = 15, seed: int = 0) -> dict[str, dict[str, Any]]:
+    """:func:`ssim_statistics` (its summary: :data:`SUMMARY_KEYS`) of each object with at
+    least 2 pairs, the baseline drawn from that object's own ground truths."""
+    names = np.asarray(objects)
+    return {name: {k: v for k, v in ssim_statistics(truth[names == name], estimate[names == name], baseline_draws,
+                                                    seed).items() if k in SUMMARY_KEYS}
+            for name in sorted(set(names.tolist())) if np.sum(names == name) >= 2}
+
+
 # Summed |change| over RGB (8-bit levels) from which a pixel counts as contact: well above the
 # simulated sensor noise (1 level per channel) and the real camera's frame-to-frame fringes.
 CONTACT_LEVELS = 15.0
@@ -197,6 +211,8 @@ def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root:
     }
     result["contact"] = contact_ssim_statistics(predictions.truth, predictions.truth_deformation,
                                                 predictions.estimate, baseline_draws, seed)
+    result["objects"] = per_object_statistics(predictions.truth, predictions.estimate, predictions.objects,
+                                              baseline_draws, seed)
     result["density"] = []
     for points_per_cm3, density_root in sorted((density or {}).items()):
         at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
@@ -330,6 +346,9 @@ def summary_table(result: dict[str, Any]) -> str:
         lines.insert(-1, f"{'contact SSIM model / base':28s}{contact['ssim_model_mean']:>13.4f} / "
                          f"{contact['ssim_baseline_mean']:.4f}  ratio {contact['dissimilarity_ratio']:.3f}, "
                          f"p {contact['p_value_wilcoxon']:.1e}, {contact['n']} pairs")
+    for name, row in result["objects"].items():
+        lines.insert(-1, f"{'  ' + name:28s}{row['ssim_model_mean']:>13.4f} / {row['ssim_baseline_mean']:.4f}  "
+                         f"ratio {row['dissimilarity_ratio']:.3f}, {row['n']} pairs")
     for row in result["density"]:
         paper = row["paper_ssim_mean"]
         lines.append(f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"

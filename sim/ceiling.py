@@ -30,7 +30,7 @@ import numpy as np
 
 from dataset.format import DatasetReader, SampleRecord, resize_rgb
 from models.data import select_records
-from models.evaluate import ssim_statistics
+from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
 from perception.kinematics import grasp_to_tcp_pose
 from sim.gelsight import GelSightConfig, GelSightRenderer
 from sim.gelsight_effects import make_effect
@@ -107,13 +107,8 @@ def depth_map_images(scene: Scene, depth_maps_m: np.ndarray, depth_crop_m: Seque
 
 
 def _scored(truth: np.ndarray, estimate: np.ndarray, objects: np.ndarray, seed: int) -> dict[str, Any]:
-    def summary(stats: dict[str, Any]) -> dict[str, Any]:
-        return {k: stats[k] for k in ("n", "ssim_model_mean", "ssim_model_se", "ssim_baseline_mean",
-                                      "ssim_baseline_se", "dissimilarity_ratio")}
-
-    row = summary(ssim_statistics(truth, estimate, seed=seed))
-    row["objects"] = {name: summary(ssim_statistics(truth[objects == name], estimate[objects == name], seed=seed))
-                      for name in sorted(set(objects)) if np.sum(objects == name) >= 2}
+    row = {k: v for k, v in ssim_statistics(truth, estimate, seed=seed).items() if k in SUMMARY_KEYS}
+    row["objects"] = per_object_statistics(truth, estimate, objects, seed=seed)
     return row
 
 

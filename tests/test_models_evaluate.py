@@ -96,6 +96,8 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
         assert np.isfinite(result[key])
     assert set(result["template_match"]) >= {"score_mean", "distance_px_median"}
     assert result["contact"]["contact_levels"] == CONTACT_LEVELS
+    assert sum(stats["n"] for stats in result["objects"].values()) <= result["n"]
+    assert all(np.isfinite(stats["dissimilarity_ratio"]) for stats in result["objects"].values())
     assert result["density"][0]["points_per_cm3"] == 20 and result["density"][0]["paper_ssim_mean"] == 0.8478
     # The density dataset is the test dataset itself: its contact-window SSIM is the contact block's.
     assert result["contact"]["n"] >= 2
@@ -120,3 +122,16 @@ def test_contact_ssim_does_not_reward_drawing_no_contact() -> None:
     assert perfect["ssim_model_mean"] == pytest.approx(1.0) and perfect["n"] == 8
     assert contact_ssim_statistics(truth, deformation, no_contact)["ssim_model_mean"] < whole["ssim_model_mean"]
     assert contact_ssim_statistics(truth, np.zeros_like(deformation), truth) == {"n": 0, "contact_levels": CONTACT_LEVELS}
+
+
+def test_the_demo_table_sets_the_paper_beside_each_figure_and_gives_each_object() -> None:
+    from dtx.demo import paper_table
+
+    stats = {"n": 10, "ssim_model_mean": 0.95, "ssim_model_se": 0.01, "ssim_baseline_mean": 0.9,
+             "ssim_baseline_se": 0.01, "p_value_wilcoxon": 1e-3, "dissimilarity_ratio": 0.5}
+    evaluation = {**stats, "p_value_t": 1e-3, "template_match": {"score_mean": 0.9, "distance_px_median": 2.0},
+                  "objects": {"mustard_bottle": stats},
+                  "density": [{"points_per_cm3": 20.0, "ssim_mean": 0.94, "ssim_se": 0.01}]}
+    table = paper_table(evaluation)
+    assert "mustard_bottle (10 pairs)" in table and "0.950 / 0.900, 0.50" in table
+    assert "0.84 ± 0.0056" in table and "0.8478" in table
