@@ -260,6 +260,10 @@ class URArm:
                 time.sleep(POLL_PERIOD_S)
             final = self.read()
             if not arrived(final):
+                # A safety stop also ends a move short, and its report may come a few packages
+                # after the move's end (as above): it is the better error.
+                time.sleep(SAFETY_REPORT_WAIT_S)
+                self._raise_if_unsafe(self.read(), description)
                 raise MotionAbortedError(f"{description}: stopped short at TCP "
                                          f"{np.round(final.tcp_pose, 4).tolist()}")
         finally:

@@ -202,7 +202,12 @@ class WSG50Gripper:
             status, _ = self._send_until_answered(command, payload, replies, motion=True)
             if status not in (Status.E_CMD_PENDING, Status.E_ALREADY_RUNNING):
                 return status
-            return self._await_final(command, replies)
+            status = self._await_final(command, replies)
+            # A command sent again after its answer was lost can run twice: the first run's
+            # final reply then comes while the second still moves, so wait for the second's.
+            while self._grasping_state() in _MOVING:
+                status = self._await_final(command, replies)
+            return status
 
     def _request(self, command: Command, payload: bytes) -> tuple[int, bytes]:
         """Send a command that answers at once; return (status, data)."""
