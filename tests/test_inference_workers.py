@@ -31,13 +31,15 @@ def test_two_workers_from_the_launch_file_both_serve(registry: Registry, bus_dir
             time.sleep(0.2)
         with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, timeout_s=60.0) as client:
             served_by = []
-            for i in range(4):
+            for i in range(8):
                 images, _ = client.estimate(depth_maps(1, seed=i))
                 assert images.shape == (1, 100, 100, 3)
                 served_by.append(client.last_reply.model.rsplit(" on ", 1)[-1] if client.last_reply else "")
     finally:
         launcher.send_signal(signal.SIGINT)
         output, _ = launcher.communicate(timeout=60)
-    assert sorted(served_by) == ["inference_1", "inference_1", "inference_2", "inference_2"], output
+    # Requests go round the connected workers; one whose connection is still being made when
+    # the first requests leave misses those, so both must serve but not necessarily equally.
+    assert set(served_by) == {"inference_1", "inference_2"}, (served_by, output)
     assert launcher.returncode == 0, output
     assert "[inference_1] INFO loaded tiny.pt (ngf 8, onnxrt fp32)" in output
