@@ -32,7 +32,7 @@ from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_versio
 from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
-from perception.kinematics import gel_poses_world, grasp_to_tcp_pose
+from perception.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose
 from sim.scene import load_scene
 
 FINGERS = ("left", "right")
@@ -60,7 +60,7 @@ class CollectorNode(Node):
         scene: str = "scenes/ycb_three.yaml"
         objects: list = dataclasses.field(default_factory=list)  # default: every mesh object of the scene
         resume: bool = False
-        force_n: float = 10.0
+        force_n: float = GRASP_FORCE_N
         offset_xy_m: float = 0.015
         offset_closing_m: float = 0.003
         offset_z_m: float = 0.02
@@ -208,11 +208,8 @@ class CollectorNode(Node):
 
     def wait_for_tactile_and_depth(self) -> None:
         """Spin until both GelSights have published (their backgrounds are needed)."""
-        deadline = time.monotonic() + self.params.node_wait_s
-        while not all(f in self.tactile for f in FINGERS):
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"no tactile images on {self.params.tactile_topics}")
-            self.spin_once(0.05)
+        if not self.spin_until(lambda: all(f in self.tactile for f in FINGERS), self.params.node_wait_s):
+            raise RuntimeError(f"no tactile images on {self.params.tactile_topics}")
 
     def draw(self, grasp_id: int, attempt: int, centroid: np.ndarray) -> np.ndarray:
         """(x, y, z of the gel centres, theta_z), seeded by (seed, grasp, attempt).
@@ -282,21 +279,16 @@ class CollectorNode(Node):
         """When ``/gripper/state`` first reported the grip. The GelSights learn of it from that
         stream too (a simulated gel presses only once its node has it), so the settling time
         counts from here, not from the grasp reply, which can come a state period earlier."""
-        deadline = time.monotonic() + self.params.call_timeout_s
-        while not self.grip_seen_ns:
-            if time.monotonic() > deadline:
-                raise ServiceCallError("gripper", "timeout", "no /gripper/state reporting the grip")
-            self.spin_once(0.01)
+        if not self.spin_until(lambda: self.grip_seen_ns > 0, self.params.call_timeout_s):
+            raise ServiceCallError("gripper", "timeout", "no /gripper/state reporting the grip")
         return self.grip_seen_ns
 
     def capture_at_contact(self, contact_ns: int) -> dict[str, msgs.TactileImage]:
         """The first frame of each GelSight taken after contact plus the settling time."""
         after = contact_ns + int(self.params.settle_s * 1e9)
-        deadline = time.monotonic() + self.params.settle_s + 5.0
-        while not all(f in self.tactile and self.tactile[f].header.stamp_ns > after for f in FINGERS):
-            if time.monotonic() > deadline:
-                raise ServiceCallError("gelsight", "timeout", "no tactile frame after contact")
-            self.spin_once(0.01)
+        if not self.spin_until(lambda: all(f in self.tactile and self.tactile[f].header.stamp_ns > after
+                                           for f in FINGERS), self.params.settle_s + 5.0):
+            raise ServiceCallError("gelsight", "timeout", "no tactile frame after contact")
         return dict(self.tactile)
 
     def write_pair(self, grasp_id: int, finger: str, object_name: str, pose: list[float],

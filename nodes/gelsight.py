@@ -26,18 +26,19 @@ class GelSightNode(SensorNode):
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         params = dict(params or {})
-        if params.get("backend") == "simulated":
+        self.follows_robot = params.get("backend") == "simulated"
+        if self.follows_robot:
             # A read() that sleeps until its frame time would keep a /gripper/state waiting
             # and render the frame from the grip before it: the node's timer paces instead.
             params["pace"] = False
         super().__init__(name, params, **kwargs)
         self.arm: msgs.ArmState | None = None
-        if hasattr(self.sensor, "observe_robot"):
+        if self.follows_robot:
             self.create_subscription("/arm/state", msgs.ArmState, self.on_arm)
             self.create_subscription("/gripper/state", msgs.GripperState, self.on_gripper)
 
     def frame_period_s(self) -> float:
-        if hasattr(self.sensor, "observe_robot"):
+        if self.follows_robot:
             return 1.0 / self.sensor.config.rate_hz
         return super().frame_period_s()
 

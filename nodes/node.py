@@ -199,6 +199,15 @@ class Node:
         while not self._shutdown and not (until is not None and until()):
             self.spin_once()
 
+    def spin_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
+        """Run callbacks until ``done()`` holds or ``timeout_s`` has passed; whether it holds."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() > deadline:
+                return False
+            self.spin_once(0.01)
+        return True
+
     def keep_alive(self) -> bool:
         """For nodes whose work is one long loop (recording, playing a bag): run what is due
         (heartbeat, services) without waiting, and say whether to stop."""

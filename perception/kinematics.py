@@ -21,6 +21,9 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+# The constant contact force every grasp of a collection closes with (Algorithm 1), in N.
+GRASP_FORCE_N = 10.0
+
 # Tool z pointing down at the table: a half turn about world x (tool x = world x).
 _TOOL_DOWN = Rotation.from_euler("x", np.pi)
 

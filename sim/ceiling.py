@@ -31,15 +31,11 @@ import numpy as np
 from dataset.format import DatasetReader, SampleRecord, resize_rgb
 from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
-from perception.kinematics import grasp_to_tcp_pose
-from sim.gelsight import GelSightConfig, GelSightRenderer
-from sim.gelsight_effects import make_effect
+from perception.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
+from sim.gelsight import scene_renderer
 from sim.scene import Scene, SceneError, load_scene
 from sim.world import SimWorld
 
-# The collector's default grasp force (nodes.collector.CollectorNode.Params.force_n); a dataset
-# does not record it.
-DEFAULT_FORCE_N = 10.0
 # Below this SSIM the "true contact" rung does not reproduce the session's images: the session
 # was not collected on the scene it names (or with another force).
 REPRODUCES_SSIM = 0.95
@@ -54,28 +50,17 @@ def _without(scene: Scene, names: set[str]) -> Scene:
     return dataclasses.replace(scene, effects=[e for e in scene.effects if e.name not in names])
 
 
-def _renderer(scene: Scene) -> GelSightRenderer:
-    """The simulated GelSight of ``scene`` (its GelSight effects included) at its image size."""
-    gs = scene.gelsight
-    config = GelSightConfig(image_height=gs.image_height, image_width=gs.image_width, mm_per_px=gs.mm_per_px,
-                            elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3)
-    effects = [make_effect(e.name, e.params) for e in scene.effects_of("gelsight")]
-    return GelSightRenderer(config, effects=effects, rng=np.random.default_rng(scene.seed))
-
-
 def true_contact_images(scene: Scene, records: Sequence[SampleRecord], force_n: float,
                         size: tuple[int, int]) -> np.ndarray:
     """N x H x W x 3 uint8: each record's grasp rendered again in ``scene`` at its true pose
     (the commanded top-down grasp, closed with ``force_n``), resized to ``size`` as the
     collector resizes its frames."""
-    world, renderer = SimWorld(scene), _renderer(scene)
-    gs = scene.gelsight
-    native, extent_mm = (gs.image_height, gs.image_width), (gs.image_height * gs.mm_per_px, gs.image_width * gs.mm_per_px)
+    world, renderer = SimWorld(scene), scene_renderer(scene, rng=np.random.default_rng(scene.seed))
     images = []
     for record in records:
         x, y, z, theta = record.grasp_pose
         tcp = grasp_to_tcp_pose(x, y, z + scene.gripper.tcp_to_gel_centre_m, theta)
-        contact = world.grasp_contact(tcp, force_n, native, extent_mm, gap_fingers=(record.finger,))
+        contact = world.grasp_contact(tcp, force_n, gap_fingers=(record.finger,))
         images.append(resize_rgb(renderer.render(contact.gap_mm[record.finger]), *size))
     return np.stack(images)
 
@@ -86,9 +71,7 @@ def depth_map_images(scene: Scene, depth_maps_m: np.ndarray, depth_crop_m: Seque
     x over the crop ``depth_crop_m`` = (x, y, z) extents) rendered as the gel gap map of the
     GelSight's field of view, without GelSight effects."""
     gs = scene.gelsight
-    renderer = GelSightRenderer(GelSightConfig(image_height=gs.image_height, image_width=gs.image_width,
-                                               mm_per_px=gs.mm_per_px,
-                                               elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3))
+    renderer = scene_renderer(scene, effects=False)
     rows, cols = depth_maps_m.shape[1:]
     crop_x_mm, crop_z_mm = depth_crop_m[0] * 1e3, depth_crop_m[2] * 1e3
     seen_x_mm, seen_z_mm = gs.image_width * gs.mm_per_px, gs.image_height * gs.mm_per_px
@@ -112,7 +95,7 @@ def _scored(truth: np.ndarray, estimate: np.ndarray, objects: np.ndarray, seed: 
     return row
 
 
-def information_ceiling(root: str | os.PathLike[str], split: str = "test", force_n: float = DEFAULT_FORCE_N,
+def information_ceiling(root: str | os.PathLike[str], split: str = "test", force_n: float = GRASP_FORCE_N,
                         seed: int = 0, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The three reference estimates of the module docstring for one split of a simulated
     session, each scored against the session's images like a model (``seed``: the

@@ -57,8 +57,7 @@ class SimulatedGelSight:
         self.last_contact = None  # the last sim.world.GraspContact used (ground truth)
 
     def connect(self) -> None:
-        from sim.gelsight import GelSightConfig, GelSightRenderer  # noqa: PLC0415
-        from sim.gelsight_effects import make_effect  # noqa: PLC0415
+        from sim.gelsight import scene_renderer  # noqa: PLC0415
         from sim.scene import SceneError  # noqa: PLC0415
         from sim.world import shared_world  # noqa: PLC0415
 
@@ -66,20 +65,13 @@ class SimulatedGelSight:
             self.world = shared_world(self.config.scene, self.config.seed)
         except SceneError as exc:
             raise GelSightError(str(exc)) from exc
-        scene = self.world.scene
-        gs = scene.gelsight
-        h = self.config.image_height or gs.image_height
-        w = self.config.image_width or gs.image_width
-        self.size = (h, w)
+        gs = self.world.scene.gelsight
+        self.size = (self.config.image_height or gs.image_height, self.config.image_width or gs.image_width)
+        self.extent_mm = self.world.default_extent_mm()
+        rng = np.random.default_rng([self.world.seed, 11, SENSORS.index(self.config.sensor)])
+        self.renderer = scene_renderer(self.world.scene, self.size, rng=rng)
         # the image covers the same field of view on the gel whatever its pixel count
-        self.mm_per_px = gs.mm_per_px * gs.image_width / w
-        self.extent_mm = (gs.image_height * gs.mm_per_px, gs.image_width * gs.mm_per_px)
-        effects = [make_effect(e.name, e.params) for e in scene.effects_of("gelsight")]
-        seed = self.world.seed
-        rng = np.random.default_rng([seed, 11, SENSORS.index(self.config.sensor)])
-        cfg = GelSightConfig(image_height=h, image_width=w, mm_per_px=self.mm_per_px,
-                             elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3)
-        self.renderer = GelSightRenderer(cfg, effects=effects, rng=rng)
+        self.mm_per_px = self.renderer.pixel_pitch_mm[1]
         self._background = self.renderer.background()
         self._gap = None
         self._next_t = time.monotonic()
