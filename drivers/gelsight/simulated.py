@@ -125,6 +125,9 @@ class SimulatedGelSight:
             if self._next_t > now:
                 time.sleep(self._next_t - now)
             self._next_t = max(self._next_t, now) + 1.0 / self.config.rate_hz
+        # Stamped when the frame is taken, as a camera stamps its exposure: the image shows the
+        # contact as the node knew it then, however long the rendering takes.
+        stamp_ns = time.time_ns()
         if self._gap is None or not np.any(self._gap < 0):
             # nothing presses: the untouched gel (through the renderer so its effects apply)
             gap = np.full(self.size, np.inf, dtype=np.float32)
@@ -132,6 +135,6 @@ class SimulatedGelSight:
             gap = self._gap
         image = self.renderer.render(gap)
         self._seq += 1
-        header = Header(stamp_ns=time.time_ns(), seq=self._seq, frame_id=f"gel_{self.config.sensor}")
+        header = Header(stamp_ns=stamp_ns, seq=self._seq, frame_id=f"gel_{self.config.sensor}")
         return TactileImage(header=header, image=image, background=self._background.copy(),
                             sensor=self.config.sensor, mm_per_px=float(self.mm_per_px))
