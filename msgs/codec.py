@@ -25,6 +25,9 @@ DEFAULT_MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 MAX_HEADER_BYTES = 1024 * 1024
 MAX_ARRAYS = 64
 MAX_NDIM = 8
+# No dimension may exceed the largest message: with a zero elsewhere in the shape the byte count
+# still matches an empty buffer, and NumPy refuses such shapes with its own error.
+MAX_DIMENSION = DEFAULT_MAX_MESSAGE_BYTES
 # Only plain little-endian numeric types cross the bus: no objects, no strings, no records.
 ALLOWED_DTYPES = frozenset(
     ["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"]
@@ -106,13 +109,22 @@ def decode(frames: typing.Sequence[Any], max_bytes: int = DEFAULT_MAX_MESSAGE_BY
         raise MessageError(f"{len(specs)} arrays exceed the limit of {MAX_ARRAYS}")
     if len(views) != 2 + len(specs):
         raise MessageError(f"header announces {len(specs)} arrays but {len(views) - 2} buffers came")
-    arrays = [_array_from(spec, view, i) for i, (spec, view) in enumerate(zip(specs, views[2:]))]
+    try:
+        message = _message_from(cls, header, specs, views[2:])
+    except MessageError:
+        raise
+    except Exception as exc:  # whatever a check above missed is still the sender's fault, never ours
+        raise MessageError(f"{header['s']}: cannot be built from its fields ({type(exc).__name__}: {exc})") from exc
+    return Envelope(topic=topic, message=message, publisher=header["p"], size_bytes=size)
+
+
+def _message_from(cls: type, header: dict[str, Any], specs: list[Any], buffers: list[memoryview]) -> Message:
+    arrays = [_array_from(spec, view, i) for i, (spec, view) in enumerate(zip(specs, buffers))]
     used: set[int] = set()
     fields = _unflatten(cls, header["d"], arrays, used, path=cls.__name__, top=True)
     if len(used) != len(arrays):
         raise MessageError(f"{len(arrays) - len(used)} buffers are not referenced by any field")
-    message = cls(header=Header(stamp_ns=header["t"], seq=header["q"], frame_id=header["f"]), **fields)
-    return Envelope(topic=topic, message=message, publisher=header["p"], size_bytes=size)
+    return cls(header=Header(stamp_ns=header["t"], seq=header["q"], frame_id=header["f"]), **fields)
 
 
 def _as_view(frame: Any) -> memoryview:
@@ -131,6 +143,8 @@ def _array_from(spec: Any, view: memoryview, index: int) -> np.ndarray:
         raise MessageError(f"array {index}: dtype {dtype_str!r} not allowed (allowed: {sorted(ALLOWED_DTYPES)})")
     if len(shape) > MAX_NDIM or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape):
         raise MessageError(f"array {index}: shape {shape} must be at most {MAX_NDIM} non-negative ints")
+    if any(d > MAX_DIMENSION for d in shape):
+        raise MessageError(f"array {index}: shape {shape} has a dimension above {MAX_DIMENSION}")
     dtype = np.dtype(dtype_str)
     expected = dtype.itemsize * math.prod(shape)
     if expected != view.nbytes:

@@ -85,6 +85,7 @@ class Counters:
     malformed: int = 0
     wrong_type: int = 0
     connection_resets: int = 0
+    handler_errors: int = 0
     bytes: int = 0
 
 

@@ -25,6 +25,7 @@ from typing import Any, ClassVar, TypeVar
 import zmq
 
 from msgs.base import Message
+from msgs.codec import Envelope
 from msgs.system import Heartbeat, Log
 from nodes.bus import (Bus, Counters, PeerConfig, Publisher, ServiceClient, ServiceServer, Subscriber,
                        TransportConfig)
@@ -187,13 +188,26 @@ class Node:
         for subscriber, callback in self._subscriptions:
             if subscriber.sock in ready:
                 while (envelope := subscriber.receive_ready()) is not None:
-                    callback(envelope)
+                    self._deliver(subscriber, callback, envelope)
         now = time.monotonic()
         while self._timers and self._timers[0][0] <= now:
             due, count, period_s, callback = heapq.heappop(self._timers)
             # Re-arm from the due time so a periodic timer keeps its rate, unless it fell behind.
             heapq.heappush(self._timers, (max(due + period_s, now), count, period_s, callback))
             callback()
+
+    def _deliver(self, subscriber: Subscriber, callback: Callable[[Envelope], None], envelope: Envelope) -> None:
+        # A message that passed decoding can still break a callback (a value its code did not
+        # expect); that costs the message, counted and logged, never the node. A failing disk or
+        # device (OSError) is the node's own state, not the message's, and still ends it.
+        try:
+            callback(envelope)
+        except OSError:
+            raise
+        except Exception:
+            subscriber.counters.handler_errors += 1
+            self.log.exception("%s: a callback failed on a %s; message dropped", subscriber.topic,
+                          envelope.message.SCHEMA)
 
     def spin(self, until: Callable[[], bool] | None = None) -> None:
         while not self._shutdown and not (until is not None and until()):

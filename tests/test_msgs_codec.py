@@ -170,3 +170,54 @@ def test_unsendable_values_are_refused_at_encode() -> None:
         encode("/c", msgs.PointCloud(points=np.array(["a"], dtype=object)))
     with pytest.raises(MessageError, match="not a registered"):
         encode("/c", object())  # type: ignore[arg-type]
+
+
+def test_a_zero_size_array_with_a_huge_dimension_is_refused() -> None:
+    # The message that once killed every node: the byte count (0) matches the empty buffer,
+    # and NumPy then refuses the shape with an error of its own.
+    frames = encode("/x", msgs.Empty(), "fuzzer")
+    header = msgpack.unpackb(bytes(frames[1]))
+    header["a"] = [["<f4", [2**63 - 1, 0]]]
+    with pytest.raises(MessageError, match="dimension above"):
+        decode([bytes(frames[0]), msgpack.packb(header), b""])
+
+
+_DIMENSIONS = st.one_of(st.integers(0, 4), st.sampled_from([2**31, 2**32, 2**62, 2**63 - 1, 2**64 - 1]))
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    shape=st.lists(_DIMENSIONS, min_size=0, max_size=9),
+    dtype=st.sampled_from(sorted(ALLOWED_DTYPES)),
+    buffer=st.binary(max_size=32),
+    field=st.sampled_from(["depth", "unused"]),
+)
+def test_any_announced_array_decodes_or_raises_message_error(
+        shape: list[int], dtype: str, buffer: bytes, field: str) -> None:
+    frames = encode("/depth", msgs.DepthImage(depth=np.zeros((1, 1), np.uint16)), "fuzzer")
+    header = msgpack.unpackb(bytes(frames[1]))
+    header["a"] = [[dtype, shape]]
+    header["d"][field] = {"__array__": 0}
+    try:
+        decode([bytes(frames[0]), msgpack.packb(header), buffer])
+    except MessageError:
+        pass
+
+
+@settings(max_examples=400, deadline=None)
+@given(data=st.data())
+def test_mutated_headers_of_every_message_type_only_ever_raise_message_error(data: st.DataObject) -> None:
+    msg_type = data.draw(st.sampled_from(sorted(msgs.MESSAGE_TYPES.values(), key=lambda t: t.SCHEMA)))
+    frames = encode("/t", msg_type(), "fuzzer")
+    header = msgpack.unpackb(bytes(frames[1]))
+    plain = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(),
+                      st.text(max_size=8), st.lists(st.integers(0, 2**63), max_size=3))
+    for key in data.draw(st.lists(st.sampled_from(sorted(header)), max_size=3)):
+        header[key] = data.draw(plain)
+    if isinstance(header.get("d"), dict) and header["d"]:
+        name = data.draw(st.sampled_from(sorted(header["d"])))
+        header["d"][name] = data.draw(st.one_of(plain, st.just({"__array__": 0})))
+    try:
+        decode([bytes(frames[0]), msgpack.packb(header), *_bytes(frames[2:])])
+    except MessageError:
+        pass

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 import msgs
@@ -95,3 +96,80 @@ def test_a_respawned_recorder_never_overwrites_a_bag(tmp_path: Path) -> None:
     second.write_bytes(b"bag of the second life")
     assert free_bag_path(first).name == "session.2.mcap"
     assert first.read_bytes() == b"bag of the first life"
+
+
+class Listener(Node):
+    """A node with a subscription whose callback breaks on some values, and a service."""
+
+    def __init__(self, name: str, **kwargs: Any) -> None:
+        super().__init__(name, None, **kwargs)
+        self.heard: list[float] = []
+        self.create_subscription("/listener/in", msgs.GripperCommand, self.on_command)
+        self.create_service("/listener/echo", msgs.GripperCommand, msgs.GripperState,
+                            lambda c: msgs.GripperState(width_m=c.width_m))
+
+    def on_command(self, command: msgs.GripperCommand) -> None:
+        if command.width_m < 0:
+            raise ValueError("a width below zero")  # a bug a message can trigger
+        self.heard.append(command.width_m)
+
+
+def _mutants(good: list[bytes], count: int, seed: int) -> list[list[bytes]]:
+    """``count`` damaged copies of ``good``: fields replaced, arrays re-announced with zero-size
+    huge shapes, bytes flipped, frames dropped (what a buggy or hostile peer sends)."""
+    import msgpack
+    rng = np.random.default_rng(seed)
+    header = msgpack.unpackb(good[1])
+    odd_values: list[Any] = [None, -1, 2**63 - 1, 2**64 - 1, 1.5, "x", [], {}, True, b"\xff"]
+    mutants = [[good[0], msgpack.packb({**header, "s": "dtx.system.Empty", "a": [["<f4", [2**63 - 1, 0]]]}), b""]]
+    while len(mutants) < count:
+        kind = rng.integers(4)
+        forged = dict(header)
+        if kind == 0:
+            forged[str(rng.choice(sorted(header)))] = odd_values[rng.integers(len(odd_values))]
+            mutants.append([good[0], msgpack.packb(forged), *good[2:]])
+        elif kind == 1:
+            forged["a"] = [[str(rng.choice(["<f4", "<u8", "|u1"])), [2 ** int(rng.integers(20, 64)) - 1, 0]]]
+            mutants.append([good[0], msgpack.packb(forged), b""])
+        elif kind == 2:
+            damaged = bytearray(good[1])
+            damaged[rng.integers(len(damaged))] ^= int(rng.integers(1, 256))
+            mutants.append([good[0], bytes(damaged), *good[2:]])
+        else:
+            mutants.append(good[: rng.integers(1, len(good))])
+    return mutants
+
+
+def test_a_live_node_survives_malformed_messages_and_failing_callbacks(registry: Registry) -> None:
+    from msgs.codec import encode
+    node = Listener("listener", registry=registry)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: node.spin(until=stop.is_set))
+    spinner.start()
+    fuzzer = Bus("fuzzer", registry)
+    try:
+        publisher = fuzzer.publisher("/listener/in", msgs.GripperCommand)
+        assert publisher.wait_for_subscribers(1, timeout_s=10.0)
+        client = fuzzer.client("/listener/echo", msgs.GripperCommand, msgs.GripperState)
+        assert client.call(msgs.GripperCommand(width_m=0.01), timeout_s=5.0).width_m == pytest.approx(0.01)
+        publisher.publish(msgs.GripperCommand(width_m=-1.0))
+        good = [bytes(memoryview(f)) for f in encode("/listener/in", msgs.GripperCommand(width_m=0.02), "fuzzer")]
+        for frames in _mutants(good, 500, seed=1):
+            publisher.sock.send_multipart(frames)
+        good_request = [bytes(memoryview(f)) for f in encode("/listener/echo", msgs.GripperCommand(), "fuzzer")]
+        for frames in _mutants(good_request, 500, seed=2):
+            client.sock.send_multipart(frames)
+        publisher.publish(msgs.GripperCommand(width_m=0.03))
+        reply = client.call(msgs.GripperCommand(width_m=0.04), timeout_s=10.0)
+        deadline = time.monotonic() + 10.0
+        while 0.03 not in node.heard and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        spinner.join()
+        fuzzer.close()
+    counters = node.counters()
+    node.close()
+    assert spinner is not None and reply.width_m == pytest.approx(0.04)
+    assert 0.03 in node.heard and -1.0 not in node.heard
+    assert counters["handler_errors"] == 1 and counters["malformed"] >= 400
