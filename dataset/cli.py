@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 from dataset.check import check_dataset
 from dataset.export import export_pix2pix
 from dataset.format import DatasetError
@@ -28,6 +30,24 @@ def _synth(args: argparse.Namespace) -> int:
     from dataset.synth import write_synthetic_dataset  # noqa: PLC0415 (imports the renderer)
 
     writer = write_synthetic_dataset(args.out, args.samples, args.seed, progress=True)
+    print(f"{args.out}: {len(writer)} samples")
+    return 0
+
+
+@exit_1_on(DatasetError, OSError)
+def _library(args: argparse.Namespace) -> int:
+    from dataset.contact_library import write_contact_library  # noqa: PLC0415 (imports the renderer)
+    from sim.scene import SceneError  # noqa: PLC0415
+
+    low, high = args.depth_range_m
+    if not (np.isfinite(low) and np.isfinite(high) and high > low):
+        print(f"error: --depth-range-m needs finite NEAR < FAR, got {low} {high}", file=sys.stderr)
+        return 2
+    try:
+        writer = write_contact_library(args.out, args.samples, args.seed, args.scene, (low, high), progress=True)
+    except SceneError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     print(f"{args.out}: {len(writer)} samples")
     return 0
 
@@ -74,6 +94,17 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     synth.add_argument("--samples", type=int, default=578, help="number of pairs (default: the paper's 578)")
     synth.add_argument("--seed", type=int, default=0)
     synth.set_defaults(func=_synth)
+
+    library = commands.add_parser("library", help="render a contact library in a scene's collection geometry "
+                                                  "(spheres, cylinders, wedges, corners, textures, height fields)")
+    library.add_argument("out", help="dataset directory to create or resume")
+    library.add_argument("--samples", type=int, default=1200, help="number of pairs (default 1200)")
+    library.add_argument("--seed", type=int, default=0)
+    library.add_argument("--scene", default="scenes/ycb_three.yaml",
+                         help="scene whose gripper, GelSight and GelSight effects the pairs are made with")
+    library.add_argument("--depth-range-m", type=float, nargs=2, default=(-0.005, 0.01), metavar=("NEAR", "FAR"),
+                         help="depth-map range, as the sessions it trains beside (default -0.005 0.01)")
+    library.set_defaults(func=_library)
 
     redepth = commands.add_parser("redepth", help="make a collected dataset's depth-maps again, e.g. at the "
                                                   "paper's point densities (1 10 20 40 80 points/cm³)")

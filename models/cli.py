@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 
 from dataset.format import DatasetError
@@ -19,7 +20,7 @@ def _train(args: argparse.Namespace) -> int:
     if args.hold_out_object:
         config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
     started = time.monotonic()
-    path = train(args.dataset, config, args.out, resume=args.resume)
+    path = train(args.dataset, config, args.out, resume=args.resume, libraries=args.library)
     print(f"checkpoint {path} ({time.monotonic() - started:.0f} s)")
     return 0
 
@@ -29,13 +30,36 @@ def _evaluate(args: argparse.Namespace) -> int:
     from models.evaluate import evaluate, parse_density, summary_table, write_figures  # noqa: PLC0415
     from models.train import load_generator  # noqa: PLC0415
 
+    if args.dataset is None and args.real_presses is None:
+        print("error: give a DATASET, --real-presses FILE.npz, or both", file=sys.stderr)
+        return 2
     generator, depth_range_m = load_generator(args.checkpoint)
+    real: dict | None = None
+    if args.real_presses is not None:
+        from models.real_presses import evaluate_real_presses, real_press_table, write_real_press_figure  # noqa: PLC0415
+
+        try:
+            real, images = evaluate_real_presses(generator, depth_range_m, args.real_presses, args.scene,
+                                                 args.ball_radius_mm, args.mm_per_px, seed=args.seed)
+        except ModelConfigError as err:  # the presses file or its options: the caller's input
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        if args.figures:
+            write_real_press_figure(real, images, args.figures)
+    if args.dataset is None:
+        print(json.dumps(real, indent=2) if args.json else real_press_table(real))
+        return 0
     result, predictions = evaluate(generator, depth_range_m, args.dataset, split=args.split,
                                    hold_out_object=args.hold_out_object, density=parse_density(args.density),
                                    seed=args.seed)
     if args.figures:
         write_figures(result, predictions, depth_range_m, args.figures)
-    print(json.dumps(result, indent=2) if args.json else summary_table(result))
+    if real is not None:
+        result["real_presses"] = real
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(summary_table(result) + ("" if real is None else "\n\n" + real_press_table(real)))
     return 0
 
 
@@ -48,11 +72,14 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     train.add_argument("--hold-out-object", default="", metavar="NAME",
                        help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)")
+    train.add_argument("--library", action="append", default=[], metavar="DIR",
+                       help="a contact library (dtx dataset library) whose every sample joins the training "
+                            "set; repeatable")
     train.set_defaults(func=_train)
 
     evaluate = subparsers.add_parser("evaluate", help="the paper's SSIM, baseline and template-matching analysis")
     evaluate.add_argument("checkpoint", help="checkpoint.pt written by dtx train")
-    evaluate.add_argument("dataset", help="dataset directory")
+    evaluate.add_argument("dataset", nargs="?", help="dataset directory (optional with --real-presses)")
     evaluate.add_argument("--json", action="store_true", help="print the full result as JSON")
     evaluate.add_argument("--figures", metavar="DIR", help="write qualitative.png, ssim_bars.png (and density.png)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test", "all"))
@@ -63,4 +90,12 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
                           help="a dataset made from clouds downsampled to that density; repeat for the "
                                "paper's table (1, 10, 20, 40, 80)")
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws")
+    evaluate.add_argument("--real-presses", metavar="FILE.npz",
+                          help="score the model on real GelSight presses of a ball (layout of "
+                               "assets/gelsight/ball_presses.npz) beside the background, renderer and random frames")
+    evaluate.add_argument("--ball-radius-mm", type=float, default=2.0, help="radius of the pressed ball (default 2)")
+    evaluate.add_argument("--mm-per-px", type=float, default=0.1245,
+                          help="pixel pitch of the presses' frames (default 0.1245)")
+    evaluate.add_argument("--scene", default="scenes/ycb_three.yaml",
+                          help="scene whose gripper and GelSight the presses are seen with (default ycb_three)")
     evaluate.set_defaults(func=_evaluate)

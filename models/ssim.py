@@ -94,3 +94,29 @@ def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:
     """Network output N x 3 x H x W in [-1, 1] -> N x H x W x 3 uint8 (rounded, clipped)."""
     scaled = ((images.detach().float().cpu() + 1.0) * 127.5).round().clamp(0, 255)
     return scaled.to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+# PSNR of identical images is infinite; the cap keeps means and JSON finite (an 8-bit image one
+# level off everywhere scores 48 dB, so the cap is never reached by a real difference).
+PSNR_MAX_DB = 100.0
+
+
+def psnr_rgb(a: np.ndarray, b: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
+    """PSNR (dB, peak 255) of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3
+    -> N values; the mean squared error is over all channels of the pixels where ``pixels``
+    ((N x) H x W bool) holds (NaN for an image with none), capped at :data:`PSNR_MAX_DB`."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype != np.uint8 or b.dtype != np.uint8:
+        raise ValueError(f"psnr_rgb compares uint8 images, got {a.dtype} and {b.dtype}")
+    if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-1] != 3:
+        raise ValueError(f"psnr_rgb needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
+    squared = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).mean(axis=-1).reshape((-1,) + a.shape[-3:-1])
+    if pixels is None:
+        mse = squared.mean(axis=(1, 2))
+    else:
+        mask = np.broadcast_to(np.asarray(pixels, dtype=bool).reshape((-1,) + a.shape[-3:-1]), squared.shape)
+        counts = mask.sum(axis=(1, 2))
+        mse = np.where(counts > 0, (squared * mask).sum(axis=(1, 2)) / np.maximum(counts, 1), np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        psnr = 10.0 * np.log10(DATA_RANGE ** 2 / mse)
+    return np.where(np.isnan(mse), np.nan, np.minimum(psnr, PSNR_MAX_DB)).reshape(a.shape[:-3])

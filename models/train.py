@@ -26,6 +26,7 @@ import dataclasses
 import os
 import shutil
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,11 @@ class TrainConfig:
     # generator wanders from step to step; the average is what is validated, saved as
     # ``generator`` and served, while training continues on the raw weights.
     ema_decay: float = 0.0
+    # Weight of the contact in the L1 term: a pixel counts 1 + contact_weight * c, where c in
+    # [0, 1] is how far its target departs from the mean training image (saturating at
+    # CONTACT_SCALE). 0: the paper's plain L1, in which the ~90 % of pixels that show the
+    # sensor's own background outweigh the contact.
+    contact_weight: float = 0.0
     generator: GeneratorConfig = GeneratorConfig()
 
     def validate(self) -> "TrainConfig":
@@ -77,6 +83,8 @@ class TrainConfig:
                 raise ModelConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.max_steps < 0 or self.threads < 0:
             raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
+        if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
+            raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
@@ -110,6 +118,18 @@ class TrainConfig:
         except yaml.YAMLError as err:
             raise ModelConfigError(f"training config {path} is not valid YAML: {err}") from err
         return TrainConfig.from_dict(data or {})
+
+
+# A target pixel this far from the mean training image (tanh units; 0.1 = 12.75 levels of 255)
+# counts as fully contact in the contact-weighted L1.
+CONTACT_SCALE = 0.1
+
+
+def contact_weights(target: torch.Tensor, mean_image: torch.Tensor, contact_weight: float) -> torch.Tensor:
+    """Per-pixel L1 weights (N x 1 x H x W): 1 on the background, up to 1 + ``contact_weight``
+    where the target (N x 3 x H x W, [-1, 1]) departs from ``mean_image`` (3 x H x W)."""
+    change = (target - mean_image).abs().mean(dim=1, keepdim=True)
+    return 1.0 + contact_weight * (change / CONTACT_SCALE).clamp(max=1.0)
 
 
 def lr_factor(config: TrainConfig, epoch: int) -> float:
@@ -210,11 +230,30 @@ def _validate(generator: nn.Module, x: torch.Tensor, y: torch.Tensor, batch: int
     return float(torch.cat(l1).mean()), float(torch.cat(ssim).mean())
 
 
+def load_library(libraries: Sequence[str | os.PathLike[str]], depth_range_m: tuple[float, float],
+                 in_channels: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Every sample of each library dataset (dataset.contact_library), as network input and
+    target; refused unless it normalises depth as the session does."""
+    parts = []
+    for library in libraries:
+        reader = DatasetReader(library)
+        if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
+            raise ModelConfigError(f"library {library} normalises depth with {reader.info.depth_range_m}, the "
+                                   f"dataset with {depth_range_m}: make it with --depth-range-m to match")
+        parts.append(load_pairs(reader, None, in_channels))
+    if not parts:
+        return None
+    return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+
+
 def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.PathLike[str],
-          resume: bool = False, progress: bool = True, stop_after_epochs: int | None = None) -> Path:
+          resume: bool = False, progress: bool = True, stop_after_epochs: int | None = None,
+          libraries: Sequence[str | os.PathLike[str]] = ()) -> Path:
     """Train on the dataset's train split (or, with ``hold_out_object``, on the other
-    objects); returns the checkpoint path. ``stop_after_epochs`` ends this run early (the
-    checkpoint can be resumed) without changing the schedule."""
+    objects), joined by every sample of the ``libraries`` (contact libraries: they add kinds of
+    contact, never a session's validation or test pairs); returns the checkpoint path.
+    ``stop_after_epochs`` ends this run early (the checkpoint can be resumed) without changing
+    the schedule."""
     config.validate()
     out_dir = Path(out)
     dist = _setup_distributed()
@@ -225,6 +264,9 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         in_ch = config.generator.in_channels
         x_train, y_train = load_pairs(reader, select_records(reader, "train", config.hold_out_object), in_ch)
         x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), in_ch)
+        library = load_library(libraries, reader.info.depth_range_m, in_ch)
+        if library is not None:
+            x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
         x_train, y_train = x_train.to(dist.device), y_train.to(dist.device)
         x_val, y_val = x_val.to(dist.device), y_val.to(dist.device)
 
@@ -233,8 +275,9 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         discriminator = PatchDiscriminator(config.discriminator).to(dist.device)
         init_weights(generator)
         init_weights(discriminator)
+        mean_image = y_train.mean(dim=0)
         if config.generator.background:
-            generator.set_background(y_train.mean(dim=0))
+            generator.set_background(mean_image)
         average = copy.deepcopy(generator).requires_grad_(False) if config.ema_decay else None
         betas = (config.beta1, config.beta2)
         opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
@@ -313,7 +356,11 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                 opt_g.zero_grad(set_to_none=True)
                 pred = _unwrap(discriminator)(x, fake)
                 loss_g_gan = bce(pred, torch.ones_like(pred))
-                loss_g_l1 = (fake - y).abs().mean()
+                if config.contact_weight:
+                    weights = contact_weights(y, mean_image, config.contact_weight)
+                    loss_g_l1 = ((fake - y).abs() * weights).mean() / weights.mean()
+                else:
+                    loss_g_l1 = (fake - y).abs().mean()
                 (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
                 opt_g.step()
                 if average is not None:
@@ -356,6 +403,7 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                     "train_config": config.to_dict(),
                     "depth_range_m": list(reader.info.depth_range_m),
                     "dataset": str(Path(dataset).resolve()),
+                    "libraries": [str(Path(library).resolve()) for library in libraries],
                 }, checkpoint_path)
         bar.close()
         if board is not None:

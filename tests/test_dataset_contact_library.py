@@ -1,0 +1,69 @@
+"""The contact library: pairs made in a session's geometry, reproducible, resumable, and each
+depth-map showing its contact where its image does."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from dataset.check import check_dataset
+from dataset.contact_library import FAMILIES, library_sample, random_surface_mm, write_contact_library
+from dataset.format import DatasetError, DatasetReader, resize_rgb
+from perception.depthmap import DepthMapParams
+from sim.gelsight import scene_renderer
+from sim.scene import load_scene
+
+SCENE = Path(__file__).resolve().parent.parent / "scenes" / "ycb_three.yaml"
+
+
+def test_the_library_is_reproducible_resumable_and_a_sound_dataset(tmp_path: Path) -> None:
+    write_contact_library(tmp_path / "a", 14, seed=4, scene=SCENE)
+    write_contact_library(tmp_path / "b", 5, seed=4, scene=SCENE)
+    write_contact_library(tmp_path / "b", 14, seed=4, scene=SCENE)
+    a, b = DatasetReader(tmp_path / "a"), DatasetReader(tmp_path / "b")
+    assert [r.sha256 for r in a.records] == [r.sha256 for r in b.records] and len(a) == 14
+    assert {r.object_name for r in a.records} == set(FAMILIES)
+    assert a.info.depth_range_m == (-0.005, 0.01) and a.info.depth_crop_m is not None
+    assert check_dataset(tmp_path / "a").ok
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_a_pressed_depth_map_shows_its_contact_where_the_image_does(family: str) -> None:
+    scene = load_scene(SCENE, check_geometry=False)
+    renderer = scene_renderer(scene, effects=False)
+    background = resize_rgb(renderer.background(), 100, 100).astype(float)
+    geometry = scene.gripper_geometry()
+    params = DepthMapParams(shape=(100, 100), margin_m=0.002, y_range_m=(-0.005, 0.01))
+    # The depth-map covers the sensed area plus the margin; the image, the sensed area alone.
+    sensed_x, sensed_z = geometry.sensed_extent_m
+    cols = (np.arange(100) + 0.5) / 100 * (sensed_x + 0.004) - (sensed_x / 2 + 0.002)
+    rows = (np.arange(100) + 0.5) / 100 * (sensed_z + 0.004) - (sensed_z / 2 + 0.002)
+    in_view = (np.abs(rows)[:, None] < sensed_z / 2) & (np.abs(cols)[None, :] < sensed_x / 2)
+    checked = 0
+    for seed in range(40):
+        pair = library_sample(family, np.random.default_rng(seed), geometry, params, renderer, (100, 100))
+        if pair is None:
+            continue
+        depth_map, image = pair
+        pressed = (depth_map < -0.0003) & in_view
+        # Nothing within 1 mm of the gel, and 2 mm (8 bins) from anything that is: the gel's
+        # spread and a face's edge colour the image around a contact.
+        clear = ~ndimage.binary_dilation(depth_map < 0.001, iterations=8) & in_view
+        if pressed.sum() < 20 or clear.sum() < 20:
+            continue
+        change = np.abs(image.astype(float) - background).sum(axis=2)
+        # The image shows the sensed area on its 100 x 100 grid: where each depth-map bin is there.
+        r = np.broadcast_to(((rows[:, None] + sensed_z / 2) / sensed_z * 100).astype(int).clip(0, 99), pressed.shape)
+        c = np.broadcast_to(((cols[None, :] + sensed_x / 2) / sensed_x * 100).astype(int).clip(0, 99), pressed.shape)
+        assert change[r[pressed], c[pressed]].mean() > 3 * change[r[clear], c[clear]].mean() + 5, f"{family} {seed}"
+        checked += 1
+    assert checked >= 3
+
+
+def test_an_unknown_family_and_a_bad_count_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match="unknown contact family"):
+        random_surface_mm("torus", np.random.default_rng(0))
+    with pytest.raises(DatasetError, match="must be positive"):
+        write_contact_library(tmp_path / "x", 0, seed=0, scene=SCENE)

@@ -1,0 +1,124 @@
+"""Real-frame evaluation (``dtx evaluate --real-presses``): the press seen as the system sees a
+contact, every estimate scored the same way, and a bad presses file refused clearly."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dataset.contact_library import write_contact_library
+from models.cli import add_commands
+from models.evaluate import predict
+from models.networks import GeneratorConfig
+from models.real_presses import ESTIMATES, evaluate_real_presses, press_depth_map, press_geometry
+from models.train import TrainConfig, load_generator, train
+from perception.depthmap import DepthMapParams
+from sim.gelsight import scene_renderer
+from sim.gelsight_check import ball_gap_map, load_ball_presses
+from sim.scene import load_scene
+
+REPO = Path(__file__).resolve().parent.parent
+PRESSES = REPO / "assets" / "gelsight" / "ball_presses.npz"
+SCENE = REPO / "scenes" / "ycb_three.yaml"
+DEPTH_RANGE_M = (-0.005, 0.01)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small generator trained on spheres of a contact library: enough to draw a press where
+    its depth-map puts it."""
+    root = tmp_path_factory.mktemp("real")
+    write_contact_library(root / "library", 96, seed=3, scene=SCENE, depth_range_m=DEPTH_RANGE_M)
+    config = TrainConfig(epochs=8, epochs_decay=4, batch_size=8, ndf=8, threads=1, lambda_l1=1000.0,
+                         contact_weight=4.0, generator=GeneratorConfig(ngf=8, background=True, dropout=0.0))
+    return train(root / "library", config, root / "train", progress=False)
+
+
+def _offset_from_centre(image_change: np.ndarray) -> np.ndarray:
+    """(row, column) of the change-weighted centroid, relative to the image centre."""
+    weights = image_change / image_change.sum()
+    rows, cols = np.indices(image_change.shape)
+    centre = (np.array(image_change.shape) - 1) / 2
+    return np.array([(weights * rows).sum(), (weights * cols).sum()]) - centre
+
+
+def test_an_off_centre_press_lands_on_the_same_side_in_depth_map_render_and_prediction(checkpoint: Path) -> None:
+    presses = load_ball_presses(PRESSES)
+    scene = load_scene(SCENE, check_geometry=False)
+    generator, depth_range_m = load_generator(checkpoint)
+    # The press farthest from the frame's centre, in both axes.
+    offsets = presses.centers_xy_px - (np.array(presses.background.shape[1::-1]) - 1) / 2
+    index = int(np.argmax(np.abs(offsets).min(axis=1)))
+    expected = np.sign(offsets[index][::-1])  # (row, column) side
+    press = press_geometry(presses, index, 0.1245, 2.0, (100, 100))
+    params = DepthMapParams(shape=(100, 100), margin_m=0.002, y_range_m=depth_range_m)
+    depth_map = press_depth_map(press, 2.0, scene.gripper_geometry(), params)
+    pressed = np.clip(-depth_map, 0, None)
+    assert np.array_equal(np.sign(_offset_from_centre(pressed)), expected)
+
+    renderer = scene_renderer(scene, effects=False)
+    image = renderer.render(ball_gap_map(renderer.config.shape, presses.centers_xy_px[index], press.depth_mm, 0.1245))
+    change = np.abs(image.astype(float) - renderer.background().astype(float)).sum(axis=2)
+    assert np.array_equal(np.sign(_offset_from_centre(change)), expected)
+
+    estimate, empty = predict(generator, np.stack([depth_map, np.full_like(depth_map, depth_range_m[1])]),
+                              depth_range_m)
+    predicted_change = np.abs(estimate.astype(float) - empty.astype(float)).sum(axis=2)
+    assert np.array_equal(np.sign(_offset_from_centre(predicted_change)), expected)
+
+
+def test_every_estimate_is_scored_on_window_and_full_image(checkpoint: Path) -> None:
+    generator, depth_range_m = load_generator(checkpoint)
+    result, images = evaluate_real_presses(generator, depth_range_m, PRESSES, SCENE)
+    assert result["n"] == 30
+    for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db"):
+        assert set(result[key]) == set(ESTIMATES)
+    # The renderer fed the true contact is the strong reference; the background sees no press.
+    assert result["window_ssim"]["renderer"] > 0.85 > result["window_ssim"]["background"]
+    assert result["window_ssim"]["renderer"] > result["window_ssim"]["random"]
+    assert result["location_error_mm_median_of"]["renderer"] < 0.5
+    assert images["truth"].shape == images["model"].shape == (30, 100, 100, 3)
+
+
+def _bad_file(tmp_path: Path, **changes: object) -> Path:
+    with np.load(PRESSES) as data:
+        contents = {key: data[key] for key in data.files}
+    for key, value in changes.items():
+        if value is None:
+            contents.pop(key)
+        else:
+            contents[key] = value
+    path = tmp_path / "bad.npz"
+    np.savez(path, **contents)
+    return path
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"touch_radius": None}, "missing keys"),
+    ({"frames": np.zeros((30, 120, 159, 3), np.uint8)}, "frames must be"),
+    ({"frames": np.zeros((30, 120, 160, 3), np.float32)}, "frames must be"),
+    ({"touch_center": np.full((30, 2), np.nan)}, "finite"),
+    ({"touch_center": np.full((30, 2), 500.0)}, "outside"),
+    ({"touch_radius": np.zeros(30, np.int64)}, "> 0"),
+])
+def test_a_bad_presses_file_gets_a_clear_error_and_exit_2(checkpoint: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                          changes: dict, message: str) -> None:
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    args = parser.parse_args(["evaluate", str(checkpoint), "--real-presses", str(_bad_file(tmp_path, **changes))])
+    assert args.func(args) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bad_options_and_a_missing_file_get_exit_2(checkpoint: Path, tmp_path: Path) -> None:
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    for extra in (["--ball-radius-mm", "0"], ["--mm-per-px", "nan"]):
+        args = parser.parse_args(["evaluate", str(checkpoint), "--real-presses", str(PRESSES), *extra])
+        assert args.func(args) == 2
+    args = parser.parse_args(["evaluate", str(checkpoint), "--real-presses", str(tmp_path / "none.npz")])
+    assert args.func(args) == 2
+    args = parser.parse_args(["evaluate", str(checkpoint)])
+    assert args.func(args) == 2
