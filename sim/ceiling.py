@@ -25,14 +25,13 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import cv2
 import numpy as np
 
 from dataset.format import DatasetReader, SampleRecord, resize_rgb
 from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
 from perception.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
-from sim.gelsight import scene_renderer
+from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
 from sim.scene import Scene, SceneError, load_scene
 from sim.world import SimWorld
 
@@ -67,26 +66,15 @@ def true_contact_images(scene: Scene, records: Sequence[SampleRecord], force_n: 
 
 def depth_map_images(scene: Scene, depth_maps_m: np.ndarray, depth_crop_m: Sequence[float],
                      size: tuple[int, int]) -> np.ndarray:
-    """N x H x W x 3 uint8: each depth-map (gel frame, m; rows along gel z, columns along gel
-    x over the crop ``depth_crop_m`` = (x, y, z) extents) rendered as the gel gap map of the
-    GelSight's field of view, without GelSight effects."""
-    gs = scene.gelsight
-    renderer = scene_renderer(scene, effects=False)
-    rows, cols = depth_maps_m.shape[1:]
-    crop_x_mm, crop_z_mm = depth_crop_m[0] * 1e3, depth_crop_m[2] * 1e3
-    seen_x_mm, seen_z_mm = gs.image_width * gs.mm_per_px, gs.image_height * gs.mm_per_px
-    if seen_x_mm > crop_x_mm or seen_z_mm > crop_z_mm:
-        raise CeilingError(f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
-                           f"GelSight's field of view ({seen_x_mm:.1f} x {seen_z_mm:.1f} mm)")
-    # Bin-index coordinates (pixel centres) of the camera's pixel centres on the gel.
-    u = ((np.arange(gs.image_width) + 0.5) * gs.mm_per_px - seen_x_mm / 2 + crop_x_mm / 2) / crop_x_mm * cols - 0.5
-    v = ((np.arange(gs.image_height) + 0.5) * gs.mm_per_px - seen_z_mm / 2 + crop_z_mm / 2) / crop_z_mm * rows - 0.5
-    map_u, map_v = np.meshgrid(u.astype(np.float32), v.astype(np.float32))
-    images = []
-    for depth in depth_maps_m:
-        gap_mm = cv2.remap(np.float32(depth * 1e3), map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        images.append(resize_rgb(renderer.render(gap_mm), *size))
-    return np.stack(images)
+    """N x H x W x 3 uint8: each depth-map (gel frame, m; over the crop ``depth_crop_m`` = (x, y,
+    z) extents) rendered as the gel gap map of the GelSight's field of view, without GelSight
+    effects (sim.gelsight.render_depth_maps), resized to ``size`` as the collector resizes."""
+    try:
+        images = render_depth_maps(scene_renderer(scene, effects=False), depth_maps_m,
+                                   (depth_crop_m[0], depth_crop_m[2]))
+    except GelSightError as err:
+        raise CeilingError(str(err)) from err
+    return np.stack([resize_rgb(image, *size) for image in images])
 
 
 def _scored(truth: np.ndarray, estimate: np.ndarray, objects: np.ndarray, seed: int) -> dict[str, Any]:

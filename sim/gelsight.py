@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 
 __all__ = ["EFFECTS", "GelSightConfig", "GelSightError", "GelSightRenderer", "LightingDrift", "Markers",
            "PolyCalibration", "SensorNoise", "gel_surface_depth_mm", "indentation_mm", "load_calibration",
-           "make_effect", "scene_renderer"]
+           "make_effect", "render_depth_maps", "scene_renderer"]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 POLYNOMIAL_FILE = "polycalib_small.npz"
@@ -394,6 +394,32 @@ def scene_renderer(scene: "Scene", size: tuple[int, int] | None = None, effects:
                             elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3)
     called_for = [make_effect(e.name, e.params) for e in scene.effects_of("gelsight")] if effects else []
     return GelSightRenderer(config, effects=called_for, rng=rng)
+
+
+def render_depth_maps(renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop_xz_m: tuple[float, float]
+                      ) -> np.ndarray:
+    """The renderer's image (N x H x W x 3 uint8, its own size) of each contact depth-map, read
+    as the gel gap: N x rows x cols maps in the gel frame (m; rows along gel z, columns along gel
+    x; perception.depthmap) over a crop of ``crop_xz_m`` (x, z extents) centred on the gel,
+    resampled at the renderer's pixel centres (bilinear; edge bins repeat). This is physics fed
+    exactly what a learned model is fed; the crop must cover the renderer's field of view."""
+    maps = np.asarray(depth_maps_m)
+    if maps.ndim != 3 or not np.issubdtype(maps.dtype, np.floating):
+        raise GelSightError(f"depth-maps must be an N x rows x cols float array in metres, got {maps.shape} {maps.dtype}")
+    h, w = renderer.config.shape
+    pitch_rows_mm, pitch_cols_mm = renderer.pixel_pitch_mm
+    crop_x_mm, crop_z_mm = crop_xz_m[0] * 1e3, crop_xz_m[1] * 1e3
+    if w * pitch_cols_mm > crop_x_mm + 1e-6 or h * pitch_rows_mm > crop_z_mm + 1e-6:
+        raise GelSightError(f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
+                            f"GelSight's field of view ({w * pitch_cols_mm:.1f} x {h * pitch_rows_mm:.1f} mm)")
+    rows, cols = maps.shape[1:]
+    # Bin-index coordinates of the camera's pixel centres on the gel (bin centres at integers).
+    u = ((np.arange(w) - (w - 1) / 2) * pitch_cols_mm + crop_x_mm / 2) / crop_x_mm * cols - 0.5
+    v = ((np.arange(h) - (h - 1) / 2) * pitch_rows_mm + crop_z_mm / 2) / crop_z_mm * rows - 0.5
+    map_u, map_v = np.meshgrid(u.astype(np.float32), v.astype(np.float32))
+    gaps_mm = np.nan_to_num(maps.astype(np.float32) * 1e3, nan=np.inf)
+    return np.stack([renderer.render(cv2.remap(gap, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+                     for gap in gaps_mm])
 
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:
