@@ -20,6 +20,8 @@ import sys
 import time
 from pathlib import Path
 
+REAL_PRESSES = "assets/gelsight/ball_presses.npz"
+LIBRARY_SAMPLES = 1200
 SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/depth_map,/arm/state,/gripper/state]"
 
 
@@ -43,6 +45,8 @@ def paper_table(evaluation: dict) -> str:
         ("SSIM, baseline (15 random ground truths)",
          f"{evaluation['ssim_baseline_mean']:.3f} ± {evaluation['ssim_baseline_se']:.4f}", "0.80 ± 0.0036"),
         ("dissimilarity ratio (1-SSIM model)/(1-SSIM base)", f"{evaluation['dissimilarity_ratio']:.2f}", "0.80"),
+        ("PSNR (dB), estimate / baseline", f"{evaluation['psnr']['psnr_db_model_mean']:.2f} / "
+         f"{evaluation['psnr']['psnr_db_baseline_mean']:.2f}", ""),
         ("p-value, Wilcoxon signed-rank", f"{evaluation['p_value_wilcoxon']:.2e}", "< 0.05"),
         ("p-value, paired t", f"{evaluation['p_value_t']:.2e}", ""),
         ("template match score (TM_CCOEFF_NORMED), mean", f"{template.get('score_mean', float('nan')):.3f}", ""),
@@ -60,7 +64,8 @@ def paper_table(evaluation: dict) -> str:
                      f"{stats['ssim_model_mean']:.3f} / {stats['ssim_baseline_mean']:.3f}, "
                      f"{stats['dissimilarity_ratio']:.2f}", ""))
     for row in evaluation.get("density", []):
-        rows.append((f"SSIM at {row['points_per_cm3']:g} points/cm^3", f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
+        rows.append((f"SSIM at {row['points_per_cm3']:g} points/cm^3 (PSNR {row['psnr_db_mean']:.1f} dB)",
+                     f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
                      {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], "")))
         if "contact_ssim_mean" in row:
             rows.append(("  on contact windows only", f"{row['contact_ssim_mean']:.4f} ± {row['contact_ssim_se']:.4f}", ""))
@@ -72,29 +77,36 @@ def paper_table(evaluation: dict) -> str:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from dataset.redepth import density_dirs  # noqa: PLC0415 (Open3D; only when the demo runs)
+    from models.real_presses import real_press_table  # noqa: PLC0415 (torch; only when the demo runs)
     from perception.density import PAPER_DENSITIES_PER_CM3  # noqa: PLC0415
 
     out = Path(args.out)
-    session, train_dir, figures = out / "session", out / "train", out / "figures"
+    session, library, train_dir, figures = out / "session", out / "library", out / "train", out / "figures"
     collect = ["launch", "launch/collect_sim.yaml", f"out:={session}", f"grasps:={args.grasps}",
                f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
     if (session / "manifest.jsonl").exists():
         collect.append("resume:=true")
-    _run("1/4 collect (Algorithm 1 on the simulated scene)", collect)
-    _run("1/4 check the dataset", ["dataset", "check", str(session)])
+    _run("1/5 collect (Algorithm 1 on the simulated scene)", collect)
+    _run("1/5 check the dataset", ["dataset", "check", str(session)])
     train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]
+    if args.library_samples:
+        _run("2/5 contact library (the simulated world's spheres, cylinders, edges, textures)",
+             ["dataset", "library", str(library), "--samples", str(args.library_samples), "--seed", str(args.seed)])
+        train += ["--library", str(library)]
     if (train_dir / "checkpoint.pt").exists():
         train.append("--resume")
-    _run("2/4 train the cGAN", train)
+    _run("3/5 train the cGAN", train)
     densities = density_dirs(session, list(PAPER_DENSITIES_PER_CM3))
-    _run("3/4 depth-maps at the paper's point densities",
+    _run("4/5 depth-maps at the paper's point densities",
          ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities]])
-    report = _run("4/4 evaluate like the paper",
+    report = _run("5/5 evaluate like the paper, and on real GelSight presses it never saw",
                   ["evaluate", str(train_dir / "checkpoint.pt"), str(session), "--json", "--figures", str(figures),
+                   "--real-presses", REAL_PRESSES,
                    *[f"--density={d:g}={path}" for d, path in densities.items()]], capture=True)
     evaluation = json.loads(report)
     (out / "evaluation.json").write_text(json.dumps(evaluation, indent=2) + "\n")
     print("\n" + paper_table(evaluation))
+    print("\n" + real_press_table(evaluation["real_presses"]))
     print(f"\nfigures in {figures}; full results in {out / 'evaluation.json'}")
     return 0
 
@@ -103,6 +115,9 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser("demo", help="collect, train and evaluate on the simulated scene")
     demo.add_argument("--out", default="out/demo")
     demo.add_argument("--grasps", type=int, default=1200, help="grasps to collect (the paper's session: 289)")
+    demo.add_argument("--library-samples", type=int, default=LIBRARY_SAMPLES,
+                      help=f"contact-library pairs trained beside the session (default {LIBRARY_SAMPLES}; "
+                           "0: the session alone, as the paper)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--config", default="configs/quick.yaml")
     demo.set_defaults(func=cmd_demo)
