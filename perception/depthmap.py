@@ -92,7 +92,7 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
         raise DepthMapError(f"y_range_m must be (y_near, y_far), got {y_range!r}")
     y_near, y_far = y_range
     values = np.array([half_x, half_z, y_near, y_far], dtype=np.float64)
-    if not np.all(np.abs(values) <= np.finfo(np.float32).max):  # NaN fails too
+    if not np.all(np.abs(values) <= float(np.finfo(np.float32).max)):  # NaN fails too
         raise DepthMapError(f"crop bounds must be finite in float32, got half x {half_x}, half z {half_z}, "
                             f"y {y_near}..{y_far} m")
     if not (half_x > 0 and half_z > 0):

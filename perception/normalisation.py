@@ -15,8 +15,8 @@ class NormalisationError(ValueError):
 
 
 def _check_range(depth_range_m: tuple[float, float]) -> tuple[float, float]:
-    """(y_near, y_far) as floats: two finite numbers, y_far > y_near, a width that is finite
-    in float64 (else every depth would map to -1) and resolvable in float32."""
+    """(y_near, y_far) as floats: two numbers finite in float32 (the depth-maps' dtype; a wider
+    range, e.g. +-1e308, would map every depth to -1), y_far > y_near, resolvable in float32."""
     try:
         y_near, y_far = (float(v) for v in depth_range_m)
     except (TypeError, ValueError) as err:
@@ -24,11 +24,11 @@ def _check_range(depth_range_m: tuple[float, float]) -> tuple[float, float]:
                                  f"{err}") from None
     if not (np.isfinite(y_near) and np.isfinite(y_far)):
         raise NormalisationError(f"depth range must be finite, got {depth_range_m}")
-    if not np.isfinite(y_far - y_near):
-        raise NormalisationError(f"depth range {depth_range_m} is wider than float64 can hold")
+    if not max(abs(y_near), abs(y_far)) <= float(np.finfo(np.float32).max):
+        raise NormalisationError(f"depth range {depth_range_m} is beyond float32, the depth-maps' dtype")
     if not y_far > y_near:
         raise NormalisationError(f"depth range must have y_far > y_near, got {depth_range_m}")
-    if np.float32(y_far) - np.float32(y_near) <= 0:
+    if not np.float32(y_far) > np.float32(y_near):
         raise NormalisationError(f"depth range {depth_range_m} is below float32 resolution")
     return y_near, y_far
 

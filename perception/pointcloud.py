@@ -164,8 +164,10 @@ class VoxelIndex:
             raise PointCloudError(f"cell size must be a positive number of metres, got {cell_m!r}")
         self.cell_m = float(cell_m)
         self.origin_m = points.min(axis=0) if len(points) else np.zeros(3)
-        extent_cells = np.floor((points.max(axis=0) - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
-        if not np.prod(extent_cells) <= self.MAX_GRID_CELLS:  # float product: cannot overflow
+        with np.errstate(over="ignore"):  # a grid too fine overflows to inf, refused below
+            extent_cells = np.floor((points.max(axis=0) - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
+            grid_cells = np.prod(extent_cells)
+        if not grid_cells <= self.MAX_GRID_CELLS:
             raise PointCloudError(f"points span {np.ptp(points, axis=0)} m: {extent_cells} cells of {self.cell_m} m, "
                                   f"more than 2^62; use larger cells or drop far outliers")
         cells = np.floor((points - self.origin_m) / self.cell_m).astype(np.int64)
