@@ -96,7 +96,7 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     ``baseline_draws`` an integer in [1, MAX_BASELINE_DRAWS]; every truth's ``windows`` must hold
     a window inside the 5-pixel border. Otherwise ModelConfigError. Every statistic is then
     finite except ``dissimilarity_ratio``, which is NaN when the baseline's mean dissimilarity
-    1 - SSIM is 0 (every truth the same frame): the ratio is undefined, and
+    1 - SSIM is 0 (every truth the same frame, and the estimates too): the ratio is undefined, and
     ``dissimilarity_ratio_undefined`` says why (the key is present only then)."""
     n = len(truth)
     if n < 2 or truth.shape != estimate.shape:
@@ -127,8 +127,9 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     # by rounding, so "at all" is more than a few ulps).
     base_dissimilarity = 1.0 - base_mean
     undefined = {} if base_dissimilarity > 1e-12 else {
-        "dissimilarity_ratio_undefined": f"the baseline's mean SSIM is {base_mean!r}: the random other truths "
-                                         "are the same image, so there is no dissimilarity to compare with"}
+        "dissimilarity_ratio_undefined": f"the baseline's mean SSIM is {base_mean!r}: every estimate equals the "
+                                         "other truths it is compared with (every truth the same frame, "
+                                         "estimated exactly), so there is no dissimilarity to compare with"}
     return {
         "n": n,
         "ssim_model_mean": model_mean, "ssim_model_se": model_se,
