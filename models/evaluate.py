@@ -78,6 +78,10 @@ def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float]
                        scene=reader.info.scene, depth_crop_m=reader.info.depth_crop_m)
 
 
+# Most random truths per estimate in the baseline (the paper draws 15); each draw costs one SSIM.
+MAX_BASELINE_DRAWS = 1000
+
+
 def _mean_se(values: np.ndarray) -> tuple[float, float]:
     return float(np.mean(values)), float(np.std(values, ddof=1) / np.sqrt(len(values)))
 
@@ -86,11 +90,24 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
                     seed: int = 0, windows: np.ndarray | None = None) -> dict[str, Any]:
     """Model vs baseline SSIM statistics (see module docstring) for N >= 2 image pairs.
     ``windows`` (N x H x W bool) restricts each SSIM to the windows centred on a truth's True
-    pixels (models.ssim.ssim_rgb); the baseline then uses each random truth's own windows."""
+    pixels (models.ssim.ssim_rgb); the baseline then uses each random truth's own windows.
+
+    Contract: ``truth`` and ``estimate`` N x H x W x 3 uint8 (models.ssim.ssim_rgb), N >= 2;
+    ``baseline_draws`` an integer in [1, MAX_BASELINE_DRAWS]; every truth's ``windows`` must hold
+    a window inside the 5-pixel border. Otherwise ModelConfigError. Every statistic is then
+    finite except ``dissimilarity_ratio``, which is NaN when the baseline's mean dissimilarity
+    1 - SSIM is 0 (every truth the same frame, and the estimates too): the ratio is undefined, and
+    ``dissimilarity_ratio_undefined`` says why (the key is present only then)."""
     n = len(truth)
     if n < 2 or truth.shape != estimate.shape:
         raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
+    if not (isinstance(baseline_draws, (int, np.integer)) and not isinstance(baseline_draws, bool)
+            and 1 <= baseline_draws <= MAX_BASELINE_DRAWS):
+        raise ModelConfigError(f"baseline_draws must be an integer in [1, {MAX_BASELINE_DRAWS}], got {baseline_draws!r}")
     model = ssim_rgb(truth, estimate, windows)
+    if not np.all(np.isfinite(model)):
+        raise ModelConfigError(f"pairs {np.flatnonzero(~np.isfinite(model)).tolist()} have no SSIM window inside "
+                               f"the {WINDOW // 2}-pixel border (empty windows mask)")
     rng = np.random.default_rng(seed)
     baseline = np.empty(n)
     for i in range(n):
@@ -106,12 +123,20 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     # a constant non-zero difference is as certain as it gets (p = 0).
     p_wilcoxon = float(stats.wilcoxon(model, baseline).pvalue) if np.any(diff != 0) else 1.0
     p_t = float(stats.ttest_rel(model, baseline).pvalue) if np.std(diff) > 0 else float(np.all(diff == 0))
+    # The ratio of dissimilarities needs a baseline that is dissimilar at all (SSIM can exceed 1
+    # by rounding, so "at all" is more than a few ulps).
+    base_dissimilarity = 1.0 - base_mean
+    undefined = {} if base_dissimilarity > 1e-12 else {
+        "dissimilarity_ratio_undefined": f"the baseline's mean SSIM is {base_mean!r}: every estimate equals the "
+                                         "other truths it is compared with (every truth the same frame, "
+                                         "estimated exactly), so there is no dissimilarity to compare with"}
     return {
         "n": n,
         "ssim_model_mean": model_mean, "ssim_model_se": model_se,
         "ssim_baseline_mean": base_mean, "ssim_baseline_se": base_se,
         "p_value_wilcoxon": p_wilcoxon, "p_value_t": p_t,
-        "dissimilarity_ratio": (1.0 - model_mean) / (1.0 - base_mean),
+        "dissimilarity_ratio": (1.0 - model_mean) / base_dissimilarity if not undefined else float("nan"),
+        **undefined,
         "ssim_model": model.tolist(), "ssim_baseline": baseline.tolist(),
     }
 
@@ -137,7 +162,7 @@ def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
 
 
 SUMMARY_KEYS = ("n", "ssim_model_mean", "ssim_model_se", "ssim_baseline_mean", "ssim_baseline_se", "p_value_wilcoxon",
-                "dissimilarity_ratio")
+                "dissimilarity_ratio", "dissimilarity_ratio_undefined")
 
 
 def per_object_statistics(truth: np.ndarray, estimate: np.ndarray, objects: Sequence[str],
@@ -201,14 +226,35 @@ def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
 def template_match(truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray,
                    size_px: int = 32) -> list[dict[str, Any]]:
     """Per pair: the template box in the truth, the best match in the estimate, its score
-    (TM_CCOEFF_NORMED, -1..1) and the distance between the two boxes in pixels."""
+    (TM_CCOEFF_NORMED, -1..1) and the distance between the two boxes in pixels.
+
+    ``truth`` and ``estimate``: N x H x W x 3 uint8 of one shape, ``truth_deformation``
+    N x H x W; otherwise ModelConfigError. A flat template (every channel one value) or a flat
+    estimate window has no correlation coefficient (OpenCV 5 scores a flat template 1.0, older
+    versions NaN): it scores 0. A pair with a flat template has no match: ``match_xy`` and
+    ``distance_px`` are None."""
+    truth, estimate = np.asarray(truth), np.asarray(estimate)
+    if truth.dtype != np.uint8 or truth.shape != estimate.shape or estimate.dtype != np.uint8 or truth.ndim != 4 \
+            or truth.shape[-1] != 3 or np.shape(truth_deformation) != truth.shape[:-1]:
+        raise ModelConfigError(f"template matching needs uint8 N x H x W x 3 truth and estimate and an N x H x W "
+                               f"deformation, got {truth.dtype} {truth.shape}, {estimate.dtype} {estimate.shape}, "
+                               f"{np.shape(truth_deformation)}")
     results = []
     for gt, deform, est in zip(truth, truth_deformation, estimate):
         x, y = most_deformed_box(deform, size_px)
         template = np.ascontiguousarray(gt[y:y + size_px, x:x + size_px])
-        scores = cv2.matchTemplate(np.ascontiguousarray(est), template, cv2.TM_CCOEFF_NORMED)
-        # A flat template or estimate has no correlation coefficient: OpenCV gives inf/NaN.
-        scores = np.nan_to_num(scores, nan=0.0, posinf=0.0, neginf=0.0)
+        if np.all(template == template[:1, :1]):
+            results.append({"template_xy": [x, y], "match_xy": None, "score": 0.0, "distance_px": None})
+            continue
+        est = np.ascontiguousarray(est)
+        scores = cv2.matchTemplate(est, template, cv2.TM_CCOEFF_NORMED)
+        # Summed per-channel variance of each estimate window; zero (to rounding) where it is flat.
+        levels = est.astype(np.float64)
+        window = (size_px, size_px)
+        mean = cv2.boxFilter(levels, -1, window, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
+        mean_sq = cv2.boxFilter(levels * levels, -1, window, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
+        variance = (mean_sq - mean * mean).sum(axis=-1)[:scores.shape[0], :scores.shape[1]]
+        scores = np.where((variance > 1e-6) & np.isfinite(scores), scores, 0.0).astype(np.float32)
         _, score, _, (mx, my) = cv2.minMaxLoc(scores)
         results.append({"template_xy": [x, y], "match_xy": [int(mx), int(my)], "score": float(score),
                         "distance_px": float(np.hypot(mx - x, my - y))})
@@ -223,10 +269,12 @@ def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root:
     predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
     result = ssim_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
     matches = template_match(predictions.truth, predictions.truth_deformation, predictions.estimate, template_px)
+    distances = [m["distance_px"] for m in matches if m["distance_px"] is not None]
     result["template_match"] = {
         "template_px": template_px,
         "score_mean": float(np.mean([m["score"] for m in matches])),
-        "distance_px_median": float(np.median([m["distance_px"] for m in matches])),
+        # Over the pairs whose template is not flat; NaN when every template is.
+        "distance_px_median": float(np.median(distances)) if distances else float("nan"),
         "per_sample": matches,
     }
     result["psnr"] = psnr_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
@@ -275,7 +323,8 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
         ax[2].imshow(predictions.truth[row])
         ax[2].add_patch(patches.Rectangle(match["template_xy"], size, size, fill=False, color="blue"))
         ax[3].imshow(predictions.estimate[row])
-        ax[3].add_patch(patches.Rectangle(match["match_xy"], size, size, fill=False, color="red"))
+        if match["match_xy"] is not None:  # a flat template has no match
+            ax[3].add_patch(patches.Rectangle(match["match_xy"], size, size, fill=False, color="red"))
         ax[3].set_xlabel(f"SSIM {result['ssim_model'][row]:.3f}, match {match['score']:.2f}", fontsize=7)
         for a in ax:
             a.set_xticks([])
@@ -353,7 +402,8 @@ def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
 
 
 def summary_table(result: dict[str, Any]) -> str:
-    """The paper-style table, beside the paper's numbers."""
+    """The paper-style table, beside the paper's numbers. A figure the data cannot give (NaN)
+    prints as nan, and a line at the end says why."""
     lines = [f"{'':28s}{'this model':>22s}{'paper':>18s}",
              f"{'SSIM model':28s}{result['ssim_model_mean']:>13.4f} ± {result['ssim_model_se']:.4f}"
              f"{PAPER['ssim_model_mean']:>11.2f} ± {PAPER['ssim_model_se']}",
@@ -374,6 +424,14 @@ def summary_table(result: dict[str, Any]) -> str:
     for name, row in result["objects"].items():
         lines.insert(-1, f"{'  ' + name:28s}{row['ssim_model_mean']:>13.4f} / {row['ssim_baseline_mean']:.4f}  "
                          f"ratio {row['dissimilarity_ratio']:.3f}, {row['n']} pairs")
+    undefined = [("all pairs", result), ("contact windows", contact),
+                 *((f"object {name}", row) for name, row in result["objects"].items())]
+    lines += [f"ratio undefined ({where}): {stats['dissimilarity_ratio_undefined']}"
+              for where, stats in undefined if "dissimilarity_ratio_undefined" in stats]
+    if not any(m["distance_px"] is not None for m in result["template_match"]["per_sample"]):
+        lines.append("template distance undefined: every template is flat (no correlation to locate)")
+    if not result["objects"]:
+        lines.append("per-object statistics: no object has 2 pairs")
     for row in result["density"]:
         paper = row["paper_ssim_mean"]
         lines.append(f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"

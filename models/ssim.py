@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from models.errors import ModelConfigError
+
 WINDOW = 11
 SIGMA = 1.5
 K1, K2 = 0.01, 0.03
@@ -18,9 +20,24 @@ DATA_RANGE = 255.0
 
 
 def _gaussian_window(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    offsets = torch.arange(WINDOW, dtype=dtype, device=device) - (WINDOW - 1) / 2
+    """The normalised 11-tap window, built in float64 and then cast to ``dtype`` (a float type):
+    built in an integer dtype its weights would truncate to 0."""
+    offsets = torch.arange(WINDOW, dtype=torch.float64, device=device) - (WINDOW - 1) / 2
     g = torch.exp(-0.5 * (offsets / SIGMA) ** 2)
-    return g / g.sum()
+    return (g / g.sum()).to(dtype)
+
+
+def compute_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype SSIM is computed in for inputs of ``dtype``: float32 and float64 as given;
+    bool and integers in float64 (exact for 0..255); float16 and bfloat16 in float32, since
+    their range (65504) cannot hold the blurred squares of 8-bit levels."""
+    if dtype in (torch.float32, torch.float64):
+        return dtype
+    if dtype in (torch.float16, torch.bfloat16):
+        return torch.float32
+    if dtype.is_complex:
+        raise ModelConfigError(f"SSIM compares real images, got {dtype}")
+    return torch.float64
 
 
 def _band_matrix(size: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -35,26 +52,32 @@ def _band_matrix(size: int, dtype: torch.dtype, device: torch.device) -> torch.T
 def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Per-image SSIM of two N x C x H x W batches in image units (0..255); returns N values.
 
-    H and W must be at least 11. Computed in the dtype of ``a`` (use float64 to match
-    skimage to 1e-6)."""
+    N >= 0, C >= 1, H and W at least 11; every value finite in [0, 255] (the data range the
+    constants assume); any real dtype, the two may differ. Computed in ``compute_dtype(a.dtype)``
+    (float64 inputs match skimage to 1e-6). Anything else raises ModelConfigError."""
     return ssim_map_torch(a, b).mean(dim=(2, 3)).mean(dim=1)
 
 
 def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The SSIM of every 11 x 11 window: N x C x (H - 10) x (W - 10); window (i, j) is centred
     on pixel (i + 5, j + 5). Inputs as :func:`ssim_torch`."""
-    if a.shape != b.shape or a.ndim != 4:
-        raise ValueError(f"SSIM needs two N x C x H x W batches of one shape, got {tuple(a.shape)} "
-                         f"and {tuple(b.shape)}")
+    if a.shape != b.shape or a.ndim != 4 or a.shape[1] < 1:
+        raise ModelConfigError(f"SSIM needs two N x C x H x W batches of one shape (C >= 1), got "
+                               f"{tuple(a.shape)} and {tuple(b.shape)}")
     if min(a.shape[2:]) < WINDOW:
-        raise ValueError(f"SSIM needs images of at least {WINDOW} x {WINDOW}, got {tuple(a.shape[2:])}")
-    if not (torch.isfinite(a).all() and torch.isfinite(b).all()):
-        raise ValueError("SSIM input contains NaN or inf")
-    b = b.to(a.dtype)
+        raise ModelConfigError(f"SSIM needs images of at least {WINDOW} x {WINDOW}, got {tuple(a.shape[2:])}")
+    dtype = compute_dtype(a.dtype)
+    a, b = a.to(dtype), b.to(dtype=dtype, device=a.device)
+    if a.numel():
+        for name, x in (("a", a), ("b", b)):
+            low, high = torch.aminmax(x)  # NaN propagates and fails both comparisons
+            if not (low >= 0 and high <= DATA_RANGE):
+                raise ModelConfigError(f"SSIM input {name} must be finite levels in [0, {DATA_RANGE:g}], "
+                                       f"got values in [{low.item()}, {high.item()}] (NaN or inf?)")
     # Separable blur, 'valid' only (the result is exactly the border-cropped SSIM map),
     # written as two band-matrix products: far faster on CPU than grouped convolutions.
-    rows = _band_matrix(a.shape[2], a.dtype, a.device)
-    cols = _band_matrix(a.shape[3], a.dtype, a.device)
+    rows = _band_matrix(a.shape[2], dtype, a.device)
+    cols = _band_matrix(a.shape[3], dtype, a.device)
 
     def blur(x: torch.Tensor) -> torch.Tensor:
         return rows @ x @ cols.T
@@ -71,18 +94,23 @@ def ssim_rgb(a: np.ndarray, b: np.ndarray, windows: np.ndarray | None = None) ->
     """SSIM of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3 -> N values.
 
     ``windows`` ((N x) H x W bool) restricts the mean to the windows centred on True pixels
-    (an image with none gets NaN); the 5-pixel border has no windows."""
+    (an image with none gets NaN); the 5-pixel border has no windows. Views of any strides
+    (flipped, sliced) are accepted; other dtypes or shapes raise ModelConfigError."""
     a, b = np.asarray(a), np.asarray(b)
     if a.dtype != np.uint8 or b.dtype != np.uint8:
-        raise ValueError(f"ssim_rgb compares uint8 images, got {a.dtype} and {b.dtype}")
+        raise ModelConfigError(f"ssim_rgb compares uint8 images, got {a.dtype} and {b.dtype}")
     if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-1] != 3:
-        raise ValueError(f"ssim_rgb needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
-    batch_a = torch.from_numpy(a.reshape((-1,) + a.shape[-3:])).permute(0, 3, 1, 2).double()
-    batch_b = torch.from_numpy(b.reshape((-1,) + b.shape[-3:])).permute(0, 3, 1, 2).double()
+        raise ModelConfigError(f"ssim_rgb needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
+    # torch.from_numpy refuses negative strides; ascontiguousarray copies only such views.
+    batch_a = torch.from_numpy(np.ascontiguousarray(a).reshape((-1,) + a.shape[-3:])).permute(0, 3, 1, 2).double()
+    batch_b = torch.from_numpy(np.ascontiguousarray(b).reshape((-1,) + b.shape[-3:])).permute(0, 3, 1, 2).double()
     if windows is None:
         return ssim_torch(batch_a, batch_b).numpy().reshape(a.shape[:-3])
+    windows = np.asarray(windows)
+    if windows.dtype != bool or windows.shape != a.shape[:-1]:
+        raise ModelConfigError(f"windows must be bool of shape {a.shape[:-1]}, got {windows.dtype} {windows.shape}")
     half = WINDOW // 2
-    mask = torch.from_numpy(np.asarray(windows, dtype=bool).reshape((-1,) + a.shape[-3:-1]))[:, half:-half, half:-half]
+    mask = torch.from_numpy(np.ascontiguousarray(windows).reshape((-1,) + a.shape[-3:-1]))[:, half:-half, half:-half]
     per_window = ssim_map_torch(batch_a, batch_b).mean(dim=1)
     counts = mask.sum(dim=(1, 2))
     sums = (per_window * mask).sum(dim=(1, 2))

@@ -50,6 +50,9 @@ MODEL_POINT_SPACING_M = 0.0001
 # That cloud is part of the object's model, not of a session's randomness: one seed for all,
 # so a dataset's depth-maps can be made again from the mesh (dataset/redepth.py).
 MODEL_CLOUD_SEED = 0
+# Most bins a depth-map may have: 2048 x 2048 keeps one map's working arrays (float64 minima,
+# float32 map and its normalised copy, flags) near 100 MB; the network sees 100 x 100 or 256 x 256.
+MAX_DEPTH_MAP_BINS = 2 ** 22
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,22 +79,31 @@ class ContactPatch:
 
 
 def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[float, float, float, float]:
-    """(half_x, half_z, y_near, y_far) of the crop volume in metres, validated."""
+    """(half_x, half_z, y_near, y_far) of the crop volume in metres, validated: every bound
+    finite in float32 (the map is stored as float32), positive extent, y_far > y_near, and
+    ``params.shape`` two positive Python or NumPy integers with at most MAX_DEPTH_MAP_BINS bins,
+    each wider than float32 resolves. Otherwise DepthMapError names what is wrong."""
     sensed_x, sensed_z = geometry.sensed_extent_m
     half_x = 0.5 * sensed_x + params.margin_m
     half_z = 0.5 * sensed_z + params.margin_m
     thickness = geometry.elastomer_thickness_m
-    y_near, y_far = params.y_range_m if params.y_range_m is not None else (-thickness, thickness)
+    y_range = params.y_range_m if params.y_range_m is not None else (-thickness, thickness)
+    if not isinstance(y_range, (tuple, list, np.ndarray)) or len(y_range) != 2:
+        raise DepthMapError(f"y_range_m must be (y_near, y_far), got {y_range!r}")
+    y_near, y_far = y_range
     values = np.array([half_x, half_z, y_near, y_far], dtype=np.float64)
-    if not np.all(np.isfinite(values)):
-        raise DepthMapError(f"crop bounds must be finite, got half x {half_x}, half z {half_z}, y {y_near}..{y_far}")
+    if not np.all(np.abs(values) <= float(np.finfo(np.float32).max)):  # NaN fails too
+        raise DepthMapError(f"crop bounds must be finite in float32, got half x {half_x}, half z {half_z}, "
+                            f"y {y_near}..{y_far} m")
     if not (half_x > 0 and half_z > 0):
         raise DepthMapError(f"crop must have positive extent, got half x {half_x} m, half z {half_z} m")
     if not y_far > y_near:
         raise DepthMapError(f"depth range must have y_far > y_near, got ({y_near}, {y_far}) m")
-    rows, cols = params.shape
-    if int(rows) != rows or int(cols) != cols or rows < 1 or cols < 1:
-        raise DepthMapError(f"bin shape must be two positive integers, got {params.shape}")
+    shape = tuple(params.shape) if isinstance(params.shape, (tuple, list)) else ()
+    if len(shape) != 2 or not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1
+                                  for n in shape):
+        raise DepthMapError(f"bin shape must be two positive integers (rows, cols), got {params.shape!r}")
+    rows, cols = int(shape[0]), int(shape[1])
     # The map and its crop are stored as float32: bins narrower than float32 can tell apart at
     # the crop edge would alias, so such a map is refused rather than silently merged.
     for half, count, axis in ((half_x, cols, "x"), (half_z, rows, "z")):
@@ -100,6 +112,8 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
                                 f"resolution at {half:.3g} m")
     if not np.float32(y_far) > np.float32(y_near):
         raise DepthMapError(f"depth range ({y_near}, {y_far}) m is below float32 resolution")
+    if rows * cols > MAX_DEPTH_MAP_BINS:
+        raise DepthMapError(f"bin shape {params.shape} has {rows * cols} bins, more than {MAX_DEPTH_MAP_BINS}")
     return half_x, half_z, float(y_near), float(y_far)
 
 
@@ -154,7 +168,12 @@ def min_y_per_bin(x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: f
 def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_to_world: np.ndarray,
                       geometry: GripperGeometry = GripperGeometry(),
                       params: DepthMapParams = DepthMapParams()) -> ContactPatch:
-    """Depth-map of the model cloud (model frame, metres) in the contact volume of one gel."""
+    """Depth-map of the model cloud (model frame, metres) in the contact volume of one gel.
+
+    ``points_model_m``: finite (N, 3), any real dtype (used in float64); the transforms rigid
+    (perception.pointcloud.check_transform); crop and bins as :func:`crop_bounds`. Anything
+    else, or no point in the crop, raises DepthMapError (PointCloudError for a transform).
+    Cost: O(N) time, O(N + bins) memory, bins <= MAX_DEPTH_MAP_BINS."""
     half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
     points = np.asarray(points_model_m, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:

@@ -21,6 +21,8 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from perception.errors import KinematicsError, PerceptionError
+
 # The constant contact force every grasp of a collection closes with (Algorithm 1), in N.
 GRASP_FORCE_N = 10.0
 
@@ -49,7 +51,16 @@ def grasp_to_tcp_pose(x_m: float, y_m: float, z_m: float, theta_z_rad: float) ->
     """TCP pose (UR [x, y, z, rx, ry, rz], world) of a top-down grasp with yaw ``theta_z_rad``.
 
     The palm is parallel to the table (tool z = -world z); only the yaw about world z is free.
+    All four arguments must be finite real numbers (metres, radians); otherwise KinematicsError
+    names the argument, as a NaN or inf pose would reach the arm as a command.
     """
+    for name, value in (("x_m", x_m), ("y_m", y_m), ("z_m", z_m), ("theta_z_rad", theta_z_rad)):
+        try:
+            finite = np.isfinite(float(value))
+        except (TypeError, ValueError):
+            finite = False
+        if not finite:
+            raise KinematicsError(f"grasp {name} must be a finite number, got {value!r}")
     rotation = Rotation.from_euler("z", float(theta_z_rad)) * _TOOL_DOWN
     return np.concatenate([[float(x_m), float(y_m), float(z_m)], rotation.as_rotvec()])
 
@@ -58,7 +69,7 @@ def pose_to_matrix(pose6: np.ndarray) -> np.ndarray:
     """UR pose [x, y, z, rx, ry, rz] -> 4x4 homogeneous transform (float64)."""
     pose = np.asarray(pose6, dtype=np.float64)
     if pose.shape != (6,) or not np.all(np.isfinite(pose)):
-        raise ValueError(f"pose must be 6 finite numbers, got {pose6!r}")
+        raise KinematicsError(f"pose must be 6 finite numbers, got {pose6!r}")
     transform = np.eye(4)
     transform[:3, :3] = Rotation.from_rotvec(pose[3:]).as_matrix()
     transform[:3, 3] = pose[:3]
@@ -73,7 +84,7 @@ def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
     """
     matrix = np.asarray(transform, dtype=np.float64)
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
-        raise ValueError(f"transform must be a finite 4x4 matrix, got shape {matrix.shape}")
+        raise KinematicsError(f"transform must be a finite 4x4 matrix, got shape {matrix.shape}")
     rotvec = Rotation.from_matrix(matrix[:3, :3]).as_rotvec()
     return np.concatenate([matrix[:3, 3], rotvec])
 
@@ -82,15 +93,28 @@ def gel_poses_world(tcp_pose_world: np.ndarray, gripper_width_m: float,
                     geometry: GripperGeometry = GripperGeometry()) -> dict[str, np.ndarray]:
     """Gel-to-world transforms (4x4) of both fingers, keys ``"left"`` and ``"right"``.
 
-    ``tcp_pose_world`` is a UR pose (6,) or a 4x4 tcp-to-world transform.
+    ``tcp_pose_world`` is a finite UR pose (6,) or a rigid 4x4 tcp-to-world transform
+    (perception.pointcloud.check_transform: finite, last row [0, 0, 0, 1], proper rotation);
+    ``gripper_width_m`` finite in [0, max_width_m]. Otherwise KinematicsError: the gel poses are
+    always finite rigid transforms.
     """
-    width = float(gripper_width_m)
+    try:
+        width = float(gripper_width_m)
+    except (TypeError, ValueError):
+        width = float("nan")
     if not (np.isfinite(width) and 0.0 <= width <= geometry.max_width_m):
-        raise ValueError(f"gripper width {gripper_width_m!r} m outside [0, {geometry.max_width_m}] m")
+        raise KinematicsError(f"gripper width {gripper_width_m!r} m outside [0, {geometry.max_width_m}] m")
     tcp_pose = np.asarray(tcp_pose_world, dtype=np.float64)
-    tcp_to_world = tcp_pose if tcp_pose.shape == (4, 4) else pose_to_matrix(tcp_pose)
-    # Re-orthonormalise so an accumulated transform cannot skew the gel frames.
-    tcp_to_world = tcp_to_world.copy()
+    if tcp_pose.shape == (4, 4):
+        from perception.pointcloud import check_transform  # noqa: PLC0415 (open3d only when a matrix is given)
+
+        try:
+            tcp_to_world = check_transform(tcp_pose, "tcp_pose_world").copy()
+        except PerceptionError as err:
+            raise KinematicsError(str(err)) from None
+    else:
+        tcp_to_world = pose_to_matrix(tcp_pose)
+    # Re-orthonormalise so float rounding of an accumulated transform cannot skew the gel frames.
     tcp_to_world[:3, :3] = Rotation.from_matrix(tcp_to_world[:3, :3]).as_matrix()
 
     tool_x, tool_y, tool_z = np.eye(3)

@@ -20,13 +20,26 @@ from perception.errors import PointCloudError
 DEFAULT_RANGE_M = (0.5, 4.5)
 
 
+# How far R^T R of a transform's rotation block may be from the identity, per element: float64
+# rounding of composed transforms stays ~1e-15; a matrix off by more was not built as a rotation.
+ROTATION_TOLERANCE = 1e-6
+
+
 def check_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
-    """Return ``a_to_b`` as a float64 4x4 rigid transform, or raise PointCloudError."""
-    matrix = np.asarray(a_to_b, dtype=np.float64)
+    """Return ``a_to_b`` as a float64 4x4 rigid transform, or raise PointCloudError.
+
+    Rigid means: every entry finite, last row exactly [0, 0, 0, 1], and a proper rotation block
+    (|R^T R - I| <= ROTATION_TOLERANCE per element, det R > 0). Any real dtype, any strides."""
+    try:
+        matrix = np.asarray(a_to_b, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise PointCloudError(f"{name} must be a 4x4 array of numbers: {err}") from None
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
         raise PointCloudError(f"{name} must be a finite 4x4 matrix, got shape {matrix.shape}")
     rotation = matrix[:3, :3]
-    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) or np.linalg.det(rotation) <= 0:
+    # rtol=0: np.allclose's default rtol (1e-5) would loosen the tolerance to 1.1e-5.
+    if not np.allclose(rotation.T @ rotation, np.eye(3), rtol=0.0, atol=ROTATION_TOLERANCE) \
+            or np.linalg.det(rotation) <= 0:
         raise PointCloudError(f"{name} rotation block is not a proper rotation")
     if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
         raise PointCloudError(f"{name} last row must be [0, 0, 0, 1], got {matrix[3]}")
@@ -34,9 +47,19 @@ def check_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
 
 
 def transform_points(points_a_m: np.ndarray, a_to_b: np.ndarray) -> np.ndarray:
-    """Map (N, 3) points from frame a to frame b; computed and returned in float64."""
-    points = np.asarray(points_a_m, dtype=np.float64).reshape(-1, 3)
-    matrix = check_transform(a_to_b)
+    """Map (N, 3) points (metres, any real dtype or strides, N >= 0) from frame a to frame b;
+    computed and returned in float64, (N, 3). Any other shape, a non-finite coordinate or a
+    non-rigid ``a_to_b`` (:func:`check_transform`) raises PointCloudError: an (N, 4)
+    homogeneous or (M, 2) array is refused, never reshaped into other points."""
+    try:
+        points = np.asarray(points_a_m, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise PointCloudError(f"points_a_m must be an (N, 3) array of numbers: {err}") from None
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise PointCloudError(f"points_a_m must be (N, 3), got shape {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise PointCloudError("points_a_m contains NaN or inf")
+    matrix = check_transform(a_to_b, "a_to_b")
     return points @ matrix[:3, :3].T + matrix[:3, 3]
 
 
@@ -122,18 +145,33 @@ class VoxelIndex:
     touches. Sorting the points by cell once makes each query a gather of contiguous slices:
     ~1 ms for a 20 mm ball in a 6 M-point cloud, where scipy's k-d tree takes ~100 ms to return
     its Python list of indices and more than 6 s to build.
+
+    Contract: ``points_m`` is a finite (N, 3) array (metres, any real dtype); ``cell_m`` a
+    finite positive edge. The cells spanning the cloud's bounding box must number at most
+    MAX_GRID_CELLS (2^62, so cell keys fit int64): a cloud 1 km across in 1 mm cells is
+    fine, 100 km across in every axis in 5 mm cells is refused with PointCloudError, never wrapped around.
+    Memory: O(N).
     """
+
+    # Cell keys are int64 row-major indices of the bounding grid of cells.
+    MAX_GRID_CELLS = 2 ** 62
 
     def __init__(self, points_m: np.ndarray, cell_m: float = 0.005) -> None:
         points = np.asarray(points_m, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
             raise PointCloudError(f"points must be finite (N, 3), got shape {points.shape}")
-        if not (np.isfinite(cell_m) and cell_m > 0):
+        if not (isinstance(cell_m, (int, float, np.integer, np.floating)) and np.isfinite(cell_m) and cell_m > 0):
             raise PointCloudError(f"cell size must be a positive number of metres, got {cell_m!r}")
         self.cell_m = float(cell_m)
         self.origin_m = points.min(axis=0) if len(points) else np.zeros(3)
+        with np.errstate(over="ignore"):  # a grid too fine overflows to inf, refused below
+            extent_cells = np.floor((points.max(axis=0) - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
+            grid_cells = np.prod(extent_cells)
+        if not grid_cells <= self.MAX_GRID_CELLS:
+            raise PointCloudError(f"points span {np.ptp(points, axis=0)} m: {extent_cells} cells of {self.cell_m} m, "
+                                  f"more than 2^62; use larger cells or drop far outliers")
         cells = np.floor((points - self.origin_m) / self.cell_m).astype(np.int64)
-        self.shape = cells.max(axis=0) + 1 if len(points) else np.ones(3, np.int64)
+        self.shape = extent_cells.astype(np.int64)
         keys = np.ravel_multi_index(cells.T, self.shape) if len(points) else np.zeros(0, np.int64)
         order = np.argsort(keys, kind="stable")
         self.points_m = points[order]
@@ -142,19 +180,42 @@ class VoxelIndex:
 
     def within(self, centre_m: np.ndarray, radius_m: float) -> np.ndarray:
         """The points of every cell that meets the ball (a superset of the points inside it),
-        in a fixed order: the same query always returns the same array."""
-        centre = np.asarray(centre_m, dtype=np.float64).reshape(3)
-        lo = np.floor((centre - radius_m - self.origin_m) / self.cell_m).astype(np.int64)
-        hi = np.floor((centre + radius_m - self.origin_m) / self.cell_m).astype(np.int64)
+        in a fixed order: the same query always returns the same array.
+
+        ``centre_m``: 3 finite coordinates (metres); ``radius_m``: >= 0, +inf allowed (every
+        point). NaN or a wrong shape raises PointCloudError. Time and memory are
+        O(min(cells in the query's box, occupied cells) + points returned), whatever the
+        radius and cell size: a box larger than the occupied cells scans those instead.
+        """
+        try:
+            centre = np.asarray(centre_m, dtype=np.float64)
+            radius = float(radius_m)
+        except (TypeError, ValueError) as err:
+            raise PointCloudError(f"centre_m must be 3 numbers and radius_m a number: {err}") from None
+        if centre.size != 3 or not np.all(np.isfinite(centre)):
+            raise PointCloudError(f"centre_m must be 3 finite coordinates, got {centre_m!r}")
+        if not radius >= 0:  # NaN fails too
+            raise PointCloudError(f"radius_m must be >= 0 (inf: everything), got {radius_m!r}")
+        centre = centre.reshape(3)
+        top = (self.shape - 1).astype(np.float64)
+        # Clipped in float64 before the cast: a radius of 1e30 or inf cannot overflow int64.
+        lo = np.clip(np.floor((centre - radius - self.origin_m) / self.cell_m), -1.0, top + 1).astype(np.int64)
+        hi = np.clip(np.floor((centre + radius - self.origin_m) / self.cell_m), -1.0, top + 1).astype(np.int64)
         lo, hi = np.maximum(lo, 0), np.minimum(hi, self.shape - 1)
         if np.any(hi < lo):
             return self.points_m[:0]
-        axes = [np.arange(a, b + 1) for a, b in zip(lo, hi)]
-        wanted = np.ravel_multi_index(np.stack(np.meshgrid(*axes, indexing="ij")).reshape(3, -1), self.shape)
-        slot = np.searchsorted(self.keys, wanted)
-        found = slot < len(self.keys)
-        found[found] = self.keys[slot[found]] == wanted[found]
-        slot = slot[found]
+        if np.prod((hi - lo + 1).astype(np.float64)) > len(self.keys):
+            # Fewer occupied cells than cells in the box: test each occupied cell (keys ascend,
+            # so the order is the one the box enumeration gives).
+            cells = np.stack(np.unravel_index(self.keys, self.shape), axis=1)
+            slot = np.flatnonzero(np.all((cells >= lo) & (cells <= hi), axis=1))
+        else:
+            axes = [np.arange(a, b + 1) for a, b in zip(lo, hi)]
+            wanted = np.ravel_multi_index(np.stack(np.meshgrid(*axes, indexing="ij")).reshape(3, -1), self.shape)
+            slot = np.searchsorted(self.keys, wanted)
+            found = slot < len(self.keys)
+            found[found] = self.keys[slot[found]] == wanted[found]
+            slot = slot[found]
         if slot.size == 0:
             return self.points_m[:0]
         return np.concatenate([self.points_m[s:e] for s, e in zip(self.starts[slot], self.ends[slot])])

@@ -26,6 +26,8 @@ from perception.errors import RegistrationError
 from perception.pointcloud import seed_open3d
 
 _reg = o3d.pipelines.registration
+# Most points sample_model_cloud makes: a 0.1 mm cloud (MODEL_POINT_SPACING_M) of a 0.2 m² box.
+MAX_MODEL_POINTS = 32_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,14 +78,29 @@ def sample_model_cloud(mesh_path: str | Path, point_spacing_m: float = 0.002, se
     Poisson disk takes ~30 s for 250 k), and every user thins or bins the cloud anyway. For
     registration the default 2 mm is plenty; a contact depth-map needs points finer than its
     bins (0.23 x 0.29 mm at 100 x 100), e.g. 0.2 mm.
+
+    At most MAX_MODEL_POINTS points (~1.5 GB with normals): a spacing that would ask for more
+    on this mesh raises RegistrationError before anything is allocated, as does a spacing that
+    is not a finite positive number.
     """
-    spacing = float(point_spacing_m)
+    try:
+        spacing = float(point_spacing_m)
+    except (TypeError, ValueError):
+        spacing = float("nan")
     if not (np.isfinite(spacing) and spacing > 0):
         raise RegistrationError(f"point spacing must be a positive number of metres, got {point_spacing_m!r}")
     mesh = o3d.io.read_triangle_mesh(str(mesh_path))
     if len(mesh.triangles) == 0:
         raise RegistrationError(f"mesh {mesh_path} has no triangles (missing or unreadable file?)")
-    count = max(int(mesh.get_surface_area() / spacing ** 2), 100)
+    area_m2 = float(mesh.get_surface_area())
+    if not (np.isfinite(area_m2) and area_m2 > 0):
+        raise RegistrationError(f"mesh {mesh_path} has surface area {area_m2} m², not a positive number")
+    # Divided twice, not by spacing², which underflows to 0 below ~1e-162 m.
+    wanted = area_m2 / spacing / spacing
+    if not wanted <= MAX_MODEL_POINTS:
+        raise RegistrationError(f"point spacing {point_spacing_m!r} m asks for {wanted:.3g} points on the "
+                                f"{area_m2:.3g} m² of {mesh_path}, more than {MAX_MODEL_POINTS}")
+    count = max(int(wanted), 100)
     seed_open3d(seed)
     cloud = mesh.sample_points_uniformly(count, use_triangle_normal=True)
     return ModelCloud(points_m=np.asarray(cloud.points, dtype=np.float64),

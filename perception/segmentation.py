@@ -64,7 +64,14 @@ def crop_to_workspace(points_world_m: np.ndarray, params: SegmentationParams) ->
 
 def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed: int = 0,
                     camera_index: int = 0) -> np.ndarray:
-    """RANSAC table plane (a, b, c, d), unit normal pointing up (c > 0), of a cropped cloud."""
+    """RANSAC table plane (a, b, c, d), unit normal pointing up (c > 0), of a cropped cloud.
+
+    ``points_world_m``: finite (N, 3) metres, N >= 3, not all on one line (identical or
+    collinear points fix no plane); otherwise SegmentationError says which. The plane returned
+    is always finite with a unit normal."""
+    points_world_m = np.asarray(points_world_m, dtype=np.float64)
+    if points_world_m.ndim != 2 or points_world_m.shape[1] != 3 or not np.all(np.isfinite(points_world_m)):
+        raise SegmentationError(f"points must be finite (N, 3), got shape {points_world_m.shape}")
     if len(points_world_m) < 3:
         raise SegmentationError(f"only {len(points_world_m)} points inside the workspace "
                                 f"{params.workspace_min_m}..{params.workspace_max_m} m")
@@ -73,10 +80,19 @@ def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed
     rng = np.random.default_rng([abs(int(seed)), camera_index])
     sample = points_world_m if len(points_world_m) <= params.plane_sample_points else \
         points_world_m[rng.choice(len(points_world_m), params.plane_sample_points, replace=False)]
+    # Spread of the sample across its second principal direction: zero for identical or
+    # collinear points, where RANSAC's three-point planes have no normal.
+    centred = sample - sample.mean(axis=0)
+    spread_m = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(sample)), 0.0))
+    if not spread_m[1] > 1e-9 * max(1.0, float(np.abs(sample).max())):
+        raise SegmentationError(f"the {len(points_world_m)} workspace points are identical or collinear "
+                                f"(spread {spread_m[::-1]} m): no table plane")
     seed_open3d(seed)
     plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample)).segment_plane(
         params.plane_distance_m, 3, params.plane_iterations)
     plane = np.asarray(plane, dtype=np.float64)
+    if not (np.all(np.isfinite(plane)) and np.linalg.norm(plane[:3]) > 0):
+        raise SegmentationError(f"RANSAC found no plane in the {len(points_world_m)} workspace points")
     plane /= np.linalg.norm(plane[:3])
     if plane[2] < 0:
         plane = -plane

@@ -59,6 +59,13 @@ SHADING_GRID_PER_SIGMA = 3.0
 # The calibration's slope bins are split in this many, interpolated (a finer split changes
 # the gelsight-check SSIMs by less than 0.001).
 BIN_REFINEMENT = 2
+# Bounds that keep every Gaussian kernel OpenCV builds small (its width is ~8 sigma): lengths on
+# the gel up to 50 mm (a GelSight gel is ~25 mm across), pixel pitches 1 um..10 mm (the real
+# field at 3..4096 px wide is 6.6..0.005 mm/px), and the background's smoothing at most 256
+# calibration pixels (the calibration frame is 160 wide: more is its mean).
+MAX_LENGTH_MM = 50.0
+PIXEL_PITCH_RANGE_MM = (1e-3, 10.0)
+MAX_BACKGROUND_SIGMA_PX = 256.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +84,12 @@ class GelSightConfig:
     full-frame SSIM from neutral start values (``sim.gelsight_check.fit_parameters``), and
     rounded to 0.01; the odd frames, not used in the fit, score within 0.005 of the even ones
     (``dtx sim gelsight-check --holdout``).
+
+    Contract, checked on construction (GelSightError names the field): sizes are integers in
+    [3, 4096]; every length a finite number in (0, MAX_LENGTH_MM] mm; both pixel pitches in
+    PIXEL_PITCH_RANGE_MM; ``background_smoothing_mm / calibration_mm_per_px`` at most
+    MAX_BACKGROUND_SIGMA_PX; ``shading_gain`` in [0, 2]. Within these a rendering takes bounded
+    time and memory (the largest image, 4096 x 4096, ~1 GB).
     """
 
     image_height: int = 120
@@ -97,15 +110,26 @@ class GelSightConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or not 3 <= value <= 4096:
                 raise GelSightError(f"GelSightConfig.{name} must be an integer in [3, 4096], got {value!r}")
-        positive = ("mm_per_px", "calibration_mm_per_px", "elastomer_thickness_mm", "spreading_length_mm",
-                    "optical_blur_mm", "compression_saturation_mm", "background_smoothing_mm")
-        for name in positive + ("shading_gain",):
+        pitches = ("mm_per_px", "calibration_mm_per_px")
+        lengths = ("elastomer_thickness_mm", "spreading_length_mm", "optical_blur_mm", "compression_saturation_mm",
+                   "background_smoothing_mm")
+        for name in pitches + lengths + ("shading_gain",):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise GelSightError(f"GelSightConfig.{name} must be a finite number, got {value!r}")
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise GelSightError(f"GelSightConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in lengths:
+            if not 0 < getattr(self, name) <= MAX_LENGTH_MM:
+                raise GelSightError(f"GelSightConfig.{name} must be in (0, {MAX_LENGTH_MM}] mm, "
+                                    f"got {getattr(self, name)!r}")
+        for name in pitches:
+            low, high = PIXEL_PITCH_RANGE_MM
+            if not low <= getattr(self, name) <= high:
+                raise GelSightError(f"GelSightConfig.{name} must be in [{low}, {high}] mm per pixel, "
+                                    f"got {getattr(self, name)!r}")
+        if self.background_smoothing_mm / self.calibration_mm_per_px > MAX_BACKGROUND_SIGMA_PX:
+            raise GelSightError(f"GelSightConfig.background_smoothing_mm {self.background_smoothing_mm!r} is "
+                                f"{self.background_smoothing_mm / self.calibration_mm_per_px:.3g} calibration "
+                                f"pixels, more than {MAX_BACKGROUND_SIGMA_PX:g}")
         if not 0.0 <= self.shading_gain <= 2.0:
             raise GelSightError(f"GelSightConfig.shading_gain must be in [0, 2], got {self.shading_gain!r}")
 
