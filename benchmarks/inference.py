@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
-from models.data import depth_input
+from models.data import network_input
 from models.networks import GeneratorConfig, UNetGenerator
 from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
 from models.ssim import ssim_rgb, to_uint8_rgb
@@ -43,13 +43,14 @@ DEPTH_RANGE_M = (-0.0015, 0.0025)
 OFFERED = {"eager": ("fp32", "bf16"), "compile": ("fp32", "bf16"), "onnxrt": ("fp32", "int8")}
 
 
-def synthetic_inputs(count: int, seed: int, in_channels: int, depth_range_m: tuple[float, float]) -> np.ndarray:
-    """count x C x 100 x 100 float32 network inputs from random analytic contacts."""
+def synthetic_inputs(count: int, seed: int, generator: UNetGenerator, depth_range_m: tuple[float, float]
+                     ) -> np.ndarray:
+    """count x C x 100 x 100 float32 network inputs of ``generator`` from random analytic contacts."""
     rng = np.random.default_rng(seed)
     maps = [depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0,
                                    y_far_m=depth_range_m[1])
             for i in range(count)]
-    return depth_input(np.stack(maps), depth_range_m, in_channels).numpy()
+    return network_input(np.stack(maps), depth_range_m, generator.config, generator.prior).numpy()
 
 
 def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int,
@@ -117,12 +118,13 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         torch.set_flush_denormal(False)
 
 
-def test_split_inputs(dataset: str, in_channels: int, depth_range_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+def test_split_inputs(dataset: str, generator: UNetGenerator, depth_range_m: tuple[float, float]
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """(network inputs, ground-truth uint8 images) of a dataset's test split."""
     from models.data import load_pairs, reader_for_model, select_records  # noqa: PLC0415
 
     reader = reader_for_model(dataset, depth_range_m)
-    x, y = load_pairs(reader, select_records(reader, "test"), in_channels)
+    x, y = load_pairs(reader, select_records(reader, "test"), generator.config, generator.prior)
     return x.numpy(), to_uint8_rgb(y)
 
 
@@ -133,9 +135,9 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
         for width, checkpoint in models:
             generator, depth_range_m = _generator(width, checkpoint, args.seed)
             if args.dataset:
-                inputs, truth = test_split_inputs(args.dataset, generator.config.in_channels, depth_range_m)
+                inputs, truth = test_split_inputs(args.dataset, generator, depth_range_m)
             else:
-                inputs = synthetic_inputs(max(args.batch, 16), args.seed, generator.config.in_channels, depth_range_m)
+                inputs = synthetic_inputs(max(args.batch, 16), args.seed, generator, depth_range_m)
                 truth = None
             reference = to_uint8_rgb(torch.from_numpy(eager_runner(generator, bf16=False)(inputs)))
             for runtime in args.runtimes:

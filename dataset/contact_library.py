@@ -161,6 +161,8 @@ def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, 
     families in turn. Resumes: samples already present are drawn again identically and skipped."""
     if samples <= 0:
         raise DatasetError(f"--samples must be positive, got {samples}")
+    # The scene as named (a repository path travels with a checkpoint that records it).
+    scene_name = str(scene) if isinstance(scene, (str, os.PathLike)) else scene.path
     scene = load_scene(scene, check_geometry=False) if isinstance(scene, (str, os.PathLike)) else scene
     geometry = scene.gripper_geometry()
     params = DepthMapParams(shape=(size, size), margin_m=margin_m, y_range_m=depth_range_m)
@@ -168,7 +170,7 @@ def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, 
     renderer = scene_renderer(scene, effects=True, rng=np.random.default_rng([seed, 1]))
     background = resize_rgb(renderer.background(), size, size)
     info = DatasetInfo(image_height=size, image_width=size, depth_range_m=depth_range_m,
-                       scene=str(scene.path), effects=tuple(e.name for e in scene.effects_of("gelsight")),
+                       scene=scene_name, effects=tuple(e.name for e in scene.effects_of("gelsight")),
                        code_version=code_version(), split_seed=seed,
                        depth_crop_m=(2 * half_x, y_far - y_near, 2 * half_z))
     writer = DatasetWriter(out, info)

@@ -9,7 +9,8 @@ import torch
 
 from dataset.format import DatasetReader, SampleRecord
 from dataset.splits import leave_one_object_out, split_records
-from models.networks import ModelConfigError
+from models.networks import GeneratorConfig, ModelConfigError
+from models.prior import PhysicsPrior
 from perception.normalisation import normalise_depth_map
 
 
@@ -32,6 +33,19 @@ def depth_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], in
     elif in_channels != 1:
         raise ModelConfigError(f"in_channels must be 1 or 2, got {in_channels}")
     return torch.from_numpy(np.stack(channels, axis=1))
+
+
+def network_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], config: GeneratorConfig,
+                  prior: PhysicsPrior | None) -> torch.Tensor:
+    """What a generator of ``config`` takes for N x H x W depth-maps (m): :func:`depth_input`,
+    then the physics prior's image of each map (models.prior) when the generator has one."""
+    x = depth_input(depth_maps_m, depth_range_m, config.in_channels)
+    if not config.prior:
+        return x
+    if prior is None:
+        raise ModelConfigError("this generator corrects a physics prior, but none was given (a checkpoint "
+                               "trained with one stores its scene and crop: load it with load_generator)")
+    return torch.cat([x, torch.from_numpy(prior.channels(np.asarray(depth_maps_m)))], dim=1)
 
 
 def image_target(images_rgb: np.ndarray) -> torch.Tensor:
@@ -63,13 +77,13 @@ def reader_for_model(root: str | os.PathLike[str], depth_range_m: tuple[float, f
 
 
 def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[SampleRecord] | None,
-               in_channels: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Network input and target (N x C x H x W, N x 3 x H x W) for ``records`` (all if None),
-    checksums verified."""
+               config: GeneratorConfig, prior: PhysicsPrior | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Network input (:func:`network_input`) and target (N x C x H x W, N x 3 x H x W) for
+    ``records`` (all if None), checksums verified."""
     reader = root if isinstance(root, DatasetReader) else DatasetReader(root)
     chosen = reader.records if records is None else list(records)
     if not chosen:
         raise ModelConfigError(f"no samples selected from {reader.root}")
     samples = [reader.load(r) for r in chosen]
-    depth = depth_input(np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, in_channels)
+    depth = network_input(np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior)
     return depth, image_target(np.stack([s.tactile_rgb for s in samples]))

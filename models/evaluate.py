@@ -26,7 +26,7 @@ import torch
 from scipy import stats
 
 from dataset.format import deformation_map
-from models.data import depth_input, reader_for_model, select_records
+from models.data import network_input, reader_for_model, select_records
 from models.networks import ModelConfigError, UNetGenerator
 from models.ssim import WINDOW, psnr_rgb, ssim_rgb, to_uint8_rgb
 
@@ -57,7 +57,7 @@ def predict(generator: UNetGenerator, depth_maps_m: np.ndarray, depth_range_m: t
             batch: int = 64) -> np.ndarray:
     """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates (generator in eval mode)."""
     generator.eval()
-    x = depth_input(depth_maps_m, depth_range_m, generator.config.in_channels)
+    x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior)
     return np.concatenate([to_uint8_rgb(generator(x[i:i + batch])) for i in range(0, len(x), batch)])
 
 
@@ -411,11 +411,12 @@ def summary_table(result: dict[str, Any]) -> str:
              f"{PAPER['ssim_baseline_mean']:>11.2f} ± {PAPER['ssim_baseline_se']}",
              f"{'dissimilarity ratio':28s}{result['dissimilarity_ratio']:>22.3f}{PAPER['dissimilarity_ratio']:>18.2f}",
              f"{'p (Wilcoxon / t)':28s}{result['p_value_wilcoxon']:>12.2e} / {result['p_value_t']:.2e}",
-             f"{'PSNR model / baseline (dB)':28s}{result['psnr']['psnr_db_model_mean']:>13.2f} / "
-             f"{result['psnr']['psnr_db_baseline_mean']:.2f}",
              f"{'template match score':28s}{result['template_match']['score_mean']:>22.3f}",
              f"{'template distance (px, med)':28s}{result['template_match']['distance_px_median']:>22.1f}",
              f"samples evaluated: {result['n']}"]
+    if "psnr" in result:
+        lines.insert(4, f"{'PSNR model / baseline (dB)':28s}{result['psnr']['psnr_db_model_mean']:>13.2f} / "
+                        f"{result['psnr']['psnr_db_baseline_mean']:.2f}")
     contact = result["contact"]
     if "ssim_model_mean" in contact:
         lines.insert(-1, f"{'contact SSIM model / base':28s}{contact['ssim_model_mean']:>13.4f} / "
@@ -436,7 +437,7 @@ def summary_table(result: dict[str, Any]) -> str:
         paper = row["paper_ssim_mean"]
         lines.append(f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"
                      f"{row['ssim_mean']:>13.4f} ± {row['ssim_se']:.4f}{'' if paper is None else format(paper, '>18.4f')}"
-                     f"   PSNR {row['psnr_db_mean']:.2f} dB"
+                     + (f"   PSNR {row['psnr_db_mean']:.2f} dB" if "psnr_db_mean" in row else "")
                      + (f"   contact {row['contact_ssim_mean']:.4f}" if "contact_ssim_mean" in row else ""))
     return "\n".join(lines)
 

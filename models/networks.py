@@ -26,7 +26,10 @@ from models.errors import ModelConfigError
 class GeneratorConfig:
     """in_channels: 1 (depth) or 2 (depth + validity mask); ngf: width of the first layer;
     background: add a learned image (the sensor's no-contact frame, in tanh's input units)
-    to the last layer's output, so the network draws only what the contact changes."""
+    to the last layer's output, so the network draws only what the contact changes;
+    prior: the input carries 3 more channels, the physics prior's image of the same depth-map
+    (models.prior), which is also added to the output (in tanh's input units): the network
+    learns the correction to physics."""
 
     in_channels: int = 1
     out_channels: int = 3
@@ -37,6 +40,12 @@ class GeneratorConfig:
     dropout: float = 0.5
     dropout_blocks: int = 3
     background: bool = False
+    prior: bool = False
+
+    @property
+    def input_channels(self) -> int:
+        """Channels of the network's input: the depth channels, and the prior's image if any."""
+        return self.in_channels + (3 if self.prior else 0)
 
     def validate(self) -> "GeneratorConfig":
         if self.in_channels not in (1, 2):
@@ -116,7 +125,7 @@ class UNetGenerator(nn.Module):
         widths = [config.ngf * min(2 ** i, 8) for i in range(config.num_downs)]
         self.encoder = nn.ModuleList()
         for i, width in enumerate(widths):
-            conv = nn.Conv2d(config.in_channels if i == 0 else widths[i - 1], width, 4, 2, 1,
+            conv = nn.Conv2d(config.input_channels if i == 0 else widths[i - 1], width, 4, 2, 1,
                              bias=i in (0, len(widths) - 1))
             if i == 0:
                 self.encoder.append(conv)
@@ -136,6 +145,9 @@ class UNetGenerator(nn.Module):
         self.output = nn.Sequential(nn.ReLU(), nn.ConvTranspose2d(widths[0] * 2, config.out_channels, 4, 2, 1))
         if config.background:
             self.background = nn.Parameter(torch.zeros(config.out_channels, config.image_size, config.image_size))
+        # The models.prior.PhysicsPrior whose images this generator's input carries
+        # (config.prior): set by training and by models.train.load_generator, never learned.
+        self.prior: Any = None
 
     @torch.no_grad()
     def set_background(self, mean_image: torch.Tensor) -> None:
@@ -146,8 +158,8 @@ class UNetGenerator(nn.Module):
 
     def forward(self, depth: torch.Tensor) -> torch.Tensor:
         size = self.config.image_size
-        if depth.ndim != 4 or depth.shape[1] != self.config.in_channels or depth.shape[2:] != (size, size):
-            raise ModelConfigError(f"generator input must be N x {self.config.in_channels} x {size} x {size}, "
+        if depth.ndim != 4 or depth.shape[1] != self.config.input_channels or depth.shape[2:] != (size, size):
+            raise ModelConfigError(f"generator input must be N x {self.config.input_channels} x {size} x {size}, "
                                    f"got {tuple(depth.shape)}")
         return self.forward_unchecked(depth)
 
@@ -164,6 +176,9 @@ class UNetGenerator(nn.Module):
         x = self.output(torch.cat([x, skips[0]], dim=1))[:, :, pad // 2: pad // 2 + size, pad // 2: pad // 2 + size]
         if self.config.background:
             x = x + self.background
+        if self.config.prior:
+            prior = depth[:, self.config.in_channels:].clamp(-0.99, 0.99)
+            x = x + 0.5 * torch.log((1 + prior) / (1 - prior))  # atanh, which the ONNX exporter lacks
         return torch.tanh(x)
 
 

@@ -47,7 +47,7 @@ def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.By
         # arithmetic it handles, none of which concerns the exported model.
         warnings.simplefilter("ignore")
         torch.onnx.export(UncheckedGenerator(generator).eval(),
-                          (torch.zeros(1, generator.config.in_channels, size, size),),
+                          (torch.zeros(1, generator.config.input_channels, size, size),),
                           target if isinstance(target, io.BytesIO) else str(target), dynamo=False,
                           input_names=["depth"], output_names=["image"],
                           dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)

@@ -41,6 +41,7 @@ from dataset.format import DatasetReader
 from models.data import load_pairs, select_records
 from models.networks import (DiscriminatorConfig, GeneratorConfig, ModelConfigError, PatchDiscriminator,
                              UNetGenerator, config_from_dict, init_weights)
+from models.prior import PhysicsPrior, PriorSpec
 from models.ssim import ssim_torch
 
 CHECKPOINT = "checkpoint.pt"
@@ -95,7 +96,7 @@ class TrainConfig:
 
     @property
     def discriminator(self) -> DiscriminatorConfig:
-        return DiscriminatorConfig(in_channels=self.generator.in_channels + self.generator.out_channels,
+        return DiscriminatorConfig(in_channels=self.generator.input_channels + self.generator.out_channels,
                                    ndf=self.ndf)
 
     def to_dict(self) -> dict[str, Any]:
@@ -191,6 +192,10 @@ def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[f
     generator = UNetGenerator(config.generator)
     generator.load_state_dict(state["generator"])
     generator.eval()
+    if config.generator.prior:
+        if "prior" not in state:
+            raise ModelConfigError(f"{path} corrects a physics prior but does not say which (no 'prior' entry)")
+        generator.prior = PhysicsPrior(PriorSpec.from_dict(state["prior"]), config.generator.image_size)
     low, high = state["depth_range_m"]
     return generator, (float(low), float(high))
 
@@ -230,20 +235,32 @@ def _validate(generator: nn.Module, x: torch.Tensor, y: torch.Tensor, batch: int
     return float(torch.cat(l1).mean()), float(torch.cat(ssim).mean())
 
 
-def load_library(libraries: Sequence[str | os.PathLike[str]], depth_range_m: tuple[float, float],
-                 in_channels: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+def load_library(libraries: Sequence[str | os.PathLike[str]], session: DatasetReader, config: GeneratorConfig,
+                 prior: PhysicsPrior | None) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Every sample of each library dataset (dataset.contact_library), as network input and
-    target; refused unless it normalises depth as the session does."""
+    target; refused unless its depth-maps are the session's (range and crop)."""
     parts = []
     for library in libraries:
         reader = DatasetReader(library)
-        if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
-            raise ModelConfigError(f"library {library} normalises depth with {reader.info.depth_range_m}, the "
-                                   f"dataset with {depth_range_m}: make it with --depth-range-m to match")
-        parts.append(load_pairs(reader, None, in_channels))
+        for name in ("depth_range_m", "depth_crop_m"):
+            mine, theirs = getattr(reader.info, name), getattr(session.info, name)
+            if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
+                raise ModelConfigError(f"library {library} has {name} {mine}, the dataset {theirs}: make it "
+                                       "with the session's settings (dtx dataset library --depth-range-m)")
+        parts.append(load_pairs(reader, None, config, prior))
     if not parts:
         return None
     return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+
+
+def session_prior(reader: DatasetReader, config: GeneratorConfig) -> PhysicsPrior | None:
+    """The physics prior for a generator of ``config`` trained on ``reader``'s dataset: its
+    scene's GelSight and its depth-maps' crop (None when the config has no prior)."""
+    if not config.prior:
+        return None
+    if reader.info.depth_crop_m is None or not reader.info.scene:
+        raise ModelConfigError(f"{reader.root} does not record its scene and depth crop, which a physics prior needs")
+    return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m)), config.image_size)
 
 
 def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.PathLike[str],
@@ -261,10 +278,11 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         if config.threads:
             torch.set_num_threads(config.threads)
         reader = DatasetReader(dataset)
-        in_ch = config.generator.in_channels
-        x_train, y_train = load_pairs(reader, select_records(reader, "train", config.hold_out_object), in_ch)
-        x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), in_ch)
-        library = load_library(libraries, reader.info.depth_range_m, in_ch)
+        prior = session_prior(reader, config.generator)
+        x_train, y_train = load_pairs(reader, select_records(reader, "train", config.hold_out_object),
+                                      config.generator, prior)
+        x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), config.generator, prior)
+        library = load_library(libraries, reader, config.generator, prior)
         if library is not None:
             x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
         x_train, y_train = x_train.to(dist.device), y_train.to(dist.device)
@@ -404,6 +422,7 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                     "depth_range_m": list(reader.info.depth_range_m),
                     "dataset": str(Path(dataset).resolve()),
                     "libraries": [str(Path(library).resolve()) for library in libraries],
+                    **({"prior": prior.spec.to_dict()} if prior is not None else {}),
                 }, checkpoint_path)
         bar.close()
         if board is not None:

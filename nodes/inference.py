@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from models.data import depth_input
+from models.data import network_input
 from models.networks import UNetGenerator
 from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, sampling_copy
 from models.ssim import to_uint8_rgb
@@ -119,7 +119,7 @@ class InferenceNode(Node):
         torch.set_num_threads(p.threads)
         torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
         generator, self.depth_range_m = load_generator(p.checkpoint)
-        self.config = generator.config
+        self.config, self.prior = generator.config, generator.prior
         self.deterministic = _forward(generator, p.runtime, p.precision, p.threads)
         self.sampled = _forward(sampling_copy(generator), p.runtime, p.precision, p.threads)
         from sim.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
@@ -223,7 +223,7 @@ class InferenceNode(Node):
                 job.future.set_exception(exc)
         if not ready:
             return
-        x = depth_input(np.concatenate(maps), self.depth_range_m, self.config.in_channels).numpy()
+        x = network_input(np.concatenate(maps), self.depth_range_m, self.config, self.prior).numpy()
         images = to_uint8_rgb(torch.from_numpy(self._batched(self.deterministic, x)))
         samples = [job.request.dropout_samples for job in ready]
         offsets = np.cumsum([0] + [m.shape[0] for m in maps])

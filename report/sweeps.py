@@ -35,7 +35,7 @@ from benchmarks.sim import DEPTH_EFFECTS
 from dataset.format import DatasetReader, SampleRecord, deformation_map, resize_rgb
 from dataset.redepth import depth_map_again, depth_map_params, model_cloud, redepth_dataset
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
-from models.data import depth_input, select_records
+from models.data import network_input, select_records
 from models.evaluate import PAPER, contact_ssim, predict
 from models.runtime import sampling_copy
 from models.ssim import ssim_rgb
@@ -411,7 +411,7 @@ def dropout(ws: Workspace) -> list[Point]:
     depth = np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")])
     error = np.abs(predict(generator, depth, depth_range).astype(np.float32) - truth).mean(axis=-1)
     sampled = sampling_copy(generator)
-    x = depth_input(depth, depth_range, generator.config.in_channels)
+    x = network_input(depth, depth_range, generator.config, generator.prior)
     points = []
     for samples in ws.plan.dropout_samples:
         torch.manual_seed(ws.plan.seed)

@@ -1,0 +1,67 @@
+"""The calibrated GelSight renderer as a physics prior that the network corrects.
+
+Learning alone (the paper) must find what a contact looks like from a few objects' experience;
+physics alone (Taxim; ``sim.gelsight``) draws any contact but knows only what the depth-map
+holds and nothing of the sensor it was not calibrated for. A generator trained with a prior
+(``GeneratorConfig.prior``) is given, beside the depth-map, the renderer's image of that same
+depth-map (``sim.gelsight.render_depth_maps``, no sensor effects) and starts from it: its output
+is that image plus what the network adds (models/networks.py), so it learns the correction —
+what the registration's offset, the surface relief and the sensor do to the ideal image.
+
+The prior is fixed by the scene whose GelSight it renders and the crop the depth-maps cover;
+a checkpoint stores both (``PriorSpec``), so serving renders exactly what training rendered.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from models.errors import ModelConfigError
+from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
+from sim.scene import SceneError, load_scene
+
+
+@dataclasses.dataclass(frozen=True)
+class PriorSpec:
+    """What a prior renders with: the scene's GelSight, and the depth-maps' crop (x, y, z m)."""
+
+    scene: str
+    depth_crop_m: tuple[float, float, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"scene": self.scene, "depth_crop_m": list(self.depth_crop_m)}
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> "PriorSpec":
+        try:
+            crop = tuple(float(v) for v in data["depth_crop_m"])
+            return PriorSpec(scene=str(data["scene"]), depth_crop_m=crop)  # type: ignore[arg-type]
+        except (KeyError, TypeError, ValueError) as err:
+            raise ModelConfigError(f"a physics prior needs a scene and a 3-value depth_crop_m, got {data!r}") from err
+
+
+class PhysicsPrior:
+    """Renders depth-maps into the prior's images at the model's grid (``size`` x ``size``)."""
+
+    def __init__(self, spec: PriorSpec, size: int) -> None:
+        if len(spec.depth_crop_m) != 3 or not all(np.isfinite(v) and v > 0 for v in spec.depth_crop_m):
+            raise ModelConfigError(f"the prior's depth crop must be three positive extents in m, got {spec.depth_crop_m}")
+        try:
+            scene = load_scene(spec.scene, check_geometry=False)
+        except (SceneError, OSError) as err:
+            raise ModelConfigError(f"the physics prior's scene {spec.scene}: {err}") from err
+        self.spec = spec
+        self.renderer = scene_renderer(scene, size=(size, size), effects=False)
+
+    def images(self, depth_maps_m: np.ndarray) -> np.ndarray:
+        """N x size x size x 3 uint8: the renderer's image of each depth-map (m)."""
+        try:
+            return render_depth_maps(self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2]))
+        except GelSightError as err:
+            raise ModelConfigError(f"physics prior: {err}") from err
+
+    def channels(self, depth_maps_m: np.ndarray) -> np.ndarray:
+        """N x 3 x size x size float32 in [-1, 1] (the network's image units)."""
+        return (self.images(depth_maps_m).transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)
