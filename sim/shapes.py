@@ -19,7 +19,8 @@ import numpy as np
 import open3d as o3d
 
 
-def _extrude(outline_xy_m: np.ndarray, fan_centre_xy_m: tuple[float, float], thickness_m: float) -> o3d.geometry.TriangleMesh:
+def _extrude(outline_xy_m: np.ndarray, fan_centre_xy_m: tuple[float, float],
+             thickness_m: float) -> o3d.geometry.TriangleMesh:
     """A flat part: the counter-clockwise outline extruded from z = 0 to ``thickness_m``.
 
     Caps are triangle fans from ``fan_centre_xy_m``, so the outline must be star-shaped about it
