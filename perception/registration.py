@@ -185,6 +185,11 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
                                 "prepare it again with these parameters")
     if len(params.icp_distances_m) == 0 or min(params.icp_distances_m) <= 0:
         raise RegistrationError(f"ICP needs at least one positive distance, got {params.icp_distances_m}")
+    if min(params.resting_yaw_steps, params.resting_candidates, params.resting_sweep_iterations) < 1 \
+            or params.resting_sweep_points < 3:
+        raise RegistrationError("the upright search needs at least 1 yaw step, candidate and sweep iteration and "
+                                f"3 sweep points, got {params.resting_yaw_steps}, {params.resting_candidates}, "
+                                f"{params.resting_sweep_iterations} and {params.resting_sweep_points}")
     observed = _check_cloud(observed_world_m, "observed cluster", 10)
     started = time.perf_counter()
     # Registration runs about the observed centroid: a scene far from the origin would otherwise
@@ -197,22 +202,16 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     rejections = []
     coarse_s = fine_s = 0.0
 
-    def to_world(model_to_offset: np.ndarray) -> np.ndarray:
-        model_to_world = model_to_offset.copy()
-        model_to_world[:3, 3] += offset
-        return model_to_world
-
     def result(model_to_world: np.ndarray, fitness: float, rmse_m: float, attempt: int) -> RegistrationResult:
         return RegistrationResult(model_to_world=model_to_world, fitness=fitness, inlier_rmse_m=rmse_m,
                                   attempts=attempt, time_ms={"coarse": coarse_s * 1e3, "fine": fine_s * 1e3,
                                                              "total": (time.perf_counter() - started) * 1e3})
 
     if params.table_z_m is not None:
-        model_to_offset, fitness, rmse_m, coarse_s, fine_s = _register_resting(
+        model_to_world, fitness, rmse_m, coarse_s, fine_s = _register_resting(
             model_fine_points, np.asarray(model.coarse.points), np.asarray(source.points),
-            np.asarray(source_fine.points),
-            params.table_z_m - offset[2], params, seed)
-        model_to_world = to_world(model_to_offset)
+            np.asarray(source_fine.points), params.table_z_m - offset[2], params, seed)
+        model_to_world[:3, 3] += offset
         problem = _quality_problem(fitness, rmse_m, model_to_world, model_fine_points, params)
         if not problem:
             return result(model_to_world, fitness, rmse_m, 0)
@@ -247,10 +246,10 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
         t2 = time.perf_counter()
         coarse_s += t1 - t0
         fine_s += t2 - t1
-        model_to_offset = np.linalg.inv(np.asarray(fine.transformation, dtype=np.float64))
-        model_to_offset[:3, :3] = Rotation.from_matrix(model_to_offset[:3, :3]).as_matrix()
-        model_to_offset[3] = [0.0, 0.0, 0.0, 1.0]
-        model_to_world = to_world(model_to_offset)
+        model_to_world = np.linalg.inv(np.asarray(fine.transformation, dtype=np.float64))
+        model_to_world[:3, :3] = Rotation.from_matrix(model_to_world[:3, :3]).as_matrix()
+        model_to_world[:3, 3] += offset
+        model_to_world[3] = [0.0, 0.0, 0.0, 1.0]
         problem = _quality_problem(fine.fitness, fine.inlier_rmse, model_to_world, model_fine_points, params)
         if problem:
             rejections.append(problem)
@@ -283,7 +282,7 @@ def _planar_icp(observed_m: np.ndarray, model_tree: cKDTree, model_points_m: np.
             new_yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
             c, s = np.cos(new_yaw), np.sin(new_yaw)
             new_x_m, new_y_m = seen_mean - np.array([[c, -s], [s, c]]) @ model_mean
-            # Converged when no point moves more than 10 um (a turn moves points ~0.1 m from the centre).
+            # Converged when a step moves points less than ~10 um (a turn counted 0.1 m from the centre).
             step_m = np.hypot(new_x_m - x_m, new_y_m - y_m) + abs(np.angle(np.exp(1j * (new_yaw - yaw)))) * 0.1
             yaw, x_m, y_m = new_yaw, float(new_x_m), float(new_y_m)
             if step_m < 1e-5:
@@ -294,8 +293,9 @@ def _planar_icp(observed_m: np.ndarray, model_tree: cKDTree, model_points_m: np.
 def _register_resting(model_points_m: np.ndarray, model_coarse_m: np.ndarray, observed_coarse_m: np.ndarray,
                       observed_fine_m: np.ndarray, table_z_m: float, params: RegistrationParams, seed: int
                       ) -> tuple[np.ndarray, float, float, float, float]:
-    """Best upright pose (model_to_world, fitness, RMSE m, sweep s, refinement s) of a model
-    resting on the table at ``table_z_m``, as its mesh frame stands, turned about the vertical.
+    """Best upright pose (model to the observed points' frame, fitness, RMSE m, sweep s,
+    refinement s) of a model resting on the table at ``table_z_m`` (that frame), as its mesh
+    frame stands, turned about the vertical.
 
     Each of ``resting_yaw_steps`` yaws starts with the model's centroid under the observed one
     and runs a few planar ICP steps with the coarse clouds at the widest ICP distance; the

@@ -214,6 +214,8 @@ def test_bad_registration_inputs(drill):
         register_model(prepared, np.zeros((3, 3)))
     with pytest.raises(RegistrationError, match="prepared with other"):
         register_model(prepared, np.zeros((50, 3)), RegistrationParams(voxel_size_m=0.01))
+    with pytest.raises(RegistrationError, match="upright search needs at least 1 yaw step"):
+        register_model(prepared, np.zeros((50, 3)), dataclasses.replace(prepared.params, resting_yaw_steps=0))
     with pytest.raises(RegistrationError, match="no triangles"):
         sample_model_cloud("does/not/exist.obj")
     with pytest.raises(RegistrationError, match="point spacing"):
