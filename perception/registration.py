@@ -1,6 +1,13 @@
 """Registration of an object's complete model cloud to its segmented partial view (paper §III-B.2).
 
-Coarse: RANSAC on FPFH feature correspondences; fine: point-to-plane ICP. The observed
+An object resting on the table (``table_z_m`` set) is first searched for upright, as its mesh
+frame stands, at a turn about the vertical (:func:`_register_resting`: 3 degrees of freedom,
+a sweep of yaws refined by planar ICP). That is the only way to register a thin flat object,
+whose view is a plane (FPFH histograms all alike, point-to-plane ICP free to slide); on the YCB
+objects it is as accurate as the general search. An object lying otherwise normally fails the
+fitness check there and goes on to the general search.
+
+General: coarse RANSAC on FPFH feature correspondences; fine point-to-plane ICP. The observed
 cluster is the *source* and the model the *target*: then ICP fitness is the fraction of
 observed points that lie on the model, which is near 1 for a right pose whatever part of the
 object the cameras see (with the model as source it would be the visible fraction instead).
@@ -51,6 +58,10 @@ class RegistrationParams:
     # None for an object that is held or stacked.
     table_z_m: float | None = 0.0
     table_tolerance_m: float = 0.01
+    resting_yaw_steps: int = 24             # upright search: yaws tried, 15 deg apart
+    resting_sweep_iterations: int = 10      # planar ICP steps per yaw on the coarse clouds
+    resting_sweep_points: int = 256         # observed points the sweep pairs (a seeded random subset)
+    resting_candidates: int = 3             # the best yaws of the sweep refined on the fine clouds
 
 
 @dataclasses.dataclass
@@ -66,7 +77,7 @@ class RegistrationResult:
     model_to_world: np.ndarray     # (4, 4) float64
     fitness: float                 # fraction of observed points within the last ICP distance of the model
     inlier_rmse_m: float
-    attempts: int
+    attempts: int                  # RANSAC attempts used; 0 when the upright search gave the pose
     time_ms: dict[str, float]      # "coarse", "fine", "total"
 
 
@@ -130,15 +141,19 @@ def _check_cloud(points: np.ndarray, name: str, minimum: int) -> np.ndarray:
     return points
 
 
-def _check_not_degenerate(points: np.ndarray, voxel_size_m: float, name: str) -> None:
-    # A line or a plane leaves rotations about it unobservable: FPFH histograms are all alike and
-    # ICP's normal equations are singular, so any pose it returned would be arbitrary.
+def _check_not_degenerate(points: np.ndarray, voxel_size_m: float, name: str, rejections: list[str]) -> None:
+    """Refuse a line or a plane for the general search, after the ``rejections`` already met.
+
+    A line or a plane leaves rotations about it unobservable: FPFH histograms are all alike and
+    ICP's normal equations are singular, so any pose it returned would be arbitrary. (A plane
+    lying on the table is still observable upright, by :func:`_register_resting`.)
+    """
     centred = points - points.mean(axis=0)
     spread = np.sqrt(np.linalg.eigvalsh(centred.T @ centred / len(points)))  # ascending, metres
-    if spread[1] < voxel_size_m:
-        raise RegistrationError(f"{name} is nearly linear (spread {spread[::-1]} m); pose not observable")
-    if spread[0] < 0.25 * voxel_size_m:
-        raise RegistrationError(f"{name} is nearly planar (spread {spread[::-1]} m); pose not observable")
+    shape = "linear" if spread[1] < voxel_size_m else "planar" if spread[0] < 0.25 * voxel_size_m else ""
+    if shape:
+        raise RegistrationError("; ".join([*rejections, f"{name} is nearly {shape} (spread {spread[::-1]} m); "
+                                           "pose not observable"]))
 
 
 @dataclasses.dataclass
@@ -187,18 +202,42 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
                                 "prepare it again with these parameters")
     if len(params.icp_distances_m) == 0 or min(params.icp_distances_m) <= 0:
         raise RegistrationError(f"ICP needs at least one positive distance, got {params.icp_distances_m}")
+    if min(params.resting_yaw_steps, params.resting_candidates, params.resting_sweep_iterations) < 1 \
+            or params.resting_sweep_points < 3:
+        raise RegistrationError("the upright search needs at least 1 yaw step, candidate and sweep iteration and "
+                                f"3 sweep points, got {params.resting_yaw_steps}, {params.resting_candidates}, "
+                                f"{params.resting_sweep_iterations} and {params.resting_sweep_points}")
     observed = _check_cloud(observed_world_m, "observed cluster", 10)
     started = time.perf_counter()
     # Registration runs about the observed centroid: a scene far from the origin would otherwise
     # lose precision in Open3D's float products and in the RANSAC pose estimate.
     offset = observed.mean(axis=0)
     voxel = params.voxel_size_m
-    normal_search = o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * params.normal_radius_factor, max_nn=30)
     source = _thin(observed - offset, None, voxel, "observed cluster")
-    _check_not_degenerate(np.asarray(source.points), voxel, "observed cluster")
+    source_fine = _thin(observed - offset, None, params.icp_voxel_size_m, "observed cluster")
+    model_fine_points = np.asarray(model.fine.points)
+    rejections = []
+    coarse_s = fine_s = 0.0
+
+    def result(model_to_world: np.ndarray, fitness: float, rmse_m: float, attempt: int) -> RegistrationResult:
+        return RegistrationResult(model_to_world=model_to_world, fitness=fitness, inlier_rmse_m=rmse_m,
+                                  attempts=attempt, time_ms={"coarse": coarse_s * 1e3, "fine": fine_s * 1e3,
+                                                             "total": (time.perf_counter() - started) * 1e3})
+
+    if params.table_z_m is not None:
+        model_to_world, fitness, rmse_m, coarse_s, fine_s = _register_resting(
+            model_fine_points, np.asarray(model.coarse.points), np.asarray(source.points),
+            np.asarray(source_fine.points), params.table_z_m - offset[2], params, seed)
+        model_to_world[:3, 3] += offset
+        problem = _quality_problem(fitness, rmse_m, model_to_world, model_fine_points, params)
+        if not problem:
+            return result(model_to_world, fitness, rmse_m, 0)
+        rejections.append(f"upright: {problem}")
+
+    _check_not_degenerate(np.asarray(source.points), voxel, "observed cluster", rejections)
+    normal_search = o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * params.normal_radius_factor, max_nn=30)
     source.estimate_normals(normal_search)
     source_features = _features(source, params)
-    source_fine = _thin(observed - offset, None, params.icp_voxel_size_m, "observed cluster")
     source_fine.estimate_normals(normal_search)
 
     ransac_distance = voxel * params.ransac_distance_factor
@@ -207,10 +246,6 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     criteria = _reg.RANSACConvergenceCriteria(params.ransac_max_iterations, params.ransac_confidence)
     icp_criteria = _reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5,
                                                max_iteration=params.icp_max_iterations)
-
-    model_fine_points = np.asarray(model.fine.points)
-    rejections = []
-    coarse_s = fine_s = 0.0
     for attempt in range(1, params.attempts + 1):
         seed_open3d(seed, attempt)
         t0 = time.perf_counter()
@@ -232,24 +267,97 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
         model_to_world[:3, :3] = Rotation.from_matrix(model_to_world[:3, :3]).as_matrix()
         model_to_world[:3, 3] += offset
         model_to_world[3] = [0.0, 0.0, 0.0, 1.0]
-        problem = _quality_problem(fine, model_to_world, model_fine_points, params)
+        problem = _quality_problem(fine.fitness, fine.inlier_rmse, model_to_world, model_fine_points, params)
         if problem:
             rejections.append(problem)
             continue
-        total_ms = (time.perf_counter() - started) * 1e3
-        return RegistrationResult(model_to_world=model_to_world, fitness=float(fine.fitness),
-                                  inlier_rmse_m=float(fine.inlier_rmse), attempts=attempt,
-                                  time_ms={"coarse": coarse_s * 1e3, "fine": fine_s * 1e3, "total": total_ms})
+        return result(model_to_world, float(fine.fitness), float(fine.inlier_rmse), attempt)
     raise RegistrationError(f"no pose passed after {params.attempts} attempts: " + "; ".join(rejections))
 
 
-def _quality_problem(fine, model_to_world: np.ndarray, model_points_m: np.ndarray,
+def _planar_icp(observed_m: np.ndarray, model_tree: cKDTree, model_points_m: np.ndarray,
+                pose: tuple[float, float, float], model_z_m: float, distances_m: tuple[float, ...], max_iterations: int
+                ) -> tuple[tuple[float, float, float], float, float]:
+    """ICP over (yaw, x, y) of a model standing at height ``model_z_m``: the observed points pair
+    with their nearest model points within each distance in turn, and a 2-D Kabsch fit on the
+    pairs' x, y moves the model (a turn about z keeps every z). (pose, fitness, RMSE metres)."""
+    yaw, x_m, y_m = pose
+    fitness = rmse_m = 0.0
+    for distance_m in distances_m:
+        for _ in range(max_iterations):
+            c, s = np.cos(yaw), np.sin(yaw)
+            in_model = (observed_m - [x_m, y_m, model_z_m]) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            gap_m, index = model_tree.query(in_model, distance_upper_bound=distance_m)
+            paired = np.isfinite(gap_m)
+            fitness = float(paired.mean())
+            rmse_m = float(np.sqrt(np.mean(gap_m[paired] ** 2))) if paired.any() else np.inf
+            if paired.sum() < 3:
+                break
+            model_xy, seen_xy = model_points_m[index[paired], :2], observed_m[paired, :2]
+            model_mean, seen_mean = model_xy.mean(axis=0), seen_xy.mean(axis=0)
+            h = (model_xy - model_mean).T @ (seen_xy - seen_mean)
+            new_yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
+            c, s = np.cos(new_yaw), np.sin(new_yaw)
+            new_x_m, new_y_m = seen_mean - np.array([[c, -s], [s, c]]) @ model_mean
+            # Converged when a step moves points less than ~10 um (a turn counted 0.1 m from the centre).
+            step_m = np.hypot(new_x_m - x_m, new_y_m - y_m) + abs(np.angle(np.exp(1j * (new_yaw - yaw)))) * 0.1
+            yaw, x_m, y_m = new_yaw, float(new_x_m), float(new_y_m)
+            if step_m < 1e-5:
+                break
+    return (yaw, x_m, y_m), fitness, rmse_m
+
+
+def _register_resting(model_points_m: np.ndarray, model_coarse_m: np.ndarray, observed_coarse_m: np.ndarray,
+                      observed_fine_m: np.ndarray, table_z_m: float, params: RegistrationParams, seed: int
+                      ) -> tuple[np.ndarray, float, float, float, float]:
+    """Best upright pose (model to the observed points' frame, fitness, RMSE m, sweep s,
+    refinement s) of a model resting on the table at ``table_z_m`` (that frame), as its mesh
+    frame stands, turned about the vertical.
+
+    Each of ``resting_yaw_steps`` yaws starts with the model's centroid under the observed one
+    and runs a few planar ICP steps with the coarse clouds at the widest ICP distance; the
+    ``resting_candidates`` best by fitness are refined through every ICP distance with the
+    coarse clouds, and the best of those with the fine clouds at the last distance. Every yaw is
+    tried (not the first that passes) so that a near-symmetric object's better turn wins.
+    """
+    t0 = time.perf_counter()
+    tree, coarse_tree = cKDTree(model_points_m), cKDTree(model_coarse_m)
+    model_z_m = table_z_m - float(model_points_m[:, 2].min())
+    centre_xy = model_points_m[:, :2].mean(axis=0)
+    # Ranking the yaws needs only a fitness estimate: a few hundred observed points give it.
+    observed_all_coarse_m = observed_coarse_m
+    if len(observed_coarse_m) > params.resting_sweep_points:
+        observed_coarse_m = observed_coarse_m[np.random.default_rng(seed).choice(
+            len(observed_coarse_m), params.resting_sweep_points, replace=False)]
+    sweep = []
+    for yaw in np.arange(params.resting_yaw_steps) * 2.0 * np.pi / params.resting_yaw_steps:
+        c, s = np.cos(yaw), np.sin(yaw)
+        start_xy = observed_coarse_m[:, :2].mean(axis=0) - np.array([[c, -s], [s, c]]) @ centre_xy
+        pose, fitness, rmse_m = _planar_icp(observed_coarse_m, coarse_tree, model_coarse_m, (float(yaw), *start_xy),
+                                            model_z_m, params.icp_distances_m[:1], params.resting_sweep_iterations)
+        sweep.append((fitness, -rmse_m, pose))
+    t1 = time.perf_counter()
+    refined = []
+    for _, _, pose in sorted(sweep, key=lambda row: row[:2], reverse=True)[:params.resting_candidates]:
+        pose, fitness, rmse_m = _planar_icp(observed_all_coarse_m, coarse_tree, model_coarse_m, pose, model_z_m,
+                                            params.icp_distances_m, params.icp_max_iterations)
+        refined.append((fitness, -rmse_m, pose))
+    pose = max(refined, key=lambda row: row[:2])[2]
+    (yaw, x_m, y_m), fitness, rmse_m = _planar_icp(observed_fine_m, tree, model_points_m, pose, model_z_m,
+                                                   params.icp_distances_m[-1:], params.icp_max_iterations)
+    model_to_world = np.eye(4)
+    model_to_world[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
+    model_to_world[:3, 3] = [x_m, y_m, model_z_m]
+    return model_to_world, fitness, rmse_m, t1 - t0, time.perf_counter() - t1
+
+
+def _quality_problem(fitness: float, inlier_rmse_m: float, model_to_world: np.ndarray, model_points_m: np.ndarray,
                      params: RegistrationParams) -> str:
     """Why an ICP result cannot be trusted, or "" if it passes every check."""
-    if fine.fitness < params.min_fitness:
-        return f"fitness {fine.fitness:.3f} < {params.min_fitness}"
-    if fine.inlier_rmse > params.max_rmse_m:
-        return f"inlier RMSE {fine.inlier_rmse * 1e3:.2f} mm > {params.max_rmse_m * 1e3:.2f} mm"
+    if fitness < params.min_fitness:
+        return f"fitness {fitness:.3f} < {params.min_fitness}"
+    if inlier_rmse_m > params.max_rmse_m:
+        return f"inlier RMSE {inlier_rmse_m * 1e3:.2f} mm > {params.max_rmse_m * 1e3:.2f} mm"
     if params.table_z_m is not None:
         # Fitness only asks that what was seen lies on the model. A wrong pose can pass that by
         # hiding the rest of the model where the cameras did not look — below the table or

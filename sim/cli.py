@@ -37,6 +37,13 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     ceiling.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws (default 0)")
     ceiling.add_argument("--json", action="store_true", help="print the result as JSON")
     ceiling.set_defaults(func=information_ceiling)
+    shapes = commands.add_parser(
+        "shapes", help="write the generated thin, flat and symmetric test objects as meshes",
+        description="Write the objects of sim/shapes.py (a flat tool, a thin plate, a flat L bracket, a puck, a "
+                    "disc, a cylinder, a sphere) as DIR/<name>.obj, e.g. for dtx perception register-check DIR/*.obj.")
+    shapes.add_argument("directory", metavar="DIR", help="where to write the meshes (made if missing)")
+    shapes.add_argument("--only", nargs="+", metavar="NAME", help="write only these shapes")
+    shapes.set_defaults(func=write_shape_files)
 
 
 def gelsight_check(args: argparse.Namespace) -> int:
@@ -66,6 +73,18 @@ def information_ceiling(args: argparse.Namespace) -> int:
         print(f"dtx sim ceiling: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(result, indent=2) if args.json else format_table(result))
+    return 0
+
+
+def write_shape_files(args: argparse.Namespace) -> int:
+    from sim.shapes import write_shapes  # noqa: PLC0415 (Open3D only here)
+
+    try:
+        paths = write_shapes(args.directory, args.only)
+    except (ValueError, OSError) as exc:
+        print(f"dtx sim shapes: {exc}", file=sys.stderr)
+        return 2
+    print("\n".join(str(path) for path in paths))
     return 0
 
 

@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from sim.scene import EFFECTS, SceneError, load_scene
+from sim.shapes import write_shapes
 
 REPO = Path(__file__).resolve().parent.parent
 SCENES = sorted((REPO / "scenes").glob("*.yaml"))
@@ -52,6 +53,29 @@ def test_required_scenes_exist() -> None:
         if p.stem.startswith("effects_"):
             covered |= {e.name for e in load_scene(p).effects}
     assert {n for n, e in EFFECTS.items() if e.family != "gelsight"} <= covered
+
+
+def test_the_unseen_scene_has_the_other_ycb_meshes_and_the_same_sensors() -> None:
+    three, unseen = load_scene("scenes/ycb_three.yaml"), load_scene("scenes/ycb_unseen.yaml")
+    shipped = {f"assets/ycb/{p.name}" for p in (REPO / "assets" / "ycb").glob("*.obj")}
+    assert {o.mesh for o in unseen.objects} == shipped - {o.mesh for o in three.objects}
+    assert {o.name for o in unseen.objects} == {"cracker_box", "power_drill"}
+    assert (unseen.effects, unseen.gripper, unseen.gelsight) == (three.effects, three.gripper, three.gelsight)
+    for mine, theirs in zip(unseen.cameras, three.cameras, strict=True):
+        assert mine.name == theirs.name and (mine.camera_to_world == theirs.camera_to_world).all()
+
+
+def test_generated_shapes_are_usable_scene_objects(tmp_path: Path) -> None:
+    """Closed, manifold, resting on their lowest point: a scene with every shape loads."""
+    data = _ideal()
+    spots_m = [(-0.2, -0.15), (0.0, -0.15), (0.2, -0.15), (-0.2, 0.15), (0.0, 0.15), (0.2, 0.15), (0.0, 0.0)]
+    data["objects"] = [{"name": path.stem, "mesh": str(path), "pose": {"x_m": x_m, "y_m": y_m}}
+                       for path, (x_m, y_m) in zip(write_shapes(tmp_path), spots_m, strict=True)]
+    data["workspace"] = {"min_m": [-0.4, -0.3, 0.0], "max_m": [0.4, 0.3, 0.5]}
+    scene = load_scene(_write(tmp_path, data, "shapes.yaml"))
+    assert len(scene.objects) == 7
+    with pytest.raises(ValueError, match="no generated shape named mug"):
+        write_shapes(tmp_path, ["mug"])
 
 
 def test_kinect_intrinsics() -> None:
