@@ -8,10 +8,12 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 import torch
 
+from dataset.format import DatasetReader
 from dataset.synth import write_synthetic_dataset
 from models.networks import GeneratorConfig, ModelConfigError
 from models.train import TrainConfig, load_checkpoint, load_generator, lr_factor, train
@@ -141,3 +143,43 @@ def test_weight_average_is_what_is_saved_and_resumes_exactly(dataset: Path, tmp_
     assert all(torch.equal(v, whole["generator"][k]) for k, v in generator.state_dict().items())
     with pytest.raises(ModelConfigError, match="ema_decay"):
         TrainConfig(ema_decay=1.0).validate()
+
+
+def test_a_contact_library_joins_the_training_set_and_must_share_the_depth_range(dataset: Path, tmp_path: Path) -> None:
+    from dataset.contact_library import write_contact_library  # noqa: PLC0415
+
+    scene = REPO / "scenes" / "ycb_three.yaml"
+    library = tmp_path / "library"
+    write_contact_library(library, 8, seed=0, scene=scene, depth_range_m=(-0.0015, 0.0025))
+    config = TrainConfig(**{**TINY.__dict__, "max_steps": 2, "contact_weight": 4.0})
+    state = load_checkpoint(train(dataset, config, tmp_path / "with", progress=False, libraries=[library]))
+    assert state["libraries"] == [str(library.resolve())]
+    other = tmp_path / "other"
+    write_contact_library(other, 2, seed=0, scene=scene)  # the sessions' default range, not this dataset's
+    with pytest.raises(ModelConfigError, match="depth_range_m"):
+        train(dataset, config, tmp_path / "refused", progress=False, libraries=[other])
+
+
+def test_a_generator_with_a_physics_prior_starts_from_the_renderer_and_exports(tmp_path: Path) -> None:
+    from dataset.contact_library import write_contact_library  # noqa: PLC0415
+    from models.evaluate import predict  # noqa: PLC0415
+    from models.prior import PhysicsPrior  # noqa: PLC0415
+    from models.runtime import export_onnx  # noqa: PLC0415
+
+    library = write_contact_library(tmp_path / "library", 16, seed=1, scene=REPO / "scenes" / "ycb_three.yaml").root
+    config = TrainConfig(**{**TINY.__dict__, "max_steps": 1,
+                            "generator": GeneratorConfig(ngf=8, prior=True, background=False)})
+    generator, depth_range = load_generator(train(library, config, tmp_path / "prior", progress=False))
+    assert isinstance(generator.prior, PhysicsPrior) and generator.prior.spec.scene.endswith("scenes/ycb_three.yaml")
+    reader = DatasetReader(library)
+    depth = np.stack([reader.load(r).depth_map_m for r in reader.records[:4]])
+    # With the network's own output near zero after one step, the estimate is the renderer's image.
+    estimate = predict(generator, depth, depth_range)
+    physics = generator.prior.images(depth)
+    assert np.abs(estimate.astype(int) - physics.astype(int)).mean() < 40
+    export_onnx(generator, tmp_path / "prior.onnx")
+    state = torch.load(tmp_path / "prior" / "checkpoint.pt", weights_only=True)
+    del state["prior"]
+    torch.save(state, tmp_path / "no_prior.pt")
+    with pytest.raises(ModelConfigError, match="does not say which"):
+        load_generator(tmp_path / "no_prior.pt")
