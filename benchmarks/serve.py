@@ -31,6 +31,7 @@ import torch
 
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
 from models.networks import GeneratorConfig, UNetGenerator
+from models.prior import PriorSpec
 from models.train import TrainConfig
 from nodes.bus import Bus
 from nodes.inference_client import SERVICE, InferenceError, TactileClient
@@ -39,14 +40,19 @@ from nodes.registry import Registry
 DEPTH_RANGE_M = (-0.0015, 0.0025)  # the synthetic dataset's (dataset.synth)
 
 
+# The prior a collection session on the default scene gives (models.prior): its GelSight, and
+# its depth-maps' crop (the sensed 19.9 x 14.9 mm plus 2 mm margins; y range -5..10 mm).
+SESSION_PRIOR = PriorSpec(scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 0.015, 0.01894))
+
+
 def write_checkpoint(path: Path, width: int, seed: int = 0,
-                     depth_range_m: tuple[float, float] = DEPTH_RANGE_M) -> Path:
+                     depth_range_m: tuple[float, float] = DEPTH_RANGE_M, prior: bool = False) -> Path:
     """A checkpoint in models/train.py's format (what load_generator reads) holding a fresh,
-    seeded generator of width ``width``."""
+    seeded generator of width ``width``, correcting the default scene's physics prior if asked."""
     torch.manual_seed(seed)
-    config = TrainConfig(generator=GeneratorConfig(ngf=width))
+    config = TrainConfig(generator=GeneratorConfig(ngf=width, prior=prior))
     torch.save({"generator": UNetGenerator(config.generator).state_dict(), "train_config": config.to_dict(),
-                "depth_range_m": list(depth_range_m)}, path)
+                "depth_range_m": list(depth_range_m), **({"prior": SESSION_PRIOR.to_dict()} if prior else {})}, path)
     return path
 
 

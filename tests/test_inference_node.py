@@ -15,7 +15,7 @@ import torch
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
-from models.data import depth_input
+from models.data import network_input
 from models.ssim import to_uint8_rgb
 from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
@@ -55,7 +55,7 @@ def reference(checkpoint: Path, maps: np.ndarray) -> np.ndarray:
     """The generator's own estimate (eager PyTorch, dropout off)."""
     generator, depth_range_m = load_generator(checkpoint)
     with torch.inference_mode():
-        return to_uint8_rgb(generator(depth_input(maps, depth_range_m, generator.config.in_channels)))
+        return to_uint8_rgb(generator(network_input(maps, depth_range_m, generator.config, generator.prior)))
 
 
 @pytest.mark.parametrize("runtime", ["onnxrt", "eager"])
@@ -72,6 +72,15 @@ def test_estimates_are_the_generators_and_one_sample_is_deterministic(registry: 
     # ONNX Runtime may round a few pixels the other way.
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
     assert "tiny.pt" in model and runtime in model
+
+
+def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry,
+                                                                       tmp_path: Path) -> None:
+    checkpoint = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
+    maps = depth_maps(2, seed=2)
+    with serving(registry, checkpoint), planner(registry) as client:
+        images, _ = client.estimate(maps)
+    assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
 
 def test_dropout_samples_give_an_uncertainty_and_leave_the_image(registry: Registry, checkpoint: Path) -> None:
