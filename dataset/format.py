@@ -15,6 +15,11 @@ place; only then is the manifest line appended and fsynced. A sample therefore e
 exactly when its manifest line does. Files left without a manifest line by a crash are
 overwritten when the sample is written again on resume. A torn last manifest line (the
 process died mid-append) is cut off when a writer reopens the dataset.
+
+A grasp's fingers land together: ``write_together`` writes every file of both samples first
+and then appends their manifest lines in one write, so a crash at any point leaves both or
+neither. Should an append still be torn between the lines, ``drop_incomplete_grasps`` (a
+collector resuming) removes the lone finger so the whole grasp is redone.
 """
 from __future__ import annotations
 
@@ -192,6 +197,14 @@ class Sample:
     depth_map_m: np.ndarray
 
 
+@dataclasses.dataclass(frozen=True)
+class EncodedSample:
+    """A checked sample with its files' bytes, ready for ``DatasetWriter.write_together``."""
+
+    record: SampleRecord
+    payloads: dict[str, bytes]
+
+
 def subtract_background(image_rgb: np.ndarray, background_rgb: np.ndarray) -> np.ndarray:
     """The background-subtracted copy stored beside each image: image - background + 128,
     clipped to uint8, so that no change reads as mid-grey and the file stays viewable."""
@@ -361,20 +374,15 @@ class DatasetWriter:
                 f.truncate(keep)
                 os.fsync(f.fileno())
 
-    def write(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
-              grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
-              depth_map_m: np.ndarray, registration_fitness: float,
-              stamps_ns: dict[str, int] | None = None, model_to_gel: np.ndarray | None = None) -> SampleRecord:
-        """Write one sample atomically and return its manifest record.
-
-        Raises DatasetError for a repeated ``sample_id``, bad arrays or fields, and for a
-        disk error (full disk, read-only directory); the dataset is left as it was.
-        """
+    def encode(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
+               grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
+               depth_map_m: np.ndarray, registration_fitness: float, stamps_ns: dict[str, int] | None = None,
+               model_to_gel: np.ndarray | None = None) -> EncodedSample:
+        """Check one sample and encode its files, touching nothing on disk: ``write_together``
+        then lands it (with its grasp's other finger). DatasetError for bad arrays or fields."""
         if not isinstance(sample_id, str) or not _SAMPLE_ID.match(sample_id):
             raise DatasetError(f"sample id {sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-], "
                                "not starting with '.', '_' or '-'")
-        if sample_id in self._ids:
-            raise DatasetError(f"sample {sample_id} is already in {self.root}: refusing a duplicate")
         if finger not in FINGERS:
             raise DatasetError(f"sample {sample_id}: finger must be one of {FINGERS}, got {finger!r}")
         pose = tuple(float(v) for v in grasp_pose)
@@ -403,29 +411,70 @@ class DatasetWriter:
             sha256={kind: _sha256(data) for kind, data in payloads.items()},
             model_to_gel=transform,
         )
-        line = (json.dumps(record.to_json(), allow_nan=False) + "\n").encode()
+        return EncodedSample(record, payloads)
+
+    def write(self, **fields: Any) -> SampleRecord:
+        """Write one sample (``fields`` as for ``encode``) atomically and return its record."""
+        return self.write_together([self.encode(**fields)])[0]
+
+    def write_together(self, samples: Sequence[EncodedSample]) -> list[SampleRecord]:
+        """Land several samples (a grasp's two fingers) together: all of them, or none.
+
+        Every file of every sample is written first; their manifest lines follow in one
+        append, so a crash or a full disk at any point leaves either all the samples or none
+        (their files, orphaned, are overwritten on resume). Raises DatasetError for a repeated
+        sample id and for a disk error; the dataset is left as it was.
+        """
+        ids = [s.record.sample_id for s in samples]
+        repeated = sorted({i for i in ids if i in self._ids or ids.count(i) > 1})
+        if repeated:
+            raise DatasetError(f"sample(s) {repeated} already in {self.root} or given twice: refusing a duplicate")
+        lines = b"".join((json.dumps(s.record.to_json(), allow_nan=False) + "\n").encode() for s in samples)
         try:
-            for kind, data in payloads.items():
-                _write_atomic(self.root / files[kind], data)
+            for sample in samples:
+                for kind, data in sample.payloads.items():
+                    _write_atomic(self.root / sample.record.files[kind], data)
             for kind in FILE_KINDS:
                 _fsync_dir(self.root / kind)
-            self._append_manifest(line)
+            self._append_manifest(lines)
         except OSError as err:
-            raise DatasetError(f"could not write sample {sample_id} to {self.root}: {err} "
+            raise DatasetError(f"could not write sample {' and '.join(ids)} to {self.root}: {err} "
                                "(the dataset is intact; free space or fix permissions and resume)") from err
-        self.records.append(record)
-        self._ids.add(sample_id)
-        return record
+        self.records += [s.record for s in samples]
+        self._ids.update(ids)
+        return [s.record for s in samples]
 
-    def _append_manifest(self, line: bytes) -> None:
+    def drop_incomplete_grasps(self) -> list[str]:
+        """Remove from the manifest every sample whose grasp lacks one of the fingers, and
+        return their ids: a resuming collector then redoes those grasps whole, so no grasp
+        pairs a finger of one attempt with a finger of another. Their files stay, to be
+        overwritten by the redo."""
+        fingers: dict[str, set[str]] = {}
+        for record in self.records:
+            fingers.setdefault(record.grasp_key, set()).add(record.finger)
+        lone = [r for r in self.records if fingers[r.grasp_key] != set(FINGERS)]
+        if not lone:
+            return []
+        keep = [r for r in self.records if fingers[r.grasp_key] == set(FINGERS)]
+        text = "".join(json.dumps(r.to_json(), allow_nan=False) + "\n" for r in keep).encode()
+        try:
+            _write_atomic(self._manifest, text)
+            _fsync_dir(self.root)
+        except OSError as err:
+            raise DatasetError(f"could not rewrite the manifest of {self.root}: {err} (it is intact)") from err
+        self.records = keep
+        self._ids = {r.sample_id for r in keep}
+        return [r.sample_id for r in lone]
+
+    def _append_manifest(self, lines: bytes) -> None:
         with open(self._manifest, "ab") as f:
             size = f.tell()
             try:
-                f.write(line)
+                f.write(lines)
                 f.flush()
                 os.fsync(f.fileno())
             except OSError:
-                # A partial line would corrupt the manifest: cut back to the last whole one.
+                # A partial append would corrupt the manifest or split a grasp: cut it all back.
                 f.truncate(size)
                 raise
 

@@ -9,7 +9,7 @@ import json
 from typing import Any
 
 import msgs
-from dataset.announced import dataset_info, write_sample
+from dataset.announced import dataset_info, write_samples
 from dataset.format import DatasetWriter
 from nodes.node import Node, run_node
 
@@ -31,7 +31,7 @@ class DatasetBuilderNode(Node):
         if self.writer is None:
             self.writer = DatasetWriter(self.params.out, dataset_info(sample))
         if sample.sample_id not in self.writer:
-            write_sample(self.writer, sample)
+            write_samples(self.writer, [sample])
         self.finish_if_complete()
 
     def on_done(self, message: msgs.Log) -> None:
