@@ -368,8 +368,13 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from nodes.registry import BusDirectoryError
     args = build_parser(argv).parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except BusDirectoryError as exc:
+        print(f"dtx: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

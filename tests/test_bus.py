@@ -296,3 +296,45 @@ def test_peer_on_another_machine_is_reached_through_the_launch_endpoints(tmp_pat
     assert reply.width_m == pytest.approx(0.5)
     robot.close()
     planner.close()
+
+
+@pytest.fixture
+def default_bus(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Where the default bus directory goes when the temporary directory is ``tmp_path``."""
+    monkeypatch.delenv("DTX_BUS_DIR", raising=False)
+    monkeypatch.setenv("DTX_DOMAIN", "rel")
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    return tmp_path / f"dtx-{os.getuid()}"
+
+
+def test_the_default_bus_directory_is_private(default_bus: Path) -> None:
+    registry = Registry()
+    assert registry.root == default_bus / "rel"
+    for path in (default_bus, default_bus / "rel", default_bus / "rel" / "sock"):
+        assert path.stat().st_mode & 0o777 == 0o700, path
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a directory to another user needs root")
+def test_a_bus_directory_another_user_made_first_is_refused(default_bus: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    from dtx.cli import main
+    from nodes.registry import BusDirectoryError
+
+    default_bus.mkdir(mode=0o700)
+    os.chown(default_bus, 4242, 4242)
+    with pytest.raises(BusDirectoryError, match="belongs to uid 4242, not to you"):
+        Registry()
+    assert main(["node", "list"]) == 2 and "belongs to uid 4242" in capsys.readouterr().err
+    os.chown(default_bus, os.getuid(), os.getgid())
+    default_bus.chmod(0o777)
+    with pytest.raises(BusDirectoryError, match="writable by others"):
+        Registry()
+    default_bus.chmod(0o700)
+    (default_bus / "rel").symlink_to(default_bus.parent)
+    with pytest.raises(BusDirectoryError, match="not a directory"):
+        Registry()
+    explicit = default_bus.parent / "explicit"
+    explicit.mkdir(mode=0o1777)
+    explicit.chmod(0o1777)
+    with pytest.raises(BusDirectoryError, match="writable by others"):
+        Registry(explicit)
