@@ -39,7 +39,7 @@ import msgs
 from msgs.base import Message
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
 from msgs.foxglove import foxglove_view
-from nodes.bus import Bus, Publisher, Subscriber
+from nodes.bus import SLICE_MESSAGES, Bus, Publisher, Subscriber
 
 MESSAGE_ENCODING = "dtx/msgpack+buffers"
 SCHEMA_ENCODING = "dtx/fields+json"
@@ -323,9 +323,11 @@ def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
 
 def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[str] | None = None,
            compression: str = "lz4", foxglove: bool = True,
-           on_message: Callable[[str], None] | None = None) -> dict[str, int]:
+           on_message: Callable[[str], None] | None = None,
+           on_subscriber: Callable[[Subscriber[Any]], None] | None = None) -> dict[str, int]:
     """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
-    Returns messages written per topic; the bag is closed properly when this returns."""
+    Returns messages written per topic; the bag is closed properly when this returns.
+    ``on_subscriber`` is told of each subscriber made (a node counts its drops)."""
     writer = BagWriter(path, compression, foxglove)
     subscribers: dict[zmq.Socket, Subscriber[Any]] = {}
     poller = zmq.Poller()
@@ -339,12 +341,14 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
                         subscriber = bus.subscriber(topic, None)
                         subscribers[subscriber.sock] = subscriber
                         poller.register(subscriber.sock, zmq.POLLIN)
+                        if on_subscriber is not None:
+                            on_subscriber(subscriber)
                 for subscriber in subscribers.values():
                     subscriber.discover()
-            for sock, _ in poller.poll(50):
-                _drain(subscribers[sock], writer, on_message)
+            for sock, _ in poller.poll(50):  # a slice from each ready topic, then the others
+                _drain(subscribers[sock], writer, on_message, SLICE_MESSAGES)
         for subscriber in subscribers.values():  # what arrived before the stop is kept
-            _drain(subscriber, writer, on_message)
+            _drain(subscriber, writer, on_message, None)
     finally:
         writer.close()
         for subscriber in subscribers.values():
@@ -352,8 +356,12 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
     return dict(writer.counts)
 
 
-def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None) -> None:
-    while True:
+def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None,
+           limit: int | None) -> None:
+    """Write what is waiting on one subscriber: ``limit`` messages at most (None: all)."""
+    count = 0
+    while limit is None or count < limit:
+        count += 1
         try:
             frames = subscriber.sock.recv_multipart(zmq.NOBLOCK, copy=False)
         except zmq.Again:
