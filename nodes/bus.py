@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import hashlib
 import logging
 import os
 import time
@@ -409,10 +410,11 @@ class ServiceServer(Generic[M, R]):
         self.address, server_key = bus.bind(self.sock, self.id, name)
         self.counters = Counters()
         self._drop_log = DropLog()
-        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int]] = \
+        # (client identity, publisher, seq) -> (reply frames, their size, the request's digest)
+        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int, bytes]] = \
             collections.OrderedDict()
         self._reply_bytes = 0
-        self._pending: list[tuple[tuple[bytes, str, int], Future[Any]]] = []
+        self._pending: list[tuple[tuple[bytes, str, int], Future[Any], bytes]] = []
         self._entry = bus.registry.advertise(Endpoint(
             "service", name, self.address, bus.node_name, os.getpid(), request_type.SCHEMA,
             reply_schema=reply_type.SCHEMA, curve_server_key=server_key))
@@ -439,10 +441,10 @@ class ServiceServer(Generic[M, R]):
         finished = [entry for entry in self._pending if entry[1].done()]
         for entry in finished:
             self._pending.remove(entry)
-            key, future = entry
+            key, future, digest = entry
             error = future.exception()
             reply = self._checked_reply(future.result() if error is None else None, error)
-            self._remember(key, self._send(key[0], reply, key[1], key[2]))
+            self._remember(key, self._send(key[0], reply, key[1], key[2]), digest)
         return len(finished)
 
     def _checked_reply(self, reply: Any, error: BaseException | None) -> Message:
@@ -453,13 +455,13 @@ class ServiceServer(Generic[M, R]):
             return ServiceError(code=getattr(error, "code", "handler_error"), text=f"{type(error).__name__}: {error}")
         return reply
 
-    def _remember(self, key: tuple[bytes, str, int], frames: list[Any]) -> None:
+    def _remember(self, key: tuple[bytes, str, int], frames: list[Any], digest: bytes) -> None:
         size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
-        self._replies[key] = (frames, size)
+        self._replies[key] = (frames, size, digest)
         self._reply_bytes += size
         while len(self._replies) > self.REPLY_CACHE or (self._reply_bytes > self.REPLY_CACHE_BYTES
                                                          and len(self._replies) > 1):
-            _, (_, dropped) = self._replies.popitem(last=False)
+            _, (_, dropped, _) = self._replies.popitem(last=False)
             self._reply_bytes -= dropped
 
     def _answer(self, frames: list[Any]) -> None:
@@ -472,11 +474,28 @@ class ServiceServer(Generic[M, R]):
             self._send(identity, ServiceError(code="malformed_request", text=str(exc)), "", 0)
             return
         key = (identity, envelope.publisher, envelope.message.header.seq)
+        # A retry resends the very frames; the same (publisher, seq) with other content is not
+        # one, and must not get the earlier request's reply.
+        hasher = hashlib.blake2b(digest_size=16)
+        for frame in frames[1:]:
+            hasher.update(memoryview(getattr(frame, "buffer", frame)))
+        digest = hasher.digest()
+        if key in self._replies:
+            earlier: bytes | None = self._replies[key][2]
+        else:
+            earlier = next((d for pending_key, _, d in self._pending if pending_key == key), None)
+        if earlier is not None and earlier != digest:
+            self.counters.malformed += 1
+            self._send(identity, ServiceError(code="bad_request", text=(
+                f"request {envelope.message.header.seq} of {envelope.publisher} was already used for another "
+                "request: a retry must resend the same request, a new request needs a new sequence number")),
+                envelope.publisher, envelope.message.header.seq)
+            return
         if key in self._replies:
             self.counters.duplicates += 1
             self.sock.send_multipart([identity, *self._replies[key][0]], copy=False)
             return
-        if any(pending_key == key for pending_key, _ in self._pending):
+        if earlier is not None:
             self.counters.duplicates += 1  # a retry of a request still running: answered when done
             return
         request = envelope.message
@@ -492,10 +511,10 @@ class ServiceServer(Generic[M, R]):
                 reply = self._checked_reply(None, exc)
             else:
                 if isinstance(result, Future):
-                    self._pending.append((key, result))
+                    self._pending.append((key, result, digest))
                     return
                 reply = self._checked_reply(result, None)
-        self._remember(key, self._send(identity, reply, envelope.publisher, envelope.message.header.seq))
+        self._remember(key, self._send(identity, reply, envelope.publisher, envelope.message.header.seq), digest)
 
     def _send(self, identity: bytes, reply: Message, client: str, seq: int) -> list[Any]:
         stamped = dataclasses.replace(reply, header=Header(
@@ -562,6 +581,11 @@ class ServiceClient(Generic[M, R]):
         stamped = dataclasses.replace(request, header=Header(
             stamp_ns=time.time_ns(), seq=self.seq, frame_id=request.header.frame_id))
         frames = encode(self.name, stamped, self.id)
+        size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
+        if size > self.bus.transport.max_message_bytes:
+            # A server drops an oversized request unread, so no reply could ever say why.
+            raise ServiceCallError(self.name, "request_too_large",
+                                   f"request of {size} bytes exceeds the limit of {self.bus.transport.max_message_bytes}")
         for _attempt in range(1 + retries):
             deadline = time.monotonic() + timeout_s
             if not self._send_when_connected(frames, deadline):

@@ -384,3 +384,41 @@ def test_a_publisher_refuses_an_oversized_message_before_allocating_it(registry:
     listener.close()
     attacker.close(linger=0)  # its queued 'subscription' can never be delivered
     bus.close()
+
+
+def test_a_reused_request_number_with_other_content_is_refused_not_answered_from_the_cache(
+        registry: Registry) -> None:
+    from msgs.system import ServiceError
+
+    bus = Bus("server", registry)
+    server = bus.service("/echo", msgs.Log, msgs.Log, lambda r: msgs.Log(text=r.text))
+    client = bus.context.socket(zmq.DEALER)
+    client.connect(server.address)
+
+    def ask(text: str) -> msgs.Message:
+        client.send_multipart(encode("/echo", msgs.Log(text=text, header=msgs.Header(seq=7, stamp_ns=1)), "me"))
+        deadline = time.monotonic() + 10.0
+        while not client.poll(10) and time.monotonic() < deadline:
+            server.serve_ready()
+        return decode(client.recv_multipart()).message
+
+    assert ask("first").text == "first"
+    assert ask("first").text == "first" and server.counters.duplicates == 1  # a retry: from the cache
+    refused = ask("second")
+    assert isinstance(refused, ServiceError) and refused.code == "bad_request" and "already used" in refused.text
+    client.close(linger=0)
+    bus.close()
+
+
+def test_an_oversized_request_is_refused_at_once_with_a_code(registry: Registry) -> None:
+    server_bus = Bus("server", registry)
+    server = server_bus.service("/echo", msgs.Log, msgs.Log, lambda r: msgs.Log(text=r.text))
+    small = Bus("client", registry, TransportConfig(max_message_bytes=4096))
+    with pumping(server):
+        client = small.client("/echo", msgs.Log, msgs.Log)
+        with pytest.raises(ServiceCallError) as refused:
+            client.call(msgs.Log(text="x" * 10_000), timeout_s=30.0)
+        assert refused.value.code == "request_too_large"
+        assert client.call(msgs.Log(text="small"), timeout_s=30.0).text == "small"
+    small.close()
+    server_bus.close()
