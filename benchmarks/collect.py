@@ -54,8 +54,10 @@ def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "")
               "dataset_check_ok": report.ok, "session": session}
     if kill:
         result.update(killed=kill, killed_pid=killed, respawned=f"[launch] {kill} exited with -9; respawning" in output)
+    collector_log = [line for line in output.splitlines() if line.startswith("[collector]")]
+    result["collector_last_line"] = collector_log[-1] if collector_log else ""
     if launcher.returncode != 0 or not report.ok:
-        result["collector_log"] = [line for line in output.splitlines() if line.startswith("[collector]")][-15:]
+        result["collector_log"] = collector_log[-15:]
     return result
 
 

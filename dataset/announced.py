@@ -3,17 +3,20 @@ the collector writes through here, and so does the replay that rebuilds a datase
 which is what makes the two datasets identical."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import msgs
 from dataset.format import DatasetInfo, DatasetWriter, code_version
 
 
-def write_sample(writer: DatasetWriter, sample: msgs.DatasetSample) -> None:
-    """One announced sample into the dataset (the collector and the replay share this)."""
-    writer.write(sample_id=sample.sample_id, object_name=sample.object_name, grasp_id=sample.grasp_id,
-                 finger=sample.finger, grasp_pose=sample.grasp_pose, tactile_rgb=sample.tactile_image,
-                 tactile_diff_rgb=sample.tactile_diff_image, depth_map_m=sample.depth_map_m,
-                 registration_fitness=sample.registration_fitness, stamps_ns=sample.stamps_ns,
-                 model_to_gel=sample.model_to_gel)
+def write_samples(writer: DatasetWriter, samples: Sequence[msgs.DatasetSample]) -> None:
+    """Announced samples into the dataset, landing together (a grasp's two fingers: both or
+    neither); the collector and the replay share this."""
+    writer.write_together([writer.encode(
+        sample_id=s.sample_id, object_name=s.object_name, grasp_id=s.grasp_id, finger=s.finger,
+        grasp_pose=s.grasp_pose, tactile_rgb=s.tactile_image, tactile_diff_rgb=s.tactile_diff_image,
+        depth_map_m=s.depth_map_m, registration_fitness=s.registration_fitness, stamps_ns=s.stamps_ns,
+        model_to_gel=s.model_to_gel) for s in samples])
 
 
 def dataset_info(sample: msgs.DatasetSample) -> DatasetInfo:

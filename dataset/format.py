@@ -15,15 +15,23 @@ place; only then is the manifest line appended and fsynced. A sample therefore e
 exactly when its manifest line does. Files left without a manifest line by a crash are
 overwritten when the sample is written again on resume. A torn last manifest line (the
 process died mid-append) is cut off when a writer reopens the dataset.
+
+A grasp's fingers land together: ``write_together`` writes every file of both samples first
+and then appends their manifest lines in one write, so a crash at any point leaves both or
+neither. Should an append still be torn between the lines, ``drop_incomplete_grasps`` (a
+collector resuming) removes the lone finger so the whole grasp is redone.
 """
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import io
 import json
 import os
 import re
+import stat
+import struct
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +46,11 @@ FILE_KINDS = ("tactile", "tactile_diff", "depth")
 _FILE_SUFFIX = {"tactile": ".png", "tactile_diff": ".png", "depth": ".npy"}
 _SAMPLE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 _DIFF_OFFSET = 128
+# Readers trust no file: sizes are bounded before anything is read or allocated.
+MAX_IMAGE_SIDE = 4096
+_MAX_INFO_BYTES = 1 << 20
+_MAX_MANIFEST_BYTES = 256 << 20
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 class DatasetError(ValueError):
@@ -99,8 +112,8 @@ class DatasetInfo:
         if info.depth_crop_m is not None and (len(info.depth_crop_m) != 3 or not all(
                 np.isfinite(v) and v > 0 for v in info.depth_crop_m)):
             raise DatasetError(f"dataset.json: depth_crop_m must be 3 positive extents (m), got {info.depth_crop_m}")
-        if info.image_height <= 0 or info.image_width <= 0:
-            raise DatasetError(f"dataset.json: image size must be positive, got "
+        if not (0 < info.image_height <= MAX_IMAGE_SIDE and 0 < info.image_width <= MAX_IMAGE_SIDE):
+            raise DatasetError(f"dataset.json: image size must be 1-{MAX_IMAGE_SIDE} pixels a side, got "
                                f"{info.image_height}x{info.image_width}")
         if not info.depth_range_m[1] > info.depth_range_m[0]:
             raise DatasetError(f"dataset.json: depth_range_m must be (near, far) with far > near, "
@@ -165,12 +178,23 @@ class SampleRecord:
             raise DatasetError(f"sample {record.sample_id}: grasp_pose needs 4 values, got {len(pose)}")
         if set(record.files) != set(FILE_KINDS) or set(record.sha256) != set(FILE_KINDS):
             raise DatasetError(f"sample {record.sample_id}: files and sha256 must name {FILE_KINDS}")
+        if not _SAMPLE_ID.match(record.sample_id):
+            raise DatasetError(f"sample id {record.sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-]")
+        if record.files != sample_files(record.sample_id):
+            # A path of one's own choosing (../x, /etc/x) would be read from outside the dataset.
+            raise DatasetError(f"sample {record.sample_id}: files must be {sample_files(record.sample_id)} "
+                               f"(inside the dataset), got {record.files}")
         return record
 
     @property
     def grasp_key(self) -> str:
         """Identifies the grasp: both fingers of a grasp share it."""
         return f"{self.object_name}/{self.grasp_id}"
+
+
+def sample_files(sample_id: str) -> dict[str, str]:
+    """Where a sample's files lie, relative to the dataset directory: the only place."""
+    return {kind: f"{kind}/{sample_id}{_FILE_SUFFIX[kind]}" for kind in FILE_KINDS}
 
 
 def _transform_tuple(value: Any) -> tuple[tuple[float, ...], ...]:
@@ -190,6 +214,14 @@ class Sample:
     tactile_rgb: np.ndarray
     tactile_diff_rgb: np.ndarray
     depth_map_m: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class EncodedSample:
+    """A checked sample with its files' bytes, ready for ``DatasetWriter.write_together``."""
+
+    record: SampleRecord
+    payloads: dict[str, bytes]
 
 
 def subtract_background(image_rgb: np.ndarray, background_rgb: np.ndarray) -> np.ndarray:
@@ -257,7 +289,15 @@ def _encode_png(rgb: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def _decode_png(data: bytes, name: str) -> np.ndarray:
+def _decode_png(data: bytes, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """An 8-bit RGB PNG of ``shape`` (H, W): the header is checked before decoding, so a
+    small file claiming a huge image is refused without the decoder allocating it."""
+    if len(data) < 33 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+        raise DatasetError(f"{name}: not a PNG file")
+    width, height = struct.unpack(">II", data[16:24])
+    if (height, width) != shape or data[24:26] != b"\x08\x02":
+        raise DatasetError(f"{name}: PNG header says {height}x{width} (bit depth {data[24]}, colour type "
+                           f"{data[25]}); dataset images are {shape[0]}x{shape[1]} 8-bit RGB")
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
         raise DatasetError(f"{name}: not an 8-bit RGB PNG")
@@ -270,11 +310,54 @@ def _encode_npy(depth_map_m: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _decode_npy(data: bytes, name: str) -> np.ndarray:
+def _decode_npy(data: bytes, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """A float32 array of ``shape`` from .npy bytes: the header's shape and dtype are checked
+    before anything is allocated, so a header claiming 40 GB is refused, not attempted."""
+    stream = io.BytesIO(data)
     try:
-        return np.load(io.BytesIO(data), allow_pickle=False)
-    except (ValueError, OSError, EOFError) as err:
+        version = np.lib.format.read_magic(stream)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            raise ValueError(f"format version {version} is not one this reader takes")
+        stored_shape, fortran, dtype = read_header(stream, max_header_size=4096)
+    except (ValueError, OSError, EOFError, SyntaxError) as err:
         raise DatasetError(f"{name}: not a readable .npy array ({err})") from err
+    if stored_shape != shape or dtype != np.dtype("<f4") or fortran:
+        raise DatasetError(f"{name}: .npy header says {stored_shape} {dtype}{' (Fortran order)' if fortran else ''}; "
+                           f"depth-maps are {shape} little-endian float32")
+    if len(data) - stream.tell() != 4 * shape[0] * shape[1]:
+        raise DatasetError(f"{name}: .npy holds {len(data) - stream.tell()} data bytes, its header says "
+                           f"{4 * shape[0] * shape[1]}")
+    return np.frombuffer(data, np.float32, offset=stream.tell()).reshape(shape).copy()
+
+
+def read_regular_file(path: Path, limit: int, what: str) -> bytes:
+    """The bytes of ``path``, which must be a regular file (not a symbolic link) of at most
+    ``limit`` bytes. A named pipe would block a reader forever and /dev/zero never ends, so
+    the kind and size are checked on the open file before a byte is read. OSError where the
+    file cannot be opened; DatasetError where it is not one to read."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise DatasetError(f"{what} {path} is a symbolic link: a dataset holds its own files") from err
+        raise
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise DatasetError(f"{what} {path} is not a regular file")
+        if info.st_size > limit:
+            raise DatasetError(f"{what} {path} is {info.st_size} bytes, over the limit of {limit}")
+        chunks, total = [], 0
+        while chunk := os.read(fd, min(1 << 20, limit + 1 - total)):
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > limit:
+                raise DatasetError(f"{what} {path} grew past the limit of {limit} bytes while read")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -327,6 +410,7 @@ class DatasetWriter:
             self.root.mkdir(parents=True, exist_ok=True)
             for kind in FILE_KINDS:
                 (self.root / kind).mkdir(exist_ok=True)
+            _check_own_directories(self.root)
             meta_path = self.root / "dataset.json"
             if meta_path.exists():
                 stored = _read_info(meta_path)
@@ -354,27 +438,22 @@ class DatasetWriter:
         return sample_id in self._ids
 
     def _repair_torn_tail(self) -> None:
-        data = self._manifest.read_bytes()
+        data = read_regular_file(self._manifest, _MAX_MANIFEST_BYTES, "manifest")
         if data and not data.endswith(b"\n"):
             keep = data.rfind(b"\n") + 1
             with open(self._manifest, "r+b") as f:
                 f.truncate(keep)
                 os.fsync(f.fileno())
 
-    def write(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
-              grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
-              depth_map_m: np.ndarray, registration_fitness: float,
-              stamps_ns: dict[str, int] | None = None, model_to_gel: np.ndarray | None = None) -> SampleRecord:
-        """Write one sample atomically and return its manifest record.
-
-        Raises DatasetError for a repeated ``sample_id``, bad arrays or fields, and for a
-        disk error (full disk, read-only directory); the dataset is left as it was.
-        """
+    def encode(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
+               grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
+               depth_map_m: np.ndarray, registration_fitness: float, stamps_ns: dict[str, int] | None = None,
+               model_to_gel: np.ndarray | None = None) -> EncodedSample:
+        """Check one sample and encode its files, touching nothing on disk: ``write_together``
+        then lands it (with its grasp's other finger). DatasetError for bad arrays or fields."""
         if not isinstance(sample_id, str) or not _SAMPLE_ID.match(sample_id):
             raise DatasetError(f"sample id {sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-], "
                                "not starting with '.', '_' or '-'")
-        if sample_id in self._ids:
-            raise DatasetError(f"sample {sample_id} is already in {self.root}: refusing a duplicate")
         if finger not in FINGERS:
             raise DatasetError(f"sample {sample_id}: finger must be one of {FINGERS}, got {finger!r}")
         pose = tuple(float(v) for v in grasp_pose)
@@ -395,7 +474,7 @@ class DatasetWriter:
             "tactile_diff": _encode_png(np.asarray(tactile_diff_rgb)),
             "depth": _encode_npy(np.asarray(depth_map_m)),
         }
-        files = {kind: f"{kind}/{sample_id}{_FILE_SUFFIX[kind]}" for kind in FILE_KINDS}
+        files = sample_files(sample_id)
         record = SampleRecord(
             sample_id=sample_id, object_name=str(object_name), grasp_id=int(grasp_id), finger=finger,
             grasp_pose=pose, stamps_ns={str(k): int(v) for k, v in (stamps_ns or {}).items()},  # type: ignore[arg-type]
@@ -403,39 +482,90 @@ class DatasetWriter:
             sha256={kind: _sha256(data) for kind, data in payloads.items()},
             model_to_gel=transform,
         )
-        line = (json.dumps(record.to_json(), allow_nan=False) + "\n").encode()
+        return EncodedSample(record, payloads)
+
+    def write(self, **fields: Any) -> SampleRecord:
+        """Write one sample (``fields`` as for ``encode``) atomically and return its record."""
+        return self.write_together([self.encode(**fields)])[0]
+
+    def write_together(self, samples: Sequence[EncodedSample]) -> list[SampleRecord]:
+        """Land several samples (a grasp's two fingers) together: all of them, or none.
+
+        Every file of every sample is written first; their manifest lines follow in one
+        append, so a crash or a full disk at any point leaves either all the samples or none
+        (their files, orphaned, are overwritten on resume). Raises DatasetError for a repeated
+        sample id and for a disk error; the dataset is left as it was.
+        """
+        ids = [s.record.sample_id for s in samples]
+        repeated = sorted({i for i in ids if i in self._ids or ids.count(i) > 1})
+        if repeated:
+            raise DatasetError(f"sample(s) {repeated} already in {self.root} or given twice: refusing a duplicate")
+        lines = b"".join((json.dumps(s.record.to_json(), allow_nan=False) + "\n").encode() for s in samples)
         try:
-            for kind, data in payloads.items():
-                _write_atomic(self.root / files[kind], data)
+            for sample in samples:
+                for kind, data in sample.payloads.items():
+                    _write_atomic(self.root / sample.record.files[kind], data)
             for kind in FILE_KINDS:
                 _fsync_dir(self.root / kind)
-            self._append_manifest(line)
+            self._append_manifest(lines)
         except OSError as err:
-            raise DatasetError(f"could not write sample {sample_id} to {self.root}: {err} "
+            raise DatasetError(f"could not write sample {' and '.join(ids)} to {self.root}: {err} "
                                "(the dataset is intact; free space or fix permissions and resume)") from err
-        self.records.append(record)
-        self._ids.add(sample_id)
-        return record
+        self.records += [s.record for s in samples]
+        self._ids.update(ids)
+        return [s.record for s in samples]
 
-    def _append_manifest(self, line: bytes) -> None:
+    def drop_incomplete_grasps(self) -> list[str]:
+        """Remove from the manifest every sample whose grasp lacks one of the fingers, and
+        return their ids: a resuming collector then redoes those grasps whole, so no grasp
+        pairs a finger of one attempt with a finger of another. Their files stay, to be
+        overwritten by the redo."""
+        fingers: dict[str, set[str]] = {}
+        for record in self.records:
+            fingers.setdefault(record.grasp_key, set()).add(record.finger)
+        lone = [r for r in self.records if fingers[r.grasp_key] != set(FINGERS)]
+        if not lone:
+            return []
+        keep = [r for r in self.records if fingers[r.grasp_key] == set(FINGERS)]
+        text = "".join(json.dumps(r.to_json(), allow_nan=False) + "\n" for r in keep).encode()
+        try:
+            _write_atomic(self._manifest, text)
+            _fsync_dir(self.root)
+        except OSError as err:
+            raise DatasetError(f"could not rewrite the manifest of {self.root}: {err} (it is intact)") from err
+        self.records = keep
+        self._ids = {r.sample_id for r in keep}
+        return [r.sample_id for r in lone]
+
+    def _append_manifest(self, lines: bytes) -> None:
         with open(self._manifest, "ab") as f:
             size = f.tell()
             try:
-                f.write(line)
+                f.write(lines)
                 f.flush()
                 os.fsync(f.fileno())
             except OSError:
-                # A partial line would corrupt the manifest: cut back to the last whole one.
+                # A partial append would corrupt the manifest or split a grasp: cut it all back.
                 f.truncate(size)
                 raise
 
 
+def _check_own_directories(root: Path) -> None:
+    """The file directories must be the dataset's own: a symbolic link would read (or write)
+    samples outside it."""
+    for kind in FILE_KINDS:
+        if (root / kind).is_symlink():
+            raise DatasetError(f"{root / kind} is a symbolic link: a dataset holds its own files")
+
+
 def _read_info(path: Path) -> DatasetInfo:
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_regular_file(path, _MAX_INFO_BYTES, "dataset info"))
+    except DatasetError:
+        raise
     except FileNotFoundError as err:
         raise DatasetError(f"{path.parent} is not a dataset: {path.name} is missing") from err
-    except (OSError, json.JSONDecodeError) as err:
+    except (OSError, ValueError) as err:
         raise DatasetError(f"{path}: unreadable ({err})") from err
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: not a JSON object")
@@ -444,9 +574,11 @@ def _read_info(path: Path) -> DatasetInfo:
 
 def _read_manifest(path: Path) -> list[SampleRecord]:
     try:
-        text = path.read_text()
+        text = read_regular_file(path, _MAX_MANIFEST_BYTES, "manifest").decode("utf-8")
     except FileNotFoundError as err:
         raise DatasetError(f"{path.parent}: manifest.jsonl is missing") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise DatasetError(f"{path}: unreadable ({err})") from err
     if text and not text.endswith("\n"):
         raise DatasetError(f"{path}: last line is incomplete (a writer died mid-append; "
                            "reopening the dataset with DatasetWriter repairs it)")
@@ -468,6 +600,7 @@ class DatasetReader:
             raise DatasetError(f"dataset directory {self.root} does not exist")
         self.info = _read_info(self.root / "dataset.json")
         self.records = _read_manifest(self.root / "manifest.jsonl")
+        _check_own_directories(self.root)
         self._by_id: dict[str, SampleRecord] = {}
         for record in self.records:
             if record.sample_id in self._by_id:
@@ -489,19 +622,21 @@ class DatasetReader:
     def load(self, sample: SampleRecord | str, verify: bool = True) -> Sample:
         record = self.record(sample) if isinstance(sample, str) else sample
         raw = {}
+        shape = (self.info.image_height, self.info.image_width)
+        limit = (1 << 20) + 8 * shape[0] * shape[1]  # an uncompressed PNG or .npy of this size, and then some
         for kind in FILE_KINDS:
             path = self.root / record.files[kind]
             try:
-                raw[kind] = path.read_bytes()
+                raw[kind] = read_regular_file(path, limit, f"sample {record.sample_id}: file")
             except OSError as err:
                 raise DatasetError(f"sample {record.sample_id}: cannot read {path} ({err})") from err
             if verify and _sha256(raw[kind]) != record.sha256[kind]:
                 raise DatasetError(f"sample {record.sample_id}: checksum mismatch for {path}")
         sample_obj = Sample(
             record=record,
-            tactile_rgb=_decode_png(raw["tactile"], record.files["tactile"]),
-            tactile_diff_rgb=_decode_png(raw["tactile_diff"], record.files["tactile_diff"]),
-            depth_map_m=_decode_npy(raw["depth"], record.files["depth"]),
+            tactile_rgb=_decode_png(raw["tactile"], record.files["tactile"], shape),
+            tactile_diff_rgb=_decode_png(raw["tactile_diff"], record.files["tactile_diff"], shape),
+            depth_map_m=_decode_npy(raw["depth"], record.files["depth"], shape),
         )
         _check_sample_arrays(self.info, sample_obj.tactile_rgb, sample_obj.tactile_diff_rgb,
                              sample_obj.depth_map_m, record.sample_id)

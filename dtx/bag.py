@@ -6,11 +6,19 @@ length (uint64 little-endian), and the schema record holds the message's field l
 JSON, so a bag explains itself. Images, point clouds and transforms are also written to a
 ``<topic>/foxglove`` channel in Foxglove's well-known protobuf schemas, so Foxglove Studio
 shows them directly.
+
+Reading trusts no bag: every record's length, every chunk's uncompressed size and what its
+decompression actually yields are bounded (by the bus's largest message) before anything is
+allocated, and a message that does not decode is a BagError, not a traceback. A bag cut
+short by a crash still reads up to the cut.
 """
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import os
+import stat
 import struct
 import time
 import typing
@@ -18,24 +26,29 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import lz4.frame
 import zmq
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Channel, Message as McapMessage, Schema
-from mcap.stream_reader import StreamReader
+import zstandard
+from mcap.exceptions import McapError, RecordLengthLimitExceeded
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, Message as McapMessage, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 import msgs
 from msgs.base import Message
-from msgs.codec import Envelope, decode
+from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
 from msgs.foxglove import foxglove_view
-from nodes.bus import Bus, Publisher, Subscriber
+from nodes.bus import SLICE_MESSAGES, Bus, Publisher, Subscriber
 
 MESSAGE_ENCODING = "dtx/msgpack+buffers"
 SCHEMA_ENCODING = "dtx/fields+json"
 FOXGLOVE_SUFFIX = "/foxglove"
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 _LENGTH = struct.Struct("<Q")
+# No record, and no chunk once decompressed, may be larger than the largest message the bus
+# carries plus its framing: a bag that claims more is refused before anything is allocated.
+MAX_RECORD_BYTES = DEFAULT_MAX_MESSAGE_BYTES + (1 << 20)
 
 
 class BagError(ValueError):
@@ -145,45 +158,126 @@ class BagRecord:
     data: bytes
 
 
-def read_records(path: str | Path) -> tuple[Iterator[BagRecord], Callable[[], bool]]:
-    """Iterate every message of a bag in file order; the second value tells, once the
-    iterator is exhausted, whether the file was cut short. The seeking reader needs the
-    summary a crash never wrote, so a bag is read as a stream instead: that works for both."""
-    state = {"truncated": False}
+class _BoundedFile:
+    """A bag file whose reads are bounded: none past its end (a length read from a damaged bag
+    would otherwise allocate what it claims first) and none over ``MAX_RECORD_BYTES``."""
+
+    def __init__(self, stream: BinaryIO, path: str | Path) -> None:
+        self._stream, self._path = stream, path
+        self._size = os.fstat(stream.fileno()).st_size
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._stream.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._stream.tell()
+
+    def read(self, size: int | None = -1) -> bytes:
+        left = max(0, self._size - self._stream.tell())
+        if size is None or size < 0:
+            size = left
+        if size > MAX_RECORD_BYTES:
+            raise BagError(f"bag {self._path}: a record claims {size} bytes, over the limit of {MAX_RECORD_BYTES}")
+        return self._stream.read(min(size, left))  # a short read is a bag cut short
+
+
+def _open_bag(path: str | Path) -> BinaryIO:
+    """The bag file, opened only if it is a regular file (a named pipe would block, a device
+    never end)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # opening a pipe must not wait
+    except OSError as exc:
+        raise BagError(f"bag {path} cannot be read: {exc}") from exc
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise BagError(f"bag {path} is not a regular file")
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
+
+
+def _decompressed(chunk: Chunk, path: str | Path) -> bytes:
+    """A chunk's records, decompressed no further than the size the chunk declares (itself
+    bounded): a small chunk that inflates to gigabytes is refused after that many bytes."""
+    size = chunk.uncompressed_size
+    if size > MAX_RECORD_BYTES:
+        raise BagError(f"bag {path}: a chunk claims {size} bytes uncompressed, over the limit of {MAX_RECORD_BYTES}")
+    try:
+        if chunk.compression == "":
+            data = chunk.data
+        elif chunk.compression == "zstd":
+            reader = zstandard.ZstdDecompressor().stream_reader(chunk.data)
+            parts, got = [], 0
+            while got <= size and (part := reader.read(size + 1 - got)):
+                parts.append(part)
+                got += len(part)
+            data = b"".join(parts)
+        elif chunk.compression == "lz4":
+            data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+        else:
+            raise BagError(f"bag {path}: chunk compression {chunk.compression!r} unknown")
+    except (zstandard.ZstdError, RuntimeError) as exc:
+        raise BagError(f"bag {path}: a chunk does not decompress ({exc})") from exc
+    if len(data) != size:
+        raise BagError(f"bag {path}: a chunk declares {size} bytes uncompressed but holds "
+                       f"{'more' if len(data) > size else len(data)}")
+    return data
+
+
+@dataclasses.dataclass
+class BagReading:
+    """What reading a bag found besides its records; final once the records are exhausted."""
+
+    truncated: bool = False
+    compression: str = "unknown"
+
+
+def read_records(path: str | Path) -> tuple[Iterator[BagRecord], BagReading]:
+    """Iterate every message of a bag in file order; the BagReading says, once the iterator
+    is exhausted, whether the file was cut short and how its chunks were compressed. The
+    seeking reader needs the summary a crash never wrote, so a bag is read as a stream
+    instead: that works for both. BagError for a bag that is not to be read (a record or
+    chunk over the limits, not a regular file)."""
+    reading = BagReading()
 
     def records() -> Iterator[BagRecord]:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
-        try:
-            with open(path, "rb") as stream:
-                for record in StreamReader(stream, skip_magic=False).records:
-                    if isinstance(record, Schema):
-                        schemas[record.id] = record
-                    elif isinstance(record, Channel):
-                        channels[record.id] = record
-                    elif isinstance(record, McapMessage):
-                        channel = channels[record.channel_id]
-                        schema = schemas.get(channel.schema_id)
-                        yield BagRecord(channel.topic, schema.name if schema else "",
-                                        channel.message_encoding, record.log_time, record.data)
-        except OSError as exc:
-            raise BagError(f"bag {path} cannot be read: {exc}") from exc
-        except (McapError, EOFError, struct.error, ValueError, KeyError):
-            state["truncated"] = True  # everything before the cut has been yielded
+        with _open_bag(path) as raw:
+            try:
+                stream = _BoundedFile(raw, path)
+                for record in StreamReader(stream, skip_magic=False, emit_chunks=True,
+                                           record_size_limit=MAX_RECORD_BYTES).records:
+                    if isinstance(record, Chunk):
+                        if reading.compression == "unknown":
+                            reading.compression = record.compression or "none"
+                        inner = breakup_chunk(dataclasses.replace(record, compression="",
+                                                                  data=_decompressed(record, path)))
+                    else:
+                        inner = [record]
+                    for item in inner:
+                        if isinstance(item, Schema):
+                            schemas[item.id] = item
+                        elif isinstance(item, Channel):
+                            channels[item.id] = item
+                        elif isinstance(item, McapMessage):
+                            channel = channels[item.channel_id]
+                            schema = schemas.get(channel.schema_id)
+                            yield BagRecord(channel.topic, schema.name if schema else "",
+                                            channel.message_encoding, item.log_time, item.data)
+            except BagError:
+                raise
+            except RecordLengthLimitExceeded as exc:
+                raise BagError(f"bag {path}: {exc}") from exc
+            except OSError as exc:
+                raise BagError(f"bag {path} cannot be read: {exc}") from exc
+            except (McapError, EOFError, struct.error, ValueError, KeyError):
+                reading.truncated = True  # everything before the cut has been yielded
 
-    return records(), lambda: state["truncated"]
+    return records(), reading
 
 
 def bag_info(path: str | Path) -> BagInfo:
-    compression = "unknown"
-    try:
-        with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
-        if summary is not None and summary.chunk_indexes:
-            compression = summary.chunk_indexes[0].compression or "none"
-    except (McapError, EOFError, struct.error, ValueError, OSError):
-        summary = None
-    records, truncated = read_records(path)
+    records, reading = read_records(path)
     topics: dict[str, dict[str, Any]] = {}
     start = end = 0
     count = 0
@@ -195,19 +289,19 @@ def bag_info(path: str | Path) -> BagInfo:
         start = record.log_time_ns if count == 0 else min(start, record.log_time_ns)
         end = max(end, record.log_time_ns)
         count += 1
-    return BagInfo(str(path), truncated() or summary is None, count, start, end, topics, compression)
+    return BagInfo(str(path), reading.truncated, count, start, end, topics, reading.compression)
 
 
 def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:
     """Topic -> (schema name, message encoding); from the summary when the bag has one
     (instant), else by reading the whole stream."""
-    try:
-        with open(path, "rb") as stream:
-            summary = make_reader(stream).get_summary()
-    except (McapError, EOFError, struct.error, ValueError):
-        summary = None
-    except OSError as exc:
-        raise BagError(f"bag {path} cannot be read: {exc}") from exc
+    with _open_bag(path) as raw:
+        try:
+            summary = SeekingReader(_BoundedFile(raw, path), record_size_limit=MAX_RECORD_BYTES).get_summary()
+        except (McapError, EOFError, struct.error, ValueError):
+            summary = None
+        except OSError as exc:
+            raise BagError(f"bag {path} cannot be read: {exc}") from exc
     if summary is not None:
         return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
                           c.message_encoding) for c in summary.channels.values()}
@@ -217,16 +311,23 @@ def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:
 def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
     """(log time ns, decoded dtx message) for every dtx message of the bag, in file order."""
     records, _ = read_records(path)
-    for record in records:
+    for number, record in enumerate(records, start=1):
         if record.message_encoding == MESSAGE_ENCODING:
-            yield record.log_time_ns, decode(unpack_frames(record.topic, record.data))
+            try:
+                envelope = decode(unpack_frames(record.topic, record.data))
+            except MessageError as exc:
+                raise BagError(f"bag {path}: message {number} ({record.topic}) is not a valid dtx message: "
+                               f"{exc}") from exc
+            yield record.log_time_ns, envelope
 
 
 def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[str] | None = None,
            compression: str = "lz4", foxglove: bool = True,
-           on_message: Callable[[str], None] | None = None) -> dict[str, int]:
+           on_message: Callable[[str], None] | None = None,
+           on_subscriber: Callable[[Subscriber[Any]], None] | None = None) -> dict[str, int]:
     """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
-    Returns messages written per topic; the bag is closed properly when this returns."""
+    Returns messages written per topic; the bag is closed properly when this returns.
+    ``on_subscriber`` is told of each subscriber made (a node counts its drops)."""
     writer = BagWriter(path, compression, foxglove)
     subscribers: dict[zmq.Socket, Subscriber[Any]] = {}
     poller = zmq.Poller()
@@ -240,12 +341,14 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
                         subscriber = bus.subscriber(topic, None)
                         subscribers[subscriber.sock] = subscriber
                         poller.register(subscriber.sock, zmq.POLLIN)
+                        if on_subscriber is not None:
+                            on_subscriber(subscriber)
                 for subscriber in subscribers.values():
                     subscriber.discover()
-            for sock, _ in poller.poll(50):
-                _drain(subscribers[sock], writer, on_message)
+            for sock, _ in poller.poll(50):  # a slice from each ready topic, then the others
+                _drain(subscribers[sock], writer, on_message, SLICE_MESSAGES)
         for subscriber in subscribers.values():  # what arrived before the stop is kept
-            _drain(subscriber, writer, on_message)
+            _drain(subscriber, writer, on_message, None)
     finally:
         writer.close()
         for subscriber in subscribers.values():
@@ -253,8 +356,12 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
     return dict(writer.counts)
 
 
-def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None) -> None:
-    while True:
+def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None,
+           limit: int | None) -> None:
+    """Write what is waiting on one subscriber: ``limit`` messages at most (None: all)."""
+    count = 0
+    while limit is None or count < limit:
+        count += 1
         try:
             frames = subscriber.sock.recv_multipart(zmq.NOBLOCK, copy=False)
         except zmq.Again:

@@ -208,15 +208,20 @@ def cmd_bag_record(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_play(args: argparse.Namespace) -> int:
-    from dtx.bag import play
+    from dtx.bag import BagError, play
     bus = _bus("dtx_bag_play")
     stopping = {"now": False}
     signal.signal(signal.SIGINT, lambda *_: stopping.update(now=True))
     started = time.monotonic()
-    counts = play(args.file, bus, rate=None if args.fast else args.rate, clock=args.clock,
-                  topics=args.topics or None, wait_for_subscribers_s=args.wait, stop=lambda: stopping["now"])
+    try:
+        counts = play(args.file, bus, rate=None if args.fast else args.rate, clock=args.clock,
+                      topics=args.topics or None, wait_for_subscribers_s=args.wait, stop=lambda: stopping["now"])
+    except BagError as exc:
+        print(f"bag play stopped: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        bus.close()
     elapsed = time.monotonic() - started
-    bus.close()
     print(json.dumps({"published": counts, "seconds": round(elapsed, 3)}))
     return 0
 
@@ -363,8 +368,13 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from nodes.registry import BusDirectoryError
     args = build_parser(argv).parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except BusDirectoryError as exc:
+        print(f"dtx: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

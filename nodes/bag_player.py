@@ -1,6 +1,8 @@
 """Bag player node: ``dtx bag play`` as a node a launch file starts. When the bag is done it
 announces on the latched ``/bag/done`` how many messages it published per topic, so the
-nodes that rebuild something from the bag know when they have everything."""
+nodes that rebuild something from the bag know when they have everything. A bag that
+cannot be played (damaged, refused by the reader's limits) is announced there too, at level
+``error`` with the reason, so they end instead of waiting."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +10,7 @@ import json
 from typing import Any
 
 import msgs
-from dtx.bag import play
+from dtx.bag import BagError, play
 from nodes.node import Node, run_node
 
 
@@ -28,11 +30,18 @@ class BagPlayerNode(Node):
         self.done = self.create_publisher("/bag/done", msgs.Log, latched=True)
 
     def spin(self, until: Any = None) -> None:
-        counts = play(self.params.bag, self.bus, rate=self.params.rate or None, clock=self.params.clock,
-                      topics=self.params.topics or None, wait_for_subscribers_s=self.params.wait_for_subscribers_s,
-                      stop=self.keep_alive)
-        self.done.publish(msgs.Log(node=self.name, text=json.dumps(counts)))
-        self.log.info("played %s: %s", self.params.bag, counts)
+        try:
+            counts = play(self.params.bag, self.bus, rate=self.params.rate or None, clock=self.params.clock,
+                          topics=self.params.topics or None,
+                          wait_for_subscribers_s=self.params.wait_for_subscribers_s, stop=self.keep_alive)
+        except BagError as error:
+            # The listeners must not wait for an end that will not come: /bag/done says it failed.
+            self.status = "error"
+            self.done.publish(msgs.Log(level="error", node=self.name, text=str(error)))
+            self.log.error("cannot play %s: %s", self.params.bag, error)
+        else:
+            self.done.publish(msgs.Log(node=self.name, text=json.dumps(counts)))
+            self.log.info("played %s: %s", self.params.bag, counts)
         super().spin()  # stay up so late joiners get /bag/done, until the launch ends
 
 

@@ -9,12 +9,18 @@
   request gets a ``ServiceError`` reply while the server keeps serving. A handler may return
   a ``concurrent.futures.Future`` (a motion running in the background): the reply goes out
   when it completes, and the server keeps serving meanwhile.
-- Anything malformed, oversized or of the wrong type is dropped, counted and logged.
+- Anything malformed, oversized or of the wrong type is dropped, counted and logged, the
+  logging at most once a second per socket (a flood of garbage must not become a flood of
+  log lines). Every socket that receives refuses oversized messages before allocating them,
+  a publisher's too (it receives only subscriptions). Executors take at most
+  ``SLICE_MESSAGES`` from one socket before serving the others, so a flood on one socket
+  delays the rest by one slice, not by the whole flood.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
+import hashlib
 import logging
 import os
 import time
@@ -42,6 +48,28 @@ DISCOVERY_PERIOD_S = 0.2
 # zmq_term, so whoever owns a process's lifetime (a test run) closes what is left here.
 OPEN_BUSES: "weakref.WeakSet[Bus]" = weakref.WeakSet()
 FORGET_AFTER_S = 10.0
+SLICE_MESSAGES = 100
+# What a publisher's XPUB socket receives: subscriptions, a flag byte and a topic name.
+MAX_SUBSCRIPTION_BYTES = 64 * 1024
+DROP_LOG_PERIOD_S = 1.0
+
+
+class DropLog:
+    """Warnings about dropped messages on one socket, at most one per ``DROP_LOG_PERIOD_S``,
+    each saying how many were not reported since: the counters count every drop."""
+
+    def __init__(self) -> None:
+        self._next = 0.0
+        self._unreported = 0
+
+    def warning(self, text: str, *args: Any) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            self._unreported += 1
+            return
+        more = f" ({self._unreported} more dropped since the last report)" if self._unreported else ""
+        log.warning(text + "%s", *args, more)
+        self._next, self._unreported = now + DROP_LOG_PERIOD_S, 0
 
 
 class ServiceCallError(RuntimeError):
@@ -178,6 +206,7 @@ class Publisher(Generic[M]):
         self.sock = bus.context.socket(zmq.XPUB)
         self.sock.setsockopt(zmq.XPUB_VERBOSE, 1)  # every join is seen, so latched resend works
         self.sock.setsockopt(zmq.SNDHWM, bus.transport.high_water_mark)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_SUBSCRIPTION_BYTES)  # refused before allocation
         self.sock.setsockopt(zmq.LINGER, 500)
         self.address, server_key = bus.bind(self.sock, self.id, topic)
         self.seq = 0
@@ -201,8 +230,11 @@ class Publisher(Generic[M]):
             self._last_frames = frames
 
     def service_subscriptions(self) -> None:
-        """Count joins and leaves; a join on a latched topic gets the last message again."""
-        while self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a failing recv
+        """Count joins and leaves (at most a slice of them per call); a join on a latched
+        topic gets the last message again."""
+        for _ in range(SLICE_MESSAGES):
+            if not self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a failing recv
+                return
             event = self.sock.recv()
             if event[:1] == b"\x01":
                 self.subscriptions += 1
@@ -240,6 +272,7 @@ class Subscriber(Generic[M]):
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
         self.counters = Counters()
+        self._drop_log = DropLog()
         self._static = list(static_endpoints or [])
         self._connected: dict[str, Endpoint] = {}
         self._missing_since: dict[str, float] = {}
@@ -314,30 +347,33 @@ class Subscriber(Generic[M]):
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
-    def receive_ready(self) -> Envelope | None:
-        """One message if one is waiting, without blocking (for executors)."""
-        while True:
+    def receive_ready(self, limit: int = SLICE_MESSAGES) -> list[Envelope]:
+        """The valid messages among the next ``limit`` waiting, without blocking (for
+        executors: what is left waits for the next slice, after the other sockets)."""
+        envelopes = []
+        for _ in range(limit):
             try:
                 frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
-                return None
+                break
             envelope = self.handle(frames)
             if envelope is not None:
-                return envelope
+                envelopes.append(envelope)
+        return envelopes
 
     def handle(self, frames: list[Any]) -> Envelope | None:
         try:
             envelope = decode(frames, self.bus.transport.max_message_bytes)
         except MessageError as exc:
             self.counters.malformed += 1
-            log.warning("%s: dropped a malformed message (%s)", self.topic, exc)
+            self._drop_log.warning("%s: dropped a malformed message (%s)", self.topic, exc)
             return None
         if envelope.topic != self.topic:
             return None  # prefix match of the ZeroMQ filter, another topic
         if self.msg_type is not None and not isinstance(envelope.message, self.msg_type):
             self.counters.wrong_type += 1
-            log.warning("%s: dropped a %s, expected %s", self.topic,
-                        envelope.message.SCHEMA, self.msg_type.SCHEMA)
+            self._drop_log.warning("%s: dropped a %s, expected %s", self.topic,
+                                   envelope.message.SCHEMA, self.msg_type.SCHEMA)
             return None
         seq = envelope.message.header.seq
         last = self._last_seq.get(envelope.publisher)
@@ -373,24 +409,28 @@ class ServiceServer(Generic[M, R]):
         self.sock.setsockopt(zmq.LINGER, 500)
         self.address, server_key = bus.bind(self.sock, self.id, name)
         self.counters = Counters()
-        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int]] = \
+        self._drop_log = DropLog()
+        # (client identity, publisher, seq) -> (reply frames, their size, the request's digest)
+        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int, bytes]] = \
             collections.OrderedDict()
         self._reply_bytes = 0
-        self._pending: list[tuple[tuple[bytes, str, int], Future[Any]]] = []
+        self._pending: list[tuple[tuple[bytes, str, int], Future[Any], bytes]] = []
         self._entry = bus.registry.advertise(Endpoint(
             "service", name, self.address, bus.node_name, os.getpid(), request_type.SCHEMA,
             reply_schema=reply_type.SCHEMA, curve_server_key=server_key))
 
-    def serve_ready(self) -> int:
-        """Answer every waiting request and every finished background one; returns how many."""
+    def serve_ready(self, limit: int = SLICE_MESSAGES) -> int:
+        """Answer every finished background request and up to ``limit`` waiting ones (the
+        rest wait for the next slice, after the other sockets); returns how many."""
         answered = self._finish_pending()
-        while True:
+        for _ in range(limit):
             try:
                 frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
-                return answered
+                break
             self._answer(frames)
             answered += 1
+        return answered
 
     @property
     def pending(self) -> int:
@@ -401,10 +441,10 @@ class ServiceServer(Generic[M, R]):
         finished = [entry for entry in self._pending if entry[1].done()]
         for entry in finished:
             self._pending.remove(entry)
-            key, future = entry
+            key, future, digest = entry
             error = future.exception()
             reply = self._checked_reply(future.result() if error is None else None, error)
-            self._remember(key, self._send(key[0], reply, key[1], key[2]))
+            self._remember(key, self._send(key[0], reply, key[1], key[2]), digest)
         return len(finished)
 
     def _checked_reply(self, reply: Any, error: BaseException | None) -> Message:
@@ -415,13 +455,13 @@ class ServiceServer(Generic[M, R]):
             return ServiceError(code=getattr(error, "code", "handler_error"), text=f"{type(error).__name__}: {error}")
         return reply
 
-    def _remember(self, key: tuple[bytes, str, int], frames: list[Any]) -> None:
+    def _remember(self, key: tuple[bytes, str, int], frames: list[Any], digest: bytes) -> None:
         size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
-        self._replies[key] = (frames, size)
+        self._replies[key] = (frames, size, digest)
         self._reply_bytes += size
         while len(self._replies) > self.REPLY_CACHE or (self._reply_bytes > self.REPLY_CACHE_BYTES
                                                          and len(self._replies) > 1):
-            _, (_, dropped) = self._replies.popitem(last=False)
+            _, (_, dropped, _) = self._replies.popitem(last=False)
             self._reply_bytes -= dropped
 
     def _answer(self, frames: list[Any]) -> None:
@@ -430,15 +470,32 @@ class ServiceServer(Generic[M, R]):
             envelope = decode(frames[1:], self.bus.transport.max_message_bytes)
         except MessageError as exc:
             self.counters.malformed += 1
-            log.warning("%s: malformed request (%s)", self.name, exc)
+            self._drop_log.warning("%s: malformed request (%s)", self.name, exc)
             self._send(identity, ServiceError(code="malformed_request", text=str(exc)), "", 0)
             return
         key = (identity, envelope.publisher, envelope.message.header.seq)
+        # A retry resends the very frames; the same (publisher, seq) with other content is not
+        # one, and must not get the earlier request's reply.
+        hasher = hashlib.blake2b(digest_size=16)
+        for frame in frames[1:]:
+            hasher.update(memoryview(getattr(frame, "buffer", frame)))
+        digest = hasher.digest()
+        if key in self._replies:
+            earlier: bytes | None = self._replies[key][2]
+        else:
+            earlier = next((d for pending_key, _, d in self._pending if pending_key == key), None)
+        if earlier is not None and earlier != digest:
+            self.counters.malformed += 1
+            self._send(identity, ServiceError(code="bad_request", text=(
+                f"request {envelope.message.header.seq} of {envelope.publisher} was already used for another "
+                "request: a retry must resend the same request, a new request needs a new sequence number")),
+                envelope.publisher, envelope.message.header.seq)
+            return
         if key in self._replies:
             self.counters.duplicates += 1
             self.sock.send_multipart([identity, *self._replies[key][0]], copy=False)
             return
-        if any(pending_key == key for pending_key, _ in self._pending):
+        if earlier is not None:
             self.counters.duplicates += 1  # a retry of a request still running: answered when done
             return
         request = envelope.message
@@ -454,10 +511,10 @@ class ServiceServer(Generic[M, R]):
                 reply = self._checked_reply(None, exc)
             else:
                 if isinstance(result, Future):
-                    self._pending.append((key, result))
+                    self._pending.append((key, result, digest))
                     return
                 reply = self._checked_reply(result, None)
-        self._remember(key, self._send(identity, reply, envelope.publisher, envelope.message.header.seq))
+        self._remember(key, self._send(identity, reply, envelope.publisher, envelope.message.header.seq), digest)
 
     def _send(self, identity: bytes, reply: Message, client: str, seq: int) -> list[Any]:
         stamped = dataclasses.replace(reply, header=Header(
@@ -524,6 +581,11 @@ class ServiceClient(Generic[M, R]):
         stamped = dataclasses.replace(request, header=Header(
             stamp_ns=time.time_ns(), seq=self.seq, frame_id=request.header.frame_id))
         frames = encode(self.name, stamped, self.id)
+        size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
+        if size > self.bus.transport.max_message_bytes:
+            # A server drops an oversized request unread, so no reply could ever say why.
+            raise ServiceCallError(self.name, "request_too_large",
+                                   f"request of {size} bytes exceeds the limit of {self.bus.transport.max_message_bytes}")
         for _attempt in range(1 + retries):
             deadline = time.monotonic() + timeout_s
             if not self._send_when_connected(frames, deadline):

@@ -11,8 +11,12 @@ Policy for what goes wrong (counted, never a half sample): a grasp whose fingers
 nothing, or whose gel does not reach the registered model, is retried with a fresh draw,
 up to ``max_attempts``, then skipped. A device or node that fails (a service time-out, a
 respawned node) makes the collector wait for it and redo the grasp with the same draw. A
-grasp's pairs are written only once both are in hand; every draw is seeded by
-(seed, grasp id, attempt), so a resumed session redoes exactly the grasps that are missing.
+grasp's two pairs land in the dataset together, in one write, once both are in hand; a
+resumed session first drops any lone finger (an append torn by a crash) and redoes that grasp
+whole, so no grasp pairs fingers of two attempts. Every draw is seeded by (seed, grasp id,
+attempt), so a resumed session redoes exactly the grasps that are missing. The session ends
+with ``dtx dataset check`` on what it wrote: its last line says whether the dataset passed,
+and a failed check ends the collector (and the launch) with a non-zero status.
 """
 from __future__ import annotations
 
@@ -27,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 import msgs
-from dataset.announced import write_sample
+from dataset.announced import write_samples
+from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
 from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
@@ -97,7 +102,12 @@ class CollectorNode(Node):
         if (out / "manifest.jsonl").exists() and not (p.resume or respawned):
             raise ValueError(f"{out} already holds a dataset; pass resume:=true to continue it, or choose another out")
         # A new dataset is created with the first pair, whose depth-map says the normalisation range.
-        self.writer: DatasetWriter | None = DatasetWriter(out) if (out / "dataset.json").exists() else None
+        self.writer: DatasetWriter | None = self.open_writer() if (out / "dataset.json").exists() else None
+        if self.writer is not None:
+            dropped = self.drop_incomplete_grasps(self.writer)
+            if dropped:
+                self.log.warning("dropped lone finger sample(s) %s (a crash between a grasp's writes); "
+                                 "their grasps are redone whole", dropped)
         self.tactile: dict[str, msgs.TactileImage] = {}
         for finger, topic in zip(FINGERS, p.tactile_topics, strict=True):
             self.create_subscription(topic, msgs.TactileImage, lambda m, f=finger: self.tactile.__setitem__(f, m))
@@ -142,7 +152,14 @@ class CollectorNode(Node):
         summary = {"stats": dataclasses.asdict(self.stats), "wall_s": round(time.monotonic() - self.started, 2),
                    "stage_median_ms": {k: round(1e3 * float(np.median(v)), 2) for k, v in self.stage_s.items()}}
         (Path(self.params.out) / "session.json").write_text(json.dumps(summary, indent=2) + "\n")
-        self.log.info("session complete: %d pairs in %s %s", self.pairs(), self.params.out, json.dumps(summary))
+        report = check_dataset(self.params.out)
+        if not report.ok:
+            self.log.error("session ended: %d pairs in %s, but the dataset check FAILED (%d problem(s): %s) %s",
+                           self.pairs(), self.params.out, len(report.problems), "; ".join(report.problems[:5]),
+                           json.dumps(summary))
+            raise SystemExit(EXIT_DO_NOT_RESPAWN)
+        self.log.info("session complete: %d pairs in %s, dataset check OK %s", self.pairs(), self.params.out,
+                      json.dumps(summary))
         self.request_shutdown()
 
     def pairs(self) -> int:
@@ -262,8 +279,8 @@ class CollectorNode(Node):
                 raise
         pose = [float(x), float(y), float(z), float(theta)]
         with self.stage("write"):
-            for finger, depth_map in (("left", patches.left), ("right", patches.right)):
-                self.write_pair(grasp_id, finger, object_name, pose, images[finger], depth_map, registered.fitness)
+            self.write_grasp(grasp_id, object_name, pose, images, {"left": patches.left, "right": patches.right},
+                             registered.fitness)
 
     def arm_to(self, tcp_pose: np.ndarray) -> msgs.ArmState:
         self.last_arm = self.move.call(
@@ -291,37 +308,49 @@ class CollectorNode(Node):
             raise ServiceCallError("gelsight", "timeout", "no tactile frame after contact")
         return dict(self.tactile)
 
-    def write_pair(self, grasp_id: int, finger: str, object_name: str, pose: list[float],
-                   image: msgs.TactileImage, depth_map: msgs.DepthMap, fitness: float) -> None:
-        sample_id = self.sample_id(grasp_id, finger)
-        if self.written(sample_id):
-            return  # written before a crash; the other finger is what was missing
+    def write_grasp(self, grasp_id: int, object_name: str, pose: list[float], images: dict[str, msgs.TactileImage],
+                    depth_maps: dict[str, msgs.DepthMap], fitness: float) -> None:
+        """Both fingers' pairs into the dataset in one write (both land or neither), then
+        announce them on ``/collector/sample``."""
         if self.writer is None:
-            p = self.params
+            p, first = self.params, depth_maps["left"]
             self.writer = self.open_writer(DatasetInfo(
-                image_height=100, image_width=100, depth_range_m=(depth_map.y_range_m[0], depth_map.y_range_m[1]),
+                image_height=100, image_width=100, depth_range_m=(first.y_range_m[0], first.y_range_m[1]),
                 scene=p.scene, effects=tuple(e.name for e in self.scene.effects), code_version=code_version(),
-                split_seed=p.seed, depth_crop_m=(depth_map.crop_m[0], depth_map.crop_m[1], depth_map.crop_m[2])))
-        size = (self.writer.info.image_height, self.writer.info.image_width)
-        tactile, background = resize_rgb(image.image, *size), resize_rgb(image.background, *size)
-        sample = msgs.DatasetSample(
-            sample_id=sample_id, object_name=object_name, grasp_id=grasp_id, finger=finger, grasp_pose=pose,
-            tactile_image=tactile, tactile_diff_image=subtract_background(tactile, background),
-            depth_map_m=depth_map.depth_map_m, depth_range_m=list(self.writer.info.depth_range_m),
-            registration_fitness=fitness, model_to_gel=depth_map.model_to_gel,
-            depth_crop_m=list(depth_map.crop_m),
-            stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()}, scene=self.writer.info.scene, effects=list(self.writer.info.effects), split_seed=self.writer.info.split_seed)
+                split_seed=p.seed, depth_crop_m=(first.crop_m[0], first.crop_m[1], first.crop_m[2])))
+        info = self.writer.info
+        size = (info.image_height, info.image_width)
+        samples = []
+        for finger in FINGERS:
+            image, depth_map = images[finger], depth_maps[finger]
+            tactile, background = resize_rgb(image.image, *size), resize_rgb(image.background, *size)
+            samples.append(msgs.DatasetSample(
+                sample_id=self.sample_id(grasp_id, finger), object_name=object_name, grasp_id=grasp_id,
+                finger=finger, grasp_pose=pose, tactile_image=tactile,
+                tactile_diff_image=subtract_background(tactile, background), depth_map_m=depth_map.depth_map_m,
+                depth_range_m=list(info.depth_range_m), registration_fitness=fitness,
+                model_to_gel=depth_map.model_to_gel, depth_crop_m=list(depth_map.crop_m),
+                stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()}, scene=info.scene,
+                effects=list(info.effects), split_seed=info.split_seed))
         try:
-            write_sample(self.writer, sample)
+            write_samples(self.writer, samples)
         except DatasetError as error:
-            self.fail_on_disk(f"cannot write {sample_id}: {error}")
-        self.stats.pairs_written += 1
-        self.samples.publish(sample)
+            self.fail_on_disk(f"cannot write grasp {grasp_id}: {error}")
+        self.stats.pairs_written += len(samples)
+        for sample in samples:
+            self.samples.publish(sample)
 
-
-    def open_writer(self, info: DatasetInfo) -> DatasetWriter:
+    def open_writer(self, info: DatasetInfo | None = None) -> DatasetWriter:
+        """The dataset, opened (resumed when ``info`` is None); a disk error ends the session."""
         try:
             return DatasetWriter(self.params.out, info)
+        except DatasetError as error:
+            self.fail_on_disk(str(error))
+
+    def drop_incomplete_grasps(self, writer: DatasetWriter) -> list[str]:
+        """The lone finger samples a torn write left, removed so their grasps are redone whole."""
+        try:
+            return writer.drop_incomplete_grasps()
         except DatasetError as error:
             self.fail_on_disk(str(error))
 

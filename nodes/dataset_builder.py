@@ -1,6 +1,7 @@
 """Dataset builder node: writes the samples announced on ``/collector/sample`` into a
 dataset — how ``launch/replay.yaml`` rebuilds a session's dataset from its bag, with no
-device. Ends (with success) once it has written every sample ``/bag/done`` says was played.
+device. Ends (with success) once it has written every sample ``/bag/done`` says was played,
+or with status 2 when ``/bag/done`` says the bag could not be played.
 """
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import json
 from typing import Any
 
 import msgs
-from dataset.announced import dataset_info, write_sample
+from dataset.announced import dataset_info, write_samples
 from dataset.format import DatasetWriter
+from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.node import Node, run_node
 
 
@@ -31,10 +33,15 @@ class DatasetBuilderNode(Node):
         if self.writer is None:
             self.writer = DatasetWriter(self.params.out, dataset_info(sample))
         if sample.sample_id not in self.writer:
-            write_sample(self.writer, sample)
+            write_samples(self.writer, [sample])
         self.finish_if_complete()
 
     def on_done(self, message: msgs.Log) -> None:
+        if message.level == "error":
+            written = 0 if self.writer is None else len(self.writer)
+            self.log.error("the bag could not be played to its end (%s); dataset %s keeps the %d samples written",
+                           message.text, self.params.out, written)
+            raise SystemExit(EXIT_DO_NOT_RESPAWN)
         self.expected = int(json.loads(message.text).get(self.params.topic, 0))
         self.finish_if_complete()
 

@@ -107,6 +107,7 @@ class Node:
         self.log = logging.getLogger(f"dtx.{name}")
         self._publishers: list[Publisher[Any]] = []
         self._subscriptions: list[tuple[Subscriber[Any], Callable[[Any], None]]] = []
+        self._counted: list[Subscriber[Any]] = []  # whose counters the heartbeat reports
         self._services: list[ServiceServer[Any, Any]] = []
         self._clients: list[ServiceClient[Any, Any]] = []
         self._timers: list[tuple[float, int, float, Callable[[], None]]] = []
@@ -135,6 +136,7 @@ class Node:
     def create_subscription(self, topic: str, msg_type: type[M], callback: Callable[[M], None]) -> Subscriber[M]:
         subscriber = self.bus.subscriber(topic, msg_type)
         self._subscriptions.append((subscriber, lambda envelope: callback(envelope.message)))
+        self.count_subscriber(subscriber)
         return subscriber
 
     def create_service(self, name: str, request_type: type[M], reply_type: type[R],
@@ -187,7 +189,7 @@ class Node:
                 server.serve_ready()
         for subscriber, callback in self._subscriptions:
             if subscriber.sock in ready:
-                while (envelope := subscriber.receive_ready()) is not None:
+                for envelope in subscriber.receive_ready():
                     self._deliver(subscriber, callback, envelope)
         now = time.monotonic()
         while self._timers and self._timers[0][0] <= now:
@@ -235,9 +237,14 @@ class Node:
     def shutting_down(self) -> bool:
         return self._shutdown
 
+    def count_subscriber(self, subscriber: Subscriber[Any]) -> None:
+        """Add the counters of a subscriber the node reads itself (not through
+        ``create_subscription``; a recorder's) to those its heartbeat reports."""
+        self._counted.append(subscriber)
+
     def counters(self) -> dict[str, int]:
         total = Counters()
-        for subscriber, _ in self._subscriptions:
+        for subscriber in self._counted:
             for key, value in dataclasses.asdict(subscriber.counters).items():
                 setattr(total, key, getattr(total, key) + value)
         return dataclasses.asdict(total)

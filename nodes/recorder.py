@@ -25,7 +25,8 @@ class RecorderNode(Node):
     def spin(self, until: Any = None) -> None:
         bag = free_bag_path(Path(self.params.bag))
         counts = record(bag, self.bus, self.keep_alive, topics=self.params.topics or None,
-                        compression=self.params.compression, foxglove=self.params.foxglove)
+                        compression=self.params.compression, foxglove=self.params.foxglove,
+                        on_subscriber=self.count_subscriber)
         self.log.info("bag %s closed: %d messages on %d topics", bag, sum(counts.values()), len(counts))
 
 

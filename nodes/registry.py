@@ -4,6 +4,8 @@ Nodes on one machine share a bus directory (``$DTX_BUS_DIR``, default
 ``/tmp/dtx-<uid>/<$DTX_DOMAIN or default>``). A publisher or service writes one small JSON
 file per endpoint there; subscribers and clients look a name up and connect to what they
 find, so a node names topics, never ports. Entries of dead processes are ignored and swept.
+The directory is private: created 0700, and refused when another user owns it or anyone but
+its owner may write it (whoever can write there could answer this user's requests).
 Chosen over a master process because there is nothing to start first and nothing to crash;
 crossing machines uses endpoints named in the launch file instead (see ``nodes.security``).
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import stat
 import tempfile
 import time
 from pathlib import Path
@@ -21,12 +24,39 @@ KINDS = ("topic", "service")
 IPC_PATH_LIMIT = 100  # sockaddr_un holds 108 bytes; keep a margin
 
 
+class BusDirectoryError(ValueError):
+    """The bus directory is not private to this user; the message says why and what to do."""
+
+
 def default_bus_dir() -> Path:
     explicit = os.environ.get("DTX_BUS_DIR")
     if explicit:
         return Path(explicit)
     domain = os.environ.get("DTX_DOMAIN", "default")
     return Path(tempfile.gettempdir()) / f"dtx-{os.getuid()}" / domain
+
+
+def private_directory(path: Path) -> None:
+    """Make ``path`` (mode 0700) unless it exists, then make sure it is this user's own: a
+    real directory, owned by this user, writable by no one else. Otherwise BusDirectoryError:
+    a directory another user made first (or may write) would let that user serve fake
+    endpoints to this user's nodes."""
+    try:
+        path.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise BusDirectoryError(f"cannot create the bus directory {path}: {exc}") from exc
+    info = os.lstat(path)
+    if not stat.S_ISDIR(info.st_mode):
+        raise BusDirectoryError(f"bus directory {path} is not a directory (a symbolic link or a file is in its "
+                                "place); remove it, or choose another with DTX_BUS_DIR")
+    if info.st_uid != os.getuid():
+        raise BusDirectoryError(f"bus directory {path} belongs to uid {info.st_uid}, not to you (uid {os.getuid()}): "
+                                "another user may be squatting it; remove it, or choose another with DTX_BUS_DIR")
+    if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise BusDirectoryError(f"bus directory {path} is writable by others (mode {stat.S_IMODE(info.st_mode):o}); "
+                                f"chmod 700 {path}, or choose another with DTX_BUS_DIR")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,8 +85,13 @@ def pid_alive(pid: int) -> bool:
 class Registry:
     def __init__(self, root: Path | None = None) -> None:
         self.root = Path(root) if root is not None else default_bus_dir()
+        if root is None and not os.environ.get("DTX_BUS_DIR"):
+            private_directory(self.root.parent)  # /tmp/dtx-<uid>, whose name anyone may take first
+        else:
+            self.root.parent.mkdir(parents=True, exist_ok=True)
+        private_directory(self.root)
         for sub in (*KINDS, "nodes", "sock"):
-            (self.root / sub).mkdir(parents=True, exist_ok=True)
+            private_directory(self.root / sub)
 
     def socket_address(self, owner: str) -> str:
         path = self.root / "sock" / owner

@@ -99,8 +99,10 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     stop = threading.Event()
     counts: dict[str, int] = {}
     seen: list[str] = []
+    subscribed: list = []  # a recorder node counts these subscribers' drops in its heartbeat
     thread = threading.Thread(target=lambda: counts.update(record(path, recorder_bus, stop.is_set,
-                                                                  on_message=seen.append)))
+                                                                  on_message=seen.append,
+                                                                  on_subscriber=subscribed.append)))
     thread.start()
     assert publisher.wait_for_subscribers(1, 10.0)
     for i in range(50):
@@ -112,6 +114,7 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     stop.set()
     thread.join()
     assert counts["/gripper/state"] == 50
+    assert [(s.topic, s.counters.received) for s in subscribed] == [("/gripper/state", 50)]
 
     listener_bus, player_bus = Bus("listener", registry), Bus("player", registry)
     subscriber = listener_bus.subscriber("/gripper/state", msgs.GripperState)

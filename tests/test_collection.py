@@ -42,6 +42,7 @@ def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, nod
     ids = sorted(record.sample_id for record in reader.records)
     assert ids == sorted(f"g{g:05d}_{f}" for g in range(6) for f in ("left", "right"))
     assert check_dataset(tmp_path / "session").ok
+    assert "dataset check OK" in result["collector_last_line"]
 
 
 @pytest.fixture(scope="module")

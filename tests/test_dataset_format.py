@@ -4,6 +4,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import signal
 from pathlib import Path
 
 import cv2
@@ -357,3 +358,100 @@ def test_resize_rgb_averages_when_shrinking_and_keeps_a_right_sized_image() -> N
     assert halved.shape == (2, 3, 3) and np.all(np.abs(halved - blocks) <= 0.5 + 1e-9)
     doubled = resize_rgb(image, 8, 12)
     assert doubled.shape == (8, 12, 3) and doubled.min() >= image.min() and doubled.max() <= image.max()
+
+
+def encoded_grasp(writer: DatasetWriter, grasp: int, attempt: int) -> list[fmt.EncodedSample]:
+    """Both fingers of one attempt at a grasp: the attempt sets the pose and the stamps."""
+    return [writer.encode(sample_id=f"mug-g{grasp:03d}-{finger}", object_name="mug", grasp_id=grasp, finger=finger,
+                          grasp_pose=(0.1, 0.2, 0.05 + 0.001 * attempt, 0.3), registration_fitness=0.9,
+                          stamps_ns={"tactile": attempt}, **sample_arrays(10 * attempt + (finger == "right")))
+            for finger in fmt.FINGERS]
+
+
+def resume_and_redo(root: Path, grasp: int) -> None:
+    """What a resuming collector does: drop lone fingers, redo missing grasps whole (a fresh attempt)."""
+    writer = DatasetWriter(root)
+    writer.drop_incomplete_grasps()
+    if f"mug-g{grasp:03d}-left" not in writer:
+        writer.write_together(encoded_grasp(writer, grasp, attempt=2))
+
+
+def assert_every_grasp_whole(root: Path, grasps: int) -> None:
+    report = check_dataset(root)
+    assert report.ok, report.problems
+    records = DatasetReader(root).records
+    assert sorted(r.sample_id for r in records) == sorted(
+        f"mug-g{g:03d}-{f}" for g in range(grasps) for f in fmt.FINGERS)
+    for g in range(grasps):
+        pair = [r for r in records if r.grasp_id == g]
+        assert pair[0].stamps_ns == pair[1].stamps_ns and pair[0].grasp_pose == pair[1].grasp_pose
+
+
+# fsync and rename calls of a grasp's write: 6 files x (fsync, rename), 3 directories, the manifest.
+_GRASP_WRITE_STEPS = 16
+
+
+@pytest.mark.parametrize("kill_at", range(1, _GRASP_WRITE_STEPS + 2))
+def test_a_kill_9_at_any_point_of_a_grasp_write_leaves_whole_grasps(tmp_path: Path, kill_at: int) -> None:
+    """The collector's process is killed (SIGKILL, for real: a forked child) before its
+    kill_at-th fsync or rename of a grasp's write (one past the last: after it); on resume
+    every grasp has both fingers from one attempt and the check passes."""
+    writer = DatasetWriter(tmp_path, INFO)
+    writer.write_together(encoded_grasp(writer, 0, attempt=0))
+    samples = encoded_grasp(writer, 1, attempt=1)
+    pid = os.fork()
+    if pid == 0:  # the child: writes grasp 1 and is killed part-way
+        try:
+            steps = {"n": 0}
+            real_fsync, real_replace = os.fsync, os.replace
+
+            def step(real):  # noqa: ANN001, ANN202
+                def call(*args):  # noqa: ANN002, ANN202
+                    steps["n"] += 1
+                    if steps["n"] == kill_at:
+                        os.kill(os.getpid(), signal.SIGKILL)
+                    return real(*args)
+                return call
+
+            os.fsync, os.replace = step(real_fsync), step(real_replace)
+            writer.write_together(samples)
+            os.fsync, os.replace = real_fsync, real_replace
+            if steps["n"] + 1 == kill_at:
+                os.kill(os.getpid(), signal.SIGKILL)
+        finally:
+            os._exit(3)  # never reached when killed; 3 says the kill point was missed
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL
+    resume_and_redo(tmp_path, 1)
+    assert_every_grasp_whole(tmp_path, 2)
+    if kill_at <= _GRASP_WRITE_STEPS - 1:  # killed before the manifest's fsync: the redo wrote it
+        assert DatasetReader(tmp_path).record("mug-g001-left").stamps_ns == {"tactile": 2}
+
+
+@pytest.mark.parametrize("cut", ["inside the second line", "between the lines"])
+def test_a_torn_grasp_append_loses_the_lone_finger_and_the_grasp_is_redone(tmp_path: Path, cut: str) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    writer.write_together(encoded_grasp(writer, 0, attempt=0))
+    writer.write_together(encoded_grasp(writer, 1, attempt=1))
+    manifest = tmp_path / "manifest.jsonl"
+    data = manifest.read_bytes()
+    lines = data.splitlines(keepends=True)
+    keep = len(b"".join(lines[:3])) + (10 if cut == "inside the second line" else 0)
+    manifest.write_bytes(data[:keep])
+    reopened = DatasetWriter(tmp_path)
+    assert reopened.drop_incomplete_grasps() == ["mug-g001-left"]
+    assert len(DatasetReader(tmp_path)) == 2 and check_dataset(tmp_path).ok
+    resume_and_redo(tmp_path, 1)
+    assert_every_grasp_whole(tmp_path, 2)
+    assert DatasetReader(tmp_path).record("mug-g001-right").stamps_ns == {"tactile": 2}
+
+
+def test_samples_given_together_are_refused_together(tmp_path: Path) -> None:
+    writer = DatasetWriter(tmp_path, INFO)
+    left, right = encoded_grasp(writer, 0, attempt=0)
+    writer.write_together([left])
+    with pytest.raises(DatasetError, match="duplicate"):
+        writer.write_together([right, left])
+    with pytest.raises(DatasetError, match="duplicate"):
+        writer.write_together([right, right])
+    assert [r.sample_id for r in DatasetReader(tmp_path).records] == ["mug-g000-left"]

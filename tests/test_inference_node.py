@@ -137,6 +137,8 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(gel_poses=np.eye(4)[None]), "empty request"),
     (TactileEstimateRequest(points=np.zeros((10, 2)), gel_poses=np.eye(4)[None]), "points must be P x 3"),
     (TactileEstimateRequest(points=np.zeros((1001, 3)), gel_poses=np.eye(4)[None]), "too many points"),
+    (TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4)),
+     "too much work: 600 points x 4 regions > 2000"),
     (TactileEstimateRequest(points=np.zeros((10, 3), np.int32), gel_poses=np.eye(4)[None]), "float32 or float64"),
     (TactileEstimateRequest(points=np.full((10, 3), np.nan), gel_poses=np.eye(4)[None]), "NaN or inf"),
     (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.eye(3)[None]), "gel_poses must be N x 4 x 4"),
@@ -152,7 +154,8 @@ BAD_REQUESTS = [
 
 def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry,
                                                                          checkpoint: Path) -> None:
-    limits = {"max_regions": 4, "max_points": 1000, "max_dropout_samples": 3, "max_sampled_regions": 8}
+    limits = {"max_regions": 4, "max_points": 1000, "max_dropout_samples": 3, "max_sampled_regions": 8,
+              "max_point_regions": 2000}
     with serving(registry, checkpoint, **limits), contextlib.closing(Bus("planner", registry)) as bus:
         raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
         for request, message in BAD_REQUESTS:
