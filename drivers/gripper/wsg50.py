@@ -129,8 +129,11 @@ class WSG50Gripper:
                                "(or /gripper/command action home)")
 
     def acknowledge(self) -> GripperState:
-        """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again."""
-        status, _ = self._request(Command.ACK_FAST_STOP, ACK_PAYLOAD)
+        """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again;
+        nothing is sent when the gripper is not in FAST STOP."""
+        status = Status.E_SUCCESS
+        if self._system_flags() & SystemFlag.FAST_STOP:
+            status, _ = self._request(Command.ACK_FAST_STOP, ACK_PAYLOAD)
         if status != Status.E_SUCCESS:
             raise GripperError(f"acknowledging the fast stop failed: {status_name(status)}")
         return self._state(status)
