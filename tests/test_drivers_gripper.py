@@ -243,6 +243,8 @@ def test_round_trip_benchmark_measures_every_command():
 
     from benchmarks import hardware
 
-    (figure,) = hardware.run(argparse.Namespace(gripper_commands=20))
-    assert figure["samples"] == 20
-    assert 0.0 < figure["p50"] <= figure["p99"]
+    figures = hardware.run(argparse.Namespace(gripper_commands=20, stop_samples=2, completion_samples=1))
+    assert [figure["samples"] for figure in figures] == [20, 2, 1, 1, 1]
+    assert all(0.0 < figure["p99"] and figure["p50"] <= figure["p99"] for figure in figures[:2])
+    assert figures[1]["preempted"] == 2
+    assert all(figure["completed"] == 1 for figure in figures[2:])
