@@ -115,8 +115,9 @@ class WSG50Gripper:
         return self._state(Status.E_SUCCESS)
 
     def preflight(self) -> None:
-        """Refuse a gripper that answers but cannot move: in FAST STOP, faulted, or not
-        referenced (every motion would get E_ACCESS_DENIED). GripperError with the fix."""
+        """Refuse a gripper that answers but cannot move: in FAST STOP, faulted, not
+        referenced (every motion would get E_ACCESS_DENIED; system state 0x40), or in the
+        grasping state ERROR (0x41). GripperError with the fix."""
         flags = self._system_flags()
         if flags & SystemFlag.FAST_STOP:
             raise GripperError("the gripper is in FAST STOP", "clear its cause, then `dtx hw acknowledge "
@@ -127,6 +128,9 @@ class WSG50Gripper:
         if not flags & SystemFlag.REFERENCED:
             raise GripperError("the gripper is not referenced", "home it: `dtx hw acknowledge LAUNCHFILE` "
                                "(or /gripper/command action home)")
+        if self._grasping_state() == GraspingState.ERROR:
+            raise GripperError("the gripper's grasping state is ERROR", "see its web interface for the cause, "
+                               "then `dtx hw acknowledge LAUNCHFILE`")
 
     def acknowledge(self) -> GripperState:
         """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again;
