@@ -160,7 +160,7 @@ class URArm:
         """Arm the script's watchdog and kick it from a thread of this process: if the
         process or the link dies, the kicks stop and so does the robot."""
         self._control.setWatchdog(self.config.watchdog_hz)
-        if self._kicker is not None:
+        if self._kicker is not None and self._kicker.is_alive():
             return  # still kicking: a re-uploaded script only needed its watchdog set again
         self._kicking.clear()
         self._kicker = threading.Thread(target=self._kick_watchdog, name="ur-watchdog", daemon=True)
@@ -172,7 +172,10 @@ class URArm:
             control = self._control
             if control is None:
                 return
-            control.kickWatchdog()
+            try:
+                control.kickWatchdog()
+            except RuntimeError:
+                return  # the link is gone: the robot stops by the watchdog, as it should
 
     def _reupload_script(self, description: str) -> None:
         """Upload ur_rtde's script again and wait until it runs (reuploadScript returns once
