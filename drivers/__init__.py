@@ -13,6 +13,16 @@ import importlib
 from typing import Any
 
 
+class DeviceError(RuntimeError):
+    """A device failure told to people: ``reason`` says what is wrong and, where an operator
+    can act on it, ``fix`` says what to do (``dtx hw check`` prints them on a line each)."""
+
+    def __init__(self, reason: str, fix: str = "") -> None:
+        super().__init__(f"{reason}; fix: {fix}" if fix else reason)
+        self.reason = reason
+        self.fix = fix
+
+
 @dataclasses.dataclass(frozen=True)
 class BackendEntry:
     """Where a backend lives: ``module`` holds both ``backend_class`` and ``config_class``."""

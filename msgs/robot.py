@@ -51,8 +51,9 @@ class ArmMoveRequest(Message):
 
 @dataclasses.dataclass
 class GripperCommand(Message):
-    """Service request to the gripper: ``home``, ``move`` (to width), ``grasp`` (close to width
-    at speed with a force limit), ``release`` or ``stop``. SI units."""
+    """Service request to the gripper: ``home``, ``move`` (to width), ``grasp`` (close on a part
+    of nominal width at speed with a force limit), ``release``, ``stop`` or ``acknowledge`` (a
+    FAST STOP). SI units."""
 
     SCHEMA = "dtx.robot.GripperCommand"
     VERSION = 1

@@ -2,8 +2,9 @@
 
 For each object: register it (``/perception/register``). For each grasp: draw
 (x, y, z, theta_z) = registered centroid + a seeded random offset (palm parallel to the
-table, only theta_z free), approach from above, close the gripper to the constant contact
-force, wait for both GelSight frames at contact, get both fingers' depth-maps
+table, only theta_z free), approach from above, close the gripper on the object's nominal width (the registered
+model's extent across the fingers at the drawn grasp: a WSG looks for the part only within
+its clamping travel around that width) to the constant contact force, wait for both GelSight frames at contact, get both fingers' depth-maps
 (``/perception/patch``), write one (tactile image, depth-map) pair per finger, release and
 retreat.
 
@@ -38,6 +39,8 @@ from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
 from perception.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose
+from perception.pointcloud import transform_points
+from perception.registration import sample_model_cloud
 from sim.scene import load_scene
 
 FINGERS = ("left", "right")
@@ -122,6 +125,7 @@ class CollectorNode(Node):
         self.stage_s: dict[str, list[float]] = {}
         self.registered: dict[str, msgs.RegisterReply] = {}
         self.last_arm: msgs.ArmState | None = None
+        self.model_points: dict[str, np.ndarray] = {}  # model frame, m; for the nominal width
 
     # -- the session ---------------------------------------------------------------------
     def grasp_plan(self) -> list[tuple[int, str]]:
@@ -246,11 +250,31 @@ class CollectorNode(Node):
         z = max(lowest, centroid[2] + rng.uniform(-p.offset_z_m, p.offset_z_m))
         return np.array([x, y, z, theta])
 
+    def nominal_width_m(self, object_name: str, registered: msgs.RegisterReply, x: float, y: float, z: float,
+                        theta: float) -> float:
+        """The registered model's extent across the fingers at the drawn grasp: its points in
+        the gels' band (gel length along the gel axis, gel height about the gel centre)
+        projected on the closing axis. The gripper is told this width, because a WSG detects
+        the part only within its clamping travel around it (the web interface's setting)."""
+        if object_name not in self.model_points:
+            mesh = next(o.mesh for o in self.scene.objects if o.name == object_name)
+            self.model_points[object_name] = sample_model_cloud(mesh, seed=self.params.seed).points_m
+        points = transform_points(self.model_points[object_name], registered.model_to_world) - np.array([x, y, z])
+        gel_axis = np.array([np.cos(theta), np.sin(theta)])
+        closing_axis = np.array([-np.sin(theta), np.cos(theta)])
+        gel_length_m, gel_height_m = self.geometry.gel_size_m
+        band = (np.abs(points[:, :2] @ gel_axis) <= gel_length_m / 2) & (np.abs(points[:, 2]) <= gel_height_m / 2)
+        if not np.any(band):
+            raise GraspFailed("the registered model has nothing between the gels at this draw")
+        across = points[band, :2] @ closing_axis
+        return float(min(across.max() - across.min(), self.geometry.max_width_m))
+
     def try_grasp(self, grasp_id: int, attempt: int, object_name: str) -> None:
         p = self.params
         with self.stage("register"):
             registered = self.registration(object_name)
         x, y, z, theta = self.draw(grasp_id, attempt, registered.centroid_world)
+        nominal_width_m = self.nominal_width_m(object_name, registered, x, y, z, theta)
         tcp = grasp_to_tcp_pose(x, y, z + self.geometry.tcp_to_gel_centre_m, theta)
         above = tcp.copy()
         above[2] += p.approach_height_m
@@ -261,8 +285,9 @@ class CollectorNode(Node):
             arrived = self.arm_to(tcp)
         with self.stage("close"):
             self.grip_seen_ns = 0
-            held = self.gripper.call(msgs.GripperCommand(action="grasp", width_m=0.0, speed_m_s=p.gripper_speed_m_s,
-                                                         force_n=p.force_n), timeout_s=p.call_timeout_s)
+            held = self.gripper.call(msgs.GripperCommand(action="grasp", width_m=nominal_width_m,
+                                                         speed_m_s=p.gripper_speed_m_s, force_n=p.force_n),
+                                     timeout_s=p.call_timeout_s)
         if held.state != "holding":
             raise GraspFailed(f"fingers found nothing ({held.state})")
         with self.stage("capture"):

@@ -1,10 +1,14 @@
 """Gripper node: publishes ``/gripper/state`` (msgs.GripperState) and serves
-``/gripper/command`` (msgs.GripperCommand: home, move, grasp, release, stop -> the state).
+``/gripper/command`` (msgs.GripperCommand: home, move, grasp, release, stop, acknowledge ->
+the state).
 
 Params: ``state_rate_hz``, ``scene`` (simulated backend only: where the fingers meet the
 object comes from this scene and ``/arm/state``) and the backend's (``backend:`` wsg50 or
-simulated, see ``drivers.gripper``). Commands run in the background so the state keeps
-flowing; the serial line is polled only between commands.
+simulated, see ``drivers.gripper``). Motions run in the background so the state keeps
+flowing; the serial line is polled only between commands. ``stop`` is sent at once, beside
+the running motion (the driver is safe for that), never queued behind it: a stop that waits
+for the grasp it should stop is no stop. ``acknowledge`` clears a FAST STOP once its cause is
+dealt with.
 """
 from __future__ import annotations
 
@@ -74,16 +78,19 @@ class GripperNode(Node):
                 self.line.release()
         self.state.publish(self.last_state)
 
-    def on_command(self, command: msgs.GripperCommand) -> Future[msgs.GripperState]:
+    def on_command(self, command: msgs.GripperCommand) -> msgs.GripperState | Future[msgs.GripperState]:
         actions = {
             "home": lambda: self.gripper.home(),
             "move": lambda: self.gripper.move(command.width_m, command.speed_m_s),
             "grasp": lambda: self.gripper.grasp(command.width_m, command.speed_m_s, command.force_n),
             "release": lambda: self.gripper.release(command.width_m, command.speed_m_s),
-            "stop": lambda: self.gripper.stop(),
+            "acknowledge": lambda: self.gripper.acknowledge(),
         }
+        if command.action == "stop":
+            self.last_state = self.gripper.stop()
+            return self.last_state
         if command.action not in actions:
-            raise ValueError(f"action {command.action!r} unknown; allowed: {sorted(actions)}")
+            raise ValueError(f"action {command.action!r} unknown; allowed: {sorted([*actions, 'stop'])}")
         if command.action == "grasp":
             self.force_n = command.force_n
         return self.background.submit(self._run, actions[command.action], command.header.stamp_ns)

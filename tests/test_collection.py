@@ -53,6 +53,13 @@ def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+def test_the_strict_gripper_finds_every_part_at_its_nominal_width(small_session: Path) -> None:
+    """W2: the simulated WSG looks for the part only within its clamping travel around the
+    nominal width; grasping at width 0 found nothing on any object."""
+    stats = json.loads((small_session / "session.json").read_text())["stats"]
+    assert stats["skipped"] == 0 and stats["failed_draws"] == 0 and stats["grasps_done"] == 8
+
+
 def test_every_pair_whose_depth_map_presses_shows_the_press(small_session: Path) -> None:
     # The simulated gel presses only once its node has the grip from /gripper/state; a frame
     # captured before that is the untouched gel beside a depth-map that presses (a third of

@@ -18,6 +18,7 @@ import rtde_receive
 from drivers.arm import make_backend
 from drivers.arm.base import (
     ArmConnectionError,
+    ArmError,
     ConnectionLostError,
     EmergencyStopError,
     MotionAbortedError,
@@ -27,7 +28,9 @@ from drivers.arm.base import (
 )
 from drivers.arm.ur import URArm
 from drivers.arm.ur_kinematics import tcp_pose
-from drivers.arm.ur_controller_sim import CMD_MOVEL, CMD_STOPL, HOME_Q, FakeURController
+from drivers.arm.ur_controller_sim import CMD_MOVEL, CMD_SET_WATCHDOG, CMD_STOPJ, CMD_STOPL, HOME_Q, FakeURController
+from drivers.cli import check_device
+from dtx.launch import NodeSpec
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -61,13 +64,18 @@ def fake() -> Iterator[FakeURController]:
 def arm(fake: FakeURController) -> Iterator[URArm]:
     # The simulated controller shares two busy cores with the test run and can pause for a
     # moment; only a longer silence than a real cell would tolerate counts as a lost link here.
-    backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host, "workspace": WORKSPACE,
-                            "stale_state_s": 3.0})
+    # Likewise the watchdog: 2 Hz tolerates a stalled kick that 5 Hz might not, here.
+    backend = make_backend(arm_params(fake))
     backend.connect()
     try:
         yield backend
     finally:
         backend.disconnect()
+
+
+def arm_params(fake: FakeURController, **extra: object) -> dict:
+    return {"backend": "ur_rtde", "robot_ip": fake.host, "workspace": WORKSPACE, "stale_state_s": 3.0,
+            "watchdog_hz": 2.0, **extra}
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
@@ -101,6 +109,11 @@ def wait_until_moving(fake: FakeURController) -> None:
         return snapshot["moving"] and snapshot["command_register"] == 0
 
     wait_until(moving_and_handed_over, "the fake arm moves and the client cleared the command")
+
+
+def sent_after_connect(fake: FakeURController) -> list[int]:
+    """Commands received beyond the watchdog set up by connect()."""
+    return [cmd for _, cmd in fake.snapshot()["commands_received"] if cmd != CMD_SET_WATCHDOG]
 
 
 def commands(fake: FakeURController, number: int) -> list[int]:
@@ -146,7 +159,7 @@ def test_a_target_outside_the_workspace_is_refused_before_sending(
     folded_into_the_table = np.array(HOME_Q) + np.array([0.0, 1.2, 0.0, 0.0, 0.0, 0.0])
     with pytest.raises(WorkspaceError, match="z_min_m"):
         arm.move_joints(folded_into_the_table, speed_rad_s=0.5, accel_rad_s2=1.0)
-    assert fake.snapshot()["commands_received"] == []
+    assert sent_after_connect(fake) == []
 
 
 def test_a_speed_over_the_limit_is_refused_before_sending(
@@ -156,7 +169,7 @@ def test_a_speed_over_the_limit_is_refused_before_sending(
         arm.move_linear(target, speed_m_s=0.5, accel_m_s2=1.0)
     with pytest.raises(MotionLimitError, match="joint acceleration"):
         arm.move_joints(np.array(HOME_Q), speed_rad_s=0.5, accel_rad_s2=10.0)
-    assert fake.snapshot()["commands_received"] == []
+    assert sent_after_connect(fake) == []
 
 
 def test_a_move_is_refused_while_the_controller_is_in_protective_stop(
@@ -201,7 +214,9 @@ def test_a_connection_cut_mid_motion_raises_connection_lost(
         arm.stop()
 
 
-def test_stop_interrupts_a_move(fake: FakeURController, arm: URArm) -> None:
+def test_stop_interrupts_a_move_with_the_stopj_the_script_runs(fake: FakeURController, arm: URArm) -> None:
+    """U3: ur_rtde 1.6.5's script ends a moveL with stopj; the driver sends stopJ with a joint
+    deceleration, so the deceleration configured is the one applied."""
     start = arm.read().tcp_pose
     target = start + np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
     thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))
@@ -210,7 +225,8 @@ def test_stop_interrupts_a_move(fake: FakeURController, arm: URArm) -> None:
     thread.join()
     assert len(errors) == 1 and isinstance(errors[0], MotionAbortedError)
     snapshot = fake.snapshot()
-    assert commands(fake, CMD_STOPL) == [CMD_STOPL]
+    assert commands(fake, CMD_STOPJ) == [CMD_STOPJ] and commands(fake, CMD_STOPL) == []
+    assert f"stopj {arm.config.stop_decel_rad_s2}" in snapshot["events"]
     assert not snapshot["moving"]
     assert 0.0 < snapshot["tcp_pose"][1] - start[1] < 0.3
     assert not arm.read().moving
@@ -253,7 +269,7 @@ def test_connect_to_a_powered_off_arm_says_how_to_fix_it(fake: FakeURController)
     try:
         dashboard.powerOff()
         backend = make_backend({"backend": "ur_rtde", "robot_ip": fake.host})
-        with pytest.raises(ArmConnectionError, match="POWER_OFF: power it on and release the brakes"):
+        with pytest.raises(ArmConnectionError, match="POWER_OFF; fix: power it on and release the brakes"):
             backend.connect()
         dashboard.powerOn()
         dashboard.brakeRelease()
@@ -262,3 +278,73 @@ def test_connect_to_a_powered_off_arm_says_how_to_fix_it(fake: FakeURController)
         backend.disconnect()
     finally:
         dashboard.disconnect()
+
+
+def test_the_move_deadline_follows_the_speed_slider(fake: FakeURController) -> None:
+    """U1: at 20 % a 0.3 rad joint move (0.93 s at full speed, 4.6 s here) is no time-out."""
+    backend = make_backend(arm_params(fake, move_timeout_margin_s=2.0))
+    backend.connect()
+    try:
+        fake.set_speed_slider(0.2)
+        target = np.array(HOME_Q) + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
+        backend.move_joints(target, speed_rad_s=1.0, accel_rad_s2=1.4)
+        np.testing.assert_allclose(fake.snapshot()["q"], target, atol=1e-9)
+    finally:
+        backend.disconnect()
+
+
+def test_a_move_after_an_unlocked_protective_stop_uploads_the_script_again(
+        fake: FakeURController, arm: URArm) -> None:
+    """U2: the protective stop ended the control script; after the unlock the next move
+    re-uploads it instead of being refused."""
+    fake.set_safety("protective_stop")
+    wait_until(lambda: arm.read().safety_status == "protective_stop", "the stop is reported")
+    assert not fake.snapshot()["program_running"]
+    dashboard = dashboard_client.DashboardClient(fake.host)
+    dashboard.connect()
+    try:
+        dashboard.unlockProtectiveStop()
+    finally:
+        dashboard.disconnect()
+    wait_until(lambda: arm.read().safety_status == "normal", "the unlock is reported")
+    target = arm.read().tcp_pose + np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])
+    arm.move_linear(target, speed_m_s=0.25, accel_m_s2=1.2)
+    np.testing.assert_allclose(fake.snapshot()["tcp_pose"], target, atol=1e-6)
+    assert fake.snapshot()["events"].count("control script started") == 2
+
+
+def test_the_watchdog_stops_the_arm_when_the_link_is_cut(fake: FakeURController, arm: URArm) -> None:
+    """U4: with the cable pulled the arm must not finish its last move unattended."""
+    start = arm.read().tcp_pose
+    target = start + np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
+    thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))  # 3.1 s
+    wait_until_moving(fake)
+    fake.cut_connections()
+    wait_until(lambda: not fake.snapshot()["moving"], "the arm stops")
+    snapshot = fake.snapshot()
+    assert "watchdog: no input in time, program stopped" in snapshot["events"]
+    assert snapshot["tcp_pose"][1] - start[1] < 0.25
+    thread.join(timeout=30.0)
+    assert errors and isinstance(errors[0], ArmError)
+
+
+@pytest.mark.parametrize("fault, reason, fix", [
+    ("power_off", "is in robot mode POWER_OFF", "power it on and release the brakes"),
+    ("local", "is in local control", "switch the pendant to remote control"),
+    ("protective_stop", "the UR controller is in a protective stop", "inspect the cause, then unlock it"),
+])
+def test_hw_check_refuses_an_arm_that_cannot_move(fake: FakeURController, fault: str, reason: str,
+                                                  fix: str) -> None:
+    if fault == "power_off":
+        dashboard = dashboard_client.DashboardClient(fake.host)
+        dashboard.connect()
+        dashboard.powerOff()
+        dashboard.disconnect()
+    elif fault == "local":
+        fake.set_remote_control(False)
+    else:
+        fake.set_safety("protective_stop")
+    check = check_device(NodeSpec(name="arm", module="nodes.arm", params=arm_params(fake)))
+    assert not check.ok
+    assert check.error.endswith(reason) and check.fix.startswith(fix)
+    assert not fake.snapshot()["program_running"]

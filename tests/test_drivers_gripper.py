@@ -74,7 +74,7 @@ def test_move_blocked_by_object(gripper, world):
 
 def test_grasp_stops_at_contact_and_holds_force(gripper, world):
     world.object_width_m = 0.0385
-    state = gripper.grasp(0.01, FAST, force_n=25.0)
+    state = gripper.grasp(0.04, FAST, force_n=25.0)  # nominal width, within the clamping travel
     assert state.state == "holding"
     assert state.width_m == pytest.approx(0.0385, abs=1e-6)
     assert state.force_n == pytest.approx(25.0)
@@ -82,15 +82,15 @@ def test_grasp_stops_at_contact_and_holds_force(gripper, world):
 
 
 def test_grasp_with_nothing_between_fingers(gripper):
-    state = gripper.grasp(0.02, FAST, force_n=10.0)
+    state = gripper.grasp(0.03, FAST, force_n=10.0)
     assert state.state == "no_part"
-    assert state.width_m == pytest.approx(0.02, abs=1e-6)
+    assert state.width_m == pytest.approx(0.02, abs=1e-6)  # nominal less the 10 mm travel
     assert state.status_code == Status.E_CMD_FAILED
 
 
 def test_release_opens_and_drops_force(gripper, world):
     world.object_width_m = 0.05
-    gripper.grasp(0.01, FAST, force_n=20.0)
+    gripper.grasp(0.05, FAST, force_n=20.0)
     state = gripper.release(0.09, FAST)
     assert state.state == "idle"
     assert state.force_n == 0.0
@@ -102,9 +102,13 @@ def test_force_limit_beyond_gripper_is_refused(gripper):
         gripper.set_force_limit(120.0)
 
 
-def test_out_of_range_move_is_refused(gripper):
+def test_out_of_range_move_is_refused_before_the_device_clamps_it(gripper):
+    """W6: the device clamps 200 mm to its 110 mm stroke and succeeds; the driver must not
+    call that "blocked … something between the fingers"."""
     with pytest.raises(GripperError, match="outside the gripper's range"):
         gripper.move(0.2, FAST)
+    with pytest.raises(GripperError, match="outside the gripper's range"):
+        gripper.grasp(0.04, 1.0, force_n=10.0)
 
 
 def test_release_cannot_close(gripper):
@@ -118,7 +122,7 @@ def test_stop_interrupts_a_grasp(gripper):
 
     def slow_grasp() -> None:
         try:
-            gripper.grasp(0.0, 0.01, force_n=10.0)  # 11 s at 10 mm/s if never stopped
+            gripper.grasp(0.01, 0.01, force_n=10.0)  # 11 s at 10 mm/s if never stopped
         except GripperError as exc:
             outcome.append(exc)
 
@@ -147,7 +151,7 @@ def test_second_motion_while_running_is_refused(gripper):
     while gripper.read().state != "moving":
         time.sleep(0.01)
     with pytest.raises(GripperError, match="another motion is running"):
-        gripper.grasp(0.0, FAST, force_n=10.0)
+        gripper.grasp(0.02, FAST, force_n=10.0)
     gripper.stop()
     mover.join()
     assert "E_CMD_ABORTED" in str(outcome[0])
@@ -157,7 +161,7 @@ def test_motion_answers_pending_then_final_status(firmware, world):
     """The raw protocol: E_CMD_PENDING at once, the final status when the fingers stop."""
     world.object_width_m = 0.03
     with serial.Serial(firmware.port, timeout=0.05) as link:
-        link.write(encode_frame(Command.GRASP, struct.pack("<ff", 10.0, 400.0)))
+        link.write(encode_frame(Command.GRASP, struct.pack("<ff", 30.0, 400.0)))
         parser, frames = FrameParser(), []
         deadline = time.monotonic() + 5.0
         while len(frames) < 2 and time.monotonic() < deadline:
@@ -201,7 +205,7 @@ def test_simulated_backend_is_the_client_on_the_firmware(world):
     gripper.connect()
     try:
         assert gripper.read().width_m == pytest.approx(0.08)
-        assert gripper.grasp(0.0, FAST, 15.0).width_m == pytest.approx(0.06, abs=1e-6)
+        assert gripper.grasp(0.06, FAST, 15.0).width_m == pytest.approx(0.06, abs=1e-6)
     finally:
         gripper.disconnect()
 
@@ -239,6 +243,8 @@ def test_round_trip_benchmark_measures_every_command():
 
     from benchmarks import hardware
 
-    (figure,) = hardware.run(argparse.Namespace(gripper_commands=20))
-    assert figure["samples"] == 20
-    assert 0.0 < figure["p50"] <= figure["p99"]
+    figures = hardware.run(argparse.Namespace(gripper_commands=20, stop_samples=2, completion_samples=1))
+    assert [figure["samples"] for figure in figures] == [20, 2, 1, 1, 1]
+    assert all(0.0 < figure["p99"] and figure["p50"] <= figure["p99"] for figure in figures[:2])
+    assert figures[1]["preempted"] == 2
+    assert all(figure["completed"] == 1 for figure in figures[2:])

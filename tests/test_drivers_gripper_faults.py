@@ -82,7 +82,7 @@ def run_session(fault: dict[str, float], seed: int, cycles: int) -> tuple[int, l
         try:
             for _ in range(cycles):
                 motion_failed = False
-                for command in (lambda: client.grasp(0.01, FAST, 20.0),
+                for command in (lambda: client.grasp(OBJECT_WIDTH_M, FAST, 20.0),
                                 lambda: client.release(0.1, FAST),
                                 lambda: client.move(0.08, FAST),
                                 client.read):

@@ -110,3 +110,33 @@ def test_hw_check_on_the_lab_launch_file_here(capsys):
     assert out.count("GelSightError") == 2
     assert out.strip().endswith("0 of 6 devices OK")
     assert len(load_launch(LAB_LAUNCH, {"robot_ip": "127.0.0.1"}).nodes) == 6
+
+
+def gripper_launch(tmp_path: Path, port: str) -> Path:
+    launch = tmp_path / "gripper.yaml"
+    launch.write_text("launch:\n  - node:\n      name: gripper\n      module: nodes.gripper\n"
+                      f"      params: {{backend: wsg50, port: {port}}}\n")
+    return launch
+
+
+@pytest.mark.parametrize("fault, reason, fix", [
+    ("fast_stop", "the gripper is in FAST STOP", "fix: clear its cause, then `dtx hw acknowledge"),
+    ("unreferenced", "the gripper is not referenced", "fix: home it"),
+])
+def test_a_gripper_that_cannot_move_fails_the_check_until_acknowledged(tmp_path, capsys, fault, reason, fix):
+    from drivers.gripper.firmware import GripperFirmware, Strictness
+
+    with GripperFirmware(strictness=Strictness(referenced=fault != "unreferenced"),
+                         homing_speed_m_s=0.4) as firmware:
+        if fault == "fast_stop":
+            firmware.trip_fast_stop()
+        launch = gripper_launch(tmp_path, firmware.port)
+        assert run_hw_check(str(launch)) == 1
+        lines = capsys.readouterr().out.splitlines()
+        assert lines[0].split()[:3] == ["gripper", "wsg50", "FAILED"] and lines[0].endswith(reason)
+        assert lines[1].strip().startswith(fix)
+        parser = argparse.ArgumentParser(prog="dtx")
+        add_commands(parser.add_subparsers(dest="command", required=True))
+        args = parser.parse_args(["hw", "acknowledge", str(launch)])
+        assert args.func(args) == 0
+        assert run_hw_check(str(launch)) == 0

@@ -10,8 +10,10 @@ import dataclasses
 
 import numpy as np
 
+from drivers import DeviceError
 
-class ArmError(RuntimeError):
+
+class ArmError(DeviceError):
     """Any failure of the arm; the arm node turns it into a safe session stop."""
 
 

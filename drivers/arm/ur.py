@@ -6,6 +6,15 @@ Moves are sent *asynchronously* and awaited here, in Python: ur_rtde's compiled 
 the GIL, so a blocking moveL would freeze every other thread of the node (state
 publishing, a stop request) for the whole motion.
 
+What the controller really does shapes the rest (ur_rtde 1.6.5 and its rtde_control.script):
+the pendant's speed slider scales motion time, so a move's deadline stretches by the
+``target_speed_fraction`` the controller reports; the script ends a running move with
+``stopj`` whichever stop is asked for, so ``stop()`` sends stopJ with a joint deceleration
+that means what it says; a protective stop ends the uploaded script, so a move after the
+unlock uploads it again (``reuploadScript``); and the script's RTDE watchdog
+(``setWatchdog``), kicked by a thread of this process, stops the robot when this process or
+the link dies.
+
 Known limit of ur_rtde 1.6.5: if the connection drops during the few milliseconds in which
 the client hands a command over (it waits for the script's "done" flag), the client keeps
 waiting on its stale state for up to its 300 s execution time-out, holding the GIL.
@@ -14,6 +23,8 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+
+import dashboard_client
 import time
 from typing import Callable
 
@@ -42,6 +53,7 @@ from msgs.robot import ArmState
 # stream small (the controller drops clients that do not drain it).
 STATE_VARIABLES = [
     "timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "robot_mode", "safety_status_bits",
+    "target_speed_fraction",
 ]
 ROBOT_MODE_RUNNING = 7
 ROBOT_MODE_NAMES = {
@@ -52,6 +64,7 @@ UR_JOINT_RANGE_RAD = 2.0 * np.pi
 MOVING_SPEED_RAD_S = 1e-3
 POLL_PERIOD_S = 0.002
 SAFETY_REPORT_WAIT_S = 0.05
+SCRIPT_START_TIMEOUT_S = 5.0  # a re-uploaded script reports running within this
 
 
 @dataclasses.dataclass
@@ -64,13 +77,15 @@ class URArmConfig:
     tcp_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # as set on the pendant
     workspace: WorkspaceBox = dataclasses.field(default_factory=WorkspaceBox)
     limits: MotionLimits = dataclasses.field(default_factory=MotionLimits)
-    stop_decel_m_s2: float = 2.0  # stopL deceleration of the TCP
-    stop_decel_rad_s2: float = 2.0  # stopJ deceleration of the joints
+    stop_decel_rad_s2: float = 2.0  # stopj deceleration of the joints (every stop is a stopj)
     position_tolerance_m: float = 1e-3  # a linear move counts as arrived within this
     orientation_tolerance_rad: float = 5e-3
     joint_tolerance_rad: float = 2e-3  # a joint move counts as arrived within this
     stale_state_s: float = 0.5  # no new RTDE state for this long means the link is lost
     move_timeout_margin_s: float = 5.0  # added to the expected duration of a move
+    # The robot stops when the script's watchdog hears nothing for 1/watchdog_hz s; this
+    # process kicks it four times as often.
+    watchdog_hz: float = 5.0
 
     def __post_init__(self) -> None:
         if self.model not in DH_PARAMETERS:
@@ -89,13 +104,15 @@ class URArm:
         self._last_timestamp: float | None = None
         self._last_fresh = 0.0
         self._move_lock = threading.Lock()
-        self._moving_linearly = True  # which stop command fits the move in progress
+        self._kicking = threading.Event()  # set: the watchdog kicker should end
+        self._kicker: threading.Thread | None = None
 
     def connect(self) -> None:
-        """Open the RTDE state stream, check the arm can move, and upload the control script.
+        """Open the RTDE state stream, check the arm can move, upload the control script and
+        start its watchdog.
 
-        Raises ArmConnectionError (unreachable, not powered), ProtectiveStopError,
-        EmergencyStopError.
+        Raises ArmConnectionError (unreachable, not powered, local control),
+        ProtectiveStopError, EmergencyStopError; each with the operator's fix.
         """
         ip, frequency = self.config.robot_ip, self.config.rtde_frequency_hz
         try:
@@ -116,6 +133,7 @@ class URArm:
             self._receive.disconnect()
             self._receive = None
             raise ArmConnectionError(f"cannot start ur_rtde's control script on {ip}: {error}") from error
+        self._start_watchdog()
 
     def _check_ready_to_move(self) -> None:
         self._raise_if_unsafe(self.read(), "connect")
@@ -123,8 +141,61 @@ class URArm:
         if robot_mode != ROBOT_MODE_RUNNING:
             name = ROBOT_MODE_NAMES.get(robot_mode, str(robot_mode))
             raise ArmConnectionError(
-                f"UR at {self.config.robot_ip} is in robot mode {name}: power it on and release "
-                "the brakes (pendant, or dashboard 'power on' then 'brake release')")
+                f"UR at {self.config.robot_ip} is in robot mode {name}",
+                "power it on and release the brakes (pendant, or dashboard 'power on' then 'brake release')")
+        dashboard = dashboard_client.DashboardClient(self.config.robot_ip)
+        try:
+            dashboard.connect()
+            remote = dashboard.isInRemoteControl()
+        except RuntimeError as error:
+            raise ArmConnectionError(f"cannot reach the UR dashboard server at {self.config.robot_ip}: "
+                                     f"{error}") from error
+        finally:
+            dashboard.disconnect()
+        if not remote:
+            raise ArmConnectionError(f"UR at {self.config.robot_ip} is in local control",
+                                     "switch the pendant to remote control (top right of PolyScope)")
+
+    def _start_watchdog(self) -> None:
+        """Arm the script's watchdog and kick it from a thread of this process: if the
+        process or the link dies, the kicks stop and so does the robot."""
+        self._control.setWatchdog(self.config.watchdog_hz)
+        if self._kicker is not None and self._kicker.is_alive():
+            return  # still kicking: a re-uploaded script only needed its watchdog set again
+        self._kicking.clear()
+        self._kicker = threading.Thread(target=self._kick_watchdog, name="ur-watchdog", daemon=True)
+        self._kicker.start()
+
+    def _kick_watchdog(self) -> None:
+        period_s = 0.25 / self.config.watchdog_hz
+        while not self._kicking.wait(period_s):
+            control = self._control
+            if control is None:
+                return
+            try:
+                control.kickWatchdog()
+            except RuntimeError:
+                return  # the link is gone: the robot stops by the watchdog, as it should
+
+    def _reupload_script(self, description: str) -> None:
+        """Upload ur_rtde's script again and wait until it runs (reuploadScript returns once
+        it is sent, before the controller reports the program running)."""
+        deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
+        uploaded = self._control.reuploadScript()
+        while uploaded and not self._control.isProgramRunning():
+            if time.monotonic() > deadline:
+                uploaded = False
+            time.sleep(POLL_PERIOD_S)
+        if not uploaded:
+            raise ArmConnectionError(f"{description}: ur_rtde's control script did not start again",
+                                     "check that the pendant is in remote control and no popup is open")
+        self._start_watchdog()
+
+    def _stop_watchdog(self) -> None:
+        self._kicking.set()
+        if self._kicker is not None:
+            self._kicker.join()
+            self._kicker = None
 
     def read(self) -> ArmState:
         """Latest state: TCP pose (m, rotation vector rad, base frame), joints (rad, rad/s).
@@ -173,7 +244,7 @@ class URArm:
                     and _rotation_between(state.tcp_pose, target) <= self.config.orientation_tolerance_rad)
 
         self._execute(
-            f"moveL to {np.round(target, 4).tolist()}", linear=True,
+            f"moveL to {np.round(target, 4).tolist()}",
             send=lambda: self._control.moveL(target.tolist(), speed_m_s, accel_m_s2, True),
             arrived=arrived, expected_s=travel / speed_m_s + speed_m_s / accel_m_s2)
 
@@ -196,26 +267,28 @@ class URArm:
             return float(np.max(np.abs(state.joint_positions - target))) <= self.config.joint_tolerance_rad
 
         self._execute(
-            f"moveJ to {np.round(target, 4).tolist()}", linear=False,
+            f"moveJ to {np.round(target, 4).tolist()}",
             send=lambda: self._control.moveJ(target.tolist(), speed_rad_s, accel_rad_s2, True),
             arrived=arrived, expected_s=travel / speed_rad_s + speed_rad_s / accel_rad_s2)
 
     def stop(self) -> None:
-        """Decelerate the arm to rest (stopL or stopJ, matching the move in progress) and
-        return once the controller reports it stopped. A move waiting in another thread
-        then raises MotionAbortedError. Raises ConnectionLostError if the link is down."""
+        """Decelerate the arm to rest and return once the controller reports it stopped. A
+        move waiting in another thread then raises MotionAbortedError. Raises
+        ConnectionLostError if the link is down.
+
+        Sends stopJ: ur_rtde 1.6.5's script ends a running move with stopj whichever stop is
+        asked for (rtde_control.script, exec_stopl_stopj() and stop_thread()), so a stopL
+        would have its TCP deceleration applied to the joints."""
         state = self.read()
         if state.safety_status == "disconnected":
             raise ConnectionLostError("cannot send stop: no live connection to the UR controller")
         if state.safety_status != "normal":
             return  # a protective or emergency stop has already brought the arm to rest
-        if self._moving_linearly:
-            self._control.stopL(self.config.stop_decel_m_s2, False)
-        else:
-            self._control.stopJ(self.config.stop_decel_rad_s2, False)
+        self._control.stopJ(self.config.stop_decel_rad_s2, False)
 
     def disconnect(self) -> None:
         """Stop ur_rtde's control script and close both RTDE connections."""
+        self._stop_watchdog()
         control, receive = self._control, self._receive
         self._control = self._receive = None
         if control is not None:
@@ -225,7 +298,7 @@ class URArm:
         if receive is not None:
             receive.disconnect()
 
-    def _execute(self, description: str, linear: bool, send: Callable[[], bool],
+    def _execute(self, description: str, send: Callable[[], bool],
                  arrived: Callable[[ArmState], bool], expected_s: float) -> None:
         if self._control is None:
             raise ArmConnectionError(f"{description}: connect() first")
@@ -233,14 +306,20 @@ class URArm:
             raise ArmError(f"{description}: another move is in progress")
         try:
             self._raise_if_unsafe(self.read(), description)
-            self._moving_linearly = linear
+            if not self._control.isProgramRunning():
+                # A protective stop (or the pendant) ended the script; after the unlock it
+                # has to be uploaded again, with its watchdog.
+                self._reupload_script(description)
             # The script's operation id changes when the move starts, so a move counts
             # as finished only once it has started and then stopped running.
             operation_before = self._control.getAsyncOperationProgressEx().operationId()
             if not send():
                 self._raise_if_unsafe(self.read(), description)
                 raise ArmError(f"{description}: the controller refused the command")
-            deadline = time.monotonic() + expected_s + self.config.move_timeout_margin_s
+            # The deadline runs in the controller's time: at the speed slider's fraction f a
+            # move takes 1/f as long (at 0 the operator has paused it, and it waits).
+            allowed_s = expected_s + self.config.move_timeout_margin_s
+            elapsed_s, last = 0.0, time.monotonic()
             while True:
                 self._raise_if_unsafe(self.read(), description)
                 if not self._control.isProgramRunning():
@@ -253,10 +332,14 @@ class URArm:
                 status = self._control.getAsyncOperationProgressEx()
                 if status.operationId() != operation_before and not status.isAsyncOperationRunning():
                     break
-                if time.monotonic() > deadline:
+                now = time.monotonic()
+                elapsed_s += (now - last) * self._receive.getTargetSpeedFraction()
+                last = now
+                if elapsed_s > allowed_s:
                     self.stop()
                     raise MotionAbortedError(f"{description}: not finished after {expected_s:.1f} s "
-                                             f"+ {self.config.move_timeout_margin_s} s; stopped")
+                                             f"+ {self.config.move_timeout_margin_s} s at the speed "
+                                             "slider's pace; stopped")
                 time.sleep(POLL_PERIOD_S)
             final = self.read()
             if not arrived(final):
@@ -274,11 +357,11 @@ class URArm:
         if state.safety_status == "disconnected":
             raise ConnectionLostError(f"{action}: lost the RTDE connection to the UR controller")
         if state.safety_status == "protective_stop":
-            raise ProtectiveStopError(f"{action}: the UR controller is in a protective stop; "
+            raise ProtectiveStopError(f"{action}: the UR controller is in a protective stop",
                                       "inspect the cause, then unlock it on the pendant")
         if state.safety_status == "emergency_stop":
-            raise EmergencyStopError(f"{action}: the UR emergency stop is active; release it "
-                                     "and restart the arm")
+            raise EmergencyStopError(f"{action}: the UR emergency stop is active",
+                                     "release it and restart the arm")
 
 
 def _rotation_between(pose_a: np.ndarray, pose_b: np.ndarray) -> float:

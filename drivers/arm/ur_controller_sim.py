@@ -15,7 +15,23 @@ arrives in ``input_int_register_0`` and its arguments in ``input_double_register
 ``input_int_register_1``, and ``output_int_register_2`` reports asynchronous progress.
 The robot is a kinematic UR5e: moveJ interpolates the joints, moveL the TCP (position
 linearly, orientation by slerp) with the joints following by inverse kinematics, both with
-a trapezoidal speed profile; stopL/stopJ decelerate along the path.
+a trapezoidal speed profile.
+
+It is as strict as the controller running what ur_rtde 1.6.5 uploads:
+
+- a stop during a move is executed as ``stopj`` with the given deceleration in rad/s², for
+  stopL too: the 1.6.5 control script (rtde_control.script, exec_stopl_stopj() and
+  stop_thread(); ``global stop_type = 0 # 0 = stopj, 1 = stopl``) ends a running move with
+  stopj, so the joints decelerate and the TCP leaves the line;
+- a protective stop ends the running program (UR e-Series: the program stops and the
+  operator must unlock the stop and start it again), so ur_rtde's script must be uploaded
+  again (RTDEControlInterface::reuploadScript) after the unlock;
+- the pendant's speed slider (:meth:`FakeURController.set_speed_slider`) scales motion time;
+  the RTDE outputs ``target_speed_fraction`` and ``speed_scaling`` report it (RTDE guide);
+- the RTDE watchdog (command 35, set_watchdog: ``rtde_set_watchdog`` on the command
+  register, ur_rtde's setWatchdog/kickWatchdog): when no input package reaches the watched
+  register within 1/min_frequency, the program stops and so does the arm;
+- the dashboard reports local or remote control (:meth:`FakeURController.set_remote_control`).
 
 The client's compiled code holds the GIL, so the fake runs in its own (spawned) process;
 tests drive it through :class:`FakeURController`. Every fake gets its own 127.x.y.z
@@ -116,7 +132,7 @@ ROBOT_STATUS_POWER_ON, ROBOT_STATUS_PROGRAM_RUNNING = 1 << 0, 1 << 1
 
 # ur_rtde control script handshake (output_int_register_0) and command numbers.
 SCRIPT_READY, SCRIPT_DONE_WITH_COMMAND = 1, 2
-CMD_NONE, CMD_MOVEJ, CMD_MOVEL, CMD_STOPL, CMD_STOPJ, CMD_STOP_SCRIPT = 0, 1, 3, 33, 34, 255
+CMD_NONE, CMD_MOVEJ, CMD_MOVEL, CMD_STOPL, CMD_STOPJ, CMD_SET_WATCHDOG, CMD_STOP_SCRIPT = 0, 1, 3, 33, 34, 35, 255
 ASYNC_RUNNING_BIT = 1 << 15
 PROGRAM_STOP_DECEL = 10.0  # m/s² or rad/s² when a program ends mid-move
 
@@ -326,6 +342,10 @@ class _Controller:
         self.sockets: list[socket.socket] = []  # every accepted connection, for cut()
         self.listeners: list[socket.socket] = []
         self.running = True
+        self.speed_fraction = 1.0  # the pendant's speed slider
+        self.remote_control = True
+        self.watchdog_period_s: float | None = None  # set by the script's set_watchdog
+        self.watchdog_kicked = time.monotonic()
         self.outputs = self._modelled_outputs()
 
     # ---- values the RTDE outputs report -------------------------------------------
@@ -345,7 +365,7 @@ class _Controller:
             "robot_status_bits": ROBOT_STATUS_POWER_ON
             | (ROBOT_STATUS_PROGRAM_RUNNING if program_running else 0),
             "runtime_state": self.runtime_state(),
-            "speed_scaling": 1.0, "target_speed_fraction": 1.0,
+            "speed_scaling": self.speed_fraction, "target_speed_fraction": self.speed_fraction,
         }
 
     def output_value(self, name: str) -> Any:
@@ -365,6 +385,7 @@ class _Controller:
         with self.lock:
             self.ticks += 1
             if self.safety == "normal":
+                self._check_watchdog()
                 self._run_script()
                 self._move()
             else:
@@ -382,7 +403,7 @@ class _Controller:
             arm.tcp_speed[:] = 0.0
             return
         previous_q = arm.q.copy()
-        motion.step(self.dt)
+        motion.step(self.dt * self.speed_fraction)
         if motion.kind == "joint":
             arm.q = motion.setpoint()
         else:
@@ -440,12 +461,17 @@ class _Controller:
                 script.blocking_motion = motion
                 return
         elif command in (CMD_STOPL, CMD_STOPJ):
-            self.events.append(f"{'stopl' if command == CMD_STOPL else 'stopj'} {doubles[0]}")
+            # Both end a running move with stopj (see the module docstring).
+            self.events.append(f"stopj {doubles[0]}")
             if self.motion is not None:
-                self.motion.stop_decel = doubles[0]
+                self._stop_in_joint_space(doubles[0])
                 if not asynchronous:
                     script.blocking_motion = self.motion
                     return
+        elif command == CMD_SET_WATCHDOG:
+            self.events.append(f"set_watchdog {doubles[0]}")
+            self.watchdog_period_s = 1.0 / doubles[0]
+            self.watchdog_kicked = time.monotonic()
         elif command == CMD_STOP_SCRIPT:
             self.events.append("stop script")
             self._end_program()
@@ -454,6 +480,31 @@ class _Controller:
             self._halt_program(f"command {command} is not emulated by the fake controller")
             return
         self._write_int(0, SCRIPT_DONE_WITH_COMMAND)
+
+    def _stop_in_joint_space(self, decel_rad_s2: float) -> None:
+        """stopj: every joint keeps its direction and slows at ``decel_rad_s2`` (the fastest
+        one; the others in proportion), wherever that takes the TCP."""
+        motion, qd = self.motion, self.arm.qd
+        assert motion is not None
+        lead = float(np.max(np.abs(qd)))
+        if lead <= 0.0:
+            motion.stop_decel = decel_rad_s2
+            return
+        q = self.arm.q.copy()
+        stop = _Motion.joint(q, q + qd / lead, lead, decel_rad_s2, motion.asynchronous)
+        stop.v, stop.stop_decel = lead, decel_rad_s2
+        self.motion = stop
+        if self.script is not None and self.script.blocking_motion is motion:
+            self.script.blocking_motion = stop
+
+    def _check_watchdog(self) -> None:
+        """The watchdog's action: stop the program (and with it the arm) when the watched
+        register has not been written for a period."""
+        if self.script is None or self.watchdog_period_s is None:
+            return
+        if time.monotonic() - self.watchdog_kicked > self.watchdog_period_s:
+            self.events.append("watchdog: no input in time, program stopped")
+            self._end_program()
 
     def _stop_async_motion(self) -> None:
         if self.motion is not None and self.motion.asynchronous:
@@ -492,6 +543,7 @@ class _Controller:
 
     def _end_program(self) -> None:
         self.script = None
+        self.watchdog_period_s = None
         if self.motion is not None:
             self.motion.stop_decel = self.motion.stop_decel or PROGRAM_STOP_DECEL
 
@@ -512,8 +564,13 @@ class _Controller:
             if safety != "normal":
                 if self.script is not None:
                     self._stop_async_motion()
-                    self.script.blocking_motion = None
+                    self.events.append(f"{safety}: program stopped")
+                    self._end_program()
                 self.motion = None
+
+    def set_speed_slider(self, fraction: float) -> None:
+        with self.lock:
+            self.speed_fraction = float(fraction)
 
     def cut(self) -> None:
         """Drop every connection and stop accepting new ones, like a pulled network cable."""
@@ -640,6 +697,8 @@ class _RTDESession:
                 del flat[:width]
                 controller.note_command(name, value, received_ns)
                 controller.registers[name] = value
+                if controller.script is not None and name == f"input_int_register_{controller.script.offset}":
+                    controller.watchdog_kicked = time.monotonic()
 
     def send_state_if_due(self, tick: int) -> None:
         if self.output_struct is None or tick % self.ticks_per_package:
@@ -709,7 +768,7 @@ def _dashboard_answer(controller: _Controller, command: str) -> str:
         if command == "get robot model":
             return "UR5"
         if command == "is in remote control":
-            return "true"
+            return "true" if controller.remote_control else "false"
         if command == "robotmode":
             return f"Robotmode: {modes[controller.robot_mode]}"
         if command == "safetymode":
@@ -829,6 +888,13 @@ def _controller_process(pipe: multiprocessing.connection.Connection, host: str,
         elif request == "safety":
             controller.set_safety(argument)
             pipe.send(("ok", None))
+        elif request == "speed_slider":
+            controller.set_speed_slider(argument)
+            pipe.send(("ok", None))
+        elif request == "remote_control":
+            with controller.lock:
+                controller.remote_control = bool(argument)
+            pipe.send(("ok", None))
         elif request == "cut":
             controller.cut()
             pipe.send(("ok", None))
@@ -890,6 +956,14 @@ class FakeURController:
     def set_safety(self, safety: str) -> None:
         """Enter "protective_stop" or "emergency_stop" (motion halts), or back to "normal"."""
         self._request("safety", safety)
+
+    def set_speed_slider(self, fraction: float) -> None:
+        """The pendant's speed slider, 0-1: motions run at this fraction of their speed."""
+        self._request("speed_slider", fraction)
+
+    def set_remote_control(self, remote: bool) -> None:
+        """Remote control (True) or local control (False) on the pendant."""
+        self._request("remote_control", remote)
 
     def cut_connections(self) -> None:
         """Drop all client connections and refuse new ones."""

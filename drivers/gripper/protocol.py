@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import enum
 import struct
+from typing import Callable
+
+from drivers import DeviceError
 
 PREAMBLE = b"\xaa\xaa\xaa"
 HEADER_BYTES = len(PREAMBLE) + 3
@@ -20,17 +23,25 @@ HEADER_BYTES = len(PREAMBLE) + 3
 MAX_PAYLOAD_BYTES = 64
 
 
-class GripperError(RuntimeError):
+class GripperError(DeviceError):
     """Any failure of the gripper or of the serial line; the message says what to do."""
 
 
 class Command(enum.IntEnum):
+    DISCONNECT = 0x07
     HOMING = 0x20
     PREPOSITION = 0x21
     STOP = 0x22
+    FAST_STOP = 0x23
+    ACK_FAST_STOP = 0x24
     GRASP = 0x25
     RELEASE = 0x26
+    SET_ACCELERATION = 0x30
+    GET_ACCELERATION = 0x31
     SET_FORCE_LIMIT = 0x32
+    GET_FORCE_LIMIT = 0x33
+    TARE_FORCE = 0x38
+    GET_SYSTEM_STATE = 0x40
     GET_GRASPING_STATE = 0x41
     GET_WIDTH = 0x43
     GET_SPEED = 0x44
@@ -80,6 +91,31 @@ class GraspingState(enum.IntEnum):
     RELEASING = 5
     POSITIONING = 6
     ERROR = 7
+
+
+class SystemFlag(enum.IntFlag):
+    """Bits of the system state word (0x40), as the Weiss command set numbers them
+    (wsg50-ros-pkg: wsg_50_driver/include/wsg_50/common.h lists the same bits)."""
+
+    REFERENCED = 1 << 0
+    MOVING = 1 << 1
+    BLOCKED_MINUS = 1 << 2
+    BLOCKED_PLUS = 1 << 3
+    AXIS_STOPPED = 1 << 6
+    TARGET_POS_REACHED = 1 << 7
+    FAST_STOP = 1 << 12
+    TEMP_FAULT = 1 << 14
+    POWER_FAULT = 1 << 15
+    CURR_FAULT = 1 << 16
+    FINGER_FAULT = 1 << 17
+    CMD_FAILURE = 1 << 18
+
+
+# Faults that keep the gripper from moving until an operator has dealt with the cause.
+FAULT_FLAGS = (SystemFlag.TEMP_FAULT | SystemFlag.POWER_FAULT | SystemFlag.CURR_FAULT
+               | SystemFlag.FINGER_FAULT)
+# The fast stop is acknowledged with the three bytes "ack" (wsg50-ros-pkg: functions.cpp, ack_fault()).
+ACK_PAYLOAD = b"ack"
 
 
 def status_name(code: int) -> str:
@@ -136,11 +172,14 @@ class FrameParser:
     ``feed`` keeps incomplete data for the next call. After a bad frame it searches again
     from the byte after that frame's first byte, so a real frame hidden behind garbage
     that looked like a header is still found. ``discarded_bytes`` counts what was skipped.
+    ``on_bad_checksum`` (the device side) hears the command id of every complete frame
+    whose CRC is wrong, so it can answer E_CHECKSUM_ERROR as the gripper does.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, on_bad_checksum: Callable[[int], None] | None = None) -> None:
         self._buffer = bytearray()
         self.discarded_bytes = 0
+        self._on_bad_checksum = on_bad_checksum
 
     def feed(self, data: bytes) -> list[tuple[int, bytes]]:
         """Append ``data``; return every complete, valid (command id, payload) found."""
@@ -165,6 +204,8 @@ class FrameParser:
             if len(self._buffer) < total:
                 return frames
             if crc16(bytes(self._buffer[:total])) != 0:
+                if self._on_bad_checksum is not None:
+                    self._on_bad_checksum(command_id)
                 self._discard(1)
                 continue
             frames.append((command_id, bytes(self._buffer[HEADER_BYTES:HEADER_BYTES + length])))

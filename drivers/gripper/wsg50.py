@@ -4,7 +4,10 @@ A reader thread cuts incoming bytes into frames and files each under its command
 ``stop()`` from another thread can interrupt a running grasp. A request that gets no answer
 (lost or corrupted on the line) is sent again; a motion command that was already started by
 an earlier copy answers E_ALREADY_RUNNING, which the client treats as "wait for the end".
-If the final status of a motion is lost, the grasping state tells when the fingers stopped.
+If the final status of a motion is lost, the system state's SF_MOVING tells when the fingers
+stopped (the grasping state cannot: it stays IDLE while the gripper homes), and a stop sent
+meanwhile makes the motion's outcome E_CMD_ABORTED. Targets are checked against the
+gripper's limits before sending, because the device clamps them silently.
 """
 from __future__ import annotations
 
@@ -20,11 +23,11 @@ import serial
 from serial.tools import list_ports
 
 from drivers import require_text
-from drivers.gripper.protocol import (Command, FrameParser, GraspingState, GripperError, Status,
-                                      encode_frame, split_response, status_name)
+from drivers.gripper.protocol import (ACK_PAYLOAD, FAULT_FLAGS, Command, FrameParser, GraspingState,
+                                      GripperError, Status, SystemFlag, encode_frame, split_response,
+                                      status_name)
 from msgs import GripperState, Header
 
-_MOVING = {GraspingState.GRASPING, GraspingState.RELEASING, GraspingState.POSITIONING}
 _STATE_NAMES = {
     GraspingState.IDLE: "idle", GraspingState.GRASPING: "moving",
     GraspingState.RELEASING: "moving", GraspingState.POSITIONING: "moving",
@@ -48,6 +51,10 @@ class WSG50Config:
     motion_timeout_s: float = 10.0
     retries: int = 4
     frame_id: str = "tcp"
+    # The gripper's limits (WSG 50-110 data sheet); the device clamps what lies beyond them.
+    max_width_m: float = 0.110
+    max_speed_m_s: float = 0.42
+    max_force_n: float = 80.0
 
     def __post_init__(self) -> None:
         require_text(self, "port")
@@ -68,6 +75,7 @@ class WSG50Gripper:
         self._link_error: str | None = None
         self._reader: threading.Thread | None = None
         self._sequence = itertools.count(1)  # next() is atomic: commands run in several threads
+        self._stops = 0  # stops sent so far: a motion that saw one go out was aborted
 
     # -- life cycle ------------------------------------------------------------------------
     def connect(self) -> None:
@@ -106,8 +114,41 @@ class WSG50Gripper:
         """Current opening, grasping force and grasping state."""
         return self._state(Status.E_SUCCESS)
 
+    def preflight(self) -> None:
+        """Refuse a gripper that answers but cannot move: in FAST STOP, faulted, not
+        referenced (every motion would get E_ACCESS_DENIED; system state 0x40), or in the
+        grasping state ERROR (0x41). GripperError with the fix."""
+        flags = self._system_flags()
+        if flags & SystemFlag.FAST_STOP:
+            raise GripperError("the gripper is in FAST STOP", "clear its cause, then `dtx hw acknowledge "
+                               "LAUNCHFILE` (or /gripper/command action acknowledge)")
+        if flags & FAULT_FLAGS:
+            raise GripperError(f"the gripper reports a fault ({SystemFlag(flags & FAULT_FLAGS)!r})",
+                               "see its web interface, let it cool or check the power, then power-cycle it")
+        if not flags & SystemFlag.REFERENCED:
+            raise GripperError("the gripper is not referenced", "home it: `dtx hw acknowledge LAUNCHFILE` "
+                               "(or /gripper/command action home)")
+        if self._grasping_state() == GraspingState.ERROR:
+            raise GripperError("the gripper's grasping state is ERROR", "see its web interface for the cause, "
+                               "then `dtx hw acknowledge LAUNCHFILE`")
+
+    def acknowledge(self) -> GripperState:
+        """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again;
+        nothing is sent when the gripper is not in FAST STOP."""
+        status = Status.E_SUCCESS
+        if self._system_flags() & SystemFlag.FAST_STOP:
+            status, _ = self._request(Command.ACK_FAST_STOP, ACK_PAYLOAD)
+        if status != Status.E_SUCCESS:
+            raise GripperError(f"acknowledging the fast stop failed: {status_name(status)}")
+        return self._state(status)
+
+    def referenced(self) -> bool:
+        """Whether the gripper has been homed since it powered up."""
+        return bool(self._system_flags() & SystemFlag.REFERENCED)
+
     def home(self) -> GripperState:
-        """Reference the fingers (they open fully); needed after the gripper powers up."""
+        """Reference the fingers (they open fully); needed after the gripper powers up.
+        Returns when homing's own final status comes (the grasping state says IDLE throughout)."""
         status = self._motion(Command.HOMING, b"\x00")
         if status != Status.E_SUCCESS:
             raise GripperError(f"homing failed: {status_name(status)}; clear the fingers' path "
@@ -116,9 +157,10 @@ class WSG50Gripper:
 
     def move(self, width_m: float, speed_m_s: float) -> GripperState:
         """Move the fingers to ``width_m`` at ``speed_m_s`` without force control."""
+        self._check_range("move", width_m, speed_m_s)
         payload = struct.pack("<Bff", 0x02, width_m * 1e3, speed_m_s * 1e3)  # stop on block
         status = self._motion(Command.PREPOSITION, payload)
-        self._raise_on_range(status, "move", width_m, speed_m_s)
+        self._raise_on_refusal(status, "move")
         state = self._state(status)
         if status == Status.E_AXIS_BLOCKED or (
                 status == Status.E_SUCCESS and abs(state.width_m - width_m) > _WIDTH_TOLERANCE_M):
@@ -131,14 +173,15 @@ class WSG50Gripper:
     def grasp(self, width_m: float, speed_m_s: float, force_n: float) -> GripperState:
         """Close towards ``width_m`` until contact, then hold at ``force_n``.
 
+        ``width_m`` is the part's nominal width: a WSG looks for the part only within its
+        clamping travel (set on the web interface) around it, so pass the expected width.
         Returns the state: ``holding`` with the object's width, or ``no_part`` if the fingers
-        reached ``width_m`` without touching anything. A real WSG looks for the part only
-        within its clamping travel (web interface) before ``width_m``, so pass the expected
-        object width there; the firmware simulator accepts contact anywhere on the way.
+        found nothing in that window.
         """
+        self._check_range("grasp", width_m, speed_m_s)
         self.set_force_limit(force_n)
         status = self._motion(Command.GRASP, struct.pack("<ff", width_m * 1e3, speed_m_s * 1e3))
-        self._raise_on_range(status, "grasp", width_m, speed_m_s)
+        self._raise_on_refusal(status, "grasp")
         state = self._state(status)
         if status == Status.E_SUCCESS or state.state == "no_part":
             return state
@@ -146,14 +189,17 @@ class WSG50Gripper:
 
     def release(self, width_m: float, speed_m_s: float) -> GripperState:
         """Open to ``width_m`` (wider than now) at ``speed_m_s``, letting go of the part."""
+        self._check_range("release", width_m, speed_m_s)
         status = self._motion(Command.RELEASE, struct.pack("<ff", width_m * 1e3, speed_m_s * 1e3))
-        self._raise_on_range(status, "release", width_m, speed_m_s)
+        self._raise_on_refusal(status, "release")
         if status != Status.E_SUCCESS:
             raise GripperError(f"release failed: {status_name(status)}")
         return self._state(status)
 
     def stop(self) -> GripperState:
-        """Stop the fingers where they are; a running command ends with E_CMD_ABORTED."""
+        """Stop the fingers where they are; a running command ends with E_CMD_ABORTED (and
+        is reported so even if its final answer is lost). The gripper lets go of a held part."""
+        self._stops += 1
         status, _ = self._request(Command.STOP, b"")
         if status != Status.E_SUCCESS:
             raise GripperError(f"stop failed: {status_name(status)}")
@@ -161,6 +207,9 @@ class WSG50Gripper:
 
     def set_force_limit(self, force_n: float) -> None:
         """Grasping force (N) the next grasp holds with."""
+        if not 0.0 < force_n <= self.config.max_force_n:
+            raise GripperError(f"force limit {force_n} N is outside the gripper's range "
+                               f"(up to {self.config.max_force_n} N)")
         status, _ = self._request(Command.SET_FORCE_LIMIT, struct.pack("<f", force_n))
         if status == Status.E_RANGE_ERROR:
             raise GripperError(f"force limit {force_n} N is outside the gripper's range")
@@ -171,9 +220,22 @@ class WSG50Gripper:
     def _state(self, status: int) -> GripperState:
         header = Header.now(self.config.frame_id)
         header.seq = next(self._sequence)
-        return GripperState(header=header, width_m=self._value(Command.GET_WIDTH) * 1e-3,
-                            force_n=self._value(Command.GET_FORCE),
-                            state=_STATE_NAMES[self._grasping_state()], status_code=int(status))
+        width_m = self._value(Command.GET_WIDTH) * 1e-3
+        force_n = self._value(Command.GET_FORCE)
+        name = _STATE_NAMES[self._grasping_state()]
+        if name == "idle" and self._system_flags() & SystemFlag.MOVING:
+            name = "moving"  # homing: the grasping state has no name for it
+        return GripperState(header=header, width_m=width_m, force_n=force_n, state=name,
+                            status_code=int(status))
+
+    def _system_flags(self) -> SystemFlag:
+        status, data = self._request(Command.GET_SYSTEM_STATE, b"\x00\x00\x00")
+        if status != Status.E_SUCCESS or len(data) != 4:
+            raise GripperError(f"reading the system state failed: {status_name(status)}")
+        return SystemFlag(struct.unpack("<I", data)[0])
+
+    def _moving(self) -> bool:
+        return bool(self._system_flags() & SystemFlag.MOVING)
 
     def _value(self, command: Command) -> float:
         # Payload 0,0,0: no automatic updates, answer once.
@@ -188,25 +250,36 @@ class WSG50Gripper:
             raise GripperError(f"reading the grasping state failed: {status_name(status)}")
         return GraspingState(data[0])
 
-    def _raise_on_range(self, status: int, what: str, width_m: float, speed_m_s: float) -> None:
+    def _check_range(self, what: str, width_m: float, speed_m_s: float) -> None:
+        """Refuse what the device would clamp without saying so (nothing is sent)."""
+        config = self.config
+        if not (0.0 <= width_m <= config.max_width_m and 0.0 < speed_m_s <= config.max_speed_m_s):
+            raise GripperError(f"{what} to {width_m * 1e3:.1f} mm at {speed_m_s * 1e3:.0f} mm/s is outside "
+                               f"the gripper's range (width 0-{config.max_width_m * 1e3:.0f} mm, speed up "
+                               f"to {config.max_speed_m_s * 1e3:.0f} mm/s)")
+
+    def _raise_on_refusal(self, status: int, what: str) -> None:
         if status == Status.E_RANGE_ERROR:
-            raise GripperError(f"{what} to {width_m * 1e3:.1f} mm at {speed_m_s * 1e3:.0f} mm/s is "
-                               "outside the gripper's range (width 0-110 mm, speed up to 420 mm/s; "
-                               "grasp closes, release opens)")
+            raise GripperError(f"{what} refused (E_RANGE_ERROR): grasp closes, release opens")
+        if status == Status.E_ACCESS_DENIED:
+            raise GripperError(f"{what} refused (E_ACCESS_DENIED): the gripper is in FAST STOP or not "
+                               "referenced", "acknowledge the fast stop or home the gripper "
+                               "(`dtx hw acknowledge LAUNCHFILE`)")
 
     # -- request / response ----------------------------------------------------------------
     def _motion(self, command: Command, payload: bytes) -> int:
         """Run a motion command to its end; return its final status code."""
         with self._lock_for(command):
             replies = self._queue_for(command)
+            stops_before = self._stops
             status, _ = self._send_until_answered(command, payload, replies, motion=True)
             if status not in (Status.E_CMD_PENDING, Status.E_ALREADY_RUNNING):
                 return status
-            status = self._await_final(command, replies)
+            status = self._await_final(command, replies, stops_before)
             # A command sent again after its answer was lost can run twice: the first run's
             # final reply then comes while the second still moves, so wait for the second's.
-            while self._grasping_state() in _MOVING:
-                status = self._await_final(command, replies)
+            while self._moving():
+                status = self._await_final(command, replies, stops_before)
             return status
 
     def _request(self, command: Command, payload: bytes) -> tuple[int, bytes]:
@@ -232,16 +305,23 @@ class WSG50Gripper:
             f"{self.config.retries + 1} tries of {self.config.response_timeout_s} s: check that it is "
             f"powered, the cable, and the baud rate ({self.config.baudrate}; the WSG default is 115200)")
 
-    def _await_final(self, command: Command, replies: queue.Queue[tuple[int, bytes]]) -> int:
+    def _await_final(self, command: Command, replies: queue.Queue[tuple[int, bytes]],
+                     stops_before: int) -> int:
+        """The motion's final status; after a silence, ask SF_MOVING whether it still runs.
+        Stopped without its final answer: E_CMD_ABORTED if a stop went out meanwhile (a
+        stopped grasp also ends IDLE), else judged from the grasping state."""
         deadline = time.monotonic() + self.config.motion_timeout_s
         while time.monotonic() < deadline:
             reply = self._wait(replies, self.config.response_timeout_s)
             if reply is not None and reply[0] != Status.E_CMD_PENDING:
                 return reply[0]
-            if reply is None:
-                state = self._grasping_state()
-                if state not in _MOVING:
-                    return _OUTCOME_OF_STATE.get(state, Status.E_CMD_FAILED)
+            if reply is None and not self._moving():
+                late = self._wait(replies, 0.0)  # the answer may have come with the stop
+                if late is not None and late[0] != Status.E_CMD_PENDING:
+                    return late[0]
+                if self._stops != stops_before:
+                    return Status.E_CMD_ABORTED
+                return _OUTCOME_OF_STATE.get(self._grasping_state(), Status.E_CMD_FAILED)
         raise GripperError(f"{command.name} did not finish within {self.config.motion_timeout_s} s; "
                            "the fingers may still be moving: call stop()")
 
