@@ -15,6 +15,7 @@ from dataset.synth import (CAMERA_FIELD_WIDTH_MM, SHAPES, SurfaceMm, depth_map_f
 DEPTH_RANGE_M = (-0.0015, 0.0025)
 CROP_SCALE = 1.2  # dataset.synth's default: the depth-map crop is wider than the camera field
 CROP_MM = CAMERA_FIELD_WIDTH_MM * CROP_SCALE
+RENDERING_SCENE = "scenes/ycb_three.yaml"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,9 +46,11 @@ def write_dataset(out: Path, items: list[Contact], size: int, seed: int) -> Path
         return out
     renderer, pitch = gelsight_renderer(size)
     background = renderer.render(np.full((size, size), np.inf, np.float32))
-    info = DatasetInfo(image_height=size, image_width=size, depth_range_m=DEPTH_RANGE_M,
-                       scene=f"report: analytic contacts (seed {seed}, {size} bins)", effects=(),
-                       code_version=code_version(), split_seed=seed)
+    # The scene whose GelSight (calibration, field of view) renders these images, and the square
+    # crop the depth-maps cover: what a generator's physics prior (models.prior) needs.
+    info = DatasetInfo(image_height=size, image_width=size, depth_range_m=DEPTH_RANGE_M, scene=RENDERING_SCENE,
+                       effects=(), code_version=code_version(), split_seed=seed,
+                       depth_crop_m=(CROP_MM * 1e-3, DEPTH_RANGE_M[1] - DEPTH_RANGE_M[0], CROP_MM * 1e-3))
     writer = DatasetWriter(out, info)
     for c in items:
         tactile = renderer.render(gel_gap_from_surface(c.surface, size, size, pitch))
