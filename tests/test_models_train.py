@@ -88,6 +88,11 @@ def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
     assert (paper.lr, paper.beta1, paper.beta2, paper.lambda_l1) == (2e-4, 0.5, 0.999, 100.0)
     quick = TrainConfig.load(REPO / "configs" / "quick.yaml")  # departs from the paper where it says why
     assert (quick.lr, quick.beta1, quick.beta2) == (2e-4, 0.5, 0.999) and quick.lambda_l1 > 0
+    # The generalisation table's variants differ from the default only in what they compare.
+    for variant in sorted((REPO / "configs" / "variants").glob("*.yaml")):
+        config = TrainConfig.load(variant)
+        assert (config.lr, config.batch_size, config.lambda_l1, config.generator.ngf) == \
+            (quick.lr, quick.batch_size, quick.lambda_l1, quick.generator.ngf), variant.name
     bad = tmp_path / "bad.yaml"
     for text, message in [("lr: -1\n", "lr > 0"), ("epochs: 0\nepochs_decay: 0\n", "positive sum"),
                           ("learning_rate: 1\n", "unknown training config"), ("generator: {ngf: 0}\n", "ngf"),
