@@ -80,7 +80,7 @@ def paper_table(evaluation: dict) -> str:
 def cmd_demo(args: argparse.Namespace) -> int:
     from dataset.redepth import density_dirs  # noqa: PLC0415 (Open3D; only when the demo runs)
     from models.real_presses import real_press_table  # noqa: PLC0415 (torch; only when the demo runs)
-    from perception.density import PAPER_DENSITIES_PER_CM3  # noqa: PLC0415
+    from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3  # noqa: PLC0415
 
     out = Path(args.out)
     session, library, train_dir, figures = out / "session", out / "library", out / "train", out / "figures"
@@ -98,8 +98,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if (train_dir / "checkpoint.pt").exists():
         train.append("--resume")
     _run("3/5 train the cGAN", train)
-    densities = density_dirs(session, list(PAPER_DENSITIES_PER_CM3))
-    _run("4/5 depth-maps at the paper's point densities",
+    densities = density_dirs(session, [*PAPER_DENSITIES_PER_CM3, *DENSER_PER_CM3])
+    _run("4/5 depth-maps at the paper's point densities and denser",
          ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities]])
     report = _run("5/5 evaluate like the paper, and on real GelSight presses it never saw",
                   ["evaluate", str(train_dir / "checkpoint.pt"), str(session), "--json", "--figures", str(figures),
