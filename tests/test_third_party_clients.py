@@ -19,7 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
+from dtx.bag import BagWriter, bag_info
+from msgs.codec import decode, encode
 from nodes.bus import Bus
 from nodes.inference_client import SERVICE, TactileClient
 from nodes.registry import Registry
@@ -113,3 +116,35 @@ def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple
     while len(registry.lookup("service", SERVICE)) < 2:
         assert time.monotonic() < deadline, "the killed worker was not respawned"
         time.sleep(0.2)
+
+
+def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_modules: Path, tmp_path: Path) -> None:
+    """@mcap/core, knowing only docs/bag-format.md, decodes every dtx channel of a bag, and of
+    the same bag cut short by a crash as much as the Python reader does."""
+    path = tmp_path / "session.mcap"
+    writer = BagWriter(path, compression="none", chunk_size=64 * 1024)
+    for i in range(20):
+        for topic, message in (("/gripper/state", msgs.GripperState(width_m=0.01 * i)),
+                               ("/camera/left/depth", msgs.DepthImage(depth=np.full((48, 64), i, np.uint16))),
+                               ("/cloud", msgs.PointCloud(points=np.full((30, 3), i, np.float32)))):
+            message.header.stamp_ns = 1_000_000 * (i + 1)
+            frames = encode(topic, message, "test")
+            writer.write(decode(frames), frames, log_time_ns=message.header.stamp_ns)
+    writer.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:int(path.stat().st_size * 0.6)])
+    for bag, complete in ((path, True), (cut, False)):
+        done = subprocess.run([str(NODE), str(CLIENTS / "read_bag.mjs"), str(bag)], cwd=CLIENTS, text=True,
+                              capture_output=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        result = json.loads(done.stdout)
+        python = bag_info(bag)
+        assert python.truncated is not complete and result["stream"]["done"] is complete
+        readers = [result["stream"], result["indexed"]] if complete else [result["stream"]]
+        for read in readers:
+            assert {topic: entry["count"] for topic, entry in read["topics"].items()} == \
+                {topic: entry["count"] for topic, entry in python.topics.items()}
+            assert read["decoded"] == sum(entry["count"] for topic, entry in python.topics.items()
+                                          if entry["encoding"] == "dtx/msgpack+buffers")
+        assert read["topics"]["/gripper/state"]["encoding"] == "dtx/jsonschema"
+    assert 0 < sum(e["count"] for e in result["stream"]["topics"].values()) < 120
