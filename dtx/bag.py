@@ -42,12 +42,11 @@ from mcap.writer import CompressionType, Writer
 import msgs
 from msgs.base import Message
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
-from msgs.foxglove import foxglove_view
+from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_view
 from nodes.bus import SLICE_MESSAGES, Bus, Publisher, Subscriber
 
 MESSAGE_ENCODING = "dtx/msgpack+buffers"
 SCHEMA_ENCODING = "dtx/jsonschema"
-FOXGLOVE_SUFFIX = "/foxglove"
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 _LENGTH = struct.Struct("<Q")
 # No record, and no chunk once decompressed, may be larger than the largest message the bus

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,6 +25,7 @@ from benchmarks.serve import depth_maps, write_checkpoint
 from dtx.bag import BagWriter, bag_info
 from msgs.codec import decode, encode
 from nodes.bus import Bus
+from nodes.foxglove_bridge import FoxgloveBridge
 from nodes.inference_client import SERVICE, TactileClient
 from nodes.registry import Registry
 
@@ -148,3 +150,36 @@ def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_module
                                           if entry["encoding"] == "dtx/msgpack+buffers")
         assert read["topics"]["/gripper/state"]["encoding"] == "dtx/jsonschema"
     assert 0 < sum(e["count"] for e in result["stream"]["topics"].values()) < 120
+
+
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_cloud(
+        node_modules: Path, registry: Registry, subprotocol: str) -> None:
+    """@foxglove/ws-protocol, as Studio 1.x and Lichtblick connect: a cloud published once
+    before the viewer came is still shown, and so are the images that stream."""
+    bridge = FoxgloveBridge("foxglove", {"port": 0, "max_rate_hz": 100.0}, registry=registry)
+    thread = threading.Thread(target=bridge.spin)
+    with contextlib.closing(Bus("sensors", registry)) as bus:
+        cloud = bus.publisher("/object/cloud", msgs.PointCloud, latched=True)
+        camera = bus.publisher("/gelsight_left/image", msgs.TactileImage)
+        cloud.publish(msgs.PointCloud(points=np.zeros((10, 3), np.float32)))
+        thread.start()
+        try:
+            viewer = subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
+                                       subprotocol, "6"], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE)
+            while viewer.poll() is None:
+                camera.publish(msgs.TactileImage(image=np.zeros((12, 16, 3), np.uint8), sensor="left"))
+                cloud.service_subscriptions()  # a node's executor does this: the latched resend to the bridge
+                time.sleep(0.05)
+            output, errors = viewer.communicate()
+        finally:
+            bridge.request_shutdown()
+            thread.join()
+            bridge.close()
+    assert viewer.returncode == 0, errors
+    seen = json.loads(output)
+    assert seen["opened"] and not seen["errors"] and not seen["statuses"], seen
+    assert {"/object/cloud/foxglove", "/gelsight_left/image/foxglove"} <= set(seen["advertised"])
+    assert seen["messages"].get("/object/cloud/foxglove", 0) >= 1, seen
+    assert seen["messages"].get("/gelsight_left/image/foxglove", 0) >= 1, seen
