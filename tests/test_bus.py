@@ -450,3 +450,13 @@ def test_an_oversized_request_is_refused_at_once_with_a_code(registry: Registry)
         assert client.call(msgs.Log(text="small"), timeout_s=30.0).text == "small"
     small.close()
     server_bus.close()
+
+
+def test_the_entries_of_an_ended_process_are_forgotten_at_once(registry: Registry) -> None:
+    """The launcher calls forget_process when a node ends, so a client in any language that
+    reads the directory never picks the entry of a worker killed with -9."""
+    mine = Endpoint("service", "/double", "ipc:///nowhere", "worker", 999_999_999, "dtx.x.Y")
+    other = Endpoint("service", "/double", "ipc:///elsewhere", "worker", os.getpid(), "dtx.x.Y")
+    dead, alive = registry.advertise(mine), registry.advertise(other)
+    assert registry.forget_process(999_999_999) == 1
+    assert not dead.exists() and alive.exists()
