@@ -6,7 +6,9 @@
   (``DepthImage.camera_to_world`` on ``/<camera>/depth``);
 - ``world → tcp``: the arm's state (``/arm/state``, UR pose: position m, rotation vector rad);
 - ``tcp → gel_left``, ``tcp → gel_right``: the gripper's width (``/gripper/state``) and the
-  gripper geometry of ``scene`` (perception.kinematics, the collector's own gel poses).
+  gripper geometry of ``scene`` (perception.kinematics, the collector's own gel poses);
+- ``world → object`` comes from the patch extractor itself, latched on ``/perception/object_pose``
+  when it registers an object.
 
 Each frame is published ``rate_hz`` times a second once its source has been heard, with the
 stamp of the newest source message, so a slow topic never holds back a fast one.
