@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.setup-done
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml constraints.txt scripts/setup.sh
+$(STAMP): pyproject.toml constraints.txt scripts/setup.sh clients/node/package-lock.json
 	bash scripts/setup.sh
 	touch $@
 

@@ -2,8 +2,11 @@
 
 A dtx message is stored in its own encoding: the channel's message encoding is
 ``dtx/msgpack+buffers``, the data is the wire header and array buffers each prefixed by its
-length (uint64 little-endian), and the schema record holds the message's field layout as
-JSON, so a bag explains itself. Images, point clouds and transforms are also written to a
+length (uint64 little-endian), and the schema record (encoding ``dtx/jsonschema``) is a JSON
+Schema of the message's fields with each array's dtype and shape, so a bag explains itself to a
+tool in any language (docs/bag-format.md). Chunks are closed by age as well as size, and the
+file's header is on disk from the start, so a recorder killed at any moment loses at most
+``CHUNK_PERIOD_S`` and never leaves an empty file. Images, point clouds and transforms are also written to a
 ``<topic>/foxglove`` channel in Foxglove's well-known protobuf schemas, so Foxglove Studio
 shows them directly.
 
@@ -27,6 +30,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import lz4.frame
+import numpy as np
 import zmq
 import zstandard
 from mcap.exceptions import McapError, RecordLengthLimitExceeded
@@ -38,17 +42,19 @@ from mcap.writer import CompressionType, Writer
 import msgs
 from msgs.base import Message
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
-from msgs.foxglove import foxglove_view
+from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_view
 from nodes.bus import SLICE_MESSAGES, Bus, Publisher, Subscriber
 
 MESSAGE_ENCODING = "dtx/msgpack+buffers"
-SCHEMA_ENCODING = "dtx/fields+json"
-FOXGLOVE_SUFFIX = "/foxglove"
+SCHEMA_ENCODING = "dtx/jsonschema"
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 _LENGTH = struct.Struct("<Q")
 # No record, and no chunk once decompressed, may be larger than the largest message the bus
 # carries plus its framing: a bag that claims more is refused before anything is allocated.
 MAX_RECORD_BYTES = DEFAULT_MAX_MESSAGE_BYTES + (1 << 20)
+# A chunk is closed at this age, or at chunk_size, whichever comes first: what a killed recorder
+# can lose. Half the ~1 s promised, leaving the rest to a recorder that a busy machine delays.
+CHUNK_PERIOD_S = 0.5
 
 
 class BagError(ValueError):
@@ -81,16 +87,57 @@ def unpack_frames(topic: str, data: bytes | memoryview) -> list[Any]:
 
 
 def schema_description(msg_type: type[Message]) -> bytes:
-    hints = typing.get_type_hints(msg_type)
-    fields = {f.name: str(hints[f.name]) for f in dataclasses.fields(msg_type)}
-    return json.dumps({"schema": msg_type.SCHEMA, "version": msg_type.VERSION, "fields": fields}).encode()
+    """The message's fields as a JSON Schema (draft 2020-12) of the header map ``d``, arrays
+    with their dtype and shape: a tool in another language decodes a channel from the bag
+    alone (docs/bag-format.md), without reading this code."""
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": f"dtx:{msg_type.SCHEMA}/{msg_type.VERSION}",
+        "title": msg_type.SCHEMA,
+        "description": (msg_type.__doc__ or "").strip(),
+        "x-dtx-version": msg_type.VERSION,
+        "x-dtx-payload": "length-prefixed frames (uint64 LE): msgpack header {s,v,t,q,f,p,d,a}, then one "
+                         "raw little-endian C-order buffer per entry of a ([dtype, shape]); this schema "
+                         "describes d. See docs/bag-format.md and docs/wire-protocol.md.",
+        **_object_schema(msg_type, skip_header=True),
+    }
+    return json.dumps(schema).encode()
+
+
+def _object_schema(cls: type, skip_header: bool = False) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    defaults = cls()  # the defaults give each array's dtype and rank
+    names = [f.name for f in dataclasses.fields(cls) if not (skip_header and f.name == "header")]
+    return {"type": "object", "additionalProperties": False, "required": names,
+            "properties": {name: _field_schema(hints[name], getattr(defaults, name)) for name in names}}
+
+
+def _field_schema(annotation: Any, default: Any) -> dict[str, Any]:
+    if annotation is np.ndarray:
+        return {"type": "object", "additionalProperties": False, "required": ["__array__"],
+                "properties": {"__array__": {"type": "integer", "minimum": 0,
+                                             "description": "index of this array's buffer (and of its entry in a)"}},
+                "x-dtx-array": {"dtype": default.dtype.str, "shape": [d or None for d in default.shape],
+                                "description": "dtype as this field is usually sent, shape with null for "
+                                               "a dimension of any length; the record's a is authoritative"}}
+    if dataclasses.is_dataclass(annotation):
+        return _object_schema(annotation)
+    simple = {int: "integer", float: "number", str: "string", bool: "boolean"}
+    if annotation in simple:
+        return {"type": simple[annotation]}
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is list:
+        return {"type": "array", "items": _field_schema(args[0], None)}
+    if origin is dict:
+        return {"type": "object", "additionalProperties": _field_schema(args[1], None)}
+    raise BagError(f"field type {annotation} has no JSON Schema")
 
 
 class BagWriter:
     """Writes envelopes (with their raw frames) to an MCAP file, chunked and compressed."""
 
     def __init__(self, path: str | Path, compression: str = "lz4", foxglove: bool = True,
-                 chunk_size: int = 4 * 1024 * 1024) -> None:
+                 chunk_size: int = 4 * 1024 * 1024, chunk_period_s: float = CHUNK_PERIOD_S) -> None:
         if compression not in COMPRESSIONS:
             raise BagError(f"compression {compression!r} unknown; allowed: {sorted(COMPRESSIONS)}")
         self.path = Path(path)
@@ -98,6 +145,9 @@ class BagWriter:
         self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
         self._writer.start(profile="dtx", library="dtx")
+        self._file.flush()  # a recorder killed at once still leaves a bag that opens, never 0 bytes
+        self.chunk_period_s = chunk_period_s
+        self._chunk_opened: float | None = None  # time.monotonic() of the open chunk's first message
         self.foxglove = foxglove
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -120,6 +170,8 @@ class BagWriter:
         self._writer.add_message(channel, log_time, pack_frames(frames[1:]),
                                  message.header.stamp_ns, message.header.seq)
         self.counts[envelope.topic] = self.counts.get(envelope.topic, 0) + 1
+        if self._chunk_opened is None:
+            self._chunk_opened = time.monotonic()
         if self.foxglove:
             view = foxglove_view(message)
             if view is not None:
@@ -128,6 +180,16 @@ class BagWriter:
                                             schema.data, "protobuf")
                 self._writer.add_message(fox_channel, log_time, view.encode(),
                                          message.header.stamp_ns, message.header.seq)
+
+        self.flush_if_due()
+
+    def flush_if_due(self) -> None:
+        """Close the open chunk and hand it to the OS once it is ``chunk_period_s`` old, so a
+        recorder killed at any moment loses at most that much (a chunk is only readable once
+        closed); called after each message and by the recorder's loop when none come."""
+        if self._chunk_opened is not None and time.monotonic() - self._chunk_opened >= self.chunk_period_s:
+            self._writer.flush()
+            self._chunk_opened = None
 
     def close(self) -> None:
         self._writer.finish()
@@ -347,6 +409,7 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
                     subscriber.discover()
             for sock, _ in poller.poll(50):  # a slice from each ready topic, then the others
                 _drain(subscribers[sock], writer, on_message, SLICE_MESSAGES)
+            writer.flush_if_due()
         for subscriber in subscribers.values():  # what arrived before the stop is kept
             _drain(subscriber, writer, on_message, None)
     finally:

@@ -238,6 +238,7 @@ class Launcher:
         self._print_lock = threading.Lock()
         self._stop = threading.Event()
         self.failures: list[str] = []
+        self.registry = Registry()  # the bus of the graph
 
     def say(self, text: str) -> None:
         with self._print_lock:
@@ -259,7 +260,7 @@ class Launcher:
 
     def run(self) -> int:
         """Run until Ctrl-C, a required node ends, or every node has ended. Exit status."""
-        registry = Registry()
+        registry = self.registry
         taken = {spec.name: registry.live_node_pid(spec.name) for spec in self.description.nodes}
         taken = {name: pid for name, pid in taken.items() if pid is not None}
         if taken:
@@ -286,6 +287,7 @@ class Launcher:
                 continue
             spec = run.spec
             del self.running[name]
+            self.registry.forget_process(run.process.pid)  # a node killed with -9 could not
             if code not in (0, EXIT_DO_NOT_RESPAWN) and spec.respawn:
                 self.say(f"[launch] {name} exited with {code}; respawning in {spec.respawn_delay_s} s")
                 self._stop.wait(spec.respawn_delay_s)

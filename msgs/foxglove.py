@@ -16,6 +16,18 @@ def _foxglove_time(stamp_ns: int) -> fox.Timestamp:
     return fox.Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
 
 
+# Where a dtx topic's Foxglove form goes, in bags and live alike: one name for both.
+FOXGLOVE_SUFFIX = "/foxglove"
+
+
+def foxglove_schema(dtx_schema: str) -> Any | None:
+    """The Foxglove schema of a dtx schema's view (None: it has none), known before any
+    message comes, so a channel can be advertised as soon as its topic is discovered."""
+    view = {msgs.DepthImage.SCHEMA: fox.RawImage, msgs.TactileImage.SCHEMA: fox.RawImage,
+            msgs.PointCloud.SCHEMA: fox.PointCloud, msgs.FrameTransform.SCHEMA: fox.FrameTransform}.get(dtx_schema)
+    return view().get_schema() if view is not None else None
+
+
 def foxglove_view(message: Message) -> Any | None:
     """The Foxglove well-known message showing ``message``, or None if it has none."""
     header = message.header

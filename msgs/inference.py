@@ -30,12 +30,23 @@ class TactileEstimateRequest(Message):
 @dataclasses.dataclass
 class TactileEstimateReply(Message):
     """N x H x W x 3 uint8 estimated tactile images; N x H x W float32 uncertainty (std of
-    the dropout samples in image units, zeros when one sample was asked for)."""
+    the dropout samples in image units, zeros when one sample was asked for).
+
+    ``region_status[i]`` is ``"ok"``, or ``"out_of_reach"`` when gel i does not reach the
+    cloud (points requests only): a planner asks about many candidate poses at once, and one
+    that misses the object is an answer about that pose, not a fault of the batch. Its image
+    is the estimate for an empty depth-map (the gel touching nothing) and ``region_errors[i]``
+    says why in a sentence ("" for ok regions). ``depth_range_m`` is the server's
+    (y_near, y_far) in the gel frame: depth-maps are clipped to it and y_far means no surface.
+    """
 
     SCHEMA = "dtx.inference.TactileEstimateReply"
-    VERSION = 1
+    VERSION = 2
 
     images: np.ndarray = empty((0, 100, 100, 3), np.uint8)
     uncertainty: np.ndarray = empty((0, 100, 100), np.float32)
     model: str = ""
     latency_ms: float = 0.0
+    region_status: list[str] = dataclasses.field(default_factory=list)
+    region_errors: list[str] = dataclasses.field(default_factory=list)
+    depth_range_m: list[float] = dataclasses.field(default_factory=list)

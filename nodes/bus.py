@@ -29,12 +29,13 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Generic, TypeVar
 
+import msgpack
 import zmq
 import zmq.auth
 from zmq.utils.monitor import recv_monitor_message
 
 from msgs.base import Header, Message
-from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode, encode
+from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, MAX_HEADER_BYTES, Envelope, MessageError, decode, encode
 from msgs.system import ServiceError
 from nodes.registry import Endpoint, Registry
 from nodes.security import CurveConfig, secure_client, secure_server, stop_authenticator
@@ -393,6 +394,23 @@ class Subscriber(Generic[M]):
         self.sock.close()
 
 
+def request_id(frames: list[Any]) -> tuple[str, int]:
+    """The ``p`` and ``q`` of a request that does not decode, read as leniently as possible:
+    ``("", 0)`` where the header is not a msgpack map or ``p``/``q`` are not a string and a
+    non-negative integer (q 0 is never a request's own number; docs/wire-protocol.md)."""
+    try:
+        view = memoryview(getattr(frames[1], "buffer", frames[1]))
+        header = msgpack.unpackb(view, raw=False) if view.nbytes <= MAX_HEADER_BYTES else None
+    except Exception:  # msgpack raises several unrelated types on garbage; a missing frame too
+        return "", 0
+    if not isinstance(header, dict):
+        return "", 0
+    client, seq = header.get("p"), header.get("q")
+    client = client if isinstance(client, str) else ""
+    seq = seq if isinstance(seq, int) and not isinstance(seq, bool) and 0 <= seq < 2**63 else 0
+    return client, seq
+
+
 class ServiceServer(Generic[M, R]):
     # Replies kept for retried requests: the newest, within both bounds (an inference reply
     # can be many MB, so the count alone would not bound the memory).
@@ -471,7 +489,10 @@ class ServiceServer(Generic[M, R]):
         except MessageError as exc:
             self.counters.malformed += 1
             self._drop_log.warning("%s: malformed request (%s)", self.name, exc)
-            self._send(identity, ServiceError(code="malformed_request", text=str(exc)), "", 0)
+            # The reply carries the request's (p, q) whenever they can be read, so a client
+            # waiting for that q gets its answer instead of a time-out.
+            client, seq = request_id(frames[1:])
+            self._send(identity, ServiceError(code="bad_request", text=str(exc)), client, seq)
             return
         key = (identity, envelope.publisher, envelope.message.header.seq)
         # A retry resends the very frames; the same (publisher, seq) with other content is not

@@ -13,9 +13,10 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
   ``dropout_samples`` = S > 1, the per-pixel standard deviation (0..255 image units, mean of
   the three channels) of S extra passes with dropout on — pix2pix's noise z; zeros for S = 1.
 - A bad request (shape, dtype, NaN/inf, empty, too many regions, points, points x regions
-  or regions x samples, both or neither input, gel poses that are not rigid transforms, a gel that does
-  not reach the cloud) gets an error reply with code ``bad_request``; a wrong schema is
-  refused by the bus. The node keeps serving.
+  or regions x samples, both or neither input, gel poses that are not rigid transforms) gets an
+  error reply with code ``bad_request``; a wrong schema is refused by the bus. The node keeps
+  serving. A gel that does not reach the cloud is answered per region (``region_status``
+  ``out_of_reach``, the empty map's estimate), not by failing the request.
 - Scaling out: start several of these nodes; clients' DEALER sockets round-robin over every
   server of the name (launch/serve.yaml).
 
@@ -47,7 +48,7 @@ from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.node import Node, run_node
 from perception.depthmap import DepthMapParams, contact_depth_map
-from perception.errors import PerceptionError
+from perception.errors import DepthMapError, PerceptionError
 from perception.pointcloud import check_transform
 
 RUNTIMES = ("onnxrt", "eager")
@@ -221,24 +222,20 @@ class InferenceNode(Node):
                     job.future.set_exception(exc)
 
     def _run(self, jobs: list[_Job]) -> None:
-        ready, maps = [], []
+        maps, errors = [], []
         for job in jobs:
-            try:
-                maps.append(self._depth_maps(job.request))
-                ready.append(job)
-            except BadRequest as exc:
-                job.future.set_exception(exc)
-        if not ready:
-            return
+            job_maps, job_errors = self._depth_maps(job.request)
+            maps.append(job_maps)
+            errors.append(job_errors)
         x = network_input(np.concatenate(maps), self.depth_range_m, self.config, self.prior).numpy()
         images = to_uint8_rgb(torch.from_numpy(self._batched(self.deterministic, x)))
-        samples = [job.request.dropout_samples for job in ready]
+        samples = [job.request.dropout_samples for job in jobs]
         offsets = np.cumsum([0] + [m.shape[0] for m in maps])
         # Every region of a job asking for S samples is repeated S times; all go through together.
         repeated = [np.repeat(x[offsets[i]:offsets[i + 1]], s, axis=0) for i, s in enumerate(samples) if s > 1]
         sampled = self._batched(self.sampled, np.concatenate(repeated)) if repeated else np.zeros((0,))
         cursor = 0
-        for i, job in enumerate(ready):
+        for i, job in enumerate(jobs):
             n, s = offsets[i + 1] - offsets[i], samples[i]
             uncertainty = np.zeros((n, *x.shape[2:]), np.float32)
             if s > 1:
@@ -247,19 +244,26 @@ class InferenceNode(Node):
                 uncertainty = draws.reshape(n, s, *draws.shape[1:]).std(axis=1).mean(axis=1).astype(np.float32)
             job.future.set_result(TactileEstimateReply(
                 images=images[offsets[i]:offsets[i + 1]], uncertainty=uncertainty, model=self.model,
-                latency_ms=(time.monotonic() - job.arrived) * 1e3))  # queue, window and passes
+                latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
+                region_status=["out_of_reach" if e else "ok" for e in errors[i]], region_errors=errors[i],
+                depth_range_m=[float(y) for y in self.depth_range_m]))
 
-    def _depth_maps(self, request: TactileEstimateRequest) -> np.ndarray:
+    def _depth_maps(self, request: TactileEstimateRequest) -> tuple[np.ndarray, list[str]]:
+        """The request's depth-maps and, per region, why its gel reaches no surface ("" when
+        it does); such a region gets the empty map (every bin y_far), what the gel feels there."""
         if request.depth_maps.size:
-            return request.depth_maps
-        maps = []
+            return request.depth_maps, [""] * len(request.depth_maps)
+        maps, errors = [], []
         for i, pose in enumerate(request.gel_poses):
             try:
                 patch = contact_depth_map(request.points, np.eye(4), pose, self.geometry, self.depth_map_params)
-            except PerceptionError as exc:
-                raise BadRequest(f"region {i}: {exc}") from exc
+            except DepthMapError as exc:  # the request was checked: only "no point in the crop" is left
+                maps.append(np.full(self.depth_map_params.shape, self.depth_range_m[1], np.float32))
+                errors.append(f"region {i}: {exc}")
+                continue
             maps.append(patch.depth_map_m)
-        return np.stack(maps)
+            errors.append("")
+        return np.stack(maps), errors
 
     def _batched(self, forward: Runner, x: np.ndarray) -> np.ndarray:
         step = self.params.max_batch

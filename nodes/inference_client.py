@@ -49,7 +49,9 @@ class TactileClient:
 
     def estimate_at(self, points_world: np.ndarray, gel_poses: np.ndarray,
                     dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """From the object's cloud (P x 3, world, metres) and candidate gel poses (N x 4 x 4, gel to world)."""
+        """From the object's cloud (P x 3, world, metres) and candidate gel poses (N x 4 x 4, gel to world).
+        A gel that reaches no point of the cloud gets the no-contact estimate; which ones did
+        is in ``last_reply.region_status`` ("ok" / "out_of_reach")."""
         points, poses = np.asarray(points_world), np.asarray(gel_poses, dtype=np.float64)
         points = points if points.dtype == np.float32 else points.astype(np.float64)  # float32 halves the bytes
         return self._call(TactileEstimateRequest(points=points,

@@ -7,7 +7,8 @@
   the registered model cloud for the given gel poses, the model first centred between the
   gels (a grasp pushes a free-standing object there; ``centre_between_gels: false`` for an
   object that cannot move).
-- Publishes what it extracted (``/perception/object_cloud``, ``/perception/depth_map``) so a
+- Publishes what it extracted (``/perception/object_cloud``, ``/perception/depth_map``, and
+  the registered pose as the ``world -> object`` transform on ``/perception/object_pose``) so a
   session bag holds it.
 
 Params: ``scene`` (which objects exist, their meshes and nominal places, the gripper
@@ -25,6 +26,7 @@ import numpy as np
 
 import msgs
 from nodes.node import Node, run_node
+from nodes.transforms import frame_transform
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, centre_between_gels,
                                  contact_depth_map, crop_reach_m)
 from perception.evaluation import segmentation_params_for
@@ -71,6 +73,8 @@ class PatchExtractorNode(Node):
         self.registered: dict[str, Registered] = {}
         self.cloud = self.create_publisher("/perception/object_cloud", msgs.PointCloud, latched=True)
         self.depth_maps = self.create_publisher("/perception/depth_map", msgs.DepthMap)
+        # world -> object of the last registration, for the transform tree (bags, Foxglove)
+        self.object_pose = self.create_publisher("/perception/object_pose", msgs.FrameTransform, latched=True)
         self.create_service("/perception/register", msgs.RegisterRequest, msgs.RegisterReply, self.on_register)
         self.create_service("/perception/patch", msgs.PatchRequest, msgs.PatchReply, self.on_patch)
 
@@ -103,6 +107,7 @@ class PatchExtractorNode(Node):
         self.registered[spec.name] = Registered(dense, result.model_to_world)
         self.cloud.publish(msgs.PointCloud(header=msgs.Header(frame_id="world"),
                                            points=segmented.points_world_m.astype(np.float32)))
+        self.object_pose.publish(frame_transform("world", "object", result.model_to_world, time.time_ns()))
         self.log.info("registered %s: fitness %.3f, rmse %.2f mm, %d points", spec.name, result.fitness,
                       result.inlier_rmse_m * 1e3, len(segmented.points_world_m))
         return msgs.RegisterReply(

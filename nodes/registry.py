@@ -139,6 +139,19 @@ class Registry:
                 statuses.append(data)
         return statuses
 
+    def forget_process(self, pid: int) -> int:
+        """Remove every endpoint ``pid`` advertised; how many. The launcher calls it when a
+        child ends, so a client reading the directory (any language, docs/wire-protocol.md)
+        never picks the entry of a worker killed with -9, even before a look-up sweeps it."""
+        removed = 0
+        for kind in KINDS:
+            for path in (self.root / kind).glob(f"*/*-{pid}-*.json"):
+                data = _read_json(path)
+                if data is not None and data.get("pid") == pid:
+                    path.unlink(missing_ok=True)
+                    removed += 1
+        return removed
+
     def _read_folder(self, folder: Path) -> list[Endpoint]:
         if not folder.is_dir():
             return []

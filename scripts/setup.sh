@@ -35,4 +35,22 @@ echo "[setup] installing pinned Python packages"
 pip_install -q --upgrade pip==26.3
 pip_install -q -c constraints.txt -e ".[dev]"
 .venv/bin/python -c "import dtx, torch, open3d, zmq, mcap" 
+
+# The third-party clients the tests run (clients/node: zeromq.js, @msgpack/msgpack, @mcap/core),
+# exactly as locked; skipped, like their tests, where Node.js is not installed. npm ci runs only
+# when the lockfile changed since the last install, so a second `make setup` does nothing.
+if command -v npm >/dev/null; then
+    lock_sum=$(sha256sum clients/node/package-lock.json | cut -d" " -f1)
+    if [ "$(cat clients/node/node_modules/.dtx-lock-sha256 2>/dev/null)" != "$lock_sum" ]; then
+        echo "[setup] installing pinned npm packages in clients/node"
+        log=$(mktemp)
+        if ! (cd clients/node && npm ci --no-audit --no-fund --ignore-scripts) >"$log" 2>&1; then
+            cat "$log" >&2; rm -f "$log"; exit 1
+        fi
+        rm -f "$log"
+        echo "$lock_sum" > clients/node/node_modules/.dtx-lock-sha256
+    fi
+else
+    echo "[setup] node/npm not found: the third-party client tests (tests/test_third_party_clients.py) will be skipped"
+fi
 echo "[setup] ready: $(.venv/bin/python -c 'import torch, open3d; print("torch", torch.__version__, "open3d", open3d.__version__)')"

@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 import zmq
@@ -199,8 +200,35 @@ def test_service_answers_garbage_with_an_error_reply(buses: tuple[Bus, Bus]) -> 
         assert stranger.poll(5000)
         reply = decode(stranger.recv_multipart()).message
     context.destroy(linger=0)
-    assert isinstance(reply, msgs.ServiceError) and reply.code == "malformed_request"
+    assert isinstance(reply, msgs.ServiceError) and reply.code == "bad_request"
     assert server.counters.malformed == 1
+
+
+def test_a_broken_request_whose_p_and_q_can_be_read_gets_them_back(buses: tuple[Bus, Bus]) -> None:
+    """A client matches a reply to its request by q: an error reply without it would be lost."""
+    a, _ = buses
+    server = a.service("/double", msgs.GripperCommand, msgs.GripperState, _double)
+    good = encode("/double", msgs.GripperCommand(width_m=0.1), "planner-7")
+    header = msgpack.unpackb(good[1])
+    broken = [
+        [b"/double", msgpack.packb({**header, "q": 41, "t": 1.5})],                # t a float
+        [b"/double", msgpack.packb({**header, "q": 42, "s": "dtx.nothing.Here"})],  # unknown schema
+        [b"/double", msgpack.packb({**header, "q": 43, "v": 99})],                 # another version
+        [b"/double", msgpack.packb({**header, "q": 44, "d": {**header["d"], "extra": 1}})],
+    ]
+    context = zmq.Context()
+    with pumping(server):
+        stranger = context.socket(zmq.DEALER)
+        stranger.connect(server.address)
+        replies = []
+        for frames in broken:
+            stranger.send_multipart(frames)
+            assert stranger.poll(5000)
+            replies.append(decode(stranger.recv_multipart()))
+    context.destroy(linger=0)
+    assert [(r.publisher, r.message.header.seq) for r in replies] == [("planner-7", q) for q in (41, 42, 43, 44)]
+    assert all(isinstance(r.message, msgs.ServiceError) and r.message.code == "bad_request" for r in replies)
+    assert [r.message.text.split(" ")[:3] for r in replies][0] == ["header", "field", "'t'"]
 
 
 def test_service_without_server_fails_fast_with_a_clear_error(buses: tuple[Bus, Bus]) -> None:
@@ -422,3 +450,13 @@ def test_an_oversized_request_is_refused_at_once_with_a_code(registry: Registry)
         assert client.call(msgs.Log(text="small"), timeout_s=30.0).text == "small"
     small.close()
     server_bus.close()
+
+
+def test_the_entries_of_an_ended_process_are_forgotten_at_once(registry: Registry) -> None:
+    """The launcher calls forget_process when a node ends, so a client in any language that
+    reads the directory never picks the entry of a worker killed with -9."""
+    mine = Endpoint("service", "/double", "ipc:///nowhere", "worker", 999_999_999, "dtx.x.Y")
+    other = Endpoint("service", "/double", "ipc:///elsewhere", "worker", os.getpid(), "dtx.x.Y")
+    dead, alive = registry.advertise(mine), registry.advertise(other)
+    assert registry.forget_process(999_999_999) == 1
+    assert not dead.exists() and alive.exists()

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from benchmarks.collect import run_session
+from dtx.bag import bag_info, iter_envelopes
 from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetReader, deformation_map
 from dataset.redepth import redepth_dataset
@@ -161,3 +162,19 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> 
     write_synthetic_dataset(tmp_path / "synthetic", 2, seed=0, progress=False)
     with pytest.raises(DatasetError, match="records no depth-map crop"):
         redepth_dataset(tmp_path / "synthetic", tmp_path / "x", 10.0, progress=False)
+
+
+def test_a_recorded_session_carries_the_transform_tree(tmp_path: Path) -> None:
+    """Every frame the cell uses is in the bag as foxglove.FrameTransform, so Foxglove places
+    the cameras, the tool, the gels and the object."""
+    out = tmp_path / "session"
+    result = run_session(out, grasps=2, seed=3, record=True)
+    assert result["exit_code"] == 0
+    bag = next(out.glob("session*.mcap"))
+    frames = {(e.message.header.frame_id, e.message.child_frame_id) for _, e in iter_envelopes(bag)
+              if e.topic in ("/tf", "/perception/object_pose")}
+    assert frames == {("world", "camera_left"), ("world", "camera_right"), ("world", "tcp"),
+                      ("tcp", "gel_left"), ("tcp", "gel_right"), ("world", "object")}
+    topics = bag_info(bag).topics
+    assert topics["/tf/foxglove"]["schema"] == topics["/perception/object_pose/foxglove"]["schema"] == \
+        "foxglove.FrameTransform"

@@ -145,11 +145,26 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=2 * np.eye(4)[None]), "not a proper rotation"),
     (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.stack([np.eye(4), np.ones((4, 4))])),
      r"gel_poses\[1\]"),
-    # Well formed, but this gel does not reach the cloud: found while cutting the depth-map.
-    (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.array([[[1, 0, 0, 0], [0, 1, 0, -1.0],
-                                                                             [0, 0, 1, 0], [0, 0, 0, 1]]])),
-     "region 0: no model point in the contact volume"),
 ]
+
+
+def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served(registry: Registry,
+                                                                                 checkpoint: Path) -> None:
+    """A planner asks about many candidate poses at once; one that misses the object must not
+    cost it the answers for the others."""
+    _, depth_range_m = load_generator(checkpoint)
+    x, z = np.meshgrid(np.linspace(-0.012, 0.012, 120), np.linspace(-0.015, 0.015, 120))
+    cloud = np.stack([x.ravel(), np.full(x.size, -0.0005), z.ravel()], axis=1)  # a plane 0.5 mm into gel 0
+    away = np.eye(4)
+    away[1, 3] = -1.0  # a metre behind the cloud
+    with serving(registry, checkpoint), planner(registry) as client:
+        images, _ = client.estimate_at(cloud, np.stack([np.eye(4), away]))
+        reply = client.last_reply
+        empty, _ = client.estimate(np.full((1, 100, 100), depth_range_m[1], np.float32))
+    assert reply is not None and reply.region_status == ["ok", "out_of_reach"]
+    assert reply.region_errors[0] == "" and "region 1: no model point in the contact volume" in reply.region_errors[1]
+    assert reply.depth_range_m == list(depth_range_m)
+    np.testing.assert_array_equal(images[1], empty[0])  # what the gel feels touching nothing
 
 
 def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry,

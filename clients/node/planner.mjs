@@ -1,0 +1,270 @@
+// A grasp planner in Node that calls /inference/estimate, written from docs/wire-protocol.md
+// alone: it is the test that the page is enough for a client in another language.
+//
+//   node planner.mjs images MAPS.f32 N OUT.u8    depth-maps (N x 100 x 100 <f4) -> images (|u1)
+//   node planner.mjs malformed                   25 broken requests; prints how many got an error reply
+//   node planner.mjs steady COUNT                COUNT requests one after another, retrying by §4;
+//                                                prints one line per answer, then a JSON summary
+//
+// The bus directory comes from DTX_BUS_DIR (or the default of §1). Output: one JSON line on stdout.
+import { readFileSync, readdirSync, writeFileSync } from "node:fs";
+import { hostname, tmpdir, userInfo } from "node:os";
+import { join } from "node:path";
+import { decode, encode } from "@msgpack/msgpack";
+
+// §2: t is an int64 of nanoseconds, beyond a double's exact integers, so it travels as a BigInt.
+const pack = (value) => Buffer.from(encode(value, { useBigInt64: true }));
+const unpack = (bytes) => decode(bytes, { useBigInt64: true });
+import { Dealer } from "zeromq";
+
+const SERVICE = "/inference/estimate";
+const REQUEST = "dtx.inference.TactileEstimateRequest";
+const CHECK_MS = 250;
+
+function busDir() {
+  return process.env.DTX_BUS_DIR || join(tmpdir(), `dtx-${userInfo().uid}`, process.env.DTX_DOMAIN || "default");
+}
+
+function alive(pid) {
+  try {
+    process.kill(pid, 0);
+    return true;
+  } catch (error) {
+    return error.code === "EPERM";
+  }
+}
+
+/** Live server entries of the service (§1: skip entries whose pid is not running). */
+function servers() {
+  const folder = join(busDir(), "service", encodeURIComponent(SERVICE));
+  let names = [];
+  try {
+    names = readdirSync(folder).filter((n) => n.endsWith(".json") && !n.startsWith("."));
+  } catch {
+    return [];
+  }
+  const found = [];
+  for (const name of names.sort()) {
+    try {
+      const entry = JSON.parse(readFileSync(join(folder, name), "utf8"));
+      if (alive(entry.pid)) found.push(entry);
+    } catch {
+      // being replaced or removed right now
+    }
+  }
+  return found;
+}
+
+/** One DEALER per server entry, a receive loop each, replies matched by q. */
+class Planner {
+  constructor() {
+    this.id = `node-planner-${hostname()}-${process.pid}-${Math.random().toString(36).slice(2)}`;
+    this.q = 0;
+    this.next = 0;
+    this.connections = new Map(); // address -> {dealer, entry}
+    this.waiting = new Map(); // q -> resolve
+    this.computedTwiceRisk = 0;
+  }
+
+  connection(entry) {
+    let conn = this.connections.get(entry.address);
+    if (!conn) {
+      const dealer = new Dealer({ linger: 0, immediate: true, sendTimeout: 1000 });
+      dealer.connect(entry.address);
+      conn = { dealer, entry };
+      this.connections.set(entry.address, conn);
+      this.receiveLoop(conn);
+    }
+    return conn;
+  }
+
+  async receiveLoop(conn) {
+    try {
+      for await (const frames of conn.dealer) {
+        const header = unpack(frames[1]);
+        const resolve = this.waiting.get(header.q) ?? (header.q === 0 ? this.waiting.get(conn.inFlight) : undefined);
+        if (resolve) resolve({ header, buffers: frames.slice(2) });
+      }
+    } catch {
+      // socket closed
+    }
+  }
+
+  drop(address) {
+    const conn = this.connections.get(address);
+    if (conn) {
+      this.connections.delete(address);
+      conn.dealer.close();
+    }
+  }
+
+  /** Send frames built for q = this.q, following §4's retry rule; resolves with the reply. */
+  async call(build, deadlineMs = 60000) {
+    const q = ++this.q;
+    const frames = build(q, this.id);
+    const start = Date.now();
+    const reply = new Promise((resolve) => this.waiting.set(q, resolve));
+    let attempts = 0;
+    try {
+      while (Date.now() - start < deadlineMs) {
+        const live = servers();
+        if (live.length === 0) {
+          await sleep(CHECK_MS);
+          continue;
+        }
+        for (const address of this.connections.keys()) {
+          if (!live.some((e) => e.address === address)) this.drop(address);
+        }
+        const entry = live[this.next++ % live.length];
+        const conn = this.connection(entry);
+        conn.inFlight = q;
+        try {
+          await conn.dealer.send(frames);
+        } catch {
+          await sleep(CHECK_MS);
+          continue; // not connected (yet): look again
+        }
+        if (++attempts > 1) this.computedTwiceRisk++;
+        // Wait while this worker lives; when its entry is gone, resend elsewhere at once.
+        while (Date.now() - start < deadlineMs) {
+          const answer = await Promise.race([reply, sleep(CHECK_MS)]);
+          if (answer) return answer;
+          const current = servers().find((e) => e.address === entry.address && e.pid === entry.pid);
+          if (!current) break;
+        }
+      }
+      return null;
+    } finally {
+      this.waiting.delete(q);
+    }
+  }
+
+  close() {
+    for (const address of [...this.connections.keys()]) this.drop(address);
+  }
+}
+
+function sleep(ms) {
+  return new Promise((resolve) => setTimeout(() => resolve(null), ms));
+}
+
+function header(q, p, fields, arrays) {
+  return { s: REQUEST, v: 1, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
+}
+
+/** A well-formed request for depth-maps: the frames of §2 and §3. */
+function depthRequest(maps, n, dropout = 1) {
+  return (q, p) => [
+    Buffer.from(SERVICE),
+    pack(header(q, p, {
+      depth_maps: { __array__: 0 }, points: { __array__: 1 }, gel_poses: { __array__: 2 }, dropout_samples: dropout,
+    }, [["<f4", [n, 100, 100]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]])),
+    Buffer.from(maps.buffer, maps.byteOffset, maps.byteLength),
+    Buffer.alloc(0),
+    Buffer.alloc(0),
+  ];
+}
+
+function replyArray(reply, field) {
+  const index = reply.header.d[field].__array__;
+  return reply.buffers[index];
+}
+
+async function images(mapsPath, n, outPath) {
+  const planner = new Planner();
+  const raw = readFileSync(mapsPath);
+  const maps = new Float32Array(raw.buffer, raw.byteOffset, raw.byteLength / 4);
+  const reply = await planner.call(depthRequest(maps, n));
+  planner.close();
+  if (!reply) throw new Error("no reply");
+  if (reply.header.s !== "dtx.inference.TactileEstimateReply") throw new Error(JSON.stringify(reply.header.d));
+  writeFileSync(outPath, replyArray(reply, "images"));
+  return { schema: reply.header.s, a: reply.header.a, region_status: reply.header.d.region_status };
+}
+
+/** 25 requests, each broken one way (§2, §3); every one must get an error reply. */
+function malformedVariants() {
+  const maps = new Float32Array(100 * 100).fill(0.001);
+  const good = depthRequest(maps, 1);
+  const edit = (change) => (q, p) => {
+    const frames = good(q, p);
+    const h = unpack(frames[1]);
+    const result = change(h, frames) ?? frames;
+    if (result === frames) frames[1] = pack(h);
+    return result;
+  };
+  const big = Buffer.from(maps.buffer.slice(0));
+  for (let i = 0; i < big.length; i += 4) big.writeFloatBE(0.001, i);
+  return {
+    "header not msgpack": (q, p) => [Buffer.from(SERVICE), Buffer.from([0xc1, 0x00, 0xff])],
+    "header not a map": (q, p) => [Buffer.from(SERVICE), pack([q, p])],
+    "s missing": edit((h) => { delete h.s; }),
+    "unknown schema": edit((h) => { h.s = "dtx.nothing.Here"; }),
+    "v 99": edit((h) => { h.v = 99; }),
+    "v a string": edit((h) => { h.v = "1"; }),
+    "t a float": edit((h) => { h.t = 1.5; }),
+    "t negative": edit((h) => { h.t = -1; }),
+    "f an int": edit((h) => { h.f = 3; }),
+    "p an int": edit((h) => { h.p = 7; }),
+    "d missing": edit((h) => { delete h.d; }),
+    "d field missing": edit((h) => { delete h.d.dropout_samples; }),
+    "d field extra": edit((h) => { h.d.colour = "red"; }),
+    "d field of another type": edit((h) => { h.d.dropout_samples = "1"; }),
+    "a missing": edit((h) => { delete h.a; }),
+    "big-endian array": edit((h, frames) => { h.a[0][0] = ">f4"; frames[1] = pack(h); frames[2] = big; return frames; }),
+    "dtype not allowed": edit((h) => { h.a[0][0] = "<c8"; }),
+    "shape and byte count differ": edit((h) => { h.a[0][1] = [2, 100, 100]; }),
+    "buffers missing": edit((h, frames) => { frames[1] = pack(h); return frames.slice(0, 3); }),
+    "buffer extra": edit((h, frames) => { frames[1] = pack(h); return [...frames, Buffer.alloc(0)]; }),
+    "array reference out of range": edit((h) => { h.d.depth_maps = { __array__: 7 }; }),
+    "array referenced twice": edit((h) => { h.d.points = { __array__: 0 }; }),
+    "negative dimension": edit((h) => { h.a[1][1] = [-1, 3]; }),
+    "depth-maps of the wrong size": (q, p) => depthRequest(new Float32Array(50 * 50), 1)(q, p).map((f, i) =>
+      i === 1 ? pack({ ...unpack(f), a: [["<f4", [1, 50, 50]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]] }) : f),
+    "depth-maps not finite": depthRequest(new Float32Array(100 * 100).fill(NaN), 1),
+  };
+}
+
+async function malformed() {
+  const planner = new Planner();
+  const results = {};
+  for (const [name, build] of Object.entries(malformedVariants())) {
+    const reply = await planner.call(build, 20000);
+    results[name] = reply ? { q: reply.header.q, schema: reply.header.s, code: reply.header.d?.code, text: reply.header.d?.text } : null;
+  }
+  // The server serves on: a good request after all of them.
+  const after = await planner.call(depthRequest(new Float32Array(100 * 100).fill(0.001), 1));
+  planner.close();
+  const variants = Object.keys(results).length;
+  const answered = Object.values(results).filter((r) => r && r.schema === "dtx.system.ServiceError" && r.code === "bad_request").length;
+  return { variants, answered, served_after: after?.header.s === "dtx.inference.TactileEstimateReply", results };
+}
+
+async function steady(count) {
+  const planner = new Planner();
+  // Four regions with four dropout samples each: long enough that a kill can land mid-request.
+  const maps = new Float32Array(4 * 100 * 100).fill(0.001);
+  let lost = 0;
+  const servedBy = {};
+  for (let i = 0; i < count; i++) {
+    const reply = await planner.call(depthRequest(maps, 4, 4), 60000);
+    if (!reply || reply.header.s !== "dtx.inference.TactileEstimateReply") {
+      lost++;
+    } else {
+      const worker = reply.header.d.model.split(" on ").pop();
+      servedBy[worker] = (servedBy[worker] ?? 0) + 1;
+    }
+    process.stderr.write(`answered ${i + 1}\n`);
+  }
+  planner.close();
+  return { count, lost, served_by: servedBy, resent_after_a_worker_died: planner.computedTwiceRisk };
+}
+
+const [mode, ...args] = process.argv.slice(2);
+let result;
+if (mode === "images") result = await images(args[0], Number(args[1]), args[2]);
+else if (mode === "malformed") result = await malformed();
+else if (mode === "steady") result = await steady(Number(args[0]));
+else throw new Error(`unknown mode ${mode}`);
+process.stdout.write(JSON.stringify(result) + "\n");
+process.exit(0);

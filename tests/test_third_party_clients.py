@@ -1,0 +1,185 @@
+"""Clients in another language, written from docs/ alone (clients/node), against a real graph:
+the wire protocol (docs/wire-protocol.md) is a contract only if a stranger can keep it.
+
+Needs `node` and the pinned packages `make setup` installs (clients/node/node_modules)."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import msgs
+from benchmarks.serve import depth_maps, write_checkpoint
+from dtx.bag import BagWriter, bag_info
+from msgs.codec import decode, encode
+from nodes.bus import Bus
+from nodes.foxglove_bridge import FoxgloveBridge
+from nodes.inference_client import SERVICE, TactileClient
+from nodes.registry import Registry
+
+ROOT = Path(__file__).resolve().parent.parent
+CLIENTS = ROOT / "clients" / "node"
+NODE = shutil.which("node")
+pytestmark = pytest.mark.skipif(NODE is None, reason="node (Node.js) is not installed: the third-party "
+                                                      "client tests need it")
+
+
+@pytest.fixture(scope="module")
+def node_modules() -> Path:
+    modules = CLIENTS / "node_modules"
+    assert (modules / "zeromq").is_dir(), f"{modules} is missing: run `make setup` (npm ci in {CLIENTS})"
+    return modules
+
+
+def node(*args: str, bus_dir: Path, timeout_s: float = 300) -> dict:
+    done = subprocess.run([str(NODE), str(CLIENTS / "planner.mjs"), *args], cwd=CLIENTS, text=True,
+                          capture_output=True, timeout=timeout_s, env={**os.environ, "DTX_BUS_DIR": str(bus_dir)})
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def served(node_modules: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Registry]]:
+    """launch/serve.yaml's two workers on a bus of their own."""
+    bus_dir = Path(tempfile.mkdtemp(prefix="dtxn"))  # ipc paths must stay short
+    registry = Registry(bus_dir)
+    checkpoint = write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "dtx.cli", "launch", "launch/serve.yaml", f"checkpoint:={checkpoint}"],
+        cwd=ROOT, env={**os.environ, "DTX_BUS_DIR": str(bus_dir)}, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 180
+        while len(registry.lookup("service", SERVICE)) < 2:
+            assert launcher.poll() is None, launcher.communicate()[0]
+            assert time.monotonic() < deadline, "the two workers did not advertise the service"
+            time.sleep(0.2)
+        yield bus_dir, registry
+    finally:
+        launcher.send_signal(signal.SIGINT)
+        launcher.communicate(timeout=60)
+        shutil.rmtree(bus_dir, ignore_errors=True)
+
+
+def test_the_node_planner_gets_the_python_clients_images_byte_for_byte(served: tuple[Path, Registry],
+                                                                       tmp_path: Path) -> None:
+    bus_dir, registry = served
+    maps = depth_maps(3, seed=5).astype("<f4")
+    (tmp_path / "maps.f32").write_bytes(maps.tobytes())
+    result = node("images", str(tmp_path / "maps.f32"), "3", str(tmp_path / "images.u8"), bus_dir=bus_dir)
+    with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, timeout_s=60.0) as client:
+        images, _ = client.estimate(maps)
+    assert result["a"][0] == ["|u1", [3, 100, 100, 3]] and result["region_status"] == ["ok"] * 3
+    assert (tmp_path / "images.u8").read_bytes() == np.ascontiguousarray(images).tobytes()
+
+
+def test_every_malformed_request_of_the_node_planner_gets_an_error_reply(served: tuple[Path, Registry]) -> None:
+    result = node("malformed", bus_dir=served[0])
+    unanswered = {name: r for name, r in result["results"].items() if r is None or r["code"] != "bad_request"}
+    assert result["variants"] == 25 and result["answered"] == 25, unanswered
+    assert result["served_after"]
+
+
+def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple[Path, Registry]) -> None:
+    """kill -9 of one worker mid-session: the spec's liveness and retry rules carry every request."""
+    bus_dir, registry = served
+    count = 40
+    planner = subprocess.Popen([str(NODE), str(CLIENTS / "planner.mjs"), "steady", str(count)], cwd=CLIENTS,
+                               text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               env={**os.environ, "DTX_BUS_DIR": str(bus_dir)})
+    assert planner.stderr is not None
+    try:
+        for line in planner.stderr:
+            if line.startswith("answered 10"):
+                break
+        victim = registry.lookup("service", SERVICE)[0].pid
+        os.kill(victim, signal.SIGKILL)
+        output, errors = planner.communicate(timeout=300)
+    finally:
+        if planner.poll() is None:
+            planner.kill()
+    assert planner.returncode == 0, errors
+    result = json.loads(output.strip().splitlines()[-1])
+    assert result["count"] == count and result["lost"] == 0, result
+    # The launcher respawned the victim: both names serve again.
+    deadline = time.monotonic() + 120
+    while len(registry.lookup("service", SERVICE)) < 2:
+        assert time.monotonic() < deadline, "the killed worker was not respawned"
+        time.sleep(0.2)
+
+
+def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_modules: Path, tmp_path: Path) -> None:
+    """@mcap/core, knowing only docs/bag-format.md, decodes every dtx channel of a bag, and of
+    the same bag cut short by a crash as much as the Python reader does."""
+    path = tmp_path / "session.mcap"
+    writer = BagWriter(path, compression="none", chunk_size=64 * 1024)
+    for i in range(20):
+        for topic, message in (("/gripper/state", msgs.GripperState(width_m=0.01 * i)),
+                               ("/camera/left/depth", msgs.DepthImage(depth=np.full((48, 64), i, np.uint16))),
+                               ("/cloud", msgs.PointCloud(points=np.full((30, 3), i, np.float32)))):
+            message.header.stamp_ns = 1_000_000 * (i + 1)
+            frames = encode(topic, message, "test")
+            writer.write(decode(frames), frames, log_time_ns=message.header.stamp_ns)
+    writer.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:int(path.stat().st_size * 0.6)])
+    for bag, complete in ((path, True), (cut, False)):
+        done = subprocess.run([str(NODE), str(CLIENTS / "read_bag.mjs"), str(bag)], cwd=CLIENTS, text=True,
+                              capture_output=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        result = json.loads(done.stdout)
+        python = bag_info(bag)
+        assert python.truncated is not complete and result["stream"]["done"] is complete
+        readers = [result["stream"], result["indexed"]] if complete else [result["stream"]]
+        for read in readers:
+            assert {topic: entry["count"] for topic, entry in read["topics"].items()} == \
+                {topic: entry["count"] for topic, entry in python.topics.items()}
+            assert read["decoded"] == sum(entry["count"] for topic, entry in python.topics.items()
+                                          if entry["encoding"] == "dtx/msgpack+buffers")
+        assert read["topics"]["/gripper/state"]["encoding"] == "dtx/jsonschema"
+    assert 0 < sum(e["count"] for e in result["stream"]["topics"].values()) < 120
+
+
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_cloud(
+        node_modules: Path, registry: Registry, subprotocol: str) -> None:
+    """@foxglove/ws-protocol, as Studio 1.x and Lichtblick connect: a cloud published once
+    before the viewer came is still shown, and so are the images that stream."""
+    bridge = FoxgloveBridge("foxglove", {"port": 0, "max_rate_hz": 100.0}, registry=registry)
+    thread = threading.Thread(target=bridge.spin)
+    with contextlib.closing(Bus("sensors", registry)) as bus:
+        cloud = bus.publisher("/object/cloud", msgs.PointCloud, latched=True)
+        camera = bus.publisher("/gelsight_left/image", msgs.TactileImage)
+        cloud.publish(msgs.PointCloud(points=np.zeros((10, 3), np.float32)))
+        thread.start()
+        try:
+            viewer = subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
+                                       subprotocol, "6"], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE)
+            while viewer.poll() is None:
+                camera.publish(msgs.TactileImage(image=np.zeros((12, 16, 3), np.uint8), sensor="left"))
+                cloud.service_subscriptions()  # a node's executor does this: the latched resend to the bridge
+                time.sleep(0.05)
+            output, errors = viewer.communicate()
+        finally:
+            bridge.request_shutdown()
+            thread.join()
+            bridge.close()
+    assert viewer.returncode == 0, errors
+    seen = json.loads(output)
+    assert seen["opened"] and not seen["errors"] and not seen["statuses"], seen
+    assert {"/object/cloud/foxglove", "/gelsight_left/image/foxglove"} <= set(seen["advertised"])
+    assert seen["messages"].get("/object/cloud/foxglove", 0) >= 1, seen
+    assert seen["messages"].get("/gelsight_left/image/foxglove", 0) >= 1, seen
