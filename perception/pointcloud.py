@@ -157,26 +157,35 @@ class VoxelIndex:
     MAX_GRID_CELLS = 2 ** 62
 
     def __init__(self, points_m: np.ndarray, cell_m: float = 0.005) -> None:
-        points = np.asarray(points_m, dtype=np.float64)
+        # float32 points are kept as they are (exact, and half the memory and memory traffic of a
+        # dense model cloud); every other dtype is used in float64.
+        points = np.asarray(points_m)
+        points = points if points.dtype == np.float32 else points.astype(np.float64)
         if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
             raise PointCloudError(f"points must be finite (N, 3), got shape {points.shape}")
         if not (isinstance(cell_m, (int, float, np.integer, np.floating)) and np.isfinite(cell_m) and cell_m > 0):
             raise PointCloudError(f"cell size must be a positive number of metres, got {cell_m!r}")
         self.cell_m = float(cell_m)
-        self.origin_m = points.min(axis=0) if len(points) else np.zeros(3)
+        self.origin_m = points.min(axis=0).astype(np.float64) if len(points) else np.zeros(3)
         with np.errstate(over="ignore"):  # a grid too fine overflows to inf, refused below
             extent_cells = np.floor((points.max(axis=0) - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
             grid_cells = np.prod(extent_cells)
         if not grid_cells <= self.MAX_GRID_CELLS:
             raise PointCloudError(f"points span {np.ptp(points, axis=0)} m: {extent_cells} cells of {self.cell_m} m, "
                                   f"more than 2^62; use larger cells or drop far outliers")
-        cells = np.floor((points - self.origin_m) / self.cell_m).astype(np.int64)
         self.shape = extent_cells.astype(np.int64)
-        keys = np.ravel_multi_index(cells.T, self.shape) if len(points) else np.zeros(0, np.int64)
+        # Row-major key, one axis at a time in float64 (no (N, 3) float64 temporaries).
+        keys = np.zeros(len(points), np.int64)
+        for axis in range(3):
+            keys *= self.shape[axis]
+            keys += np.floor((points[:, axis] - self.origin_m[axis]) / self.cell_m).astype(np.int64)
         order = np.argsort(keys, kind="stable")
-        self.points_m = points[order]
-        self.keys, self.starts, counts = np.unique(keys[order], return_index=True, return_counts=True)
-        self.ends = self.starts + counts
+        self.points_m = np.take(points, order, axis=0)
+        sorted_keys = keys[order]
+        self.starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(points) \
+            else np.zeros(0, np.int64)
+        self.keys = sorted_keys[self.starts]
+        self.ends = np.r_[self.starts[1:], len(points)].astype(self.starts.dtype)
 
     def within(self, centre_m: np.ndarray, radius_m: float) -> np.ndarray:
         """The points of every cell that meets the ball (a superset of the points inside it),
@@ -187,6 +196,15 @@ class VoxelIndex:
         O(min(cells in the query's box, occupied cells) + points returned), whatever the
         radius and cell size: a box larger than the occupied cells scans those instead.
         """
+        starts, ends = self.slices_within(centre_m, radius_m)
+        if starts.size == 0:
+            return self.points_m[:0]
+        return np.concatenate([self.points_m[s:e] for s, e in zip(starts, ends)])
+
+    def slices_within(self, centre_m: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """What :meth:`within` returns, as (starts, ends) of runs of ``points_m``, without
+        copying a point: a kernel that reads the runs in place (perception.depthmap's batched
+        depth-maps) saves the gather. Same contract and bounds as :meth:`within`."""
         try:
             centre = np.asarray(centre_m, dtype=np.float64)
             radius = float(radius_m)
@@ -203,7 +221,7 @@ class VoxelIndex:
         hi = np.clip(np.floor((centre + radius - self.origin_m) / self.cell_m), -1.0, top + 1).astype(np.int64)
         lo, hi = np.maximum(lo, 0), np.minimum(hi, self.shape - 1)
         if np.any(hi < lo):
-            return self.points_m[:0]
+            return self.starts[:0], self.ends[:0]
         if np.prod((hi - lo + 1).astype(np.float64)) > len(self.keys):
             # Fewer occupied cells than cells in the box: test each occupied cell (keys ascend,
             # so the order is the one the box enumeration gives).
@@ -216,6 +234,4 @@ class VoxelIndex:
             found = slot < len(self.keys)
             found[found] = self.keys[slot[found]] == wanted[found]
             slot = slot[found]
-        if slot.size == 0:
-            return self.points_m[:0]
-        return np.concatenate([self.points_m[s:e] for s, e in zip(self.starts[slot], self.ends[slot])])
+        return self.starts[slot], self.ends[slot]
