@@ -42,7 +42,7 @@ import torch
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
-from models.train import TrainConfig
+from models.train import TrainConfig, load_generator
 from nodes.bus import Bus
 from nodes.inference_client import SERVICE, InferenceError, TactileClient
 from nodes.inference import InferenceNode
@@ -161,6 +161,20 @@ def _cut_rates(points: np.ndarray, poses: np.ndarray, geometry: GripperGeometry,
             "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1)}
 
 
+def _prior_cpu_ms_per_region(checkpoint: Path, maps: np.ndarray) -> float | None:
+    """CPU ms per region of the physics prior's images (what the node renders beside each
+    depth-map, models.prior), in this process, best of three; None for a model without one."""
+    generator, _ = load_generator(checkpoint)
+    if generator.prior is None:
+        return None
+    best = float("inf")
+    for _ in range(3):
+        started = time.process_time()
+        generator.prior.channels(maps)
+        best = min(best, time.process_time() - started)
+    return best / len(maps) * 1e3
+
+
 def _request_rate(call: Any, regions: int, requests: int) -> tuple[float, float]:
     """(p50 ms of ``requests`` calls, regions/s over them)."""
     latencies = []
@@ -236,6 +250,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             # own CPU time per region much less (2 free cores serve at most 2 / that).
             cpu_per_region = (sum(_cpu_seconds(server.pid) for server in servers) - cpu_before) / served
             points = bench_points(registry, args, depth_range_m) if args.points else None
+            prior_ms = _prior_cpu_ms_per_region(checkpoint, maps)
         finally:
             for server in servers:
                 server.send_signal(signal.SIGINT)
@@ -254,6 +269,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "regions_per_s": round(throughput, 1),
             "server_cpu_ms_per_region": round(cpu_per_region * 1e3, 2),
             "server_bound_regions_per_s_2_cores": round(2.0 / cpu_per_region, 1),
+            **({"prior_cpu_ms_per_region": round(prior_ms, 2),
+                "prior_share_of_server_cpu": round(prior_ms / (cpu_per_region * 1e3), 2)} if prior_ms else {}),
             "throughput_setup": f"{args.clients} clients x {args.regions} regions/request, max_batch {args.max_batch}",
             "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores",
             **({"points": points} if points is not None else {})}
