@@ -141,30 +141,31 @@ _CHUNK = 256
 def _exact_bin(value: float, index: int, edges: np.ndarray) -> int:
     """The bin [edge_i, edge_i+1) of ``value`` in [-half, half] from a scaled-floor ``index`` at
     most one bin off (edges = linspace(-half, half, count + 1)); the far edge belongs to the last
-    bin."""
+    bin. Always a valid bin, even for a value outside (clamped: no read or write out of bounds)."""
     count = edges.shape[0] - 1
-    index = min(index, count - 1)
+    index = min(max(index, 0), count - 1)
     if value < edges[index]:
         index -= 1
     if index < count - 1 and value >= edges[index + 1]:
         index += 1
-    return index
+    return max(index, 0)
 
 
 @numba.njit(cache=True, nogil=True)
 def _bin_chunk(x: np.ndarray, z: np.ndarray, y: np.ndarray, count: int, half_x: float, half_z: float,
                x_edges: np.ndarray, z_edges: np.ndarray, flat: np.ndarray, min_y: np.ndarray) -> None:
     """min_y[bin] = min(min_y[bin], y) for the first ``count`` (<= _CHUNK) points, all inside the
-    crop. The scaled floor is exact unless a value lies within 1e-6 bin of an edge (rounding is
-    < 1e-9 bin as crop_bounds keeps bins wide): only chunks holding such a value are compared
-    with the edge arrays, which keeps the rule exact at full speed."""
+    crop (one outside lands in an edge bin, never out of bounds). The scaled floor is exact
+    unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds keeps
+    bins wide): only chunks holding such a value are compared with the edge arrays, which keeps
+    the rule exact at full speed."""
     cols, rows = x_edges.shape[0] - 1, z_edges.shape[0] - 1
     scale_x, scale_z = cols / (2.0 * half_x), rows / (2.0 * half_z)
     near = False
     for i in range(count):
-        a = (x[i] + half_x) * scale_x  # >= 0: int() is the floor
+        a = (x[i] + half_x) * scale_x  # >= 0 inside the crop: int() is the floor
         b = (z[i] + half_z) * scale_z
-        col, row = int(a), int(b)
+        col, row = min(max(int(a), 0), cols - 1), min(max(int(b), 0), rows - 1)
         in_col, in_row = a - col, b - row
         near |= (in_col < 1e-6) | (in_col > 1.0 - 1e-6) | (in_row < 1e-6) | (in_row > 1.0 - 1e-6)
         flat[i] = row * cols + col
@@ -311,9 +312,9 @@ def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, ge
     points, bins <= MAX_DEPTH_MAP_BINS."""
     crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
     points = _points_for_kernel(points_model_m)
-    whole = np.array([0], np.int64), np.array([len(points)], np.int64)
     model_to_gel = _model_to_gels(model_to_world, [gel_to_world], ["gel_to_world"])
-    patches = _cut(points, *whole, np.array([0, 1], np.int64), model_to_gel, geometry, params, batch=False)
+    patches = _cut(points, np.array([0], np.int64), np.array([len(points)], np.int64), np.array([0, 1], np.int64),
+                   model_to_gel, geometry, params, batch=False)
     return ContactPatch(depth_map_m=patches.depth_maps_m[0],
                         normalised=normalise_depth_map(patches.depth_maps_m[0], patches.y_range_m),
                         occupied=patches.occupied[0], crop_m=patches.crop_m, y_range_m=patches.y_range_m,
@@ -346,9 +347,7 @@ def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_wo
     visits = int(np.sum(ends - starts))
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
-    points = model.points_m
-    return _cut(points if points.dtype == np.float32 else points.astype(np.float64, copy=False),
-                starts, ends, runs, model_to_gel, geometry, params, batch=True)
+    return _cut(model.points_m, starts, ends, runs, model_to_gel, geometry, params, batch=True)  # float32 or 64
 
 
 def centre_between_gels(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_left_to_world: np.ndarray,

@@ -427,3 +427,12 @@ def test_property_gap_filling_equals_scipy_filters(seed, stack, rows, cols, min_
         nearest = ndimage.minimum_filter(np.where(occ, dep, np.inf), size=3, mode="constant", cval=np.inf)
         expected = np.where(~occ & (neighbours >= min_neighbours), nearest, dep).astype(np.float32)
         np.testing.assert_array_equal(got[index], expected)
+
+
+def test_min_y_per_bin_keeps_values_outside_the_crop_in_the_edge_bins():
+    """The crop is the caller's; a value outside it (or NaN) lands in an edge bin, never outside
+    the map's memory."""
+    x = np.array([-1.0, 1.0, np.nan, 0.0])
+    z = np.array([-1.0, 1.0, 0.0, np.nan])
+    min_y, occupied = min_y_per_bin(x, z, np.array([0.1, 0.2, 0.3, 0.4]), HALF_X, HALF_Z, (3, 4))
+    assert min_y[0, 0] == 0.1 and min_y[2, 3] == 0.2 and occupied.sum() <= 4
