@@ -33,6 +33,7 @@ ALLOWED_DTYPES = frozenset(
     ["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"]
 )
 _ARRAY_REF = "__array__"
+_HEADER_FIELDS = (("s", str), ("v", int), ("t", int), ("q", int), ("f", str), ("p", str), ("d", dict), ("a", list))
 
 
 class MessageError(ValueError):
@@ -93,9 +94,8 @@ def decode(frames: typing.Sequence[Any], max_bytes: int = DEFAULT_MAX_MESSAGE_BY
         raise MessageError(f"header is not valid msgpack: {exc}") from exc
     if not isinstance(header, dict):
         raise MessageError("header is not a map")
-    for key, kind in (("s", str), ("v", int), ("t", int), ("q", int), ("f", str), ("p", str),
-                      ("d", dict), ("a", list)):
-        if not isinstance(header.get(key), kind) or isinstance(header.get(key), bool):
+    for key, kind in _HEADER_FIELDS:
+        if type(header.get(key)) is not kind:  # msgpack gives exact types; a bool is no int
             raise MessageError(f"header field {key!r} missing or not {kind.__name__}")
     cls = MESSAGE_TYPES.get(header["s"])
     if cls is None:
