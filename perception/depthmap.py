@@ -268,10 +268,10 @@ def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
 
 
 def _cut(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray, model_to_gel: np.ndarray,
-         geometry: GripperGeometry, params: DepthMapParams, batch: bool) -> ContactPatches:
-    """The kernel over already checked inputs, then the empty-bin policy and gap filling; an
-    error about a region of a ``batch`` names it."""
-    half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
+         bounds: tuple[float, float, float, float], params: DepthMapParams, batch: bool) -> ContactPatches:
+    """The kernel over already checked inputs (``bounds``: :func:`crop_bounds`), then the
+    empty-bin policy and gap filling; an error about a region of a ``batch`` names it."""
+    half_x, half_z, y_near, y_far = bounds
     rows, cols = int(params.shape[0]), int(params.shape[1])
     regions = model_to_gel.shape[0]
     min_y = np.full((regions, rows * cols), np.inf)
@@ -310,11 +310,11 @@ def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, ge
     else, or no point in the crop, raises DepthMapError (PointCloudError for a transform).
     Cost: one pass over the points, O(N) time, O(bins) memory beyond a converted copy of the
     points, bins <= MAX_DEPTH_MAP_BINS."""
-    crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
+    bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
     points = _points_for_kernel(points_model_m)
     model_to_gel = _model_to_gels(model_to_world, [gel_to_world], ["gel_to_world"])
     patches = _cut(points, np.array([0], np.int64), np.array([len(points)], np.int64), np.array([0, 1], np.int64),
-                   model_to_gel, geometry, params, batch=False)
+                   model_to_gel, bounds, params, batch=False)
     return ContactPatch(depth_map_m=patches.depth_maps_m[0],
                         normalised=normalise_depth_map(patches.depth_maps_m[0], patches.y_range_m),
                         occupied=patches.occupied[0], crop_m=patches.crop_m, y_range_m=patches.y_range_m,
@@ -333,6 +333,7 @@ def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_wo
     ``max_point_visits`` bounds the work (points read over all gels, known after the lookups and
     before any is read): more raises DepthMapError. A gel with no point raises DepthMapError
     naming the region."""
+    bounds = crop_bounds(geometry, params)
     reach = crop_reach_m(geometry, params)
     gels = np.asarray(gels_to_world, dtype=np.float64)
     if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
@@ -347,7 +348,7 @@ def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_wo
     visits = int(np.sum(ends - starts))
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
-    return _cut(model.points_m, starts, ends, runs, model_to_gel, geometry, params, batch=True)  # float32 or 64
+    return _cut(model.points_m, starts, ends, runs, model_to_gel, bounds, params, batch=True)  # float32 or 64
 
 
 def centre_between_gels(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_left_to_world: np.ndarray,
@@ -393,10 +394,11 @@ def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighb
     if not 1 <= min_neighbours <= 8:
         raise DepthMapError(f"min_neighbours must be in 1..8, got {min_neighbours}")
     rows, cols = occupied.shape[-2:]
-    pad = [(0, 0)] * (occupied.ndim - 2) + [(1, 1), (1, 1)]
-    flags = np.pad(occupied.astype(np.uint8), pad)
-    surface = np.pad(np.where(occupied, depth_map_m, np.float32(np.inf)).astype(np.float32), pad,
-                     constant_values=np.inf)
+    padded = (*occupied.shape[:-2], rows + 2, cols + 2)  # a border of empty bins
+    flags = np.zeros(padded, np.uint8)
+    flags[..., 1:-1, 1:-1] = occupied
+    surface = np.full(padded, np.inf, np.float32)
+    np.copyto(surface[..., 1:-1, 1:-1], depth_map_m, where=occupied)
     neighbours = np.zeros(occupied.shape, np.uint8)
     nearest = np.full(occupied.shape, np.inf, np.float32)
     for dr in range(3):
