@@ -33,6 +33,7 @@ extractor's).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import threading
@@ -142,6 +143,7 @@ class InferenceNode(Node):
                       f"on {self.name}")
         self.forward_passes = 0
         self._indexes: list[tuple[np.ndarray, VoxelIndex]] = []  # (the cloud as sent, its index), newest last
+        self._warm_up_cutting()
         self._lock = threading.Condition()
         self._waiting: list[_Job] = []
         self._flush_queued = False
@@ -263,6 +265,16 @@ class InferenceNode(Node):
         except PerceptionError as exc:
             raise BadRequest(f"{exc}; send fewer regions per request" if "too much work" in str(exc)
                              else str(exc)) from exc
+
+    def _warm_up_cutting(self) -> None:
+        """Load the compiled depth-map kernels for the clouds requests carry (read-only float32
+        or float64 views of a message's frames), so that the first planner request does not
+        wait ~1 s for them."""
+        for dtype in (np.float32, np.float64):
+            cloud = np.zeros((1, 3), dtype)
+            cloud.flags.writeable = False
+            with contextlib.suppress(PerceptionError):  # one point at the gel's centre may miss its crop
+                contact_depth_maps(VoxelIndex(cloud), np.eye(4), np.eye(4)[None], self.geometry, self.depth_map_params)
 
     def _index(self, points: np.ndarray) -> VoxelIndex:
         """The spatial index of a request's cloud: built once, used again while the cloud is
