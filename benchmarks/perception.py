@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
-from perception.depthmap import DepthMapParams, contact_depth_map, min_y_per_bin
+from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps, min_y_per_bin
 from perception.errors import PerceptionError
 from perception.evaluation import register_check, render_depth_images, scene_with_object, segmentation_params_for
 from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world
 from perception.registration import (RegistrationParams, add_error_m, add_s_error_m, prepare_model,
                                      register_model, sample_model_cloud)
@@ -83,6 +84,23 @@ def _sort_reduceat(x, z, y, half_x, half_z, shape):
     return out.reshape(shape)
 
 
+def _numpy_contact_depth_map(points, half_x, half_z, y_range, shape):
+    """The whole depth-map in plain NumPy, the reference beside the compiled one: y first, the
+    depth slice gathered, x and z of that slice, crop, np.minimum.at binning, empty bins far,
+    gap filling and normalisation as ours."""
+    y_near, y_far = y_range
+    y = points[:, 1]
+    in_depth = np.flatnonzero((y >= y_near) & (y <= y_far))
+    kept = np.take(points, in_depth, axis=0)
+    x, z, y = kept[:, 0], kept[:, 2], kept[:, 1]
+    inside = (np.abs(x) <= half_x) & (np.abs(z) <= half_z)
+    min_y = _baseline_minimum_at(x[inside], z[inside], y[inside], half_x, half_z, shape)
+    occupied = np.isfinite(min_y)
+    depth = fill_sampling_gaps(np.where(occupied, min_y, y_far).astype(np.float32), occupied,
+                               DepthMapParams.fill_gaps_min_neighbours)
+    return normalise_depth_map(depth, (y_near, y_far))
+
+
 def bench_binning(seed: int) -> list[dict]:
     rng = np.random.default_rng(seed)
     half_x, half_z, shape = 0.0113, 0.01445, (100, 100)
@@ -99,12 +117,18 @@ def bench_binning(seed: int) -> list[dict]:
             rows.append({"part": "binning", "method": name, "points": count,
                          "mpoints_per_s": round(count / best / 1e6, 1), "ms_median": round(median * 1e3, 3),
                          "cpu_ms_median": round(cpu * 1e3, 3), "same_as_ours": bool(np.array_equal(result, ours))})
-        # The whole contact depth-map: transform, crop, bin, normalise.
+        # The whole contact depth-map (transform, crop, bin, fill gaps, normalise): ours, and the
+        # same steps in plain NumPy with the transform left out (the points are in the gel frame).
         points_gel = np.column_stack([x, y, z])
-        best, median, cpu = _repeat(lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4)))
-        rows.append({"part": "binning", "method": "contact_depth_map", "points": count,
-                     "mpoints_per_s": round(count / best / 1e6, 1), "ms_median": round(median * 1e3, 3),
-                     "cpu_ms_median": round(cpu * 1e3, 3), "same_as_ours": None})
+        geometry = GripperGeometry()
+        hx, hz, y_near, y_far = crop_bounds(geometry, DepthMapParams())
+        for name, function in (("contact_depth_map", lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4))),
+                               ("numpy_contact_depth_map", lambda p=points_gel: _numpy_contact_depth_map(
+                                   p, hx, hz, (y_near, y_far), (100, 100)))):
+            best, median, cpu = _repeat(function)
+            rows.append({"part": "binning", "method": name, "points": count,
+                         "mpoints_per_s": round(count / best / 1e6, 1), "ms_median": round(median * 1e3, 3),
+                         "cpu_ms_median": round(cpu * 1e3, 3), "same_as_ours": None})
     return rows
 
 

@@ -6,9 +6,19 @@ in its own process on a private bus directory; this process is the grasp planner
   the call to the decoded reply (encode, ipc, batching window, network, reply);
 - ``regions_per_s``: ``--clients`` planners sending ``--regions`` regions per request back to
   back for ``--seconds``; the node batches across them.
+- ``--points``: the grasp planner's cloud form (``estimate_at``): the registered model cloud of
+  each YCB object at the depth-maps' training spacing (0.1 mm, float32) with ``--poses`` candidate
+  gel poses on its surface per request, back to back; per object and pose count: the
+  depth-map cutting step in this process (``cut_regions_per_s``: the node's batched, indexed
+  pass; ``cut_per_gel_regions_per_s``: one contact_depth_map over the whole cloud per gel, the
+  way before the index), then through the node ``points_regions_per_s`` and ``points_p50_ms``
+  (request to reply, the cloud's index cached after ``first_request_ms``) beside
+  ``maps_regions_per_s`` and ``maps_p50_ms``: the same regions sent as depth-maps, same run.
 Weights: a trained ``--checkpoint``, or a fresh seeded generator of ``--width`` (untrained,
-PyTorch's default initialisation; same cost as a trained one of that width).
-Targets (issue 7): p50 <= 25 ms, >= 150 regions/s on 2 cores.
+PyTorch's default initialisation; same cost as a trained one of that width); ``--prior``: a
+fresh generator that corrects the default scene's physics prior.
+Targets (issue 7): p50 <= 25 ms, >= 150 regions/s on 2 cores; issue 18: the cutting step >= 300
+regions/s for 64 poses on a 0.1 mm cloud.
 """
 from __future__ import annotations
 
@@ -32,12 +42,20 @@ import torch
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
-from models.train import TrainConfig
+from models.train import TrainConfig, load_generator
 from nodes.bus import Bus
 from nodes.inference_client import SERVICE, InferenceError, TactileClient
+from nodes.inference import InferenceNode
 from nodes.registry import Registry
+from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
+                                 contact_depth_maps)
+from perception.kinematics import GripperGeometry
+from perception.pointcloud import VoxelIndex
+from perception.registration import ModelCloud, sample_model_cloud
+from sim.scene import load_scene
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)  # the synthetic dataset's (dataset.synth)
+YCB = sorted(str(p) for p in (Path(__file__).resolve().parent.parent / "assets" / "ycb").glob("*.obj"))
 
 
 # The prior a collection session on the default scene gives (models.prior): its GelSight, and
@@ -108,14 +126,101 @@ def _throughput(registry: Registry, maps: np.ndarray, clients: int, seconds: flo
     return sum(counts) / (time.monotonic() - began), sum(counts) + clients * len(maps)
 
 
+def surface_gel_poses(cloud: ModelCloud, count: int, seed: int, press_m: float = 0.0005) -> np.ndarray:
+    """``count`` gel-to-world poses touching the model (model frame = world) at random surface
+    points: the gel's +y against the outward normal, ``press_m`` into the surface, a random
+    turn about the normal."""
+    rng = np.random.default_rng(seed)
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    for pose, i in zip(poses, rng.integers(len(cloud.points_m), size=count)):
+        y_axis = -cloud.normals[i]
+        helper = np.eye(3)[int(np.argmin(np.abs(y_axis)))]
+        x_axis = np.cross(y_axis, helper)
+        x_axis /= np.linalg.norm(x_axis)
+        angle = rng.uniform(0, 2 * np.pi)
+        x_axis = np.cos(angle) * x_axis + np.sin(angle) * np.cross(y_axis, x_axis)
+        pose[:3, :3] = np.column_stack([x_axis, y_axis, np.cross(x_axis, y_axis)])
+        pose[:3, 3] = cloud.points_m[i] + press_m * y_axis
+    return poses
+
+
+def _cut_rates(points: np.ndarray, poses: np.ndarray, geometry: GripperGeometry, params: DepthMapParams,
+               per_gel: int) -> dict[str, float]:
+    """Depth-map cutting in this process, regions/s: the batched indexed pass (index built
+    beforehand, as the node caches it) and the way before it (a pass over the whole cloud per gel,
+    ``per_gel`` gels)."""
+    index = VoxelIndex(points)
+    contact_depth_maps(index, np.eye(4), poses, geometry, params)  # compiled and warm
+    started = time.perf_counter()
+    contact_depth_maps(index, np.eye(4), poses, geometry, params)
+    batched = len(poses) / (time.perf_counter() - started)
+    started = time.perf_counter()
+    for pose in poses[:per_gel]:
+        contact_depth_map(points, np.eye(4), pose, geometry, params)
+    return {"cut_regions_per_s": round(batched, 1),
+            "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1)}
+
+
+def _prior_cpu_ms_per_region(checkpoint: Path, maps: np.ndarray) -> float | None:
+    """CPU ms per region of the physics prior's images (what the node renders beside each
+    depth-map, models.prior), in this process, best of three; None for a model without one."""
+    generator, _ = load_generator(checkpoint)
+    if generator.prior is None:
+        return None
+    best = float("inf")
+    for _ in range(3):
+        started = time.process_time()
+        generator.prior.channels(maps)
+        best = min(best, time.process_time() - started)
+    return best / len(maps) * 1e3
+
+
+def _request_rate(call: Any, regions: int, requests: int) -> tuple[float, float]:
+    """(p50 ms of ``requests`` calls, regions/s over them)."""
+    latencies = []
+    for _ in range(requests):
+        started = time.perf_counter()
+        call()
+        latencies.append(time.perf_counter() - started)
+    return round(statistics.median(latencies) * 1e3, 1), round(regions * requests / sum(latencies), 1)
+
+
+def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tuple[float, float]) -> list[dict]:
+    """The planner's cloud form beside the depth-map form, per YCB object and pose count."""
+    geometry = load_scene(InferenceNode.Params.scene, check_geometry=False).gripper_geometry()  # as the server's
+    params = DepthMapParams(y_range_m=depth_range_m)
+    rows = []
+    with contextlib.closing(Bus("planner_points", registry)) as bus, TactileClient(bus, 300.0) as client:
+        for mesh in YCB[:args.objects]:
+            cloud = sample_model_cloud(mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED)
+            points = cloud.points_m.astype(np.float32)  # what a planner sends: half the bytes
+            for count in args.poses:
+                poses = surface_gel_poses(cloud, count, args.seed)
+                maps = contact_depth_maps(VoxelIndex(points), np.eye(4), poses, geometry, params).depth_maps_m
+                row = {"object": Path(mesh).stem, "cloud_points": len(points), "poses": count,
+                       **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4))}
+                started = time.perf_counter()
+                client.estimate_at(points, poses)
+                row["first_request_ms"] = round((time.perf_counter() - started) * 1e3, 1)
+                row["points_p50_ms"], row["points_regions_per_s"] = _request_rate(
+                    lambda: client.estimate_at(points, poses), count, args.point_requests)
+                row["maps_p50_ms"], row["maps_regions_per_s"] = _request_rate(
+                    lambda: client.estimate(maps), count, args.point_requests)
+                rows.append(row)
+    return rows
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="dtxb") as tmp:
         if args.checkpoint:
             checkpoint, weights = Path(args.checkpoint), f"checkpoint {args.checkpoint}"
-            y_far = float(torch.load(checkpoint, map_location="cpu", weights_only=True)["depth_range_m"][1])
+            depth_range = torch.load(checkpoint, map_location="cpu", weights_only=True)["depth_range_m"]
         else:
-            checkpoint = write_checkpoint(Path(tmp) / "fresh.pt", args.width, args.seed)
-            weights, y_far = f"fresh generator, width {args.width} (seeded, untrained)", DEPTH_RANGE_M[1]
+            checkpoint = write_checkpoint(Path(tmp) / "fresh.pt", args.width, args.seed, prior=args.prior)
+            weights = f"fresh generator, width {args.width}{', physics prior' if args.prior else ''} (seeded, untrained)"
+            depth_range = DEPTH_RANGE_M
+        depth_range_m = (float(depth_range[0]), float(depth_range[1]))
+        y_far = depth_range_m[1]
         bus_dir = Path(tmp) / "bus"
         registry = Registry(bus_dir)
         params = {"runtime": args.runtime, "precision": args.precision, "threads": args.threads,
@@ -144,6 +249,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             # On a shared machine the wall-clock rate depends on the neighbours; the servers'
             # own CPU time per region much less (2 free cores serve at most 2 / that).
             cpu_per_region = (sum(_cpu_seconds(server.pid) for server in servers) - cpu_before) / served
+            points = bench_points(registry, args, depth_range_m) if args.points else None
+            prior_ms = _prior_cpu_ms_per_region(checkpoint, maps)
         finally:
             for server in servers:
                 server.send_signal(signal.SIGINT)
@@ -162,8 +269,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "regions_per_s": round(throughput, 1),
             "server_cpu_ms_per_region": round(cpu_per_region * 1e3, 2),
             "server_bound_regions_per_s_2_cores": round(2.0 / cpu_per_region, 1),
+            **({"prior_cpu_ms_per_region": round(prior_ms, 2),
+                "prior_share_of_server_cpu": round(prior_ms / (cpu_per_region * 1e3), 2)} if prior_ms else {}),
             "throughput_setup": f"{args.clients} clients x {args.regions} regions/request, max_batch {args.max_batch}",
-            "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores"}
+            "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores",
+            **({"points": points} if points is not None else {})}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -181,3 +291,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clients", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--prior", action="store_true", help="the fresh generator corrects the physics prior")
+    parser.add_argument("--points", action="store_true", help="also the cloud form (estimate_at) on YCB clouds")
+    parser.add_argument("--poses", type=int, nargs="+", default=[64, 256], help="gel poses per cloud request")
+    parser.add_argument("--objects", type=int, default=len(YCB), help="the first N YCB objects (--points)")
+    parser.add_argument("--point-requests", type=int, default=3, help="requests per object and pose count")

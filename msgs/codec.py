@@ -33,6 +33,7 @@ ALLOWED_DTYPES = frozenset(
     ["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"]
 )
 _ARRAY_REF = "__array__"
+_HEADER_FIELDS = (("s", str), ("v", int), ("t", int), ("q", int), ("f", str), ("p", str), ("d", dict), ("a", list))
 
 
 class MessageError(ValueError):
@@ -49,13 +50,15 @@ class Envelope:
     size_bytes: int
 
 
-def encode(topic: str, message: Message, publisher: str = "") -> list[Any]:
-    """Frames for ``message`` on ``topic``: bytes for the topic and header, arrays as buffers."""
+def encode(topic: str, message: Message, publisher: str = "", header: Header | None = None) -> list[Any]:
+    """Frames for ``message`` on ``topic``: bytes for the topic and header, arrays as buffers.
+    ``header``: the one to send in place of ``message.header`` (a publisher's stamp and sequence
+    number), so that no copy of the message is made per send."""
     if not isinstance(message, Message) or not message.SCHEMA:
         raise MessageError(f"cannot send {type(message).__name__}: not a registered msgs type")
     arrays: list[np.ndarray] = []
     values = _flatten(message, arrays, path=type(message).__name__, skip_header=True)
-    header = message.header
+    header = message.header if header is None else header
     wire_header = {
         "s": message.SCHEMA,
         "v": message.VERSION,
@@ -91,9 +94,8 @@ def decode(frames: typing.Sequence[Any], max_bytes: int = DEFAULT_MAX_MESSAGE_BY
         raise MessageError(f"header is not valid msgpack: {exc}") from exc
     if not isinstance(header, dict):
         raise MessageError("header is not a map")
-    for key, kind in (("s", str), ("v", int), ("t", int), ("q", int), ("f", str), ("p", str),
-                      ("d", dict), ("a", list)):
-        if not isinstance(header.get(key), kind) or isinstance(header.get(key), bool):
+    for key, kind in _HEADER_FIELDS:
+        if type(header.get(key)) is not kind:  # msgpack gives exact types; a bool is no int
             raise MessageError(f"header field {key!r} missing or not {kind.__name__}")
     cls = MESSAGE_TYPES.get(header["s"])
     if cls is None:
@@ -139,19 +141,29 @@ def _array_from(spec: Any, view: memoryview, index: int) -> np.ndarray:
     if not (isinstance(spec, list) and len(spec) == 2 and isinstance(spec[0], str) and isinstance(spec[1], list)):
         raise MessageError(f"array {index}: spec must be [dtype, shape]")
     dtype_str, shape = spec
-    if dtype_str not in ALLOWED_DTYPES:
-        raise MessageError(f"array {index}: dtype {dtype_str!r} not allowed (allowed: {sorted(ALLOWED_DTYPES)})")
-    if len(shape) > MAX_NDIM or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape):
+    if not set(map(type, shape)) <= {int}:  # exact ints: no bool, no float, nothing unhashable
         raise MessageError(f"array {index}: shape {shape} must be at most {MAX_NDIM} non-negative ints")
-    if any(d > MAX_DIMENSION for d in shape):
-        raise MessageError(f"array {index}: shape {shape} has a dimension above {MAX_DIMENSION}")
-    dtype = np.dtype(dtype_str)
-    expected = dtype.itemsize * math.prod(shape)
+    dtype, expected = _array_layout(dtype_str, tuple(shape), index)
     if expected != view.nbytes:
         raise MessageError(
             f"array {index}: shape {shape} of {dtype_str} needs {expected} bytes, buffer has {view.nbytes}"
         )
     return np.frombuffer(view, dtype=dtype).reshape(shape)
+
+
+@functools.lru_cache(maxsize=256)
+def _array_layout(dtype_str: str, shape: tuple[int, ...], index: int) -> tuple[np.dtype, int]:
+    """(dtype, byte count) of an array spec whose dimensions are ints, or MessageError. Cached:
+    a stream repeats a few layouts, and a checked one need not be checked again per message
+    (a refused one raises, and is not cached)."""
+    if dtype_str not in ALLOWED_DTYPES:
+        raise MessageError(f"array {index}: dtype {dtype_str!r} not allowed (allowed: {sorted(ALLOWED_DTYPES)})")
+    if len(shape) > MAX_NDIM or not all(d >= 0 for d in shape):
+        raise MessageError(f"array {index}: shape {list(shape)} must be at most {MAX_NDIM} non-negative ints")
+    if any(d > MAX_DIMENSION for d in shape):
+        raise MessageError(f"array {index}: shape {list(shape)} has a dimension above {MAX_DIMENSION}")
+    dtype = np.dtype(dtype_str)
+    return dtype, dtype.itemsize * math.prod(shape)
 
 
 def _flatten(obj: Any, arrays: list[np.ndarray], path: str, skip_header: bool = False) -> Any:
@@ -236,8 +248,9 @@ def _converter(annotation: Any) -> Converter:
         return nested
     if annotation is float:
         def number(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> float:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise MessageError(f"{path}: expected a number, got {type(value).__name__}")
+            kind = type(value)  # exact types: msgpack gives int, float or bool (not a number)
+            if kind is not float and kind is not int:
+                raise MessageError(f"{path}: expected a number, got {kind.__name__}")
             if not math.isfinite(value):
                 raise MessageError(f"{path}: non-finite number")
             return float(value)

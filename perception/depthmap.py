@@ -28,19 +28,24 @@ left empty and then filled as sampling gaps, where 0.2 mm left a third and the 2
 registration cloud fills ~2 %); the paper's 1-80 points/cm³ clouds fill under 6 %.
 
 Precision: model points are moved to the gel frame with one float64 transform composed from
-model_to_world and gel_to_world, so a scene far from the world origin loses nothing.
+model_to_world and gel_to_world, so a scene far from the world origin loses nothing; float32
+points are read as they are (half the memory traffic) and computed with in float64.
+
+Speed: one compiled pass (numba) transforms, crops and bins (~130 M points/s against ~27 for the
+same steps in NumPy, ``dtx bench perception --only binning``); :func:`contact_depth_maps` cuts
+many gels' maps from one indexed cloud, reading only the cells within each crop's reach.
 """
 from __future__ import annotations
 
 import dataclasses
 
+import numba
 import numpy as np
-from scipy import ndimage
 
 from perception.errors import DepthMapError
 from perception.kinematics import GripperGeometry
 from perception.normalisation import normalise_depth_map
-from perception.pointcloud import check_transform
+from perception.pointcloud import VoxelIndex, check_transform
 
 
 # Spacing of the model cloud depth-maps are made from (``sample_model_cloud``): uniform random
@@ -126,43 +131,174 @@ def crop_reach_m(geometry: GripperGeometry, params: DepthMapParams) -> float:
                      np.linalg.norm([0.5 * geometry.gel_size_m[0], 0.5 * geometry.gel_size_m[1], deepest])))
 
 
-def _bin_index(values_m: np.ndarray, half_m: float, count: int) -> np.ndarray:
-    """Index of the bin [edge_i, edge_i+1) holding each value, edges = linspace(-half, half, count + 1);
-    a value on the far edge belongs to the last bin. Values must lie in [-half, half]."""
-    scaled = values_m + half_m
-    scaled *= count / (2.0 * half_m)
-    floored = np.floor(scaled)
-    scaled -= floored  # position inside the bin, 0..1
-    index = floored.astype(np.intp)
-    # The scaled floor can be one bin off for a value within rounding of an edge, and a value on
-    # the far edge lands on index ``count``. Only those few values (within 1e-6 bin of an edge;
-    # rounding is < 1e-9 bin as crop_bounds keeps bins wide) are compared with the edge array,
-    # which keeps the rule exact at full speed.
-    near = np.flatnonzero((scaled < 1e-6) | (scaled > 1.0 - 1e-6))
-    if near.size:
-        edges = np.linspace(-half_m, half_m, count + 1)
-        values = values_m[near]
-        candidate = np.minimum(index[near], count - 1)
-        candidate -= values < edges[candidate]
-        candidate += (values >= edges[candidate + 1]) & (candidate < count - 1)
-        index[near] = candidate
-    return index
+# Points are binned in chunks of this many: the bin indices of a chunk are computed without a
+# branch, and the rare chunk holding a value within rounding of a bin edge is binned again by
+# comparing with the edges (a branch per point, even never taken, made the loop 4x slower).
+_CHUNK = 256
+
+
+@numba.njit(cache=True, nogil=True)
+def _exact_bin(value: float, index: int, edges: np.ndarray) -> int:
+    """The bin [edge_i, edge_i+1) of ``value`` in [-half, half] from a scaled-floor ``index`` at
+    most one bin off (edges = linspace(-half, half, count + 1)); the far edge belongs to the last
+    bin. Always a valid bin, even for a value outside (clamped: no read or write out of bounds)."""
+    count = edges.shape[0] - 1
+    index = min(max(index, 0), count - 1)
+    if value < edges[index]:
+        index -= 1
+    if index < count - 1 and value >= edges[index + 1]:
+        index += 1
+    return max(index, 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _bin_chunk(x: np.ndarray, z: np.ndarray, y: np.ndarray, count: int, half_x: float, half_z: float,
+               x_edges: np.ndarray, z_edges: np.ndarray, flat: np.ndarray, min_y: np.ndarray) -> None:
+    """min_y[bin] = min(min_y[bin], y) for the first ``count`` (<= _CHUNK) points, all inside the
+    crop (one outside lands in an edge bin, never out of bounds). The scaled floor is exact
+    unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds keeps
+    bins wide): only chunks holding such a value are compared with the edge arrays, which keeps
+    the rule exact at full speed."""
+    cols, rows = x_edges.shape[0] - 1, z_edges.shape[0] - 1
+    scale_x, scale_z = cols / (2.0 * half_x), rows / (2.0 * half_z)
+    near = False
+    for i in range(count):
+        a = (x[i] + half_x) * scale_x  # >= 0 inside the crop: int() is the floor
+        b = (z[i] + half_z) * scale_z
+        col, row = min(max(int(a), 0), cols - 1), min(max(int(b), 0), rows - 1)
+        in_col, in_row = a - col, b - row
+        near |= (in_col < 1e-6) | (in_col > 1.0 - 1e-6) | (in_row < 1e-6) | (in_row > 1.0 - 1e-6)
+        flat[i] = row * cols + col
+    if near:
+        for i in range(count):
+            flat[i] = (_exact_bin(z[i], int((z[i] + half_z) * scale_z), z_edges) * cols
+                       + _exact_bin(x[i], int((x[i] + half_x) * scale_x), x_edges))
+    for i in range(count):
+        min_y[flat[i]] = min(min_y[flat[i]], y[i])
+
+
+@numba.njit(cache=True, nogil=True)
+def _min_y_kernel(x: np.ndarray, z: np.ndarray, y: np.ndarray, half_x: float, half_z: float,
+                  x_edges: np.ndarray, z_edges: np.ndarray, min_y: np.ndarray) -> None:
+    """min_y[row * cols + col] = min(min_y[...], y) for every point (all inside the crop)."""
+    flat = np.empty(_CHUNK, np.int64)
+    for start in range(0, y.shape[0], _CHUNK):
+        stop = min(start + _CHUNK, y.shape[0])
+        _bin_chunk(x[start:stop], z[start:stop], y[start:stop], stop - start, half_x, half_z, x_edges, z_edges,
+                   flat, min_y)
+
+
+@numba.njit(cache=True, nogil=True)
+def _cut_kernel(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray,
+                model_to_gel: np.ndarray, bounds: np.ndarray, x_edges: np.ndarray, z_edges: np.ndarray,
+                min_y: np.ndarray, counts: np.ndarray) -> None:
+    """Transform, crop and bin in one pass, for every region k: the points of runs
+    runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] (3 x 4, float64), kept when
+    inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive), binned into min_y[k]
+    (rows * cols, prefilled +inf); counts[k] = points kept.
+
+    Why a kernel: NumPy needs a dozen passes over the points (three dot products, masks, a
+    gather, two bin indices, np.minimum.at) where one pass reads each point once, and no library
+    function crops and min-reduces by bin (benchmarks/perception.py measures both). Arithmetic
+    is float64 whatever the points' dtype, so far from the origin nothing is lost (the transform
+    is composed in float64 beforehand). Kept points are compacted without a branch."""
+    half_x, half_z, y_near, y_far = bounds[0], bounds[1], bounds[2], bounds[3]
+    kept_x, kept_z, kept_y = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK)
+    flat = np.empty(_CHUNK, np.int64)
+    for k in range(model_to_gel.shape[0]):
+        # In locals: the compiler cannot prove the stores below leave the transform alone.
+        xx, xy, xz, xt = model_to_gel[k, 0, 0], model_to_gel[k, 0, 1], model_to_gel[k, 0, 2], model_to_gel[k, 0, 3]
+        yx, yy, yz, yt = model_to_gel[k, 1, 0], model_to_gel[k, 1, 1], model_to_gel[k, 1, 2], model_to_gel[k, 1, 3]
+        zx, zy, zz, zt = model_to_gel[k, 2, 0], model_to_gel[k, 2, 1], model_to_gel[k, 2, 2], model_to_gel[k, 2, 3]
+        kept = 0
+        for run in range(runs[k], runs[k + 1]):
+            for start in range(starts[run], ends[run], _CHUNK):
+                m = 0
+                for i in range(start, min(start + _CHUNK, ends[run])):
+                    px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
+                    y = yx * px + yy * py + yz * pz + yt
+                    x = xx * px + xy * py + xz * pz + xt
+                    z = zx * px + zy * py + zz * pz + zt
+                    kept_x[m], kept_z[m], kept_y[m] = x, z, y
+                    m += (y >= y_near) & (y <= y_far) & (abs(x) <= half_x) & (abs(z) <= half_z)
+                kept += m
+                _bin_chunk(kept_x, kept_z, kept_y, m, half_x, half_z, x_edges, z_edges, flat, min_y[k])
+        counts[k] = kept
+
+
+def _edges(half_m: float, count: int) -> np.ndarray:
+    return np.linspace(-half_m, half_m, count + 1)
 
 
 def min_y_per_bin(x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: float, half_z_m: float,
                   shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Minimum y per x-z bin of points already inside the crop; returns (min_y, occupied).
 
-    ``min_y`` is float64 (rows, cols) with +inf in empty bins. np.minimum.at does the reduction:
-    measured on NumPy 2.4 at ~200 M points/s, it beats sort-based (argsort + reduceat) versions
-    by an order of magnitude (benchmarks/perception.py, binning).
-    """
+    ``min_y`` is float64 (rows, cols) with +inf in empty bins. One compiled pass (the bin rule of
+    the module docstring, exact): NumPy's np.minimum.at needs the bin indices computed first, in
+    several more passes (benchmarks/perception.py, binning, measures both)."""
     rows, cols = shape
-    flat = _bin_index(z_m, half_z_m, rows) * cols + _bin_index(x_m, half_x_m, cols)
     min_y = np.full(rows * cols, np.inf)
-    np.minimum.at(min_y, flat, y_m)
+    x, z, y = (np.ascontiguousarray(a, dtype=np.float64) for a in (x_m, z_m, y_m))
+    _min_y_kernel(x, z, y, float(half_x_m), float(half_z_m), _edges(half_x_m, cols), _edges(half_z_m, rows), min_y)
     min_y = min_y.reshape(rows, cols)
     return min_y, np.isfinite(min_y)
+
+
+@dataclasses.dataclass
+class ContactPatches:
+    """N regions' depth-maps, cut from one model cloud in one pass (:func:`contact_depth_maps`)."""
+
+    depth_maps_m: np.ndarray       # (N, rows, cols) float32, as ContactPatch.depth_map_m
+    occupied: np.ndarray           # (N, rows, cols) bool
+    point_counts: np.ndarray       # (N,) int64, points in each region's crop
+    crop_m: tuple[float, float, float]
+    y_range_m: tuple[float, float]
+
+
+def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
+    """float32 or float64 C-contiguous (N, 3), finite; other dtypes are used in float64."""
+    points = np.asarray(points_model_m)
+    points = np.ascontiguousarray(points, dtype=points.dtype if points.dtype == np.float32 else np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise DepthMapError(f"model points must be (N, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise DepthMapError("model points contain NaN or inf")
+    return points
+
+
+def _cut(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray, model_to_gel: np.ndarray,
+         bounds: tuple[float, float, float, float], params: DepthMapParams, batch: bool,
+         allow_empty: bool = False) -> ContactPatches:
+    """The kernel over already checked inputs (``bounds``: :func:`crop_bounds`), then the
+    empty-bin policy and gap filling; an error about a region of a ``batch`` names it. With
+    ``allow_empty`` a region with no point is no error: its map is all y_far (point count 0)."""
+    half_x, half_z, y_near, y_far = bounds
+    rows, cols = int(params.shape[0]), int(params.shape[1])
+    regions = model_to_gel.shape[0]
+    min_y = np.full((regions, rows * cols), np.inf)
+    counts = np.zeros(regions, np.int64)
+    _cut_kernel(points, starts, ends, runs, np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64),
+                np.array([half_x, half_z, y_near, y_far]), _edges(half_x, cols), _edges(half_z, rows), min_y, counts)
+    empty = np.flatnonzero(counts == 0)
+    if empty.size and not allow_empty:
+        raise DepthMapError(f"{f'region {int(empty[0])}: ' if batch else ''}"
+                            f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
+                            f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
+                            "the gel does not reach the object")
+    min_y = min_y.reshape(regions, rows, cols)
+    occupied = np.isfinite(min_y)
+    depth_maps_m = np.where(occupied, min_y, y_far).astype(np.float32)
+    if params.fill_gaps_min_neighbours > 0:
+        depth_maps_m = fill_sampling_gaps(depth_maps_m, occupied, params.fill_gaps_min_neighbours)
+    return ContactPatches(depth_maps_m=depth_maps_m, occupied=occupied, point_counts=counts,
+                          crop_m=(2 * half_x, y_far - y_near, 2 * half_z), y_range_m=(y_near, y_far))
+
+
+def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray, names: list[str]) -> np.ndarray:
+    """(N, 4, 4) float64 model-to-gel transforms, each composed in float64 (rigid checked)."""
+    model = check_transform(model_to_world, "model_to_world")
+    return np.stack([np.linalg.inv(check_transform(gel, name)) @ model for gel, name in zip(gels_to_world, names)])
 
 
 def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_to_world: np.ndarray,
@@ -170,39 +306,53 @@ def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, ge
                       params: DepthMapParams = DepthMapParams()) -> ContactPatch:
     """Depth-map of the model cloud (model frame, metres) in the contact volume of one gel.
 
-    ``points_model_m``: finite (N, 3), any real dtype (used in float64); the transforms rigid
+    ``points_model_m``: finite (N, 3), any real dtype (float32 read as it is, others converted
+    to float64; the arithmetic is float64); the transforms rigid
     (perception.pointcloud.check_transform); crop and bins as :func:`crop_bounds`. Anything
     else, or no point in the crop, raises DepthMapError (PointCloudError for a transform).
-    Cost: O(N) time, O(N + bins) memory, bins <= MAX_DEPTH_MAP_BINS."""
-    half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
-    points = np.asarray(points_model_m, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise DepthMapError(f"model points must be (N, 3), got {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise DepthMapError("model points contain NaN or inf")
-    model_to_gel = np.linalg.inv(check_transform(gel_to_world, "gel_to_world")) @ \
-        check_transform(model_to_world, "model_to_world")
-    # The depth window (a few mm) keeps a small slice of the model, so y is computed first and x, z
-    # only for the points in that slice.
-    y = points @ model_to_gel[1, :3] + model_to_gel[1, 3]
-    in_depth = np.flatnonzero((y >= y_near) & (y <= y_far))
-    y, points = y[in_depth], np.take(points, in_depth, axis=0)  # take: 4x faster than points[in_depth]
-    x = points @ model_to_gel[0, :3] + model_to_gel[0, 3]
-    z = points @ model_to_gel[2, :3] + model_to_gel[2, 3]
-    inside = (np.abs(x) <= half_x) & (np.abs(z) <= half_z)
-    count = int(np.count_nonzero(inside))
-    if count == 0:
-        raise DepthMapError(f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
-                            f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
-                            "the gel does not reach the object")
-    min_y, occupied = min_y_per_bin(x[inside], z[inside], y[inside], half_x, half_z, params.shape)
-    depth_map_m = np.where(occupied, min_y, y_far).astype(np.float32)
-    if params.fill_gaps_min_neighbours > 0:
-        depth_map_m = fill_sampling_gaps(depth_map_m, occupied, params.fill_gaps_min_neighbours)
-    return ContactPatch(depth_map_m=depth_map_m,
-                        normalised=normalise_depth_map(depth_map_m, (y_near, y_far)),
-                        occupied=occupied, crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
-                        y_range_m=(y_near, y_far), point_count=count)
+    Cost: one pass over the points, O(N) time, O(bins) memory beyond a converted copy of the
+    points, bins <= MAX_DEPTH_MAP_BINS."""
+    bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
+    points = _points_for_kernel(points_model_m)
+    model_to_gel = _model_to_gels(model_to_world, [gel_to_world], ["gel_to_world"])
+    patches = _cut(points, np.array([0], np.int64), np.array([len(points)], np.int64), np.array([0, 1], np.int64),
+                   model_to_gel, bounds, params, batch=False)
+    return ContactPatch(depth_map_m=patches.depth_maps_m[0],
+                        normalised=normalise_depth_map(patches.depth_maps_m[0], patches.y_range_m),
+                        occupied=patches.occupied[0], crop_m=patches.crop_m, y_range_m=patches.y_range_m,
+                        point_count=int(patches.point_counts[0]))
+
+
+def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_world: np.ndarray,
+                       geometry: GripperGeometry = GripperGeometry(), params: DepthMapParams = DepthMapParams(),
+                       max_point_visits: int | None = None, allow_empty: bool = False) -> ContactPatches:
+    """Depth-maps of many gels (``gels_to_world``: (N, 4, 4)) on one indexed model cloud: each
+    map equals :func:`contact_depth_map` on the whole cloud.
+
+    Why batched: a grasp planner asks for tens to hundreds of candidate gel poses on one dense
+    cloud (millions of points); the index hands each gel the few cells within its crop's reach
+    (:func:`crop_reach_m`), read in place by one compiled pass, instead of every point per gel.
+    ``max_point_visits`` bounds the work (points read over all gels, known after the lookups and
+    before any is read): more raises DepthMapError. A gel with no point raises DepthMapError
+    naming the region, unless ``allow_empty``: then its map is all y_far and its point count 0
+    (a planner's candidate that touches nothing is an answer, not a failed batch)."""
+    bounds = crop_bounds(geometry, params)
+    reach = crop_reach_m(geometry, params)
+    gels = np.asarray(gels_to_world, dtype=np.float64)
+    if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
+        raise DepthMapError(f"gel poses must be (N, 4, 4), N >= 1, got shape {gels.shape}")
+    model_to_gel = _model_to_gels(model_to_world, gels, [f"gels_to_world[{i}]" for i in range(len(gels))])
+    world_to_model = np.linalg.inv(check_transform(model_to_world, "model_to_world"))
+    centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
+    found = [model.slices_within(centre, reach) for centre in centres]
+    starts = np.concatenate([f[0] for f in found]).astype(np.int64)
+    ends = np.concatenate([f[1] for f in found]).astype(np.int64)
+    runs = np.cumsum([0] + [len(f[0]) for f in found], dtype=np.int64)
+    visits = int(np.sum(ends - starts))
+    if max_point_visits is not None and visits > max_point_visits:
+        raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
+    return _cut(model.points_m, starts, ends, runs, model_to_gel, bounds, params, batch=True,  # float32 or 64
+                allow_empty=allow_empty)
 
 
 def centre_between_gels(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_left_to_world: np.ndarray,
@@ -241,10 +391,24 @@ def centre_between_gels(points_model_m: np.ndarray, model_to_world: np.ndarray, 
 
 def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighbours: int) -> np.ndarray:
     """Empty bins inside a sampled surface (at least ``min_neighbours`` of their 8 neighbours
-    occupied) take the nearest (minimum y) of their occupied neighbours; others are unchanged."""
+    occupied) take the nearest (minimum y) of their occupied neighbours; others are unchanged.
+    ``depth_map_m`` is one map (rows, cols) or a stack (..., rows, cols), each map on its own.
+    The 3 x 3 neighbourhoods are sums and minima of nine shifted views of the padded maps: a few
+    passes over small arrays, ~5x faster than scipy.ndimage's generic filters on 100 x 100."""
     if not 1 <= min_neighbours <= 8:
         raise DepthMapError(f"min_neighbours must be in 1..8, got {min_neighbours}")
-    neighbours = ndimage.convolve(occupied.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant") - occupied
-    nearest = ndimage.minimum_filter(np.where(occupied, depth_map_m, np.inf), size=3, mode="constant", cval=np.inf)
+    rows, cols = occupied.shape[-2:]
+    padded = (*occupied.shape[:-2], rows + 2, cols + 2)  # a border of empty bins
+    flags = np.zeros(padded, np.uint8)
+    flags[..., 1:-1, 1:-1] = occupied
+    surface = np.full(padded, np.inf, np.float32)
+    np.copyto(surface[..., 1:-1, 1:-1], depth_map_m, where=occupied)
+    neighbours = np.zeros(occupied.shape, np.uint8)
+    nearest = np.full(occupied.shape, np.inf, np.float32)
+    for dr in range(3):
+        for dc in range(3):
+            if (dr, dc) != (1, 1):
+                neighbours += flags[..., dr:dr + rows, dc:dc + cols]
+                np.minimum(nearest, surface[..., dr:dr + rows, dc:dc + cols], out=nearest)
     gaps = ~occupied & (neighbours >= min_neighbours)
     return np.where(gaps, nearest, depth_map_m).astype(np.float32)

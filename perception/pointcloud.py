@@ -10,6 +10,7 @@ import functools
 from collections.abc import Sequence
 
 import cv2
+import numba
 import open3d as o3d
 import numpy as np
 
@@ -138,6 +139,47 @@ def seed_open3d(*keys: int) -> None:
     o3d.utility.random.seed(int(state >> 1))
 
 
+# A grid of at most this many cells per point (plus 2^20) is bucketed by counting sort.
+COUNTING_SORT_CELLS_PER_POINT = 4
+
+
+@numba.njit(cache=True, nogil=True)
+def _extent(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """lo, hi = per-axis minimum and maximum (prefilled +inf, -inf); False when a coordinate
+    is NaN or infinite. One pass: NumPy's axis-0 reductions of an (N, 3) array are strided
+    (three of them took ~75 % of building an index of millions of points)."""
+    finite = True
+    for i in range(points.shape[0]):
+        for axis in range(3):
+            value = float(points[i, axis])
+            finite &= value - value == 0.0  # NaN for NaN and +-inf
+            lo[axis] = min(lo[axis], value)
+            hi[axis] = max(hi[axis], value)
+    return finite
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_keys(points: np.ndarray, origin: np.ndarray, cell_m: float, shape: np.ndarray, keys: np.ndarray) -> None:
+    """keys[i] = row-major index of the cell of points[i]: floor((p - origin) / cell) per axis
+    in float64, in one pass (NumPy needed ~20 passes and (N,) float64 temporaries per axis)."""
+    for i in range(points.shape[0]):
+        key = 0
+        for axis in range(3):
+            key = key * shape[axis] + int(np.floor((float(points[i, axis]) - origin[axis]) / cell_m))
+        keys[i] = key
+
+
+@numba.njit(cache=True, nogil=True)
+def _scatter_by_key(points: np.ndarray, keys: np.ndarray, next_slot: np.ndarray, out: np.ndarray) -> None:
+    """The scatter of a stable counting sort: each point to the next free slot of its key
+    (``next_slot`` starts at each key's first slot and is advanced). No NumPy function scatters
+    rows by a running per-key counter; argsort + take costs a sort and a gather instead."""
+    for i in range(points.shape[0]):
+        slot = next_slot[keys[i]]
+        next_slot[keys[i]] = slot + 1
+        out[slot, 0], out[slot, 1], out[slot, 2] = points[i, 0], points[i, 1], points[i, 2]
+
+
 class VoxelIndex:
     """Points bucketed into cubic cells, to hand out the few near a place quickly.
 
@@ -157,26 +199,45 @@ class VoxelIndex:
     MAX_GRID_CELLS = 2 ** 62
 
     def __init__(self, points_m: np.ndarray, cell_m: float = 0.005) -> None:
-        points = np.asarray(points_m, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
+        # float32 points are kept as they are (exact, and half the memory and memory traffic of a
+        # dense model cloud); every other dtype is used in float64.
+        points = np.asarray(points_m)
+        points = np.ascontiguousarray(points, dtype=np.float32 if points.dtype == np.float32 else np.float64)
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        if points.ndim != 2 or points.shape[1] != 3 or not _extent(points, lo, hi):
             raise PointCloudError(f"points must be finite (N, 3), got shape {points.shape}")
         if not (isinstance(cell_m, (int, float, np.integer, np.floating)) and np.isfinite(cell_m) and cell_m > 0):
             raise PointCloudError(f"cell size must be a positive number of metres, got {cell_m!r}")
         self.cell_m = float(cell_m)
-        self.origin_m = points.min(axis=0) if len(points) else np.zeros(3)
+        self.origin_m = lo if len(points) else np.zeros(3)
         with np.errstate(over="ignore"):  # a grid too fine overflows to inf, refused below
-            extent_cells = np.floor((points.max(axis=0) - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
+            extent_cells = np.floor((hi - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
             grid_cells = np.prod(extent_cells)
         if not grid_cells <= self.MAX_GRID_CELLS:
             raise PointCloudError(f"points span {np.ptp(points, axis=0)} m: {extent_cells} cells of {self.cell_m} m, "
                                   f"more than 2^62; use larger cells or drop far outliers")
-        cells = np.floor((points - self.origin_m) / self.cell_m).astype(np.int64)
         self.shape = extent_cells.astype(np.int64)
-        keys = np.ravel_multi_index(cells.T, self.shape) if len(points) else np.zeros(0, np.int64)
-        order = np.argsort(keys, kind="stable")
-        self.points_m = points[order]
-        self.keys, self.starts, counts = np.unique(keys[order], return_index=True, return_counts=True)
-        self.ends = self.starts + counts
+        keys = np.empty(len(points), np.int64)
+        _cell_keys(points, self.origin_m, self.cell_m, self.shape, keys)
+        grid_size = int(np.prod(self.shape))
+        if grid_size <= COUNTING_SORT_CELLS_PER_POINT * len(points) + 2 ** 20:
+            # Few cells for the points (a dense model cloud: ~10^4 cells of 5 mm for millions of
+            # points): a stable counting sort, O(N + cells), ~10x faster than the argsort below.
+            counts = np.bincount(keys, minlength=grid_size)
+            self.keys = np.flatnonzero(counts)
+            first = np.cumsum(counts) - counts
+            self.starts = first[self.keys]
+            self.ends = self.starts + counts[self.keys]
+            self.points_m = np.empty_like(points)
+            _scatter_by_key(points, keys, first, self.points_m)
+        else:
+            order = np.argsort(keys, kind="stable")
+            self.points_m = np.take(points, order, axis=0)
+            sorted_keys = keys[order]
+            self.starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(points) \
+                else np.zeros(0, np.int64)
+            self.keys = sorted_keys[self.starts]
+            self.ends = np.r_[self.starts[1:], len(points)].astype(self.starts.dtype)
 
     def within(self, centre_m: np.ndarray, radius_m: float) -> np.ndarray:
         """The points of every cell that meets the ball (a superset of the points inside it),
@@ -187,6 +248,15 @@ class VoxelIndex:
         O(min(cells in the query's box, occupied cells) + points returned), whatever the
         radius and cell size: a box larger than the occupied cells scans those instead.
         """
+        starts, ends = self.slices_within(centre_m, radius_m)
+        if starts.size == 0:
+            return self.points_m[:0]
+        return np.concatenate([self.points_m[s:e] for s, e in zip(starts, ends)])
+
+    def slices_within(self, centre_m: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """What :meth:`within` returns, as (starts, ends) of runs of ``points_m``, without
+        copying a point: a kernel that reads the runs in place (perception.depthmap's batched
+        depth-maps) saves the gather. Same contract and bounds as :meth:`within`."""
         try:
             centre = np.asarray(centre_m, dtype=np.float64)
             radius = float(radius_m)
@@ -203,7 +273,7 @@ class VoxelIndex:
         hi = np.clip(np.floor((centre + radius - self.origin_m) / self.cell_m), -1.0, top + 1).astype(np.int64)
         lo, hi = np.maximum(lo, 0), np.minimum(hi, self.shape - 1)
         if np.any(hi < lo):
-            return self.points_m[:0]
+            return self.starts[:0], self.ends[:0]
         if np.prod((hi - lo + 1).astype(np.float64)) > len(self.keys):
             # Fewer occupied cells than cells in the box: test each occupied cell (keys ascend,
             # so the order is the one the box enumeration gives).
@@ -216,6 +286,4 @@ class VoxelIndex:
             found = slot < len(self.keys)
             found[found] = self.keys[slot[found]] == wanted[found]
             slot = slot[found]
-        if slot.size == 0:
-            return self.points_m[:0]
-        return np.concatenate([self.points_m[s:e] for s, e in zip(self.starts[slot], self.ends[slot])])
+        return self.starts[slot], self.ends[slot]

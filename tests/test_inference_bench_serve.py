@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 from benchmarks.serve import add_arguments, run
 
 
@@ -15,3 +17,38 @@ def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -
     assert result["model"].startswith("fresh.pt (ngf 8, onnxrt fp32)")
     assert 0 < result["p50_ms"] <= result["p99_ms"]
     assert result["regions_per_s"] > 0 and result["server_cpu_ms_per_region"] > 0
+
+
+def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
+    """--prior serves a generator correcting the physics prior and says what the prior costs;
+    --points sends a YCB model cloud with gel poses on its surface beside the depth-map form."""
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    result = run(parser.parse_args(["--width", "8", "--threads", "1", "--requests", "3", "--regions", "2",
+                                    "--seconds", "0.2", "--prior", "--points", "--objects", "1", "--poses", "4",
+                                    "--point-requests", "1"]))
+    assert result["weights"] == "fresh generator, width 8, physics prior (seeded, untrained)"
+    assert 0 < result["prior_cpu_ms_per_region"] and 0 < result["prior_share_of_server_cpu"]
+    (row,) = result["points"]
+    assert row["poses"] == 4 and row["cloud_points"] > 1_000_000
+    for key in ("cut_regions_per_s", "cut_per_gel_regions_per_s", "points_regions_per_s", "maps_regions_per_s"):
+        assert row[key] > 0
+
+
+def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:
+    """Every pose is a rigid gel frame whose +y faces the surface 0.5 mm in: its depth-map
+    reaches into the gel (a scanned mesh is not flat, so some points lie deeper), at most 0.5 mm
+    where it sits, the map's centre."""
+    from benchmarks.serve import YCB, surface_gel_poses
+    from perception.depthmap import DepthMapParams, contact_depth_maps
+    from perception.kinematics import GripperGeometry
+    from perception.pointcloud import VoxelIndex, check_transform
+    from perception.registration import sample_model_cloud
+    cloud = sample_model_cloud(YCB[1], 0.0003, seed=0)
+    poses = surface_gel_poses(cloud, 8, seed=1)
+    for pose in poses:
+        check_transform(pose)
+    maps = contact_depth_maps(VoxelIndex(cloud.points_m), np.eye(4), poses, GripperGeometry(),
+                              DepthMapParams(fill_gaps_min_neighbours=0)).depth_maps_m
+    assert np.all(maps.min(axis=(1, 2)) <= -0.0004)
+    np.testing.assert_allclose(maps[:, 49:51, 49:51].min(axis=(1, 2)), -0.0005, atol=2e-4)

@@ -138,7 +138,7 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(points=np.zeros((10, 2)), gel_poses=np.eye(4)[None]), "points must be P x 3"),
     (TactileEstimateRequest(points=np.zeros((1001, 3)), gel_poses=np.eye(4)[None]), "too many points"),
     (TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4)),
-     "too much work: 600 points x 4 regions > 2000"),
+     "too much work: 2400 model points near 4 gels > 2000"),
     (TactileEstimateRequest(points=np.zeros((10, 3), np.int32), gel_poses=np.eye(4)[None]), "float32 or float64"),
     (TactileEstimateRequest(points=np.full((10, 3), np.nan), gel_poses=np.eye(4)[None]), "NaN or inf"),
     (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.eye(3)[None]), "gel_poses must be N x 4 x 4"),
@@ -170,7 +170,7 @@ def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served
 def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry,
                                                                          checkpoint: Path) -> None:
     limits = {"max_regions": 4, "max_points": 1000, "max_dropout_samples": 3, "max_sampled_regions": 8,
-              "max_point_regions": 2000}
+              "max_point_visits": 2000}
     with serving(registry, checkpoint, **limits), contextlib.closing(Bus("planner", registry)) as bus:
         raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
         for request, message in BAD_REQUESTS:
@@ -221,3 +221,26 @@ def test_a_request_larger_than_max_batch_runs_in_several_passes(registry: Regist
     assert passes == 3 + 5  # 5 regions in batches of 2, then 10 sampled regions in batches of 2
     assert images.shape == (5, 100, 100, 3) and uncertainty.shape == (5, 100, 100)
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
+
+
+def test_a_cloud_sent_again_reuses_its_index_and_another_cloud_gets_its_own(checkpoint: Path, tmp_path: Path) -> None:
+    """The points path keeps the spatial index of the last index_cache clouds: the same cloud
+    again is answered from its kept index (the same maps), a changed one is indexed anew."""
+    node = InferenceNode("cache_probe", {"checkpoint": str(checkpoint), "runtime": "eager", "index_cache": 1},
+                         registry=Registry(tmp_path / "bus"))
+    try:
+        rng = np.random.default_rng(4)
+        cloud = rng.uniform(-0.01, 0.01, (5000, 3)).astype(np.float32)
+        poses = np.stack([np.eye(4)] * 2)
+        first = node._depth_maps(TactileEstimateRequest(points=cloud, gel_poses=poses))
+        index = node._indexes[0][1]
+        again = node._depth_maps(TactileEstimateRequest(points=cloud.copy(), gel_poses=poses))
+        assert node._indexes[0][1] is index
+        np.testing.assert_array_equal(again, first)
+        moved = cloud.copy()
+        moved[:, 1] += np.float32(0.0002)
+        other = node._depth_maps(TactileEstimateRequest(points=moved, gel_poses=poses))
+        assert len(node._indexes) == 1 and node._indexes[0][1] is not index
+        assert not np.array_equal(other, first)
+    finally:
+        node.close()

@@ -139,6 +139,25 @@ def test_disallowed_dtype_is_refused(good_frames: list) -> None:
         decode(_forge(good_frames, a=header["a"]))
 
 
+@pytest.mark.parametrize("shape", [[True, 5], [4.0, 5], [4, -5], [[4], 5], [4, None], [1] * 9])
+def test_a_checked_layout_does_not_let_a_look_alike_shape_through(good_frames: list, shape: list) -> None:
+    """Array layouts are checked once and remembered: a shape equal to a remembered one
+    (True == 1, 4.0 == 4) or not hashable is still refused as before."""
+    decode(_bytes(good_frames))  # the (4, 5) uint16 layout is now remembered
+    header = msgpack.unpackb(bytes(good_frames[1]))
+    header["a"][0][1] = shape
+    with pytest.raises(MessageError, match="must be at most 8 non-negative ints"):
+        decode(_forge(good_frames, a=header["a"]))
+
+
+def test_a_header_given_to_encode_replaces_the_messages_own() -> None:
+    message = msgs.DepthImage(header=msgs.Header(stamp_ns=1, seq=2, frame_id="a"), depth=np.ones((2, 3), np.uint16))
+    got = decode(encode("/d", message, "p", msgs.Header(stamp_ns=5, seq=6, frame_id="b"))).message
+    assert (got.header.stamp_ns, got.header.seq, got.header.frame_id) == (5, 6, "b")
+    assert message.header.seq == 2  # the message itself is left as it was
+    np.testing.assert_array_equal(got.depth, message.depth)
+
+
 def test_non_finite_numbers_are_refused_both_ways() -> None:
     with pytest.raises(MessageError, match="non-finite"):
         encode("/g", msgs.GripperState(width_m=math.nan))

@@ -328,3 +328,111 @@ def test_centring_leaves_the_pose_when_a_gel_faces_nothing():
     assert np.array_equal(centre_between_gels(box, far, gels["left"], gels["right"], GEOMETRY), far)
     with pytest.raises(DepthMapError, match="finite"):
         centre_between_gels(np.array([[0.0, np.nan, 0.0]]), far, gels["left"], gels["right"], GEOMETRY)
+
+
+# --- the batched, indexed path (contact_depth_maps) and the compiled kernel -----------------------
+
+def numpy_reference_map(points_model, model_to_world, gel_to_world, params):
+    """The plain NumPy pipeline (float64 transform, masks, np.searchsorted on the edges,
+    np.minimum.at), with the module's rules, before gap filling."""
+    half_x, half_z, y_near, y_far = crop_bounds(GEOMETRY, params)
+    model_to_gel = np.linalg.inv(gel_to_world) @ model_to_world
+    gel = np.asarray(points_model, np.float64) @ model_to_gel[:3, :3].T + model_to_gel[:3, 3]
+    keep = (gel[:, 1] >= y_near) & (gel[:, 1] <= y_far) & (np.abs(gel[:, 0]) <= half_x) & (np.abs(gel[:, 2]) <= half_z)
+    x, y, z = gel[keep].T
+    rows, cols = params.shape
+    col = np.minimum(np.searchsorted(np.linspace(-half_x, half_x, cols + 1), x, side="right") - 1, cols - 1)
+    row = np.minimum(np.searchsorted(np.linspace(-half_z, half_z, rows + 1), z, side="right") - 1, rows - 1)
+    out = np.full(rows * cols, np.inf)
+    np.minimum.at(out, row * cols + col, y)
+    return out.reshape(rows, cols)
+
+
+def _random_pose(rng, offset_m):
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    pose[:3, 3] = offset_m + rng.uniform(-0.003, 0.003, 3)
+    return pose
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), regions=st.integers(1, 6), offset=st.sampled_from([0.0, 1e3, -2e4]),
+       dtype=st.sampled_from([np.float32, np.float64]), cell=st.sampled_from([0.001, 0.005, 0.05]),
+       shape=st.tuples(st.integers(1, 40), st.integers(1, 40)))
+def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(seed, regions, offset, dtype, cell,
+                                                                             shape):
+    """Gels anywhere around a cloud of a few mm (and a km from the origin): the indexed batch
+    gives each gel exactly contact_depth_map's map, and both the plain NumPy pipeline's."""
+    from perception.depthmap import contact_depth_maps
+    from perception.pointcloud import VoxelIndex
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-0.015, 0.015, (3000, 3)).astype(dtype)
+    model_to_world = _random_pose(rng, offset)
+    gels = np.stack([model_to_world @ _random_pose(rng, 0.0) for _ in range(regions)])
+    params = DepthMapParams(shape=shape, fill_gaps_min_neighbours=0)
+    try:
+        singles = [contact_depth_map(points, model_to_world, gel, GEOMETRY, params) for gel in gels]
+    except DepthMapError:
+        with pytest.raises(DepthMapError, match="region .*no model point"):
+            contact_depth_maps(VoxelIndex(points, cell), model_to_world, gels, GEOMETRY, params)
+        return
+    batch = contact_depth_maps(VoxelIndex(points, cell), model_to_world, gels, GEOMETRY, params)
+    for i, single in enumerate(singles):
+        np.testing.assert_array_equal(batch.depth_maps_m[i], single.depth_map_m)
+        np.testing.assert_array_equal(batch.occupied[i], single.occupied)
+        assert batch.point_counts[i] == single.point_count
+        reference = numpy_reference_map(points, model_to_world, gels[i], params)
+        np.testing.assert_array_equal(single.occupied, np.isfinite(reference))
+        np.testing.assert_allclose(single.depth_map_m[single.occupied], reference[single.occupied], rtol=0, atol=1e-9)
+
+
+def test_float32_points_give_the_map_of_their_float64_values():
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-0.012, 0.012, (20000, 3)).astype(np.float32)
+    gel = _random_pose(rng, 0.0)
+    wide, narrow = (contact_depth_map(p, np.eye(4), gel, GEOMETRY, DepthMapParams()) for p in
+                    (points.astype(np.float64), points))
+    np.testing.assert_array_equal(wide.depth_map_m, narrow.depth_map_m)
+
+
+def test_batched_maps_name_the_region_that_misses_and_bound_the_work():
+    from perception.depthmap import contact_depth_maps
+    from perception.pointcloud import VoxelIndex
+    index = VoxelIndex(np.random.default_rng(0).uniform(-0.005, 0.005, (1000, 3)))
+    away = np.eye(4)
+    away[1, 3] = -1.0
+    with pytest.raises(DepthMapError, match="region 1: no model point"):
+        contact_depth_maps(index, np.eye(4), np.stack([np.eye(4), away]), GEOMETRY, DepthMapParams())
+    with pytest.raises(DepthMapError, match="too much work: 2000 model points near 2 gels > 1999"):
+        contact_depth_maps(index, np.eye(4), np.stack([np.eye(4)] * 2), GEOMETRY, DepthMapParams(),
+                           max_point_visits=1999)
+    with pytest.raises(DepthMapError, match=r"\(N, 4, 4\)"):
+        contact_depth_maps(index, np.eye(4), np.eye(4), GEOMETRY, DepthMapParams())
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), stack=st.integers(0, 3), rows=st.integers(1, 12), cols=st.integers(1, 12),
+       min_neighbours=st.integers(1, 8), density=st.floats(0.0, 1.0))
+def test_property_gap_filling_equals_scipy_filters(seed, stack, rows, cols, min_neighbours, density):
+    """The shifted-view neighbourhoods equal scipy.ndimage's 3 x 3 count and minimum, map by map."""
+    from perception.depthmap import fill_sampling_gaps
+    rng = np.random.default_rng(seed)
+    shape = (stack, rows, cols) if stack else (rows, cols)
+    occupied = rng.random(shape) < density
+    depth = np.where(occupied, rng.uniform(-T, T, shape), T).astype(np.float32)
+    got = fill_sampling_gaps(depth, occupied, min_neighbours)
+    for index in np.ndindex(*shape[:-2]):
+        occ, dep = occupied[index], depth[index]
+        neighbours = ndimage.convolve(occ.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant") - occ
+        nearest = ndimage.minimum_filter(np.where(occ, dep, np.inf), size=3, mode="constant", cval=np.inf)
+        expected = np.where(~occ & (neighbours >= min_neighbours), nearest, dep).astype(np.float32)
+        np.testing.assert_array_equal(got[index], expected)
+
+
+def test_min_y_per_bin_keeps_values_outside_the_crop_in_the_edge_bins():
+    """The crop is the caller's; a value outside it (or NaN) lands in an edge bin, never outside
+    the map's memory."""
+    x = np.array([-1.0, 1.0, np.nan, 0.0])
+    z = np.array([-1.0, 1.0, 0.0, np.nan])
+    min_y, occupied = min_y_per_bin(x, z, np.array([0.1, 0.2, 0.3, 0.4]), HALF_X, HALF_Z, (3, 4))
+    assert min_y[0, 0] == 0.1 and min_y[2, 3] == 0.2 and occupied.sum() <= 4

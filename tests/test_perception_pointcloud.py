@@ -160,3 +160,25 @@ def test_voxel_index_edge_cases():
         VoxelIndex(np.array([[0.0, np.nan, 0.0]]))
     with pytest.raises(PointCloudError, match="cell size"):
         VoxelIndex(np.zeros((1, 3)), cell_m=0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(0, 3000), cell_m=st.sampled_from([1e-7, 0.0005, 0.005, 0.05]),
+       dtype=st.sampled_from([np.float32, np.float64]), offset_m=st.sampled_from([0.0, -250.0, 1e4]))
+def test_voxel_index_buckets_as_a_stable_sort_of_the_cell_keys(seed, n, cell_m, dtype, offset_m):
+    """Counting sort (few cells per point) and argsort (a sparse grid) both give what a stable
+    argsort of the row-major cell keys gives: the same points, order, runs and keys."""
+    points = (np.random.default_rng(seed).uniform(-0.02, 0.02, (n, 3)) + offset_m).astype(dtype)
+    index = VoxelIndex(points, cell_m)
+    assert index.points_m.dtype == dtype
+    if n == 0:
+        assert len(index.points_m) == 0 and len(index.keys) == 0
+        return
+    cells = np.floor((points.astype(np.float64) - points.min(axis=0).astype(np.float64)) / cell_m).astype(np.int64)
+    keys = np.ravel_multi_index(cells.T, index.shape)
+    order = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(index.points_m, points[order])
+    unique, first, counts = np.unique(keys[order], return_index=True, return_counts=True)
+    np.testing.assert_array_equal(index.keys, unique)
+    np.testing.assert_array_equal(index.starts, first)
+    np.testing.assert_array_equal(index.ends, first + counts)
