@@ -47,7 +47,7 @@ class GelSightNode(SensorNode):
 
     def on_gripper(self, state: msgs.GripperState) -> None:
         if self.arm is not None:
-            self.sensor.observe_robot(self.arm.tcp_pose, state.width_m, state.force_n)
+            self.sensor.observe_robot(self.arm.tcp_pose, state.width_m, state.force_n, state.header.stamp_ns)
 
 
 if __name__ == "__main__":

@@ -266,8 +266,8 @@ class InferenceNode(Node):
         except PerceptionError as exc:
             raise BadRequest(f"{exc}; send fewer regions per request" if "too much work" in str(exc)
                              else str(exc)) from exc
-        errors = ["" if count else f"region {i}: no model point in the gel's contact volume: the gel does not "
-                  "reach the object" for i, count in enumerate(patches.point_counts)]
+        errors = ["" if count else f"region {i}: no model point in the contact volume: the gel does not reach "
+                  "the object" for i, count in enumerate(patches.point_counts)]
         return patches.depth_maps_m, errors
 
     def _warm_up_cutting(self) -> None:

@@ -232,14 +232,14 @@ def test_a_cloud_sent_again_reuses_its_index_and_another_cloud_gets_its_own(chec
         rng = np.random.default_rng(4)
         cloud = rng.uniform(-0.01, 0.01, (5000, 3)).astype(np.float32)
         poses = np.stack([np.eye(4)] * 2)
-        first = node._depth_maps(TactileEstimateRequest(points=cloud, gel_poses=poses))
+        first, _ = node._depth_maps(TactileEstimateRequest(points=cloud, gel_poses=poses))
         index = node._indexes[0][1]
-        again = node._depth_maps(TactileEstimateRequest(points=cloud.copy(), gel_poses=poses))
+        again, _ = node._depth_maps(TactileEstimateRequest(points=cloud.copy(), gel_poses=poses))
         assert node._indexes[0][1] is index
         np.testing.assert_array_equal(again, first)
         moved = cloud.copy()
         moved[:, 1] += np.float32(0.0002)
-        other = node._depth_maps(TactileEstimateRequest(points=moved, gel_poses=poses))
+        other, _ = node._depth_maps(TactileEstimateRequest(points=moved, gel_poses=poses))
         assert len(node._indexes) == 1 and node._indexes[0][1] is not index
         assert not np.array_equal(other, first)
     finally:

@@ -1,6 +1,8 @@
 """Simulated backends: depth camera and GelSight deliver the bus messages."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -82,6 +84,21 @@ def test_gelsight_contact_and_background() -> None:
     gs.observe_robot(grasp_to_tcp_pose(0.3, 0.25, 0.4, 0.0), 0.05, 10.0)
     assert np.all(np.isinf(gs.gap_mm()))
     np.testing.assert_array_equal(gs.read().image, bg.background)
+
+
+def test_a_frame_never_claims_a_time_the_robot_state_it_has_seen_cannot_vouch_for() -> None:
+    # A gripper message that reaches the sensor late must not leave frames stamped after the
+    # grip but rendered before it: stamps stop one state period after the last state seen.
+    gs = SimulatedGelSight(SimulatedGelSightConfig(scene="scenes/ideal.yaml", sensor="left", pace=False,
+                                                   robot_state_period_s=0.05))
+    gs.connect()
+    assert abs(gs.read().header.stamp_ns - time.time_ns()) < 5e9  # no state seen yet: the clock
+    seen_ns = time.time_ns() - 2_000_000_000  # the last state was published 2 s ago
+    gs.observe_robot(grasp_to_tcp_pose(0.3, 0.25, 0.4, 0.0), 0.11, 0.0, seen_ns)
+    stamps = [gs.read().header.stamp_ns for _ in range(3)]
+    assert stamps == [seen_ns + 50_000_000] * 3
+    gs.observe_robot(grasp_to_tcp_pose(0.3, 0.25, 0.4, 0.0), 0.11, 0.0, time.time_ns() + 10**9)
+    assert gs.read().header.stamp_ns <= time.time_ns()  # never ahead of the clock
 
 
 def test_gelsight_native_and_large_size() -> None:

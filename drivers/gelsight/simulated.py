@@ -37,12 +37,17 @@ class SimulatedGelSightConfig:
     image_height: int | None = None  # default: the scene's gelsight.image_height
     image_width: int | None = None
     width_tolerance_m: float = 0.002  # gripper within this of the contact width = holding
+    # Period of the robot state the sensor follows (nodes.gripper publishes /gripper/state at
+    # 20 Hz): a frame cannot claim a time later than this after the last state it has seen.
+    robot_state_period_s: float = 0.05
 
     def __post_init__(self) -> None:
         if self.sensor not in SENSORS:
             raise ValueError(f"sensor {self.sensor!r} not one of {SENSORS}")
         if not (np.isfinite(self.rate_hz) and 0.0 < self.rate_hz <= 1000.0):
             raise ValueError(f"rate_hz {self.rate_hz} outside (0, 1000]")
+        if not (np.isfinite(self.robot_state_period_s) and 0.0 < self.robot_state_period_s <= 10.0):
+            raise ValueError(f"robot_state_period_s {self.robot_state_period_s} outside (0, 10] s")
 
 
 class SimulatedGelSight:
@@ -54,6 +59,7 @@ class SimulatedGelSight:
         self._robot: tuple | None = None
         self._seq = 0
         self._next_t = 0.0
+        self._known_until_ns: int | None = None  # the sensor knows the robot up to this time
         self.last_contact = None  # the last sim.world.GraspContact used (ground truth)
 
     def connect(self) -> None:
@@ -84,10 +90,14 @@ class SimulatedGelSight:
     def is_connected(self) -> bool:
         return self.renderer is not None
 
-    def observe_robot(self, tcp_pose_world: np.ndarray, gripper_width_m: float, force_n: float) -> None:
-        """Latest robot state: TCP pose (UR pose, world), gripper width (m), grasp force (N)."""
+    def observe_robot(self, tcp_pose_world: np.ndarray, gripper_width_m: float, force_n: float,
+                      stamp_ns: int | None = None) -> None:
+        """Latest robot state: TCP pose (UR pose, world), gripper width (m), grasp force (N), and
+        when the state was published (``stamp_ns``, wall clock ns; None: no bound on frames)."""
         if self.world is None:
             raise GelSightError("simulated GelSight is not connected")
+        if stamp_ns is not None:
+            self._known_until_ns = int(stamp_ns) + int(self.config.robot_state_period_s * 1e9)
         pose = np.asarray(tcp_pose_world, dtype=np.float64)
         key = (pose.tobytes(), float(gripper_width_m), float(force_n))
         if key == self._robot:
@@ -125,9 +135,13 @@ class SimulatedGelSight:
             if self._next_t > now:
                 time.sleep(self._next_t - now)
             self._next_t = max(self._next_t, now) + 1.0 / self.config.rate_hz
-        # Stamped when the frame is taken, as a camera stamps its exposure: the image shows the
-        # contact as the node knew it then, however long the rendering takes.
+        # Stamped when the frame is taken, as a camera stamps its exposure, but never later than
+        # the robot state the sensor has seen can vouch for: a real gel presses the moment the
+        # fingers close, this one only once the gripper's message has reached its node, which on
+        # a loaded machine can trail the collector's copy of it by more than the settling time.
         stamp_ns = time.time_ns()
+        if self._known_until_ns is not None:
+            stamp_ns = min(stamp_ns, self._known_until_ns)
         if self._gap is None or not np.any(self._gap < 0):
             # nothing presses: the untouched gel (through the renderer so its effects apply)
             gap = np.full(self.size, np.inf, dtype=np.float32)
