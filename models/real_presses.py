@@ -62,8 +62,6 @@ class PressGeometry:
     centre_z_mm: float         # gel z (along image rows)
     depth_mm: float            # lowest point of the ball below the gel surface
     contact_radius_mm: float
-    centre_col_px: float       # the press centre on the model's grid (columns, rows)
-    centre_row_px: float
     window: tuple[int, int, int, int]  # rows r0:r1, columns c0:c1 of the press box on the grid
 
 
@@ -84,8 +82,7 @@ def press_geometry(presses: BallPresses, index: int, mm_per_px: float, ball_radi
     half_rows = 0.5 * WINDOW_RADII * contact_mm / (mm_per_px * height / rows)
     window = (max(0, int(round(row_grid - half_rows))), min(rows, int(round(row_grid + half_rows)) + 1),
               max(0, int(round(col_grid - half_cols))), min(cols, int(round(col_grid + half_cols)) + 1))
-    return PressGeometry(x_mm, z_mm, press_depth_mm(contact_mm, ball_radius_mm), contact_mm,
-                         col_grid, row_grid, window)
+    return PressGeometry(x_mm, z_mm, press_depth_mm(contact_mm, ball_radius_mm), contact_mm, window)
 
 
 def ball_cloud_m(ball_radius_mm: float, spacing_m: float = MODEL_POINT_SPACING_M, seed: int = 0) -> np.ndarray:
@@ -106,13 +103,6 @@ def press_depth_map(press: PressGeometry, ball_radius_mm: float, geometry: Gripp
     ball_to_gel[:3, 3] = [press.centre_x_mm * 1e-3, (ball_radius_mm - press.depth_mm) * 1e-3,
                           press.centre_z_mm * 1e-3]
     return contact_depth_map(cloud, ball_to_gel, np.eye(4), geometry, params).depth_map_m
-
-
-def window_mask(press: PressGeometry, grid: tuple[int, int]) -> np.ndarray:
-    mask = np.zeros(grid, dtype=bool)
-    r0, r1, c0, c1 = press.window
-    mask[r0:r1, c0:c1] = True
-    return mask
 
 
 def location_error_mm(truth: np.ndarray, estimate: np.ndarray, press: PressGeometry, field_mm: tuple[float, float]
@@ -154,6 +144,10 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
     params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m)
     n = len(presses.frames)
     geometries = [press_geometry(presses, i, mm_per_px, ball_radius_mm, grid) for i in range(n)]
+    small = [i for i, g in enumerate(geometries) if min(g.window[1] - g.window[0], g.window[3] - g.window[2]) < WINDOW]
+    if small:
+        raise ModelConfigError(f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
+                               "(contact radius too small for SSIM)")
     cloud = ball_cloud_m(ball_radius_mm)
     depth_maps = np.stack([press_depth_map(g, ball_radius_mm, geometry, params, cloud) for g in geometries])
     empty = np.full((1, *grid), depth_range_m[1], dtype=np.float32)
@@ -167,11 +161,6 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
             (height, width), presses.centers_xy_px[i], g.depth_mm, mm_per_px, ball_radius_mm)), *grid)
             for i, g in enumerate(geometries)]),
     }
-    small = [i for i, g in enumerate(geometries) if min(g.window[1] - g.window[0], g.window[3] - g.window[2]) < WINDOW]
-    if small:
-        raise ModelConfigError(f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
-                               "(contact radius too small for SSIM)")
-    windows = np.stack([window_mask(g, grid) for g in geometries])
     rng = np.random.default_rng(seed)
     others = [rng.choice(np.delete(np.arange(n), i), size=min(RANDOM_FRAMES, n - 1), replace=False)
               for i in range(n)]
@@ -194,8 +183,8 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
             scores["window_ssim"][name].append(float(ssim_rgb(reference_window, candidates_window).mean()))
             scores["full_psnr_db"][name].append(float(psnr_rgb(reference, candidates).mean()))
             scores["window_psnr_db"][name].append(float(psnr_rgb(reference_window, candidates_window).mean()))
-            scores["location_error_mm"][name].append(float(np.nanmean(
-                [location_error_mm(truth[i], c, geometries[i], field_mm) for c in candidates])))
+            scores["location_error_mm"][name].append(_finite_mean(
+                [location_error_mm(truth[i], c, geometries[i], field_mm) for c in candidates]))
     result: dict[str, Any] = {"n": n, "file": str(path), "ball_radius_mm": ball_radius_mm, "mm_per_px": mm_per_px,
                               "window_radii": WINDOW_RADII, "seed": seed}
     for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db"):
@@ -204,10 +193,16 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
     result["location_error_mm_median"] = _nan_median(location["model"])
     result["location_error_mm_median_of"] = {name: _nan_median(values) for name, values in location.items()}
     result["per_press"] = [{"index": i, "depth_mm": geometries[i].depth_mm,
-                            "contact_radius_mm": geometries[i].contact_radius_mm,
+                            "contact_radius_mm": geometries[i].contact_radius_mm, "window": list(geometries[i].window),
                             **{f"{key}_{name}": scores[key][name][i] for key in scores for name in ("model", "renderer")}}
                            for i in range(n)]
-    return result, {**images, "windows": windows}
+    return result, images
+
+
+def _finite_mean(values: list[float]) -> float:
+    """Mean of the finite values; NaN when there is none (an estimate that matched nowhere)."""
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 def _nan_median(values: list[float]) -> float | None:
@@ -236,7 +231,7 @@ def real_press_table(result: dict[str, Any]) -> str:
 def write_real_press_figure(result: dict[str, Any], images: dict[str, np.ndarray], out: str | os.PathLike[str],
                             rows: int = 6) -> Path:
     """real_presses.png: per press the depth-map, the real frame, the model's and the
-    renderer's images, the press window drawn on each."""
+    renderer's images, the press window drawn on each image."""
     import matplotlib  # noqa: PLC0415 (only evaluation with --figures needs it)
 
     matplotlib.use("Agg")
@@ -248,16 +243,16 @@ def write_real_press_figure(result: dict[str, Any], images: dict[str, np.ndarray
     count = min(rows, result["n"])
     fig, axes = plt.subplots(count, 4, figsize=(8, 2 * count), squeeze=False)
     for row, ax in enumerate(axes):
+        press = result["per_press"][row]
+        r0, r1, c0, c1 = press["window"]
         ax[0].imshow(images["depth_maps_m"][row] * 1e3, cmap="viridis")
         for a, key in zip(ax[1:], ("truth", "model", "renderer")):
             a.imshow(images[key][row])
-        ys, xs = np.nonzero(images["windows"][row])
+            # The window is on the image grid; the depth-map's bins cover a wider crop.
+            a.add_patch(patches.Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False, color="red", linewidth=0.8))
         for a in ax:
-            a.add_patch(patches.Rectangle((xs.min() - 0.5, ys.min() - 0.5), np.ptp(xs) + 1, np.ptp(ys) + 1,
-                                          fill=False, color="red", linewidth=0.8))
             a.set_xticks([])
             a.set_yticks([])
-        press = result["per_press"][row]
         ax[2].set_xlabel(f"window SSIM {press['window_ssim_model']:.2f}", fontsize=7)
         ax[3].set_xlabel(f"window SSIM {press['window_ssim_renderer']:.2f}", fontsize=7)
     for a, title in zip(axes[0], ("depth-map (mm)", "real frame", "model", "renderer")):

@@ -12,7 +12,8 @@ from dataset.contact_library import write_contact_library
 from models.cli import add_commands
 from models.evaluate import predict
 from models.networks import GeneratorConfig
-from models.real_presses import ESTIMATES, evaluate_real_presses, press_depth_map, press_geometry
+from models.real_presses import (ESTIMATES, evaluate_real_presses, press_depth_map, press_geometry,
+                                 write_real_press_figure)
 from models.train import TrainConfig, load_generator, train
 from perception.depthmap import DepthMapParams
 from sim.gelsight import scene_renderer
@@ -69,9 +70,10 @@ def test_an_off_centre_press_lands_on_the_same_side_in_depth_map_render_and_pred
     assert np.array_equal(np.sign(_offset_from_centre(predicted_change)), expected)
 
 
-def test_every_estimate_is_scored_on_window_and_full_image(checkpoint: Path) -> None:
+def test_every_estimate_is_scored_on_window_and_full_image(checkpoint: Path, tmp_path: Path) -> None:
     generator, depth_range_m = load_generator(checkpoint)
     result, images = evaluate_real_presses(generator, depth_range_m, PRESSES, SCENE)
+    assert write_real_press_figure(result, images, tmp_path).stat().st_size > 0
     assert result["n"] == 30
     for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db"):
         assert set(result[key]) == set(ESTIMATES)
