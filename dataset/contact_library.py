@@ -25,19 +25,18 @@ used: they are for evaluation only.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
-
 import numpy as np
 from tqdm import tqdm
 
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
+from dataset.synth import SurfaceMm, gel_gap_from_surface
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
+from perception.errors import DepthMapError
 from perception.kinematics import GripperGeometry
 from sim.gelsight import GelSightRenderer, scene_renderer
 from sim.scene import Scene, load_scene
 
 FAMILIES = ("sphere", "cylinder", "wedge", "corner", "textured", "height_field")
-SurfaceMm = Callable[[np.ndarray, np.ndarray], np.ndarray]
 # The share of samples whose surface stops short of the gel: in view of the depth camera, not felt.
 NO_CONTACT_SHARE = 0.1
 DEFAULT_DEPTH_RANGE_M = (-0.005, 0.01)  # what collection sessions use (nodes.collector)
@@ -122,21 +121,11 @@ def surface_cloud_m(surface: SurfaceMm, half_x_m: float, half_z_m: float, rng: n
     return np.stack([x[keep], y[keep], z[keep]], axis=1)
 
 
-def gel_gap_mm(surface: SurfaceMm, renderer: GelSightRenderer) -> np.ndarray:
-    """The gap between gel and surface at the renderer's pixel centres (H x W float32 mm)."""
-    h, w = renderer.config.shape
-    pitch_rows, pitch_cols = renderer.pixel_pitch_mm
-    z = (np.arange(h) - (h - 1) / 2.0) * pitch_rows
-    x = (np.arange(w) - (w - 1) / 2.0) * pitch_cols
-    zz, xx = np.meshgrid(z, x, indexing="ij")
-    return surface(xx, zz).astype(np.float32)
-
-
 def library_sample(family: str, rng: np.random.Generator, geometry: GripperGeometry, params: DepthMapParams,
                    renderer: GelSightRenderer, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
     """One (depth-map m, tactile image uint8 at ``size``) pair of ``family``, or None when the
     drawn surface leaves nothing in the crop (drawn again by the caller)."""
-    half_x, half_z, _, y_far = crop_bounds(geometry, params)
+    half_x, half_z, _, _ = crop_bounds(geometry, params)
     sensed_x_mm, sensed_z_mm = (0.5e3 * e for e in geometry.sensed_extent_m)
     offset = (rng.uniform(-0.8, 0.8) * sensed_x_mm, rng.uniform(-0.8, 0.8) * sensed_z_mm)
     shape = placed(random_surface_mm(family, rng), offset, 0.0)
@@ -148,10 +137,12 @@ def library_sample(family: str, rng: np.random.Generator, geometry: GripperGeome
     press_mm = rng.uniform(-3.0, -0.1) if rng.uniform() < NO_CONTACT_SHARE else rng.uniform(0.05, 2.0)
     surface = placed(shape, (0.0, 0.0), -lowest - press_mm)
     cloud = surface_cloud_m(surface, half_x, half_z, rng)
-    if not np.any((cloud[:, 1] <= y_far) & (np.abs(cloud[:, 0]) <= half_x) & (np.abs(cloud[:, 2]) <= half_z)):
+    try:
+        depth_map = contact_depth_map(cloud, np.eye(4), np.eye(4), geometry, params).depth_map_m
+    except DepthMapError:  # the crop was checked by the caller: only "no point in the crop" is left
         return None
-    depth_map = contact_depth_map(cloud, np.eye(4), np.eye(4), geometry, params).depth_map_m
-    return depth_map, resize_rgb(renderer.render(gel_gap_mm(surface, renderer)), *size)
+    gap_mm = gel_gap_from_surface(surface, *renderer.config.shape, renderer.pixel_pitch_mm)
+    return depth_map, resize_rgb(renderer.render(gap_mm), *size)
 
 
 def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, scene: Scene | str,
@@ -178,9 +169,9 @@ def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, 
         family = FAMILIES[index % len(FAMILIES)]
         grasp_id, finger = index // 2, ("left", "right")[index % 2]
         sample_id = f"{family}-g{grasp_id:05d}-{finger}"
-        # One generator per sample: a resumed run draws exactly the same pairs.
         if sample_id in writer:
             continue
+        # One generator per sample: a resumed run draws exactly the same pairs.
         rng = np.random.default_rng([seed, index])
         renderer.rng = rng  # the sensor noise too: a resumed run renders the same image
         pair = None
