@@ -374,11 +374,8 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                 opt_g.zero_grad(set_to_none=True)
                 pred = _unwrap(discriminator)(x, fake)
                 loss_g_gan = bce(pred, torch.ones_like(pred))
-                if config.contact_weight:
-                    weights = contact_weights(y, mean_image, config.contact_weight)
-                    loss_g_l1 = ((fake - y).abs() * weights).mean() / weights.mean()
-                else:
-                    loss_g_l1 = (fake - y).abs().mean()
+                weights = contact_weights(y, mean_image, config.contact_weight)  # all 1: the paper's L1
+                loss_g_l1 = ((fake - y).abs() * weights).mean() / weights.mean()
                 (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
                 opt_g.step()
                 if average is not None:
