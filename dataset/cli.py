@@ -4,8 +4,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 from dataset.check import check_dataset
 from dataset.export import export_pix2pix
 from dataset.format import DatasetError
@@ -37,15 +35,13 @@ def _synth(args: argparse.Namespace) -> int:
 @exit_1_on(DatasetError, OSError)
 def _library(args: argparse.Namespace) -> int:
     from dataset.contact_library import write_contact_library  # noqa: PLC0415 (imports the renderer)
+    from perception.errors import DepthMapError  # noqa: PLC0415
     from sim.scene import SceneError  # noqa: PLC0415
 
-    low, high = args.depth_range_m
-    if not (np.isfinite(low) and np.isfinite(high) and high > low):
-        print(f"error: --depth-range-m needs finite NEAR < FAR, got {low} {high}", file=sys.stderr)
-        return 2
     try:
-        writer = write_contact_library(args.out, args.samples, args.seed, args.scene, (low, high), progress=True)
-    except SceneError as err:
+        writer = write_contact_library(args.out, args.samples, args.seed, args.scene, tuple(args.depth_range_m),
+                                       progress=True)
+    except (SceneError, DepthMapError) as err:  # the scene or the depth range given: the caller's input
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"{args.out}: {len(writer)} samples")
