@@ -2,6 +2,7 @@
 depth-map showing its contact where its image does."""
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 from scipy import ndimage
 
 from dataset.check import check_dataset
+from dataset.cli import add_commands
 from dataset.contact_library import FAMILIES, library_sample, random_surface_mm, write_contact_library
 from dataset.format import DatasetError, DatasetReader, resize_rgb
 from perception.depthmap import DepthMapParams
@@ -67,3 +69,14 @@ def test_an_unknown_family_and_a_bad_count_are_refused(tmp_path: Path) -> None:
         random_surface_mm("torus", np.random.default_rng(0))
     with pytest.raises(DatasetError, match="must be positive"):
         write_contact_library(tmp_path / "x", 0, seed=0, scene=SCENE)
+
+
+@pytest.mark.parametrize("depth_range", [["0.01", "-0.005"], ["nan", "0.01"]])
+def test_the_command_refuses_a_bad_depth_range_and_writes_nothing(tmp_path: Path, depth_range: list[str],
+                                                                 capsys: pytest.CaptureFixture) -> None:
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    args = parser.parse_args(["dataset", "library", str(tmp_path / "lib"), "--samples", "2",
+                              "--depth-range-m", *depth_range])
+    assert args.func(args) == 2
+    assert "error:" in capsys.readouterr().err and not (tmp_path / "lib").exists()
