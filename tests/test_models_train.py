@@ -181,7 +181,7 @@ def test_a_generator_with_a_physics_prior_starts_from_the_renderer_and_exports(t
     # With the network's own output near zero after one step, the estimate is the renderer's image.
     estimate = predict(generator, depth, depth_range)
     physics = generator.prior.images(depth)
-    assert np.abs(estimate.astype(int) - physics.astype(int)).mean() < 40
+    assert np.abs(estimate.astype(int) - physics.astype(int)).mean() < 5  # a grey image is ~20 levels off
     export_onnx(generator, tmp_path / "prior.onnx")
     state = torch.load(tmp_path / "prior" / "checkpoint.pt", weights_only=True)
     del state["prior"]
