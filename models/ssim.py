@@ -136,18 +136,11 @@ def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:
 PSNR_MAX_DB = 100.0
 
 
-def psnr_rgb(a: np.ndarray, b: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
-    """PSNR (dB, peak 255) of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3
-    -> N values; the mean squared error is over all channels of the pixels where ``pixels``
-    ((N x) H x W bool) holds (NaN for an image with none), capped at :data:`PSNR_MAX_DB`."""
+def psnr_rgb(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """PSNR (dB, peak 255) of uint8 RGB images over all pixels and channels: H x W x 3 pairs ->
+    scalar array, N x H x W x 3 -> N values; capped at :data:`PSNR_MAX_DB`."""
     a, b = _rgb_pair(a, b, "psnr_rgb")
-    squared = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).mean(axis=-1).reshape((-1,) + a.shape[-3:-1])
-    if pixels is None:
-        mse = squared.mean(axis=(1, 2))
-    else:
-        mask = np.broadcast_to(np.asarray(pixels, dtype=bool).reshape((-1,) + a.shape[-3:-1]), squared.shape)
-        counts = mask.sum(axis=(1, 2))
-        mse = np.where(counts > 0, (squared * mask).sum(axis=(1, 2)) / np.maximum(counts, 1), np.nan)
+    mse = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).reshape((-1,) + a.shape[-3:]).mean(axis=(1, 2, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         psnr = 10.0 * np.log10(DATA_RANGE ** 2 / mse)
-    return np.where(np.isnan(mse), np.nan, np.minimum(psnr, PSNR_MAX_DB)).reshape(a.shape[:-3])
+    return np.minimum(psnr, PSNR_MAX_DB).reshape(a.shape[:-3])
