@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +82,19 @@ def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float]
 MAX_BASELINE_DRAWS = 1000
 
 
+def _baseline(n: int, baseline_draws: int, seed: int, score: Callable[[int, np.ndarray], np.ndarray]) -> np.ndarray:
+    """Per estimate i, the mean of ``score(i, draws)``: its scores against ``baseline_draws``
+    random other truths ``draws`` (indices), drawn the same way for every metric and seed."""
+    rng = np.random.default_rng(seed)
+    baseline = np.empty(n)
+    for i in range(n):
+        # Random *other* ground truths: the estimate's own would favour the baseline.
+        others = np.delete(np.arange(n), i)
+        draws = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
+        baseline[i] = score(i, draws).mean()
+    return baseline
+
+
 def _mean_se(values: np.ndarray) -> tuple[float, float]:
     return float(np.mean(values)), float(np.std(values, ddof=1) / np.sqrt(len(values)))
 
@@ -108,14 +121,8 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     if not np.all(np.isfinite(model)):
         raise ModelConfigError(f"pairs {np.flatnonzero(~np.isfinite(model)).tolist()} have no SSIM window inside "
                                f"the {WINDOW // 2}-pixel border (empty windows mask)")
-    rng = np.random.default_rng(seed)
-    baseline = np.empty(n)
-    for i in range(n):
-        # Random *other* ground truths: the estimate's own would favour the baseline.
-        others = np.delete(np.arange(n), i)
-        draws = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
-        baseline[i] = ssim_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0),
-                               None if windows is None else windows[draws]).mean()
+    baseline = _baseline(n, baseline_draws, seed, lambda i, draws: ssim_rgb(
+        truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0), None if windows is None else windows[draws]))
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)
     diff = model - baseline
@@ -149,12 +156,8 @@ def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     error, SSIM the local structure."""
     n = len(truth)
     model = psnr_rgb(truth, estimate)
-    rng = np.random.default_rng(seed)
-    baseline = np.empty(n)
-    for i in range(n):
-        others = np.delete(np.arange(n), i)
-        draws = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
-        baseline[i] = psnr_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0)).mean()
+    baseline = _baseline(n, baseline_draws, seed,
+                         lambda i, draws: psnr_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0)))
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)
     return {"psnr_db_model_mean": model_mean, "psnr_db_model_se": model_se,

@@ -90,17 +90,24 @@ def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
 
 
+def _rgb_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """``a`` and ``b`` as arrays: two uint8 (N x) H x W x 3 images of one shape, or
+    ModelConfigError (a ValueError) naming the function ``what``."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype != np.uint8 or b.dtype != np.uint8:
+        raise ModelConfigError(f"{what} compares uint8 images, got {a.dtype} and {b.dtype}")
+    if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-1] != 3:
+        raise ModelConfigError(f"{what} needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
+    return a, b
+
+
 def ssim_rgb(a: np.ndarray, b: np.ndarray, windows: np.ndarray | None = None) -> np.ndarray:
     """SSIM of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3 -> N values.
 
     ``windows`` ((N x) H x W bool) restricts the mean to the windows centred on True pixels
     (an image with none gets NaN); the 5-pixel border has no windows. Views of any strides
     (flipped, sliced) are accepted; other dtypes or shapes raise ModelConfigError."""
-    a, b = np.asarray(a), np.asarray(b)
-    if a.dtype != np.uint8 or b.dtype != np.uint8:
-        raise ModelConfigError(f"ssim_rgb compares uint8 images, got {a.dtype} and {b.dtype}")
-    if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-1] != 3:
-        raise ModelConfigError(f"ssim_rgb needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
+    a, b = _rgb_pair(a, b, "ssim_rgb")
     # torch.from_numpy refuses negative strides; ascontiguousarray copies only such views.
     batch_a = torch.from_numpy(np.ascontiguousarray(a).reshape((-1,) + a.shape[-3:])).permute(0, 3, 1, 2).double()
     batch_b = torch.from_numpy(np.ascontiguousarray(b).reshape((-1,) + b.shape[-3:])).permute(0, 3, 1, 2).double()
@@ -129,22 +136,11 @@ def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:
 PSNR_MAX_DB = 100.0
 
 
-def psnr_rgb(a: np.ndarray, b: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
-    """PSNR (dB, peak 255) of uint8 RGB images: H x W x 3 pairs -> scalar array, N x H x W x 3
-    -> N values; the mean squared error is over all channels of the pixels where ``pixels``
-    ((N x) H x W bool) holds (NaN for an image with none), capped at :data:`PSNR_MAX_DB`."""
-    a, b = np.asarray(a), np.asarray(b)
-    if a.dtype != np.uint8 or b.dtype != np.uint8:
-        raise ValueError(f"psnr_rgb compares uint8 images, got {a.dtype} and {b.dtype}")
-    if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-1] != 3:
-        raise ValueError(f"psnr_rgb needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
-    squared = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).mean(axis=-1).reshape((-1,) + a.shape[-3:-1])
-    if pixels is None:
-        mse = squared.mean(axis=(1, 2))
-    else:
-        mask = np.broadcast_to(np.asarray(pixels, dtype=bool).reshape((-1,) + a.shape[-3:-1]), squared.shape)
-        counts = mask.sum(axis=(1, 2))
-        mse = np.where(counts > 0, (squared * mask).sum(axis=(1, 2)) / np.maximum(counts, 1), np.nan)
+def psnr_rgb(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """PSNR (dB, peak 255) of uint8 RGB images over all pixels and channels: H x W x 3 pairs ->
+    scalar array, N x H x W x 3 -> N values; capped at :data:`PSNR_MAX_DB`."""
+    a, b = _rgb_pair(a, b, "psnr_rgb")
+    mse = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).reshape((-1,) + a.shape[-3:]).mean(axis=(1, 2, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         psnr = 10.0 * np.log10(DATA_RANGE ** 2 / mse)
-    return np.where(np.isnan(mse), np.nan, np.minimum(psnr, PSNR_MAX_DB)).reshape(a.shape[:-3])
+    return np.minimum(psnr, PSNR_MAX_DB).reshape(a.shape[:-3])

@@ -229,20 +229,29 @@ class InferenceNode(Node):
                     job.future.set_exception(exc)
 
     def _run(self, jobs: list[_Job]) -> None:
-        maps, errors = [], []
+        # A request refused while its depth-maps are cut (too much work) fails alone: the other
+        # clients' requests in the batch go on.
+        ready, maps, errors = [], [], []
         for job in jobs:
-            job_maps, job_errors = self._depth_maps(job.request)
+            try:
+                job_maps, job_errors = self._depth_maps(job.request)
+            except BadRequest as exc:
+                job.future.set_exception(exc)
+                continue
+            ready.append(job)
             maps.append(job_maps)
             errors.append(job_errors)
+        if not ready:
+            return
         x = network_input(np.concatenate(maps), self.depth_range_m, self.config, self.prior).numpy()
         images = to_uint8_rgb(torch.from_numpy(self._batched(self.deterministic, x)))
-        samples = [job.request.dropout_samples for job in jobs]
+        samples = [job.request.dropout_samples for job in ready]
         offsets = np.cumsum([0] + [m.shape[0] for m in maps])
         # Every region of a job asking for S samples is repeated S times; all go through together.
         repeated = [np.repeat(x[offsets[i]:offsets[i + 1]], s, axis=0) for i, s in enumerate(samples) if s > 1]
         sampled = self._batched(self.sampled, np.concatenate(repeated)) if repeated else np.zeros((0,))
         cursor = 0
-        for i, job in enumerate(jobs):
+        for i, job in enumerate(ready):
             n, s = offsets[i + 1] - offsets[i], samples[i]
             uncertainty = np.zeros((n, *x.shape[2:]), np.float32)
             if s > 1:

@@ -125,7 +125,12 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
 def crop_reach_m(geometry: GripperGeometry, params: DepthMapParams) -> float:
     """Every model point a gel's depth-map (or the centring between gels) can use lies within
     this distance of the gel centre: the crop's corners, or the gel face's, at the crop's depth."""
-    half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
+    return _reach_m(geometry, crop_bounds(geometry, params))
+
+
+def _reach_m(geometry: GripperGeometry, bounds: tuple[float, float, float, float]) -> float:
+    """:func:`crop_reach_m` from bounds already checked by :func:`crop_bounds`."""
+    half_x, half_z, y_near, y_far = bounds
     deepest = max(abs(y_near), abs(y_far))
     return float(max(np.linalg.norm([half_x, half_z, deepest]),
                      np.linalg.norm([0.5 * geometry.gel_size_m[0], 0.5 * geometry.gel_size_m[1], deepest])))
@@ -296,9 +301,10 @@ def _cut(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndar
 
 
 def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray, names: list[str]) -> np.ndarray:
-    """(N, 4, 4) float64 model-to-gel transforms, each composed in float64 (rigid checked)."""
-    model = check_transform(model_to_world, "model_to_world")
-    return np.stack([np.linalg.inv(check_transform(gel, name)) @ model for gel, name in zip(gels_to_world, names)])
+    """(N, 4, 4) float64 model-to-gel transforms, each composed in float64; ``model_to_world``
+    already checked, each gel checked here (rigid)."""
+    return np.stack([np.linalg.inv(check_transform(gel, name)) @ model_to_world
+                     for gel, name in zip(gels_to_world, names)])
 
 
 def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_to_world: np.ndarray,
@@ -314,7 +320,7 @@ def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, ge
     points, bins <= MAX_DEPTH_MAP_BINS."""
     bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
     points = _points_for_kernel(points_model_m)
-    model_to_gel = _model_to_gels(model_to_world, [gel_to_world], ["gel_to_world"])
+    model_to_gel = _model_to_gels(check_transform(model_to_world, "model_to_world"), [gel_to_world], ["gel_to_world"])
     patches = _cut(points, np.array([0], np.int64), np.array([len(points)], np.int64), np.array([0, 1], np.int64),
                    model_to_gel, bounds, params, batch=False)
     return ContactPatch(depth_map_m=patches.depth_maps_m[0],
@@ -337,12 +343,13 @@ def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_wo
     naming the region, unless ``allow_empty``: then its map is all y_far and its point count 0
     (a planner's candidate that touches nothing is an answer, not a failed batch)."""
     bounds = crop_bounds(geometry, params)
-    reach = crop_reach_m(geometry, params)
+    reach = _reach_m(geometry, bounds)
     gels = np.asarray(gels_to_world, dtype=np.float64)
     if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
         raise DepthMapError(f"gel poses must be (N, 4, 4), N >= 1, got shape {gels.shape}")
-    model_to_gel = _model_to_gels(model_to_world, gels, [f"gels_to_world[{i}]" for i in range(len(gels))])
-    world_to_model = np.linalg.inv(check_transform(model_to_world, "model_to_world"))
+    model_pose = check_transform(model_to_world, "model_to_world")
+    model_to_gel = _model_to_gels(model_pose, gels, [f"gels_to_world[{i}]" for i in range(len(gels))])
+    world_to_model = np.linalg.inv(model_pose)
     centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
     found = [model.slices_within(centre, reach) for centre in centres]
     starts = np.concatenate([f[0] for f in found]).astype(np.int64)

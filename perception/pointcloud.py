@@ -47,6 +47,14 @@ def check_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
     return matrix
 
 
+def principal_spread_m(points_m: np.ndarray) -> np.ndarray:
+    """Standard deviation (metres) of (N, 3) points, N >= 1, along each principal axis,
+    ascending: the second is ~0 for identical or collinear points, the first for coplanar ones."""
+    centred = points_m - points_m.mean(axis=0)
+    # Clipped at 0: rounding can make a zero eigenvalue slightly negative (its root NaN).
+    return np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(points_m)), 0.0))
+
+
 def transform_points(points_a_m: np.ndarray, a_to_b: np.ndarray) -> np.ndarray:
     """Map (N, 3) points (metres, any real dtype or strides, N >= 0) from frame a to frame b;
     computed and returned in float64, (N, 3). Any other shape, a non-finite coordinate or a

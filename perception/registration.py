@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import RegistrationError
-from perception.pointcloud import seed_open3d
+from perception.pointcloud import principal_spread_m, seed_open3d
 
 _reg = o3d.pipelines.registration
 # Most points sample_model_cloud makes: a 0.1 mm cloud (MODEL_POINT_SPACING_M) of a 0.2 m² box.
@@ -148,8 +148,7 @@ def _check_not_degenerate(points: np.ndarray, voxel_size_m: float, name: str, re
     ICP's normal equations are singular, so any pose it returned would be arbitrary. (A plane
     lying on the table is still observable upright, by :func:`_register_resting`.)
     """
-    centred = points - points.mean(axis=0)
-    spread = np.sqrt(np.linalg.eigvalsh(centred.T @ centred / len(points)))  # ascending, metres
+    spread = principal_spread_m(points)
     shape = "linear" if spread[1] < voxel_size_m else "planar" if spread[0] < 0.25 * voxel_size_m else ""
     if shape:
         raise RegistrationError("; ".join([*rejections, f"{name} is nearly {shape} (spread {spread[::-1]} m); "

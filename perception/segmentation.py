@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import SegmentationError
-from perception.pointcloud import seed_open3d
+from perception.pointcloud import principal_spread_m, seed_open3d
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,8 +87,7 @@ def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed
         points_world_m[rng.choice(len(points_world_m), params.plane_sample_points, replace=False)]
     # Spread of the sample across its second principal direction: zero for identical or
     # collinear points, where RANSAC's three-point planes have no normal.
-    centred = sample - sample.mean(axis=0)
-    spread_m = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(sample)), 0.0))
+    spread_m = principal_spread_m(sample)
     if not spread_m[1] > 1e-9 * max(1.0, float(np.abs(sample).max())):
         raise SegmentationError(f"the {len(points_world_m)} workspace points are identical or collinear "
                                 f"(spread {spread_m[::-1]} m): no table plane")

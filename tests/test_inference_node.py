@@ -244,3 +244,25 @@ def test_a_cloud_sent_again_reuses_its_index_and_another_cloud_gets_its_own(chec
         assert not np.array_equal(other, first)
     finally:
         node.close()
+
+
+def test_a_request_refused_while_its_maps_are_cut_fails_alone_in_its_batch(checkpoint: Path, tmp_path: Path) -> None:
+    """Too much work is found in the batch thread; the other clients' requests batched with it
+    are answered."""
+    import time
+    from concurrent.futures import Future
+
+    from nodes.inference import BadRequest, _Job
+
+    node = InferenceNode("batch_probe", {"checkpoint": str(checkpoint), "runtime": "eager", "max_point_visits": 2000},
+                         registry=Registry(tmp_path / "bus"))
+    try:
+        heavy = TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4))
+        light = TactileEstimateRequest(depth_maps=depth_maps(1, seed=3))
+        jobs = [_Job(request, node._check(request), time.monotonic(), Future()) for request in (heavy, light)]
+        node._run(jobs)
+        with pytest.raises(BadRequest, match="too much work"):
+            jobs[0].future.result(timeout=0)
+        assert jobs[1].future.result(timeout=0).images.shape == (1, 100, 100, 3)
+    finally:
+        node.close()

@@ -18,7 +18,7 @@ import models.train
 from models.cli import add_commands
 from models.errors import ModelConfigError
 from models.evaluate import Predictions, ssim_statistics, summary_table, template_match
-from models.ssim import ssim_rgb, ssim_torch
+from models.ssim import PSNR_MAX_DB, psnr_rgb, ssim_rgb, ssim_torch
 
 FAST = settings(max_examples=25, deadline=None)
 
@@ -100,6 +100,25 @@ def test_ssim_rgb_refuses_windows_of_another_shape_or_dtype() -> None:
         ssim_rgb(a, a, np.ones((2, 23, 24), bool))
     with pytest.raises(ModelConfigError, match="windows"):
         ssim_rgb(a, a, np.ones((2, 24, 24), np.float32))
+
+
+@FAST
+@given(seed=st.integers(0, 2 ** 16), level=st.integers(1, 40))
+def test_property_psnr_is_the_8_bit_formula_and_capped(seed: int, level: int) -> None:
+    a = images(2, seed).astype(np.int16)
+    b = np.clip(a + level, 0, 255)
+    mse = ((a - b) ** 2).reshape(2, -1).mean(axis=1)
+    np.testing.assert_allclose(psnr_rgb(a.astype(np.uint8), b.astype(np.uint8)), 10 * np.log10(255.0 ** 2 / mse),
+                               rtol=1e-12)
+    assert psnr_rgb(a[0].astype(np.uint8), a[0].astype(np.uint8)) == PSNR_MAX_DB
+
+
+def test_psnr_refuses_what_ssim_refuses() -> None:
+    a = images(2, 0)
+    with pytest.raises(ModelConfigError, match="psnr_rgb"):
+        psnr_rgb(a, a[:1])
+    with pytest.raises(ModelConfigError, match="psnr_rgb"):
+        psnr_rgb(a.astype(np.float32), a.astype(np.float32))
 
 
 # --- family 3: template_match ------------------------------------------------------------------
