@@ -16,6 +16,7 @@ class Plan:
     name: str
     samples: int                      # analytic contacts (two per grasp), split 70/15/15
     session_grasps: int               # grasps collected on the simulated scene (two pairs each)
+    library_samples: int              # contact-library pairs trained beside the session (as the default model)
     epochs: int                       # constant-rate epochs of every training (then as many decaying)
     densities: tuple[float, ...]      # points/cm³ (paper Table II)
     resolutions: tuple[int, ...]      # depth-map bins per side
@@ -40,13 +41,13 @@ class Plan:
                 if f.name != "name" and getattr(self, f.name) != getattr(reference, f.name)]
 
 
-FULL = Plan(name="full", samples=578, session_grasps=289, epochs=5, densities=(1.0, 10.0, 20.0, 40.0, 80.0), resolutions=(50, 100, 200),
+FULL = Plan(name="full", samples=578, session_grasps=289, library_samples=600, epochs=5, densities=(1.0, 10.0, 20.0, 40.0, 80.0), resolutions=(50, 100, 200),
             registration_poses=3, voxel_mm=(2, 4, 6, 8, 10), ransac_iterations=(1_000, 5_000, 20_000, 100_000),
             icp_distances_mm=((4,), (8,), (16,), (16, 8), (16, 4)), depth_effects_alone=True, depth_frames=20,
             trained_widths=(16, 32, 64), widths=(16, 32, 64), precisions=("fp32", "bf16", "int8"),
             runtimes=("eager", "onnxrt"), inference_seconds=1.5, dropout_samples=(2, 4, 8, 16))
 
 QUICK = dataclasses.replace(
-    FULL, name="quick", samples=120, session_grasps=40, epochs=2, registration_poses=1, voxel_mm=(4, 8), ransac_iterations=(1_000, 20_000),
+    FULL, name="quick", samples=120, session_grasps=40, library_samples=60, epochs=2, registration_poses=1, voxel_mm=(4, 8), ransac_iterations=(1_000, 20_000),
     icp_distances_mm=((8,), (16, 8)), depth_effects_alone=False, depth_frames=5, trained_widths=(16, 32),
     inference_seconds=0.3, dropout_samples=(2, 4, 8))

@@ -32,6 +32,7 @@ from scipy import stats
 from benchmarks import inference as inference_bench
 from benchmarks.perception import _sweep_cases, _sweep_row
 from benchmarks.sim import DEPTH_EFFECTS
+from dataset.contact_library import write_contact_library
 from dataset.format import DatasetReader, SampleRecord, deformation_map, resize_rgb
 from dataset.redepth import depth_map_again, depth_map_params, model_cloud, redepth_dataset
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
@@ -151,11 +152,22 @@ class Workspace:
         """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""
         return self._trained(self.dataset(size), size, width, self.root / f"train_{size}_w{width}")
 
-    def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
-        """The width-16 model trained on the session at ``bins`` x ``bins``: see :meth:`_trained`."""
-        return self._trained(self.session_at(bins), bins, 16, self.root / f"train_session_{bins}")
+    def library_at(self, bins: int) -> Path:
+        """``plan.library_samples`` contact-library pairs (dataset.contact_library) in the
+        session's scene, depth range and crop, at ``bins`` x ``bins``: what the default model
+        trains on beside a session (make demo, docs/generalisation.md)."""
+        params, _ = depth_map_params(DatasetReader(self.session))
+        info = DatasetReader(self.session).info
+        return write_contact_library(self.root / f"library_{bins}", self.plan.library_samples, self.plan.seed,
+                                     info.scene, params.y_range_m, params.margin_m, size=bins).root
 
-    def _trained(self, dataset: Path, size: int, width: int, out: Path) -> Path:
+    def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
+        """The width-16 model trained as the default is (the session with a contact library)
+        at ``bins`` x ``bins``: see :meth:`_trained`."""
+        return self._trained(self.session_at(bins), bins, 16, self.root / f"train_session_{bins}",
+                             libraries=(self.library_at(bins),))
+
+    def _trained(self, dataset: Path, size: int, width: int, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
         """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
         seconds of each epoch, data loading included). Trained one epoch per call so that each
         epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
@@ -172,7 +184,7 @@ class Workspace:
             while len(_cpu_s(out)) < 2 * self.plan.epochs:
                 fresh = not checkpoint.exists()
                 started = time.process_time()
-                train(dataset, config, out, resume=True, progress=False, stop_after_epochs=1)
+                train(dataset, config, out, resume=True, progress=False, stop_after_epochs=1, libraries=libraries)
                 cpu = [] if fresh else _cpu_s(out)
                 cpu_log.write_text(json.dumps(cpu + [round(time.process_time() - started, 2)]))
         finally:
