@@ -36,16 +36,17 @@ def depth_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], in
 
 
 def network_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], config: GeneratorConfig,
-                  prior: PhysicsPrior | None) -> torch.Tensor:
+                  prior: PhysicsPrior | None, pose_sigma_mm: float | None = None) -> torch.Tensor:
     """What a generator of ``config`` takes for N x H x W depth-maps (m): :func:`depth_input`,
-    then the physics prior's image of each map (models.prior) when the generator has one."""
+    then the physics prior's image of each map (models.prior) when the generator has one,
+    expected over the maps' in-plane pose error ``pose_sigma_mm`` (None: the prior's default)."""
     x = depth_input(depth_maps_m, depth_range_m, config.in_channels)
     if not config.prior:
         return x
     if prior is None:
         raise ModelConfigError("this generator corrects a physics prior, but none was given (a checkpoint "
                                "trained with one stores its scene and crop: load it with load_generator)")
-    return torch.cat([x, torch.from_numpy(prior.channels(np.asarray(depth_maps_m)))], dim=1)
+    return torch.cat([x, torch.from_numpy(prior.channels(np.asarray(depth_maps_m), pose_sigma_mm))], dim=1)
 
 
 def image_target(images_rgb: np.ndarray) -> torch.Tensor:
@@ -77,7 +78,8 @@ def reader_for_model(root: str | os.PathLike[str], depth_range_m: tuple[float, f
 
 
 def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[SampleRecord] | None,
-               config: GeneratorConfig, prior: PhysicsPrior | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               config: GeneratorConfig, prior: PhysicsPrior | None = None, pose_sigma_mm: float | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Network input (:func:`network_input`) and target (N x C x H x W, N x 3 x H x W) for
     ``records`` (all if None), checksums verified."""
     reader = root if isinstance(root, DatasetReader) else DatasetReader(root)
@@ -85,5 +87,6 @@ def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[S
     if not chosen:
         raise ModelConfigError(f"no samples selected from {reader.root}")
     samples = [reader.load(r) for r in chosen]
-    depth = network_input(np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior)
+    depth = network_input(np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior,
+                          pose_sigma_mm)
     return depth, image_target(np.stack([s.tactile_rgb for s in samples]))

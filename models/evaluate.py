@@ -54,10 +54,12 @@ class Predictions:
 
 @torch.no_grad()
 def predict(generator: UNetGenerator, depth_maps_m: np.ndarray, depth_range_m: tuple[float, float],
-            batch: int = 64) -> np.ndarray:
-    """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates (generator in eval mode)."""
+            batch: int = 64, pose_sigma_mm: float | None = None) -> np.ndarray:
+    """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates (generator in eval mode);
+    ``pose_sigma_mm``: the maps' in-plane pose error for a physics prior (None: the model's
+    default, its training session's)."""
     generator.eval()
-    x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior)
+    x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior, pose_sigma_mm)
     return np.concatenate([to_uint8_rgb(generator(x[i:i + batch])) for i in range(0, len(x), batch)])
 
 

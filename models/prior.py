@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import cv2
 import numpy as np
 
 from models.errors import ModelConfigError
@@ -25,19 +26,23 @@ from sim.scene import SceneError, load_scene
 
 @dataclasses.dataclass(frozen=True)
 class PriorSpec:
-    """What a prior renders with: the scene's GelSight, and the depth-maps' crop (x, y, z m)."""
+    """What a prior renders with: the scene's GelSight, the depth-maps' crop (x, y, z m), and
+    the in-plane pose uncertainty (mm, one standard deviation per axis) of the depth-maps it is
+    asked about by default: the registration's, for a model trained on a collected session."""
 
     scene: str
     depth_crop_m: tuple[float, float, float]
+    pose_sigma_mm: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
-        return {"scene": self.scene, "depth_crop_m": list(self.depth_crop_m)}
+        return {"scene": self.scene, "depth_crop_m": list(self.depth_crop_m), "pose_sigma_mm": self.pose_sigma_mm}
 
     @staticmethod
     def from_dict(data: dict[str, Any]) -> "PriorSpec":
         try:
             crop = tuple(float(v) for v in data["depth_crop_m"])
-            return PriorSpec(scene=str(data["scene"]), depth_crop_m=crop)  # type: ignore[arg-type]
+            return PriorSpec(scene=str(data["scene"]), depth_crop_m=crop,  # type: ignore[arg-type]
+                             pose_sigma_mm=float(data.get("pose_sigma_mm", 0.0)))
         except (KeyError, TypeError, ValueError) as err:
             raise ModelConfigError(f"a physics prior needs a scene and a 3-value depth_crop_m, got {data!r}") from err
 
@@ -52,16 +57,34 @@ class PhysicsPrior:
             scene = load_scene(spec.scene, check_geometry=False)
         except (SceneError, OSError) as err:
             raise ModelConfigError(f"the physics prior's scene {spec.scene}: {err}") from err
+        if not (np.isfinite(spec.pose_sigma_mm) and spec.pose_sigma_mm >= 0):
+            raise ModelConfigError(f"the prior's pose_sigma_mm must be a finite number >= 0, got {spec.pose_sigma_mm}")
         self.spec = spec
         self.renderer = scene_renderer(scene, size=(size, size), effects=False)
 
-    def images(self, depth_maps_m: np.ndarray) -> np.ndarray:
-        """N x size x size x 3 uint8: the renderer's image of each depth-map (m)."""
+    def images(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
+        """N x size x size x 3 uint8: the renderer's image of each depth-map (m), expected over
+        an in-plane pose error of ``pose_sigma_mm`` (default: the spec's). A contact seen
+        through a registration a millimetre off is a millimetre off in the image, while the
+        sensor's background stays where it is; so the expected image is the background plus the
+        contact's change blurred by the offsets' Gaussian (the rendering is shift invariant away
+        from the field's edge): a sharp contact is drawn only where its place is known."""
+        sigma_mm = self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm
+        if not (np.isfinite(sigma_mm) and sigma_mm >= 0):
+            raise ModelConfigError(f"pose_sigma_mm must be a finite number >= 0, got {sigma_mm}")
         try:
-            return render_depth_maps(self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2]))
+            images = render_depth_maps(self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2]))
         except GelSightError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
+        if sigma_mm == 0:
+            return images
+        pitch_rows_mm, pitch_cols_mm = self.renderer.pixel_pitch_mm
+        background = self.renderer.background().astype(np.float32)
+        changes = [cv2.GaussianBlur(image.astype(np.float32) - background, (0, 0), sigmaX=sigma_mm / pitch_cols_mm,
+                                    sigmaY=sigma_mm / pitch_rows_mm, borderType=cv2.BORDER_REPLICATE)
+                   for image in images]
+        return np.stack([np.clip(np.rint(background + change), 0, 255).astype(np.uint8) for change in changes])
 
-    def channels(self, depth_maps_m: np.ndarray) -> np.ndarray:
+    def channels(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
         """N x 3 x size x size float32 in [-1, 1] (the network's image units)."""
-        return (self.images(depth_maps_m).transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)
+        return (self.images(depth_maps_m, pose_sigma_mm).transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)

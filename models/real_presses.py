@@ -154,8 +154,9 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
     images = {
         "truth": np.stack([resize_rgb(f, *grid) for f in presses.frames]),
         "depth_maps_m": depth_maps,
-        "model": predict(generator, depth_maps, depth_range_m),
-        "model_empty": np.repeat(predict(generator, empty, depth_range_m), n, axis=0),
+        # The press is placed by its annotation, not by a registration: its geometry is exact.
+        "model": predict(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0),
+        "model_empty": np.repeat(predict(generator, empty, depth_range_m, pose_sigma_mm=0.0), n, axis=0),
         "background": np.repeat(resize_rgb(presses.background, *grid)[None], n, axis=0),
         "renderer": np.stack([resize_rgb(renderer.render(ball_gap_map(
             (height, width), presses.centers_xy_px[i], g.depth_mm, mm_per_px, ball_radius_mm)), *grid)

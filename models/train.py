@@ -73,6 +73,11 @@ class TrainConfig:
     # CONTACT_SCALE). 0: the paper's plain L1, in which the ~90 % of pixels that show the
     # sensor's own background outweigh the contact.
     contact_weight: float = 0.0
+    # In-plane pose error (mm, per axis) of the session's depth-maps, which come from registered
+    # model clouds: the physics prior of a session pair is the image expected over it
+    # (models.prior), a library pair's the sharp image of its exact geometry. Stored in the
+    # checkpoint as the prior's default for what it is asked; 0: every prior image sharp.
+    session_pose_sigma_mm: float = 0.0
     generator: GeneratorConfig = GeneratorConfig()
 
     def validate(self) -> "TrainConfig":
@@ -86,6 +91,8 @@ class TrainConfig:
             raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
         if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
             raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
+        if not (np.isfinite(self.session_pose_sigma_mm) and self.session_pose_sigma_mm >= 0):
+            raise ModelConfigError(f"session_pose_sigma_mm must be a finite number >= 0, got {self.session_pose_sigma_mm}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
@@ -247,20 +254,20 @@ def load_library(libraries: Sequence[str | os.PathLike[str]], session: DatasetRe
             if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
                 raise ModelConfigError(f"library {library} has {name} {mine}, the dataset {theirs}: make it "
                                        "with the session's settings (dtx dataset library --depth-range-m)")
-        parts.append(load_pairs(reader, None, config, prior))
+        parts.append(load_pairs(reader, None, config, prior, pose_sigma_mm=0.0))  # exact geometry
     if not parts:
         return None
     return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
 
 
-def session_prior(reader: DatasetReader, config: GeneratorConfig) -> PhysicsPrior | None:
+def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm: float = 0.0) -> PhysicsPrior | None:
     """The physics prior for a generator of ``config`` trained on ``reader``'s dataset: its
-    scene's GelSight and its depth-maps' crop (None when the config has no prior)."""
+    scene's GelSight, its depth-maps' crop and their pose error (None when the config has no prior)."""
     if not config.prior:
         return None
     if reader.info.depth_crop_m is None or not reader.info.scene:
         raise ModelConfigError(f"{reader.root} does not record its scene and depth crop, which a physics prior needs")
-    return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m)), config.image_size)
+    return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m), pose_sigma_mm), config.image_size)
 
 
 def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.PathLike[str],
@@ -278,7 +285,7 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         if config.threads:
             torch.set_num_threads(config.threads)
         reader = DatasetReader(dataset)
-        prior = session_prior(reader, config.generator)
+        prior = session_prior(reader, config.generator, config.session_pose_sigma_mm)
         x_train, y_train = load_pairs(reader, select_records(reader, "train", config.hold_out_object),
                                       config.generator, prior)
         x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), config.generator, prior)

@@ -1,0 +1,86 @@
+"""The physics prior's image expected over a pose error (models.prior): the sensor's background
+stays, the contact's change spreads as the offsets do, and a bad uncertainty is refused."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models.errors import ModelConfigError
+from models.prior import PhysicsPrior, PriorSpec
+from models.train import TrainConfig
+
+REPO = Path(__file__).resolve().parent.parent
+SCENE = str(REPO / "scenes" / "ycb_three.yaml")
+BINS = 100
+CROP_M = (0.024, 0.015, 0.019)  # wider than the GelSight's 16 x 12 mm field, as a session's crop
+FAR_M = 0.01
+
+
+@pytest.fixture(scope="module")
+def prior() -> PhysicsPrior:
+    return PhysicsPrior(PriorSpec(SCENE, CROP_M, pose_sigma_mm=1.0), BINS)
+
+
+def ball_press(centre_mm: tuple[float, float], radius_mm: float = 2.0, depth_mm: float = 0.6) -> np.ndarray:
+    """A 1 x BINS x BINS depth-map (m) of a ball pressed into the gel at ``centre_mm`` (x, z)
+    from the crop's centre; elsewhere nothing within reach."""
+    x = (np.arange(BINS) + 0.5) / BINS * CROP_M[0] * 1e3 - CROP_M[0] * 1e3 / 2
+    z = (np.arange(BINS) + 0.5) / BINS * CROP_M[2] * 1e3 - CROP_M[2] * 1e3 / 2
+    r2 = (x[None, :] - centre_mm[0]) ** 2 + (z[:, None] - centre_mm[1]) ** 2
+    gap_mm = np.where(r2 < radius_mm ** 2, radius_mm - depth_mm - np.sqrt(np.maximum(radius_mm ** 2 - r2, 0)), np.inf)
+    return np.minimum(gap_mm * 1e-3, FAR_M).astype(np.float32)[None]
+
+
+def test_zero_uncertainty_is_the_renderers_image(prior: PhysicsPrior) -> None:
+    press = ball_press((1.0, -0.5))
+    sharp = prior.images(press, pose_sigma_mm=0.0)
+    renderer = PhysicsPrior(PriorSpec(SCENE, CROP_M), BINS)  # the spec's default, 0
+    np.testing.assert_array_equal(sharp, renderer.images(press))
+    assert np.abs(sharp.astype(int) - prior.images(press).astype(int)).max() > 10  # the default, 1 mm, differs
+
+
+@settings(max_examples=8, deadline=None)
+@given(sigma_mm=st.floats(0.1, 3.0))
+def test_nothing_in_reach_is_the_background_at_any_uncertainty(prior: PhysicsPrior, sigma_mm: float) -> None:
+    empty = np.full((1, BINS, BINS), FAR_M, np.float32)
+    np.testing.assert_array_equal(prior.images(empty, sigma_mm)[0], prior.renderer.background())
+
+
+def test_the_prior_is_the_sharp_image_averaged_over_gaussian_offsets(prior: PhysicsPrior) -> None:
+    """Monte Carlo over in-plane offsets drawn with the prior's sigma: the mean of the sharp
+    images of the shifted press is the prior's image, far closer than the sharp image is."""
+    offsets = np.random.default_rng(0).normal(0.0, 1.0, size=(400, 2))
+    mean = np.mean([prior.images(ball_press((dx, dz)), 0.0)[0].astype(np.float64) for dx, dz in offsets], axis=0)
+    expected = prior.images(ball_press((0.0, 0.0)))[0].astype(np.float64)
+    sharp = prior.images(ball_press((0.0, 0.0)), 0.0)[0].astype(np.float64)
+    assert np.abs(mean - expected).mean() < 0.25 * np.abs(mean - sharp).mean()
+
+
+def test_an_off_centre_press_spreads_about_its_own_place(prior: PhysicsPrior) -> None:
+    background = prior.renderer.background().astype(np.float64)
+    change = np.abs(prior.images(ball_press((4.0, 2.0)))[0].astype(np.float64) - background).sum(axis=-1)
+    rows, cols = np.nonzero(change > 0.2 * change.max())
+    h, w = change.shape
+    pitch_rows_mm, pitch_cols_mm = prior.renderer.pixel_pitch_mm
+    assert abs((cols.mean() - (w - 1) / 2) * pitch_cols_mm - 4.0) < 0.5
+    assert abs((rows.mean() - (h - 1) / 2) * pitch_rows_mm - 2.0) < 0.5
+
+
+@pytest.mark.parametrize("sigma_mm", [-0.5, float("nan"), float("inf")])
+def test_a_bad_uncertainty_is_refused(prior: PhysicsPrior, sigma_mm: float) -> None:
+    with pytest.raises(ModelConfigError, match="pose_sigma_mm"):
+        prior.images(ball_press((0.0, 0.0)), sigma_mm)
+    with pytest.raises(ModelConfigError, match="pose_sigma_mm"):
+        PhysicsPrior(PriorSpec(SCENE, CROP_M, pose_sigma_mm=sigma_mm), BINS)
+    with pytest.raises(ModelConfigError, match="session_pose_sigma_mm"):
+        TrainConfig(session_pose_sigma_mm=sigma_mm).validate()
+
+
+def test_the_spec_round_trips_and_an_older_checkpoints_prior_is_sharp() -> None:
+    spec = PriorSpec(SCENE, CROP_M, pose_sigma_mm=1.25)
+    assert PriorSpec.from_dict(spec.to_dict()) == spec
+    assert PriorSpec.from_dict({"scene": SCENE, "depth_crop_m": list(CROP_M)}).pose_sigma_mm == 0.0
