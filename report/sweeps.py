@@ -138,19 +138,23 @@ class Workspace:
         return SessionTest(records, np.stack([s.tactile_rgb for s in samples]),
                            np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]))
 
-    def config(self, size: int, width: int) -> TrainConfig:
-        """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``."""
+    def config(self, size: int, width: int, registered: bool) -> TrainConfig:
+        """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``;
+        the physics prior blurred by the registration's pose error only for a ``registered``
+        (collected) dataset: the analytic contacts' geometry is exact."""
         base = training_config()
         pad = -(-size // 128) * 128  # the U-Net's 7 halvings need a multiple of 128
         generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
         # One thread: on a shared machine extra OpenMP threads mostly wait for a core, and
         # the CPU seconds a sweep reports are then comparable from run to run.
         return dataclasses.replace(base, seed=self.plan.seed, epochs=self.plan.epochs,
-                                   epochs_decay=self.plan.epochs, generator=generator, threads=1)
+                                   epochs_decay=self.plan.epochs, generator=generator, threads=1,
+                                   session_pose_sigma_mm=base.session_pose_sigma_mm if registered else 0.0)
 
     def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:
         """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""
-        return self._trained(self.dataset(size), size, width, self.root / f"train_{size}_w{width}")
+        return self._trained(self.dataset(size), self.config(size, width, registered=False),
+                             self.root / f"train_{size}_w{width}")
 
     def library_at(self, bins: int) -> Path:
         """``plan.library_samples`` contact-library pairs (dataset.contact_library) in the
@@ -164,15 +168,14 @@ class Workspace:
     def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
         """The width-16 model trained as the default is (the session with a contact library)
         at ``bins`` x ``bins``: see :meth:`_trained`."""
-        return self._trained(self.session_at(bins), bins, 16, self.root / f"train_session_{bins}",
-                             libraries=(self.library_at(bins),))
+        return self._trained(self.session_at(bins), self.config(bins, 16, registered=True),
+                             self.root / f"train_session_{bins}", libraries=(self.library_at(bins),))
 
-    def _trained(self, dataset: Path, size: int, width: int, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
+    def _trained(self, dataset: Path, config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
         """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
         seconds of each epoch, data loading included). Trained one epoch per call so that each
         epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
         cpu_log = out / "cpu_s.json"
-        config = self.config(size, width)
         checkpoint = out / "checkpoint.pt"
         if checkpoint.exists() and TrainConfig.from_dict(load_checkpoint(checkpoint)["train_config"]) != config:
             print(f"report: {out.name} was trained with another config; training it again", file=sys.stderr)
