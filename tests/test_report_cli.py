@@ -10,7 +10,7 @@ import pytest
 
 from report.cli import _cached, add_commands
 from report.plan import FULL, QUICK, SWEEP_NAMES
-from report.sweeps import training_config
+from report.sweeps import Workspace, training_config
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -90,3 +90,14 @@ def test_a_cached_sweep_counts_only_for_the_plan_and_training_config_that_made_i
     assert _cached(path, made_by) is None
     path.write_text("{not json")
     assert _cached(path, made_by) is None
+
+
+def test_only_the_session_models_blur_their_prior_by_the_registration_error(tmp_path: Path) -> None:
+    workspace = Workspace(tmp_path, QUICK)
+    default = training_config()
+    assert default.session_pose_sigma_mm > 0
+    session = workspace.config(50, 16, registered=True)
+    analytic = workspace.config(50, 16, registered=False)
+    assert session.session_pose_sigma_mm == default.session_pose_sigma_mm
+    assert analytic.session_pose_sigma_mm == 0.0  # analytic contacts: exact geometry
+    assert dataclasses.replace(analytic, session_pose_sigma_mm=session.session_pose_sigma_mm) == session
