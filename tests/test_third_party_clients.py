@@ -120,11 +120,14 @@ def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple
         time.sleep(0.2)
 
 
-def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_modules: Path, tmp_path: Path) -> None:
-    """@mcap/core, knowing only docs/bag-format.md, decodes every dtx channel of a bag, and of
-    the same bag cut short by a crash as much as the Python reader does."""
+@pytest.mark.parametrize("compression", ["none", "lz4", "zstd"])
+def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_modules: Path, tmp_path: Path,
+                                                                     compression: str) -> None:
+    """@mcap/core with @mcap/support's decompressors (as Foxglove Studio reads), knowing only
+    docs/bag-format.md, decodes every dtx channel of a bag in each chunk compression, and of the
+    same bag cut short by a crash as much as the Python reader does."""
     path = tmp_path / "session.mcap"
-    writer = BagWriter(path, compression="none", chunk_size=64 * 1024)
+    writer = BagWriter(path, compression=compression, chunk_size=64 * 1024)
     for i in range(20):
         for topic, message in (("/gripper/state", msgs.GripperState(width_m=0.01 * i)),
                                ("/camera/left/depth", msgs.DepthImage(depth=np.full((48, 64), i, np.uint16))),

@@ -4,6 +4,7 @@
 // summary a finished recording ends with (null when the bag has none).
 import { readFileSync } from "node:fs";
 import { McapIndexedReader, McapStreamReader } from "@mcap/core";
+import { loadDecompressHandlers } from "@mcap/support";
 import { decode } from "@msgpack/msgpack";
 
 const LENGTH_BYTES = 8;
@@ -44,9 +45,11 @@ function tally(summary, schema, channel, message) {
 }
 
 const data = new Uint8Array(readFileSync(process.argv[2]));
+// lz4 and zstd chunks, as Foxglove Studio decompresses them.
+const decompressHandlers = await loadDecompressHandlers();
 
 const stream = { topics: {}, decoded: 0, done: false };
-const reader = new McapStreamReader({ validateCrcs: true });
+const reader = new McapStreamReader({ validateCrcs: true, decompressHandlers });
 reader.append(data);
 const schemas = new Map();
 const channels = new Map();
@@ -66,7 +69,7 @@ try {
     size: async () => BigInt(data.byteLength),
     read: async (offset, size) => data.subarray(Number(offset), Number(offset + size)),
   };
-  const bag = await McapIndexedReader.Initialize({ readable });
+  const bag = await McapIndexedReader.Initialize({ readable, decompressHandlers });
   indexed = { topics: {}, decoded: 0 };
   for await (const message of bag.readMessages()) {
     const channel = bag.channelsById.get(message.channelId);
