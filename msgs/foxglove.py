@@ -24,7 +24,8 @@ def foxglove_schema(dtx_schema: str) -> Any | None:
     """The Foxglove schema of a dtx schema's view (None: it has none), known before any
     message comes, so a channel can be advertised as soon as its topic is discovered."""
     view = {msgs.DepthImage.SCHEMA: fox.RawImage, msgs.TactileImage.SCHEMA: fox.RawImage,
-            msgs.PointCloud.SCHEMA: fox.PointCloud, msgs.FrameTransform.SCHEMA: fox.FrameTransform}.get(dtx_schema)
+            msgs.DatasetSample.SCHEMA: fox.RawImage, msgs.PointCloud.SCHEMA: fox.PointCloud,
+            msgs.FrameTransform.SCHEMA: fox.FrameTransform}.get(dtx_schema)
     return view().get_schema() if view is not None else None
 
 
@@ -42,6 +43,13 @@ def foxglove_view(message: Message) -> Any | None:
         return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
                             width=image.shape[1], height=image.shape[0], encoding="rgb8",
                             step=image.strides[0], data=image.tobytes())
+    if isinstance(message, msgs.DatasetSample):
+        # The sample's contact depth-map: 32FC1, metres along the gel's outward normal (bins with
+        # no surface hold the far end of the depth range), in the gel frame of its finger.
+        depth_map = np.ascontiguousarray(message.depth_map_m, dtype=np.float32)
+        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=f"gel_{message.finger}",
+                            width=depth_map.shape[1], height=depth_map.shape[0], encoding="32FC1",
+                            step=depth_map.strides[0], data=depth_map.tobytes())
     if isinstance(message, msgs.PointCloud):
         points = np.ascontiguousarray(message.points, dtype=np.float32)
         fields = [fox.PackedElementField(name=axis, offset=4 * i, type=fox.PackedElementFieldNumericType.Float32)

@@ -227,3 +227,29 @@ def _holds_a_message(path: Path) -> bool:
         return path.exists() and next(iter_envelopes(path), None) is not None
     except BagError:
         return False
+
+
+def test_a_samples_contact_depth_map_is_a_foxglove_image_in_its_gel_frame(tmp_path: Path) -> None:
+    """/collector/sample's Foxglove form is its contact depth-map (32FC1, metres), decoded here
+    with protobuf from the FileDescriptorSet the bag itself carries, as Foxglove decodes it."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: PLC0415
+
+    depth_map = np.linspace(-0.002, 0.01, 20, dtype=np.float32).reshape(4, 5)
+    sample = msgs.DatasetSample(header=msgs.Header(stamp_ns=5_000), sample_id="g00007_right", finger="right",
+                                depth_map_m=depth_map)
+    path = tmp_path / "session.mcap"
+    writer = BagWriter(path)
+    frames = encode("/collector/sample", sample, "test")
+    writer.write(decode(frames), frames, log_time_ns=5_000)
+    writer.close()
+    with open(path, "rb") as stream:
+        [(schema, channel, record)] = [m for m in make_reader(stream).iter_messages()
+                                       if m[1].topic == "/collector/sample/foxglove"]
+    assert (schema.name, schema.encoding, channel.message_encoding) == ("foxglove.RawImage", "protobuf", "protobuf")
+    pool = descriptor_pool.DescriptorPool()
+    for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+        pool.Add(file)
+    image = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(record.data)
+    assert (image.frame_id, image.encoding, image.width, image.height) == ("gel_right", "32FC1", 5, 4)
+    np.testing.assert_array_equal(np.frombuffer(image.data, np.float32).reshape(image.height, image.step // 4),
+                                  depth_map)
