@@ -4,13 +4,18 @@ Runs ``dtx launch launch/collect_sim.yaml`` as an operator would and reports wal
 grasps per minute and the median time per stage of a grasp (from the collector's
 session.json). With ``--kill NODE ...`` it runs one more session per node, kills that node
 with SIGKILL a third of the way through (the launcher respawns it), and checks the dataset
-that comes out: complete, exactly the requested size, sound by ``dtx dataset check``.
+that comes out: complete, exactly the requested size, sound by ``dtx dataset check``. With
+``--recorder-kills N`` it records one more session and kills the recorder at N seeded random
+moments of it: per kill, the seconds of messages its file lost before the kill (the kill time
+less the last message the file holds) and the gap until the respawned recorder's first message,
+whether any file is empty, and whether the dataset is still complete.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -19,6 +24,7 @@ import time
 from pathlib import Path
 
 from dataset.check import check_dataset
+from dtx.bag import BagError, iter_envelopes
 from nodes.registry import Registry
 
 NODES = ["collector", "patch_extractor", "arm", "gripper", "gelsight_left", "gelsight_right",
@@ -32,6 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="nodes to kill -9 mid-session, one session each ('all': every node)")
     parser.add_argument("--kill-grasps", type=int, default=30, help="session size for the kill -9 runs")
     parser.add_argument("--record", action="store_true", help="record the session bag too")
+    parser.add_argument("--recorder-kills", type=int, default=0, metavar="N",
+                        help="one more recorded session of --grasps grasps, its recorder killed at N random moments")
 
 
 def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "") -> dict:
@@ -76,6 +84,64 @@ def _kill_when_a_third_is_done(registry: Registry, out: Path, grasps: int, node:
     return None
 
 
+def _bag_files(out: Path) -> list[Path]:
+    """The session's bag files in the order the recorders wrote them: session.mcap, session.1.mcap, ..."""
+    numbered = sorted(out.glob("session.*.mcap"), key=lambda p: int(p.suffixes[0][1:]))
+    return [out / "session.mcap", *numbered] if (out / "session.mcap").exists() else numbered
+
+
+def _log_times_ns(path: Path) -> list[int]:
+    try:
+        return [log_time for log_time, _ in iter_envelopes(path)]
+    except BagError:
+        return []
+
+
+def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int) -> dict:
+    """A recorded session whose recorder is killed at ``kills`` moments drawn (seeded) between
+    10 % and 90 % of the grasps; each kill waits until the respawned recorder has a message on
+    disk, so every kill cuts a file that was being written."""
+    moments = sorted(random.Random(seed).sample(range(grasps // 10, 9 * grasps // 10), kills))
+    killed_ns: list[int] = []
+    with tempfile.TemporaryDirectory(prefix="dtxk") as bus_dir:
+        env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
+        launcher = subprocess.Popen(
+            [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
+             f"grasps:={grasps}", f"seed:={seed}", "record:=true"],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+        registry, manifest = Registry(Path(bus_dir)), out / "manifest.jsonl"
+        for moment in moments:
+            while launcher.poll() is None:
+                written = len(manifest.read_text().splitlines()) // 2 if manifest.exists() else 0
+                files = _bag_files(out)
+                # The newest file must hold a message: the respawned recorder is writing.
+                if written >= moment and len(files) == len(killed_ns) + 1 and _log_times_ns(files[-1]):
+                    pids = [s["pid"] for s in registry.node_statuses() if s["node"] == "recorder" and s["alive"]]
+                    if pids:
+                        killed_ns.append(time.time_ns())
+                        os.kill(pids[0], signal.SIGKILL)
+                        break
+                time.sleep(0.02)
+        launcher.wait(timeout=1800)
+    files = _bag_files(out)
+    per_kill = []
+    for index, kill_ns in enumerate(killed_ns):
+        cut = _log_times_ns(files[index]) if index < len(files) else []
+        after = _log_times_ns(files[index + 1]) if index + 1 < len(files) else []
+        per_kill.append({"file": files[index].name if index < len(files) else None,
+                         "bytes": files[index].stat().st_size if index < len(files) else 0,
+                         "lost_before_kill_s": round((kill_ns - max(cut)) / 1e9, 3) if cut else None,
+                         "gap_until_respawned_s": round((min(after) - kill_ns) / 1e9, 3) if after else None})
+    report = check_dataset(out)
+    losses = [k["lost_before_kill_s"] for k in per_kill if k["lost_before_kill_s"] is not None]
+    return {"grasps": grasps, "kills": len(killed_ns), "exit_code": launcher.returncode,
+            "dataset_check_ok": report.ok, "pairs": report.samples, "files": len(files),
+            "empty_files": sum(p.stat().st_size == 0 for p in files),
+            "lost_before_kill_s_max": max(losses, default=None),
+            "lost_before_kill_s_median": sorted(losses)[len(losses) // 2] if losses else None,
+            "per_kill": per_kill}
+
+
 def run(args: argparse.Namespace) -> dict:
     kills = NODES if "all" in args.kill else args.kill
     with tempfile.TemporaryDirectory(prefix="dtxsession") as tmp:
@@ -90,4 +156,7 @@ def run(args: argparse.Namespace) -> dict:
             outcome["complete"] = outcome["dataset_check_ok"] and outcome["exit_code"] == 0 and \
                 len((Path(tmp) / f"kill_{node}" / "manifest.jsonl").read_text().splitlines()) == 2 * args.kill_grasps
             results["kill_tests"].append(outcome)
+        if args.recorder_kills:
+            results["recorder_kills"] = run_recorder_kills(Path(tmp) / "recorder_kills", args.grasps, args.seed,
+                                                           args.recorder_kills)
     return results

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.collect import run_session
+from benchmarks.collect import run_recorder_kills, run_session
 from dtx.bag import bag_info, iter_envelopes
 from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetReader, deformation_map
@@ -44,6 +44,17 @@ def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, nod
     assert ids == sorted(f"g{g:05d}_{f}" for g in range(6) for f in ("left", "right"))
     assert check_dataset(tmp_path / "session").ok
     assert "dataset check OK" in result["collector_last_line"]
+
+
+@pytest.mark.slow
+def test_a_recorder_killed_mid_session_leaves_no_empty_file_and_the_dataset_whole(tmp_path: Path) -> None:
+    """The recorder of a collection session killed twice: each respawn writes a file of its own,
+    every file holds messages up to near its kill, and the dataset does not notice."""
+    result = run_recorder_kills(tmp_path / "session", grasps=30, seed=0, kills=2)
+    assert result["kills"] == 2 and result["exit_code"] == 0 and result["dataset_check_ok"], result
+    assert result["files"] == 3 and result["empty_files"] == 0, result
+    assert all(kill["lost_before_kill_s"] is not None and kill["gap_until_respawned_s"] is not None
+               for kill in result["per_kill"]), result
 
 
 @pytest.fixture(scope="module")
