@@ -159,7 +159,8 @@ class FoxgloveBridge(Node):
         channel = self.channels[topic]
         if topic in self.latched:
             with self.resender.lock:
-                self.resender.last[channel.topic] = (channel, data, log_time)
+                # Channel.topic is a method here (the listener's ChannelView has it as a field).
+                self.resender.last[channel.topic()] = (channel, data, log_time)
         channel.log(data, log_time=log_time)
 
     def close(self) -> None:

@@ -168,6 +168,12 @@ def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_
         cloud.publish(msgs.PointCloud(points=np.zeros((10, 3), np.float32)))
         thread.start()
         try:
+            # The viewer comes once the bridge holds the cloud, so it can only see it resent.
+            deadline = time.monotonic() + 60
+            while "/object/cloud/foxglove" not in bridge.resender.last:
+                assert time.monotonic() < deadline, "the bridge never received the latched cloud"
+                cloud.service_subscriptions()  # a node's executor does this: the latched resend to the bridge
+                time.sleep(0.05)
             viewer = subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
                                        subprotocol, "6"], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE)
