@@ -14,6 +14,7 @@ session. Off by default; the collection launch files switch it on with ``foxglov
 from __future__ import annotations
 
 import dataclasses
+import json
 import re
 import socket
 import threading
@@ -45,6 +46,9 @@ class _Resender(foxglove.ServerListener):
 SDK_SUBPROTOCOL = b"foxglove.sdk.v1"
 LEGACY_SUBPROTOCOL = b"foxglove.websocket.v1"
 _MAX_HANDSHAKE_BYTES = 16 * 1024
+# A viewer sends only control messages (the bridge offers no client publishing): a longer
+# client frame ends its connection rather than being buffered.
+_MAX_CLIENT_FRAME_BYTES = 1024 * 1024
 
 
 class SubprotocolAdapter:
@@ -52,7 +56,14 @@ class SubprotocolAdapter:
     offers only ``foxglove.websocket.v1`` (Foxglove Studio 1.x, Lichtblick before late 2025,
     @foxglove/ws-protocol's default) in. foxglove-sdk 0.30 speaks the same messages under the
     name ``foxglove.sdk.v1`` but answers the old name with HTTP 400, so the adapter renames the
-    subprotocol in the opening handshake, both ways, and relays the bytes after it untouched."""
+    subprotocol in the opening handshake, both ways, and relays the bytes after it untouched —
+    except that a client's ``subscribe`` is held ``SUBSCRIBE_DELAY_S``: the SDK queues a
+    channel's advertisement to the client before it adds the channel to that client's map
+    (rust/foxglove/src/websocket/connected_client.rs, ``advertise_channels``), so a client that
+    subscribes the moment it is advertised can be told "Unknown channel ID" (1 in 100 such
+    subscriptions on a loaded machine, tests/test_third_party_clients.py)."""
+
+    SUBSCRIBE_DELAY_S = 0.05
 
     def __init__(self, host: str, port: int, upstream_port: int) -> None:
         self.upstream = ("127.0.0.1", upstream_port)
@@ -77,11 +88,31 @@ class SubprotocolAdapter:
                 and LEGACY_SUBPROTOCOL in offered.group(1)
             if legacy:
                 request = request.replace(LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL)
-            server.sendall(request + rest)
-            response, rest = _read_handshake(server)
-            client.sendall((response.replace(SDK_SUBPROTOCOL, LEGACY_SUBPROTOCOL) if legacy else response) + rest)
+            server.sendall(request)
+            response, from_server = _read_handshake(server)
+            client.sendall((response.replace(SDK_SUBPROTOCOL, LEGACY_SUBPROTOCOL) if legacy else response) + from_server)
             threading.Thread(target=_pipe, args=(server, client), daemon=True).start()
-            _pipe(client, server)
+            self._relay_client_frames(client, server, rest)
+
+    def _relay_client_frames(self, client: socket.socket, server: socket.socket, pending: bytes) -> None:
+        """Client to server, frame by frame (RFC 6455 section 5.2), a subscribe held back."""
+        buffer = bytearray(pending)
+        try:
+            while True:
+                frame = _split_frame(buffer)
+                while frame is None:
+                    chunk = client.recv(65536)
+                    if not chunk:
+                        return
+                    buffer += chunk
+                    frame = _split_frame(buffer)
+                if _is_subscribe(frame):
+                    time.sleep(self.SUBSCRIBE_DELAY_S)
+                server.sendall(frame)
+        except OSError:
+            pass
+        finally:
+            _shutdown(client, server)
 
     def close(self) -> None:
         self._closed = True
@@ -100,6 +131,42 @@ def _read_handshake(sock: socket.socket) -> tuple[bytes, bytes]:
     return head + b"\r\n\r\n", rest
 
 
+def _split_frame(buffer: bytearray) -> bytes | None:
+    """Takes the first whole WebSocket frame off ``buffer`` (None: not all of it is there);
+    OSError for a frame longer than a viewer sends."""
+    if len(buffer) < 2:
+        return None
+    length, start = buffer[1] & 0x7F, 2
+    if length >= 126:
+        start = 4 if length == 126 else 10
+        if len(buffer) < start:
+            return None
+        length = int.from_bytes(buffer[2:start], "big")
+    if length > _MAX_CLIENT_FRAME_BYTES:
+        raise OSError(f"a client frame of {length} bytes (at most {_MAX_CLIENT_FRAME_BYTES})")
+    end = start + (4 if buffer[1] & 0x80 else 0) + length
+    if len(buffer) < end:
+        return None
+    frame = bytes(buffer[:end])
+    del buffer[:end]
+    return frame
+
+
+def _is_subscribe(frame: bytes) -> bool:
+    """Whether a client frame is a text frame holding the JSON op ``subscribe``."""
+    if frame[0] & 0x0F != 1 or not frame[1] & 0x80:  # text, masked (every client frame is)
+        return False
+    length, start = frame[1] & 0x7F, 2
+    if length >= 126:
+        start = 4 if length == 126 else 10
+    mask, payload = frame[start:start + 4], frame[start + 4:]
+    try:
+        message = json.loads(bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
+    except ValueError:
+        return False
+    return isinstance(message, dict) and message.get("op") == "subscribe"
+
+
 def _pipe(source: socket.socket, sink: socket.socket) -> None:
     try:
         while chunk := source.recv(65536):
@@ -107,11 +174,15 @@ def _pipe(source: socket.socket, sink: socket.socket) -> None:
     except OSError:
         pass
     finally:
-        for sock in (source, sink):
-            try:
-                sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
+        _shutdown(source, sink)
+
+
+def _shutdown(*sockets: socket.socket) -> None:
+    for sock in sockets:
+        try:
+            sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
 
 
 class FoxgloveBridge(Node):

@@ -192,3 +192,38 @@ def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_
     assert {"/object/cloud/foxglove", "/gelsight_left/image/foxglove"} <= set(seen["advertised"])
     assert seen["messages"].get("/object/cloud/foxglove", 0) >= 1, seen
     assert seen["messages"].get("/gelsight_left/image/foxglove", 0) >= 1, seen
+
+
+def test_a_hundred_subscriptions_right_after_advertise_are_never_refused(node_modules: Path,
+                                                                        registry: Registry) -> None:
+    """100 topics appear while the official client is connected and subscribes to each channel
+    the moment it is advertised: no "Unknown channel ID" (or any other status), and every
+    channel's messages reach it."""
+    bridge = FoxgloveBridge("foxglove", {"port": 0, "max_rate_hz": 100.0}, registry=registry)
+    thread = threading.Thread(target=bridge.spin)
+    thread.start()
+    topics = [f"/trial_{i:03d}/image" for i in range(100)]
+    try:
+        with contextlib.closing(Bus("sensors", registry)) as bus:
+            viewer = subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
+                                       "foxglove.sdk.v1", "14"], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE)
+            publishers = []
+            image = msgs.TactileImage(image=np.zeros((4, 4, 3), np.uint8), sensor="left")
+            while viewer.poll() is None:
+                if len(publishers) < len(topics):  # 20 new topics per discovery round (1 s)
+                    publishers += [bus.publisher(topic, msgs.TactileImage)
+                                   for topic in topics[len(publishers):len(publishers) + 20]]
+                for publisher in publishers:
+                    publisher.publish(image)
+                time.sleep(1.0)
+            output, errors = viewer.communicate()
+    finally:
+        bridge.request_shutdown()
+        thread.join()
+        bridge.close()
+    assert viewer.returncode == 0, errors
+    seen = json.loads(output)
+    assert not seen["errors"] and not seen["statuses"], seen["statuses"][:5]
+    assert {topic + "/foxglove" for topic in topics} <= set(seen["advertised"])
+    assert not [topic for topic in topics if seen["messages"].get(topic + "/foxglove", 0) == 0]
