@@ -155,40 +155,55 @@ def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_module
     assert 0 < sum(e["count"] for e in result["stream"]["topics"].values()) < 120
 
 
+@contextlib.contextmanager
+def running_bridge(registry: Registry) -> Iterator[FoxgloveBridge]:
+    bridge = FoxgloveBridge("foxglove", {"port": 0, "max_rate_hz": 100.0}, registry=registry)
+    thread = threading.Thread(target=bridge.spin)
+    thread.start()
+    try:
+        yield bridge
+    finally:
+        bridge.request_shutdown()
+        thread.join()
+        bridge.close()
+
+
+def start_viewer(bridge: FoxgloveBridge, subprotocol: str, seconds: int) -> subprocess.Popen[str]:
+    """clients/node/foxglove_view.mjs: subscribes to each channel on advertise, reports at the end."""
+    return subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
+                             subprotocol, str(seconds)], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+
+
+def viewer_report(viewer: subprocess.Popen[str]) -> dict:
+    output, errors = viewer.communicate()
+    assert viewer.returncode == 0, errors
+    seen = json.loads(output)
+    assert seen["opened"] and not seen["errors"] and not seen["statuses"], seen["statuses"][:5]
+    return seen
+
+
 @pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
 def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_cloud(
         node_modules: Path, registry: Registry, subprotocol: str) -> None:
     """@foxglove/ws-protocol, as Studio 1.x and Lichtblick connect: a cloud published once
     before the viewer came is still shown, and so are the images that stream."""
-    bridge = FoxgloveBridge("foxglove", {"port": 0, "max_rate_hz": 100.0}, registry=registry)
-    thread = threading.Thread(target=bridge.spin)
-    with contextlib.closing(Bus("sensors", registry)) as bus:
+    with contextlib.closing(Bus("sensors", registry)) as bus, running_bridge(registry) as bridge:
         cloud = bus.publisher("/object/cloud", msgs.PointCloud, latched=True)
         camera = bus.publisher("/gelsight_left/image", msgs.TactileImage)
         cloud.publish(msgs.PointCloud(points=np.zeros((10, 3), np.float32)))
-        thread.start()
-        try:
-            # The viewer comes once the bridge holds the cloud, so it can only see it resent.
-            deadline = time.monotonic() + 60
-            while "/object/cloud/foxglove" not in bridge.resender.last:
-                assert time.monotonic() < deadline, "the bridge never received the latched cloud"
-                cloud.service_subscriptions()  # a node's executor does this: the latched resend to the bridge
-                time.sleep(0.05)
-            viewer = subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
-                                       subprotocol, "6"], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE)
-            while viewer.poll() is None:
-                camera.publish(msgs.TactileImage(image=np.zeros((12, 16, 3), np.uint8), sensor="left"))
-                cloud.service_subscriptions()  # a node's executor does this: the latched resend to the bridge
-                time.sleep(0.05)
-            output, errors = viewer.communicate()
-        finally:
-            bridge.request_shutdown()
-            thread.join()
-            bridge.close()
-    assert viewer.returncode == 0, errors
-    seen = json.loads(output)
-    assert seen["opened"] and not seen["errors"] and not seen["statuses"], seen
+        # The viewer comes once the bridge holds the cloud, so it can only see it resent.
+        deadline = time.monotonic() + 60
+        while "/object/cloud/foxglove" not in bridge.resender.last:
+            assert time.monotonic() < deadline, "the bridge never received the latched cloud"
+            cloud.service_subscriptions()  # a node's executor does this: the latched resend to the bridge
+            time.sleep(0.05)
+        viewer = start_viewer(bridge, subprotocol, 6)
+        while viewer.poll() is None:
+            camera.publish(msgs.TactileImage(image=np.zeros((12, 16, 3), np.uint8), sensor="left"))
+            cloud.service_subscriptions()
+            time.sleep(0.05)
+        seen = viewer_report(viewer)
     assert {"/object/cloud/foxglove", "/gelsight_left/image/foxglove"} <= set(seen["advertised"])
     assert seen["messages"].get("/object/cloud/foxglove", 0) >= 1, seen
     assert seen["messages"].get("/gelsight_left/image/foxglove", 0) >= 1, seen
@@ -199,31 +214,18 @@ def test_a_hundred_subscriptions_right_after_advertise_are_never_refused(node_mo
     """100 topics appear while the official client is connected and subscribes to each channel
     the moment it is advertised: no "Unknown channel ID" (or any other status), and every
     channel's messages reach it."""
-    bridge = FoxgloveBridge("foxglove", {"port": 0, "max_rate_hz": 100.0}, registry=registry)
-    thread = threading.Thread(target=bridge.spin)
-    thread.start()
     topics = [f"/trial_{i:03d}/image" for i in range(100)]
-    try:
-        with contextlib.closing(Bus("sensors", registry)) as bus:
-            viewer = subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
-                                       "foxglove.sdk.v1", "14"], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE)
-            publishers = []
-            image = msgs.TactileImage(image=np.zeros((4, 4, 3), np.uint8), sensor="left")
-            while viewer.poll() is None:
-                if len(publishers) < len(topics):  # 20 new topics per discovery round (1 s)
-                    publishers += [bus.publisher(topic, msgs.TactileImage)
-                                   for topic in topics[len(publishers):len(publishers) + 20]]
-                for publisher in publishers:
-                    publisher.publish(image)
-                time.sleep(1.0)
-            output, errors = viewer.communicate()
-    finally:
-        bridge.request_shutdown()
-        thread.join()
-        bridge.close()
-    assert viewer.returncode == 0, errors
-    seen = json.loads(output)
-    assert not seen["errors"] and not seen["statuses"], seen["statuses"][:5]
+    with contextlib.closing(Bus("sensors", registry)) as bus, running_bridge(registry) as bridge:
+        viewer = start_viewer(bridge, "foxglove.sdk.v1", 14)
+        publishers = []
+        image = msgs.TactileImage(image=np.zeros((4, 4, 3), np.uint8), sensor="left")
+        while viewer.poll() is None:
+            if len(publishers) < len(topics):  # 20 new topics per discovery round (1 s)
+                publishers += [bus.publisher(topic, msgs.TactileImage)
+                               for topic in topics[len(publishers):len(publishers) + 20]]
+            for publisher in publishers:
+                publisher.publish(image)
+            time.sleep(1.0)
+        seen = viewer_report(viewer)
     assert {topic + "/foxglove" for topic in topics} <= set(seen["advertised"])
     assert not [topic for topic in topics if seen["messages"].get(topic + "/foxglove", 0) == 0]
