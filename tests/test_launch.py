@@ -186,3 +186,35 @@ def test_command_line_tools_see_the_running_graph(registry: Registry, launch_env
     finally:
         launcher.send_signal(signal.SIGINT)
         launcher.communicate(timeout=30)
+
+
+def test_nodes_that_die_together_are_respawned_together(registry: Registry, launch_env: dict[str, str],
+                                                        tmp_path: Path) -> None:
+    """Each crashed node waits its own respawn delay while the launcher watches the others:
+    both deaths are seen before either respawn (they were served one after the other, each
+    waiting out its delay while the other stayed dead)."""
+    path = write(tmp_path, "launch:\n"
+                           "  - node: {name: one, module: fixture_nodes, respawn: true, respawn_delay_s: 3}\n"
+                           "  - node: {name: two, module: fixture_nodes, respawn: true, respawn_delay_s: 3,\n"
+                           "           remaps: {/count: /two/count, /echo: /two/echo, /hold: /two/hold}}\n")
+    launcher = dtx("launch", str(path), env=launch_env)
+    try:
+        pids = wait_for_nodes(registry, {"one", "two"})
+        for pid in pids.values():
+            os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            respawned = wait_for_nodes(registry, {"one", "two"})
+            if not set(respawned.values()) & set(pids.values()):
+                break
+            time.sleep(0.2)
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=30)
+    finally:
+        launcher.kill()
+    lines = output.splitlines()
+    deaths = [i for i, line in enumerate(lines) if "exited with -9; respawning" in line]
+    starts = [i for i, line in enumerate(lines) if line.startswith("[launch] started ")]
+    assert len(deaths) == 2 and len(starts) == 4, output
+    assert max(deaths) < min(starts[2:]), output  # both deaths seen before either respawn
+    assert launcher.returncode == 0, output
