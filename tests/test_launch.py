@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import os
+import resource
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -218,3 +220,41 @@ def test_nodes_that_die_together_are_respawned_together(registry: Registry, laun
     assert len(deaths) == 2 and len(starts) == 4, output
     assert max(deaths) < min(starts[2:]), output  # both deaths seen before either respawn
     assert launcher.returncode == 0, output
+
+
+def limit_file_size(limit_bytes: int) -> Callable[[], None]:
+    """A preexec_fn under which no file grows past ``limit_bytes``: writes beyond fail (EFBIG;
+    Python ignores SIGXFSZ), as on a full disk, without needing root to mount a small one."""
+    def apply() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+    return apply
+
+
+def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
+        registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
+    """It crash-looped: each respawn opened one more bag (session.1.mcap, ...) that the disk
+    refused in turn. Now it stops with the do-not-respawn status and its bag reads."""
+    from dtx.bag import bag_info
+    bag = tmp_path / "session.mcap"
+    path = write(tmp_path, "launch:\n"
+                           "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.02, text_bytes: 4000}}\n"
+                           "  - node:\n      name: recorder\n      module: nodes.recorder\n      respawn: true\n"
+                           f"      params: {{bag: {bag}, compression: none, foxglove: false}}\n")
+    launcher = dtx("launch", str(path), env=launch_env, preexec_fn=limit_file_size(1024 * 1024))
+    try:
+        deadline = time.monotonic() + 60  # the recorder may fill its file before the talker is seen up
+
+        def recorder_ended() -> bool:
+            return any(s["node"] == "recorder" and not s["alive"] for s in registry.node_statuses())
+        while not recorder_ended() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(5.0)  # time for a respawn, if the launcher wrongly made one
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=30)
+    finally:
+        launcher.kill()
+    assert "[launch] recorder failed (exit 2)" in output and "recorder exited with" not in output, output
+    assert "the disk refused the data" in output and "the recorder stops" in output, output
+    assert sorted(p.name for p in tmp_path.glob("session*")) == ["session.mcap"]
+    info = bag_info(bag)
+    assert info.truncated and info.topics.get("/count", {}).get("count", 0) > 0, info
