@@ -225,6 +225,7 @@ class _Running:
     spec: NodeSpec
     process: subprocess.Popen[bytes]
     respawns: int = 0
+    relay: threading.Thread | None = None
 
 
 class Launcher:
@@ -254,8 +255,9 @@ class Launcher:
         process = subprocess.Popen(
             spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)})
-        self.running[spec.name] = _Running(spec, process, respawns)
-        threading.Thread(target=self._relay, args=(spec.name, process), daemon=True).start()
+        relay = threading.Thread(target=self._relay, args=(spec.name, process), daemon=True)
+        self.running[spec.name] = _Running(spec, process, respawns, relay)
+        relay.start()
         self.say(f"[launch] started {spec.name} (pid {process.pid})")
 
     def _relay(self, name: str, process: subprocess.Popen[bytes]) -> None:
@@ -327,4 +329,7 @@ class Launcher:
                 self.say(f"[launch] {name} did not stop in {self.stop_timeout_s} s; killing it")
                 run.process.kill()
                 run.process.wait()
+        for run in self.running.values():  # a node's last lines (why it stopped) are still in the pipe
+            if run.relay is not None:
+                run.relay.join(timeout=1.0)
         self.running.clear()

@@ -258,3 +258,34 @@ def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
     assert sorted(p.name for p in tmp_path.glob("session*")) == ["session.mcap"]
     info = bag_info(bag)
     assert info.truncated and info.topics.get("/count", {}).get("count", 0) > 0, info
+
+
+def test_a_loaded_graph_stops_within_the_grace_time_without_a_kill(
+        registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
+    """Ctrl-C while a node waits on a long call (the collector during a registration), beside a
+    flooding talker and a recorder: every node exits by itself, status 0; none is killed after
+    the grace time (the caller used to wait out its call's time-out). The server is outside the
+    graph and keeps holding the request, so only the caller's own stop can end the wait."""
+    server = subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", "server", "--params",
+                               '{"hold_s": 600}'], env=launch_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = write(tmp_path, "launch:\n"
+                           "  - node: {name: caller, module: fixture_nodes, params: {period_s: 0.5, call_hold: true},\n"
+                           "           remaps: {/count: /caller/count, /echo: /caller/echo, /hold: /caller/hold,"
+                           " /target/hold: /hold}}\n"
+                           "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.005, text_bytes: 2000},\n"
+                           "           remaps: {/count: /talker/count, /echo: /talker/echo, /hold: /talker/hold}}\n"
+                           f"  - node: {{name: recorder, module: nodes.recorder, params: {{bag: {tmp_path / 'b.mcap'}}}}}\n")
+    launcher = dtx("launch", str(path), env=launch_env)
+    try:
+        wait_for_nodes(registry, {"server", "talker", "recorder"}, timeout_s=60)
+        time.sleep(3.0)  # the caller's first call is in flight, held by the server (its executor is
+        # blocked in the call, as the collector's is: no heartbeat to wait for)
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=60)
+    finally:
+        launcher.kill()
+        server.kill()
+        server.wait()
+    assert output.count("killing it") == 0, output
+    assert "[caller] call ended: cancelled" in output, output
+    assert launcher.returncode == 0, output

@@ -8,6 +8,7 @@ import time
 from concurrent.futures import Future
 
 import msgs
+from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
 
 
@@ -23,6 +24,7 @@ class CounterNode(Node):
         fail_after: int = 0
         hold_s: float = 0.0
         text_bytes: int = 0  # padding of each /count message, for a recorder to fill a disk
+        call_hold: bool = False  # each tick calls /target/hold and waits (as the collector calls)
 
     def __init__(self, name: str, params: dict | None = None, **kwargs: object) -> None:
         super().__init__(name, params, **kwargs)
@@ -31,6 +33,7 @@ class CounterNode(Node):
         self.create_service("/echo", msgs.GripperCommand, msgs.GripperState,
                             lambda request: msgs.GripperState(width_m=request.width_m, state="echo"))
         self.create_service("/hold", msgs.GripperCommand, msgs.GripperState, self.hold)
+        self.hold_client = self.create_client("/target/hold", msgs.GripperCommand, msgs.GripperState)
         self.create_timer(self.params.period_s, self.tick)
         print(f"counter ready pid {os.getpid()}", flush=True)
 
@@ -52,6 +55,11 @@ class CounterNode(Node):
             sys.exit(3)
         if self.params.finish_after and self.count >= self.params.finish_after:
             self.request_shutdown()
+        if self.params.call_hold:
+            try:
+                self.hold_client.call(msgs.GripperCommand(width_m=0.01), timeout_s=60.0)
+            except ServiceCallError as error:
+                print(f"call ended: {error.code}", flush=True)
 
 
 if __name__ == "__main__":
