@@ -61,6 +61,15 @@ class BagError(ValueError):
     """A bag that cannot be written or read."""
 
 
+class BagWriteError(BagError):
+    """The disk refused the bag's data (full, over a size limit, failing): recording stopped and
+    the file was closed as it stood, readable up to its last complete chunk. ``errno`` says why."""
+
+    def __init__(self, text: str, errno: int | None) -> None:
+        super().__init__(text)
+        self.errno = errno
+
+
 def pack_frames(frames: list[Any]) -> bytes:
     """Header and buffers (everything after the topic frame) as one length-prefixed blob."""
     parts: list[Any] = []
@@ -141,11 +150,19 @@ class BagWriter:
         if compression not in COMPRESSIONS:
             raise BagError(f"compression {compression!r} unknown; allowed: {sorted(COMPRESSIONS)}")
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
-        self._writer.start(profile="dtx", library="dtx")
-        self._file.flush()  # a recorder killed at once still leaves a bag that opens, never 0 bytes
+        self._abandoned = False
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as error:
+            raise BagWriteError(f"bag {self.path} cannot be created: {error.strerror or error}", error.errno) \
+                from error
+        try:
+            self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+            self._writer.start(profile="dtx", library="dtx")
+            self._file.flush()  # a recorder killed at once still leaves a bag that opens, never 0 bytes
+        except OSError as error:
+            raise self._write_failed(error) from error
         self.chunk_period_s = chunk_period_s
         self._chunk_opened: float | None = None  # time.monotonic() of the open chunk's first message
         self.foxglove = foxglove
@@ -163,6 +180,13 @@ class BagWriter:
         return self._channels[topic]
 
     def write(self, envelope: Envelope, frames: list[Any], log_time_ns: int | None = None) -> None:
+        """Add one message; BagWriteError (the file closed as it stands) when the disk refuses it."""
+        try:
+            self._write(envelope, frames, log_time_ns)
+        except OSError as error:
+            raise self._write_failed(error) from error
+
+    def _write(self, envelope: Envelope, frames: list[Any], log_time_ns: int | None) -> None:
         message = envelope.message
         log_time = log_time_ns if log_time_ns is not None else time.time_ns()
         channel = self._channel(envelope.topic, message.SCHEMA, SCHEMA_ENCODING,
@@ -188,12 +212,37 @@ class BagWriter:
         recorder killed at any moment loses at most that much (a chunk is only readable once
         closed); called after each message and by the recorder's loop when none come."""
         if self._chunk_opened is not None and time.monotonic() - self._chunk_opened >= self.chunk_period_s:
-            self._writer.flush()
+            try:
+                self._writer.flush()
+            except OSError as error:
+                raise self._write_failed(error) from error
             self._chunk_opened = None
 
     def close(self) -> None:
-        self._writer.finish()
-        self._file.close()
+        """Write the summary and close; nothing more after a write failed (the file is closed)."""
+        if self._abandoned:
+            return
+        try:
+            self._writer.finish()
+            self._file.close()
+        except OSError as error:
+            raise self._write_failed(error) from error
+
+    def _write_failed(self, error: OSError) -> BagWriteError:
+        """Close the file as it stands (no summary: the disk refuses more) and say so. A file
+        that holds nothing is removed, so a full disk leaves no empty bags behind."""
+        self._abandoned = True
+        try:
+            self._file.close()  # its unwritten buffer is lost; the raw file is closed regardless
+        except OSError:
+            pass
+        kept = self.path.stat().st_size if self.path.exists() else 0
+        if kept == 0:
+            self.path.unlink(missing_ok=True)
+        return BagWriteError(f"bag {self.path}: the disk refused the data ({error.strerror or error}); recording "
+                             f"stopped, {kept} bytes kept, readable up to the last complete chunk"
+                             if kept else f"bag {self.path}: the disk refused the data ({error.strerror or error}); "
+                             "nothing could be written, the file is removed", error.errno)
 
 
 @dataclasses.dataclass
@@ -388,7 +437,8 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
            on_message: Callable[[str], None] | None = None,
            on_subscriber: Callable[[Subscriber[Any]], None] | None = None) -> dict[str, int]:
     """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
-    Returns messages written per topic; the bag is closed properly when this returns.
+    Returns messages written per topic; the bag is closed properly when this returns. When the
+    disk refuses the data, BagWriteError: recording stops, the bag keeps what it had.
     ``on_subscriber`` is told of each subscriber made (a node counts its drops)."""
     writer = BagWriter(path, compression, foxglove)
     subscribers: dict[zmq.Socket, Subscriber[Any]] = {}
@@ -413,9 +463,9 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
         for subscriber in subscribers.values():  # what arrived before the stop is kept
             _drain(subscriber, writer, on_message, None)
     finally:
-        writer.close()
         for subscriber in subscribers.values():
             subscriber.close()
+        writer.close()  # after a BagWriteError, a no-op: the file is already closed as it stood
     return dict(writer.counts)
 
 

@@ -17,8 +17,9 @@ Crossing machines: ``transport: tcp`` with ``curve_secret_key``/``curve_authoriz
 on the calling one.
 
 Every node runs as its own process; its output is prefixed with its name. A node marked
-``respawn`` is restarted when it dies (exits non-zero, but not 2: a node says with 2 that
-restarting cannot help); when a ``required`` node ends otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
+``respawn`` is restarted ``respawn_delay_s`` after it dies, each on its own clock (nodes that
+die together come back together), when it exits non-zero, but not 2 (a node says with 2 that
+restarting cannot help)); when a ``required`` node ends otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
 left out. Every
 child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
 """
@@ -224,6 +225,7 @@ class _Running:
     spec: NodeSpec
     process: subprocess.Popen[bytes]
     respawns: int = 0
+    relay: threading.Thread | None = None
 
 
 class Launcher:
@@ -235,6 +237,10 @@ class Launcher:
         self.output = output
         self.stop_timeout_s = stop_timeout_s
         self.running: dict[str, _Running] = {}
+        # Crashed nodes waiting for their respawn: name -> (when, spec, respawns so far). Each
+        # waits its own delay while the launcher watches the others, so nodes that died together
+        # come back together.
+        self.respawning: dict[str, tuple[float, NodeSpec, int]] = {}
         self._print_lock = threading.Lock()
         self._stop = threading.Event()
         self.failures: list[str] = []
@@ -249,8 +255,9 @@ class Launcher:
         process = subprocess.Popen(
             spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)})
-        self.running[spec.name] = _Running(spec, process, respawns)
-        threading.Thread(target=self._relay, args=(spec.name, process), daemon=True).start()
+        relay = threading.Thread(target=self._relay, args=(spec.name, process), daemon=True)
+        self.running[spec.name] = _Running(spec, process, respawns, relay)
+        relay.start()
         self.say(f"[launch] started {spec.name} (pid {process.pid})")
 
     def _relay(self, name: str, process: subprocess.Popen[bytes]) -> None:
@@ -273,8 +280,9 @@ class Launcher:
         for spec in self.description.nodes:
             self._start(spec)
         try:
-            while not self._stop.is_set() and self.running:
+            while not self._stop.is_set() and (self.running or self.respawning):
                 self._watch()
+                self._respawn_due()
                 self._stop.wait(0.1)
         finally:
             self.shutdown()
@@ -290,9 +298,7 @@ class Launcher:
             self.registry.forget_process(run.process.pid)  # a node killed with -9 could not
             if code not in (0, EXIT_DO_NOT_RESPAWN) and spec.respawn:
                 self.say(f"[launch] {name} exited with {code}; respawning in {spec.respawn_delay_s} s")
-                self._stop.wait(spec.respawn_delay_s)
-                if not self._stop.is_set():
-                    self._start(spec, run.respawns + 1)
+                self.respawning[name] = (time.monotonic() + spec.respawn_delay_s, spec, run.respawns + 1)
                 continue
             if code != 0:
                 self.failures.append(f"{name} exited with {code}")
@@ -303,7 +309,15 @@ class Launcher:
                 self.say(f"[launch] required node {name} ended; stopping everything")
                 self._stop.set()
 
+    def _respawn_due(self) -> None:
+        now = time.monotonic()
+        for name, (due, spec, respawns) in list(self.respawning.items()):
+            if due <= now and not self._stop.is_set():
+                del self.respawning[name]
+                self._start(spec, respawns)
+
     def shutdown(self) -> None:
+        self.respawning.clear()
         for run in self.running.values():
             if run.process.poll() is None:
                 run.process.send_signal(signal.SIGINT)
@@ -315,4 +329,7 @@ class Launcher:
                 self.say(f"[launch] {name} did not stop in {self.stop_timeout_s} s; killing it")
                 run.process.kill()
                 run.process.wait()
+        for run in self.running.values():  # a node's last lines (why it stopped) are still in the pipe
+            if run.relay is not None:
+                run.relay.join(timeout=1.0)
         self.running.clear()

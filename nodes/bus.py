@@ -56,6 +56,8 @@ SLICE_MESSAGES = 100
 # What a publisher's XPUB socket receives: subscriptions, a flag byte and a topic name.
 MAX_SUBSCRIPTION_BYTES = 64 * 1024
 DROP_LOG_PERIOD_S = 1.0
+# How often a waiting client looks whether its server still lives (docs/wire-protocol.md §4).
+LIVENESS_PERIOD_S = 0.25
 
 
 class DropLog:
@@ -189,10 +191,11 @@ class Bus:
                 handler: Callable[[M], R]) -> "ServiceServer[M, R]":
         return ServiceServer(self, self.resolve(name), request_type, reply_type, handler)
 
-    def client(self, name: str, request_type: type[M], reply_type: type[R]) -> "ServiceClient[M, R]":
+    def client(self, name: str, request_type: type[M], reply_type: type[R],
+               stop: Callable[[], bool] | None = None) -> "ServiceClient[M, R]":
         name = self.resolve(name)
         return ServiceClient(self, name, request_type, reply_type,
-                             self.peer_endpoints("service", name, request_type.SCHEMA))
+                             self.peer_endpoints("service", name, request_type.SCHEMA), stop)
 
     def close(self) -> None:
         if self.closed:
@@ -551,8 +554,14 @@ class ServiceServer(Generic[M, R]):
 
 
 class ServiceClient(Generic[M, R]):
+    """Calls one service. While it waits for a reply it looks at its servers' discovery entries
+    every ``LIVENESS_PERIOD_S``: a server whose process ended (or whose entry the launcher
+    removed) cannot answer, so the attempt ends at once instead of at its time-out, and the next
+    attempt resends to a live server (a respawn); with no attempt left the call fails with
+    ``server_died``. ``stop`` (a node's shutdown flag) cancels a call: ``cancelled``."""
+
     def __init__(self, bus: Bus, name: str, request_type: type[M], reply_type: type[R],
-                 static_endpoints: list[Endpoint] | None = None) -> None:
+                 static_endpoints: list[Endpoint] | None = None, stop: Callable[[], bool] | None = None) -> None:
         self.bus, self.name = bus, name
         self.request_type, self.reply_type = request_type, reply_type
         self.id = bus.new_owner_id()
@@ -561,7 +570,8 @@ class ServiceClient(Generic[M, R]):
         self.sock.setsockopt(zmq.IMMEDIATE, 1)  # never queue a request for a server not there
         self.sock.setsockopt(zmq.MAXMSGSIZE, bus.transport.max_message_bytes)
         self._static = list(static_endpoints or [])
-        self._connected: set[str] = set()
+        self._connected: dict[str, Endpoint] = {}
+        self._stop = stop or (lambda: False)
         self.seq = 0
 
     def _discover(self) -> int:
@@ -569,8 +579,25 @@ class ServiceClient(Generic[M, R]):
             if endpoint.address not in self._connected:
                 self.bus.secure_connection(self.sock, endpoint)
                 self.sock.connect(endpoint.address)
-                self._connected.add(endpoint.address)
+                self._connected[endpoint.address] = endpoint
         return len(self._connected)
+
+    def _forget_dead_servers(self) -> list[Endpoint]:
+        """Disconnect the servers whose entry is gone (process ended, or removed by the
+        launcher); the ones forgotten. Launch-file peers on other machines are never judged."""
+        live = {e.address for e in self._static + self.bus.registry.lookup("service", self.name)}
+        dead = [endpoint for address, endpoint in self._connected.items() if address not in live]
+        for endpoint in dead:
+            del self._connected[endpoint.address]
+            try:
+                self.sock.disconnect(endpoint.address)
+            except zmq.ZMQError:
+                pass  # already gone on ZeroMQ's side
+        return dead
+
+    def _check_cancelled(self) -> None:
+        if self._stop():
+            raise ServiceCallError(self.name, "cancelled", "the calling node is shutting down")
 
     def _send_when_connected(self, frames: list[Any], deadline: float) -> bool:
         """Send once a server is connected (a DEALER would block forever with none), looking
@@ -581,23 +608,27 @@ class ServiceClient(Generic[M, R]):
                 self.sock.send_multipart(frames, zmq.NOBLOCK, copy=False)
                 return True
             except zmq.Again:
+                self._check_cancelled()
                 if time.monotonic() >= deadline:
                     return False
                 time.sleep(0.02)
 
     def wait_for_service(self, timeout_s: float = 5.0) -> bool:
+        """Whether a server appears within ``timeout_s``; False at once when ``stop`` is set."""
         deadline = time.monotonic() + timeout_s
         while self._discover() == 0:
-            if time.monotonic() > deadline:
+            if time.monotonic() > deadline or self._stop():
                 return False
             time.sleep(0.05)
         return True
 
     def call(self, request: M, timeout_s: float = 5.0, retries: int = 2) -> R:
-        """Send ``request``; wait ``timeout_s`` per attempt, ``1 + retries`` attempts."""
+        """Send ``request``; wait ``timeout_s`` per attempt, ``1 + retries`` attempts. An
+        attempt whose server dies ends at once (see the class)."""
         if not isinstance(request, self.request_type):
             raise TypeError(f"{self.name} takes {self.request_type.__name__}, not {type(request).__name__}")
         if not self.wait_for_service(timeout_s):
+            self._check_cancelled()
             raise ServiceCallError(self.name, "unavailable", "no server found on the bus")
         self.seq += 1
         frames = encode(self.name, request, self.id, Header(stamp_ns=time.time_ns(), seq=self.seq,
@@ -607,27 +638,46 @@ class ServiceClient(Generic[M, R]):
             # A server drops an oversized request unread, so no reply could ever say why.
             raise ServiceCallError(self.name, "request_too_large",
                                    f"request of {size} bytes exceeds the limit of {self.bus.transport.max_message_bytes}")
+        failure = ("timeout", f"no reply in {1 + retries} attempts of {timeout_s} s")
         for _attempt in range(1 + retries):
             deadline = time.monotonic() + timeout_s
             if not self._send_when_connected(frames, deadline):
+                failure = ("unavailable", f"no server came back in {timeout_s} s")
                 continue  # every known server is gone; the next attempt looks again
-            while (remaining := deadline - time.monotonic()) > 0:
-                if not self.sock.poll(remaining * 1000, zmq.POLLIN):
-                    break
-                try:
-                    envelope = decode(self.sock.recv_multipart(copy=False), self.bus.transport.max_message_bytes)
-                except MessageError as exc:
-                    log.warning("%s: malformed reply dropped (%s)", self.name, exc)
-                    continue
-                if envelope.message.header.seq != self.seq:
-                    continue  # the late answer to an earlier attempt of an earlier call
-                reply = envelope.message
-                if isinstance(reply, ServiceError):
-                    raise ServiceCallError(self.name, reply.code, reply.text)
-                if not isinstance(reply, self.reply_type):
-                    raise ServiceCallError(self.name, "wrong_type", f"reply is {reply.SCHEMA}")
+            reply = self._await_reply(deadline)
+            if isinstance(reply, list):  # the servers it may have gone to died: resend
+                failure = ("server_died", f"server pid {', '.join(str(e.pid) for e in reply)} ended while the "
+                                          f"request was in flight ({1 + retries} attempt(s))")
+                continue
+            if reply is not None:
                 return reply
-        raise ServiceCallError(self.name, "timeout", f"no reply in {1 + retries} attempts of {timeout_s} s")
+            failure = ("timeout", f"no reply in {1 + retries} attempts of {timeout_s} s")
+        raise ServiceCallError(self.name, *failure)
+
+    def _await_reply(self, deadline: float) -> R | list[Endpoint] | None:
+        """The reply to request ``self.seq``; the servers that died meanwhile; None at the
+        deadline. A ServiceError reply is raised."""
+        while (remaining := deadline - time.monotonic()) > 0:
+            if not self.sock.poll(min(remaining, LIVENESS_PERIOD_S) * 1000, zmq.POLLIN):
+                self._check_cancelled()
+                dead = self._forget_dead_servers()
+                if dead:
+                    return dead
+                continue
+            try:
+                envelope = decode(self.sock.recv_multipart(copy=False), self.bus.transport.max_message_bytes)
+            except MessageError as exc:
+                log.warning("%s: malformed reply dropped (%s)", self.name, exc)
+                continue
+            if envelope.message.header.seq != self.seq:
+                continue  # the late answer to an earlier attempt of an earlier call
+            reply = envelope.message
+            if isinstance(reply, ServiceError):
+                raise ServiceCallError(self.name, reply.code, reply.text)
+            if not isinstance(reply, self.reply_type):
+                raise ServiceCallError(self.name, "wrong_type", f"reply is {reply.SCHEMA}")
+            return reply
+        return None
 
     def close(self) -> None:
         self.sock.close()

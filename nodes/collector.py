@@ -214,6 +214,8 @@ class CollectorNode(Node):
     def wait_for_nodes(self) -> None:
         for client in (self.move, self.gripper, self.register, self.patch):
             if not client.wait_for_service(self.params.node_wait_s):
+                if self.shutting_down:
+                    return  # the graph is stopping with us: nothing to wait for
                 raise RuntimeError(f"service {client.name} did not come back in {self.params.node_wait_s} s")
         self.spin_once(0.5)
 

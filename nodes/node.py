@@ -154,7 +154,9 @@ class Node:
         return server
 
     def create_client(self, name: str, request_type: type[M], reply_type: type[R]) -> ServiceClient[M, R]:
-        client = self.bus.client(name, request_type, reply_type)
+        """A client whose calls end (``cancelled``) once the node is asked to stop: a call
+        whose server stops with the graph would otherwise outlast the launcher's grace time."""
+        client = self.bus.client(name, request_type, reply_type, stop=lambda: self._shutdown)
         self._clients.append(client)
         return client
 

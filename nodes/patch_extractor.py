@@ -88,7 +88,7 @@ class PatchExtractorNode(Node):
         """The newest frame of every camera, waiting for cameras that are still starting."""
         deadline = time.monotonic() + timeout_s
         while missing := [t for t in self.params.cameras if t not in self.latest]:
-            if time.monotonic() > deadline:
+            if time.monotonic() > deadline or self.shutting_down:  # the node's close waits for this thread
                 raise RuntimeError(f"no depth frame from {missing} in {timeout_s} s")
             time.sleep(0.05)
         return [self.latest[t] for t in self.params.cameras]

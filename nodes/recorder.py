@@ -1,12 +1,14 @@
 """Recorder node: what ``dtx bag record`` does, as a node a launch file starts, so every
-session leaves an MCAP bag of every topic beside its dataset."""
+session leaves an MCAP bag of every topic beside its dataset. On a full disk it stops with
+exit status 2 (the launcher does not respawn it) and the bag keeps what it had."""
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 from typing import Any
 
-from dtx.bag import record
+from dtx.bag import BagWriteError, record
+from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.node import Node, run_node
 
 
@@ -24,9 +26,14 @@ class RecorderNode(Node):
 
     def spin(self, until: Any = None) -> None:
         bag = free_bag_path(Path(self.params.bag))
-        counts = record(bag, self.bus, self.keep_alive, topics=self.params.topics or None,
-                        compression=self.params.compression, foxglove=self.params.foxglove,
-                        on_subscriber=self.count_subscriber)
+        try:
+            counts = record(bag, self.bus, self.keep_alive, topics=self.params.topics or None,
+                            compression=self.params.compression, foxglove=self.params.foxglove,
+                            on_subscriber=self.count_subscriber)
+        except BagWriteError as error:
+            # A full disk stays full: a respawn would only leave one more empty bag per second.
+            self.log.error("%s; the recorder stops (errno %s)", error, error.errno)
+            raise SystemExit(EXIT_DO_NOT_RESPAWN) from error
         self.log.info("bag %s closed: %d messages on %d topics", bag, sum(counts.values()), len(counts))
 
 

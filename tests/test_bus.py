@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -460,3 +462,94 @@ def test_the_entries_of_an_ended_process_are_forgotten_at_once(registry: Registr
     dead, alive = registry.advertise(mine), registry.advertise(other)
     assert registry.forget_process(999_999_999) == 1
     assert not dead.exists() and alive.exists()
+
+
+FIXTURE_NODES = Path(__file__).parent / "launch_fixtures"
+
+
+def start_fixture_node(name: str, params: str) -> "subprocess.Popen[bytes]":
+    """A counter node (tests/launch_fixtures) in a process of its own, on this test's bus."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FIXTURE_NODES), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", name, "--params", params],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def kill_mid_call(server: "subprocess.Popen[bytes]") -> threading.Thread:
+    """SIGKILL ``server`` a second after the caller found it (its request is in flight by then,
+    held for hold_s), then reap it as a launcher does (a zombie's pid still answers kill(pid, 0))."""
+    def kill() -> None:
+        time.sleep(1.0)  # the call has been sent by then; a held request never answers before hold_s
+        server.kill()
+        server.wait()
+    thread = threading.Thread(target=kill, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_call_whose_server_is_killed_fails_fast_with_server_died(registry: Registry) -> None:
+    """Killing a server mid-call used to cost the caller its whole time-out (the patch
+    extractor killed during registration stalled a session 60 s)."""
+    server = start_fixture_node("holder", '{"hold_s": 600}')
+    bus = Bus("caller", registry)
+    try:
+        client = bus.client("/hold", msgs.GripperCommand, msgs.GripperState)
+        assert client.wait_for_service(60)
+        timeout_s = 40.0
+        killer = kill_mid_call(server)
+        started = time.monotonic()
+        with pytest.raises(ServiceCallError) as failure:
+            client.call(msgs.GripperCommand(width_m=0.01), timeout_s=timeout_s, retries=0)
+        waited = time.monotonic() - started
+        killer.join()
+        assert failure.value.code == "server_died", failure.value
+        assert str(server.pid) in failure.value.text
+        assert waited < timeout_s / 4  # a generous bound: the check runs every 0.25 s
+    finally:
+        server.kill()
+        server.wait()
+        bus.close()
+
+
+def test_a_call_whose_server_is_killed_is_answered_by_its_respawn(registry: Registry) -> None:
+    """The next attempt goes to the server that replaces the dead one, at once."""
+    first = start_fixture_node("holder", '{"hold_s": 600}')
+    bus = Bus("caller", registry)
+    second = None
+    try:
+        client = bus.client("/hold", msgs.GripperCommand, msgs.GripperState)
+        assert client.wait_for_service(60)
+
+        def respawn() -> None:
+            nonlocal second
+            kill_mid_call(first).join()
+            second = start_fixture_node("holder", '{"hold_s": 0}')
+        threading.Thread(target=respawn, daemon=True).start()
+        timeout_s = 60.0
+        started = time.monotonic()
+        reply = client.call(msgs.GripperCommand(width_m=0.01), timeout_s=timeout_s, retries=1)
+        assert second is not None and reply.state == f"held by {second.pid}"
+        assert time.monotonic() - started < timeout_s / 2  # not after the first attempt's time-out
+    finally:
+        for process in (first, second):
+            if process is not None:
+                process.kill()
+                process.wait()
+        bus.close()
+
+
+def test_a_node_asked_to_stop_cancels_its_calls(registry: Registry) -> None:
+    from nodes.node import Node
+    server = start_fixture_node("holder", '{"hold_s": 600}')
+    node = Node("caller", registry=registry)
+    try:
+        client = node.create_client("/hold", msgs.GripperCommand, msgs.GripperState)
+        assert client.wait_for_service(60)
+        threading.Timer(1.0, node.request_shutdown).start()
+        with pytest.raises(ServiceCallError) as failure:
+            client.call(msgs.GripperCommand(width_m=0.01), timeout_s=120.0, retries=0)
+        assert failure.value.code == "cancelled"
+        assert server.poll() is None  # the server lives on; only the caller stopped waiting
+    finally:
+        server.kill()
+        server.wait()
+        node.close()

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import os
+import resource
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -186,3 +188,104 @@ def test_command_line_tools_see_the_running_graph(registry: Registry, launch_env
     finally:
         launcher.send_signal(signal.SIGINT)
         launcher.communicate(timeout=30)
+
+
+def test_nodes_that_die_together_are_respawned_together(registry: Registry, launch_env: dict[str, str],
+                                                        tmp_path: Path) -> None:
+    """Each crashed node waits its own respawn delay while the launcher watches the others:
+    both deaths are seen before either respawn (they were served one after the other, each
+    waiting out its delay while the other stayed dead)."""
+    path = write(tmp_path, "launch:\n"
+                           "  - node: {name: one, module: fixture_nodes, respawn: true, respawn_delay_s: 3}\n"
+                           "  - node: {name: two, module: fixture_nodes, respawn: true, respawn_delay_s: 3,\n"
+                           "           remaps: {/count: /two/count, /echo: /two/echo, /hold: /two/hold}}\n")
+    launcher = dtx("launch", str(path), env=launch_env)
+    try:
+        pids = wait_for_nodes(registry, {"one", "two"})
+        for pid in pids.values():
+            os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            respawned = wait_for_nodes(registry, {"one", "two"})
+            if not set(respawned.values()) & set(pids.values()):
+                break
+            time.sleep(0.2)
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=30)
+    finally:
+        launcher.kill()
+    lines = output.splitlines()
+    deaths = [i for i, line in enumerate(lines) if "exited with -9; respawning" in line]
+    starts = [i for i, line in enumerate(lines) if line.startswith("[launch] started ")]
+    assert len(deaths) == 2 and len(starts) == 4, output
+    assert max(deaths) < min(starts[2:]), output  # both deaths seen before either respawn
+    assert launcher.returncode == 0, output
+
+
+def limit_file_size(limit_bytes: int) -> Callable[[], None]:
+    """A preexec_fn under which no file grows past ``limit_bytes``: writes beyond fail (EFBIG;
+    Python ignores SIGXFSZ), as on a full disk, without needing root to mount a small one."""
+    def apply() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+    return apply
+
+
+def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
+        registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
+    """It crash-looped: each respawn opened one more bag (session.1.mcap, ...) that the disk
+    refused in turn. Now it stops with the do-not-respawn status and its bag reads."""
+    from dtx.bag import bag_info
+    bag = tmp_path / "session.mcap"
+    path = write(tmp_path, "launch:\n"
+                           "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.02, text_bytes: 4000}}\n"
+                           "  - node:\n      name: recorder\n      module: nodes.recorder\n      respawn: true\n"
+                           f"      params: {{bag: {bag}, compression: none, foxglove: false}}\n")
+    launcher = dtx("launch", str(path), env=launch_env, preexec_fn=limit_file_size(1024 * 1024))
+    try:
+        deadline = time.monotonic() + 60  # the recorder may fill its file before the talker is seen up
+
+        def recorder_ended() -> bool:
+            return any(s["node"] == "recorder" and not s["alive"] for s in registry.node_statuses())
+        while not recorder_ended() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(5.0)  # time for a respawn, if the launcher wrongly made one
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=30)
+    finally:
+        launcher.kill()
+    assert "[launch] recorder failed (exit 2)" in output and "recorder exited with" not in output, output
+    assert "the disk refused the data" in output and "the recorder stops" in output, output
+    assert sorted(p.name for p in tmp_path.glob("session*")) == ["session.mcap"]
+    info = bag_info(bag)
+    assert info.truncated and info.topics.get("/count", {}).get("count", 0) > 0, info
+
+
+def test_a_loaded_graph_stops_within_the_grace_time_without_a_kill(
+        registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
+    """Ctrl-C while a node waits on a long call (the collector during a registration), beside a
+    flooding talker and a recorder: every node exits by itself, status 0; none is killed after
+    the grace time (the caller used to wait out its call's time-out). The server is outside the
+    graph and keeps holding the request, so only the caller's own stop can end the wait."""
+    server = subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", "server", "--params",
+                               '{"hold_s": 600}'], env=launch_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = write(tmp_path, "launch:\n"
+                           "  - node: {name: caller, module: fixture_nodes, params: {period_s: 0.5, call_hold: true},\n"
+                           "           remaps: {/count: /caller/count, /echo: /caller/echo, /hold: /caller/hold,"
+                           " /target/hold: /hold}}\n"
+                           "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.005, text_bytes: 2000},\n"
+                           "           remaps: {/count: /talker/count, /echo: /talker/echo, /hold: /talker/hold}}\n"
+                           f"  - node: {{name: recorder, module: nodes.recorder, params: {{bag: {tmp_path / 'b.mcap'}}}}}\n")
+    launcher = dtx("launch", str(path), env=launch_env)
+    try:
+        wait_for_nodes(registry, {"server", "talker", "recorder"}, timeout_s=60)
+        time.sleep(3.0)  # the caller's first call is in flight, held by the server (its executor is
+        # blocked in the call, as the collector's is: no heartbeat to wait for)
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=60)
+    finally:
+        launcher.kill()
+        server.kill()
+        server.wait()
+    assert output.count("killing it") == 0, output
+    assert "[caller] call ended: cancelled" in output, output
+    assert launcher.returncode == 0, output

@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -173,3 +176,51 @@ def test_a_live_node_survives_malformed_messages_and_failing_callbacks(registry:
     assert spinner is not None and reply.width_m == pytest.approx(0.04)
     assert 0.03 in node.heard and -1.0 not in node.heard
     assert counters["handler_errors"] == 1 and counters["malformed"] >= 400
+
+
+def test_a_service_answers_every_call_in_time_through_a_20000_message_flood(registry: Registry) -> None:
+    """A node in its own process gets 20,000 mutated requests on its service socket while a
+    client keeps calling it: every call is answered within its time-out, the node lives on."""
+    from msgs.codec import encode
+    fixtures = Path(__file__).parent / "launch_fixtures"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(fixtures), os.environ.get("PYTHONPATH", "")])}
+    server = subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", "flooded"], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    bus = Bus("flooder", registry)
+    try:
+        client = bus.client("/echo", msgs.GripperCommand, msgs.GripperState)
+        flooder = bus.client("/echo", msgs.GripperCommand, msgs.GripperState)  # its socket sends the garbage
+        assert client.wait_for_service(60) and flooder.wait_for_service(60)
+        good = [bytes(memoryview(f)) for f in encode("/echo", msgs.GripperCommand(width_m=0.02), "flooder")]
+        mutants = _mutants(good, 20_000, seed=3)
+        sent = refused = 0
+
+        def flood() -> None:
+            nonlocal sent, refused
+            for frames in mutants:
+                flooder.sock.send_multipart(frames)
+                sent += 1
+                while flooder.sock.poll(0):  # the bad_request replies, read so none backs up
+                    flooder.sock.recv_multipart()
+                    refused += 1
+        thread = threading.Thread(target=flood, daemon=True)
+        thread.start()
+        answered = 0
+        while thread.is_alive() or answered == 0:
+            width = 0.001 * (answered % 50)
+            reply = client.call(msgs.GripperCommand(width_m=width), timeout_s=5.0, retries=0)
+            assert reply.width_m == pytest.approx(width) and reply.state == "echo"
+            answered += 1
+        thread.join()
+        while flooder.sock.poll(2000):  # the replies to the last of the flood
+            flooder.sock.recv_multipart()
+            refused += 1
+        assert sent == 20_000 and answered >= 1
+        assert refused > 10_000  # the flood reached the server: most mutants are answered bad_request
+        assert server.poll() is None  # alive
+        print(f"flood: {sent} mutated requests ({refused} answered with an error), "
+              f"{answered} calls answered within 5 s each")
+    finally:
+        server.kill()
+        server.wait()
+        bus.close()
