@@ -102,6 +102,7 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
     # The density dataset is the test dataset itself: its contact-window SSIM is the contact block's.
     assert result["contact"]["n"] >= 2
     assert result["density"][0]["contact_ssim_mean"] == pytest.approx(result["contact"]["ssim_model_mean"])
+    assert "contact_p_full_better" not in result["density"][0]  # the same maps: nothing to compare
     assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["density.png", "qualitative.png",
                                                                      "ssim_bars.png"]
     args = parser.parse_args(["evaluate", str(tmp_path / "missing.pt"), str(dataset)])
