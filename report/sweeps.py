@@ -160,9 +160,12 @@ class Workspace:
         """``plan.library_samples`` contact-library pairs (dataset.contact_library) in the
         session's scene, depth range and crop, at ``bins`` x ``bins``: what the default model
         trains on beside a session (make demo, docs/generalisation.md)."""
+        out = self.root / f"library_{bins}"
+        if (out / "manifest.jsonl").exists() and len(DatasetReader(out).records) >= self.plan.library_samples:
+            return out  # made by an earlier run, whose code version its dataset.json keeps
         params, _ = depth_map_params(DatasetReader(self.session))
         info = DatasetReader(self.session).info
-        return write_contact_library(self.root / f"library_{bins}", self.plan.library_samples, self.plan.seed,
+        return write_contact_library(out, self.plan.library_samples, self.plan.seed,
                                      info.scene, params.y_range_m, params.margin_m, size=bins).root
 
     def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
