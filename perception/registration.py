@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import RegistrationError
-from perception.pointcloud import principal_spread_m, seed_open3d
+from perception.pointcloud import principal_spread_m, seeded_open3d
 
 _reg = o3d.pipelines.registration
 # Most points sample_model_cloud makes: a 0.1 mm cloud (MODEL_POINT_SPACING_M) of a 0.2 m² box.
@@ -112,8 +112,8 @@ def sample_model_cloud(mesh_path: str | Path, point_spacing_m: float = 0.002, se
         raise RegistrationError(f"point spacing {point_spacing_m!r} m asks for {wanted:.3g} points on the "
                                 f"{area_m2:.3g} m² of {mesh_path}, more than {MAX_MODEL_POINTS}")
     count = max(int(wanted), 100)
-    seed_open3d(seed)
-    cloud = mesh.sample_points_uniformly(count, use_triangle_normal=True)
+    with seeded_open3d(seed):
+        cloud = mesh.sample_points_uniformly(count, use_triangle_normal=True)
     return ModelCloud(points_m=np.asarray(cloud.points, dtype=np.float64),
                       normals=np.asarray(cloud.normals, dtype=np.float64))
 
@@ -246,12 +246,12 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     icp_criteria = _reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5,
                                                max_iteration=params.icp_max_iterations)
     for attempt in range(1, params.attempts + 1):
-        seed_open3d(seed, attempt)
         t0 = time.perf_counter()
         # No mutual filter: on small partial views it leaves too few correspondences.
-        coarse = _reg.registration_ransac_based_on_feature_matching(
-            source, model.coarse, source_features, model.features, False, ransac_distance,
-            _reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria)
+        with seeded_open3d(seed, attempt):
+            coarse = _reg.registration_ransac_based_on_feature_matching(
+                source, model.coarse, source_features, model.features, False, ransac_distance,
+                _reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria)
         t1 = time.perf_counter()
         fine = coarse
         # ICP from a wide capture distance down to the final one: a coarse pose several mm off

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import SegmentationError
-from perception.pointcloud import principal_spread_m, seed_open3d
+from perception.pointcloud import principal_spread_m, seeded_open3d
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,9 +91,9 @@ def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed
     if not spread_m[1] > 1e-9 * max(1.0, float(np.abs(sample).max())):
         raise SegmentationError(f"the {len(points_world_m)} workspace points are identical or collinear "
                                 f"(spread {spread_m[::-1]} m): no table plane")
-    seed_open3d(seed)
-    plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample)).segment_plane(
-        params.plane_distance_m, 3, params.plane_iterations)
+    with seeded_open3d(seed):
+        plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample)).segment_plane(
+            params.plane_distance_m, 3, params.plane_iterations)
     plane = np.asarray(plane, dtype=np.float64)
     if not (np.all(np.isfinite(plane)) and np.linalg.norm(plane[:3]) > 0):
         raise SegmentationError(f"RANSAC found no plane in the {len(points_world_m)} workspace points")
