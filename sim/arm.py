@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.arm.base import WorkspaceError
 from drivers.arm.ur_kinematics import joint_frames
+from sim.seeding import state_rng
 
 
 def trapezoid_duration(distance: float, speed: float, accel: float) -> float:
@@ -182,17 +183,20 @@ def plan_joints(start: np.ndarray, q_start: np.ndarray, target: np.ndarray, q_ta
 
 class Repeatability:
     """The ``arm_repeatability`` effect: a finished move ends at the target plus Gaussian
-    error (``sigma_mm`` per axis in position, ``sigma_deg`` about a random axis)."""
+    error (``sigma_mm`` per axis in position, ``sigma_deg`` about a random axis), drawn keyed
+    on (``seed``, the target) so a replayed or resumed session reaches the same places
+    (``sim.seeding``)."""
 
-    def __init__(self, params: dict, rng: np.random.Generator):
+    def __init__(self, params: dict, seed: int):
         self.sigma_m = float(params.get("sigma_mm", 0.0)) * 1e-3
         self.sigma_rad = math.radians(float(params.get("sigma_deg", 0.0)))
-        self.rng = rng
+        self.seed = int(seed)
 
     def perturb(self, pose: np.ndarray) -> np.ndarray:
         out = np.asarray(pose, float).copy()
-        out[:3] += self.rng.normal(0.0, self.sigma_m, 3) if self.sigma_m > 0 else 0.0
+        rng = state_rng(out.tobytes(), self.seed, 7)
+        out[:3] += rng.normal(0.0, self.sigma_m, 3) if self.sigma_m > 0 else 0.0
         if self.sigma_rad > 0:
-            dr = Rotation.from_rotvec(self.rng.normal(0.0, self.sigma_rad, 3))
+            dr = Rotation.from_rotvec(rng.normal(0.0, self.sigma_rad, 3))
             out[3:] = (dr * Rotation.from_rotvec(out[3:])).as_rotvec()
         return out

@@ -356,13 +356,15 @@ class GelSightRenderer:
         """
         return self._to_image_size(self._work_depth(gel_gap_mm))
 
-    def render(self, gel_gap_mm: np.ndarray) -> np.ndarray:
-        """The GelSight image (HxWx3 uint8 RGB) of a gel gap map (mm; < 0 pressing, +inf none)."""
+    def render(self, gel_gap_mm: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The GelSight image (HxWx3 uint8 RGB) of a gel gap map (mm; < 0 pressing, +inf none);
+        the effects draw from ``rng`` (default: the renderer's own stream)."""
+        rng = self.rng if rng is None else rng
         depth = self._work_depth(gel_gap_mm)
         image = self._background + self._to_image_size(self._colour_change(depth))
         gel_depth = self._to_image_size(depth) if self.effects else None
         for effect in self.effects:
-            image = effect.apply(image, gel_depth, self.pixel_pitch_mm, self.rng)
+            image = effect.apply(image, gel_depth, self.pixel_pitch_mm, rng)
         return _to_uint8(image)
 
     def _work_depth(self, gel_gap_mm: np.ndarray) -> np.ndarray:

@@ -99,6 +99,10 @@ class LightingDrift:
     The real ball-press frames show it: away from the touch the green channel falls by about
     5 levels (4 %) over 30 frames. The walk's state lives in the effect, so successive
     renders drift; ``step_fraction`` is the standard deviation of the gain change per frame.
+    Being a process over frames, the walk draws its steps from a stream of its own (started
+    from the first frame's generator), not from each frame's: a simulated sensor keys a frame's
+    generator on what the frame shows (``sim.seeding``), which would make every step of a still
+    gel the same.
     """
 
     step_fraction: float = 0.002
@@ -108,10 +112,13 @@ class LightingDrift:
         _finite_in("lighting_drift.step_fraction", self.step_fraction, 0.0, 0.1, "")
         _finite_in("lighting_drift.max_fraction", self.max_fraction, 0.0, 0.5, "")
         self.gain = np.ones(3, np.float32)  # state, not a parameter
+        self._steps: np.random.Generator | None = None
 
     def apply(self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float],
               rng: np.random.Generator) -> np.ndarray:
-        step = rng.normal(0.0, self.step_fraction, 3).astype(np.float32)
+        if self._steps is None:
+            self._steps = np.random.default_rng(rng.integers(0, 2**63))
+        step = self._steps.normal(0.0, self.step_fraction, 3).astype(np.float32)
         self.gain = np.clip(self.gain + step, 1.0 - self.max_fraction, 1.0 + self.max_fraction)
         return image * self.gain
 

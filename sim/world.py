@@ -43,6 +43,7 @@ import open3d.core as o3c
 
 from sim.depth_effects import DepthEffectChain, gaussian
 from sim.scene import DEPTH_EFFECT_ORDER, ObjectSpec, ReliefSpec, Scene, SceneError, resolve_path
+from sim.seeding import state_rng
 
 # How far behind the gel plane gap-map rays start (mm): surfaces up to this deep in the gel
 # are still measured.
@@ -181,7 +182,7 @@ class _Camera:
     dirs_cam: np.ndarray  # H*W x 3 float32, z component 1
     rays: o3c.Tensor  # H*W x 6 float32 (true pose)
     dirs_world: np.ndarray
-    rng: np.random.Generator
+    stream: int  # the camera's noise stream (its index in the scene)
     cache: tuple | None = None  # exact (z, cos incidence), flat
     recast_idx: np.ndarray | None = None
     smooth_idx: np.ndarray | None = None
@@ -196,7 +197,7 @@ class _Camera:
 
 class SimWorld:
     """Ray-cast world of one scene. ``seed`` (default: the scene's) seeds every effect's
-    random stream; two worlds with the same scene and seed produce identical frames."""
+    draws (``sim.seeding``); two worlds with the same scene and seed produce identical frames."""
 
     def __init__(self, scene: Scene, seed: int | None = None, check: bool = False, file_label: str | None = None):
         self.scene = scene
@@ -280,8 +281,7 @@ class SimWorld:
         u, v = uu.reshape(-1), vv.reshape(-1)
         dirs_cam = self._pixel_dirs(cam, u, v)
         dirs_world, rays = self._rays(true, dirs_cam)
-        rng = np.random.default_rng([self.seed, index])
-        return _Camera(cam, nominal, true, chain, u, v, dirs_cam, rays, dirs_world, rng)
+        return _Camera(cam, nominal, true, chain, u, v, dirs_cam, rays, dirs_world, index)
 
     @staticmethod
     def _pixel_dirs(cam, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -331,12 +331,14 @@ class SimWorld:
 
     def render_depth(self, camera: str, rng: np.random.Generator | None = None) -> np.ndarray:
         """z-depth image (H x W float32 metres along the optical axis, NaN where no return)
-        of ``camera``; effects draw from ``rng`` (default: the camera's own seeded stream).
+        of ``camera``; effects draw from ``rng`` (default: keyed on the world's seed and the
+        camera, ``sim.seeding``: the world is static, so every frame shows the same state and
+        carries the same noise, whichever frame a node takes).
 
-        The world is static, so the exact ray cast of each camera (true pose, micro-relief
-        included) is done once and cached; each frame then costs only its effects."""
+        The exact ray cast of each camera (true pose, micro-relief included) is done once and
+        cached; each frame then costs only its effects."""
         c = self.cameras[camera]
-        rng = c.rng if rng is None else rng
+        rng = state_rng(b"static world", self.seed, c.stream) if rng is None else rng
         cam = c.spec
         chain = c.effects
         if c.cache is None:

@@ -97,10 +97,10 @@ def test_workspace_and_limits() -> None:
 def test_repeatability_effect() -> None:
     exact = arm("scenes/ideal.yaml")
     noisy = arm("scenes/effects_arm.yaml", seed=1)
-    target = grasp_to_tcp_pose(0.05, 0.05, 0.3, 0.4)
+    other = grasp_to_tcp_pose(0.0, 0.0, 0.35, 0.0)
     errs = []
     for i in range(30):
-        other = grasp_to_tcp_pose(0.0, 0.0, 0.35, 0.0)
+        target = grasp_to_tcp_pose(0.05 + 0.001 * i, 0.05, 0.3, 0.4)
         for a in (exact, noisy):
             a.move_linear(other, 0.25, 1.2)
             a.move_linear(target, 0.25, 1.2)
@@ -110,6 +110,28 @@ def test_repeatability_effect() -> None:
     sigma = errs.std()
     assert 0.015e-3 < sigma < 0.06e-3  # scene: sigma_mm 0.033
     assert np.all(np.abs(errs) < 0.2e-3)
+
+
+def test_the_repeatability_error_is_keyed_on_the_target() -> None:
+    """A move to a target lands where a move to it landed before, in this arm or another with
+    the same seed (sim.seeding: a resumed session reaches the same places); another seed lands
+    elsewhere."""
+    target, other = grasp_to_tcp_pose(0.05, 0.05, 0.3, 0.4), grasp_to_tcp_pose(0.0, 0.0, 0.35, 0.0)
+
+    def landings(seed: int) -> list[np.ndarray]:
+        a = arm("scenes/effects_arm.yaml", seed=seed)
+        reached = []
+        for _ in range(2):
+            a.move_linear(target, 0.25, 1.2)
+            reached.append(a.read().tcp_pose.copy())
+            a.move_linear(other, 0.25, 1.2)
+        return reached
+
+    first, again, elsewhere = landings(1), landings(1), landings(2)
+    np.testing.assert_array_equal(first[0], first[1])
+    np.testing.assert_array_equal(first[0], again[0])
+    assert not np.allclose(first[0][:3], target[:3], atol=1e-9)
+    assert not np.array_equal(first[0], elsewhere[0])
 
 
 def test_stop_aborts() -> None:

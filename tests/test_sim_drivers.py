@@ -120,4 +120,23 @@ def test_gelsight_effects_from_scene_are_seeded() -> None:
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     assert not np.array_equal(a[0], c[0])
-    assert not np.array_equal(a[0], a[1])  # fresh noise per frame
+    assert not np.array_equal(a[0], a[1])  # the lighting drifts from frame to frame
+
+
+def test_a_simulated_gelsight_frame_is_keyed_on_what_it_shows() -> None:
+    """Whichever frame of a state a node takes, it is the same frame (sim.seeding); another
+    state draws other noise, and coming back to a state gives its frame again."""
+    gs = SimulatedGelSight(SimulatedGelSightConfig(scene="scenes/ycb_three.yaml", sensor="left", pace=False))
+    gs.connect()
+    untouched = [gs.read().image for _ in range(3)]
+    assert all(np.array_equal(untouched[0], frame) for frame in untouched[1:])
+    assert not np.array_equal(untouched[0], gs.read().background)  # the scene's sensor noise is there
+    can = gs.world.object_meshes[1][0]
+    centre = 0.5 * (can.min(0) + can.max(0))
+    tcp = grasp_to_tcp_pose(centre[0], centre[1], 0.16 + 0.06, 0.0)
+    contact = gs.world.grasp_contact(tcp, 10.0)
+    gs.observe_robot(tcp, contact.width_m, 10.0)
+    pressed = [gs.read().image for _ in range(2)]
+    np.testing.assert_array_equal(pressed[0], pressed[1])
+    gs.observe_robot(tcp, 0.11, 0.0)
+    np.testing.assert_array_equal(gs.read().image, untouched[0])

@@ -65,9 +65,8 @@ class SimulatedArm:
         self.kin = ArmKinematics(config.model, pose_matrix(np.asarray(config.base_pose_world, float)),
                                  np.asarray(config.tcp_offset, float))
         seed = config.seed if config.seed is not None else (self.scene.seed if self.scene else 0)
-        rng = np.random.default_rng([int(seed), 7])
         eff = self.scene.effect("arm_repeatability") if self.scene else None
-        self.repeatability = Repeatability(eff.params, rng) if eff else None
+        self.repeatability = Repeatability(eff.params, seed) if eff else None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._connected = False

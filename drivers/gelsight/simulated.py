@@ -20,6 +20,7 @@ import numpy as np
 
 from drivers.gelsight.base import GelSightError
 from msgs import Header, TactileImage
+from sim.seeding import state_rng
 
 
 __all__ = ["SimulatedGelSight", "SimulatedGelSightConfig", "GelSightError"]
@@ -74,8 +75,7 @@ class SimulatedGelSight:
         gs = self.world.scene.gelsight
         self.size = (self.config.image_height or gs.image_height, self.config.image_width or gs.image_width)
         self.extent_mm = self.world.default_extent_mm()
-        rng = np.random.default_rng([self.world.seed, 11, SENSORS.index(self.config.sensor)])
-        self.renderer = scene_renderer(self.world.scene, self.size, rng=rng)
+        self.renderer = scene_renderer(self.world.scene, self.size)
         # the image covers the same field of view on the gel whatever its pixel count
         self.mm_per_px = self.renderer.pixel_pitch_mm[1]
         self._background = self.renderer.background()
@@ -147,7 +147,10 @@ class SimulatedGelSight:
             gap = np.full(self.size, np.inf, dtype=np.float32)
         else:
             gap = self._gap
-        image = self.renderer.render(gap)
+        # The frame's noise is keyed on the gap it shows (sim.seeding): whichever frame of a
+        # grasp the collector takes, the same grasp gives the same image.
+        image = self.renderer.render(gap, state_rng(gap.tobytes(), self.world.seed, 11,
+                                                    SENSORS.index(self.config.sensor)))
         self._seq += 1
         header = Header(stamp_ns=stamp_ns, seq=self._seq, frame_id=f"gel_{self.config.sensor}")
         return TactileImage(header=header, image=image, background=self._background.copy(),
