@@ -1,10 +1,10 @@
-"""``dtx dataset check | export-pix2pix | synth | redepth``."""
+"""``dtx dataset check | checksum | export-pix2pix | synth | redepth``."""
 from __future__ import annotations
 
 import argparse
 import sys
 
-from dataset.check import check_dataset
+from dataset.check import check_dataset, content_checksum
 from dataset.export import export_pix2pix
 from dataset.format import DatasetError
 from dtx.errors import exit_1_on
@@ -14,6 +14,12 @@ def _check(args: argparse.Namespace) -> int:
     report = check_dataset(args.dir)
     print(report.summary())
     return 0 if report.ok else 1
+
+
+@exit_1_on(DatasetError, OSError)
+def _checksum(args: argparse.Namespace) -> int:
+    print(f"{content_checksum(args.dir)}  {args.dir}")
+    return 0
 
 
 @exit_1_on(DatasetError, OSError)
@@ -79,6 +85,12 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     check = commands.add_parser("check", help="verify every sample; exit 0 only for a sound dataset")
     check.add_argument("dir", help="dataset directory")
     check.set_defaults(func=_check)
+
+    checksum = commands.add_parser("checksum", help="SHA-256 of the dataset's content (samples, files, description; "
+                                                    "not capture times or code version): equal for two sessions "
+                                                    "with the same seed")
+    checksum.add_argument("dir", help="dataset directory")
+    checksum.set_defaults(func=_checksum)
 
     export = commands.add_parser("export-pix2pix", help="write aligned A|B images for the reference pix2pix")
     export.add_argument("dir", help="dataset directory")

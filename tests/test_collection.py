@@ -16,7 +16,7 @@ import pytest
 
 from benchmarks.collect import run_recorder_kills, run_session
 from dtx.bag import bag_info, iter_envelopes
-from dataset.check import check_dataset
+from dataset.check import check_dataset, content_checksum
 from dataset.format import DatasetError, DatasetReader, deformation_map
 from dataset.redepth import redepth_dataset
 from dataset.synth import write_synthetic_dataset
@@ -33,9 +33,22 @@ def tree_digest(root: Path) -> dict[str, str]:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+def collected(out: Path, grasps: int, seed: int) -> Path:
+    """A clean session's dataset directory."""
+    result = run_session(out, grasps=grasps, seed=seed, record=False)
+    assert result["exit_code"] == 0, result.get("collector_log")
+    return out
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return collected(tmp_path_factory.mktemp("uninterrupted") / "session", grasps=6, seed=1)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("node", ["collector", "gripper"])
-def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, node: str) -> None:
+def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, node: str,
+                                                              uninterrupted_session: Path) -> None:
     result = run_session(tmp_path / "session", grasps=6, seed=1, record=False, kill=node)
     assert result["exit_code"] == 0, result.get("collector_log")
     assert result["killed_pid"] is not None and result["respawned"]
@@ -44,6 +57,8 @@ def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, nod
     assert ids == sorted(f"g{g:05d}_{f}" for g in range(6) for f in ("left", "right"))
     assert check_dataset(tmp_path / "session").ok
     assert "dataset check OK" in result["collector_last_line"]
+    # byte for byte the session nothing interrupted (what it redid, it redid exactly)
+    assert content_checksum(tmp_path / "session") == content_checksum(uninterrupted_session)
 
 
 @pytest.mark.slow
@@ -59,10 +74,14 @@ def test_a_recorder_killed_mid_session_leaves_no_empty_file_and_the_dataset_whol
 
 @pytest.fixture(scope="module")
 def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("collected") / "session"
-    result = run_session(out, grasps=8, seed=2, record=False)
-    assert result["exit_code"] == 0, result.get("collector_log")
-    return out
+    return collected(tmp_path_factory.mktemp("collected") / "session", grasps=8, seed=2)
+
+
+@pytest.mark.slow
+def test_two_sessions_with_the_same_seed_write_the_same_dataset(small_session: Path, tmp_path: Path) -> None:
+    assert content_checksum(collected(tmp_path / "again", grasps=8, seed=2)) == content_checksum(small_session)
+    stamps = {r.sample_id: r.stamps_ns for r in DatasetReader(small_session).records}
+    assert any(r.stamps_ns != stamps[r.sample_id] for r in DatasetReader(tmp_path / "again").records)
 
 
 def test_the_strict_gripper_finds_every_part_at_its_nominal_width(small_session: Path) -> None:

@@ -1,6 +1,7 @@
 """The on-disk dataset: atomic writes, resume, failures, checks, splits, export."""
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import os
@@ -14,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dataset import format as fmt
-from dataset.check import check_dataset
+from dataset.check import check_dataset, content_checksum
 from dataset.cli import add_commands
 from dataset.export import export_pix2pix
 from dataset.format import DatasetError, DatasetInfo, DatasetReader, DatasetWriter, resize_rgb, subtract_background
@@ -455,3 +456,45 @@ def test_samples_given_together_are_refused_together(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="duplicate"):
         writer.write_together([right, right])
     assert [r.sample_id for r in DatasetReader(tmp_path).records] == ["mug-g000-left"]
+
+
+def write_grasps(root: Path, order: list[int], stamp: int = 1, info: DatasetInfo = INFO,
+                 pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3)) -> None:
+    writer = DatasetWriter(root, info)
+    for grasp in order:
+        for finger in ("left", "right"):
+            writer.write(sample_id=f"mug-g{grasp:03d}-{finger}", object_name="mug", grasp_id=grasp, finger=finger,
+                         grasp_pose=pose, registration_fitness=0.9, stamps_ns={"tactile": stamp + grasp},
+                         **sample_arrays(grasp * 2 + (finger == "right")))
+
+
+def test_the_content_checksum_ignores_when_and_by_which_build_and_sees_everything_else(tmp_path: Path) -> None:
+    write_grasps(tmp_path / "a", [0, 1, 2])
+    reference = content_checksum(tmp_path / "a")
+    assert len(reference) == 64
+    # other capture times, another build, grasps written in another order (a resumed session)
+    write_grasps(tmp_path / "b", [2, 0, 1], stamp=10**18, info=dataclasses.replace(INFO, code_version="other"))
+    assert content_checksum(tmp_path / "b") == reference
+    # what the dataset holds: a pose, a grasp more, the description
+    write_grasps(tmp_path / "c", [0, 1, 2], pose=(0.1, 0.2, 0.05, 0.30001))
+    write_grasps(tmp_path / "d", [0, 1, 2, 3])
+    write_grasps(tmp_path / "e", [0, 1, 2], info=dataclasses.replace(INFO, split_seed=4))
+    assert len({reference} | {content_checksum(tmp_path / n) for n in "cde"}) == 4
+    # a file's bytes: it no longer matches its manifest entry, which is an error, not another sum
+    record = DatasetReader(tmp_path / "a").records[0]
+    (tmp_path / "a" / record.files["depth"]).write_bytes(b"garbage")
+    with pytest.raises(DatasetError, match="checksum mismatch"):
+        content_checksum(tmp_path / "a")
+
+
+def test_checksum_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    write_grasps(tmp_path / "ds", [0])
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    args = parser.parse_args(["dataset", "checksum", str(tmp_path / "ds")])
+    assert args.func(args) == 0
+    assert capsys.readouterr().out == f"{content_checksum(tmp_path / 'ds')}  {tmp_path / 'ds'}\n"
+    args = parser.parse_args(["dataset", "checksum", str(tmp_path / "missing")])
+    assert args.func(args) == 1 and "does not exist" in capsys.readouterr().err
