@@ -11,14 +11,16 @@ in its own process on a private bus directory; this process is the grasp planner
   gel poses on its surface per request, back to back; per object and pose count: the
   depth-map cutting step in this process (``cut_regions_per_s``: the node's batched, indexed
   pass; ``cut_per_gel_regions_per_s``: one contact_depth_map over the whole cloud per gel, the
-  way before the index), then through the node ``points_regions_per_s`` and ``points_p50_ms``
-  (request to reply, the cloud's index cached after ``first_request_ms``) beside
+  way before the index), then through the node, request to reply: ``handle_regions_per_s`` and
+  ``handle_p50_ms`` (a ``Cloud``: its points travel in the first request, ``first_request_ms``,
+  which also builds the index; then only its id), ``points_regions_per_s`` and
+  ``points_p50_ms`` (the whole cloud in every request, the index kept), and
   ``maps_regions_per_s`` and ``maps_p50_ms``: the same regions sent as depth-maps, same run.
 Weights: a trained ``--checkpoint``, or a fresh seeded generator of ``--width`` (untrained,
 PyTorch's default initialisation; same cost as a trained one of that width); ``--prior``: a
 fresh generator that corrects the default scene's physics prior.
 Targets (issue 7): p50 <= 25 ms, >= 150 regions/s on 2 cores; issue 18: the cutting step >= 300
-regions/s for 64 poses on a 0.1 mm cloud.
+regions/s for 64 poses on a 0.1 mm cloud, and the cloud form end to end (handle) near the depth-map form.
 """
 from __future__ import annotations
 
@@ -44,7 +46,7 @@ from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
 from models.train import TrainConfig, load_generator
 from nodes.bus import Bus
-from nodes.inference_client import SERVICE, InferenceError, TactileClient
+from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.inference import InferenceNode
 from nodes.registry import Registry
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
@@ -199,9 +201,12 @@ def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tu
                 maps = contact_depth_maps(VoxelIndex(points), np.eye(4), poses, geometry, params).depth_maps_m
                 row = {"object": Path(mesh).stem, "cloud_points": len(points), "poses": count,
                        **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4))}
+                handle = Cloud(points)
                 started = time.perf_counter()
-                client.estimate_at(points, poses)
+                client.estimate_at(handle, poses)
                 row["first_request_ms"] = round((time.perf_counter() - started) * 1e3, 1)
+                row["handle_p50_ms"], row["handle_regions_per_s"] = _request_rate(
+                    lambda: client.estimate_at(handle, poses), count, args.point_requests)
                 row["points_p50_ms"], row["points_regions_per_s"] = _request_rate(
                     lambda: client.estimate_at(points, poses), count, args.point_requests)
                 row["maps_p50_ms"], row["maps_regions_per_s"] = _request_rate(

@@ -13,16 +13,20 @@ class TactileEstimateRequest(Message):
     """Estimate tactile images for N candidate regions.
 
     Either ``depth_maps`` (N x 100 x 100 float32, metres in the gel frame, as the patch
-    extractor makes them) or ``points`` (P x 3 float32/float64, metres in ``world``) with
-    ``gel_poses`` (N x 4 x 4, gel to ``world``), from which the server extracts depth-maps.
-    ``dropout_samples`` > 1 asks for a per-pixel uncertainty from that many stochastic passes.
+    extractor makes them) or an object's cloud with ``gel_poses`` (N x 4 x 4, gel to
+    ``world``), from which the server extracts depth-maps. The cloud is ``points`` (P x 3
+    float32/float64, metres in ``world``), or ``cloud_id`` alone: the id a reply gave for a
+    cloud sent earlier, which the worker keeps (a worker that no longer holds it answers
+    ``unknown_cloud``: send the points again). ``dropout_samples`` > 1 asks for a per-pixel
+    uncertainty from that many stochastic passes.
     """
 
     SCHEMA = "dtx.inference.TactileEstimateRequest"
-    VERSION = 1
+    VERSION = 2
 
     depth_maps: np.ndarray = empty((0, 100, 100), np.float32)
     points: np.ndarray = empty((0, 3), np.float32)
+    cloud_id: str = ""
     gel_poses: np.ndarray = empty((0, 4, 4), np.float64)
     dropout_samples: int = 1
 
@@ -38,10 +42,12 @@ class TactileEstimateReply(Message):
     is the estimate for an empty depth-map (the gel touching nothing) and ``region_errors[i]``
     says why in a sentence ("" for ok regions). ``depth_range_m`` is the server's
     (y_near, y_far) in the gel frame: depth-maps are clipped to it and y_far means no surface.
+    ``cloud_id`` names the cloud a points request used ("" for depth-maps): the same cloud
+    (dtype, shape, values) gets the same id from every worker. ``worker`` is the node that answered.
     """
 
     SCHEMA = "dtx.inference.TactileEstimateReply"
-    VERSION = 2
+    VERSION = 3
 
     images: np.ndarray = empty((0, 100, 100, 3), np.uint8)
     uncertainty: np.ndarray = empty((0, 100, 100), np.float32)
@@ -50,3 +56,5 @@ class TactileEstimateReply(Message):
     region_status: list[str] = dataclasses.field(default_factory=list)
     region_errors: list[str] = dataclasses.field(default_factory=list)
     depth_range_m: list[float] = dataclasses.field(default_factory=list)
+    cloud_id: str = ""
+    worker: str = ""

@@ -613,6 +613,10 @@ class ServiceClient(Generic[M, R]):
                     return False
                 time.sleep(0.02)
 
+    def server_count(self) -> int:
+        """How many servers of the name this client knows now (found on the bus or given)."""
+        return self._discover()
+
     def wait_for_service(self, timeout_s: float = 5.0) -> bool:
         """Whether a server appears within ``timeout_s``; False at once when ``stop`` is set."""
         deadline = time.monotonic() + timeout_s

@@ -2,13 +2,16 @@
 msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp planner.
 
 - A request holds N regions: ``depth_maps`` (N x 100 x 100 float32, metres in the gel
-  frame), or ``points`` (P x 3, world) with ``gel_poses`` (N x 4 x 4, gel to world), from
-  which the depth-maps are cut as the patch extractor cuts them (perception.depthmap, y range =
-  the checkpoint's depth_range_m), all N in one pass over a spatial index of the cloud. The
-  index (~1-5 s for a 0.1 mm model cloud of millions of points) is kept for the last
-  ``index_cache`` clouds, found again by comparing the request's points with each kept cloud
-  (exact, ~2 ms per 10 MB, faster than hashing them): a planner sends the same registered cloud
-  with request after request of candidate poses.
+  frame), or a cloud with ``gel_poses`` (N x 4 x 4, gel to world), from which the depth-maps
+  are cut as the patch extractor cuts them (perception.depthmap, y range = the checkpoint's
+  depth_range_m), all N in one pass over a spatial index of the cloud.
+- Cloud handles: a planner asks about one registered cloud with request after request of
+  candidate poses, and a 0.1 mm model cloud is 10^7 points (~130 MB). The reply to a request
+  with ``points`` names the cloud (``cloud_id``, SHA-256 of its dtype, shape and bytes: the same
+  on every worker); later requests send only that id. The worker keeps the spatial index of its
+  last ``index_cache`` clouds (building one takes ~1-5 s); an id it does not hold (evicted, or
+  a respawned worker) is refused with code ``unknown_cloud``, and the client sends the points
+  again.
 - Batching: requests from every client that arrive within ``batch_window_ms`` of the oldest
   waiting one (and all that queued while the previous batch ran) go through the network
   together, in forward passes of at most ``max_batch`` regions; each client gets its own
@@ -36,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import io
 import threading
 import time
@@ -67,6 +71,19 @@ class BadRequest(ValueError):
     code = "bad_request"
 
 
+class UnknownCloud(ValueError):
+    """A ``cloud_id`` this worker does not hold: the client sends the points again."""
+
+    code = "unknown_cloud"
+
+
+def cloud_id(points: np.ndarray) -> str:
+    """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes."""
+    digest = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode())
+    digest.update(memoryview(np.ascontiguousarray(points)).cast("B"))
+    return digest.hexdigest()
+
+
 def _forward(generator: UNetGenerator, runtime: str, precision: str, threads: int) -> Runner:
     """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1], on the chosen runtime."""
     if runtime == "eager":
@@ -91,6 +108,7 @@ class _Job:
     regions: int
     arrived: float  # time.monotonic()
     future: Future[TactileEstimateReply]
+    held: tuple[str, VoxelIndex] | None  # the kept cloud a request named by its id alone
 
 
 class InferenceNode(Node):
@@ -143,7 +161,8 @@ class InferenceNode(Node):
         self.model = (f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {p.runtime} {p.precision}) "
                       f"on {self.name}")
         self.forward_passes = 0
-        self._indexes: list[tuple[np.ndarray, VoxelIndex]] = []  # (the cloud as sent, its index), newest last
+        self._clouds: dict[str, VoxelIndex] = {}  # cloud id -> its index, least recently used first
+        self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
         self._warm_up_cutting()
         self._lock = threading.Condition()
         self._waiting: list[_Job] = []
@@ -160,7 +179,9 @@ class InferenceNode(Node):
         torch.set_flush_denormal(False)
 
     def on_estimate(self, request: TactileEstimateRequest) -> Future[TactileEstimateReply]:
-        job = _Job(request, self._check(request), time.monotonic(), Future())
+        regions = self._check(request)
+        held = self._held(request.cloud_id) if request.cloud_id and not request.points.size else None
+        job = _Job(request, regions, time.monotonic(), Future(), held)
         with self._lock:
             self._waiting.append(job)
             self._lock.notify()  # a flush waiting for a full batch counts again
@@ -183,8 +204,8 @@ class InferenceNode(Node):
         maps, points, poses = request.depth_maps, request.points, request.gel_poses
         if not 1 <= request.dropout_samples <= p.max_dropout_samples:
             raise BadRequest(f"dropout_samples must be 1..{p.max_dropout_samples}, got {request.dropout_samples}")
-        if maps.size and (points.size or poses.size):
-            raise BadRequest("give either depth_maps or points with gel_poses, not both")
+        if maps.size and (points.size or poses.size or request.cloud_id):
+            raise BadRequest("give either depth_maps or a cloud (points or cloud_id) with gel_poses, not both")
         if maps.size:
             if maps.ndim != 3 or maps.shape[1:] != (size, size):
                 raise BadRequest(f"depth_maps must be N x {size} x {size}, got shape {maps.shape}")
@@ -193,10 +214,12 @@ class InferenceNode(Node):
                 raise BadRequest(f"depth_maps must be float32 metres, got {maps.dtype}")
             _check_finite(maps, "depth_maps")
             return int(maps.shape[0])
-        if not points.size or not poses.size:
-            raise BadRequest("empty request: give depth_maps (N x 100 x 100), or points (P x 3) with gel_poses "
-                             "(N x 4 x 4)")
-        if points.ndim != 2 or points.shape[1] != 3:
+        if not (points.size or request.cloud_id) or not poses.size:
+            raise BadRequest("empty request: give depth_maps (N x 100 x 100), or points (P x 3) or a cloud_id "
+                             "with gel_poses (N x 4 x 4)")
+        if request.cloud_id and not _is_cloud_id(request.cloud_id):
+            raise BadRequest(f"cloud_id must be the 64 hex digits a reply gave, got {request.cloud_id[:80]!r}")
+        if points.size and (points.ndim != 2 or points.shape[1] != 3):
             raise BadRequest(f"points must be P x 3, got shape {points.shape}")
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):
             raise BadRequest(f"gel_poses must be N x 4 x 4, got shape {poses.shape}")
@@ -231,16 +254,17 @@ class InferenceNode(Node):
     def _run(self, jobs: list[_Job]) -> None:
         # A request refused while its depth-maps are cut (too much work) fails alone: the other
         # clients' requests in the batch go on.
-        ready, maps, errors = [], [], []
+        ready, maps, errors, clouds = [], [], [], []
         for job in jobs:
             try:
-                job_maps, job_errors = self._depth_maps(job.request)
+                job_maps, job_errors, job_cloud = self._depth_maps(job.request, job.held)
             except BadRequest as exc:
                 job.future.set_exception(exc)
                 continue
             ready.append(job)
             maps.append(job_maps)
             errors.append(job_errors)
+            clouds.append(job_cloud)
         if not ready:
             return
         x = network_input(np.concatenate(maps), self.depth_range_m, self.config, self.prior).numpy()
@@ -262,22 +286,26 @@ class InferenceNode(Node):
                 images=images[offsets[i]:offsets[i + 1]], uncertainty=uncertainty, model=self.model,
                 latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
                 region_status=["out_of_reach" if e else "ok" for e in errors[i]], region_errors=errors[i],
-                depth_range_m=[float(y) for y in self.depth_range_m]))
+                depth_range_m=[float(y) for y in self.depth_range_m], cloud_id=clouds[i], worker=self.name))
 
-    def _depth_maps(self, request: TactileEstimateRequest) -> tuple[np.ndarray, list[str]]:
-        """The request's depth-maps and, per region, why its gel reaches no surface ("" when
-        it does); such a region gets the empty map (every bin y_far), what the gel feels there."""
+    def _depth_maps(self, request: TactileEstimateRequest, held: tuple[str, VoxelIndex] | None
+                    ) -> tuple[np.ndarray, list[str], str]:
+        """The request's depth-maps; per region, why its gel reaches no surface ("" when it
+        does: such a region gets the empty map, every bin y_far, what the gel feels there); the
+        id of the cloud they were cut from ("" for depth-maps). ``held``: the kept cloud the
+        request named by its id alone."""
         if request.depth_maps.size:
-            return request.depth_maps, [""] * len(request.depth_maps)
+            return request.depth_maps, [""] * len(request.depth_maps), ""
+        cloud, index = held if held is not None else self._keep(request.points, request.cloud_id)
         try:
-            patches = contact_depth_maps(self._index(request.points), np.eye(4), request.gel_poses, self.geometry,
+            patches = contact_depth_maps(index, np.eye(4), request.gel_poses, self.geometry,
                                          self.depth_map_params, self.params.max_point_visits, allow_empty=True)
         except PerceptionError as exc:
             raise BadRequest(f"{exc}; send fewer regions per request" if "too much work" in str(exc)
                              else str(exc)) from exc
         errors = ["" if count else f"region {i}: no model point in the contact volume: the gel does not reach "
                   "the object" for i, count in enumerate(patches.point_counts)]
-        return patches.depth_maps_m, errors
+        return patches.depth_maps_m, errors, cloud
 
     def _warm_up_cutting(self) -> None:
         """Load the compiled depth-map kernels for the clouds requests carry (read-only float32
@@ -289,15 +317,30 @@ class InferenceNode(Node):
             with contextlib.suppress(PerceptionError):  # one point at the gel's centre may miss its crop
                 contact_depth_maps(VoxelIndex(cloud), np.eye(4), np.eye(4)[None], self.geometry, self.depth_map_params)
 
-    def _index(self, points: np.ndarray) -> VoxelIndex:
-        """The spatial index of a request's cloud: built once, used again while the cloud is
-        among the last ``index_cache`` ones (same dtype, shape and values)."""
-        for i, (cloud, index) in enumerate(self._indexes):
-            if cloud.dtype == points.dtype and cloud.shape == points.shape and np.array_equal(cloud, points):
-                self._indexes.append(self._indexes.pop(i))
-                return index
-        entry = (points.copy(), VoxelIndex(points))  # a copy: the request's arrays are views of its frames
-        self._indexes = [*self._indexes, entry][-self.params.index_cache:]
+    def _held(self, cloud: str) -> tuple[str, VoxelIndex]:
+        """The kept cloud of that id (now the most recently used); UnknownCloud when not kept."""
+        with self._clouds_lock:
+            index = self._clouds.pop(cloud, None)
+            if index is None:
+                raise UnknownCloud(f"this worker ({self.name}) does not hold cloud {cloud} (it keeps its last "
+                                   f"{self.params.index_cache}): send the points again")
+            self._clouds[cloud] = index
+            return cloud, index
+
+    def _keep(self, points: np.ndarray, claimed: str) -> tuple[str, VoxelIndex]:
+        """The id and spatial index of a request's points: indexed once, kept among the last
+        ``index_cache`` clouds. ``claimed``: the id the request gave with them ("" none)."""
+        cloud = cloud_id(points)
+        if claimed and claimed != cloud:
+            raise BadRequest(f"cloud_id {claimed} is not the id of the points sent ({cloud})")
+        with contextlib.suppress(UnknownCloud):
+            return self._held(cloud)
+        index = VoxelIndex(points)
+        with self._clouds_lock:
+            self._clouds[cloud] = index
+            while len(self._clouds) > self.params.index_cache:
+                del self._clouds[next(iter(self._clouds))]
+        return cloud, index
         return entry[1]
 
     def _batched(self, forward: Runner, x: np.ndarray) -> np.ndarray:
@@ -307,6 +350,10 @@ class InferenceNode(Node):
             outputs.append(forward(np.ascontiguousarray(x[start:start + step])))
             self.forward_passes += 1
         return np.concatenate(outputs)
+
+
+def _is_cloud_id(text: str) -> bool:
+    return len(text) == 64 and all(c in "0123456789abcdef" for c in text)
 
 
 def _check_count(count: int, limit: int, what: str) -> None:

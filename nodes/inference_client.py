@@ -2,13 +2,15 @@
 
     with TactileClient() as client:                    # or TactileClient(node.bus) inside a node
         images, uncertainty = client.estimate(depth_maps, dropout_samples=8)
-        images, uncertainty = client.estimate_at(cloud_world, gel_poses)
+        cloud = Cloud(cloud_world)                     # one object's registered cloud, asked about often
+        images, uncertainty = client.estimate_at(cloud, gel_poses)
 
 Every server of the name on the bus is used in turn (round robin), local or, with the
 launch file's ``peers:``, remote.
 """
 from __future__ import annotations
 
+import dataclasses
 from types import TracebackType
 
 import numpy as np
@@ -26,6 +28,21 @@ class InferenceError(RuntimeError):
     def __init__(self, code: str, text: str) -> None:
         super().__init__(f"{SERVICE}: {code}: {text}")
         self.code, self.text = code, text
+
+
+@dataclasses.dataclass
+class Cloud:
+    """An object's cloud (P x 3, world, metres) a planner asks about again and again. Its
+    points travel until every worker has answered about them; after that only the id the
+    workers gave (``docs/wire-protocol.md``, cloud handles)."""
+
+    points: np.ndarray
+    id: str = ""
+    held_by: set[str] = dataclasses.field(default_factory=set)  # workers that answered with ``id``
+
+    def __post_init__(self) -> None:
+        points = np.asarray(self.points)
+        self.points = points if points.dtype == np.float32 else points.astype(np.float64)  # float32 halves the bytes
 
 
 class TactileClient:
@@ -47,23 +64,37 @@ class TactileClient:
         return self._call(TactileEstimateRequest(depth_maps=maps[None] if maps.ndim == 2 else maps,
                                                  dropout_samples=dropout_samples or self.dropout_samples))
 
-    def estimate_at(self, points_world: np.ndarray, gel_poses: np.ndarray,
+    def estimate_at(self, cloud: Cloud | np.ndarray, gel_poses: np.ndarray,
                     dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """From the object's cloud (P x 3, world, metres) and candidate gel poses (N x 4 x 4, gel to world).
-        A gel that reaches no point of the cloud gets the no-contact estimate; which ones did
-        is in ``last_reply.region_status`` ("ok" / "out_of_reach")."""
-        points, poses = np.asarray(points_world), np.asarray(gel_poses, dtype=np.float64)
-        points = points if points.dtype == np.float32 else points.astype(np.float64)  # float32 halves the bytes
-        return self._call(TactileEstimateRequest(points=points,
-                                                 gel_poses=poses[None] if poses.ndim == 2 else poses,
-                                                 dropout_samples=dropout_samples or self.dropout_samples))
+        """From the object's cloud (a ``Cloud``, or P x 3 points in world, metres, sent whole
+        each time) and candidate gel poses (N x 4 x 4, gel to world). A gel that reaches no
+        point of the cloud gets the no-contact estimate; which ones did is in
+        ``last_reply.region_status`` ("ok" / "out_of_reach")."""
+        cloud = cloud if isinstance(cloud, Cloud) else Cloud(cloud)
+        poses = np.asarray(gel_poses, dtype=np.float64)
+        poses = poses[None] if poses.ndim == 2 else poses
+        samples = dropout_samples or self.dropout_samples
+        if cloud.id and len(cloud.held_by) >= self.client.server_count():
+            try:
+                return self._call(TactileEstimateRequest(cloud_id=cloud.id, gel_poses=poses, dropout_samples=samples),
+                                  cloud)
+            except InferenceError as exc:
+                if exc.code != "unknown_cloud":
+                    raise
+                cloud.held_by.clear()  # a worker evicted it or was respawned: the points go again
+        return self._call(TactileEstimateRequest(points=cloud.points, cloud_id=cloud.id, gel_poses=poses,
+                                                 dropout_samples=samples), cloud)
 
-    def _call(self, request: TactileEstimateRequest) -> tuple[np.ndarray, np.ndarray]:
+    def _call(self, request: TactileEstimateRequest, cloud: Cloud | None = None) -> tuple[np.ndarray, np.ndarray]:
         try:
             reply = self.client.call(request, timeout_s=self.timeout_s, retries=self.retries)
         except ServiceCallError as exc:
             raise InferenceError(exc.code, exc.text) from exc
         self.last_reply = reply
+        if cloud is not None:
+            if reply.cloud_id != cloud.id:
+                cloud.id, cloud.held_by = reply.cloud_id, set()
+            cloud.held_by.add(reply.worker)
         return reply.images, reply.uncertainty
 
     def close(self) -> None:

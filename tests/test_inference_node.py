@@ -20,8 +20,8 @@ from models.ssim import to_uint8_rgb
 from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.bus import Bus, ServiceCallError
-from nodes.inference import InferenceNode
-from nodes.inference_client import SERVICE, InferenceError, TactileClient
+from nodes.inference import InferenceNode, cloud_id
+from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.registry import Registry
 from perception.depthmap import DepthMapParams, contact_depth_map
 from sim.scene import load_scene
@@ -134,6 +134,9 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(depth_maps=_maps(), points=np.zeros((10, 3)), gel_poses=np.eye(4)[None]),
      "not both"),
     (TactileEstimateRequest(points=np.zeros((10, 3))), "empty request"),
+    (TactileEstimateRequest(cloud_id="ab" * 32), "empty request"),
+    (TactileEstimateRequest(cloud_id="not an id", gel_poses=np.eye(4)[None]), "cloud_id must be the 64 hex digits"),
+    (TactileEstimateRequest(depth_maps=_maps(), cloud_id="ab" * 32), "not both"),
     (TactileEstimateRequest(gel_poses=np.eye(4)[None]), "empty request"),
     (TactileEstimateRequest(points=np.zeros((10, 2)), gel_poses=np.eye(4)[None]), "points must be P x 3"),
     (TactileEstimateRequest(points=np.zeros((1001, 3)), gel_poses=np.eye(4)[None]), "too many points"),
@@ -223,27 +226,41 @@ def test_a_request_larger_than_max_batch_runs_in_several_passes(registry: Regist
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
 
-def test_a_cloud_sent_again_reuses_its_index_and_another_cloud_gets_its_own(checkpoint: Path, tmp_path: Path) -> None:
-    """The points path keeps the spatial index of the last index_cache clouds: the same cloud
-    again is answered from its kept index (the same maps), a changed one is indexed anew."""
-    node = InferenceNode("cache_probe", {"checkpoint": str(checkpoint), "runtime": "eager", "index_cache": 1},
-                         registry=Registry(tmp_path / "bus"))
-    try:
-        rng = np.random.default_rng(4)
-        cloud = rng.uniform(-0.01, 0.01, (5000, 3)).astype(np.float32)
-        poses = np.stack([np.eye(4)] * 2)
-        first, _ = node._depth_maps(TactileEstimateRequest(points=cloud, gel_poses=poses))
-        index = node._indexes[0][1]
-        again, _ = node._depth_maps(TactileEstimateRequest(points=cloud.copy(), gel_poses=poses))
-        assert node._indexes[0][1] is index
-        np.testing.assert_array_equal(again, first)
-        moved = cloud.copy()
-        moved[:, 1] += np.float32(0.0002)
-        other, _ = node._depth_maps(TactileEstimateRequest(points=moved, gel_poses=poses))
-        assert len(node._indexes) == 1 and node._indexes[0][1] is not index
-        assert not np.array_equal(other, first)
-    finally:
-        node.close()
+def test_a_cloud_handle_answers_like_its_points_and_an_evicted_one_is_sent_again(registry: Registry,
+                                                                             checkpoint: Path) -> None:
+    """A cloud's points travel once; later requests name it by the id its reply gave and get
+    the same images. A worker that no longer holds it (index_cache 1, another cloud came) says
+    unknown_cloud, and the client sends the points again on its own."""
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-0.01, 0.01, (5000, 3)).astype(np.float32)
+    moved = points.copy()
+    moved[:, 1] += np.float32(0.0002)
+    poses = np.stack([np.eye(4)] * 2)
+    with serving(registry, checkpoint, runtime="eager", index_cache=1), planner(registry) as client, \
+            contextlib.closing(Bus("raw", registry)) as bus:
+        raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
+        sent = raw.call(TactileEstimateRequest(points=points, gel_poses=poses), timeout_s=30.0)
+        assert sent.cloud_id == cloud_id(points) and sent.worker == "inference"
+        named = raw.call(TactileEstimateRequest(cloud_id=sent.cloud_id, gel_poses=poses), timeout_s=30.0)
+        np.testing.assert_array_equal(named.images, sent.images)
+        assert named.cloud_id == sent.cloud_id
+        other = raw.call(TactileEstimateRequest(points=moved, gel_poses=poses), timeout_s=30.0)
+        assert other.cloud_id not in ("", sent.cloud_id)
+        with pytest.raises(ServiceCallError, match="does not hold cloud") as evicted:
+            raw.call(TactileEstimateRequest(cloud_id=sent.cloud_id, gel_poses=poses), timeout_s=30.0)
+        assert evicted.value.code == "unknown_cloud"
+        with pytest.raises(ServiceCallError, match="is not the id of the points sent") as wrong:
+            raw.call(TactileEstimateRequest(points=moved, cloud_id=sent.cloud_id, gel_poses=poses), timeout_s=30.0)
+        assert wrong.value.code == "bad_request"
+
+        cloud = Cloud(points)
+        images, _ = client.estimate_at(cloud, poses)  # the points travel
+        assert cloud.id == sent.cloud_id and cloud.held_by == {"inference"}
+        np.testing.assert_array_equal(images, sent.images)
+        np.testing.assert_array_equal(client.estimate_at(cloud, poses)[0], sent.images)  # the id alone
+        raw.call(TactileEstimateRequest(points=moved, gel_poses=poses), timeout_s=30.0)  # evicts it
+        np.testing.assert_array_equal(client.estimate_at(cloud, poses)[0], sent.images)  # refused, sent again
+        assert cloud.held_by == {"inference"}
 
 
 def test_a_request_refused_while_its_maps_are_cut_fails_alone_in_its_batch(checkpoint: Path, tmp_path: Path) -> None:
@@ -259,7 +276,7 @@ def test_a_request_refused_while_its_maps_are_cut_fails_alone_in_its_batch(check
     try:
         heavy = TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4))
         light = TactileEstimateRequest(depth_maps=depth_maps(1, seed=3))
-        jobs = [_Job(request, node._check(request), time.monotonic(), Future()) for request in (heavy, light)]
+        jobs = [_Job(request, node._check(request), time.monotonic(), Future(), None) for request in (heavy, light)]
         node._run(jobs)
         with pytest.raises(BadRequest, match="too much work"):
             jobs[0].future.result(timeout=0)

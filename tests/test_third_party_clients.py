@@ -26,7 +26,7 @@ from dtx.bag import BagWriter, bag_info
 from msgs.codec import decode, encode
 from nodes.bus import Bus
 from nodes.foxglove_bridge import FoxgloveBridge
-from nodes.inference_client import SERVICE, TactileClient
+from nodes.inference_client import SERVICE, Cloud, TactileClient
 from nodes.registry import Registry
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -90,6 +90,31 @@ def test_every_malformed_request_of_the_node_planner_gets_an_error_reply(served:
     unanswered = {name: r for name, r in result["results"].items() if r is None or r["code"] != "bad_request"}
     assert result["variants"] == 25 and result["answered"] == 25, unanswered
     assert result["served_after"]
+
+
+def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(served: tuple[Path, Registry],
+                                                                         tmp_path: Path) -> None:
+    """§3's cloud handle from the page alone: six requests about one cloud over two workers carry
+    its points twice (once to each), then the id; the images are the Python client's, byte for
+    byte; an id no worker holds is refused with unknown_cloud."""
+    bus_dir, registry = served
+    x, z = np.meshgrid(np.linspace(-0.012, 0.012, 120), np.linspace(-0.015, 0.015, 120))
+    points = np.stack([x.ravel(), np.full(x.size, -0.0005), z.ravel()], axis=1).astype("<f4")
+    shifted, away = np.eye(4), np.eye(4)
+    shifted[0, 3], away[1, 3] = 0.002, -1.0
+    poses = np.stack([np.eye(4), shifted, away]).astype("<f8")
+    (tmp_path / "points.f32").write_bytes(points.tobytes())
+    (tmp_path / "poses.f64").write_bytes(poses.tobytes())
+    result = node("cloud", str(tmp_path / "points.f32"), str(len(points)), str(tmp_path / "poses.f64"), "3", "6",
+                  str(tmp_path / "images.u8"), bus_dir=bus_dir)
+    assert (result["with_points"], result["id_only"], result["refused"]) == (2, 4, 0), result
+    assert result["unknown_id"] == "unknown_cloud"
+    with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, timeout_s=60.0) as client:
+        cloud = Cloud(points)
+        for _ in range(3):
+            images, _ = client.estimate_at(cloud, poses)
+    assert cloud.id == result["cloud_id"] and len(cloud.held_by) == 2
+    assert (tmp_path / "images.u8").read_bytes() == np.ascontiguousarray(images).tobytes()
 
 
 def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple[Path, Registry]) -> None:

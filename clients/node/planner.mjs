@@ -5,6 +5,10 @@
 //   node planner.mjs malformed                   25 broken requests; prints how many got an error reply
 //   node planner.mjs steady COUNT                COUNT requests one after another, retrying by §4;
 //                                                prints one line per answer, then a JSON summary
+//   node planner.mjs cloud POINTS.f32 P POSES.f64 N COUNT OUT.u8
+//                                                COUNT requests about one cloud (P x 3 <f4) at N gel
+//                                                poses (<f8), by the cloud handle rule of §3; the
+//                                                last reply's images -> OUT.u8
 //
 // The bus directory comes from DTX_BUS_DIR (or the default of §1). Output: one JSON line on stdout.
 import { readFileSync, readdirSync, writeFileSync } from "node:fs";
@@ -98,10 +102,10 @@ class Planner {
     }
   }
 
-  /** Send frames built for q = this.q, following §4's retry rule; resolves with the reply. */
+  /** Send frames built by build(q, p, entry) for q = this.q, following §4's retry rule;
+   * resolves with the reply and the server entry that answered. */
   async call(build, deadlineMs = 60000) {
     const q = ++this.q;
-    const frames = build(q, this.id);
     const start = Date.now();
     const reply = new Promise((resolve) => this.waiting.set(q, resolve));
     let attempts = 0;
@@ -119,7 +123,7 @@ class Planner {
         const conn = this.connection(entry);
         conn.inFlight = q;
         try {
-          await conn.dealer.send(frames);
+          await conn.dealer.send(build(q, this.id, entry));
         } catch {
           await sleep(CHECK_MS);
           continue; // not connected (yet): look again
@@ -128,7 +132,7 @@ class Planner {
         // Wait while this worker lives; when its entry is gone, resend elsewhere at once.
         while (Date.now() - start < deadlineMs) {
           const answer = await Promise.race([reply, sleep(CHECK_MS)]);
-          if (answer) return answer;
+          if (answer) return { ...answer, entry };
           const current = servers().find((e) => e.address === entry.address && e.pid === entry.pid);
           if (!current) break;
         }
@@ -149,7 +153,7 @@ function sleep(ms) {
 }
 
 function header(q, p, fields, arrays) {
-  return { s: REQUEST, v: 1, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
+  return { s: REQUEST, v: 2, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
 }
 
 /** A well-formed request for depth-maps: the frames of §2 and §3. */
@@ -157,11 +161,26 @@ function depthRequest(maps, n, dropout = 1) {
   return (q, p) => [
     Buffer.from(SERVICE),
     pack(header(q, p, {
-      depth_maps: { __array__: 0 }, points: { __array__: 1 }, gel_poses: { __array__: 2 }, dropout_samples: dropout,
+      depth_maps: { __array__: 0 }, points: { __array__: 1 }, cloud_id: "", gel_poses: { __array__: 2 },
+      dropout_samples: dropout,
     }, [["<f4", [n, 100, 100]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]])),
     Buffer.from(maps.buffer, maps.byteOffset, maps.byteLength),
     Buffer.alloc(0),
     Buffer.alloc(0),
+  ];
+}
+
+/** A request about a cloud: its points (P x 3 <f4) when withPoints, else only its id (§3). */
+function cloudRequest(points, p3, poses, n, cloudId, withPoints) {
+  return (q, p) => [
+    Buffer.from(SERVICE),
+    pack(header(q, p, {
+      depth_maps: { __array__: 0 }, points: { __array__: 1 }, cloud_id: cloudId, gel_poses: { __array__: 2 },
+      dropout_samples: 1,
+    }, [["<f4", [0, 100, 100]], ["<f4", [withPoints ? p3 : 0, 3]], ["<f8", [n, 4, 4]]])),
+    Buffer.alloc(0),
+    withPoints ? Buffer.from(points.buffer, points.byteOffset, points.byteLength) : Buffer.alloc(0),
+    Buffer.from(poses.buffer, poses.byteOffset, poses.byteLength),
   ];
 }
 
@@ -251,7 +270,7 @@ async function steady(count) {
     if (!reply || reply.header.s !== "dtx.inference.TactileEstimateReply") {
       lost++;
     } else {
-      const worker = reply.header.d.model.split(" on ").pop();
+      const worker = reply.header.d.worker;
       servedBy[worker] = (servedBy[worker] ?? 0) + 1;
     }
     process.stderr.write(`answered ${i + 1}\n`);
@@ -260,11 +279,54 @@ async function steady(count) {
   return { count, lost, served_by: servedBy, resent_after_a_worker_died: planner.computedTwiceRisk };
 }
 
+/** §3's cloud handle rule: a connection that has not answered about the cloud gets its points
+ * (and its id once known); one that has, the id alone; unknown_cloud: that one no longer holds
+ * it, so its next request carries the points again. */
+async function cloud(pointsPath, p3, posesPath, n, count, outPath) {
+  const planner = new Planner();
+  const raw = readFileSync(pointsPath);
+  const points = new Float32Array(raw.buffer, raw.byteOffset, raw.byteLength / 4);
+  const rawPoses = readFileSync(posesPath);
+  const poses = new Float64Array(rawPoses.buffer, rawPoses.byteOffset, rawPoses.byteLength / 8);
+  let cloudId = "";
+  const holding = new Set(); // addresses whose worker answered with cloudId
+  let withPoints = 0;
+  let idOnly = 0;
+  let refused = 0;
+  let last = null;
+  const send = (entry, forcePoints) => {
+    const points_ = forcePoints || !cloudId || !holding.has(entry.address);
+    if (points_) withPoints++;
+    else idOnly++;
+    return cloudRequest(points, p3, poses, n, cloudId, points_);
+  };
+  for (let i = 0; i < count; i++) {
+    let reply = await planner.call((q, p, entry) => send(entry, false)(q, p));
+    if (reply?.header.d?.code === "unknown_cloud") {
+      refused++;
+      holding.delete(reply.entry.address);
+      reply = await planner.call((q, p, entry) => send(entry, true)(q, p));
+    }
+    if (!reply || reply.header.s !== "dtx.inference.TactileEstimateReply") throw new Error(JSON.stringify(reply?.header.d));
+    if (reply.header.d.cloud_id !== cloudId) holding.clear();
+    cloudId = reply.header.d.cloud_id;
+    holding.add(reply.entry.address);
+    last = reply;
+  }
+  // A cloud no worker holds: refused with unknown_cloud, for the client to send the points.
+  const unknown = await planner.call(cloudRequest(points, p3, poses, n, "0".repeat(64), false));
+  planner.close();
+  writeFileSync(outPath, replyArray(last, "images"));
+  return { cloud_id: cloudId, with_points: withPoints, id_only: idOnly, refused, worker: last.header.d.worker,
+           unknown_id: unknown?.header.d?.code };
+}
+
 const [mode, ...args] = process.argv.slice(2);
 let result;
 if (mode === "images") result = await images(args[0], Number(args[1]), args[2]);
 else if (mode === "malformed") result = await malformed();
 else if (mode === "steady") result = await steady(Number(args[0]));
+else if (mode === "cloud") result = await cloud(args[0], Number(args[1]), args[2], Number(args[3]), Number(args[4]), args[5]);
 else throw new Error(`unknown mode ${mode}`);
 process.stdout.write(JSON.stringify(result) + "\n");
 process.exit(0);
