@@ -17,6 +17,11 @@ choices the issue asks for), else the same as ``ssim_vs_fp32``.
   dependency) and measured SSIM 0.07-0.39 against fp32 on this generator: left out;
 * runtimes: eager PyTorch, ``torch.compile`` (inductor), ONNX Runtime (CPU provider).
 Combinations left out: int8 in PyTorch (above), bf16 in ONNX Runtime (no bf16 CPU kernels).
+Against the machine's limit: ``gflops`` is what a row computes (regions/s x the generator's
+floating-point operations per region, counted by torch.utils.flop_counter: convolutions and
+matrix products, 2 per multiply-add), ``share_of_fp32_peak`` that over ``fp32_peak_gflops``, the
+fp32 matrix-product rate of PyTorch on the same threads measured in the same run (issue 18's
+target: >= 0.75 for the default model in its best runtime).
 Inputs are the test split's depth-maps with ``--dataset``, else depth-maps of synthetic
 analytic contacts (dataset.synth).
 """
@@ -97,6 +102,29 @@ def _measure(run: Runner, inputs: np.ndarray, batch: int, seconds: float) -> tup
     return throughput, statistics.median(latencies)
 
 
+def fp32_peak_gflops(seconds: float = 1.0, size: int = 1536) -> float:
+    """This machine's fp32 compute limit as PyTorch reaches it: the best rate of size x size
+    matrix products (2 n^3 operations each) on the current threads, over ~``seconds``."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    torch.mm(a, b)  # warm-up: the BLAS's threads and buffers
+    best, started = float("inf"), time.perf_counter()
+    while time.perf_counter() - started < seconds or best == float("inf"):
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * size ** 3 / best / 1e9
+
+
+def gflop_per_region(generator: UNetGenerator, inputs: np.ndarray) -> float:
+    """The generator's floating-point operations for one region (GFLOP), as counted by
+    torch.utils.flop_counter (convolutions and matrix products)."""
+    from torch.utils.flop_counter import FlopCounterMode  # noqa: PLC0415
+
+    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+        UncheckedGenerator(generator).eval()(torch.from_numpy(inputs[:1]))
+    return counter.get_total_flops() / 1e9
+
+
 def _generator(width: int, checkpoint: str | None, seed: int) -> tuple[UNetGenerator, tuple[float, float]]:
     if checkpoint:
         from models.train import load_generator  # noqa: PLC0415
@@ -130,6 +158,8 @@ def test_split_inputs(dataset: str, generator: UNetGenerator, depth_range_m: tup
 
 def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows = []
+    peak = fp32_peak_gflops()
+    print(f"fp32 matrix-product peak on {args.threads} thread(s): {peak:.1f} GFLOP/s", file=sys.stderr, flush=True)
     models = [(None, c) for c in args.checkpoint] if args.checkpoint else [(w, None) for w in args.widths]
     with tempfile.TemporaryDirectory() as tmp:
         for width, checkpoint in models:
@@ -140,6 +170,7 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                 inputs = synthetic_inputs(max(args.batch, 16), args.seed, generator, depth_range_m)
                 truth = None
             reference = to_uint8_rgb(torch.from_numpy(eager_runner(generator, bf16=False)(inputs)))
+            gflop = gflop_per_region(generator, inputs)
             for runtime in args.runtimes:
                 for precision in args.precisions:
                     if precision not in OFFERED[runtime]:
@@ -156,7 +187,9 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                     rows.append({"width": generator.config.ngf, "precision": precision, "runtime": runtime,
                                  "ssim": vs_fp32 if truth is None else round(float(ssim_rgb(truth, output).mean()), 4),
                                  "ssim_vs_fp32": vs_fp32, "regions_per_s": round(throughput, 1),
-                                 "p50_ms": round(p50, 2)})
+                                 "p50_ms": round(p50, 2), "gflop_per_region": round(gflop, 4),
+                                 "gflops": round(throughput * gflop, 1), "fp32_peak_gflops": round(peak, 1),
+                                 "share_of_fp32_peak": round(throughput * gflop / peak, 3)})
                     # Progress on stderr: ``dtx bench`` prints the table (or JSON) on stdout.
                     print(_format_row(rows[-1]), file=sys.stderr, flush=True)
     if args.dataset:
@@ -168,7 +201,8 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 def _format_row(row: dict[str, Any]) -> str:
     return (f"width {row['width']:3d}  {row['precision']:5s} {row['runtime']:8s} ssim {row['ssim']:.4f}  "
-            f"{row['regions_per_s']:8.1f} regions/s  p50 {row['p50_ms']:7.2f} ms")
+            f"{row['regions_per_s']:8.1f} regions/s  p50 {row['p50_ms']:7.2f} ms  "
+            f"{row['gflops']:6.1f} GFLOP/s ({row['share_of_fp32_peak']:.0%} of the fp32 peak)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -5,13 +5,14 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from benchmarks.inference import add_arguments, run
+from benchmarks.inference import DEPTH_RANGE_M, add_arguments, gflop_per_region, run, synthetic_inputs
 from dataset.format import DatasetReader
 from dataset.synth import write_synthetic_dataset
 from models.data import select_records
 from models.evaluate import predict
-from models.networks import GeneratorConfig
+from models.networks import GeneratorConfig, UNetGenerator
 from models.ssim import ssim_rgb
 from models.train import TrainConfig, load_generator, train
 
@@ -25,10 +26,26 @@ def test_benchmark_rows_have_the_required_fields_and_fp32_eager_is_the_reference
     assert [(r["precision"], r["runtime"]) for r in rows] == [("fp32", "eager"), ("fp32", "onnxrt"),
                                                               ("int8", "onnxrt")]
     for row in rows:
-        assert set(row) == {"width", "precision", "runtime", "ssim", "ssim_vs_fp32", "regions_per_s", "p50_ms"}
+        assert set(row) == {"width", "precision", "runtime", "ssim", "ssim_vs_fp32", "regions_per_s", "p50_ms",
+                            "gflop_per_region", "gflops", "fp32_peak_gflops", "share_of_fp32_peak"}
         assert row["ssim"] == row["ssim_vs_fp32"]  # no dataset: the fp32 eager output is the reference
         assert row["width"] == 8 and row["regions_per_s"] > 0 and row["p50_ms"] > 0
+        assert row["gflops"] == pytest.approx(row["regions_per_s"] * row["gflop_per_region"], rel=0.01, abs=0.1)
+        assert row["share_of_fp32_peak"] == pytest.approx(row["gflops"] / row["fp32_peak_gflops"], rel=0.02, abs=1e-3)
+    assert len({row["fp32_peak_gflops"] for row in rows}) == 1  # one reference for the whole run
     assert rows[0]["ssim"] == 1.0 and rows[1]["ssim"] > 0.99  # ONNX Runtime computes the same function
+
+
+def test_the_operation_count_grows_with_the_square_of_the_width() -> None:
+    """A convolution's multiply-adds scale with input x output channels: doubling ngf doubles
+    both, four times the operations (the first and last layers, with fixed channels on one side,
+    make it a little less)."""
+    counts = {}
+    for width in (8, 16):
+        generator = UNetGenerator(GeneratorConfig(ngf=width)).eval()
+        inputs = synthetic_inputs(1, 0, generator, DEPTH_RANGE_M)
+        counts[width] = gflop_per_region(generator, inputs)
+    assert counts[8] > 0.01 and 3.5 < counts[16] / counts[8] <= 4.0
 
 
 def test_with_a_dataset_ssim_is_against_the_test_splits_ground_truth(tmp_path: Path) -> None:
