@@ -2,6 +2,7 @@
 crash safety under kill -9, a clear stop on an unwritable output, and replay from a bag."""
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
 from dtx.bag import bag_info, iter_envelopes
 from dataset.check import check_dataset, content_checksum
@@ -208,3 +210,23 @@ def test_a_recorded_session_carries_the_transform_tree(tmp_path: Path) -> None:
     topics = bag_info(bag).topics
     assert topics["/tf/foxglove"]["schema"] == topics["/perception/object_pose/foxglove"]["schema"] == \
         "foxglove.FrameTransform"
+
+
+@pytest.mark.slow
+def test_malformed_messages_at_every_endpoint_of_a_live_session_crash_nothing() -> None:
+    """dtx bench fuzz at small size: every service and topic of a running collection session
+    gets mutated messages the codec refuses; no node dies, every service answers each one with
+    an error, and the session ends complete and sound."""
+    parser = argparse.ArgumentParser()
+    fuzz.add_arguments(parser)
+    result = fuzz.run(parser.parse_args(["--messages", "200", "--grasps", "150", "--seed", "3"]))
+    assert result["nodes_crashed"] == [] and result["respawns"] == 0 and result["nodes_checked"] >= 10, result
+    services = [row for row in result["endpoints"] if row["kind"] == "service"]
+    topics = [row for row in result["endpoints"] if row["kind"] == "topic"]
+    assert {row["endpoint"] for row in services} >= {"/arm/move", "/gripper/command", "/perception/patch",
+                                                      "/perception/register"}
+    assert all(row["sent"] == 200 and row["error_replies"] == 200 for row in services), services
+    assert {"/gripper/state", "/camera_left/depth", "/gelsight_left/image"} <= {row["endpoint"] for row in topics}
+    assert all(row["subscribers"] >= 1 for row in topics if row["endpoint"] == "/gripper/state")
+    assert result["session_exit_code"] == 0 and result["dataset_check_ok"], result
+    assert result["pairs"] == result["pairs_expected"] == 300

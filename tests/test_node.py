@@ -10,10 +10,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 import msgs
+from benchmarks.fuzz import mutants
 from dtx.launch import load_launch
 from nodes.bus import Bus
 from nodes.node import Node, ParameterError
@@ -117,32 +117,6 @@ class Listener(Node):
         self.heard.append(command.width_m)
 
 
-def _mutants(good: list[bytes], count: int, seed: int) -> list[list[bytes]]:
-    """``count`` damaged copies of ``good``: fields replaced, arrays re-announced with zero-size
-    huge shapes, bytes flipped, frames dropped (what a buggy or hostile peer sends)."""
-    import msgpack
-    rng = np.random.default_rng(seed)
-    header = msgpack.unpackb(good[1])
-    odd_values: list[Any] = [None, -1, 2**63 - 1, 2**64 - 1, 1.5, "x", [], {}, True, b"\xff"]
-    mutants = [[good[0], msgpack.packb({**header, "s": "dtx.system.Empty", "a": [["<f4", [2**63 - 1, 0]]]}), b""]]
-    while len(mutants) < count:
-        kind = rng.integers(4)
-        forged = dict(header)
-        if kind == 0:
-            forged[str(rng.choice(sorted(header)))] = odd_values[rng.integers(len(odd_values))]
-            mutants.append([good[0], msgpack.packb(forged), *good[2:]])
-        elif kind == 1:
-            forged["a"] = [[str(rng.choice(["<f4", "<u8", "|u1"])), [2 ** int(rng.integers(20, 64)) - 1, 0]]]
-            mutants.append([good[0], msgpack.packb(forged), b""])
-        elif kind == 2:
-            damaged = bytearray(good[1])
-            damaged[rng.integers(len(damaged))] ^= int(rng.integers(1, 256))
-            mutants.append([good[0], bytes(damaged), *good[2:]])
-        else:
-            mutants.append(good[: rng.integers(1, len(good))])
-    return mutants
-
-
 def test_a_live_node_survives_malformed_messages_and_failing_callbacks(registry: Registry) -> None:
     from msgs.codec import encode
     node = Listener("listener", registry=registry)
@@ -157,10 +131,10 @@ def test_a_live_node_survives_malformed_messages_and_failing_callbacks(registry:
         assert client.call(msgs.GripperCommand(width_m=0.01), timeout_s=5.0).width_m == pytest.approx(0.01)
         publisher.publish(msgs.GripperCommand(width_m=-1.0))
         good = [bytes(memoryview(f)) for f in encode("/listener/in", msgs.GripperCommand(width_m=0.02), "fuzzer")]
-        for frames in _mutants(good, 500, seed=1):
+        for frames in mutants(good, 500, seed=1):
             publisher.sock.send_multipart(frames)
         good_request = [bytes(memoryview(f)) for f in encode("/listener/echo", msgs.GripperCommand(), "fuzzer")]
-        for frames in _mutants(good_request, 500, seed=2):
+        for frames in mutants(good_request, 500, seed=2):
             client.sock.send_multipart(frames)
         publisher.publish(msgs.GripperCommand(width_m=0.03))
         reply = client.call(msgs.GripperCommand(width_m=0.04), timeout_s=10.0)
@@ -192,12 +166,12 @@ def test_a_service_answers_every_call_in_time_through_a_20000_message_flood(regi
         flooder = bus.client("/echo", msgs.GripperCommand, msgs.GripperState)  # its socket sends the garbage
         assert client.wait_for_service(60) and flooder.wait_for_service(60)
         good = [bytes(memoryview(f)) for f in encode("/echo", msgs.GripperCommand(width_m=0.02), "flooder")]
-        mutants = _mutants(good, 20_000, seed=3)
+        flood_frames = mutants(good, 20_000, seed=3)
         sent = refused = 0
 
         def flood() -> None:
             nonlocal sent, refused
-            for frames in mutants:
+            for frames in flood_frames:
                 flooder.sock.send_multipart(frames)
                 sent += 1
                 while flooder.sock.poll(0):  # the bad_request replies, read so none backs up
