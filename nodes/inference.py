@@ -108,7 +108,7 @@ class _Job:
     regions: int
     arrived: float  # time.monotonic()
     future: Future[TactileEstimateReply]
-    held: tuple[str, VoxelIndex] | None  # the kept cloud a request named by its id alone
+    held: VoxelIndex | None  # the kept cloud a request named by its id alone
 
 
 class InferenceNode(Node):
@@ -180,7 +180,12 @@ class InferenceNode(Node):
 
     def on_estimate(self, request: TactileEstimateRequest) -> Future[TactileEstimateReply]:
         regions = self._check(request)
-        held = self._held(request.cloud_id) if request.cloud_id and not request.points.size else None
+        held = None
+        if request.cloud_id and not request.points.size:
+            held = self._held(request.cloud_id)
+            if held is None:
+                raise UnknownCloud(f"this worker ({self.name}) does not hold cloud {request.cloud_id} (it keeps its "
+                                   f"last {self.params.index_cache}): send the points again")
         job = _Job(request, regions, time.monotonic(), Future(), held)
         with self._lock:
             self._waiting.append(job)
@@ -288,7 +293,7 @@ class InferenceNode(Node):
                 region_status=["out_of_reach" if e else "ok" for e in errors[i]], region_errors=errors[i],
                 depth_range_m=[float(y) for y in self.depth_range_m], cloud_id=clouds[i], worker=self.name))
 
-    def _depth_maps(self, request: TactileEstimateRequest, held: tuple[str, VoxelIndex] | None
+    def _depth_maps(self, request: TactileEstimateRequest, held: VoxelIndex | None
                     ) -> tuple[np.ndarray, list[str], str]:
         """The request's depth-maps; per region, why its gel reaches no surface ("" when it
         does: such a region gets the empty map, every bin y_far, what the gel feels there); the
@@ -296,7 +301,7 @@ class InferenceNode(Node):
         request named by its id alone."""
         if request.depth_maps.size:
             return request.depth_maps, [""] * len(request.depth_maps), ""
-        cloud, index = held if held is not None else self._keep(request.points, request.cloud_id)
+        cloud, index = (request.cloud_id, held) if held is not None else self._keep(request.points, request.cloud_id)
         try:
             patches = contact_depth_maps(index, np.eye(4), request.gel_poses, self.geometry,
                                          self.depth_map_params, self.params.max_point_visits, allow_empty=True)
@@ -317,15 +322,13 @@ class InferenceNode(Node):
             with contextlib.suppress(PerceptionError):  # one point at the gel's centre may miss its crop
                 contact_depth_maps(VoxelIndex(cloud), np.eye(4), np.eye(4)[None], self.geometry, self.depth_map_params)
 
-    def _held(self, cloud: str) -> tuple[str, VoxelIndex]:
-        """The kept cloud of that id (now the most recently used); UnknownCloud when not kept."""
+    def _held(self, cloud: str) -> VoxelIndex | None:
+        """The kept index of the cloud of that id, now the most recently used; None when not kept."""
         with self._clouds_lock:
             index = self._clouds.pop(cloud, None)
-            if index is None:
-                raise UnknownCloud(f"this worker ({self.name}) does not hold cloud {cloud} (it keeps its last "
-                                   f"{self.params.index_cache}): send the points again")
-            self._clouds[cloud] = index
-            return cloud, index
+            if index is not None:
+                self._clouds[cloud] = index
+            return index
 
     def _keep(self, points: np.ndarray, claimed: str) -> tuple[str, VoxelIndex]:
         """The id and spatial index of a request's points: indexed once, kept among the last
@@ -333,15 +336,14 @@ class InferenceNode(Node):
         cloud = cloud_id(points)
         if claimed and claimed != cloud:
             raise BadRequest(f"cloud_id {claimed} is not the id of the points sent ({cloud})")
-        with contextlib.suppress(UnknownCloud):
-            return self._held(cloud)
-        index = VoxelIndex(points)
-        with self._clouds_lock:
-            self._clouds[cloud] = index
-            while len(self._clouds) > self.params.index_cache:
-                del self._clouds[next(iter(self._clouds))]
+        index = self._held(cloud)
+        if index is None:
+            index = VoxelIndex(points)
+            with self._clouds_lock:
+                self._clouds[cloud] = index
+                while len(self._clouds) > self.params.index_cache:
+                    del self._clouds[next(iter(self._clouds))]
         return cloud, index
-        return entry[1]
 
     def _batched(self, forward: Runner, x: np.ndarray) -> np.ndarray:
         step = self.params.max_batch
