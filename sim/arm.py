@@ -194,7 +194,7 @@ class Repeatability:
 
     def perturb(self, pose: np.ndarray) -> np.ndarray:
         out = np.asarray(pose, float).copy()
-        rng = state_rng(out.tobytes(), self.seed, 7)
+        rng = state_rng(out, self.seed, 7)
         out[:3] += rng.normal(0.0, self.sigma_m, 3) if self.sigma_m > 0 else 0.0
         if self.sigma_rad > 0:
             dr = Rotation.from_rotvec(rng.normal(0.0, self.sigma_rad, 3))

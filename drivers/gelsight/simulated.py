@@ -149,7 +149,7 @@ class SimulatedGelSight:
             gap = self._gap
         # The frame's noise is keyed on the gap it shows (sim.seeding): whichever frame of a
         # grasp the collector takes, the same grasp gives the same image.
-        image = self.renderer.render(gap, state_rng(gap.tobytes(), self.world.seed, 11,
+        image = self.renderer.render(gap, state_rng(gap, self.world.seed, 11,
                                                     SENSORS.index(self.config.sensor)))
         self._seq += 1
         header = Header(stamp_ns=stamp_ns, seq=self._seq, frame_id=f"gel_{self.config.sensor}")
