@@ -288,7 +288,8 @@ def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root:
     result["objects"] = per_object_statistics(predictions.truth, predictions.estimate, predictions.objects,
                                               baseline_draws, seed)
     result["density"] = []
-    full_contact = contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
+    full_contact = (contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
+                    if density else None)
     for points_per_cm3, density_root in sorted((density or {}).items()):
         at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
         mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
