@@ -163,10 +163,10 @@ class Workspace:
         out = self.root / f"library_{bins}"
         if (out / "manifest.jsonl").exists() and len(DatasetReader(out).records) >= self.plan.library_samples:
             return out  # made by an earlier run, whose code version its dataset.json keeps
-        params, _ = depth_map_params(DatasetReader(self.session))
-        info = DatasetReader(self.session).info
+        session = DatasetReader(self.session)
+        params, _ = depth_map_params(session)
         return write_contact_library(out, self.plan.library_samples, self.plan.seed,
-                                     info.scene, params.y_range_m, params.margin_m, size=bins).root
+                                     session.info.scene, params.y_range_m, params.margin_m, size=bins).root
 
     def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
         """The width-16 model trained as the default is (the session with a contact library)
