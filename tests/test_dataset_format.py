@@ -45,10 +45,13 @@ def sample_arrays(seed: int) -> dict[str, np.ndarray]:
             "depth_map_m": depth}
 
 
-def write_sample(writer: DatasetWriter, grasp: int, finger: str, obj: str = "mug") -> fmt.SampleRecord:
+def write_sample(writer: DatasetWriter, grasp: int, finger: str, obj: str = "mug",
+                 pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3),
+                 stamps_ns: dict[str, int] | None = None) -> fmt.SampleRecord:
     return writer.write(sample_id=f"{obj}-g{grasp:03d}-{finger}", object_name=obj, grasp_id=grasp, finger=finger,
-                        grasp_pose=(0.1, 0.2, 0.05, 0.3), registration_fitness=0.9,
-                        stamps_ns={"tactile": 1, "depth": 2}, **sample_arrays(grasp * 2 + (finger == "right")))
+                        grasp_pose=pose, registration_fitness=0.9,
+                        stamps_ns=stamps_ns or {"tactile": 1, "depth": 2},
+                        **sample_arrays(grasp * 2 + (finger == "right")))
 
 
 def test_round_trip_preserves_arrays_and_manifest(tmp_path: Path) -> None:
@@ -463,9 +466,7 @@ def write_grasps(root: Path, order: list[int], stamp: int = 1, info: DatasetInfo
     writer = DatasetWriter(root, info)
     for grasp in order:
         for finger in ("left", "right"):
-            writer.write(sample_id=f"mug-g{grasp:03d}-{finger}", object_name="mug", grasp_id=grasp, finger=finger,
-                         grasp_pose=pose, registration_fitness=0.9, stamps_ns={"tactile": stamp + grasp},
-                         **sample_arrays(grasp * 2 + (finger == "right")))
+            write_sample(writer, grasp, finger, pose=pose, stamps_ns={"tactile": stamp + grasp})
 
 
 def test_the_content_checksum_ignores_when_and_by_which_build_and_sees_everything_else(tmp_path: Path) -> None:
