@@ -20,7 +20,7 @@ from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
 from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps, min_y_per_bin
 from perception.errors import PerceptionError
 from perception.evaluation import register_check, render_depth_images, scene_with_object, segmentation_params_for
-from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world
 from perception.registration import (RegistrationParams, add_error_m, add_s_error_m, prepare_model,

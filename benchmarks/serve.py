@@ -51,7 +51,7 @@ from nodes.inference import InferenceNode
 from nodes.registry import Registry
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
                                  contact_depth_maps)
-from perception.kinematics import GripperGeometry
+from workcell.kinematics import GripperGeometry
 from perception.pointcloud import VoxelIndex
 from perception.registration import ModelCloud, sample_model_cloud
 from sim.scene import load_scene

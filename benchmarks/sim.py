@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     depth_rows(f"{scene.name} default effects", scene, target=15.0)
 
     # --- grasp contact and GelSight frames -------------------------------------------
-    from perception.kinematics import grasp_to_tcp_pose
+    from workcell.kinematics import grasp_to_tcp_pose
     from sim.gelsight import GelSightConfig, GelSightRenderer
 
     world = SimWorld(ideal)

@@ -32,7 +32,7 @@ from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_versio
 from dataset.synth import SurfaceMm, gel_gap_from_surface
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
-from perception.kinematics import GripperGeometry
+from workcell.kinematics import GripperGeometry
 from sim.gelsight import GelSightRenderer, scene_renderer
 from sim.scene import Scene, load_scene
 

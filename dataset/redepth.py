@@ -23,7 +23,7 @@ from perception.density import downsample_to_density
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
                                  crop_reach_m)
 from perception.errors import DepthMapError
-from perception.kinematics import GripperGeometry
+from workcell.kinematics import GripperGeometry
 from perception.pointcloud import VoxelIndex
 from perception.registration import sample_model_cloud
 from sim.scene import Scene, SceneError, load_scene

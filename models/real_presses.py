@@ -4,7 +4,7 @@ The file (layout of assets/gelsight/ball_presses.npz, read by ``sim.gelsight_che
 frames of a ball pressed into the gel, each with its annotated centre (x column, y row, px) and
 contact radius (px). For each press the system sees what it would see at a grasp:
 
-* **the contact**: the ball in the gel frame (perception.kinematics; x along image columns, z
+* **the contact**: the ball in the gel frame (workcell.kinematics; x along image columns, z
   along image rows, y out of the gel), centred under the annotated pixel, its lowest point
   ``press_depth_mm`` into the gel (the sphere-cap depth that gives the annotated radius);
 * **the depth-map**: the ball's surface sampled uniformly at ``MODEL_POINT_SPACING_M``, as a
@@ -43,7 +43,7 @@ from models.evaluate import predict
 from models.networks import UNetGenerator
 from models.ssim import WINDOW, psnr_rgb, ssim_rgb
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
-from perception.kinematics import GripperGeometry
+from workcell.kinematics import GripperGeometry
 from sim.gelsight import GelSightError, scene_renderer
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
 from sim.scene import Scene, load_scene

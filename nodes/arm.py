@@ -19,7 +19,7 @@ import numpy as np
 import drivers.arm
 import msgs
 from nodes.node import Node, run_node, split_params
-from perception.kinematics import matrix_to_pose, pose_to_matrix
+from workcell.kinematics import matrix_to_pose, pose_to_matrix
 
 
 class ArmNode(Node):

@@ -38,7 +38,7 @@ from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_versio
 from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
-from perception.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose
+from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose
 from perception.pointcloud import transform_points
 from perception.registration import sample_model_cloud
 from sim.scene import load_scene

@@ -6,7 +6,7 @@
   (``DepthImage.camera_to_world`` on ``/<camera>/depth``);
 - ``world → tcp``: the arm's state (``/arm/state``, UR pose: position m, rotation vector rad);
 - ``tcp → gel_left``, ``tcp → gel_right``: the gripper's width (``/gripper/state``) and the
-  gripper geometry of ``scene`` (perception.kinematics, the collector's own gel poses);
+  gripper geometry of ``scene`` (workcell.kinematics, the collector's own gel poses);
 - ``world → object`` comes from the patch extractor itself, latched on ``/perception/object_pose``
   when it registers an object.
 
@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 import msgs
 from nodes.node import Node, run_node
-from perception.kinematics import gel_poses_world, pose_to_matrix
+from workcell.kinematics import gel_poses_world, pose_to_matrix
 
 
 def frame_transform(parent: str, child: str, child_to_parent: np.ndarray, stamp_ns: int) -> msgs.FrameTransform:

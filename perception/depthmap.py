@@ -1,6 +1,6 @@
 """Contact depth-maps: the registered model cloud seen from one gel (paper §III-B.3, DESIGN §1.2).
 
-Gel frame (see perception.kinematics): origin at the centre of the gel surface, x-z in the
+Gel frame (see workcell.kinematics): origin at the centre of the gel surface, x-z in the
 surface, y along the outward normal; y > 0 is free space, y < 0 indents the elastomer.
 
 Crop volume: |x| <= sensed_x/2 + margin, |z| <= sensed_z/2 + margin, y_near <= y <= y_far (all
@@ -43,7 +43,7 @@ import numba
 import numpy as np
 
 from perception.errors import DepthMapError
-from perception.kinematics import GripperGeometry
+from workcell.kinematics import GripperGeometry
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform
 

@@ -20,7 +20,3 @@ class RegistrationError(PerceptionError):
 
 class DepthMapError(PerceptionError):
     """A contact depth-map without a right answer (empty patch, degenerate crop or bins)."""
-
-
-class KinematicsError(PerceptionError):
-    """A grasp, pose or transform that does not describe a rigid placement of the gripper."""

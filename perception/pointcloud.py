@@ -18,35 +18,19 @@ import numpy as np
 
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.errors import PointCloudError
+from workcell.kinematics import KinematicsError, rigid_transform
 
 # Kinect v2 working range; returns outside it are unreliable or spurious.
 DEFAULT_RANGE_M = (0.5, 4.5)
 
 
-# How far R^T R of a transform's rotation block may be from the identity, per element: float64
-# rounding of composed transforms stays ~1e-15; a matrix off by more was not built as a rotation.
-ROTATION_TOLERANCE = 1e-6
-
-
 def check_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
-    """Return ``a_to_b`` as a float64 4x4 rigid transform, or raise PointCloudError.
-
-    Rigid means: every entry finite, last row exactly [0, 0, 0, 1], and a proper rotation block
-    (|R^T R - I| <= ROTATION_TOLERANCE per element, det R > 0). Any real dtype, any strides."""
+    """Return ``a_to_b`` as a float64 4x4 rigid transform (workcell.kinematics.rigid_transform),
+    or raise PointCloudError, as every other bad input of this module does."""
     try:
-        matrix = np.asarray(a_to_b, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise PointCloudError(f"{name} must be a 4x4 array of numbers: {err}") from None
-    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
-        raise PointCloudError(f"{name} must be a finite 4x4 matrix, got shape {matrix.shape}")
-    rotation = matrix[:3, :3]
-    # rtol=0: np.allclose's default rtol (1e-5) would loosen the tolerance to 1.1e-5.
-    if not np.allclose(rotation.T @ rotation, np.eye(3), rtol=0.0, atol=ROTATION_TOLERANCE) \
-            or np.linalg.det(rotation) <= 0:
-        raise PointCloudError(f"{name} rotation block is not a proper rotation")
-    if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
-        raise PointCloudError(f"{name} last row must be [0, 0, 0, 1], got {matrix[3]}")
-    return matrix
+        return rigid_transform(a_to_b, name)
+    except KinematicsError as err:
+        raise PointCloudError(str(err)) from None
 
 
 def principal_spread_m(points_m: np.ndarray) -> np.ndarray:

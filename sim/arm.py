@@ -6,7 +6,7 @@ interpolated on the same profile; ``moveJ``: all joints synchronised to the slow
 ends at the target plus the repeatability error when the scene calls for the
 ``arm_repeatability`` effect (UR5/CB3: +-0.1 mm, UR5e: +-0.03 mm per ISO 9283, taken here
 as about 3 sigma). Joint positions come from the published DH parameters
-(``drivers.arm.ur_kinematics``) and a damped-least-squares inverse kinematics.
+(``workcell.ur_kinematics``) and a damped-least-squares inverse kinematics.
 
 Poses are UR poses [x, y, z, rx, ry, rz] in ``world``; ``base_to_world`` places the robot.
 """
@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.arm.base import WorkspaceError
-from drivers.arm.ur_kinematics import joint_frames
+from workcell.ur_kinematics import joint_frames
 from sim.seeding import state_rng
 
 

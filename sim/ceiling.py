@@ -30,7 +30,7 @@ import numpy as np
 from dataset.format import DatasetReader, SampleRecord, resize_rgb
 from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
-from perception.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
+from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
 from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
 from sim.scene import Scene, SceneError, load_scene
 from sim.world import SimWorld

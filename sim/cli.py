@@ -33,7 +33,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     ceiling.add_argument("--split", default="test", choices=["train", "val", "test", "all"])
     ceiling.add_argument("--force-n", type=float, default=None,
                          help="grasp force of the session in N (a dataset does not record it; default: the "
-                              "collector's, perception.kinematics.GRASP_FORCE_N)")
+                              "collector's, workcell.kinematics.GRASP_FORCE_N)")
     ceiling.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws (default 0)")
     ceiling.add_argument("--json", action="store_true", help="print the result as JSON")
     ceiling.set_defaults(func=information_ceiling)
@@ -61,7 +61,7 @@ def gelsight_check(args: argparse.Namespace) -> int:
 def information_ceiling(args: argparse.Namespace) -> int:
     from dataset.format import DatasetError  # noqa: PLC0415 (Open3D and torch only here)
     from models.errors import ModelConfigError  # noqa: PLC0415
-    from perception.kinematics import GRASP_FORCE_N  # noqa: PLC0415
+    from workcell.kinematics import GRASP_FORCE_N  # noqa: PLC0415
     from sim.ceiling import CeilingError, format_table  # noqa: PLC0415
     from sim.ceiling import information_ceiling as ceiling  # noqa: PLC0415
 

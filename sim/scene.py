@@ -288,7 +288,7 @@ class Scene:
         """The perception module's :class:`GripperGeometry` for this scene's gripper; its sensed
         area is the GelSight image's field of view (``image_width`` x ``image_height`` pixels
         of ``mm_per_px``, centred on the gel)."""
-        from perception.kinematics import GripperGeometry  # noqa: PLC0415
+        from workcell.kinematics import GripperGeometry  # noqa: PLC0415
         gs = self.gelsight
         return GripperGeometry(tcp_to_gel_centre_m=self.gripper.tcp_to_gel_centre_m,
                                gel_size_m=tuple(self.gripper.gel_size_m),

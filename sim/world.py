@@ -13,7 +13,7 @@ and answers two questions:
 
 Gap maps: pixel (row r, column c) of an H x W map covering ``extent_mm = (ez, ex)`` is the
 point ``z = (r - (H-1)/2) * ez/H``, ``x = (c - (W-1)/2) * ex/W`` of the gel plane (gel frame
-of ``perception.kinematics.gel_poses_world``; rows run along gel z = the finger axis toward
+of ``workcell.kinematics.gel_poses_world``; rows run along gel z = the finger axis toward
 the fingertip, columns along gel x, the same orientation as the depth-maps of
 ``perception.depthmap``). The value is the y of the object surface there (mm; > 0 free,
 < 0 pressing into the gel, +inf nothing there).
@@ -602,7 +602,7 @@ class SimWorld:
         and ``width_m`` is the final gel-to-gel distance), and return the contact with
         gap maps at ``size`` (default: the GelSight image size) over ``extent_mm`` (default:
         the GelSight image's field of view) for the fingers in ``gap_fingers``."""
-        from perception.kinematics import gel_poses_world  # noqa: PLC0415
+        from workcell.kinematics import gel_poses_world  # noqa: PLC0415
 
         gr = self.scene.gripper
         geometry = self.scene.gripper_geometry()

@@ -27,7 +27,7 @@ from drivers.arm.base import (
     WorkspaceError,
 )
 from drivers.arm.ur import URArm
-from drivers.arm.ur_kinematics import tcp_pose
+from workcell.ur_kinematics import tcp_pose
 from drivers.arm.ur_controller_sim import CMD_MOVEL, CMD_SET_WATCHDOG, CMD_STOPJ, CMD_STOPL, HOME_Q, FakeURController
 from drivers.cli import check_device
 from dtx.launch import NodeSpec

@@ -7,7 +7,7 @@ import pytest
 from drivers.arm import make_backend
 from drivers.arm.base import MotionLimitError, MotionLimits, WorkspaceBox, WorkspaceError
 from drivers.arm.ur import URArm, URArmConfig
-from drivers.arm.ur_kinematics import tcp_pose
+from workcell.ur_kinematics import tcp_pose
 
 
 def test_the_workspace_names_the_axis_and_the_bound() -> None:

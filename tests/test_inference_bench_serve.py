@@ -42,7 +42,7 @@ def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:
     where it sits, the map's centre."""
     from benchmarks.serve import YCB, surface_gel_poses
     from perception.depthmap import DepthMapParams, contact_depth_maps
-    from perception.kinematics import GripperGeometry
+    from workcell.kinematics import GripperGeometry
     from perception.pointcloud import VoxelIndex, check_transform
     from perception.registration import sample_model_cloud
     cloud = sample_model_cloud(YCB[1], 0.0003, seed=0)

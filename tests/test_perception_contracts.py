@@ -17,10 +17,10 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from perception.depthmap import MAX_DEPTH_MAP_BINS, DepthMapParams, contact_depth_map, crop_bounds
-from perception.errors import DepthMapError, KinematicsError, PointCloudError, RegistrationError, SegmentationError
-from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from perception.errors import DepthMapError, PointCloudError, RegistrationError, SegmentationError
+from workcell.kinematics import ROTATION_TOLERANCE, GripperGeometry, KinematicsError, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import NormalisationError, normalise_depth_map
-from perception.pointcloud import ROTATION_TOLERANCE, VoxelIndex, check_transform, transform_points
+from perception.pointcloud import VoxelIndex, check_transform, transform_points
 from perception.registration import MAX_MODEL_POINTS, sample_model_cloud
 from perception.segmentation import SegmentationParams, fit_table_plane, segment_object
 
@@ -264,7 +264,7 @@ def test_gel_poses_refuse_a_tcp_transform_that_is_not_rigid(tcp: np.ndarray) -> 
        width=st.floats(0.0, 0.11), as_matrix=st.booleans())
 def test_property_gel_poses_are_finite_and_rigid(x: float, y: float, z: float, theta: float, width: float,
                                                  as_matrix: bool) -> None:
-    from perception.kinematics import pose_to_matrix
+    from workcell.kinematics import pose_to_matrix
 
     pose = grasp_to_tcp_pose(x, y, z, theta)
     poses = gel_poses_world(pose_to_matrix(pose) if as_matrix else pose, width)

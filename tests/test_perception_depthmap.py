@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds, min_y_per_bin
 from perception.errors import DepthMapError, PerceptionError
-from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import denormalise_depth_map
 
 GEOMETRY = GripperGeometry()

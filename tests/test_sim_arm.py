@@ -9,7 +9,7 @@ import pytest
 
 from drivers.arm.base import ArmError, MotionAbortedError, MotionLimitError, WorkspaceError
 from drivers.arm.simulated import SimulatedArm, SimulatedArmConfig
-from perception.kinematics import grasp_to_tcp_pose, pose_to_matrix
+from workcell.kinematics import grasp_to_tcp_pose, pose_to_matrix
 from sim.arm import trapezoid_duration, trapezoid_fraction
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
-from perception.kinematics import gel_poses_world, grasp_to_tcp_pose
+from workcell.kinematics import gel_poses_world, grasp_to_tcp_pose
 from sim.scene import parse_scene
 from sim.world import SimWorld
 

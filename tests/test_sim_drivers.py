@@ -9,7 +9,7 @@ import pytest
 from drivers.depth_camera.simulated import DepthCameraError, SimulatedDepthCamera, SimulatedDepthCameraConfig
 from drivers.gelsight.simulated import SimulatedGelSight, SimulatedGelSightConfig
 from msgs import DepthImage, TactileImage
-from perception.kinematics import grasp_to_tcp_pose
+from workcell.kinematics import grasp_to_tcp_pose
 
 
 def test_depth_camera_uint16() -> None:

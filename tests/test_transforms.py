@@ -11,7 +11,7 @@ import msgs
 from nodes.bus import Bus
 from nodes.registry import Registry
 from nodes.transforms import TransformPublisher
-from perception.kinematics import gel_poses_world, pose_to_matrix
+from workcell.kinematics import gel_poses_world, pose_to_matrix
 
 
 def test_cameras_tool_and_gels_are_published_from_their_sources(registry: Registry) -> None:

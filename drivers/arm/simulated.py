@@ -80,7 +80,7 @@ class SimulatedArm:
 
     # ------------------------------------------------------------------ lifecycle
     def connect(self) -> None:
-        from perception.kinematics import grasp_to_tcp_pose  # noqa: PLC0415
+        from workcell.kinematics import grasp_to_tcp_pose  # noqa: PLC0415
 
         if self.config.home_tcp_pose is not None:
             home = as_six_vector(self.config.home_tcp_pose, "home_tcp_pose")

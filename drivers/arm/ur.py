@@ -45,7 +45,7 @@ from drivers.arm.base import (
     WorkspaceError,
     as_six_vector,
 )
-from drivers.arm.ur_kinematics import DH_PARAMETERS, tcp_pose
+from workcell.ur_kinematics import DH_PARAMETERS, tcp_pose
 from msgs.base import Header
 from msgs.robot import ArmState
 

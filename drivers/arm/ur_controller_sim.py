@@ -53,7 +53,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from drivers.arm.ur_kinematics import joint_frames, pose_to_matrix
+from workcell.ur_kinematics import joint_frames, pose_to_matrix
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999

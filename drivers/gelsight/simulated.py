@@ -103,7 +103,7 @@ class SimulatedGelSight:
         if key == self._robot:
             return
         self._robot = key
-        from perception.kinematics import gel_poses_world  # noqa: PLC0415
+        from workcell.kinematics import gel_poses_world  # noqa: PLC0415
 
         scene = self.world.scene
         sensor = self.config.sensor

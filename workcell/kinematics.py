@@ -21,7 +21,14 @@ import dataclasses
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from perception.errors import KinematicsError, PerceptionError
+
+class KinematicsError(ValueError):
+    """A grasp, pose or transform that does not describe a rigid placement of the gripper."""
+
+
+# How far R^T R of a transform's rotation block may be from the identity, per element: float64
+# rounding of composed transforms stays ~1e-15; a matrix off by more was not built as a rotation.
+ROTATION_TOLERANCE = 1e-6
 
 # The constant contact force every grasp of a collection closes with (Algorithm 1), in N.
 GRASP_FORCE_N = 10.0
@@ -45,6 +52,27 @@ class GripperGeometry:
     @property
     def sensed_extent_m(self) -> tuple[float, float]:
         return self.sensed_area_m if self.sensed_area_m is not None else self.gel_size_m
+
+
+def rigid_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
+    """Return ``a_to_b`` as a float64 4x4 rigid transform, or raise KinematicsError.
+
+    Rigid means: every entry finite, last row exactly [0, 0, 0, 1], and a proper rotation block
+    (|R^T R - I| <= ROTATION_TOLERANCE per element, det R > 0). Any real dtype, any strides."""
+    try:
+        matrix = np.asarray(a_to_b, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise KinematicsError(f"{name} must be a 4x4 array of numbers: {err}") from None
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise KinematicsError(f"{name} must be a finite 4x4 matrix, got shape {matrix.shape}")
+    rotation = matrix[:3, :3]
+    # rtol=0: np.allclose's default rtol (1e-5) would loosen the tolerance to 1.1e-5.
+    if not np.allclose(rotation.T @ rotation, np.eye(3), rtol=0.0, atol=ROTATION_TOLERANCE) \
+            or np.linalg.det(rotation) <= 0:
+        raise KinematicsError(f"{name} rotation block is not a proper rotation")
+    if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
+        raise KinematicsError(f"{name} last row must be [0, 0, 0, 1], got {matrix[3]}")
+    return matrix
 
 
 def grasp_to_tcp_pose(x_m: float, y_m: float, z_m: float, theta_z_rad: float) -> np.ndarray:
@@ -94,7 +122,7 @@ def gel_poses_world(tcp_pose_world: np.ndarray, gripper_width_m: float,
     """Gel-to-world transforms (4x4) of both fingers, keys ``"left"`` and ``"right"``.
 
     ``tcp_pose_world`` is a finite UR pose (6,) or a rigid 4x4 tcp-to-world transform
-    (perception.pointcloud.check_transform: finite, last row [0, 0, 0, 1], proper rotation);
+    (:func:`rigid_transform`: finite, last row [0, 0, 0, 1], proper rotation);
     ``gripper_width_m`` finite in [0, max_width_m]. Otherwise KinematicsError: the gel poses are
     always finite rigid transforms.
     """
@@ -106,12 +134,7 @@ def gel_poses_world(tcp_pose_world: np.ndarray, gripper_width_m: float,
         raise KinematicsError(f"gripper width {gripper_width_m!r} m outside [0, {geometry.max_width_m}] m")
     tcp_pose = np.asarray(tcp_pose_world, dtype=np.float64)
     if tcp_pose.shape == (4, 4):
-        from perception.pointcloud import check_transform  # noqa: PLC0415 (open3d only when a matrix is given)
-
-        try:
-            tcp_to_world = check_transform(tcp_pose, "tcp_pose_world").copy()
-        except PerceptionError as err:
-            raise KinematicsError(str(err)) from None
+        tcp_to_world = rigid_transform(tcp_pose, "tcp_pose_world").copy()
     else:
         tcp_to_world = pose_to_matrix(tcp_pose)
     # Re-orthonormalise so float rounding of an accumulated transform cannot skew the gel frames.

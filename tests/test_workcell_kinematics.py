@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from perception.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose, matrix_to_pose, pose_to_matrix
+from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose, matrix_to_pose, pose_to_matrix
 
 angle = st.floats(-10.0, 10.0, allow_nan=False)
 coordinate = st.floats(-2.0, 2.0, allow_nan=False)

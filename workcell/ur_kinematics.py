@@ -6,7 +6,8 @@ The controller applies the TCP offset configured on the pendant; pass the same o
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from workcell.kinematics import matrix_to_pose, pose_to_matrix
 
 # Standard (Denavit-Hartenberg) parameters from Universal Robots' published tables:
 # link offsets d and lengths a in metres, twists alpha in radians.
@@ -22,20 +23,6 @@ DH_PARAMETERS: dict[str, dict[str, tuple[float, ...]]] = {
         "alpha": (np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0),
     },
 }
-
-
-def pose_to_matrix(pose: np.ndarray) -> np.ndarray:
-    """4x4 homogeneous transform of a pose [x, y, z, rx, ry, rz] (m, rotation vector rad)."""
-    transform = np.eye(4)
-    transform[:3, :3] = Rotation.from_rotvec(pose[3:6]).as_matrix()
-    transform[:3, 3] = pose[:3]
-    return transform
-
-
-def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
-    """Pose [x, y, z, rx, ry, rz] (m, rotation vector rad) of a 4x4 homogeneous transform."""
-    rotation_vector = Rotation.from_matrix(transform[:3, :3]).as_rotvec()
-    return np.concatenate([transform[:3, 3], rotation_vector])
 
 
 def joint_frames(q_rad: np.ndarray, model: str = "ur5e") -> list[np.ndarray]:
