@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from dataset.check import check_dataset
-from dtx.bag import BagError, iter_envelopes
+from nodes.bag import BagError, iter_envelopes
 from nodes.registry import Registry
 
 NODES = ["collector", "patch_extractor", "arm", "gripper", "gelsight_left", "gelsight_right",

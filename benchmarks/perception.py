@@ -19,14 +19,15 @@ import numpy as np
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
 from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps, min_y_per_bin
 from perception.errors import PerceptionError
-from perception.evaluation import register_check, render_depth_images, scene_with_object, segmentation_params_for
+from perception.segmentation import segmentation_params_for
+from sim.registration_check import register_check, render_depth_images, scene_with_object
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world
 from perception.registration import (RegistrationParams, add_error_m, add_s_error_m, prepare_model,
                                      register_model, sample_model_cloud)
 from perception.segmentation import segment_object
-from sim.scene import load_scene
+from workcell.scene import load_scene
 from sim.world import SimWorld
 
 PARTS = ("binning", "segmentation", "registration", "sweeps", "depthmap")
@@ -133,7 +134,7 @@ def bench_binning(seed: int) -> list[dict]:
 
 
 def _scene_clouds(scene_path: str, seed: int):
-    scene = load_scene(scene_path, check_geometry=False)
+    scene = load_scene(scene_path)
     world = SimWorld(scene, seed=seed)
     return scene, world, depth_images_to_world(render_depth_images(world, scene)), segmentation_params_for(scene)
 
@@ -163,7 +164,7 @@ def bench_registration(scene_path: str, trials: int, seed: int, drop_effects: li
 
 def _sweep_cases(scene_path: str, poses: int, seed: int, drop_effects: list[str]):
     """Segmented clusters (with ground truth) of each mesh at a few random poses, made once."""
-    scene = load_scene(scene_path, check_geometry=False)
+    scene = load_scene(scene_path)
     scene = dataclasses.replace(scene, effects=[e for e in scene.effects if e.name not in drop_effects])
     rng = np.random.default_rng(seed)
     cases = []

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import msgs
-from dtx.bag import bag_info
+from nodes.bag import bag_info
 from nodes.bus import Bus
 from nodes.registry import Registry
 

@@ -54,7 +54,7 @@ from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthM
 from workcell.kinematics import GripperGeometry
 from perception.pointcloud import VoxelIndex
 from perception.registration import ModelCloud, sample_model_cloud
-from sim.scene import load_scene
+from workcell.scene import load_scene
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)  # the synthetic dataset's (dataset.synth)
 YCB = sorted(str(p) for p in (Path(__file__).resolve().parent.parent / "assets" / "ycb").glob("*.obj"))
@@ -189,7 +189,7 @@ def _request_rate(call: Any, regions: int, requests: int) -> tuple[float, float]
 
 def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tuple[float, float]) -> list[dict]:
     """The planner's cloud form beside the depth-map form, per YCB object and pose count."""
-    geometry = load_scene(InferenceNode.Params.scene, check_geometry=False).gripper_geometry()  # as the server's
+    geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     params = DepthMapParams(y_range_m=depth_range_m)
     rows = []
     with contextlib.closing(Bus("planner_points", registry)) as bus, TactileClient(bus, 300.0) as client:

@@ -53,11 +53,10 @@ def _row(figure: str, timing: tuple[float, ...], target: float | None = None, un
 
 
 def run(args: argparse.Namespace) -> list[dict]:
-    from sim.scene import load_scene
     from sim.world import SimWorld
 
     rows: list[dict] = []
-    scene = load_scene(args.scene)
+    scene = SimWorld.from_file(args.scene).scene
     ideal = dataclasses.replace(scene, effects=[])
 
     def depth_rows(label: str, sc, target: float | None = None) -> None:
@@ -74,9 +73,10 @@ def run(args: argparse.Namespace) -> list[dict]:
     for name in DEPTH_EFFECTS:
         specs = [e for e in scene.effects if e.name == name]
         if not specs:
-            from sim.scene import EFFECTS, EffectSpec
+            from sim.effects import EFFECTS
+            from workcell.scene import EffectSpec
 
-            specs = [EffectSpec(name, EFFECTS[name].family, {k: p.default for k, p in EFFECTS[name].params.items()})]
+            specs = [EffectSpec(name, {k: p.default for k, p in EFFECTS[name].params.items()})]
         depth_rows(f"{name} alone", dataclasses.replace(scene, effects=specs))
     depth_rows(f"{scene.name} default effects", scene, target=15.0)
 

@@ -42,7 +42,7 @@ def _synth(args: argparse.Namespace) -> int:
 def _library(args: argparse.Namespace) -> int:
     from dataset.contact_library import write_contact_library  # noqa: PLC0415 (imports the renderer)
     from perception.errors import DepthMapError  # noqa: PLC0415
-    from sim.scene import SceneError  # noqa: PLC0415
+    from workcell.scene import SceneError  # noqa: PLC0415
 
     try:
         writer = write_contact_library(args.out, args.samples, args.seed, args.scene, tuple(args.depth_range_m),

@@ -34,7 +34,8 @@ from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_d
 from perception.errors import DepthMapError
 from workcell.kinematics import GripperGeometry
 from sim.gelsight import GelSightRenderer, scene_renderer
-from sim.scene import Scene, load_scene
+from sim.effects import effects_of, resolve_effects
+from workcell.scene import Scene, load_scene
 
 FAMILIES = ("sphere", "cylinder", "wedge", "corner", "textured", "height_field")
 # The share of samples whose surface stops short of the gel: in view of the depth camera, not felt.
@@ -154,14 +155,14 @@ def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, 
         raise DatasetError(f"--samples must be positive, got {samples}")
     # The scene as named (a repository path travels with a checkpoint that records it).
     scene_name = str(scene) if isinstance(scene, (str, os.PathLike)) else scene.path
-    scene = load_scene(scene, check_geometry=False) if isinstance(scene, (str, os.PathLike)) else scene
+    scene = resolve_effects(load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene)
     geometry = scene.gripper_geometry()
     params = DepthMapParams(shape=(size, size), margin_m=margin_m, y_range_m=depth_range_m)
     half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
     renderer = scene_renderer(scene, effects=True, rng=np.random.default_rng([seed, 1]))
     background = resize_rgb(renderer.background(), size, size)
     info = DatasetInfo(image_height=size, image_width=size, depth_range_m=depth_range_m,
-                       scene=scene_name, effects=tuple(e.name for e in scene.effects_of("gelsight")),
+                       scene=scene_name, effects=tuple(e.name for e in effects_of(scene, "gelsight")),
                        code_version=code_version(), split_seed=seed,
                        depth_crop_m=(2 * half_x, y_far - y_near, 2 * half_z))
     writer = DatasetWriter(out, info)

@@ -26,7 +26,7 @@ from perception.errors import DepthMapError
 from workcell.kinematics import GripperGeometry
 from perception.pointcloud import VoxelIndex
 from perception.registration import sample_model_cloud
-from sim.scene import Scene, SceneError, load_scene
+from workcell.scene import Scene, SceneError, load_scene
 
 
 def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
@@ -35,7 +35,7 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
     if info.depth_crop_m is None:
         raise DatasetError(f"{reader.root} records no depth-map crop (dataset.json depth_crop_m): it was not "
                            "made from registered models and its depth-maps cannot be made again")
-    scene = load_scene(info.scene, check_geometry=False)
+    scene = load_scene(info.scene)
     geometry = scene.gripper_geometry()
     sensed_x, sensed_z = geometry.sensed_extent_m
     margin_x, margin_z = 0.5 * (info.depth_crop_m[0] - sensed_x), 0.5 * (info.depth_crop_m[2] - sensed_z)

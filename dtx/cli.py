@@ -193,7 +193,7 @@ def _fields_from_yaml(msg_type: type, fields: dict[str, Any]) -> dict[str, Any]:
 
 # -- bags --------------------------------------------------------------------------------
 def cmd_bag_record(args: argparse.Namespace) -> int:
-    from dtx.bag import record
+    from nodes.bag import record
     stop_at = time.monotonic() + args.duration if args.duration else None
     stopping = {"now": False}
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -208,7 +208,7 @@ def cmd_bag_record(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_play(args: argparse.Namespace) -> int:
-    from dtx.bag import BagError, play
+    from nodes.bag import BagError, play
     bus = _bus("dtx_bag_play")
     stopping = {"now": False}
     signal.signal(signal.SIGINT, lambda *_: stopping.update(now=True))
@@ -227,7 +227,7 @@ def cmd_bag_play(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_info(args: argparse.Namespace) -> int:
-    from dtx.bag import BagError, bag_info
+    from nodes.bag import BagError, bag_info
     try:
         info = bag_info(args.file)
     except BagError as exc:

@@ -41,13 +41,12 @@ from typing import Any, TextIO
 
 import yaml
 
+from nodes.node import EXIT_DO_NOT_RESPAWN
 from nodes.registry import Registry
 
 NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required", "if",
              "transport", "bind_host", "curve_secret_key", "curve_authorized_keys", "endpoints", "peers"}
 ENTRY_KEYS = {"arg", "include", "node"}
-# A node exiting with this status (bad parameters, an unwritable output) would only fail again.
-EXIT_DO_NOT_RESPAWN = 2
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
 
 

@@ -404,10 +404,10 @@ def _draw_object(ax: Any, predictions: Predictions, row: int) -> None:
 def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
     """The 2 mm model cloud of ``object_name`` in ``scene`` (None: not a mesh of that scene)."""
     from perception.registration import sample_model_cloud  # noqa: PLC0415
-    from sim.scene import SceneError, load_scene  # noqa: PLC0415
+    from workcell.scene import SceneError, load_scene  # noqa: PLC0415
 
     try:
-        mesh = load_scene(scene, check_geometry=False).mesh(object_name)
+        mesh = load_scene(scene).mesh(object_name)
     except (SceneError, OSError):
         return None
     return sample_model_cloud(mesh).points_m

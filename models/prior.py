@@ -21,7 +21,7 @@ import numpy as np
 
 from models.errors import ModelConfigError
 from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
-from sim.scene import SceneError, load_scene
+from workcell.scene import SceneError, load_scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +54,7 @@ class PhysicsPrior:
         if len(spec.depth_crop_m) != 3 or not all(np.isfinite(v) and v > 0 for v in spec.depth_crop_m):
             raise ModelConfigError(f"the prior's depth crop must be three positive extents in m, got {spec.depth_crop_m}")
         try:
-            scene = load_scene(spec.scene, check_geometry=False)
+            scene = load_scene(spec.scene)
         except (SceneError, OSError) as err:
             raise ModelConfigError(f"the physics prior's scene {spec.scene}: {err}") from err
         if not (np.isfinite(spec.pose_sigma_mm) and spec.pose_sigma_mm >= 0):

@@ -46,7 +46,7 @@ from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_d
 from workcell.kinematics import GripperGeometry
 from sim.gelsight import GelSightError, scene_renderer
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
-from sim.scene import Scene, load_scene
+from workcell.scene import Scene, load_scene
 
 WINDOW_RADII = 3.0
 RANDOM_FRAMES = 15
@@ -132,7 +132,7 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
         raise ModelConfigError(f"--mm-per-px must be a positive number, got {mm_per_px}")
     try:
         presses = load_ball_presses(path)
-        scene = load_scene(scene, check_geometry=False) if isinstance(scene, (str, os.PathLike)) else scene
+        scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
         renderer = scene_renderer(scene, effects=False)
     except GelSightError as err:
         raise ModelConfigError(str(err)) from err

@@ -10,7 +10,7 @@ import json
 from typing import Any
 
 import msgs
-from dtx.bag import BagError, play
+from nodes.bag import BagError, play
 from nodes.node import Node, run_node
 
 

@@ -35,13 +35,12 @@ import msgs
 from dataset.announced import write_samples
 from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
-from dtx.launch import EXIT_DO_NOT_RESPAWN
 from nodes.bus import ServiceCallError
-from nodes.node import Node, run_node
+from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose
 from perception.pointcloud import transform_points
 from perception.registration import sample_model_cloud
-from sim.scene import load_scene
+from workcell.scene import load_scene
 
 FINGERS = ("left", "right")
 
@@ -89,7 +88,7 @@ class CollectorNode(Node):
         p = self.params
         if p.grasps < 1:
             raise ValueError(f"grasps must be at least 1, got {p.grasps}")
-        self.scene = load_scene(p.scene, check_geometry=False)
+        self.scene = load_scene(p.scene)
         meshes = [o.name for o in self.scene.objects if o.mesh]
         self.objects = list(p.objects) or meshes
         unknown = sorted(set(self.objects) - set(meshes))

@@ -12,8 +12,7 @@ from typing import Any
 import msgs
 from dataset.announced import dataset_info, write_samples
 from dataset.format import DatasetWriter
-from dtx.launch import EXIT_DO_NOT_RESPAWN
-from nodes.node import Node, run_node
+from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 
 
 class DatasetBuilderNode(Node):

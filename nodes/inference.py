@@ -153,9 +153,9 @@ class InferenceNode(Node):
         self.config, self.prior = generator.config, generator.prior
         self.deterministic = _forward(generator, p.runtime, p.precision, p.threads)
         self.sampled = _forward(sampling_copy(generator), p.runtime, p.precision, p.threads)
-        from sim.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
+        from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
-        self.geometry = load_scene(p.scene, check_geometry=False).gripper_geometry()
+        self.geometry = load_scene(p.scene).gripper_geometry()
         size = self.config.image_size
         self.depth_map_params = DepthMapParams(shape=(size, size), margin_m=p.margin_m, y_range_m=self.depth_range_m)
         self.model = (f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {p.runtime} {p.precision}) "

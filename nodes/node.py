@@ -38,6 +38,11 @@ P = TypeVar("P")
 
 HEARTBEAT_PERIOD_S = 1.0
 
+# The exit-status contract with the launcher: 0 is a clean stop; a node exiting with
+# EXIT_DO_NOT_RESPAWN (bad parameters, an unwritable output) would only fail again, so the
+# launcher does not respawn it; any other status is a crash, respawned when the launch file asks.
+EXIT_DO_NOT_RESPAWN = 2
+
 
 class ParameterError(ValueError):
     """A node parameter is unknown, missing or of the wrong type."""
@@ -314,7 +319,7 @@ def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
         node = node_class(args.name, json.loads(args.params), transport=transport, remaps=dict(args.remap))
     except (ParameterError, ValueError, TypeError) as exc:
         print(f"{args.name}: cannot start: {exc}", file=sys.stderr)
-        raise SystemExit(2) from exc
+        raise SystemExit(EXIT_DO_NOT_RESPAWN) from exc
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: node.request_shutdown())
     try:

@@ -29,11 +29,11 @@ from nodes.node import Node, run_node
 from nodes.transforms import frame_transform
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, centre_between_gels,
                                  contact_depth_map, crop_reach_m)
-from perception.evaluation import segmentation_params_for
+from perception.segmentation import segmentation_params_for
 from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
 from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud
 from perception.segmentation import segment_object
-from sim.scene import load_scene
+from workcell.scene import load_scene
 
 
 @dataclasses.dataclass
@@ -59,7 +59,7 @@ class PatchExtractorNode(Node):
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(name, params, **kwargs)
-        self.scene = load_scene(self.params.scene, check_geometry=False)
+        self.scene = load_scene(self.params.scene)
         self.geometry = self.scene.gripper_geometry()
         self.depth_map_params = DepthMapParams(shape=(self.params.depth_map_rows, self.params.depth_map_cols),
                                                margin_m=self.params.margin_m,

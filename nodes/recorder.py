@@ -7,9 +7,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from dtx.bag import BagWriteError, record
-from dtx.launch import EXIT_DO_NOT_RESPAWN
-from nodes.node import Node, run_node
+from nodes.bag import BagWriteError, record
+from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 
 
 class RecorderNode(Node):

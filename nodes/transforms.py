@@ -42,9 +42,9 @@ class TransformPublisher(Node):
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(name, params, **kwargs)
-        from sim.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the collector's
+        from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the collector's
 
-        self.geometry = load_scene(self.params.scene, check_geometry=False).gripper_geometry()
+        self.geometry = load_scene(self.params.scene).gripper_geometry()
         self.tf = self.create_publisher("/tf", msgs.FrameTransform)
         # (parent, child) -> (child to parent, stamp) of the newest source message
         self.frames: dict[tuple[str, str], tuple[np.ndarray, int]] = {}

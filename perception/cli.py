@@ -27,7 +27,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 def cmd_register_check(args: argparse.Namespace) -> int:
     from perception.errors import PerceptionError  # noqa: PLC0415 (keep `dtx --help` fast)
-    from perception.evaluation import register_check  # noqa: PLC0415
+    from sim.registration_check import register_check  # noqa: PLC0415
     missing = [m for m in args.meshes if not Path(m).is_file()]
     if missing:
         print(f"dtx perception register-check: mesh not found: {', '.join(missing)}", file=sys.stderr)

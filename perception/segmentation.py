@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from perception.errors import SegmentationError
 from perception.pointcloud import principal_spread_m, seeded_open3d
+from workcell.scene import Scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,3 +208,13 @@ def segment_object(clouds_world_m: Sequence[np.ndarray], params: SegmentationPar
         raise SegmentationError(f"object cluster has {len(obj)} points, fewer than {params.min_object_points}")
     return SegmentationResult(points_world_m=obj, centroid_world_m=obj.mean(axis=0),
                               table_planes=planes, point_counts=counts)
+
+
+# The table plane must be inside the crop even when a camera's calibration error lowers it.
+_TABLE_MARGIN_M = 0.05
+
+
+def segmentation_params_for(scene: Scene) -> SegmentationParams:
+    """Segmentation bounds for a workcell: its workspace, reaching 5 cm below the table top."""
+    low = np.asarray(scene.workspace_min_m, dtype=np.float64) - [0.0, 0.0, _TABLE_MARGIN_M]
+    return SegmentationParams(workspace_min_m=tuple(low), workspace_max_m=tuple(scene.workspace_max_m))

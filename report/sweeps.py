@@ -49,7 +49,7 @@ from report.plan import Plan
 from sim.gelsight import GelSightRenderer
 from sim.gelsight_effects import EFFECTS as GELSIGHT_EFFECTS
 from sim.gelsight_effects import make_effect
-from sim.scene import load_scene
+from workcell.scene import load_scene
 from sim.world import SimWorld
 
 Point = dict[str, Any]
@@ -357,7 +357,7 @@ def gelsight_effects(ws: Workspace) -> list[Point]:
 def depth_effects(ws: Workspace) -> list[Point]:
     """ycb_three's depth effects off, alone (full plan) and all on -> time per 512 x 424 depth
     frame, and ADD-S of registration (default parameters) on clouds made with them."""
-    scene = load_scene(SCENE, check_geometry=False)
+    scene = load_scene(SCENE)
     present = [e for e in DEPTH_EFFECTS if any(s.name == e for s in scene.effects)]
     every = sorted({s.name for s in scene.effects})
     settings: list[tuple[str, ...]] = [()]

@@ -18,9 +18,12 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from drivers.arm.base import WorkspaceError
-from workcell.ur_kinematics import joint_frames
 from sim.seeding import state_rng
+from workcell.ur_kinematics import joint_frames
+
+
+class UnreachablePoseError(ValueError):
+    """Inverse kinematics found no joint angles reaching the pose."""
 
 
 def trapezoid_duration(distance: float, speed: float, accel: float) -> float:
@@ -91,7 +94,7 @@ class ArmKinematics:
 
     def ik(self, pose_world: np.ndarray, q_seed: np.ndarray, iterations: int = 200, tol: float = 1e-9) -> np.ndarray:
         """Joint angles reaching ``pose_world`` (damped least squares from ``q_seed``);
-        raises WorkspaceError when the pose cannot be reached."""
+        raises UnreachablePoseError when the pose cannot be reached."""
         target = pose_matrix(pose_world)
         q = np.asarray(q_seed, float).copy()
         eps = 1e-6
@@ -112,7 +115,7 @@ class ArmKinematics:
             if norm > 0.5:
                 step *= 0.5 / norm
             q += step
-        raise WorkspaceError(f"pose {np.round(pose_world, 4).tolist()} is out of reach of the {self.model} "
+        raise UnreachablePoseError(f"pose {np.round(pose_world, 4).tolist()} is out of reach of the {self.model} "
                              f"(inverse kinematics did not converge)")
 
     @staticmethod
@@ -156,7 +159,7 @@ class Motion:
         pose = np.concatenate([p, r])
         try:
             q = kin.ik(pose, self.q_start + s * (self.q_end - self.q_start), iterations=20, tol=1e-6)
-        except WorkspaceError:
+        except UnreachablePoseError:
             q = self.q_start + s * (self.q_end - self.q_start)
         return pose, q
 

@@ -62,8 +62,8 @@ def information_ceiling(args: argparse.Namespace) -> int:
     from dataset.format import DatasetError  # noqa: PLC0415 (Open3D and torch only here)
     from models.errors import ModelConfigError  # noqa: PLC0415
     from workcell.kinematics import GRASP_FORCE_N  # noqa: PLC0415
-    from sim.ceiling import CeilingError, format_table  # noqa: PLC0415
-    from sim.ceiling import information_ceiling as ceiling  # noqa: PLC0415
+    from report.ceiling import CeilingError, format_table  # noqa: PLC0415
+    from report.ceiling import information_ceiling as ceiling  # noqa: PLC0415
 
     force_n = GRASP_FORCE_N if args.force_n is None else args.force_n
     try:

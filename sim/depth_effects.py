@@ -3,7 +3,7 @@
 Every effect is built only when the scene lists it, works on whole images at once (numpy,
 no per-pixel Python) and draws its randomness from the ``numpy.random.Generator`` it is
 given, so a fixed seed reproduces a frame exactly. The world (``sim/world.py``) runs them in
-the fixed order of ``sim.scene.DEPTH_EFFECT_ORDER``: the geometric ones first
+the fixed order of ``workcell.scene.DEPTH_EFFECT_ORDER``: the geometric ones first
 (:class:`ExtrinsicOffset` moves the camera that casts the rays, :class:`LateralNoise`
 jitters the rays), then the measurement ones on the z-depth image (metres, NaN = no return):
 :class:`FlyingPixels`, :class:`AxialNoise`, :class:`MissingReturns`, :class:`Quantisation`.
@@ -262,7 +262,7 @@ class DepthEffectChain:
     def measure(self, z: np.ndarray, cos_incidence: np.ndarray | None, rng: np.random.Generator,
                 static: dict | None = None, dynamic_idx: np.ndarray | None = None) -> np.ndarray:
         """Run the measurement effects on the z-depth image, in the order of
-        ``sim.scene.DEPTH_EFFECT_ORDER``. ``static`` comes from :meth:`prepare` on the exact
+        ``workcell.scene.DEPTH_EFFECT_ORDER``. ``static`` comes from :meth:`prepare` on the exact
         image; ``dynamic_idx`` are the pixels whose ray changed this frame."""
         static = static or {}
         if self.flying is not None:

@@ -33,15 +33,13 @@ import functools
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from sim.effects import effects_of, resolve_effects
 from sim.gelsight_effects import EFFECTS, GelSightError, LightingDrift, Markers, SensorNoise, make_effect
-
-if TYPE_CHECKING:
-    from sim.scene import Scene
+from workcell.scene import Scene
 
 __all__ = ["EFFECTS", "GelSightConfig", "GelSightError", "GelSightRenderer", "LightingDrift", "Markers",
            "PolyCalibration", "SensorNoise", "gel_surface_depth_mm", "indentation_mm", "load_calibration",
@@ -409,7 +407,7 @@ class GelSightRenderer:
         return change
 
 
-def scene_renderer(scene: "Scene", size: tuple[int, int] | None = None, effects: bool = True,
+def scene_renderer(scene: Scene, size: tuple[int, int] | None = None, effects: bool = True,
                    rng: np.random.Generator | None = None) -> GelSightRenderer:
     """The GelSight a scene describes: its gel and field of view, at its image size or at
     ``size`` (rows, columns; the same field in more or fewer pixels), with the GelSight effects
@@ -418,7 +416,7 @@ def scene_renderer(scene: "Scene", size: tuple[int, int] | None = None, effects:
     h, w = size or (gs.image_height, gs.image_width)
     config = GelSightConfig(image_height=h, image_width=w, mm_per_px=gs.mm_per_px * gs.image_width / w,
                             elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3)
-    called_for = [make_effect(e.name, e.params) for e in scene.effects_of("gelsight")] if effects else []
+    called_for = [make_effect(e.name, e.params) for e in effects_of(resolve_effects(scene), "gelsight")] if effects else []
     return GelSightRenderer(config, effects=called_for, rng=rng)
 
 

@@ -1,6 +1,6 @@
 """The simulated world: objects on a table, seen by depth cameras and touched by the gels.
 
-:class:`SimWorld` builds, from a validated :class:`sim.scene.Scene`, an Open3D
+:class:`SimWorld` builds, from a validated :class:`workcell.scene.Scene`, an Open3D
 ``RaycastingScene`` of the table and the objects (meshes in metres, placed in ``world``),
 and answers two questions:
 
@@ -33,6 +33,7 @@ each camera's exact ray cast is done once and cached; a frame then costs its eff
 from __future__ import annotations
 
 import dataclasses
+import os
 import functools
 import math
 from pathlib import Path
@@ -42,7 +43,8 @@ import open3d as o3d
 import open3d.core as o3c
 
 from sim.depth_effects import DepthEffectChain, gaussian
-from sim.scene import DEPTH_EFFECT_ORDER, ObjectSpec, ReliefSpec, Scene, SceneError, resolve_path
+from sim.effects import DEPTH_EFFECT_ORDER, resolve_effects
+from workcell.scene import ObjectSpec, ReliefSpec, Scene, SceneError, load_scene, resolve_path
 from sim.seeding import state_rng
 
 # How far behind the gel plane gap-map rays start (mm): surfaces up to this deep in the gel
@@ -200,6 +202,7 @@ class SimWorld:
     draws (``sim.seeding``); two worlds with the same scene and seed produce identical frames."""
 
     def __init__(self, scene: Scene, seed: int | None = None, check: bool = False, file_label: str | None = None):
+        scene = resolve_effects(scene)
         self.scene = scene
         self.seed = scene.seed if seed is None else int(seed)
         label = file_label or scene.path
@@ -250,6 +253,13 @@ class SimWorld:
         if check:
             for ci, cam in enumerate(scene.cameras):
                 self._check_camera_sees_workspace(cam, ci, label)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, seed: int | None = None) -> SimWorld:
+        """The world of a scene file, checked completely: the workcell (workcell.scene), the
+        effects (sim.effects), the meshes (non-empty, manifold), every object inside the
+        workspace and every camera seeing part of it. Each problem is a SceneError."""
+        return cls(load_scene(path), seed=seed, check=True, file_label=str(path))
 
     # ---------------------------------------------------------------- construction
     def _object_mesh(self, obj: ObjectSpec, i: int, label: str) -> tuple[np.ndarray, np.ndarray]:
@@ -654,10 +664,8 @@ _WORLDS: dict[tuple[str, int | None], SimWorld] = {}
 
 
 def shared_world(scene_path: str, seed: int | None = None) -> SimWorld:
-    """The SimWorld of ``scene_path`` (loaded and validated once per process and seed)."""
-    from sim.scene import load_scene  # noqa: PLC0415
-
+    """The SimWorld of ``scene_path`` (loaded and checked once per process and seed)."""
     key = (str(resolve_path(scene_path)), seed)
     if key not in _WORLDS:
-        _WORLDS[key] = SimWorld(load_scene(scene_path), seed=seed)
+        _WORLDS[key] = SimWorld.from_file(scene_path, seed=seed)
     return _WORLDS[key]

@@ -19,7 +19,7 @@ import pytest
 from mcap.reader import make_reader
 
 import msgs
-from dtx.bag import BagError, BagWriter, bag_info, iter_envelopes, play, record
+from nodes.bag import BagError, BagWriter, bag_info, iter_envelopes, play, record
 from msgs.codec import decode, encode
 from nodes.bus import Bus
 from nodes.registry import Registry

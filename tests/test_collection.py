@@ -17,7 +17,7 @@ import pytest
 
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
-from dtx.bag import bag_info, iter_envelopes
+from nodes.bag import bag_info, iter_envelopes
 from dataset.check import check_dataset, content_checksum
 from dataset.format import DatasetError, DatasetReader, deformation_map
 from dataset.redepth import redepth_dataset
@@ -25,7 +25,7 @@ from dataset.synth import write_synthetic_dataset
 from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS
 from sim.cli import main as sim_cli
-from sim.ceiling import RUNGS, CeilingError, format_table, information_ceiling
+from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 
 SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 

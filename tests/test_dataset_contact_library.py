@@ -15,7 +15,7 @@ from dataset.contact_library import FAMILIES, library_sample, random_surface_mm,
 from dataset.format import DatasetError, DatasetReader, resize_rgb
 from perception.depthmap import DepthMapParams
 from sim.gelsight import scene_renderer
-from sim.scene import load_scene
+from workcell.scene import load_scene
 
 SCENE = Path(__file__).resolve().parent.parent / "scenes" / "ycb_three.yaml"
 
@@ -33,7 +33,7 @@ def test_the_library_is_reproducible_resumable_and_a_sound_dataset(tmp_path: Pat
 
 @pytest.mark.parametrize("family", FAMILIES)
 def test_a_pressed_depth_map_shows_its_contact_where_the_image_does(family: str) -> None:
-    scene = load_scene(SCENE, check_geometry=False)
+    scene = load_scene(SCENE)
     renderer = scene_renderer(scene, effects=False)
     background = resize_rgb(renderer.background(), 100, 100).astype(float)
     geometry = scene.gripper_geometry()

@@ -24,7 +24,7 @@ from nodes.inference import InferenceNode, cloud_id
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.registry import Registry
 from perception.depthmap import DepthMapParams, contact_depth_map
-from sim.scene import load_scene
+from workcell.scene import load_scene
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_points_and_gel_poses_give_the_patch_extractors_depth_maps(registry: Reg
     cloud = (poses[0] @ points_gel.T).T[:, :3]  # the same surface in front of gel 0 ...
     cloud = np.concatenate([cloud, (poses[1] @ points_gel.T).T[:, :3]])  # ... and of gel 1
     params = DepthMapParams(y_range_m=depth_range_m)
-    geometry = load_scene(InferenceNode.Params.scene, check_geometry=False).gripper_geometry()  # as the server's
+    geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     expected = np.stack([contact_depth_map(cloud, np.eye(4), pose, geometry, params).depth_map_m for pose in poses])
     with serving(registry, checkpoint), planner(registry) as client:
         images, _ = client.estimate_at(cloud, np.stack(poses))

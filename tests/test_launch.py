@@ -234,7 +234,7 @@ def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
         registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
     """It crash-looped: each respawn opened one more bag (session.1.mcap, ...) that the disk
     refused in turn. Now it stops with the do-not-respawn status and its bag reads."""
-    from dtx.bag import bag_info
+    from nodes.bag import bag_info
     bag = tmp_path / "session.mcap"
     path = write(tmp_path, "launch:\n"
                            "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.02, text_bytes: 4000}}\n"

@@ -18,7 +18,7 @@ from models.train import TrainConfig, load_generator, train
 from perception.depthmap import DepthMapParams
 from sim.gelsight import scene_renderer
 from sim.gelsight_check import ball_gap_map, load_ball_presses
-from sim.scene import load_scene
+from workcell.scene import load_scene
 
 REPO = Path(__file__).resolve().parent.parent
 PRESSES = REPO / "assets" / "gelsight" / "ball_presses.npz"
@@ -47,7 +47,7 @@ def _offset_from_centre(image_change: np.ndarray) -> np.ndarray:
 
 def test_an_off_centre_press_lands_on_the_same_side_in_depth_map_render_and_prediction(checkpoint: Path) -> None:
     presses = load_ball_presses(PRESSES)
-    scene = load_scene(SCENE, check_geometry=False)
+    scene = load_scene(SCENE)
     generator, depth_range_m = load_generator(checkpoint)
     # The press farthest from the frame's centre, in both axes.
     offsets = presses.centers_xy_px - (np.array(presses.background.shape[1::-1]) - 1) / 2

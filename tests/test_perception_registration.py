@@ -12,12 +12,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from perception.errors import PerceptionError, RegistrationError, SegmentationError
-from perception.evaluation import register_check, render_depth_images, segmentation_params_for
+from perception.segmentation import segmentation_params_for
+from sim.registration_check import register_check, render_depth_images
 from perception.pointcloud import depth_images_to_world
 from perception.registration import (ModelCloud, RegistrationParams, add_error_m, add_s_error_m, prepare_model,
                                      register_model, sample_model_cloud)
 from perception.segmentation import segment_object
-from sim.scene import load_scene
+from workcell.scene import load_scene
 from sim.shapes import write_shapes
 from sim.world import SimWorld
 

@@ -7,7 +7,7 @@ import pytest
 
 from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
 from workcell.kinematics import gel_poses_world, grasp_to_tcp_pose
-from sim.scene import parse_scene
+from workcell.scene import parse_scene
 from sim.world import SimWorld
 
 K = 0.25 / 2.0  # default gel: E = 0.25 MPa over 2 mm -> 0.125 N/mm per mm^2

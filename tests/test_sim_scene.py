@@ -8,7 +8,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from sim.scene import EFFECTS, SceneError, load_scene
+from sim.effects import EFFECTS
+from sim.world import SimWorld
+from workcell.scene import SceneError, load_scene
 from sim.shapes import write_shapes
 
 REPO = Path(__file__).resolve().parent.parent
@@ -28,7 +30,7 @@ def _write(tmp_path: Path, data: dict, name: str = "bad.yaml") -> Path:
 def _error(tmp_path: Path, data: dict) -> SceneError:
     path = _write(tmp_path, data)
     with pytest.raises(SceneError) as info:
-        load_scene(path)
+        SimWorld.from_file(path)
     err = info.value
     assert str(path) in str(err)  # names the file
     return err
@@ -36,7 +38,7 @@ def _error(tmp_path: Path, data: dict) -> SceneError:
 
 @pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
 def test_shipped_scenes_load(path: Path) -> None:
-    scene = load_scene(path)
+    scene = SimWorld.from_file(path).scene
     assert len(scene.cameras) == 2
     assert scene.objects
 
@@ -189,10 +191,6 @@ def test_missing_file() -> None:
 
 
 def test_gelsight_effects_validated(tmp_path: Path) -> None:
-    from sim.scene import gelsight_effects
-
-    if not gelsight_effects():
-        pytest.skip("sim.gelsight declares no effects")
     data = _ideal()
     data["effects"] = [{"name": "sensor_noise", "sigma_levels": -3.0}]
     err = _error(tmp_path, data)
@@ -203,7 +201,7 @@ def test_gelsight_effects_validated(tmp_path: Path) -> None:
 
 
 def test_an_objects_mesh_is_found_by_name() -> None:
-    scene = load_scene("scenes/ycb_three.yaml", check_geometry=False)
+    scene = load_scene("scenes/ycb_three.yaml")
     assert scene.mesh("mustard_bottle") == "assets/ycb/MustardBottle.obj"
     with pytest.raises(SceneError, match="no object with a mesh named 'mug'"):
         scene.mesh("mug")

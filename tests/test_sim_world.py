@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.scene import parse_scene
+from workcell.scene import parse_scene
 from sim.seeding import state_rng
 from sim.world import SimWorld
 
@@ -263,7 +263,7 @@ def test_point_cloud_uses_nominal_extrinsic() -> None:
 
 @pytest.mark.parametrize("name", ["ycb_three", "ideal"])
 def test_shipped_scene_frames(name: str) -> None:
-    from sim.scene import load_scene
+    from workcell.scene import load_scene
 
     w = SimWorld(load_scene(f"scenes/{name}.yaml"))
     for cam in w.camera_names():

@@ -22,7 +22,7 @@ import pytest
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
-from dtx.bag import BagWriter, bag_info
+from nodes.bag import BagWriter, bag_info
 from msgs.codec import decode, encode
 from nodes.bus import Bus
 from nodes.foxglove_bridge import FoxgloveBridge

@@ -22,7 +22,7 @@ from mcap.records import Chunk, Header
 from mcap.writer import CompressionType, Writer
 
 from dataset.format import DatasetInfo, DatasetWriter, subtract_background
-from dtx.bag import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
+from nodes.bag import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 from msgs.codec import encode
 import msgs
 
@@ -37,7 +37,7 @@ def run_capped(body: str, timeout_s: float = 120.0) -> dict:
     script = textwrap.dedent("""
         import json, resource
         from dataset.check import check_dataset
-        from dtx.bag import BagError, bag_info, iter_envelopes
+        from nodes.bag import BagError, bag_info, iter_envelopes
         vm = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
         resource.setrlimit(resource.RLIMIT_AS, (vm + (1 << 30), vm + (1 << 30)))
         result = {}

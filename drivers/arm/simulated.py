@@ -17,7 +17,9 @@ import numpy as np
 from drivers.arm.base import (ArmConnectionError, ArmError, MotionAbortedError, MotionLimits, WorkspaceError,
                               as_six_vector)
 from msgs import ArmState, Header
-from sim.arm import ArmKinematics, Motion, Repeatability, plan_joints, plan_linear, pose_matrix
+from sim.effects import resolve_effects
+from workcell.scene import load_scene
+from sim.arm import ArmKinematics, Motion, UnreachablePoseError, Repeatability, plan_joints, plan_linear, pose_matrix
 
 __all__ = ["SimulatedArm", "SimulatedArmConfig", "ArmError", "WorkspaceError"]
 
@@ -52,9 +54,7 @@ class SimulatedArm:
         self.config = config
         self.scene = None
         if config.scene:
-            from sim.scene import load_scene  # noqa: PLC0415
-
-            self.scene = load_scene(config.scene, check_geometry=False)
+            self.scene = resolve_effects(load_scene(config.scene))
         ws_min = np.array(config.workspace_min_m if config.workspace_min_m is not None else
                           (self.scene.workspace_min_m if self.scene else [-0.4, -0.3, 0.0]), float)
         ws_max = np.array(config.workspace_max_m if config.workspace_max_m is not None else
@@ -88,7 +88,7 @@ class SimulatedArm:
             c = 0.5 * (self.workspace[0] + self.workspace[1])
             home = grasp_to_tcp_pose(c[0], c[1], min(self.workspace[1][2], 0.35), 0.0)
         self._check_target(home)
-        self._q = self.kin.ik(home, _SEED_JOINTS)
+        self._q = self._ik(home, _SEED_JOINTS)
         self._pose = home
         self._connected = True
 
@@ -155,7 +155,7 @@ class SimulatedArm:
         self.limits.check_linear(speed_m_s, accel_m_s2)
         self._require_idle()
         self._check_target(target)
-        q_target = self.kin.ik(target, self._q)
+        q_target = self._ik(target, self._q)
         motion = plan_linear(self._pose.copy(), self._q.copy(), target, q_target, speed_m_s, accel_m_s2)
         self._run(motion)
 
@@ -172,6 +172,12 @@ class SimulatedArm:
     def stop(self) -> None:
         """Stop a move in progress where it is (the blocked move raises MotionAbortedError)."""
         self._stop.set()
+
+    def _ik(self, pose_world: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
+        try:
+            return self.kin.ik(pose_world, q_seed)
+        except UnreachablePoseError as err:
+            raise WorkspaceError(str(err)) from None
 
     def _require_idle(self) -> None:
         if not self._connected:
@@ -204,7 +210,7 @@ class SimulatedArm:
             elapsed = motion.duration_s
             if self.repeatability is not None:
                 pose = self.repeatability.perturb(pose)
-                q = self.kin.ik(pose, q)
+                q = self._ik(pose, q)
         with self._lock:
             self._pose, self._q = pose, q
             self._motion = None

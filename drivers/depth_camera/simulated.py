@@ -46,7 +46,7 @@ class SimulatedDepthCamera:
         self._next_t = 0.0
 
     def connect(self) -> None:
-        from sim.scene import SceneError  # noqa: PLC0415
+        from workcell.scene import SceneError  # noqa: PLC0415
         from sim.world import shared_world  # noqa: PLC0415
 
         try:

@@ -65,7 +65,7 @@ class SimulatedGelSight:
 
     def connect(self) -> None:
         from sim.gelsight import scene_renderer  # noqa: PLC0415
-        from sim.scene import SceneError  # noqa: PLC0415
+        from workcell.scene import SceneError  # noqa: PLC0415
         from sim.world import shared_world  # noqa: PLC0415
 
         try:

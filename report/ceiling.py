@@ -32,7 +32,7 @@ from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
 from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
 from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
-from sim.scene import Scene, SceneError, load_scene
+from workcell.scene import Scene, SceneError, load_scene
 from sim.world import SimWorld
 
 # Below this SSIM the "true contact" rung does not reproduce the session's images: the session
@@ -95,7 +95,7 @@ def information_ceiling(root: str | os.PathLike[str], split: str = "test", force
     if len(records) < 2:
         raise CeilingError(f"the {split} set of {root} has {len(records)} sample(s); need at least 2")
     try:
-        scene = load_scene(reader.info.scene, check_geometry=False)
+        scene = load_scene(reader.info.scene)
     except SceneError as exc:
         raise CeilingError(f"{root} names the scene {reader.info.scene!r}, which cannot be loaded: {exc}") from exc
     if reader.info.depth_crop_m is None:

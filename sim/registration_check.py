@@ -20,13 +20,11 @@ from perception.errors import PerceptionError
 from perception.pointcloud import depth_images_to_world
 from perception.registration import (ModelCloud, PreparedModel, RegistrationParams, add_error_m, add_s_error_m,
                                      prepare_model, register_model, sample_model_cloud)
-from perception.segmentation import SegmentationParams, segment_object
-from sim.scene import ObjectSpec, Scene, load_scene
+from perception.segmentation import segment_object, segmentation_params_for
+from workcell.scene import ObjectSpec, Scene, load_scene
 from sim.world import SimWorld
 
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
-# The table plane must be inside the crop even when a camera's calibration error lowers it.
-_TABLE_MARGIN_M = 0.05
 
 
 @dataclasses.dataclass
@@ -41,11 +39,6 @@ class Trial:
     coarse_ms: float
     fine_ms: float
     error: str = ""
-
-
-def segmentation_params_for(scene: Scene) -> SegmentationParams:
-    low = np.asarray(scene.workspace_min_m, dtype=np.float64) - [0.0, 0.0, _TABLE_MARGIN_M]
-    return SegmentationParams(workspace_min_m=tuple(low), workspace_max_m=tuple(scene.workspace_max_m))
 
 
 def render_depth_images(world: SimWorld, scene: Scene) -> list[DepthImage]:
@@ -130,7 +123,7 @@ def register_check(mesh_paths: Sequence[str | Path], trials: int, seed: int, sce
     """
     if trials < 1:
         raise PerceptionError(f"trials must be >= 1, got {trials}")
-    scene = load_scene(scene_path, check_geometry=False)
+    scene = load_scene(scene_path)
     scene = dataclasses.replace(scene, effects=[e for e in scene.effects if e.name not in set(drop_effects)])
     rng = np.random.default_rng(seed)
     report = {}

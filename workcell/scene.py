@@ -1,13 +1,15 @@
-"""Scene files: what the simulated world contains and which effects it simulates.
+"""Scene files: the workcell (table, objects, cameras, gripper, GelSight) and the effects a
+simulation of it calls for.
 
 A scene is a YAML file (see ``scenes/README.md`` for the schema). :func:`load_scene` reads
-and validates it completely before anything is simulated; every problem raises a
-:class:`SceneError` whose text names the file, the key (a dotted path such as
-``objects[1].relief[0].pitch_mm``) and the allowed values.
+and validates the workcell completely; every problem raises a :class:`SceneError` whose text
+names the file, the key (a dotted path such as ``objects[1].relief[0].pitch_mm``) and the
+allowed values. The lab nodes read it for the objects' meshes and the gripper geometry.
 
-Effects are named, composable pieces; the registry :data:`EFFECTS` lists each one with its
-family (``depth``, ``object``, ``arm``, ``gelsight``) and its parameters with their physical
-ranges. A scene lists only the effects it wants; an effect that is not listed is never run.
+Effects are listed here by name, with their parameters as written: which effects exist and
+what their parameters mean is the simulator's (``sim.effects``), which checks them, with the
+same kind of error, when it reads the scene (``SimWorld.from_file``). A lab node never runs an
+effect, so it does not need to know them.
 """
 from __future__ import annotations
 
@@ -19,6 +21,8 @@ from typing import Any
 
 import numpy as np
 import yaml
+
+from workcell.kinematics import GripperGeometry
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -35,130 +39,6 @@ class SceneError(ValueError):
         if allowed is not None:
             text += f" (allowed: {allowed})"
         super().__init__(text)
-
-
-# --------------------------------------------------------------------------------------
-# Effect registry
-# --------------------------------------------------------------------------------------
-
-@dataclasses.dataclass(frozen=True)
-class Param:
-    """One effect parameter: default, physical range [lo, hi] (None = unbounded), unit, and
-    ``size`` (0 = scalar, n = list of n numbers, each in range)."""
-
-    default: Any
-    lo: float | None = None
-    hi: float | None = None
-    unit: str = ""
-    size: int = 0
-    choices: tuple = ()
-
-    def describe(self) -> str:
-        if self.choices:
-            return f"one of {list(self.choices)}"
-        rng = f"[{self.lo}, {self.hi}]" + (f" {self.unit}" if self.unit else "")
-        return f"list of {self.size} numbers in {rng}" if self.size else f"number in {rng}"
-
-
-@dataclasses.dataclass(frozen=True)
-class EffectInfo:
-    family: str
-    params: dict[str, Param]
-    doc: str
-    per_camera: bool = False  # may carry a ``camera`` key restricting it to one camera
-
-
-EFFECTS: dict[str, EffectInfo] = {
-    # --- depth camera (Kinect v2); models and sources in sim/depth_effects.py ---
-    "extrinsic_offset": EffectInfo(
-        "depth",
-        {"translation_mm": Param([0.0, 0.0, 0.0], -100.0, 100.0, "mm", size=3),
-         "rotation_deg": Param([0.0, 0.0, 0.0], -10.0, 10.0, "deg", size=3)},
-        "true camera pose = nominal pose * offset (camera frame); the driver reports the nominal",
-        per_camera=True),
-    "lateral_noise": EffectInfo(
-        "depth",
-        {"sigma_px": Param(0.5, 0.0, 5.0, "px")},
-        "Gaussian jitter of each pixel's viewing ray (edges wander)", per_camera=True),
-    "flying_pixels": EffectInfo(
-        "depth",
-        {"jump_m": Param(0.02, 0.002, 1.0, "m"),
-         "probability": Param(0.5, 0.0, 1.0)},
-        "mixed foreground/background returns at depth discontinuities", per_camera=True),
-    "axial_noise": EffectInfo(
-        "depth",
-        {"a0_mm": Param(1.5, 0.0, 50.0, "mm"),
-         "a1_mm_per_m": Param(-0.5, -50.0, 50.0, "mm/m"),
-         "a2_mm_per_m2": Param(0.3, 0.0, 50.0, "mm/m^2"),
-         "a3_mm": Param(0.1, 0.0, 50.0, "mm/m^1.5"),
-         "scale": Param(1.0, 0.0, 10.0)},
-        "Gaussian range noise sigma(z, theta) (Fankhauser et al. 2015)", per_camera=True),
-    "missing_returns": EffectInfo(
-        "depth",
-        {"min_range_m": Param(0.5, 0.0, 2.0, "m"),
-         "max_range_m": Param(4.5, 0.5, 10.0, "m"),
-         "max_incidence_deg": Param(80.0, 30.0, 90.0, "deg"),
-         "ramp_deg": Param(10.0, 0.0, 40.0, "deg"),
-         "dropout_probability": Param(0.0, 0.0, 0.5)},
-        "no return out of range, at grazing incidence, and at random", per_camera=True),
-    "quantisation": EffectInfo(
-        "depth",
-        {"step_mm": Param(1.0, 0.01, 20.0, "mm")},
-        "depth rounded to the sensor's step", per_camera=True),
-    # --- objects ---
-    "micro_relief": EffectInfo(
-        "object",
-        {"scale": Param(1.0, 0.0, 5.0)},
-        "displaces object surfaces by the relief listed on each object (ridges, knurling, bumps)"),
-    # --- arm ---
-    "arm_repeatability": EffectInfo(
-        "arm",
-        {"sigma_mm": Param(0.033, 0.0, 5.0, "mm"),
-         "sigma_deg": Param(0.0, 0.0, 1.0, "deg")},
-        "each move ends at the target plus Gaussian position (and orientation) error"),
-}
-
-# Order in which depth effects run, whatever the order in the scene file: the geometric
-# ones change what the rays hit, the measurement ones what the sensor reports.
-DEPTH_EFFECT_ORDER = ("extrinsic_offset", "lateral_noise", "flying_pixels", "axial_noise",
-                      "missing_returns", "quantisation")
-
-
-def gelsight_effects() -> dict[str, EffectInfo]:
-    """GelSight effects, as declared by the renderer module ``sim.gelsight``.
-
-    ``sim.gelsight`` may declare ``EFFECTS`` as a mapping name -> {param: default} (or
-    name -> EffectInfo); parameters are then checked for name and type only, the renderer
-    checks their ranges. Without that module no GelSight effect is accepted.
-    """
-    try:
-        from sim import gelsight as gs  # noqa: PLC0415 (optional, written by another part)
-    except Exception:  # pragma: no cover - depends on the other module's state
-        return {}
-    declared = getattr(gs, "EFFECTS", None)
-    if declared is None:
-        declared = getattr(gs, "EFFECT_NAMES", None)
-    if declared is None:
-        return {}
-    out: dict[str, EffectInfo] = {}
-    if isinstance(declared, dict):
-        items = declared.items()
-    else:
-        items = ((name, {}) for name in declared)
-    for name, spec in items:
-        if isinstance(spec, EffectInfo):
-            out[str(name)] = spec
-            continue
-        params: dict[str, Param] = {}
-        if isinstance(spec, dict):
-            for key, default in spec.items():
-                params[str(key)] = Param(default)
-        elif dataclasses.is_dataclass(spec):
-            for field in dataclasses.fields(spec):
-                default = field.default if field.default is not dataclasses.MISSING else None
-                params[field.name] = Param(default)
-        out[str(name)] = EffectInfo("gelsight", params, "GelSight effect (sim.gelsight)")
-    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -239,10 +119,13 @@ class GelSightSpec:
 
 @dataclasses.dataclass
 class EffectSpec:
+    """An effect the scene calls for: its parameters as written (``sim.effects`` fills in the
+    defaults when the simulator reads the scene) and where it is in the file."""
+
     name: str
-    family: str
     params: dict[str, Any]
     camera: str | None = None  # depth effects: restricted to this camera (None = all)
+    key: str = "effects"  # its place in the file, e.g. "effects[2]", for error messages
 
 
 @dataclasses.dataclass
@@ -266,9 +149,6 @@ class Scene:
                 return spec
         return None
 
-    def effects_of(self, family: str) -> list[EffectSpec]:
-        return [spec for spec in self.effects if spec.family == family]
-
     def camera(self, name: str) -> CameraSpec:
         for cam in self.cameras:
             if cam.name == name:
@@ -284,11 +164,10 @@ class Scene:
         raise SceneError(self.path, "objects", f"no object with a mesh named {object_name!r}",
                          [o.name for o in self.objects if o.mesh])
 
-    def gripper_geometry(self):
-        """The perception module's :class:`GripperGeometry` for this scene's gripper; its sensed
-        area is the GelSight image's field of view (``image_width`` x ``image_height`` pixels
-        of ``mm_per_px``, centred on the gel)."""
-        from workcell.kinematics import GripperGeometry  # noqa: PLC0415
+    def gripper_geometry(self) -> GripperGeometry:
+        """The :class:`GripperGeometry` of this scene's gripper; its sensed area is the GelSight
+        image's field of view (``image_width`` x ``image_height`` pixels of ``mm_per_px``,
+        centred on the gel)."""
         gs = self.gelsight
         return GripperGeometry(tcp_to_gel_centre_m=self.gripper.tcp_to_gel_centre_m,
                                gel_size_m=tuple(self.gripper.gel_size_m),
@@ -301,7 +180,9 @@ class Scene:
 # Validation helpers
 # --------------------------------------------------------------------------------------
 
-class _Reader:
+class SceneReader:
+    """Checks one value of a scene file at a time, raising SceneError with the file and key."""
+
     def __init__(self, file: str):
         self.file = file
 
@@ -392,10 +273,9 @@ def resolve_path(path: str | os.PathLike) -> Path:
     return p.resolve()
 
 
-def load_scene(path: str | os.PathLike, check_geometry: bool = True) -> Scene:
-    """Read and validate a scene file. ``check_geometry`` (default) also loads the meshes and
-    checks that they are non-empty and manifold, that every object lies in the workspace and
-    that every camera sees part of the workspace (this builds the world once)."""
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read and validate a scene file's workcell (no mesh loading: the simulator checks the
+    meshes, the objects' placement and the cameras' view when it builds the world)."""
     file_path = resolve_path(path)
     file = str(path)
     if not file_path.is_file():
@@ -406,15 +286,12 @@ def load_scene(path: str | os.PathLike, check_geometry: bool = True) -> Scene:
         raise SceneError(file, "<file>", f"not valid YAML: {exc}", "YAML") from None
     scene = parse_scene(data, file)
     scene.path = str(file_path)
-    if check_geometry:
-        from sim.world import SimWorld  # noqa: PLC0415 (world imports this module)
-        SimWorld(scene, check=True, file_label=file)
     return scene
 
 
 def parse_scene(data: Any, file: str = "<scene>") -> Scene:
     """Validate the YAML content of a scene (no mesh loading)."""
-    r = _Reader(file)
+    r = SceneReader(file)
     if data is None:
         data = {}
     r.mapping(data, "", _TOP_KEYS, required=("workspace", "objects", "cameras"))
@@ -454,7 +331,7 @@ _POSE_KEYS = {"x_m": "", "y_m": "", "z_m": "", "yaw_deg": ""}
 _RELIEF_KEYS = {"kind": "", "pitch_mm": "", "depth_mm": "", "axis": "", "angle_deg": ""}
 
 
-def _parse_objects(r: _Reader, value: Any) -> list[ObjectSpec]:
+def _parse_objects(r: SceneReader, value: Any) -> list[ObjectSpec]:
     if not isinstance(value, list):
         r.fail("objects", "expected a list of objects", "list of {name, mesh|primitive, pose, relief}")
     objects, names = [], set()
@@ -518,7 +395,7 @@ _INTR_KEYS = {"width": "", "height": "", "fx": "", "fy": "", "cx": "", "cy": ""}
 _CAM_POSE_KEYS = {"position_m": "", "look_at_m": "", "roll_deg": ""}
 
 
-def _parse_cameras(r: _Reader, value: Any) -> list[CameraSpec]:
+def _parse_cameras(r: SceneReader, value: Any) -> list[CameraSpec]:
     if not isinstance(value, list) or not value:
         r.fail("cameras", "expected a non-empty list of cameras", "list of {name, intrinsics, pose}")
     cams, names = [], set()
@@ -555,7 +432,7 @@ _GRIPPER_KEYS = {"tcp_to_gel_centre_m": "", "max_width_m": "", "gel_size_mm": ""
 _GELSIGHT_KEYS = {"image_height": "", "image_width": "", "mm_per_px": ""}
 
 
-def _parse_gripper(r: _Reader, g: Any, s: Any) -> tuple[GripperSpec, GelSightSpec]:
+def _parse_gripper(r: SceneReader, g: Any, s: Any) -> tuple[GripperSpec, GelSightSpec]:
     g = r.mapping(g or {}, "gripper", _GRIPPER_KEYS)
     spec = GripperSpec()
     if "tcp_to_gel_centre_m" in g:
@@ -581,62 +458,26 @@ def _parse_gripper(r: _Reader, g: Any, s: Any) -> tuple[GripperSpec, GelSightSpe
     return spec, gs
 
 
-def _parse_effects(r: _Reader, value: Any, camera_names: list[str]) -> list[EffectSpec]:
+def _parse_effects(r: SceneReader, value: Any, camera_names: list[str]) -> list[EffectSpec]:
+    """The effects as listed: each a name, or a mapping with a name, an optional ``camera`` of
+    this scene and its parameters (checked by the simulator's registry, ``sim.effects``)."""
     if not isinstance(value, list):
-        r.fail("effects", "expected a list of effects", sorted(EFFECTS))
-    registry = dict(EFFECTS)
-    registry.update(gelsight_effects())
+        r.fail("effects", "expected a list of effects", "list of names or {name, parameters}")
     out: list[EffectSpec] = []
     seen: set[tuple[str, str | None]] = set()
     for i, item in enumerate(value):
         key = f"effects[{i}]"
         if isinstance(item, str):
             item = {"name": item}
-        if not isinstance(item, dict) or "name" not in item:
-            r.fail(key, "expected a mapping with a name", sorted(registry))
+        if not isinstance(item, dict) or not isinstance(item.get("name"), str):
+            r.fail(key, "expected an effect name or a mapping with a name", "see scenes/README.md")
         name = item["name"]
-        if name not in registry:
-            r.fail(f"{key}.name", f"unknown effect {name!r}", sorted(registry))
-        info = registry[name]
-        allowed = dict(info.params)
-        extra = {"name": None}
-        if info.per_camera:
-            extra["camera"] = None
-        for k in item:
-            if k not in allowed and k not in extra:
-                r.fail(f"{key}.{k}", f"unknown parameter of effect {name!r}", sorted(set(allowed) | set(extra)))
         camera = None
         if "camera" in item:
             camera = r.string(item["camera"], f"{key}.camera", tuple(camera_names))
         if (name, camera) in seen or (name, None) in seen or (camera is None and any(n == name for n, _ in seen)):
             r.fail(key, f"effect {name!r} listed twice for the same camera", "each effect once per target")
         seen.add((name, camera))
-        params: dict[str, Any] = {}
-        for pname, p in info.params.items():
-            v = item.get(pname, p.default)
-            pkey = f"{key}.{pname}"
-            if p.choices:
-                v = r.string(v, pkey, p.choices)
-            elif p.size:
-                v = r.vector(v, pkey, p.size, p.lo, p.hi, p.unit).tolist()
-            elif p.lo is not None or p.hi is not None:
-                v = r.number(v, pkey, p.lo, p.hi, p.unit)
-            params[pname] = v
-        if info.family == "gelsight":
-            for pname in info.params:
-                if pname not in item:
-                    params.pop(pname)  # the renderer's own default
-            try:
-                from sim.gelsight_effects import make_effect  # noqa: PLC0415
-
-                make_effect(name, params)
-            except ImportError:  # pragma: no cover
-                pass
-            except Exception as exc:  # GelSightError or a bad type
-                bad = next((k for k in params if k in str(exc)), None)
-                r.fail(f"{key}.{bad}" if bad else key, f"invalid GelSight effect parameters: {exc}",
-                       {k: p.default for k, p in info.params.items()})
-        if name == "missing_returns" and params["max_range_m"] <= params["min_range_m"]:
-            r.fail(f"{key}.max_range_m", "must exceed min_range_m", f"({params['min_range_m']}, 10.0] m")
-        out.append(EffectSpec(name, info.family, params, camera))
+        params = {k: v for k, v in item.items() if k not in ("name", "camera")}
+        out.append(EffectSpec(name, params, camera, key))
     return out
