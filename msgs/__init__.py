@@ -5,12 +5,12 @@ from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from msgs.perception import DepthMap, PatchReply, PatchRequest, RegisterReply, RegisterRequest
 from msgs.robot import ArmMoveRequest, ArmState, GraspCommand, GripperCommand, GripperState
 from msgs.sensors import CameraIntrinsics, DepthImage, PointCloud, TactileImage
-from msgs.system import Clock, Empty, FrameTransform, Heartbeat, Log, ServiceError
+from msgs.system import Clock, Empty, ErrorCode, FrameTransform, Heartbeat, Log, ServiceError
 
 __all__ = [
     "MESSAGE_TYPES", "Header", "Message", "DatasetSample", "TactileEstimateReply",
     "TactileEstimateRequest", "DepthMap", "PatchReply", "PatchRequest", "RegisterReply",
     "RegisterRequest", "ArmMoveRequest", "ArmState", "GraspCommand", "GripperCommand",
     "GripperState", "CameraIntrinsics", "DepthImage", "PointCloud", "TactileImage", "Clock",
-    "Empty", "FrameTransform", "Heartbeat", "Log", "ServiceError",
+    "Empty", "ErrorCode", "FrameTransform", "Heartbeat", "Log", "ServiceError",
 ]

@@ -64,9 +64,27 @@ class Empty(Message):
     VERSION = 1
 
 
+class ErrorCode:
+    """What went wrong with a service call, for the caller's program to branch on; a
+    ServiceError's ``text`` is for people and may be reworded (docs/wire-protocol.md §3)."""
+
+    BAD_REQUEST = "bad_request"  # the request breaks the protocol or the service's rules
+    WRONG_TYPE = "wrong_type"  # a valid message of another schema
+    HANDLER_ERROR = "handler_error"  # the server failed on a valid request (a bug)
+    UNKNOWN_CLOUD = "unknown_cloud"  # inference: a cloud id this worker does not hold
+    NOT_REGISTERED = "not_registered"  # patch extractor: the object has no registered pose
+    OUT_OF_REACH = "out_of_reach"  # patch extractor: a gel reaches no point of the object
+    # Set by the calling side (nodes.bus.ServiceClient), never sent:
+    TIMEOUT = "timeout"
+    UNAVAILABLE = "unavailable"
+    CANCELLED = "cancelled"
+    REQUEST_TOO_LARGE = "request_too_large"
+
+
 @dataclasses.dataclass
 class ServiceError(Message):
-    """The reply a service sends instead of its answer when a request cannot be served."""
+    """The reply a service sends instead of its answer when a request cannot be served:
+    ``code`` one of :class:`ErrorCode`'s, ``text`` what happened, for people."""
 
     SCHEMA = "dtx.system.ServiceError"
     VERSION = 1

@@ -36,7 +36,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from msgs.base import Header, Message
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, MAX_HEADER_BYTES, Envelope, MessageError, decode, encode
-from msgs.system import ServiceError
+from msgs.system import ErrorCode, ServiceError
 from nodes.registry import Endpoint, Registry
 from nodes.security import CurveConfig, secure_client, secure_server, stop_authenticator
 
@@ -475,7 +475,7 @@ class ServiceServer(Generic[M, R]):
             error = TypeError(f"handler returned {type(reply).__name__}, not {self.reply_type.__name__}")
         if error is not None:
             log.error("%s: handler failed: %s: %s", self.name, type(error).__name__, error)
-            return ServiceError(code=getattr(error, "code", "handler_error"), text=f"{type(error).__name__}: {error}")
+            return ServiceError(code=getattr(error, "code", ErrorCode.HANDLER_ERROR), text=f"{type(error).__name__}: {error}")
         return reply
 
     def _remember(self, key: tuple[bytes, str, int], frames: list[Any], digest: bytes) -> None:
@@ -497,7 +497,7 @@ class ServiceServer(Generic[M, R]):
             # The reply carries the request's (p, q) whenever they can be read, so a client
             # waiting for that q gets its answer instead of a time-out.
             client, seq = request_id(frames[1:])
-            self._send(identity, ServiceError(code="bad_request", text=str(exc)), client, seq)
+            self._send(identity, ServiceError(code=ErrorCode.BAD_REQUEST, text=str(exc)), client, seq)
             return
         key = (identity, envelope.publisher, envelope.message.header.seq)
         # A retry resends the very frames; the same (publisher, seq) with other content is not
@@ -512,7 +512,7 @@ class ServiceServer(Generic[M, R]):
             earlier = next((d for pending_key, _, d in self._pending if pending_key == key), None)
         if earlier is not None and earlier != digest:
             self.counters.malformed += 1
-            self._send(identity, ServiceError(code="bad_request", text=(
+            self._send(identity, ServiceError(code=ErrorCode.BAD_REQUEST, text=(
                 f"request {envelope.message.header.seq} of {envelope.publisher} was already used for another "
                 "request: a retry must resend the same request, a new request needs a new sequence number")),
                 envelope.publisher, envelope.message.header.seq)
@@ -528,7 +528,7 @@ class ServiceServer(Generic[M, R]):
         if not isinstance(request, self.request_type):
             self.counters.wrong_type += 1
             reply: Message = ServiceError(
-                code="wrong_type", text=f"{self.name} takes {self.request_type.SCHEMA}, got {request.SCHEMA}")
+                code=ErrorCode.WRONG_TYPE, text=f"{self.name} takes {self.request_type.SCHEMA}, got {request.SCHEMA}")
         else:
             self.counters.received += 1
             try:
@@ -597,7 +597,7 @@ class ServiceClient(Generic[M, R]):
 
     def _check_cancelled(self) -> None:
         if self._stop():
-            raise ServiceCallError(self.name, "cancelled", "the calling node is shutting down")
+            raise ServiceCallError(self.name, ErrorCode.CANCELLED, "the calling node is shutting down")
 
     def _send_when_connected(self, frames: list[Any], deadline: float) -> bool:
         """Send once a server is connected (a DEALER would block forever with none), looking
@@ -633,20 +633,20 @@ class ServiceClient(Generic[M, R]):
             raise TypeError(f"{self.name} takes {self.request_type.__name__}, not {type(request).__name__}")
         if not self.wait_for_service(timeout_s):
             self._check_cancelled()
-            raise ServiceCallError(self.name, "unavailable", "no server found on the bus")
+            raise ServiceCallError(self.name, ErrorCode.UNAVAILABLE, "no server found on the bus")
         self.seq += 1
         frames = encode(self.name, request, self.id, Header(stamp_ns=time.time_ns(), seq=self.seq,
                                                              frame_id=request.header.frame_id))
         size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
         if size > self.bus.transport.max_message_bytes:
             # A server drops an oversized request unread, so no reply could ever say why.
-            raise ServiceCallError(self.name, "request_too_large",
+            raise ServiceCallError(self.name, ErrorCode.REQUEST_TOO_LARGE,
                                    f"request of {size} bytes exceeds the limit of {self.bus.transport.max_message_bytes}")
-        failure = ("timeout", f"no reply in {1 + retries} attempts of {timeout_s} s")
+        failure = (ErrorCode.TIMEOUT, f"no reply in {1 + retries} attempts of {timeout_s} s")
         for _attempt in range(1 + retries):
             deadline = time.monotonic() + timeout_s
             if not self._send_when_connected(frames, deadline):
-                failure = ("unavailable", f"no server came back in {timeout_s} s")
+                failure = (ErrorCode.UNAVAILABLE, f"no server came back in {timeout_s} s")
                 continue  # every known server is gone; the next attempt looks again
             reply = self._await_reply(deadline)
             if isinstance(reply, list):  # the servers it may have gone to died: resend
@@ -655,7 +655,7 @@ class ServiceClient(Generic[M, R]):
                 continue
             if reply is not None:
                 return reply
-            failure = ("timeout", f"no reply in {1 + retries} attempts of {timeout_s} s")
+            failure = (ErrorCode.TIMEOUT, f"no reply in {1 + retries} attempts of {timeout_s} s")
         raise ServiceCallError(self.name, *failure)
 
     def _await_reply(self, deadline: float) -> R | list[Endpoint] | None:

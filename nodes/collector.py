@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import msgs
+from msgs.system import ErrorCode
 from dataset.announced import write_samples
 from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
@@ -201,7 +202,7 @@ class CollectorNode(Node):
             except ServiceCallError as error:  # a node died or a device failed: same draw again
                 self.stats.device_retries += 1
                 self.log.warning("grasp %d: %s; waiting for the node and redoing the grasp", grasp_id, error)
-                if error.code == "handler_error" and "not registered" in error.text:
+                if error.code == ErrorCode.NOT_REGISTERED:
                     self.registered.pop(object_name, None)
                 self.wait_for_nodes()
             finally:
@@ -300,7 +301,7 @@ class CollectorNode(Node):
                                                             gel_right_to_world=gels["right"]),
                                           timeout_s=p.call_timeout_s)
             except ServiceCallError as error:
-                if "does not reach the object" in error.text:
+                if error.code == ErrorCode.OUT_OF_REACH:
                     raise GraspFailed("the registered model is out of the gel's reach") from error
                 raise
         pose = [float(x), float(y), float(z), float(theta)]
@@ -323,7 +324,7 @@ class CollectorNode(Node):
         stream too (a simulated gel presses only once its node has it), so the settling time
         counts from here, not from the grasp reply, which can come a state period earlier."""
         if not self.spin_until(lambda: self.grip_seen_ns > 0, self.params.call_timeout_s):
-            raise ServiceCallError("gripper", "timeout", "no /gripper/state reporting the grip")
+            raise ServiceCallError("gripper", ErrorCode.TIMEOUT, "no /gripper/state reporting the grip")
         return self.grip_seen_ns
 
     def capture_at_contact(self, contact_ns: int) -> dict[str, msgs.TactileImage]:
@@ -331,7 +332,7 @@ class CollectorNode(Node):
         after = contact_ns + int(self.params.settle_s * 1e9)
         if not self.spin_until(lambda: all(f in self.tactile and self.tactile[f].header.stamp_ns > after
                                            for f in FINGERS), self.params.settle_s + 5.0):
-            raise ServiceCallError("gelsight", "timeout", "no tactile frame after contact")
+            raise ServiceCallError("gelsight", ErrorCode.TIMEOUT, "no tactile frame after contact")
         return dict(self.tactile)
 
     def write_grasp(self, grasp_id: int, object_name: str, pose: list[float], images: dict[str, msgs.TactileImage],

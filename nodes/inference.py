@@ -56,6 +56,7 @@ from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
 from models.ssim import to_uint8_rgb
 from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
+from msgs.system import ErrorCode
 from nodes.node import Node, run_node
 from perception.depthmap import DepthMapParams, contact_depth_maps
 from perception.errors import PerceptionError
@@ -68,13 +69,13 @@ PRECISIONS = ("fp32", "bf16")
 class BadRequest(ValueError):
     """A request the server cannot answer; the bus sends it back as ServiceError(code, text)."""
 
-    code = "bad_request"
+    code = ErrorCode.BAD_REQUEST
 
 
 class UnknownCloud(ValueError):
     """A ``cloud_id`` this worker does not hold: the client sends the points again."""
 
-    code = "unknown_cloud"
+    code = ErrorCode.UNKNOWN_CLOUD
 
 
 def cloud_id(points: np.ndarray) -> str:

@@ -25,14 +25,15 @@ from typing import Any
 import numpy as np
 
 import msgs
+from msgs.system import ErrorCode
 from nodes.node import Node, run_node
 from nodes.transforms import frame_transform
 from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, centre_between_gels,
                                  contact_depth_map, crop_reach_m)
-from perception.segmentation import segmentation_params_for
+from perception.errors import OutOfReachError
 from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
 from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud
-from perception.segmentation import segment_object
+from perception.segmentation import segment_object, segmentation_params_for
 from workcell.scene import load_scene
 
 
@@ -40,6 +41,18 @@ from workcell.scene import load_scene
 class Registered:
     model: VoxelIndex  # the dense depth-map cloud, in the model frame
     model_to_world: np.ndarray
+
+
+class NotRegistered(ValueError):
+    """A patch asked for an object with no registered pose: the caller registers it again."""
+
+    code = ErrorCode.NOT_REGISTERED
+
+
+class GelOutOfReach(ValueError):
+    """A gel reaches no point of the registered model: that grasp cannot give a patch."""
+
+    code = ErrorCode.OUT_OF_REACH
 
 
 class PatchExtractorNode(Node):
@@ -118,7 +131,7 @@ class PatchExtractorNode(Node):
     def on_patch(self, request: msgs.PatchRequest) -> msgs.PatchReply:
         registered = self.registered.get(request.object_name)
         if registered is None:
-            raise ValueError(f"object {request.object_name!r} is not registered; call /perception/register first")
+            raise NotRegistered(f"object {request.object_name!r} is not registered; call /perception/register first")
         gels = {"left": request.gel_left_to_world, "right": request.gel_right_to_world}
         model_to_world = registered.model_to_world
         near = {finger: registered.model.within(transform_points(gel[:3, 3][None], np.linalg.inv(model_to_world))[0],
@@ -129,7 +142,11 @@ class PatchExtractorNode(Node):
                                                  gels["left"], gels["right"], self.geometry)
         maps = {}
         for finger, gel_to_world in gels.items():
-            patch = contact_depth_map(near[finger], model_to_world, gel_to_world, self.geometry, self.depth_map_params)
+            try:
+                patch = contact_depth_map(near[finger], model_to_world, gel_to_world, self.geometry,
+                                          self.depth_map_params)
+            except OutOfReachError as err:
+                raise GelOutOfReach(f"{finger} gel: {err}") from err
             maps[finger] = msgs.DepthMap(header=msgs.Header(frame_id=f"gel_{finger}"), depth_map_m=patch.depth_map_m,
                                          finger=finger, crop_m=list(patch.crop_m), y_range_m=list(patch.y_range_m),
                                          point_count=patch.point_count,

@@ -42,7 +42,7 @@ import dataclasses
 import numba
 import numpy as np
 
-from perception.errors import DepthMapError
+from perception.errors import DepthMapError, OutOfReachError
 from workcell.kinematics import GripperGeometry
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform
@@ -287,7 +287,7 @@ def _cut(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndar
                 np.array([half_x, half_z, y_near, y_far]), _edges(half_x, cols), _edges(half_z, rows), min_y, counts)
     empty = np.flatnonzero(counts == 0)
     if empty.size and not allow_empty:
-        raise DepthMapError(f"{f'region {int(empty[0])}: ' if batch else ''}"
+        raise OutOfReachError(f"{f'region {int(empty[0])}: ' if batch else ''}"
                             f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
                             f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
                             "the gel does not reach the object")

@@ -20,3 +20,7 @@ class RegistrationError(PerceptionError):
 
 class DepthMapError(PerceptionError):
     """A contact depth-map without a right answer (empty patch, degenerate crop or bins)."""
+
+
+class OutOfReachError(DepthMapError):
+    """No model point in a gel's contact volume: the gel does not reach the object."""
