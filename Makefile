@@ -12,6 +12,7 @@ $(STAMP): pyproject.toml constraints.txt scripts/setup.sh clients/node/package-l
 	touch $@
 
 test: setup
+	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -p no:cacheprovider tests
 
 demo: setup

@@ -16,7 +16,6 @@ import rtde_receive
 
 from drivers.arm.base import MotionAbortedError
 from drivers.arm.ur import STATE_VARIABLES, URArm, URArmConfig
-
 from drivers.arm.ur_controller_sim import CMD_STOPL, FakeURController
 
 POLL_PERIOD_S = 50e-6

@@ -37,6 +37,7 @@ from msgs.codec import MessageError, decode, encode
 from nodes.bus import Bus
 from nodes.registry import Registry
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--messages", type=int, default=10_000, help="mutated messages per endpoint")
     parser.add_argument("--grasps", type=int, default=600, help="session size (long enough to fuzz every endpoint)")

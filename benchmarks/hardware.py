@@ -18,8 +18,8 @@ import argparse
 import multiprocessing as mp
 import tempfile
 import time
-from pathlib import Path
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -95,9 +95,9 @@ def stop_preemption(samples: int) -> dict[str, Any]:
     """p50/p99 (ms) from a stop request to its reply through the gripper node, while the node
     runs a 9 s grasp that finds nothing; ``preempted`` counts stops that left the fingers
     short of the grasp's end."""
-    import threading  # noqa: PLC0415
+    import threading
 
-    from nodes.gripper import GripperNode  # noqa: PLC0415
+    from nodes.gripper import GripperNode
 
     registry = Registry(Path(tempfile.mkdtemp(prefix="dtxb")))
     with _FirmwareProcess() as port:

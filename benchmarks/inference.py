@@ -60,12 +60,12 @@ def synthetic_inputs(count: int, seed: int, generator: UNetGenerator, depth_rang
 
 def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int,
                  workdir: Path) -> Runner:
-    import onnxruntime as ort  # noqa: PLC0415
+    import onnxruntime as ort
 
     path = workdir / "generator.onnx"
     export_onnx(generator, path)
     if int8:
-        from onnxruntime import quantization as oq  # noqa: PLC0415
+        from onnxruntime import quantization as oq
 
         class Calibration(oq.CalibrationDataReader):
             def __init__(self) -> None:
@@ -118,7 +118,7 @@ def fp32_peak_gflops(seconds: float = 1.0, size: int = 1536) -> float:
 def gflop_per_region(generator: UNetGenerator, inputs: np.ndarray) -> float:
     """The generator's floating-point operations for one region (GFLOP), as counted by
     torch.utils.flop_counter (convolutions and matrix products)."""
-    from torch.utils.flop_counter import FlopCounterMode  # noqa: PLC0415
+    from torch.utils.flop_counter import FlopCounterMode
 
     with torch.inference_mode(), FlopCounterMode(display=False) as counter:
         UncheckedGenerator(generator).eval()(torch.from_numpy(inputs[:1]))
@@ -127,7 +127,7 @@ def gflop_per_region(generator: UNetGenerator, inputs: np.ndarray) -> float:
 
 def _generator(width: int, checkpoint: str | None, seed: int) -> tuple[UNetGenerator, tuple[float, float]]:
     if checkpoint:
-        from models.train import load_generator  # noqa: PLC0415
+        from models.train import load_generator
 
         return load_generator(checkpoint)
     torch.manual_seed(seed)
@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
 def test_split_inputs(dataset: str, generator: UNetGenerator, depth_range_m: tuple[float, float]
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(network inputs, ground-truth uint8 images) of a dataset's test split."""
-    from models.data import load_pairs, reader_for_model, select_records  # noqa: PLC0415
+    from models.data import load_pairs, reader_for_model, select_records
 
     reader = reader_for_model(dataset, depth_range_m)
     x, y = load_pairs(reader, select_records(reader, "test"), generator.config, generator.prior)

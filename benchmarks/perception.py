@@ -19,16 +19,21 @@ import numpy as np
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
 from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps, min_y_per_bin
 from perception.errors import PerceptionError
-from perception.segmentation import segmentation_params_for
-from sim.registration_check import register_check, render_depth_images, scene_with_object
-from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world
-from perception.registration import (RegistrationParams, add_error_m, add_s_error_m, prepare_model,
-                                     register_model, sample_model_cloud)
-from perception.segmentation import segment_object
-from workcell.scene import load_scene
+from perception.registration import (
+    RegistrationParams,
+    add_error_m,
+    add_s_error_m,
+    prepare_model,
+    register_model,
+    sample_model_cloud,
+)
+from perception.segmentation import segment_object, segmentation_params_for
+from sim.registration_check import register_check, render_depth_images, scene_with_object
 from sim.world import SimWorld
+from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from workcell.scene import load_scene
 
 PARTS = ("binning", "segmentation", "registration", "sweeps", "depthmap")
 REPO = Path(__file__).resolve().parent.parent

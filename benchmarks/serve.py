@@ -46,14 +46,19 @@ from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
 from models.train import TrainConfig, load_generator
 from nodes.bus import Bus
-from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.inference import InferenceNode
+from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.registry import Registry
-from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
-                                 contact_depth_maps)
-from workcell.kinematics import GripperGeometry
+from perception.depthmap import (
+    MODEL_CLOUD_SEED,
+    MODEL_POINT_SPACING_M,
+    DepthMapParams,
+    contact_depth_map,
+    contact_depth_maps,
+)
 from perception.pointcloud import VoxelIndex
 from perception.registration import ModelCloud, sample_model_cloud
+from workcell.kinematics import GripperGeometry
 from workcell.scene import load_scene
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)  # the synthetic dataset's (dataset.synth)

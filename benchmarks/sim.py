@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> list[dict]:
     depth_rows(f"{scene.name} default effects", scene, target=15.0)
 
     # --- grasp contact and GelSight frames -------------------------------------------
-    from workcell.kinematics import grasp_to_tcp_pose
     from sim.gelsight import GelSightConfig, GelSightRenderer
+    from workcell.kinematics import grasp_to_tcp_pose
 
     world = SimWorld(ideal)
     verts = world.object_meshes[min(1, len(world.object_meshes) - 1)][0]

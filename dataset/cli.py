@@ -31,7 +31,7 @@ def _export(args: argparse.Namespace) -> int:
 
 @exit_1_on(DatasetError, OSError)
 def _synth(args: argparse.Namespace) -> int:
-    from dataset.synth import write_synthetic_dataset  # noqa: PLC0415 (imports the renderer)
+    from dataset.synth import write_synthetic_dataset
 
     writer = write_synthetic_dataset(args.out, args.samples, args.seed, progress=True)
     print(f"{args.out}: {len(writer)} samples")
@@ -40,9 +40,9 @@ def _synth(args: argparse.Namespace) -> int:
 
 @exit_1_on(DatasetError, OSError)
 def _library(args: argparse.Namespace) -> int:
-    from dataset.contact_library import write_contact_library  # noqa: PLC0415 (imports the renderer)
-    from perception.errors import DepthMapError  # noqa: PLC0415
-    from workcell.scene import SceneError  # noqa: PLC0415
+    from dataset.contact_library import write_contact_library
+    from perception.errors import DepthMapError
+    from workcell.scene import SceneError
 
     try:
         writer = write_contact_library(args.out, args.samples, args.seed, args.scene, tuple(args.depth_range_m),
@@ -56,7 +56,7 @@ def _library(args: argparse.Namespace) -> int:
 
 @exit_1_on(DatasetError, OSError)
 def _redepth(args: argparse.Namespace) -> int:
-    from dataset.redepth import density_dirs, redepth_dataset  # noqa: PLC0415 (imports Open3D)
+    from dataset.redepth import density_dirs, redepth_dataset
 
     targets: dict[float | None, object] = dict(density_dirs(args.dir, args.density)) if args.density else {}
     if args.out:

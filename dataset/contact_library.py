@@ -25,6 +25,7 @@ used: they are for evaluation only.
 from __future__ import annotations
 
 import os
+
 import numpy as np
 from tqdm import tqdm
 
@@ -32,9 +33,9 @@ from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_versio
 from dataset.synth import SurfaceMm, gel_gap_from_surface
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
-from workcell.kinematics import GripperGeometry
-from sim.gelsight import GelSightRenderer, scene_renderer
 from sim.effects import effects_of, resolve_effects
+from sim.gelsight import GelSightRenderer, scene_renderer
+from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, load_scene
 
 FAMILIES = ("sphere", "cylinder", "wedge", "corner", "textured", "height_field")

@@ -254,7 +254,7 @@ def deformation_map(tactile_diff_rgb: np.ndarray) -> np.ndarray:
 
 def code_version() -> str:
     """Package version plus the git commit of the checkout when there is one."""
-    from importlib.metadata import PackageNotFoundError, version
+    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415 - read once per dataset
 
     try:
         text = f"dtx {version('dtx')}"

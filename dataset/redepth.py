@@ -20,12 +20,11 @@ from tqdm import tqdm
 
 from dataset.format import DatasetError, DatasetReader, DatasetWriter, resize_rgb
 from perception.density import downsample_to_density
-from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map,
-                                 crop_reach_m)
+from perception.depthmap import MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_reach_m
 from perception.errors import DepthMapError
-from workcell.kinematics import GripperGeometry
 from perception.pointcloud import VoxelIndex
 from perception.registration import sample_model_cloud
+from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, SceneError, load_scene
 
 

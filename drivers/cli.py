@@ -69,7 +69,7 @@ def _with_device(node: NodeLike, action: Callable[[Any], None]) -> DeviceCheck:
         backend.connect()
     # A pre-flight must report every failure whatever raised it: the drivers' own errors,
     # a bad parameter (ValueError), or a library that is not installed (ImportError).
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - see above
         _record(result, exc)
         return result
     try:
@@ -78,7 +78,7 @@ def _with_device(node: NodeLike, action: Callable[[Any], None]) -> DeviceCheck:
         _record(result, exc)
     try:
         backend.disconnect()
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - any failure to let go is reported
         result.error = result.error or f"connected, but disconnecting failed: {type(exc).__name__}: {exc}"
     return result
 

@@ -50,7 +50,7 @@ def _bus(name: str) -> Any:
 
 # -- launch / node -----------------------------------------------------------------------
 def cmd_launch(args: argparse.Namespace) -> int:
-    from dtx.launch import LaunchError, Launcher, load_launch, parse_launch_args
+    from dtx.launch import Launcher, LaunchError, load_launch, parse_launch_args
     try:
         description = load_launch(args.file, parse_launch_args(args.args))
     except LaunchError as exc:

@@ -78,9 +78,9 @@ def paper_table(evaluation: dict) -> str:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from dataset.redepth import density_dirs  # noqa: PLC0415 (Open3D; only when the demo runs)
-    from models.real_presses import real_press_table  # noqa: PLC0415 (torch; only when the demo runs)
-    from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3  # noqa: PLC0415
+    from dataset.redepth import density_dirs
+    from models.real_presses import real_press_table
+    from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
 
     out = Path(args.out)
     session, library, train_dir, figures = out / "session", out / "library", out / "train", out / "figures"

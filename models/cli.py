@@ -14,7 +14,7 @@ from models.errors import ModelConfigError
 
 @exit_1_on(ModelConfigError, DatasetError, OSError)
 def _train(args: argparse.Namespace) -> int:
-    from models.train import TrainConfig, train  # noqa: PLC0415 (torch import only when used)
+    from models.train import TrainConfig, train
 
     config = TrainConfig.load(args.config)
     if args.hold_out_object:
@@ -27,8 +27,8 @@ def _train(args: argparse.Namespace) -> int:
 
 @exit_1_on(ModelConfigError, DatasetError, OSError)
 def _evaluate(args: argparse.Namespace) -> int:
-    from models.evaluate import evaluate, parse_density, summary_table, write_figures  # noqa: PLC0415
-    from models.train import load_generator  # noqa: PLC0415
+    from models.evaluate import evaluate, parse_density, summary_table, write_figures
+    from models.train import load_generator
 
     if args.dataset is None and args.real_presses is None:
         print("error: give a DATASET, --real-presses FILE.npz, or both", file=sys.stderr)
@@ -36,7 +36,11 @@ def _evaluate(args: argparse.Namespace) -> int:
     generator, depth_range_m = load_generator(args.checkpoint)
     real: dict | None = None
     if args.real_presses is not None:
-        from models.real_presses import evaluate_real_presses, real_press_table, write_real_press_figure  # noqa: PLC0415
+        from models.real_presses import (
+            evaluate_real_presses,
+            real_press_table,
+            write_real_press_figure,
+        )
 
         try:
             real, images = evaluate_real_presses(generator, depth_range_m, args.real_presses, args.scene,

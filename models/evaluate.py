@@ -29,6 +29,7 @@ from dataset.format import deformation_map
 from models.data import network_input, reader_for_model, select_records
 from models.networks import ModelConfigError, UNetGenerator
 from models.ssim import WINDOW, psnr_rgb, ssim_rgb, to_uint8_rgb
+from workcell.scene import SceneError, load_scene
 
 PAPER = {"ssim_model_mean": 0.84, "ssim_model_se": 0.0056, "ssim_baseline_mean": 0.80, "ssim_baseline_se": 0.0036,
          "dissimilarity_ratio": 0.80,
@@ -318,8 +319,8 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
     import matplotlib  # noqa: PLC0415 (only evaluation with --figures needs it)
 
     matplotlib.use("Agg")
-    from matplotlib import patches  # noqa: PLC0415
-    from matplotlib import pyplot as plt  # noqa: PLC0415
+    from matplotlib import patches  # noqa: PLC0415 - matplotlib loads only to draw a figure
+    from matplotlib import pyplot as plt  # noqa: PLC0415 - matplotlib loads only to draw a figure
 
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -381,7 +382,7 @@ def _draw_object(ax: Any, predictions: Predictions, row: int) -> None:
     """The object as the gel saw it: its model's points in the gel frame (x right, z down, as
     the depth-map), the near side only, shaded by distance, and the depth-map's crop; or the
     sample's name where the dataset does not say where the gel was."""
-    from matplotlib import patches  # noqa: PLC0415
+    from matplotlib import patches  # noqa: PLC0415 - matplotlib loads only to draw a figure
 
     label = f"{predictions.objects[row]}\n{predictions.sample_ids[row]}"
     model_to_gel = predictions.model_to_gel[row] if predictions.model_to_gel else None
@@ -403,8 +404,7 @@ def _draw_object(ax: Any, predictions: Predictions, row: int) -> None:
 @functools.lru_cache(maxsize=16)
 def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
     """The 2 mm model cloud of ``object_name`` in ``scene`` (None: not a mesh of that scene)."""
-    from perception.registration import sample_model_cloud  # noqa: PLC0415
-    from workcell.scene import SceneError, load_scene  # noqa: PLC0415
+    from perception.registration import sample_model_cloud  # noqa: PLC0415 - Open3D loads only to sample a mesh
 
     try:
         mesh = load_scene(scene).mesh(object_name)

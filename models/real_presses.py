@@ -43,9 +43,9 @@ from models.evaluate import predict
 from models.networks import UNetGenerator
 from models.ssim import WINDOW, psnr_rgb, ssim_rgb
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
-from workcell.kinematics import GripperGeometry
 from sim.gelsight import GelSightError, scene_renderer
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
+from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, load_scene
 
 WINDOW_RADII = 3.0
@@ -236,8 +236,8 @@ def write_real_press_figure(result: dict[str, Any], images: dict[str, np.ndarray
     import matplotlib  # noqa: PLC0415 (only evaluation with --figures needs it)
 
     matplotlib.use("Agg")
-    from matplotlib import patches  # noqa: PLC0415
-    from matplotlib import pyplot as plt  # noqa: PLC0415
+    from matplotlib import patches  # noqa: PLC0415 - matplotlib loads only to draw a figure
+    from matplotlib import pyplot as plt  # noqa: PLC0415 - matplotlib loads only to draw a figure
 
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)

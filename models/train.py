@@ -39,8 +39,15 @@ from tqdm import tqdm
 
 from dataset.format import DatasetReader
 from models.data import load_pairs, select_records
-from models.networks import (DiscriminatorConfig, GeneratorConfig, ModelConfigError, PatchDiscriminator,
-                             UNetGenerator, config_from_dict, init_weights)
+from models.networks import (
+    DiscriminatorConfig,
+    GeneratorConfig,
+    ModelConfigError,
+    PatchDiscriminator,
+    UNetGenerator,
+    config_from_dict,
+    init_weights,
+)
 from models.prior import PhysicsPrior, PriorSpec
 from models.ssim import ssim_torch
 

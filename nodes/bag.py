@@ -35,7 +35,8 @@ import zmq
 import zstandard
 from mcap.exceptions import McapError, RecordLengthLimitExceeded
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Message as McapMessage, Schema
+from mcap.records import Channel, Chunk, Schema
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
@@ -153,7 +154,7 @@ class BagWriter:
         self._abandoned = False
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+            self._file: BinaryIO = open(self.path, "wb")
         except OSError as error:
             raise BagWriteError(f"bag {self.path} cannot be created: {error.strerror or error}", error.errno) \
                 from error

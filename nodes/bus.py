@@ -406,7 +406,7 @@ def request_id(frames: list[Any]) -> tuple[str, int]:
     try:
         view = memoryview(getattr(frames[1], "buffer", frames[1]))
         header = msgpack.unpackb(view, raw=False) if view.nbytes <= MAX_HEADER_BYTES else None
-    except Exception:  # msgpack raises several unrelated types on garbage; a missing frame too
+    except Exception:  # noqa: BLE001 - msgpack raises several unrelated types on garbage; a missing frame too
         return "", 0
     if not isinstance(header, dict):
         return "", 0
@@ -533,7 +533,7 @@ class ServiceServer(Generic[M, R]):
             self.counters.received += 1
             try:
                 result = self.handler(request)
-            except Exception as exc:  # a handler's failure is the caller's error reply, not our death
+            except Exception as exc:  # noqa: BLE001 - a handler's failure is the caller's error reply, not our death
                 reply = self._checked_reply(None, exc)
             else:
                 if isinstance(result, Future):

@@ -252,7 +252,7 @@ class InferenceNode(Node):
             jobs, self._waiting, self._flush_queued = self._waiting, [], False
         try:
             self._run(jobs)
-        except Exception as exc:  # an unexpected failure answers every waiting client, never hangs one
+        except Exception as exc:  # noqa: BLE001 - an unexpected failure answers every waiting client, never hangs one
             for job in jobs:
                 if not job.future.done():
                     job.future.set_exception(exc)

@@ -27,8 +27,7 @@ import zmq
 from msgs.base import Message
 from msgs.codec import Envelope
 from msgs.system import Heartbeat, Log
-from nodes.bus import (Bus, Counters, PeerConfig, Publisher, ServiceClient, ServiceServer, Subscriber,
-                       TransportConfig)
+from nodes.bus import Bus, Counters, PeerConfig, Publisher, ServiceClient, ServiceServer, Subscriber, TransportConfig
 from nodes.registry import Registry
 from nodes.security import CurveConfig
 

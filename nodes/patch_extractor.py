@@ -28,8 +28,14 @@ import msgs
 from msgs.system import ErrorCode
 from nodes.node import Node, run_node
 from nodes.transforms import frame_transform
-from perception.depthmap import (MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, centre_between_gels,
-                                 contact_depth_map, crop_reach_m)
+from perception.depthmap import (
+    MODEL_CLOUD_SEED,
+    MODEL_POINT_SPACING_M,
+    DepthMapParams,
+    centre_between_gels,
+    contact_depth_map,
+    crop_reach_m,
+)
 from perception.errors import OutOfReachError
 from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
 from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud

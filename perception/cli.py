@@ -26,8 +26,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def cmd_register_check(args: argparse.Namespace) -> int:
-    from perception.errors import PerceptionError  # noqa: PLC0415 (keep `dtx --help` fast)
-    from sim.registration_check import register_check  # noqa: PLC0415
+    from perception.errors import PerceptionError
+    from sim.registration_check import register_check
     missing = [m for m in args.meshes if not Path(m).is_file()]
     if missing:
         print(f"dtx perception register-check: mesh not found: {', '.join(missing)}", file=sys.stderr)

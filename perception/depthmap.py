@@ -43,10 +43,9 @@ import numba
 import numpy as np
 
 from perception.errors import DepthMapError, OutOfReachError
-from workcell.kinematics import GripperGeometry
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform
-
+from workcell.kinematics import GripperGeometry
 
 # Spacing of the model cloud depth-maps are made from (``sample_model_cloud``): uniform random
 # points at 0.1 mm put ~4.5 in each 0.24 x 0.19 mm bin of a 100 x 100 map of the sensed area,

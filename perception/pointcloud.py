@@ -13,8 +13,8 @@ from collections.abc import Iterator, Sequence
 
 import cv2
 import numba
-import open3d as o3d
 import numpy as np
+import open3d as o3d
 
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.errors import PointCloudError

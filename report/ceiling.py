@@ -30,10 +30,10 @@ import numpy as np
 from dataset.format import DatasetReader, SampleRecord, resize_rgb
 from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
-from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
 from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
-from workcell.scene import Scene, SceneError, load_scene
 from sim.world import SimWorld
+from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
+from workcell.scene import Scene, SceneError, load_scene
 
 # Below this SSIM the "true contact" rung does not reproduce the session's images: the session
 # was not collected on the scene it names (or with another force).

@@ -9,8 +9,15 @@ from pathlib import Path
 import numpy as np
 
 from dataset.format import DatasetInfo, DatasetWriter, code_version, subtract_background
-from dataset.synth import (CAMERA_FIELD_WIDTH_MM, SHAPES, SurfaceMm, depth_map_from_surface, gel_gap_from_surface,
-                           gelsight_renderer, random_surface)
+from dataset.synth import (
+    CAMERA_FIELD_WIDTH_MM,
+    SHAPES,
+    SurfaceMm,
+    depth_map_from_surface,
+    gel_gap_from_surface,
+    gelsight_renderer,
+    random_surface,
+)
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)
 CROP_SCALE = 1.2  # dataset.synth's default: the depth-map crop is wider than the camera field

@@ -49,8 +49,8 @@ from report.plan import Plan
 from sim.gelsight import GelSightRenderer
 from sim.gelsight_effects import EFFECTS as GELSIGHT_EFFECTS
 from sim.gelsight_effects import make_effect
-from workcell.scene import load_scene
 from sim.world import SimWorld
+from workcell.scene import load_scene
 
 Point = dict[str, Any]
 REPO = Path(__file__).resolve().parent.parent

@@ -126,7 +126,7 @@ def plot(spec: Spec, points: Sequence[dict[str, Any]], path: Path) -> None:
     import matplotlib  # noqa: PLC0415 (only writing a report needs it)
 
     matplotlib.use("Agg")
-    from matplotlib import pyplot as plt  # noqa: PLC0415
+    from matplotlib import pyplot as plt  # noqa: PLC0415 - matplotlib loads only to draw a figure
 
     valid = [p for p in points if not math.isnan(p["accuracy"])]
     fig, ax = plt.subplots(figsize=(5.5, 3.8))

@@ -47,7 +47,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def gelsight_check(args: argparse.Namespace) -> int:
-    from sim.gelsight_check import format_table, run_check  # noqa: PLC0415 (loads scipy/skimage only here)
+    from sim.gelsight_check import format_table, run_check
 
     try:
         result = run_check(args.file, seed=args.seed, holdout=args.holdout)
@@ -59,11 +59,11 @@ def gelsight_check(args: argparse.Namespace) -> int:
 
 
 def information_ceiling(args: argparse.Namespace) -> int:
-    from dataset.format import DatasetError  # noqa: PLC0415 (Open3D and torch only here)
-    from models.errors import ModelConfigError  # noqa: PLC0415
-    from workcell.kinematics import GRASP_FORCE_N  # noqa: PLC0415
-    from report.ceiling import CeilingError, format_table  # noqa: PLC0415
-    from report.ceiling import information_ceiling as ceiling  # noqa: PLC0415
+    from dataset.format import DatasetError
+    from models.errors import ModelConfigError
+    from report.ceiling import CeilingError, format_table
+    from report.ceiling import information_ceiling as ceiling
+    from workcell.kinematics import GRASP_FORCE_N
 
     force_n = GRASP_FORCE_N if args.force_n is None else args.force_n
     try:
@@ -77,7 +77,7 @@ def information_ceiling(args: argparse.Namespace) -> int:
 
 
 def write_shape_files(args: argparse.Namespace) -> int:
-    from sim.shapes import write_shapes  # noqa: PLC0415 (Open3D only here)
+    from sim.shapes import write_shapes
 
     try:
         paths = write_shapes(args.directory, args.only)

@@ -14,7 +14,7 @@ from typing import Any
 
 from sim.gelsight_effects import EFFECTS as GELSIGHT_EFFECT_CLASSES
 from sim.gelsight_effects import make_effect
-from workcell.scene import EffectSpec, Scene, SceneError, SceneReader
+from workcell.scene import EffectSpec, Scene, SceneReader
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +150,7 @@ def _resolve(r: SceneReader, spec: EffectSpec) -> EffectSpec:
     if info.family == "gelsight":
         try:
             make_effect(name, params)
-        except Exception as exc:  # GelSightError or a bad type; noqa: BLE001 - reported with its key
+        except Exception as exc:  # noqa: BLE001 - GelSightError or a bad type, reported with its key
             bad = next((k for k in params if k in str(exc)), None)
             r.fail(f"{key}.{bad}" if bad else key, f"invalid GelSight effect parameters: {exc}",
                    {k: p.default for k, p in info.params.items()})

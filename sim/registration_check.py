@@ -18,11 +18,19 @@ import numpy as np
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.errors import PerceptionError
 from perception.pointcloud import depth_images_to_world
-from perception.registration import (ModelCloud, PreparedModel, RegistrationParams, add_error_m, add_s_error_m,
-                                     prepare_model, register_model, sample_model_cloud)
+from perception.registration import (
+    ModelCloud,
+    PreparedModel,
+    RegistrationParams,
+    add_error_m,
+    add_s_error_m,
+    prepare_model,
+    register_model,
+    sample_model_cloud,
+)
 from perception.segmentation import segment_object, segmentation_params_for
-from workcell.scene import ObjectSpec, Scene, load_scene
 from sim.world import SimWorld
+from workcell.scene import ObjectSpec, Scene, load_scene
 
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
 

@@ -33,19 +33,21 @@ each camera's exact ray cast is done once and cached; a frame then costs its eff
 from __future__ import annotations
 
 import dataclasses
-import os
 import functools
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
+from scipy import ndimage
 
 from sim.depth_effects import DepthEffectChain, gaussian
 from sim.effects import DEPTH_EFFECT_ORDER, resolve_effects
-from workcell.scene import ObjectSpec, ReliefSpec, Scene, SceneError, load_scene, resolve_path
 from sim.seeding import state_rng
+from workcell.kinematics import gel_poses_world
+from workcell.scene import ObjectSpec, ReliefSpec, Scene, SceneError, load_scene, resolve_path
 
 # How far behind the gel plane gap-map rays start (mm): surfaces up to this deep in the gel
 # are still measured.
@@ -398,7 +400,6 @@ class SimWorld:
         # Pixels whose jittered ray may land on another surface (depth jump, another
         # geometry, no return) within the jitter radius are re-cast each frame; elsewhere the
         # jittered sample follows from the local inverse-depth gradient (exact on planes).
-        from scipy import ndimage  # noqa: PLC0415
 
         h, w = c.spec.height, c.spec.width
         zi = z.reshape(h, w)
@@ -612,7 +613,6 @@ class SimWorld:
         and ``width_m`` is the final gel-to-gel distance), and return the contact with
         gap maps at ``size`` (default: the GelSight image size) over ``extent_mm`` (default:
         the GelSight image's field of view) for the fingers in ``gap_fingers``."""
-        from workcell.kinematics import gel_poses_world  # noqa: PLC0415
 
         gr = self.scene.gripper
         geometry = self.scene.gripper_geometry()

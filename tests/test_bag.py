@@ -19,8 +19,8 @@ import pytest
 from mcap.reader import make_reader
 
 import msgs
-from nodes.bag import BagError, BagWriter, bag_info, iter_envelopes, play, record
 from msgs.codec import decode, encode
+from nodes.bag import BagError, BagWriter, bag_info, iter_envelopes, play, record
 from nodes.bus import Bus
 from nodes.registry import Registry
 
@@ -232,7 +232,7 @@ def _holds_a_message(path: Path) -> bool:
 def test_a_samples_contact_depth_map_is_a_foxglove_image_in_its_gel_frame(tmp_path: Path) -> None:
     """/collector/sample's Foxglove form is its contact depth-map (32FC1, metres), decoded here
     with protobuf from the FileDescriptorSet the bag itself carries, as Foxglove decodes it."""
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: PLC0415
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
     depth_map = np.linspace(-0.002, 0.01, 20, dtype=np.float32).reshape(4, 5)
     sample = msgs.DatasetSample(header=msgs.Header(stamp_ns=5_000), sample_id="g00007_right", finger="right",

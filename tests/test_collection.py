@@ -17,15 +17,15 @@ import pytest
 
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
-from nodes.bag import bag_info, iter_envelopes
 from dataset.check import check_dataset, content_checksum
 from dataset.format import DatasetError, DatasetReader, deformation_map
 from dataset.redepth import redepth_dataset
 from dataset.synth import write_synthetic_dataset
 from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS
-from sim.cli import main as sim_cli
+from nodes.bag import bag_info, iter_envelopes
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
+from sim.cli import main as sim_cli
 
 SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 

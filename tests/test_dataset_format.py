@@ -409,8 +409,8 @@ def test_a_kill_9_at_any_point_of_a_grasp_write_leaves_whole_grasps(tmp_path: Pa
             steps = {"n": 0}
             real_fsync, real_replace = os.fsync, os.replace
 
-            def step(real):  # noqa: ANN001, ANN202
-                def call(*args):  # noqa: ANN002, ANN202
+            def step(real):
+                def call(*args):
                     steps["n"] += 1
                     if steps["n"] == kill_at:
                         os.kill(os.getpid(), signal.SIGKILL)

@@ -27,10 +27,10 @@ from drivers.arm.base import (
     WorkspaceError,
 )
 from drivers.arm.ur import URArm
-from workcell.ur_kinematics import tcp_pose
 from drivers.arm.ur_controller_sim import CMD_MOVEL, CMD_SET_WATCHDOG, CMD_STOPJ, CMD_STOPL, HOME_Q, FakeURController
 from drivers.cli import check_device
 from dtx.launch import NodeSpec
+from workcell.ur_kinematics import tcp_pose
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -93,7 +93,7 @@ def move_in_thread(move: Callable[[], None]) -> tuple[threading.Thread, list[Bas
     def run() -> None:
         try:
             move()
-        except BaseException as error:  # handed to the test thread to assert on
+        except BaseException as error:  # noqa: BLE001 - handed to the test thread to assert on
             errors.append(error)
 
     thread = threading.Thread(target=run, daemon=True)

@@ -6,8 +6,15 @@ import struct
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.gripper.protocol import (MAX_PAYLOAD_BYTES, PREAMBLE, FrameParser, crc16,
-                                      encode_frame, encode_response, split_response)
+from drivers.gripper.protocol import (
+    MAX_PAYLOAD_BYTES,
+    PREAMBLE,
+    FrameParser,
+    crc16,
+    encode_frame,
+    encode_response,
+    split_response,
+)
 
 command_ids = st.integers(min_value=0, max_value=255)
 payloads = st.binary(max_size=MAX_PAYLOAD_BYTES)

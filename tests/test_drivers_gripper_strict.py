@@ -14,8 +14,15 @@ import serial
 
 from drivers.gripper import GripperError
 from drivers.gripper.firmware import GripperFirmware, Strictness
-from drivers.gripper.protocol import (Command, FrameParser, GraspingState, Status, SystemFlag, encode_frame,
-                                      split_response)
+from drivers.gripper.protocol import (
+    Command,
+    FrameParser,
+    GraspingState,
+    Status,
+    SystemFlag,
+    encode_frame,
+    split_response,
+)
 from drivers.gripper.wsg50 import WSG50Config, WSG50Gripper
 
 FAST = 0.4  # m/s

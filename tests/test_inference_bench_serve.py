@@ -42,9 +42,9 @@ def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:
     where it sits, the map's centre."""
     from benchmarks.serve import YCB, surface_gel_poses
     from perception.depthmap import DepthMapParams, contact_depth_maps
-    from workcell.kinematics import GripperGeometry
     from perception.pointcloud import VoxelIndex, check_transform
     from perception.registration import sample_model_cloud
+    from workcell.kinematics import GripperGeometry
     cloud = sample_model_cloud(YCB[1], 0.0003, seed=0)
     poses = surface_gel_poses(cloud, 8, seed=1)
     for pose in poses:

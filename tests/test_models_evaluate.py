@@ -13,13 +13,19 @@ from hypothesis import strategies as st
 
 from dataset.synth import write_synthetic_dataset
 from models.cli import add_commands
-from models.evaluate import (CONTACT_LEVELS, contact_ssim_statistics, most_deformed_box, parse_density,
-                             ssim_statistics, template_match)
+from models.evaluate import (
+    CONTACT_LEVELS,
+    contact_ssim_statistics,
+    most_deformed_box,
+    parse_density,
+    ssim_statistics,
+    template_match,
+)
 from models.networks import GeneratorConfig, ModelConfigError
 from models.train import TrainConfig, train
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_dataset_format import ShadingRenderer  # noqa: E402
+from test_dataset_format import ShadingRenderer
 
 
 def blob_images(n: int, seed: int) -> np.ndarray:

@@ -10,8 +10,14 @@ from hypothesis.extra.numpy import arrays
 from skimage.metrics import structural_similarity
 
 from models.data import depth_input, image_target
-from models.networks import (DiscriminatorConfig, GeneratorConfig, ModelConfigError, PatchDiscriminator,
-                             UNetGenerator, init_weights)
+from models.networks import (
+    DiscriminatorConfig,
+    GeneratorConfig,
+    ModelConfigError,
+    PatchDiscriminator,
+    UNetGenerator,
+    init_weights,
+)
 from models.ssim import ssim_rgb, ssim_torch, to_uint8_rgb
 from perception.normalisation import normalise_depth_map
 

@@ -12,8 +12,13 @@ from dataset.contact_library import write_contact_library
 from models.cli import add_commands
 from models.evaluate import predict
 from models.networks import GeneratorConfig
-from models.real_presses import (ESTIMATES, evaluate_real_presses, press_depth_map, press_geometry,
-                                 write_real_press_figure)
+from models.real_presses import (
+    ESTIMATES,
+    evaluate_real_presses,
+    press_depth_map,
+    press_geometry,
+    write_real_press_figure,
+)
 from models.train import TrainConfig, load_generator, train
 from perception.depthmap import DepthMapParams
 from sim.gelsight import scene_renderer

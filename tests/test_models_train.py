@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from dataset.format import DatasetReader
 from dataset.synth import write_synthetic_dataset
@@ -19,7 +19,7 @@ from models.networks import GeneratorConfig, ModelConfigError
 from models.train import TrainConfig, load_checkpoint, load_generator, lr_factor, train
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_dataset_format import ShadingRenderer  # noqa: E402
+from test_dataset_format import ShadingRenderer
 
 REPO = Path(__file__).resolve().parent.parent
 TINY = TrainConfig(epochs=1, epochs_decay=1, batch_size=8, ndf=8, threads=1, log_every=1,
@@ -151,7 +151,7 @@ def test_weight_average_is_what_is_saved_and_resumes_exactly(dataset: Path, tmp_
 
 
 def test_a_contact_library_joins_the_training_set_and_must_share_the_depth_range(dataset: Path, tmp_path: Path) -> None:
-    from dataset.contact_library import write_contact_library  # noqa: PLC0415
+    from dataset.contact_library import write_contact_library
 
     scene = REPO / "scenes" / "ycb_three.yaml"
     library = tmp_path / "library"
@@ -166,10 +166,10 @@ def test_a_contact_library_joins_the_training_set_and_must_share_the_depth_range
 
 
 def test_a_generator_with_a_physics_prior_starts_from_the_renderer_and_exports(tmp_path: Path) -> None:
-    from dataset.contact_library import write_contact_library  # noqa: PLC0415
-    from models.evaluate import predict  # noqa: PLC0415
-    from models.prior import PhysicsPrior  # noqa: PLC0415
-    from models.runtime import export_onnx  # noqa: PLC0415
+    from dataset.contact_library import write_contact_library
+    from models.evaluate import predict
+    from models.prior import PhysicsPrior
+    from models.runtime import export_onnx
 
     library = write_contact_library(tmp_path / "library", 16, seed=1, scene=REPO / "scenes" / "ycb_three.yaml").root
     config = TrainConfig(**{**TINY.__dict__, "max_steps": 1,

@@ -18,11 +18,11 @@ from scipy.spatial.transform import Rotation
 
 from perception.depthmap import MAX_DEPTH_MAP_BINS, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError, PointCloudError, RegistrationError, SegmentationError
-from workcell.kinematics import ROTATION_TOLERANCE, GripperGeometry, KinematicsError, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import NormalisationError, normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, transform_points
 from perception.registration import MAX_MODEL_POINTS, sample_model_cloud
 from perception.segmentation import SegmentationParams, fit_table_plane, segment_object
+from workcell.kinematics import ROTATION_TOLERANCE, GripperGeometry, KinematicsError, gel_poses_world, grasp_to_tcp_pose
 
 REPO = Path(__file__).resolve().parent.parent
 FAST = settings(max_examples=40, deadline=None)

@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds, min_y_per_bin
 from perception.errors import DepthMapError, PerceptionError
-from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from perception.normalisation import denormalise_depth_map
+from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 
 GEOMETRY = GripperGeometry()
 SMALL = DepthMapParams(shape=(4, 5), margin_m=0.0)   # bins of 4.98 mm (z) x 3.72 mm (x)

@@ -12,8 +12,14 @@ from hypothesis import strategies as st
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density, voxel_size_for_density
 from perception.errors import PerceptionError, PointCloudError
-from perception.pointcloud import (VoxelIndex, depth_images_to_world, depth_to_points_camera, merge_depth_images,
-                                   pixel_rays, transform_points)
+from perception.pointcloud import (
+    VoxelIndex,
+    depth_images_to_world,
+    depth_to_points_camera,
+    merge_depth_images,
+    pixel_rays,
+    transform_points,
+)
 
 DISTORTED = CameraIntrinsics(width=64, height=48, fx=60.0, fy=58.0, cx=31.7, cy=24.2,
                              distortion=[0.09, -0.27, 0.001, -0.002, 0.09])

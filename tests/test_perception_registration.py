@@ -12,15 +12,21 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from perception.errors import PerceptionError, RegistrationError, SegmentationError
-from perception.segmentation import segmentation_params_for
-from sim.registration_check import register_check, render_depth_images
 from perception.pointcloud import depth_images_to_world
-from perception.registration import (ModelCloud, RegistrationParams, add_error_m, add_s_error_m, prepare_model,
-                                     register_model, sample_model_cloud)
-from perception.segmentation import segment_object
-from workcell.scene import load_scene
+from perception.registration import (
+    ModelCloud,
+    RegistrationParams,
+    add_error_m,
+    add_s_error_m,
+    prepare_model,
+    register_model,
+    sample_model_cloud,
+)
+from perception.segmentation import segment_object, segmentation_params_for
+from sim.registration_check import register_check, render_depth_images
 from sim.shapes import write_shapes
 from sim.world import SimWorld
+from workcell.scene import load_scene
 
 DRILL = "assets/ycb/PowerDrill.obj"
 WIDTH, HEIGHT, FOCAL = 512, 424, 365.5  # a Kinect v2 depth camera

@@ -9,8 +9,8 @@ import pytest
 
 from drivers.arm.base import ArmError, MotionAbortedError, MotionLimitError, WorkspaceError
 from drivers.arm.simulated import SimulatedArm, SimulatedArmConfig
-from workcell.kinematics import grasp_to_tcp_pose, pose_to_matrix
 from sim.arm import trapezoid_duration, trapezoid_fraction
+from workcell.kinematics import grasp_to_tcp_pose, pose_to_matrix
 
 
 def arm(scene: str = "scenes/ideal.yaml", **kw) -> SimulatedArm:

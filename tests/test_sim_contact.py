@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
+from sim.world import SimWorld
 from workcell.kinematics import gel_poses_world, grasp_to_tcp_pose
 from workcell.scene import parse_scene
-from sim.world import SimWorld
 
 K = 0.25 / 2.0  # default gel: E = 0.25 MPa over 2 mm -> 0.125 N/mm per mm^2
 GEL = (18.6, 24.9)  # mm

@@ -10,8 +10,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from sim.gelsight import (EFFECTS, GelSightConfig, GelSightError, GelSightRenderer, LightingDrift, Markers,
-                          SensorNoise, gel_surface_depth_mm, indentation_mm, make_effect)
+from sim.gelsight import (
+    EFFECTS,
+    GelSightConfig,
+    GelSightError,
+    GelSightRenderer,
+    LightingDrift,
+    Markers,
+    SensorNoise,
+    gel_surface_depth_mm,
+    indentation_mm,
+    make_effect,
+)
 from sim.gelsight_check import ball_gap_map, ssim_rgb
 
 RENDERER = GelSightRenderer()
@@ -191,7 +201,7 @@ def test_effects_are_built_by_name_with_checked_parameters():
 
 
 def test_refined_calibration_interpolates_between_bin_centres_and_wraps_direction():
-    from sim.gelsight import _refine_bins  # noqa: PLC0415
+    from sim.gelsight import _refine_bins
 
     n, factor = 32, 2
     mag = (np.arange(n) + 0.5) * (0.5 * np.pi / n)  # bin centres
@@ -210,7 +220,7 @@ def test_refined_calibration_interpolates_between_bin_centres_and_wraps_directio
 
 
 def test_large_images_computed_on_the_coarser_working_grid_match_the_full_computation(monkeypatch):
-    import sim.gelsight as gelsight  # noqa: PLC0415
+    import sim.gelsight as gelsight
 
     config = GelSightConfig(image_height=480, image_width=640, mm_per_px=0.1245 / 4)
     coarse = GelSightRenderer(config)

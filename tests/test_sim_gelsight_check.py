@@ -12,8 +12,16 @@ from hypothesis import strategies as st
 
 from sim.cli import add_commands, main
 from sim.gelsight import GelSightError
-from sim.gelsight_check import (KEYS, ball_gap_map, load_ball_presses, press_depth_mm, run_check, touch_crop)
-from sim.gelsight_check import _file_config, _mean_ssim
+from sim.gelsight_check import (
+    KEYS,
+    _file_config,
+    _mean_ssim,
+    ball_gap_map,
+    load_ball_presses,
+    press_depth_mm,
+    run_check,
+    touch_crop,
+)
 
 PRESSES_FILE = "assets/gelsight/ball_presses.npz"
 TARGET = {"crop": 0.87, "full": 0.92}

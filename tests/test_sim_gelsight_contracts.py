@@ -9,8 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.gelsight import (MAX_BACKGROUND_SIGMA_PX, MAX_LENGTH_MM, PIXEL_PITCH_RANGE_MM, GelSightConfig, GelSightError,
-                          GelSightRenderer)
+from sim.gelsight import (
+    MAX_BACKGROUND_SIGMA_PX,
+    MAX_LENGTH_MM,
+    PIXEL_PITCH_RANGE_MM,
+    GelSightConfig,
+    GelSightError,
+    GelSightRenderer,
+)
 
 LENGTHS = ("elastomer_thickness_mm", "spreading_length_mm", "optical_blur_mm", "compression_saturation_mm",
            "background_smoothing_mm")

@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 from sim.effects import EFFECTS
+from sim.shapes import write_shapes
 from sim.world import SimWorld
 from workcell.scene import SceneError, load_scene
-from sim.shapes import write_shapes
 
 REPO = Path(__file__).resolve().parent.parent
 SCENES = sorted((REPO / "scenes").glob("*.yaml"))

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workcell.scene import parse_scene
 from sim.seeding import state_rng
 from sim.world import SimWorld
+from workcell.scene import parse_scene
 
 TOP_H = 1.0  # top-down camera height above the table (m)
 

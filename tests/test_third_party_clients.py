@@ -22,8 +22,8 @@ import pytest
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
-from nodes.bag import BagWriter, bag_info
 from msgs.codec import decode, encode
+from nodes.bag import BagWriter, bag_info
 from nodes.bus import Bus
 from nodes.foxglove_bridge import FoxgloveBridge
 from nodes.inference_client import SERVICE, Cloud, TactileClient

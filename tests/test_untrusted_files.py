@@ -21,10 +21,10 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Chunk, Header
 from mcap.writer import CompressionType, Writer
 
-from dataset.format import DatasetInfo, DatasetWriter, subtract_background
-from nodes.bag import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
-from msgs.codec import encode
 import msgs
+from dataset.format import DatasetInfo, DatasetWriter, subtract_background
+from msgs.codec import encode
+from nodes.bag import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 
 MAGIC = b"\x89MCAP0\r\n"
 INFO = DatasetInfo(image_height=100, image_width=100, depth_range_m=(-0.0015, 0.0025), scene="test",

@@ -14,12 +14,19 @@ import time
 
 import numpy as np
 
-from drivers.arm.base import (ArmConnectionError, ArmError, MotionAbortedError, MotionLimits, WorkspaceError,
-                              as_six_vector)
+from drivers.arm.base import (
+    ArmConnectionError,
+    ArmError,
+    MotionAbortedError,
+    MotionLimits,
+    WorkspaceError,
+    as_six_vector,
+)
 from msgs import ArmState, Header
+from sim.arm import ArmKinematics, Motion, Repeatability, UnreachablePoseError, plan_joints, plan_linear, pose_matrix
 from sim.effects import resolve_effects
+from workcell.kinematics import grasp_to_tcp_pose
 from workcell.scene import load_scene
-from sim.arm import ArmKinematics, Motion, UnreachablePoseError, Repeatability, plan_joints, plan_linear, pose_matrix
 
 __all__ = ["SimulatedArm", "SimulatedArmConfig", "ArmError", "WorkspaceError"]
 
@@ -80,7 +87,6 @@ class SimulatedArm:
 
     # ------------------------------------------------------------------ lifecycle
     def connect(self) -> None:
-        from workcell.kinematics import grasp_to_tcp_pose  # noqa: PLC0415
 
         if self.config.home_tcp_pose is not None:
             home = as_six_vector(self.config.home_tcp_pose, "home_tcp_pose")

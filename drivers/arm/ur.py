@@ -23,11 +23,10 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-
-import dashboard_client
 import time
 from typing import Callable
 
+import dashboard_client
 import numpy as np
 import rtde_control
 import rtde_receive
@@ -45,9 +44,9 @@ from drivers.arm.base import (
     WorkspaceError,
     as_six_vector,
 )
-from workcell.ur_kinematics import DH_PARAMETERS, tcp_pose
 from msgs.base import Header
 from msgs.robot import ArmState
+from workcell.ur_kinematics import DH_PARAMETERS, tcp_pose
 
 # What the receive interface subscribes to: only what read() needs, which keeps the RTDE
 # stream small (the controller drops clients that do not drain it).

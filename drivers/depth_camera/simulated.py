@@ -15,7 +15,7 @@ import numpy as np
 
 from drivers.depth_camera.base import DepthCameraError
 from msgs import CameraIntrinsics, DepthImage, Header
-
+from workcell.scene import SceneError
 
 __all__ = ["SimulatedDepthCamera", "SimulatedDepthCameraConfig", "DepthCameraError"]
 
@@ -46,8 +46,7 @@ class SimulatedDepthCamera:
         self._next_t = 0.0
 
     def connect(self) -> None:
-        from workcell.scene import SceneError  # noqa: PLC0415
-        from sim.world import shared_world  # noqa: PLC0415
+        from sim.world import shared_world  # noqa: PLC0415 - Open3D loads on connect
 
         try:
             self.world = shared_world(self.config.scene, self.config.seed)

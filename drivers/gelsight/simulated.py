@@ -21,7 +21,8 @@ import numpy as np
 from drivers.gelsight.base import GelSightError
 from msgs import Header, TactileImage
 from sim.seeding import state_rng
-
+from workcell.kinematics import gel_poses_world
+from workcell.scene import SceneError
 
 __all__ = ["SimulatedGelSight", "SimulatedGelSightConfig", "GelSightError"]
 
@@ -64,9 +65,8 @@ class SimulatedGelSight:
         self.last_contact = None  # the last sim.world.GraspContact used (ground truth)
 
     def connect(self) -> None:
-        from sim.gelsight import scene_renderer  # noqa: PLC0415
-        from workcell.scene import SceneError  # noqa: PLC0415
-        from sim.world import shared_world  # noqa: PLC0415
+        from sim.gelsight import scene_renderer  # noqa: PLC0415 - Open3D loads on connect
+        from sim.world import shared_world  # noqa: PLC0415 - Open3D loads on connect
 
         try:
             self.world = shared_world(self.config.scene, self.config.seed)
@@ -103,7 +103,6 @@ class SimulatedGelSight:
         if key == self._robot:
             return
         self._robot = key
-        from workcell.kinematics import gel_poses_world  # noqa: PLC0415
 
         scene = self.world.scene
         sensor = self.config.sensor

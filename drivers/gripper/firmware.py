@@ -23,8 +23,15 @@ import time
 import tty
 from typing import Callable
 
-from drivers.gripper.protocol import (ACK_PAYLOAD, Command, FrameParser, GraspingState, Status,
-                                      SystemFlag, encode_response)
+from drivers.gripper.protocol import (
+    ACK_PAYLOAD,
+    Command,
+    FrameParser,
+    GraspingState,
+    Status,
+    SystemFlag,
+    encode_response,
+)
 
 # Longest the loop sleeps with nothing to do; bounds how late close() is noticed.
 _IDLE_WAIT_S = 0.05

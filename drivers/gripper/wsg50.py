@@ -23,9 +23,19 @@ import serial
 from serial.tools import list_ports
 
 from drivers import require_text
-from drivers.gripper.protocol import (ACK_PAYLOAD, FAULT_FLAGS, Command, FrameParser, GraspingState,
-                                      GripperError, Status, SystemFlag, encode_frame, split_response,
-                                      status_name)
+from drivers.gripper.protocol import (
+    ACK_PAYLOAD,
+    FAULT_FLAGS,
+    Command,
+    FrameParser,
+    GraspingState,
+    GripperError,
+    Status,
+    SystemFlag,
+    encode_frame,
+    split_response,
+    status_name,
+)
 from msgs import GripperState, Header
 
 _STATE_NAMES = {
