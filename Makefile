@@ -13,6 +13,7 @@ $(STAMP): pyproject.toml constraints.txt scripts/setup.sh clients/node/package-l
 
 test: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q -p no:cacheprovider tests
 
 demo: setup

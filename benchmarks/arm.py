@@ -3,6 +3,7 @@
 client actually receives from a 500 Hz controller, and the time from ``stop()`` on the
 backend to the controller receiving the stopL command (both clocks are the machine's
 monotonic clock)."""
+
 from __future__ import annotations
 
 import argparse
@@ -22,10 +23,8 @@ POLL_PERIOD_S = 50e-6
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--state-rate-hz", type=float, default=500.0,
-                        help="state rate of the fake controller (Hz)")
-    parser.add_argument("--rate-seconds", type=float, default=5.0,
-                        help="how long to count received states (s)")
+    parser.add_argument("--state-rate-hz", type=float, default=500.0, help="state rate of the fake controller (Hz)")
+    parser.add_argument("--rate-seconds", type=float, default=5.0, help="how long to count received states (s)")
     parser.add_argument("--stop-trials", type=int, default=20, help="stop requests to time")
 
 
@@ -45,10 +44,13 @@ def received_state_rate(host: str, frequency_hz: float, seconds: float) -> list[
         receive.disconnect()
     received = len(timestamps) - 1
     return [
-        {"figure": "RTDE states received by ur_rtde", "unit": "Hz", "samples": received,
-         "value": received / elapsed},
-        {"figure": "fake controller clock advance", "unit": "Hz", "samples": received,
-         "value": (timestamps[-1] - timestamps[0]) * frequency_hz / elapsed},
+        {"figure": "RTDE states received by ur_rtde", "unit": "Hz", "samples": received, "value": received / elapsed},
+        {
+            "figure": "fake controller clock advance",
+            "unit": "Hz",
+            "samples": received,
+            "value": (timestamps[-1] - timestamps[0]) * frequency_hz / elapsed,
+        },
     ]
 
 
@@ -67,14 +69,19 @@ def stop_latency(fake: FakeURController, trials: int) -> dict[str, Any]:
             requested_ns = time.monotonic_ns()
             arm.stop()
             mover.join()
-            received_ns = min(t for t, cmd in fake.snapshot()["commands_received"]
-                              if cmd == CMD_STOPL and t >= requested_ns)
+            received_ns = min(
+                t for t, cmd in fake.snapshot()["commands_received"] if cmd == CMD_STOPL and t >= requested_ns
+            )
             latencies_ms.append((received_ns - requested_ns) / 1e6)
     finally:
         arm.disconnect()
-    return {"figure": "stop() to controller receiving stopL", "unit": "ms", "samples": trials,
-            "p50": float(np.percentile(latencies_ms, 50)),
-            "p99": float(np.percentile(latencies_ms, 99))}
+    return {
+        "figure": "stop() to controller receiving stopL",
+        "unit": "ms",
+        "samples": trials,
+        "p50": float(np.percentile(latencies_ms, 50)),
+        "p99": float(np.percentile(latencies_ms, 99)),
+    }
 
 
 def _move_until_stopped(arm: URArm, target: np.ndarray) -> None:

@@ -4,6 +4,7 @@ Each row: a publisher here, a subscriber in another process, one transport, one 
 One-way latency uses CLOCK_MONOTONIC stamps (shared by processes on one machine) on messages
 paced so that no queue builds up; throughput sends back to back and counts what arrives.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -89,7 +90,10 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
     n_throughput = min(n_throughput, 20_000)
     context_mp = mp.get_context("spawn")
     results: list[dict] = []
-    for phase, count, pause_s in (("latency", n_latency, 0.002 + payload_bytes / 2e9), ("throughput", n_throughput, 0.0)):
+    for phase, count, pause_s in (
+        ("latency", n_latency, 0.002 + payload_bytes / 2e9),
+        ("throughput", n_throughput, 0.0),
+    ):
         out = context_mp.Queue()
         if impl == "dtx":
             bus = Bus("bench_pub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
@@ -132,10 +136,14 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
     lat = np.array(latency["latencies_us"])
     mb_per_s = throughput["bytes"] / throughput["span_s"] / 1e6 if throughput["span_s"] > 0 else float("nan")
     return {
-        "impl": impl, "transport": transport, "payload_bytes": payload_bytes,
-        "p50_us": round(float(np.percentile(lat, 50)), 1), "p99_us": round(float(np.percentile(lat, 99)), 1),
+        "impl": impl,
+        "transport": transport,
+        "payload_bytes": payload_bytes,
+        "p50_us": round(float(np.percentile(lat, 50)), 1),
+        "p99_us": round(float(np.percentile(lat, 99)), 1),
         "mb_per_s": round(mb_per_s, 1),
-        "throughput_received": throughput["received"], "throughput_sent": n_throughput,
+        "throughput_received": throughput["received"],
+        "throughput_sent": n_throughput,
     }
 
 

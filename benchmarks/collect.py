@@ -10,6 +10,7 @@ moments of it: per kill, the seconds of messages its file lost before the kill (
 less the last message the file holds) and the gap until the respawned recorder's first message,
 whether any file is empty, and whether the dataset is still complete.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,19 +28,38 @@ from dataset.check import check_dataset
 from nodes.bag import BagError, iter_envelopes
 from nodes.registry import Registry
 
-NODES = ["collector", "patch_extractor", "arm", "gripper", "gelsight_left", "gelsight_right",
-         "camera_left", "camera_right", "recorder"]
+NODES = [
+    "collector",
+    "patch_extractor",
+    "arm",
+    "gripper",
+    "gelsight_left",
+    "gelsight_right",
+    "camera_left",
+    "camera_right",
+    "recorder",
+]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grasps", type=int, default=289)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--kill", nargs="*", default=[], choices=NODES + ["all"],
-                        help="nodes to kill -9 mid-session, one session each ('all': every node)")
+    parser.add_argument(
+        "--kill",
+        nargs="*",
+        default=[],
+        choices=NODES + ["all"],
+        help="nodes to kill -9 mid-session, one session each ('all': every node)",
+    )
     parser.add_argument("--kill-grasps", type=int, default=30, help="session size for the kill -9 runs")
     parser.add_argument("--record", action="store_true", help="record the session bag too")
-    parser.add_argument("--recorder-kills", type=int, default=0, metavar="N",
-                        help="one more recorded session of --grasps grasps, its recorder killed at N random moments")
+    parser.add_argument(
+        "--recorder-kills",
+        type=int,
+        default=0,
+        metavar="N",
+        help="one more recorded session of --grasps grasps, its recorder killed at N random moments",
+    )
 
 
 def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "") -> dict:
@@ -47,9 +67,22 @@ def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "")
         env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
         started = time.monotonic()
         launcher = subprocess.Popen(
-            [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
-             f"grasps:={grasps}", f"seed:={seed}", f"record:={'true' if record else 'false'}"],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            [
+                sys.executable,
+                "-m",
+                "dtx.cli",
+                "launch",
+                "launch/collect_sim.yaml",
+                f"out:={out}",
+                f"grasps:={grasps}",
+                f"seed:={seed}",
+                f"record:={'true' if record else 'false'}",
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         killed = None
         if kill:
             killed = _kill_when_a_third_is_done(Registry(Path(bus_dir)), out, grasps, kill, launcher)
@@ -57,9 +90,14 @@ def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "")
         wall_s = time.monotonic() - started
     report = check_dataset(out)
     session = json.loads((out / "session.json").read_text()) if (out / "session.json").exists() else {}
-    result = {"grasps": grasps, "exit_code": launcher.returncode, "wall_s": round(wall_s, 1),
-              "pairs": report.samples,
-              "dataset_check_ok": report.ok, "session": session}
+    result = {
+        "grasps": grasps,
+        "exit_code": launcher.returncode,
+        "wall_s": round(wall_s, 1),
+        "pairs": report.samples,
+        "dataset_check_ok": report.ok,
+        "session": session,
+    }
     if kill:
         result.update(killed=kill, killed_pid=killed, respawned=f"[launch] {kill} exited with -9; respawning" in output)
     collector_log = [line for line in output.splitlines() if line.startswith("[collector]")]
@@ -69,8 +107,9 @@ def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "")
     return result
 
 
-def _kill_when_a_third_is_done(registry: Registry, out: Path, grasps: int, node: str,
-                               launcher: subprocess.Popen[str]) -> int | None:
+def _kill_when_a_third_is_done(
+    registry: Registry, out: Path, grasps: int, node: str, launcher: subprocess.Popen[str]
+) -> int | None:
     manifest = out / "manifest.jsonl"
     deadline = time.monotonic() + 600
     while time.monotonic() < deadline and launcher.poll() is None:
@@ -106,9 +145,22 @@ def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="dtxk") as bus_dir:
         env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
         launcher = subprocess.Popen(
-            [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
-             f"grasps:={grasps}", f"seed:={seed}", "record:=true"],
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+            [
+                sys.executable,
+                "-m",
+                "dtx.cli",
+                "launch",
+                "launch/collect_sim.yaml",
+                f"out:={out}",
+                f"grasps:={grasps}",
+                f"seed:={seed}",
+                "record:=true",
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
         registry, manifest = Registry(Path(bus_dir)), out / "manifest.jsonl"
         for moment in moments:
             while launcher.poll() is None:
@@ -128,35 +180,56 @@ def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int) -> dict:
     for index, kill_ns in enumerate(killed_ns):
         cut = _log_times_ns(files[index]) if index < len(files) else []
         after = _log_times_ns(files[index + 1]) if index + 1 < len(files) else []
-        per_kill.append({"file": files[index].name if index < len(files) else None,
-                         "bytes": files[index].stat().st_size if index < len(files) else 0,
-                         "lost_before_kill_s": round((kill_ns - max(cut)) / 1e9, 3) if cut else None,
-                         "gap_until_respawned_s": round((min(after) - kill_ns) / 1e9, 3) if after else None})
+        per_kill.append(
+            {
+                "file": files[index].name if index < len(files) else None,
+                "bytes": files[index].stat().st_size if index < len(files) else 0,
+                "lost_before_kill_s": round((kill_ns - max(cut)) / 1e9, 3) if cut else None,
+                "gap_until_respawned_s": round((min(after) - kill_ns) / 1e9, 3) if after else None,
+            }
+        )
     report = check_dataset(out)
     losses = [k["lost_before_kill_s"] for k in per_kill if k["lost_before_kill_s"] is not None]
-    return {"grasps": grasps, "kills": len(killed_ns), "exit_code": launcher.returncode,
-            "dataset_check_ok": report.ok, "pairs": report.samples, "files": len(files),
-            "empty_files": sum(p.stat().st_size == 0 for p in files),
-            "lost_before_kill_s_max": max(losses, default=None),
-            "lost_before_kill_s_median": sorted(losses)[len(losses) // 2] if losses else None,
-            "per_kill": per_kill}
+    return {
+        "grasps": grasps,
+        "kills": len(killed_ns),
+        "exit_code": launcher.returncode,
+        "dataset_check_ok": report.ok,
+        "pairs": report.samples,
+        "files": len(files),
+        "empty_files": sum(p.stat().st_size == 0 for p in files),
+        "lost_before_kill_s_max": max(losses, default=None),
+        "lost_before_kill_s_median": sorted(losses)[len(losses) // 2] if losses else None,
+        "per_kill": per_kill,
+    }
 
 
 def run(args: argparse.Namespace) -> dict:
     kills = NODES if "all" in args.kill else args.kill
     with tempfile.TemporaryDirectory(prefix="dtxsession") as tmp:
         main = run_session(Path(tmp) / "main", args.grasps, args.seed, args.record)
-        grasps_per_min = main["session"].get("stats", {}).get("grasps_done", 0) / max(
-            main["session"].get("wall_s", 1e9), 1e-9) * 60
-        results = {"session": main, "grasps_per_min_collector": round(grasps_per_min, 1),
-                   "grasps_per_min_wall": round(args.grasps / main["wall_s"] * 60, 1), "kill_tests": []}
+        grasps_per_min = (
+            main["session"].get("stats", {}).get("grasps_done", 0) / max(main["session"].get("wall_s", 1e9), 1e-9) * 60
+        )
+        results = {
+            "session": main,
+            "grasps_per_min_collector": round(grasps_per_min, 1),
+            "grasps_per_min_wall": round(args.grasps / main["wall_s"] * 60, 1),
+            "kill_tests": [],
+        }
         for node in kills:
-            outcome = run_session(Path(tmp) / f"kill_{node}", args.kill_grasps, args.seed, record=node == "recorder",
-                                  kill=node)
-            outcome["complete"] = outcome["dataset_check_ok"] and outcome["exit_code"] == 0 and \
-                len((Path(tmp) / f"kill_{node}" / "manifest.jsonl").read_text().splitlines()) == 2 * args.kill_grasps
+            outcome = run_session(
+                Path(tmp) / f"kill_{node}", args.kill_grasps, args.seed, record=node == "recorder", kill=node
+            )
+            outcome["complete"] = (
+                outcome["dataset_check_ok"]
+                and outcome["exit_code"] == 0
+                and len((Path(tmp) / f"kill_{node}" / "manifest.jsonl").read_text().splitlines())
+                == 2 * args.kill_grasps
+            )
             results["kill_tests"].append(outcome)
         if args.recorder_kills:
-            results["recorder_kills"] = run_recorder_kills(Path(tmp) / "recorder_kills", args.grasps, args.seed,
-                                                           args.recorder_kills)
+            results["recorder_kills"] = run_recorder_kills(
+                Path(tmp) / "recorder_kills", args.grasps, args.seed, args.recorder_kills
+            )
     return results

@@ -16,6 +16,7 @@ and how the session ended, its services having served the collector throughout (
 pairs, ``dtx dataset check``). Issue 16's target: 0 crashes from 10,000 mutated messages per
 endpoint.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -110,7 +111,7 @@ def _fuzz_topic(bus: Bus, topic: str, schema: str, frames_list: list[list[bytes]
     if publisher.wait_for_subscribers(1, timeout_s=5.0):
         publisher.wait_for_subscribers(99, timeout_s=0.5)  # the topic's other subscribers find it too
     for start in range(0, len(frames_list), 500):
-        for frames in frames_list[start:start + 500]:
+        for frames in frames_list[start : start + 500]:
             publisher.sock.send_multipart(frames)
         time.sleep(0.05)
     publisher.service_subscriptions()
@@ -128,9 +129,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         out = Path(work) / "session"
         env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
         launcher = subprocess.Popen(
-            [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
-             f"grasps:={args.grasps}", f"seed:={args.seed}", "record:=true"],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            [
+                sys.executable,
+                "-m",
+                "dtx.cli",
+                "launch",
+                "launch/collect_sim.yaml",
+                f"out:={out}",
+                f"grasps:={args.grasps}",
+                f"seed:={args.seed}",
+                "record:=true",
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         registry = Registry(Path(bus_dir))
         manifest = out / "manifest.jsonl"
         deadline = time.monotonic() + 300
@@ -148,16 +162,35 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         try:
             for i, (name, endpoint) in enumerate(sorted(services.items())):
                 frames_list = refused_mutants(name, endpoint.schema, args.messages, args.seed + i)
-                rows.append({"endpoint": name, "kind": "service", "node": endpoint.node, "sent": len(frames_list),
-                             "error_replies": _fuzz_service(context, endpoint.address, frames_list)})
-                print(f"fuzz {name}: {rows[-1]['sent']} sent, {rows[-1]['error_replies']} error replies",
-                      file=sys.stderr, flush=True)
+                rows.append(
+                    {
+                        "endpoint": name,
+                        "kind": "service",
+                        "node": endpoint.node,
+                        "sent": len(frames_list),
+                        "error_replies": _fuzz_service(context, endpoint.address, frames_list),
+                    }
+                )
+                print(
+                    f"fuzz {name}: {rows[-1]['sent']} sent, {rows[-1]['error_replies']} error replies",
+                    file=sys.stderr,
+                    flush=True,
+                )
             for i, (name, endpoint) in enumerate(sorted(topics.items())):
                 frames_list = refused_mutants(name, endpoint.schema, args.messages, args.seed + 1000 + i)
-                rows.append({"endpoint": name, "kind": "topic", "sent": len(frames_list),
-                             "subscribers": _fuzz_topic(bus, name, endpoint.schema, frames_list)})
-                print(f"fuzz {name}: {rows[-1]['sent']} sent to {rows[-1]['subscribers']} subscriber(s)",
-                      file=sys.stderr, flush=True)
+                rows.append(
+                    {
+                        "endpoint": name,
+                        "kind": "topic",
+                        "sent": len(frames_list),
+                        "subscribers": _fuzz_topic(bus, name, endpoint.schema, frames_list),
+                    }
+                )
+                print(
+                    f"fuzz {name}: {rows[-1]['sent']} sent to {rows[-1]['subscribers']} subscriber(s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
             fuzz_s = time.monotonic() - started
             after = _live(registry)
             session_running = launcher.poll() is None
@@ -169,12 +202,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if not session_running:
         raise RuntimeError(f"the session ended before the fuzzing did ({fuzz_s:.0f} s): give more --grasps")
     return {
-        "messages_per_endpoint": args.messages, "services": len(services), "topics": len(topics),
+        "messages_per_endpoint": args.messages,
+        "services": len(services),
+        "topics": len(topics),
         "fuzz_s": round(fuzz_s, 1),
         # A node that died of a message is respawned by the launcher under a new pid.
         "nodes_crashed": sorted(node for node, pid in before.items() if after.get(node) != pid),
-        "nodes_checked": len(before), "respawns": output.count("respawning"),
-        "session_exit_code": launcher.returncode, "pairs": report.samples, "pairs_expected": 2 * args.grasps,
+        "nodes_checked": len(before),
+        "respawns": output.count("respawning"),
+        "session_exit_code": launcher.returncode,
+        "pairs": report.samples,
+        "pairs_expected": 2 * args.grasps,
         "dataset_check_ok": report.ok,
         "endpoints": rows,
     }

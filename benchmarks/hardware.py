@@ -12,6 +12,7 @@ process, as a real gripper would be, so it does not share the client's interpret
 
 The arm's figures (RTDE state rate, stop latency) belong beside these in the returned list.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,12 +37,9 @@ FAST_M_S = 0.4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--gripper-commands", type=int, default=1000,
-                        help="serial round trips to time")
-    parser.add_argument("--stop-samples", type=int, default=50,
-                        help="grasps stopped through the node")
-    parser.add_argument("--completion-samples", type=int, default=10,
-                        help="homing, move and grasp cycles to time")
+    parser.add_argument("--gripper-commands", type=int, default=1000, help="serial round trips to time")
+    parser.add_argument("--stop-samples", type=int, default=50, help="grasps stopped through the node")
+    parser.add_argument("--completion-samples", type=int, default=10, help="homing, move and grasp cycles to time")
 
 
 def _part_between_fingers() -> float:
@@ -71,8 +69,14 @@ class _FirmwareProcess:
 
 
 def _percentiles(figure: str, samples_ms: list[float], **extra: Any) -> dict[str, Any]:
-    return {"figure": figure, "unit": "ms", "samples": len(samples_ms),
-            "p50": float(np.percentile(samples_ms, 50)), "p99": float(np.percentile(samples_ms, 99)), **extra}
+    return {
+        "figure": figure,
+        "unit": "ms",
+        "samples": len(samples_ms),
+        "p50": float(np.percentile(samples_ms, 50)),
+        "p99": float(np.percentile(samples_ms, 99)),
+        **extra,
+    }
 
 
 def gripper_round_trip(commands: int) -> dict[str, Any]:
@@ -125,16 +129,15 @@ def stop_preemption(samples: int) -> dict[str, Any]:
             done.set()
             spinner.join()
             node.close()
-    return _percentiles("gripper stop preemption through the node (during a grasp)", durations_ms,
-                        preempted=preempted)
+    return _percentiles("gripper stop preemption through the node (during a grasp)", durations_ms, preempted=preempted)
 
 
 def _grasp_slowly(registry: Registry) -> None:
     bus = Bus("grasper", registry)
     try:
         bus.client("/gripper/command", msgs.GripperCommand, msgs.GripperState).call(
-            msgs.GripperCommand(action="grasp", width_m=0.03, speed_m_s=0.01, force_n=10.0), timeout_s=15.0,
-            retries=0)
+            msgs.GripperCommand(action="grasp", width_m=0.03, speed_m_s=0.01, force_n=10.0), timeout_s=15.0, retries=0
+        )
     except ServiceCallError:
         pass  # the stop aborts it: that is the point
     finally:
@@ -166,10 +169,17 @@ def completion(cycles: int) -> list[dict[str, Any]]:
                 gripper.release(0.110, FAST_M_S)
         finally:
             gripper.disconnect()
-    return [_percentiles(f"gripper {name} completion beyond finger travel (strict firmware)", values,
-                         completed=correct[name]) for name, values in overhead_ms.items()]
+    return [
+        _percentiles(
+            f"gripper {name} completion beyond finger travel (strict firmware)", values, completed=correct[name]
+        )
+        for name, values in overhead_ms.items()
+    ]
 
 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
-    return [gripper_round_trip(args.gripper_commands), stop_preemption(args.stop_samples),
-            *completion(args.completion_samples)]
+    return [
+        gripper_round_trip(args.gripper_commands),
+        stop_preemption(args.stop_samples),
+        *completion(args.completion_samples),
+    ]

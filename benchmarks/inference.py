@@ -25,6 +25,7 @@ target: >= 0.75 for the default model in its best runtime).
 Inputs are the test split's depth-maps with ``--dataset``, else depth-maps of synthetic
 analytic contacts (dataset.synth).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,18 +49,19 @@ DEPTH_RANGE_M = (-0.0015, 0.0025)
 OFFERED = {"eager": ("fp32", "bf16"), "compile": ("fp32", "bf16"), "onnxrt": ("fp32", "int8")}
 
 
-def synthetic_inputs(count: int, seed: int, generator: UNetGenerator, depth_range_m: tuple[float, float]
-                     ) -> np.ndarray:
+def synthetic_inputs(count: int, seed: int, generator: UNetGenerator, depth_range_m: tuple[float, float]) -> np.ndarray:
     """count x C x 100 x 100 float32 network inputs of ``generator`` from random analytic contacts."""
     rng = np.random.default_rng(seed)
-    maps = [depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0,
-                                   y_far_m=depth_range_m[1])
-            for i in range(count)]
+    maps = [
+        depth_map_from_surface(
+            random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0, y_far_m=depth_range_m[1]
+        )
+        for i in range(count)
+    ]
     return network_input(np.stack(maps), depth_range_m, generator.config, generator.prior).numpy()
 
 
-def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int,
-                 workdir: Path) -> Runner:
+def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int, workdir: Path) -> Runner:
     import onnxruntime as ort
 
     path = workdir / "generator.onnx"
@@ -69,14 +71,20 @@ def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, 
 
         class Calibration(oq.CalibrationDataReader):
             def __init__(self) -> None:
-                self.batches = iter([{"depth": calibration[i:i + 8]} for i in range(0, len(calibration), 8)])
+                self.batches = iter([{"depth": calibration[i : i + 8]} for i in range(0, len(calibration), 8)])
 
             def get_next(self) -> dict[str, np.ndarray] | None:
                 return next(self.batches, None)
 
         quantised = workdir / "generator_int8.onnx"
-        oq.quantize_static(str(path), str(quantised), Calibration(), quant_format=oq.QuantFormat.QDQ,
-                           activation_type=oq.QuantType.QUInt8, weight_type=oq.QuantType.QInt8)
+        oq.quantize_static(
+            str(path),
+            str(quantised),
+            Calibration(),
+            quant_format=oq.QuantFormat.QDQ,
+            activation_type=oq.QuantType.QUInt8,
+            weight_type=oq.QuantType.QInt8,
+        )
         path = quantised
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
@@ -112,7 +120,7 @@ def fp32_peak_gflops(seconds: float = 1.0, size: int = 1536) -> float:
         t0 = time.perf_counter()
         torch.mm(a, b)
         best = min(best, time.perf_counter() - t0)
-    return 2.0 * size ** 3 / best / 1e9
+    return 2.0 * size**3 / best / 1e9
 
 
 def gflop_per_region(generator: UNetGenerator, inputs: np.ndarray) -> float:
@@ -146,8 +154,9 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
         torch.set_flush_denormal(False)
 
 
-def test_split_inputs(dataset: str, generator: UNetGenerator, depth_range_m: tuple[float, float]
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def test_split_inputs(
+    dataset: str, generator: UNetGenerator, depth_range_m: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
     """(network inputs, ground-truth uint8 images) of a dataset's test split."""
     from models.data import load_pairs, reader_for_model, select_records
 
@@ -184,12 +193,21 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                     output = to_uint8_rgb(torch.from_numpy(runner(inputs)))
                     throughput, p50 = _measure(runner, inputs, args.batch, args.seconds)
                     vs_fp32 = round(float(ssim_rgb(reference, output).mean()), 4)
-                    rows.append({"width": generator.config.ngf, "precision": precision, "runtime": runtime,
-                                 "ssim": vs_fp32 if truth is None else round(float(ssim_rgb(truth, output).mean()), 4),
-                                 "ssim_vs_fp32": vs_fp32, "regions_per_s": round(throughput, 1),
-                                 "p50_ms": round(p50, 2), "gflop_per_region": round(gflop, 4),
-                                 "gflops": round(throughput * gflop, 1), "fp32_peak_gflops": round(peak, 1),
-                                 "share_of_fp32_peak": round(throughput * gflop / peak, 3)})
+                    rows.append(
+                        {
+                            "width": generator.config.ngf,
+                            "precision": precision,
+                            "runtime": runtime,
+                            "ssim": vs_fp32 if truth is None else round(float(ssim_rgb(truth, output).mean()), 4),
+                            "ssim_vs_fp32": vs_fp32,
+                            "regions_per_s": round(throughput, 1),
+                            "p50_ms": round(p50, 2),
+                            "gflop_per_region": round(gflop, 4),
+                            "gflops": round(throughput * gflop, 1),
+                            "fp32_peak_gflops": round(peak, 1),
+                            "share_of_fp32_peak": round(throughput * gflop / peak, 3),
+                        }
+                    )
                     # Progress on stderr: ``dtx bench`` prints the table (or JSON) on stdout.
                     print(_format_row(rows[-1]), file=sys.stderr, flush=True)
     if args.dataset:
@@ -200,16 +218,21 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 
 def _format_row(row: dict[str, Any]) -> str:
-    return (f"width {row['width']:3d}  {row['precision']:5s} {row['runtime']:8s} ssim {row['ssim']:.4f}  "
-            f"{row['regions_per_s']:8.1f} regions/s  p50 {row['p50_ms']:7.2f} ms  "
-            f"{row['gflops']:6.1f} GFLOP/s ({row['share_of_fp32_peak']:.0%} of the fp32 peak)")
+    return (
+        f"width {row['width']:3d}  {row['precision']:5s} {row['runtime']:8s} ssim {row['ssim']:.4f}  "
+        f"{row['regions_per_s']:8.1f} regions/s  p50 {row['p50_ms']:7.2f} ms  "
+        f"{row['gflops']:6.1f} GFLOP/s ({row['share_of_fp32_peak']:.0%} of the fp32 peak)"
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``dtx bench inference`` (which adds ``--json`` itself)."""
-    parser.add_argument("--checkpoint", action="append", default=[],
-                        help="benchmark this trained generator (repeat for each trained width) instead of seeded "
-                             "random widths")
+    parser.add_argument(
+        "--checkpoint",
+        action="append",
+        default=[],
+        help="benchmark this trained generator (repeat for each trained width) instead of seeded random widths",
+    )
     parser.add_argument("--dataset", help="take inputs and ground truth from this dataset's test split")
     parser.add_argument("--widths", type=int, nargs="+", default=[16, 32, 64])
     parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16", "int8"], choices=["fp32", "bf16", "int8"])
@@ -220,4 +243,3 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=1.5, help="measuring time per figure")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-

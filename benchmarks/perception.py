@@ -7,6 +7,7 @@ Times are wall-clock medians on this machine; ``cpu_ms`` columns are the process
 fairer figure on a shared machine when run with OMP_NUM_THREADS=1; binning throughput is from
 the best of repeated runs. Select parts with --only (e.g. ``--only binning`` takes seconds).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,14 +42,24 @@ YCB = sorted(str(p) for p in (REPO / "assets" / "ycb").glob("*.obj"))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--only", action="append", choices=PARTS, metavar="PART",
-                        help=f"run only these parts (repeatable): {', '.join(PARTS)}")
+    parser.add_argument(
+        "--only",
+        action="append",
+        choices=PARTS,
+        metavar="PART",
+        help=f"run only these parts (repeatable): {', '.join(PARTS)}",
+    )
     parser.add_argument("--trials", type=int, default=20, help="registration trials per mesh (default 20)")
     parser.add_argument("--sweep-poses", type=int, default=3, help="poses per mesh in the sweeps (default 3)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--scene", default="scenes/ycb_three.yaml")
-    parser.add_argument("--drop-effect", action="append", default=[], metavar="NAME",
-                        help="switch a scene effect off for registration and sweeps, e.g. extrinsic_offset")
+    parser.add_argument(
+        "--drop-effect",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="switch a scene effect off for registration and sweeps, e.g. extrinsic_offset",
+    )
 
 
 def _repeat(function, min_seconds: float = 0.3, min_runs: int = 3) -> tuple[float, float, float]:
@@ -102,8 +113,9 @@ def _numpy_contact_depth_map(points, half_x, half_z, y_range, shape):
     inside = (np.abs(x) <= half_x) & (np.abs(z) <= half_z)
     min_y = _baseline_minimum_at(x[inside], z[inside], y[inside], half_x, half_z, shape)
     occupied = np.isfinite(min_y)
-    depth = fill_sampling_gaps(np.where(occupied, min_y, y_far).astype(np.float32), occupied,
-                               DepthMapParams.fill_gaps_min_neighbours)
+    depth = fill_sampling_gaps(
+        np.where(occupied, min_y, y_far).astype(np.float32), occupied, DepthMapParams.fill_gaps_min_neighbours
+    )
     return normalise_depth_map(depth, (y_near, y_far))
 
 
@@ -115,26 +127,49 @@ def bench_binning(seed: int) -> list[dict]:
         x, z = rng.uniform(-half_x, half_x, count), rng.uniform(-half_z, half_z, count)
         y = rng.uniform(-0.002, 0.002, count)
         ours = min_y_per_bin(x, z, y, half_x, half_z, shape)[0]
-        for name, function in (("ours", min_y_per_bin), ("numpy_minimum_at", _baseline_minimum_at),
-                               ("numpy_sort_reduceat", _sort_reduceat)):
+        for name, function in (
+            ("ours", min_y_per_bin),
+            ("numpy_minimum_at", _baseline_minimum_at),
+            ("numpy_sort_reduceat", _sort_reduceat),
+        ):
             result = function(x, z, y, half_x, half_z, shape)
             result = result[0] if isinstance(result, tuple) else result
             best, median, cpu = _repeat(lambda f=function: f(x, z, y, half_x, half_z, shape))
-            rows.append({"part": "binning", "method": name, "points": count,
-                         "mpoints_per_s": round(count / best / 1e6, 1), "ms_median": round(median * 1e3, 3),
-                         "cpu_ms_median": round(cpu * 1e3, 3), "same_as_ours": bool(np.array_equal(result, ours))})
+            rows.append(
+                {
+                    "part": "binning",
+                    "method": name,
+                    "points": count,
+                    "mpoints_per_s": round(count / best / 1e6, 1),
+                    "ms_median": round(median * 1e3, 3),
+                    "cpu_ms_median": round(cpu * 1e3, 3),
+                    "same_as_ours": bool(np.array_equal(result, ours)),
+                }
+            )
         # The whole contact depth-map (transform, crop, bin, fill gaps, normalise): ours, and the
         # same steps in plain NumPy with the transform left out (the points are in the gel frame).
         points_gel = np.column_stack([x, y, z])
         geometry = GripperGeometry()
         hx, hz, y_near, y_far = crop_bounds(geometry, DepthMapParams())
-        for name, function in (("contact_depth_map", lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4))),
-                               ("numpy_contact_depth_map", lambda p=points_gel: _numpy_contact_depth_map(
-                                   p, hx, hz, (y_near, y_far), (100, 100)))):
+        for name, function in (
+            ("contact_depth_map", lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4))),
+            (
+                "numpy_contact_depth_map",
+                lambda p=points_gel: _numpy_contact_depth_map(p, hx, hz, (y_near, y_far), (100, 100)),
+            ),
+        ):
             best, median, cpu = _repeat(function)
-            rows.append({"part": "binning", "method": name, "points": count,
-                         "mpoints_per_s": round(count / best / 1e6, 1), "ms_median": round(median * 1e3, 3),
-                         "cpu_ms_median": round(cpu * 1e3, 3), "same_as_ours": None})
+            rows.append(
+                {
+                    "part": "binning",
+                    "method": name,
+                    "points": count,
+                    "mpoints_per_s": round(count / best / 1e6, 1),
+                    "ms_median": round(median * 1e3, 3),
+                    "cpu_ms_median": round(cpu * 1e3, 3),
+                    "same_as_ours": None,
+                }
+            )
     return rows
 
 
@@ -155,10 +190,17 @@ def bench_segmentation(scene_path: str, seed: int, runs: int = 20) -> list[dict]
             result = segment_object(clouds, params, hint_world_m=hint, seed=run)
             walls.append(time.perf_counter() - wall)
             cpus.append(time.process_time() - cpu)
-        rows.append({"part": "segmentation", "object_name": obj.name, "merged_points": sum(len(c) for c in clouds),
-                     "ms_median": round(float(np.median(walls)) * 1e3, 1),
-                     "ms_p90": round(float(np.percentile(walls, 90)) * 1e3, 1),
-                     "cpu_ms_median": round(float(np.median(cpus)) * 1e3, 1), **result.point_counts})
+        rows.append(
+            {
+                "part": "segmentation",
+                "object_name": obj.name,
+                "merged_points": sum(len(c) for c in clouds),
+                "ms_median": round(float(np.median(walls)) * 1e3, 1),
+                "ms_p90": round(float(np.percentile(walls, 90)) * 1e3, 1),
+                "cpu_ms_median": round(float(np.median(cpus)) * 1e3, 1),
+                **result.point_counts,
+            }
+        )
     return rows
 
 
@@ -178,7 +220,7 @@ def _sweep_cases(scene_path: str, poses: int, seed: int, drop_effects: list[str]
         footprint = float(np.max(np.linalg.norm(model.points_m[:, :2], axis=1)))
         for _ in range(poses):
             placed = scene_with_object(scene, mesh, rng, footprint)
-            world = SimWorld(placed, seed=int(rng.integers(2 ** 31)))
+            world = SimWorld(placed, seed=int(rng.integers(2**31)))
             clouds = depth_images_to_world(render_depth_images(world, placed))
             observed = segment_object(clouds, segmentation_params_for(placed)).points_world_m
             cases.append((Path(mesh).stem, model, observed, world.object_to_world[0]))
@@ -201,10 +243,14 @@ def _sweep_row(cases, params: RegistrationParams, label: dict) -> dict:
         walls.append(time.perf_counter() - started)
         add_s.append(add_s_error_m(model.points_m, result.model_to_world, truth) * 1e3)
         add.append(add_error_m(model.points_m, result.model_to_world, truth) * 1e3)
-    return {"part": "sweep", **label, "accepted_rate": round(1 - failures / len(cases), 3),
-            "add_s_mm_median": round(float(np.median(add_s)), 2) if add_s else None,
-            "add_s_mm_p90": round(float(np.percentile(add_s, 90)), 2) if add_s else None,
-            "ms_median": round(float(np.median(walls)) * 1e3, 1)}
+    return {
+        "part": "sweep",
+        **label,
+        "accepted_rate": round(1 - failures / len(cases), 3),
+        "add_s_mm_median": round(float(np.median(add_s)), 2) if add_s else None,
+        "add_s_mm_p90": round(float(np.percentile(add_s, 90)), 2) if add_s else None,
+        "ms_median": round(float(np.median(walls)) * 1e3, 1),
+    }
 
 
 def bench_sweeps(scene_path: str, poses: int, seed: int, drop_effects: list[str]) -> list[dict]:
@@ -216,8 +262,13 @@ def bench_sweeps(scene_path: str, poses: int, seed: int, drop_effects: list[str]
         params = dataclasses.replace(base, voxel_size_m=voxel, icp_voxel_size_m=min(voxel, base.icp_voxel_size_m))
         rows.append(_sweep_row(cases, params, {"sweep": "voxel_mm", "value": voxel_mm}))
     for iterations in (1_000, 5_000, 20_000, 100_000):
-        rows.append(_sweep_row(cases, dataclasses.replace(base, ransac_max_iterations=iterations),
-                               {"sweep": "ransac_iterations", "value": iterations}))
+        rows.append(
+            _sweep_row(
+                cases,
+                dataclasses.replace(base, ransac_max_iterations=iterations),
+                {"sweep": "ransac_iterations", "value": iterations},
+            )
+        )
     for stages_mm in ((4,), (8,), (16,), (16, 8), (16, 4)):
         params = dataclasses.replace(base, icp_distances_m=tuple(d * 1e-3 for d in stages_mm))
         rows.append(_sweep_row(cases, params, {"sweep": "icp_distances_mm", "value": "/".join(map(str, stages_mm))}))
@@ -243,14 +294,31 @@ def bench_depthmap(seed: int) -> list[dict]:
             try:
                 patch = contact_depth_map(points, np.eye(4), gels["left"], geometry, params)
             except PerceptionError as exc:
-                rows.append({"part": "depthmap", "density": density, "bins": bins, "model_points": len(points),
-                             "error": str(exc)})
+                rows.append(
+                    {
+                        "part": "depthmap",
+                        "density": density,
+                        "bins": bins,
+                        "model_points": len(points),
+                        "error": str(exc),
+                    }
+                )
                 continue
-            _, median, cpu = _repeat(lambda p=points, q=params: contact_depth_map(p, np.eye(4), gels["left"],
-                                                                                  geometry, q))
-            rows.append({"part": "depthmap", "density": density, "bins": bins, "model_points": len(points),
-                         "patch_points": patch.point_count, "occupied": round(float(patch.occupied.mean()), 3),
-                         "ms_median": round(median * 1e3, 3), "cpu_ms_median": round(cpu * 1e3, 3)})
+            _, median, cpu = _repeat(
+                lambda p=points, q=params: contact_depth_map(p, np.eye(4), gels["left"], geometry, q)
+            )
+            rows.append(
+                {
+                    "part": "depthmap",
+                    "density": density,
+                    "bins": bins,
+                    "model_points": len(points),
+                    "patch_points": patch.point_count,
+                    "occupied": round(float(patch.occupied.mean()), 3),
+                    "ms_median": round(median * 1e3, 3),
+                    "cpu_ms_median": round(cpu * 1e3, 3),
+                }
+            )
     return rows
 
 

@@ -5,6 +5,7 @@ A publisher process emits what a collection session does — two 512x424 depth s
 ``dtx bag record`` runs as its own process. Per topic: published, recorded, dropped. Then the
 bag is replayed with ``dtx bag play --fast`` and its rate given in MB/s.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,8 +54,9 @@ def _sensor_messages(rng: np.random.Generator) -> dict[str, Any]:
         "/camera/left/depth": msgs.DepthImage(header=msgs.Header(frame_id="camera_left"), depth=depth),
         "/camera/right/depth": msgs.DepthImage(header=msgs.Header(frame_id="camera_right"), depth=depth.copy()),
         "/gelsight/left/image": msgs.TactileImage(header=msgs.Header(frame_id="gel_left"), image=image, sensor="left"),
-        "/gelsight/right/image": msgs.TactileImage(header=msgs.Header(frame_id="gel_right"), image=image.copy(),
-                                                   sensor="right"),
+        "/gelsight/right/image": msgs.TactileImage(
+            header=msgs.Header(frame_id="gel_right"), image=image.copy(), sensor="right"
+        ),
         "/arm/state": msgs.ArmState(tcp_pose=np.zeros(6), joint_positions=np.zeros(6), joint_velocities=np.zeros(6)),
         "/gripper/state": msgs.GripperState(width_m=0.08),
     }
@@ -87,8 +89,12 @@ def run(args: argparse.Namespace) -> dict:
     with tempfile.TemporaryDirectory(prefix="dtxr") as bus_dir, tempfile.TemporaryDirectory(prefix="dtxbag") as tmp:
         bag = Path(args.out_dir or tmp) / "load.mcap"
         env = {**os.environ, "DTX_BUS_DIR": bus_dir}
-        recorder = subprocess.Popen([sys.executable, "-m", "dtx.cli", "bag", "record", "-o", str(bag),
-                                     "--compression", args.compression], env=env, stdout=subprocess.PIPE, text=True)
+        recorder = subprocess.Popen(
+            [sys.executable, "-m", "dtx.cli", "bag", "record", "-o", str(bag), "--compression", args.compression],
+            env=env,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         out = mp.get_context("spawn").Queue()
         load = mp.get_context("spawn").Process(target=_publish_load, args=(bus_dir, args.duration, out))
         load.start()
@@ -101,13 +107,25 @@ def run(args: argparse.Namespace) -> dict:
         info = bag_info(bag)
         size_mb = bag.stat().st_size / 1e6
         started = time.monotonic()
-        player = subprocess.run([sys.executable, "-m", "dtx.cli", "bag", "play", str(bag), "--fast", "--wait", "0"],
-                                env=env, capture_output=True, text=True, timeout=600)
+        player = subprocess.run(
+            [sys.executable, "-m", "dtx.cli", "bag", "play", str(bag), "--fast", "--wait", "0"],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         play_s = time.monotonic() - started
         dtx_bytes = sum(t["bytes"] for name, t in info.topics.items() if not name.endswith("/foxglove"))
         reported_s = json.loads(player.stdout.strip().splitlines()[-1])["seconds"]
-    per_topic = [{"topic": t, "published": published[t], "recorded": recorded.get(t, 0),
-                  "dropped": published[t] - recorded.get(t, 0)} for t in STREAMS]
+    per_topic = [
+        {
+            "topic": t,
+            "published": published[t],
+            "recorded": recorded.get(t, 0),
+            "dropped": published[t] - recorded.get(t, 0),
+        }
+        for t in STREAMS
+    ]
     return {
         "duration_s": args.duration,
         "compression": args.compression,

@@ -22,6 +22,7 @@ fresh generator that corrects the default scene's physics prior.
 Targets (issue 7): p50 <= 25 ms, >= 150 regions/s on 2 cores; issue 18: the cutting step >= 300
 regions/s for 64 poses on a 0.1 mm cloud, and the cloud form end to end (handle) near the depth-map form.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -70,29 +71,53 @@ YCB = sorted(str(p) for p in (Path(__file__).resolve().parent.parent / "assets" 
 SESSION_PRIOR = PriorSpec(scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 0.015, 0.01894))
 
 
-def write_checkpoint(path: Path, width: int, seed: int = 0,
-                     depth_range_m: tuple[float, float] = DEPTH_RANGE_M, prior: bool = False) -> Path:
+def write_checkpoint(
+    path: Path, width: int, seed: int = 0, depth_range_m: tuple[float, float] = DEPTH_RANGE_M, prior: bool = False
+) -> Path:
     """A checkpoint in models/train.py's format (what load_generator reads) holding a fresh,
     seeded generator of width ``width``, correcting the default scene's physics prior if asked."""
     torch.manual_seed(seed)
     config = TrainConfig(generator=GeneratorConfig(ngf=width, prior=prior))
-    torch.save({"generator": UNetGenerator(config.generator).state_dict(), "train_config": config.to_dict(),
-                "depth_range_m": list(depth_range_m), **({"prior": SESSION_PRIOR.to_dict()} if prior else {})}, path)
+    torch.save(
+        {
+            "generator": UNetGenerator(config.generator).state_dict(),
+            "train_config": config.to_dict(),
+            "depth_range_m": list(depth_range_m),
+            **({"prior": SESSION_PRIOR.to_dict()} if prior else {}),
+        },
+        path,
+    )
     return path
 
 
 def depth_maps(count: int, seed: int, y_far_m: float = DEPTH_RANGE_M[1]) -> np.ndarray:
     """count x 100 x 100 float32 contact depth-maps (metres) of random analytic contacts."""
     rng = np.random.default_rng(seed)
-    return np.stack([depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0,
-                                            y_far_m=y_far_m) for i in range(count)]).astype(np.float32)
+    return np.stack(
+        [
+            depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0, y_far_m=y_far_m)
+            for i in range(count)
+        ]
+    ).astype(np.float32)
 
 
-def start_server(name: str, checkpoint: Path, params: dict[str, Any], env: dict[str, str],
-                 log: TextIO) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "nodes.inference", "--name", name,
-                             "--params", json.dumps({"checkpoint": str(checkpoint), **params})],
-                            env=env, stdout=log, stderr=subprocess.STDOUT)
+def start_server(
+    name: str, checkpoint: Path, params: dict[str, Any], env: dict[str, str], log: TextIO
+) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "nodes.inference",
+            "--name",
+            name,
+            "--params",
+            json.dumps({"checkpoint": str(checkpoint), **params}),
+        ],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -151,8 +176,9 @@ def surface_gel_poses(cloud: ModelCloud, count: int, seed: int, press_m: float =
     return poses
 
 
-def _cut_rates(points: np.ndarray, poses: np.ndarray, geometry: GripperGeometry, params: DepthMapParams,
-               per_gel: int) -> dict[str, float]:
+def _cut_rates(
+    points: np.ndarray, poses: np.ndarray, geometry: GripperGeometry, params: DepthMapParams, per_gel: int
+) -> dict[str, float]:
     """Depth-map cutting in this process, regions/s: the batched indexed pass (index built
     beforehand, as the node caches it) and the way before it (a pass over the whole cloud per gel,
     ``per_gel`` gels)."""
@@ -164,8 +190,10 @@ def _cut_rates(points: np.ndarray, poses: np.ndarray, geometry: GripperGeometry,
     started = time.perf_counter()
     for pose in poses[:per_gel]:
         contact_depth_map(points, np.eye(4), pose, geometry, params)
-    return {"cut_regions_per_s": round(batched, 1),
-            "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1)}
+    return {
+        "cut_regions_per_s": round(batched, 1),
+        "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1),
+    }
 
 
 def _prior_cpu_ms_per_region(checkpoint: Path, maps: np.ndarray) -> float | None:
@@ -198,24 +226,31 @@ def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tu
     params = DepthMapParams(y_range_m=depth_range_m)
     rows = []
     with contextlib.closing(Bus("planner_points", registry)) as bus, TactileClient(bus, 300.0) as client:
-        for mesh in YCB[:args.objects]:
+        for mesh in YCB[: args.objects]:
             cloud = sample_model_cloud(mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED)
             points = cloud.points_m.astype(np.float32)  # what a planner sends: half the bytes
             for count in args.poses:
                 poses = surface_gel_poses(cloud, count, args.seed)
                 maps = contact_depth_maps(VoxelIndex(points), np.eye(4), poses, geometry, params).depth_maps_m
-                row = {"object": Path(mesh).stem, "cloud_points": len(points), "poses": count,
-                       **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4))}
+                row = {
+                    "object": Path(mesh).stem,
+                    "cloud_points": len(points),
+                    "poses": count,
+                    **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4)),
+                }
                 handle = Cloud(points)
                 started = time.perf_counter()
                 client.estimate_at(handle, poses)
                 row["first_request_ms"] = round((time.perf_counter() - started) * 1e3, 1)
                 row["handle_p50_ms"], row["handle_regions_per_s"] = _request_rate(
-                    lambda: client.estimate_at(handle, poses), count, args.point_requests)
+                    lambda: client.estimate_at(handle, poses), count, args.point_requests
+                )
                 row["points_p50_ms"], row["points_regions_per_s"] = _request_rate(
-                    lambda: client.estimate_at(points, poses), count, args.point_requests)
+                    lambda: client.estimate_at(points, poses), count, args.point_requests
+                )
                 row["maps_p50_ms"], row["maps_regions_per_s"] = _request_rate(
-                    lambda: client.estimate(maps), count, args.point_requests)
+                    lambda: client.estimate(maps), count, args.point_requests
+                )
                 rows.append(row)
     return rows
 
@@ -227,18 +262,29 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             depth_range = torch.load(checkpoint, map_location="cpu", weights_only=True)["depth_range_m"]
         else:
             checkpoint = write_checkpoint(Path(tmp) / "fresh.pt", args.width, args.seed, prior=args.prior)
-            weights = f"fresh generator, width {args.width}{', physics prior' if args.prior else ''} (seeded, untrained)"
+            weights = (
+                f"fresh generator, width {args.width}{', physics prior' if args.prior else ''} (seeded, untrained)"
+            )
             depth_range = DEPTH_RANGE_M
         depth_range_m = (float(depth_range[0]), float(depth_range[1]))
         y_far = depth_range_m[1]
         bus_dir = Path(tmp) / "bus"
         registry = Registry(bus_dir)
-        params = {"runtime": args.runtime, "precision": args.precision, "threads": args.threads,
-                  "max_batch": args.max_batch, "batch_window_ms": args.window_ms}
+        params = {
+            "runtime": args.runtime,
+            "precision": args.precision,
+            "threads": args.threads,
+            "max_batch": args.max_batch,
+            "batch_window_ms": args.window_ms,
+        }
         log_path = Path(tmp) / "server.log"
         with open(log_path, "w") as log:
-            servers = [start_server(f"inference_bench_{i + 1}", checkpoint, params,
-                                    {**os.environ, "DTX_BUS_DIR": str(bus_dir)}, log) for i in range(args.workers)]
+            servers = [
+                start_server(
+                    f"inference_bench_{i + 1}", checkpoint, params, {**os.environ, "DTX_BUS_DIR": str(bus_dir)}, log
+                )
+                for i in range(args.workers)
+            ]
         try:
             maps = depth_maps(max(args.regions, 16), args.seed, y_far)
             while len(registry.lookup("service", SERVICE)) < args.workers:  # loading the model
@@ -255,7 +301,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     client.estimate(maps[i % len(maps)])
                     latencies.append((time.perf_counter() - started) * 1e3)
             cpu_before = sum(_cpu_seconds(server.pid) for server in servers)
-            throughput, served = _throughput(registry, maps[:args.regions], args.clients, args.seconds)
+            throughput, served = _throughput(registry, maps[: args.regions], args.clients, args.seconds)
             # On a shared machine the wall-clock rate depends on the neighbours; the servers'
             # own CPU time per region much less (2 free cores serve at most 2 / that).
             cpu_per_region = (sum(_cpu_seconds(server.pid) for server in servers) - cpu_before) / served
@@ -273,17 +319,28 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         failed = [server.returncode for server in servers if server.returncode not in (0, -signal.SIGINT)]
         if failed:
             raise RuntimeError(f"an inference node failed ({failed}): {log_path.read_text()[-2000:]}")
-    return {"weights": weights, "model": model, "workers": args.workers, "threads_per_worker": args.threads,
-            "p50_ms": round(statistics.median(latencies), 2),
-            "p99_ms": round(float(np.percentile(latencies, 99)), 2),
-            "regions_per_s": round(throughput, 1),
-            "server_cpu_ms_per_region": round(cpu_per_region * 1e3, 2),
-            "server_bound_regions_per_s_2_cores": round(2.0 / cpu_per_region, 1),
-            **({"prior_cpu_ms_per_region": round(prior_ms, 2),
-                "prior_share_of_server_cpu": round(prior_ms / (cpu_per_region * 1e3), 2)} if prior_ms else {}),
-            "throughput_setup": f"{args.clients} clients x {args.regions} regions/request, max_batch {args.max_batch}",
-            "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores",
-            **({"points": points} if points is not None else {})}
+    return {
+        "weights": weights,
+        "model": model,
+        "workers": args.workers,
+        "threads_per_worker": args.threads,
+        "p50_ms": round(statistics.median(latencies), 2),
+        "p99_ms": round(float(np.percentile(latencies, 99)), 2),
+        "regions_per_s": round(throughput, 1),
+        "server_cpu_ms_per_region": round(cpu_per_region * 1e3, 2),
+        "server_bound_regions_per_s_2_cores": round(2.0 / cpu_per_region, 1),
+        **(
+            {
+                "prior_cpu_ms_per_region": round(prior_ms, 2),
+                "prior_share_of_server_cpu": round(prior_ms / (cpu_per_region * 1e3), 2),
+            }
+            if prior_ms
+            else {}
+        ),
+        "throughput_setup": f"{args.clients} clients x {args.regions} regions/request, max_batch {args.max_batch}",
+        "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores",
+        **({"points": points} if points is not None else {}),
+    }
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

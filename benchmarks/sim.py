@@ -8,6 +8,7 @@ Depth frames: the world is static, so each camera's exact ray cast (Open3D
 RaycastingScene.cast_rays on all 217k rays at once) is done on the first frame and cached;
 the ``first frame`` rows report that full cast, the other rows the steady per-frame cost.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -16,8 +17,15 @@ import statistics
 import time
 
 SCENE = "scenes/ycb_three.yaml"
-DEPTH_EFFECTS = ("extrinsic_offset", "lateral_noise", "flying_pixels", "axial_noise", "missing_returns",
-                 "quantisation", "micro_relief")
+DEPTH_EFFECTS = (
+    "extrinsic_offset",
+    "lateral_noise",
+    "flying_pixels",
+    "axial_noise",
+    "missing_returns",
+    "quantisation",
+    "micro_relief",
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,8 +54,14 @@ def _row(figure: str, timing: tuple[float, ...], target: float | None = None, un
     med = timing[0]
     best = timing[1] if len(timing) > 1 else None
     cpu = timing[2] if len(timing) > 2 else None
-    row = {"figure": figure, "value": round(med, 3), "best": None if best is None else round(best, 3),
-           "cpu": None if cpu is None else round(cpu, 3), "unit": unit, "target": target}
+    row = {
+        "figure": figure,
+        "value": round(med, 3),
+        "best": None if best is None else round(best, 3),
+        "cpu": None if cpu is None else round(cpu, 3),
+        "unit": unit,
+        "target": target,
+    }
     row["meets_target"] = None if target is None else bool(med <= target)
     return row
 
@@ -106,8 +120,14 @@ def run(args: argparse.Namespace) -> list[dict]:
         result = run_check(args.check_file)
         targets = {"crop": 0.87, "full": 0.92}
         for key, value in result["mean"].items():
-            row = {"figure": f"gelsight-check SSIM {key}", "value": round(float(value), 4), "best": None,
-                   "cpu": None, "unit": "SSIM", "target": targets.get(key)}
+            row = {
+                "figure": f"gelsight-check SSIM {key}",
+                "value": round(float(value), 4),
+                "best": None,
+                "cpu": None,
+                "unit": "SSIM",
+                "target": targets.get(key),
+            }
             row["meets_target"] = None if key not in targets else bool(value >= targets[key])
             rows.append(row)
     return rows

@@ -1,6 +1,7 @@
 """Samples as the collector announces them on the bus (msgs.DatasetSample), into a dataset:
 the collector writes through here, and so does the replay that rebuilds a dataset from a bag,
 which is what makes the two datasets identical."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -12,17 +13,36 @@ from dataset.format import DatasetInfo, DatasetWriter, code_version
 def write_samples(writer: DatasetWriter, samples: Sequence[msgs.DatasetSample]) -> None:
     """Announced samples into the dataset, landing together (a grasp's two fingers: both or
     neither); the collector and the replay share this."""
-    writer.write_together([writer.encode(
-        sample_id=s.sample_id, object_name=s.object_name, grasp_id=s.grasp_id, finger=s.finger,
-        grasp_pose=s.grasp_pose, tactile_rgb=s.tactile_image, tactile_diff_rgb=s.tactile_diff_image,
-        depth_map_m=s.depth_map_m, registration_fitness=s.registration_fitness, stamps_ns=s.stamps_ns,
-        model_to_gel=s.model_to_gel) for s in samples])
+    writer.write_together(
+        [
+            writer.encode(
+                sample_id=s.sample_id,
+                object_name=s.object_name,
+                grasp_id=s.grasp_id,
+                finger=s.finger,
+                grasp_pose=s.grasp_pose,
+                tactile_rgb=s.tactile_image,
+                tactile_diff_rgb=s.tactile_diff_image,
+                depth_map_m=s.depth_map_m,
+                registration_fitness=s.registration_fitness,
+                stamps_ns=s.stamps_ns,
+                model_to_gel=s.model_to_gel,
+            )
+            for s in samples
+        ]
+    )
 
 
 def dataset_info(sample: msgs.DatasetSample) -> DatasetInfo:
     """The dataset-wide facts an announced sample carries."""
     height, width = sample.tactile_image.shape[:2]
-    return DatasetInfo(image_height=height, image_width=width,
-                       depth_range_m=(sample.depth_range_m[0], sample.depth_range_m[1]), scene=sample.scene,
-                       effects=tuple(sample.effects), code_version=code_version(), split_seed=sample.split_seed,
-                       depth_crop_m=(sample.depth_crop_m[0], sample.depth_crop_m[1], sample.depth_crop_m[2]))
+    return DatasetInfo(
+        image_height=height,
+        image_width=width,
+        depth_range_m=(sample.depth_range_m[0], sample.depth_range_m[1]),
+        scene=sample.scene,
+        effects=tuple(sample.effects),
+        code_version=code_version(),
+        split_seed=sample.split_seed,
+        depth_crop_m=(sample.depth_crop_m[0], sample.depth_crop_m[1], sample.depth_crop_m[2]),
+    )

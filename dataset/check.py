@@ -1,4 +1,5 @@
 """Verify a dataset directory sample by sample (``dtx dataset check``)."""
+
 from __future__ import annotations
 
 import dataclasses

@@ -1,4 +1,5 @@
 """``dtx dataset check | checksum | export-pix2pix | synth | redepth``."""
+
 from __future__ import annotations
 
 import argparse
@@ -45,8 +46,9 @@ def _library(args: argparse.Namespace) -> int:
     from workcell.scene import SceneError
 
     try:
-        writer = write_contact_library(args.out, args.samples, args.seed, args.scene, tuple(args.depth_range_m),
-                                       progress=True)
+        writer = write_contact_library(
+            args.out, args.samples, args.seed, args.scene, tuple(args.depth_range_m), progress=True
+        )
     except (SceneError, DepthMapError) as err:  # the scene or the depth range given: the caller's input
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -72,8 +74,10 @@ def _redepth(args: argparse.Namespace) -> int:
         return 2
     for density, out in targets.items():
         writer = redepth_dataset(args.dir, out, density, args.bins)
-        print(f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
-              + ("" if args.bins is None else f", {args.bins} x {args.bins} bins"))
+        print(
+            f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
+            + ("" if args.bins is None else f", {args.bins} x {args.bins} bins")
+        )
     return 0
 
 
@@ -86,9 +90,12 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     check.add_argument("dir", help="dataset directory")
     check.set_defaults(func=_check)
 
-    checksum = commands.add_parser("checksum", help="SHA-256 of the dataset's content (samples, files, description; "
-                                                    "not capture times or code version): equal for two sessions "
-                                                    "with the same seed")
+    checksum = commands.add_parser(
+        "checksum",
+        help="SHA-256 of the dataset's content (samples, files, description; "
+        "not capture times or code version): equal for two sessions "
+        "with the same seed",
+    )
     checksum.add_argument("dir", help="dataset directory")
     checksum.set_defaults(func=_checksum)
 
@@ -103,22 +110,44 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     synth.add_argument("--seed", type=int, default=0)
     synth.set_defaults(func=_synth)
 
-    library = commands.add_parser("library", help="render a contact library in a scene's collection geometry "
-                                                  "(spheres, cylinders, wedges, corners, textures, height fields)")
+    library = commands.add_parser(
+        "library",
+        help="render a contact library in a scene's collection geometry "
+        "(spheres, cylinders, wedges, corners, textures, height fields)",
+    )
     library.add_argument("out", help="dataset directory to create or resume")
     library.add_argument("--samples", type=int, default=1200, help="number of pairs (default 1200)")
     library.add_argument("--seed", type=int, default=0)
-    library.add_argument("--scene", default="scenes/ycb_three.yaml",
-                         help="scene whose gripper, GelSight and GelSight effects the pairs are made with")
-    library.add_argument("--depth-range-m", type=float, nargs=2, default=(-0.005, 0.01), metavar=("NEAR", "FAR"),
-                         help="depth-map range, as the sessions it trains beside (default -0.005 0.01)")
+    library.add_argument(
+        "--scene",
+        default="scenes/ycb_three.yaml",
+        help="scene whose gripper, GelSight and GelSight effects the pairs are made with",
+    )
+    library.add_argument(
+        "--depth-range-m",
+        type=float,
+        nargs=2,
+        default=(-0.005, 0.01),
+        metavar=("NEAR", "FAR"),
+        help="depth-map range, as the sessions it trains beside (default -0.005 0.01)",
+    )
     library.set_defaults(func=_library)
 
-    redepth = commands.add_parser("redepth", help="make a collected dataset's depth-maps again, e.g. at the "
-                                                  "paper's point densities (1 10 20 40 80 points/cm³)")
+    redepth = commands.add_parser(
+        "redepth",
+        help="make a collected dataset's depth-maps again, e.g. at the "
+        "paper's point densities (1 10 20 40 80 points/cm³)",
+    )
     redepth.add_argument("dir", help="collected dataset directory")
-    redepth.add_argument("--density", type=float, nargs="+", default=[],
-                         help="points/cm³ after a voxel-grid filter; each goes to DIR_density_D")
+    redepth.add_argument(
+        "--density",
+        type=float,
+        nargs="+",
+        default=[],
+        help="points/cm³ after a voxel-grid filter; each goes to DIR_density_D",
+    )
     redepth.add_argument("--out", help="output directory for one density (or, without --density, full density)")
-    redepth.add_argument("--bins", type=int, help="bins per side (default: the source's); tactile images are resized to match")
+    redepth.add_argument(
+        "--bins", type=int, help="bins per side (default: the source's); tactile images are resized to match"
+    )
     redepth.set_defaults(func=_redepth)

@@ -22,6 +22,7 @@ YCB meshes stay out of the library: the ones the default scene does not use are 
 objects a model is judged on (``scenes/ycb_unseen.yaml``). The real GelSight frames are never
 used: they are for evaluation only.
 """
+
 from __future__ import annotations
 
 import os
@@ -59,7 +60,7 @@ def random_surface_mm(family: str, rng: np.random.Generator) -> SurfaceMm:
 
     if family == "sphere":
         radius = float(np.exp(rng.uniform(np.log(1.0), np.log(12.0))))
-        return lambda x, z: _cap(x ** 2 + z ** 2, radius)
+        return lambda x, z: _cap(x**2 + z**2, radius)
     if family == "cylinder":
         radius = float(np.exp(rng.uniform(np.log(1.0), np.log(15.0))))
         return lambda x, z: tilted(_cap(local(x, z)[0] ** 2, radius), x, z)
@@ -73,6 +74,7 @@ def random_surface_mm(family: str, rng: np.random.Generator) -> SurfaceMm:
             u, v = local(x, z)
             on_face = (u > 0) & ((v > 0) | (not quadrant))
             return np.where(on_face, tilted(np.zeros_like(u), x, z), np.inf)
+
         return corner
     if family == "textured":
         amplitude, period = rng.uniform(0.05, 0.4), rng.uniform(0.8, 4.0)
@@ -84,6 +86,7 @@ def random_surface_mm(family: str, rng: np.random.Generator) -> SurfaceMm:
             if bumps:
                 wave = wave * 0.5 * (1.0 - np.cos(2 * np.pi * v / period))
             return tilted(amplitude * wave, x, z)
+
         return textured
     if family == "height_field":
         count = int(rng.integers(3, 9))
@@ -94,16 +97,17 @@ def random_surface_mm(family: str, rng: np.random.Generator) -> SurfaceMm:
         def field(x: np.ndarray, z: np.ndarray) -> np.ndarray:
             y = np.zeros(np.broadcast(x, z).shape)
             for (cx, cz), sigma, height in zip(centres, sigmas, heights):
-                y -= height * np.exp(-((x - cx) ** 2 + (z - cz) ** 2) / (2 * sigma ** 2))
+                y -= height * np.exp(-((x - cx) ** 2 + (z - cz) ** 2) / (2 * sigma**2))
             return tilted(y, x, z)
+
         return field
     raise DatasetError(f"unknown contact family {family!r} (known: {FAMILIES})")
 
 
 def _cap(r2_mm2: np.ndarray, radius_mm: float) -> np.ndarray:
     """Lower surface of a sphere (or cylinder) of ``radius_mm`` whose lowest point is at y = 0."""
-    inside = r2_mm2 < radius_mm ** 2
-    return np.where(inside, radius_mm - np.sqrt(np.where(inside, radius_mm ** 2 - r2_mm2, 0.0)), np.inf)
+    inside = r2_mm2 < radius_mm**2
+    return np.where(inside, radius_mm - np.sqrt(np.where(inside, radius_mm**2 - r2_mm2, 0.0)), np.inf)
 
 
 def placed(surface: SurfaceMm, offset_mm: tuple[float, float], lift_mm: float) -> SurfaceMm:
@@ -111,8 +115,13 @@ def placed(surface: SurfaceMm, offset_mm: tuple[float, float], lift_mm: float) -
     return lambda x, z: surface(x - offset_mm[0], z - offset_mm[1]) + lift_mm
 
 
-def surface_cloud_m(surface: SurfaceMm, half_x_m: float, half_z_m: float, rng: np.random.Generator,
-                    spacing_m: float = MODEL_POINT_SPACING_M) -> np.ndarray:
+def surface_cloud_m(
+    surface: SurfaceMm,
+    half_x_m: float,
+    half_z_m: float,
+    rng: np.random.Generator,
+    spacing_m: float = MODEL_POINT_SPACING_M,
+) -> np.ndarray:
     """The surface sampled as a model cloud (N x 3, gel frame, m): one point per ``spacing_m``²
     of the crop's x-z area, jittered within its cell; where the surface has no height, none."""
     nx, nz = int(np.ceil(2 * half_x_m / spacing_m)), int(np.ceil(2 * half_z_m / spacing_m))
@@ -123,8 +132,14 @@ def surface_cloud_m(surface: SurfaceMm, half_x_m: float, half_z_m: float, rng: n
     return np.stack([x[keep], y[keep], z[keep]], axis=1)
 
 
-def library_sample(family: str, rng: np.random.Generator, geometry: GripperGeometry, params: DepthMapParams,
-                   renderer: GelSightRenderer, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+def library_sample(
+    family: str,
+    rng: np.random.Generator,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+    renderer: GelSightRenderer,
+    size: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray] | None:
     """One (depth-map m, tactile image uint8 at ``size``) pair of ``family``, or None when the
     drawn surface leaves nothing in the crop (drawn again by the caller)."""
     half_x, half_z, _, _ = crop_bounds(geometry, params)
@@ -132,7 +147,9 @@ def library_sample(family: str, rng: np.random.Generator, geometry: GripperGeome
     offset = (rng.uniform(-0.8, 0.8) * sensed_x_mm, rng.uniform(-0.8, 0.8) * sensed_z_mm)
     shape = placed(random_surface_mm(family, rng), offset, 0.0)
     # The press is set by the surface's lowest point over the sensed area, where the gel is.
-    probe_x, probe_z = np.meshgrid(np.linspace(-sensed_x_mm, sensed_x_mm, 81), np.linspace(-sensed_z_mm, sensed_z_mm, 61))
+    probe_x, probe_z = np.meshgrid(
+        np.linspace(-sensed_x_mm, sensed_x_mm, 81), np.linspace(-sensed_z_mm, sensed_z_mm, 61)
+    )
     lowest = float(np.min(shape(probe_x, probe_z)))
     if not np.isfinite(lowest):
         return None
@@ -147,9 +164,16 @@ def library_sample(family: str, rng: np.random.Generator, geometry: GripperGeome
     return depth_map, resize_rgb(renderer.render(gap_mm), *size)
 
 
-def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, scene: Scene | str,
-                          depth_range_m: tuple[float, float] = DEFAULT_DEPTH_RANGE_M, margin_m: float = 0.002,
-                          size: int = 100, progress: bool = False) -> DatasetWriter:
+def write_contact_library(
+    out: str | os.PathLike[str],
+    samples: int,
+    seed: int,
+    scene: Scene | str,
+    depth_range_m: tuple[float, float] = DEFAULT_DEPTH_RANGE_M,
+    margin_m: float = 0.002,
+    size: int = 100,
+    progress: bool = False,
+) -> DatasetWriter:
     """Write ``samples`` library pairs to ``out`` (two per "grasp", as a session's fingers), the
     families in turn. Resumes: samples already present are drawn again identically and skipped."""
     if samples <= 0:
@@ -162,10 +186,16 @@ def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, 
     half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
     renderer = scene_renderer(scene, effects=True, rng=np.random.default_rng([seed, 1]))
     background = resize_rgb(renderer.background(), size, size)
-    info = DatasetInfo(image_height=size, image_width=size, depth_range_m=depth_range_m,
-                       scene=scene_name, effects=tuple(e.name for e in effects_of(scene, "gelsight")),
-                       code_version=code_version(), split_seed=seed,
-                       depth_crop_m=(2 * half_x, y_far - y_near, 2 * half_z))
+    info = DatasetInfo(
+        image_height=size,
+        image_width=size,
+        depth_range_m=depth_range_m,
+        scene=scene_name,
+        effects=tuple(e.name for e in effects_of(scene, "gelsight")),
+        code_version=code_version(),
+        split_seed=seed,
+        depth_crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
+    )
     writer = DatasetWriter(out, info)
     for index in tqdm(range(samples), desc="contact library", disable=not progress):
         family = FAMILIES[index % len(FAMILIES)]
@@ -180,8 +210,15 @@ def write_contact_library(out: str | os.PathLike[str], samples: int, seed: int, 
         while pair is None:
             pair = library_sample(family, rng, geometry, params, renderer, (size, size))
         depth_map, tactile = pair
-        writer.write(sample_id=sample_id, object_name=family, grasp_id=grasp_id, finger=finger,
-                     grasp_pose=(0.0, 0.0, 0.0, 0.0), tactile_rgb=tactile,
-                     tactile_diff_rgb=subtract_background(tactile, background), depth_map_m=depth_map,
-                     registration_fitness=1.0)
+        writer.write(
+            sample_id=sample_id,
+            object_name=family,
+            grasp_id=grasp_id,
+            finger=finger,
+            grasp_pose=(0.0, 0.0, 0.0, 0.0),
+            tactile_rgb=tactile,
+            tactile_diff_rgb=subtract_background(tactile, background),
+            depth_map_m=depth_map,
+            registration_fitness=1.0,
+        )
     return writer

@@ -5,6 +5,7 @@ normalised with the dataset's depth_range_m to [-1, 1], written as grey 0..255 w
 dark) on the left, B (the tactile image) on the right; train there with ``--direction AtoB``
 (``--input_nc 1`` to read A as one channel).
 """
+
 from __future__ import annotations
 
 import os

@@ -21,6 +21,7 @@ and then appends their manifest lines in one write, so a crash at any point leav
 neither. Should an append still be torn between the lines, ``drop_incomplete_grasps`` (a
 collector resuming) removes the lone finger so the whole grasp is redone.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -93,8 +94,10 @@ class DatasetInfo:
         if data.get("format") != FORMAT_NAME:
             raise DatasetError(f"dataset.json: format is {data.get('format')!r}, expected {FORMAT_NAME!r}")
         if data.get("version") != FORMAT_VERSION:
-            raise DatasetError(f"dataset.json: version {data.get('version')!r} is not supported "
-                               f"(this code reads version {FORMAT_VERSION})")
+            raise DatasetError(
+                f"dataset.json: version {data.get('version')!r} is not supported "
+                f"(this code reads version {FORMAT_VERSION})"
+            )
         try:
             info = DatasetInfo(
                 image_height=int(data["image_height"]),
@@ -104,20 +107,23 @@ class DatasetInfo:
                 effects=tuple(str(e) for e in data["effects"]),
                 code_version=str(data["code_version"]),
                 split_seed=int(data["split_seed"]),
-                depth_crop_m=None if "depth_crop_m" not in data else
-                tuple(float(v) for v in data["depth_crop_m"]),  # type: ignore[arg-type]
+                depth_crop_m=None if "depth_crop_m" not in data else tuple(float(v) for v in data["depth_crop_m"]),  # type: ignore[arg-type]
             )
         except (KeyError, TypeError, IndexError, ValueError) as err:
             raise DatasetError(f"dataset.json: missing or malformed field ({err!r})") from err
-        if info.depth_crop_m is not None and (len(info.depth_crop_m) != 3 or not all(
-                np.isfinite(v) and v > 0 for v in info.depth_crop_m)):
+        if info.depth_crop_m is not None and (
+            len(info.depth_crop_m) != 3 or not all(np.isfinite(v) and v > 0 for v in info.depth_crop_m)
+        ):
             raise DatasetError(f"dataset.json: depth_crop_m must be 3 positive extents (m), got {info.depth_crop_m}")
         if not (0 < info.image_height <= MAX_IMAGE_SIDE and 0 < info.image_width <= MAX_IMAGE_SIDE):
-            raise DatasetError(f"dataset.json: image size must be 1-{MAX_IMAGE_SIDE} pixels a side, got "
-                               f"{info.image_height}x{info.image_width}")
+            raise DatasetError(
+                f"dataset.json: image size must be 1-{MAX_IMAGE_SIDE} pixels a side, got "
+                f"{info.image_height}x{info.image_width}"
+            )
         if not info.depth_range_m[1] > info.depth_range_m[0]:
-            raise DatasetError(f"dataset.json: depth_range_m must be (near, far) with far > near, "
-                               f"got {info.depth_range_m}")
+            raise DatasetError(
+                f"dataset.json: depth_range_m must be (near, far) with far > near, got {info.depth_range_m}"
+            )
         return info
 
 
@@ -182,8 +188,10 @@ class SampleRecord:
             raise DatasetError(f"sample id {record.sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-]")
         if record.files != sample_files(record.sample_id):
             # A path of one's own choosing (../x, /etc/x) would be read from outside the dataset.
-            raise DatasetError(f"sample {record.sample_id}: files must be {sample_files(record.sample_id)} "
-                               f"(inside the dataset), got {record.files}")
+            raise DatasetError(
+                f"sample {record.sample_id}: files must be {sample_files(record.sample_id)} "
+                f"(inside the dataset), got {record.files}"
+            )
         return record
 
     @property
@@ -200,8 +208,12 @@ def sample_files(sample_id: str) -> dict[str, str]:
 def _transform_tuple(value: Any) -> tuple[tuple[float, ...], ...]:
     """A 4x4 rigid transform as nested tuples of floats; DatasetError unless it is one."""
     matrix = np.asarray(value, dtype=np.float64)
-    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)) or not np.allclose(matrix[3], [0, 0, 0, 1]) \
-            or not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-6):
+    if (
+        matrix.shape != (4, 4)
+        or not np.all(np.isfinite(matrix))
+        or not np.allclose(matrix[3], [0, 0, 0, 1])
+        or not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-6)
+    ):
         raise DatasetError(f"model_to_gel must be a finite 4x4 rigid transform, got {value!r}")
     return tuple(tuple(float(v) for v in row) for row in matrix)
 
@@ -241,8 +253,9 @@ def resize_rgb(image_rgb: np.ndarray, height: int, width: int) -> np.ndarray:
     if image_rgb.shape[:2] == (height, width):
         return image_rgb
     shrink = image_rgb.shape[0] > height
-    return cv2.resize(np.ascontiguousarray(image_rgb), (width, height),
-                      interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return cv2.resize(
+        np.ascontiguousarray(image_rgb), (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    )
 
 
 def deformation_map(tactile_diff_rgb: np.ndarray) -> np.ndarray:
@@ -296,8 +309,10 @@ def _decode_png(data: bytes, name: str, shape: tuple[int, int]) -> np.ndarray:
         raise DatasetError(f"{name}: not a PNG file")
     width, height = struct.unpack(">II", data[16:24])
     if (height, width) != shape or data[24:26] != b"\x08\x02":
-        raise DatasetError(f"{name}: PNG header says {height}x{width} (bit depth {data[24]}, colour type "
-                           f"{data[25]}); dataset images are {shape[0]}x{shape[1]} 8-bit RGB")
+        raise DatasetError(
+            f"{name}: PNG header says {height}x{width} (bit depth {data[24]}, colour type "
+            f"{data[25]}); dataset images are {shape[0]}x{shape[1]} 8-bit RGB"
+        )
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3 or bgr.dtype != np.uint8:
         raise DatasetError(f"{name}: not an 8-bit RGB PNG")
@@ -316,19 +331,23 @@ def _decode_npy(data: bytes, name: str, shape: tuple[int, int]) -> np.ndarray:
     stream = io.BytesIO(data)
     try:
         version = np.lib.format.read_magic(stream)
-        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
-                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}.get(
+            version
+        )
         if read_header is None:
             raise ValueError(f"format version {version} is not one this reader takes")
         stored_shape, fortran, dtype = read_header(stream, max_header_size=4096)
     except (ValueError, OSError, EOFError, SyntaxError) as err:
         raise DatasetError(f"{name}: not a readable .npy array ({err})") from err
     if stored_shape != shape or dtype != np.dtype("<f4") or fortran:
-        raise DatasetError(f"{name}: .npy header says {stored_shape} {dtype}{' (Fortran order)' if fortran else ''}; "
-                           f"depth-maps are {shape} little-endian float32")
+        raise DatasetError(
+            f"{name}: .npy header says {stored_shape} {dtype}{' (Fortran order)' if fortran else ''}; "
+            f"depth-maps are {shape} little-endian float32"
+        )
     if len(data) - stream.tell() != 4 * shape[0] * shape[1]:
-        raise DatasetError(f"{name}: .npy holds {len(data) - stream.tell()} data bytes, its header says "
-                           f"{4 * shape[0] * shape[1]}")
+        raise DatasetError(
+            f"{name}: .npy holds {len(data) - stream.tell()} data bytes, its header says {4 * shape[0] * shape[1]}"
+        )
     return np.frombuffer(data, np.float32, offset=stream.tell()).reshape(shape).copy()
 
 
@@ -382,8 +401,9 @@ def _write_atomic(path: Path, data: bytes) -> None:
         raise
 
 
-def _check_sample_arrays(info: DatasetInfo, tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
-                         depth_map_m: np.ndarray, sample_id: str) -> None:
+def _check_sample_arrays(
+    info: DatasetInfo, tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray, depth_map_m: np.ndarray, sample_id: str
+) -> None:
     shape = (info.image_height, info.image_width)
     for name, image in (("tactile", tactile_rgb), ("tactile_diff", tactile_diff_rgb)):
         image = _check_rgb(image, f"sample {sample_id}: {name}")
@@ -391,8 +411,9 @@ def _check_sample_arrays(info: DatasetInfo, tactile_rgb: np.ndarray, tactile_dif
             raise DatasetError(f"sample {sample_id}: {name} is {image.shape[:2]}, dataset images are {shape}")
     depth = np.asarray(depth_map_m)
     if depth.dtype != np.float32 or depth.shape != shape:
-        raise DatasetError(f"sample {sample_id}: depth-map must be {shape} float32 metres, "
-                           f"got {depth.shape} {depth.dtype}")
+        raise DatasetError(
+            f"sample {sample_id}: depth-map must be {shape} float32 metres, got {depth.shape} {depth.dtype}"
+        )
     if np.any(np.isneginf(depth)):
         raise DatasetError(f"sample {sample_id}: depth-map contains -inf (empty bins are NaN or +inf)")
 
@@ -445,24 +466,37 @@ class DatasetWriter:
                 f.truncate(keep)
                 os.fsync(f.fileno())
 
-    def encode(self, *, sample_id: str, object_name: str, grasp_id: int, finger: str,
-               grasp_pose: Sequence[float], tactile_rgb: np.ndarray, tactile_diff_rgb: np.ndarray,
-               depth_map_m: np.ndarray, registration_fitness: float, stamps_ns: dict[str, int] | None = None,
-               model_to_gel: np.ndarray | None = None) -> EncodedSample:
+    def encode(
+        self,
+        *,
+        sample_id: str,
+        object_name: str,
+        grasp_id: int,
+        finger: str,
+        grasp_pose: Sequence[float],
+        tactile_rgb: np.ndarray,
+        tactile_diff_rgb: np.ndarray,
+        depth_map_m: np.ndarray,
+        registration_fitness: float,
+        stamps_ns: dict[str, int] | None = None,
+        model_to_gel: np.ndarray | None = None,
+    ) -> EncodedSample:
         """Check one sample and encode its files, touching nothing on disk: ``write_together``
         then lands it (with its grasp's other finger). DatasetError for bad arrays or fields."""
         if not isinstance(sample_id, str) or not _SAMPLE_ID.match(sample_id):
-            raise DatasetError(f"sample id {sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-], "
-                               "not starting with '.', '_' or '-'")
+            raise DatasetError(
+                f"sample id {sample_id!r} must be 1-128 characters of [A-Za-z0-9_.-], not starting with '.', '_' or '-'"
+            )
         if finger not in FINGERS:
             raise DatasetError(f"sample {sample_id}: finger must be one of {FINGERS}, got {finger!r}")
         pose = tuple(float(v) for v in grasp_pose)
         if len(pose) != 4 or not all(np.isfinite(pose)):
-            raise DatasetError(f"sample {sample_id}: grasp_pose must be 4 finite numbers "
-                               f"(x, y, z [m], theta_z [rad]), got {grasp_pose}")
+            raise DatasetError(
+                f"sample {sample_id}: grasp_pose must be 4 finite numbers "
+                f"(x, y, z [m], theta_z [rad]), got {grasp_pose}"
+            )
         if not np.isfinite(registration_fitness):
-            raise DatasetError(f"sample {sample_id}: registration_fitness must be finite, "
-                               f"got {registration_fitness}")
+            raise DatasetError(f"sample {sample_id}: registration_fitness must be finite, got {registration_fitness}")
         _check_sample_arrays(self.info, tactile_rgb, tactile_diff_rgb, depth_map_m, sample_id)
         try:
             transform = None if model_to_gel is None else _transform_tuple(model_to_gel)
@@ -476,9 +510,14 @@ class DatasetWriter:
         }
         files = sample_files(sample_id)
         record = SampleRecord(
-            sample_id=sample_id, object_name=str(object_name), grasp_id=int(grasp_id), finger=finger,
-            grasp_pose=pose, stamps_ns={str(k): int(v) for k, v in (stamps_ns or {}).items()},  # type: ignore[arg-type]
-            registration_fitness=float(registration_fitness), files=files,
+            sample_id=sample_id,
+            object_name=str(object_name),
+            grasp_id=int(grasp_id),
+            finger=finger,
+            grasp_pose=pose,
+            stamps_ns={str(k): int(v) for k, v in (stamps_ns or {}).items()},  # type: ignore[arg-type]
+            registration_fitness=float(registration_fitness),
+            files=files,
             sha256={kind: _sha256(data) for kind, data in payloads.items()},
             model_to_gel=transform,
         )
@@ -509,8 +548,10 @@ class DatasetWriter:
                 _fsync_dir(self.root / kind)
             self._append_manifest(lines)
         except OSError as err:
-            raise DatasetError(f"could not write sample {' and '.join(ids)} to {self.root}: {err} "
-                               "(the dataset is intact; free space or fix permissions and resume)") from err
+            raise DatasetError(
+                f"could not write sample {' and '.join(ids)} to {self.root}: {err} "
+                "(the dataset is intact; free space or fix permissions and resume)"
+            ) from err
         self.records += [s.record for s in samples]
         self._ids.update(ids)
         return [s.record for s in samples]
@@ -580,8 +621,10 @@ def _read_manifest(path: Path) -> list[SampleRecord]:
     except (OSError, UnicodeDecodeError) as err:
         raise DatasetError(f"{path}: unreadable ({err})") from err
     if text and not text.endswith("\n"):
-        raise DatasetError(f"{path}: last line is incomplete (a writer died mid-append; "
-                           "reopening the dataset with DatasetWriter repairs it)")
+        raise DatasetError(
+            f"{path}: last line is incomplete (a writer died mid-append; "
+            "reopening the dataset with DatasetWriter repairs it)"
+        )
     records = []
     for number, line in enumerate(text.splitlines(), start=1):
         try:
@@ -638,6 +681,7 @@ class DatasetReader:
             tactile_diff_rgb=_decode_png(raw["tactile_diff"], record.files["tactile_diff"], shape),
             depth_map_m=_decode_npy(raw["depth"], record.files["depth"], shape),
         )
-        _check_sample_arrays(self.info, sample_obj.tactile_rgb, sample_obj.tactile_diff_rgb,
-                             sample_obj.depth_map_m, record.sample_id)
+        _check_sample_arrays(
+            self.info, sample_obj.tactile_rgb, sample_obj.tactile_diff_rgb, sample_obj.depth_map_m, record.sample_id
+        )
         return sample_obj

@@ -9,6 +9,7 @@ back the collected maps bit for bit. Tactile images are copied unchanged (resize
 depth-map when the bins change, since the network maps one bin to one pixel) and the sample
 ids are kept, so the splits are the same and one checkpoint evaluates every variant of its size.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,15 +33,19 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
     """The depth-map settings the dataset's maps were made with, and its scene."""
     info = reader.info
     if info.depth_crop_m is None:
-        raise DatasetError(f"{reader.root} records no depth-map crop (dataset.json depth_crop_m): it was not "
-                           "made from registered models and its depth-maps cannot be made again")
+        raise DatasetError(
+            f"{reader.root} records no depth-map crop (dataset.json depth_crop_m): it was not "
+            "made from registered models and its depth-maps cannot be made again"
+        )
     scene = load_scene(info.scene)
     geometry = scene.gripper_geometry()
     sensed_x, sensed_z = geometry.sensed_extent_m
     margin_x, margin_z = 0.5 * (info.depth_crop_m[0] - sensed_x), 0.5 * (info.depth_crop_m[2] - sensed_z)
     if abs(margin_x - margin_z) > 1e-9:
-        raise DatasetError(f"{reader.root}: crop {info.depth_crop_m} m does not fit the scene's sensed area "
-                           f"({sensed_x}, {sensed_z}) m with one margin")
+        raise DatasetError(
+            f"{reader.root}: crop {info.depth_crop_m} m does not fit the scene's sensed area "
+            f"({sensed_x}, {sensed_z}) m with one margin"
+        )
     shape = reader.load(reader.records[0], verify=False).depth_map_m.shape
     return DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m), scene
 
@@ -53,8 +58,9 @@ def model_cloud(scene: Scene, object_name: str, points_per_cm3: float | None = N
     return cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3)
 
 
-def depth_map_again(model: VoxelIndex, model_to_gel: np.ndarray, geometry: GripperGeometry,
-                    params: DepthMapParams) -> np.ndarray:
+def depth_map_again(
+    model: VoxelIndex, model_to_gel: np.ndarray, geometry: GripperGeometry, params: DepthMapParams
+) -> np.ndarray:
     """The depth-map (m, float32) of a model cloud (indexed as the patch extractor indexes it)
     posed in the gel frame by ``model_to_gel``, with a dataset's settings
     (:func:`depth_map_params`), from the points within reach of the gel as the patch extractor
@@ -68,9 +74,13 @@ def depth_map_again(model: VoxelIndex, model_to_gel: np.ndarray, geometry: Gripp
         return np.full(params.shape, params.y_range_m[1], np.float32)
 
 
-def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
-                    points_per_cm3: float | None = None, bins: int | None = None,
-                    progress: bool = True) -> DatasetWriter:
+def redepth_dataset(
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    points_per_cm3: float | None = None,
+    bins: int | None = None,
+    progress: bool = True,
+) -> DatasetWriter:
     """Write ``out``: ``source`` with every depth-map made again from the model cloud
     (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED), voxel-thinned to
     ``points_per_cm3`` unless None, over ``bins`` x ``bins`` bins of the same crop unless None
@@ -100,12 +110,19 @@ def redepth_dataset(source: str | os.PathLike[str], out: str | os.PathLike[str],
                 raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
         sample = reader.load(record)
         depth = depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params)
-        writer.write(sample_id=record.sample_id, object_name=record.object_name, grasp_id=record.grasp_id,
-                     finger=record.finger, grasp_pose=record.grasp_pose,
-                     tactile_rgb=resize_rgb(sample.tactile_rgb, *params.shape),
-                     tactile_diff_rgb=resize_rgb(sample.tactile_diff_rgb, *params.shape), depth_map_m=depth,
-                     registration_fitness=record.registration_fitness, stamps_ns=record.stamps_ns,
-                     model_to_gel=np.array(record.model_to_gel))
+        writer.write(
+            sample_id=record.sample_id,
+            object_name=record.object_name,
+            grasp_id=record.grasp_id,
+            finger=record.finger,
+            grasp_pose=record.grasp_pose,
+            tactile_rgb=resize_rgb(sample.tactile_rgb, *params.shape),
+            tactile_diff_rgb=resize_rgb(sample.tactile_diff_rgb, *params.shape),
+            depth_map_m=depth,
+            registration_fitness=record.registration_fitness,
+            stamps_ns=record.stamps_ns,
+            model_to_gel=np.array(record.model_to_gel),
+        )
     return writer
 
 

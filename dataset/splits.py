@@ -6,6 +6,7 @@ the ordered list is cut at 70 % and 85 %: the split depends only on the seed and
 grasps, not on the order samples were written in, and the proportions are exact up to
 rounding even for small datasets.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -46,8 +47,7 @@ def split_records(records: Sequence[SampleRecord], seed: int) -> dict[str, list[
     return out
 
 
-def leave_one_object_out(records: Sequence[SampleRecord], held_out: str,
-                         seed: int) -> dict[str, list[SampleRecord]]:
+def leave_one_object_out(records: Sequence[SampleRecord], held_out: str, seed: int) -> dict[str, list[SampleRecord]]:
     """Test = every sample of ``held_out``; train/val = the other objects' grasps, 85/15."""
     objects = {r.object_name for r in records}
     if held_out not in objects:

@@ -13,6 +13,7 @@ random size, position and in-plane angle) pressed a random depth into the gel:
 
 The object name is the shape family, so a leave-one-object-out split holds out a family.
 """
+
 from __future__ import annotations
 
 import os
@@ -45,12 +46,12 @@ def random_surface(shape: str, rng: np.random.Generator) -> SurfaceMm:
         return (x - cx) * cos_a + (z - cz) * sin_a, -(x - cx) * sin_a + (z - cz) * cos_a
 
     def cap(r2: np.ndarray, radius: float) -> np.ndarray:
-        inside = r2 < radius ** 2
-        return np.where(inside, radius - np.sqrt(np.where(inside, radius ** 2 - r2, 0.0)) - press_mm, np.inf)
+        inside = r2 < radius**2
+        return np.where(inside, radius - np.sqrt(np.where(inside, radius**2 - r2, 0.0)) - press_mm, np.inf)
 
     if shape == "sphere":
         radius = rng.uniform(2.0, 8.0)
-        return lambda x, z: cap(sum(c ** 2 for c in local(x, z)), radius)
+        return lambda x, z: cap(sum(c**2 for c in local(x, z)), radius)
     if shape == "cylinder":
         radius = rng.uniform(2.0, 10.0)
         return lambda x, z: cap(local(x, z)[0] ** 2, radius)
@@ -63,6 +64,7 @@ def random_surface(shape: str, rng: np.random.Generator) -> SurfaceMm:
         def face(x: np.ndarray, z: np.ndarray) -> np.ndarray:
             u, v = local(x, z)
             return np.where((np.abs(u) < half_u) & (np.abs(v) < half_v), -press_mm, np.inf)
+
         return face
     if shape == "ridges":
         amplitude, period = rng.uniform(0.2, 0.8), rng.uniform(1.0, 4.0)
@@ -70,8 +72,9 @@ def random_surface(shape: str, rng: np.random.Generator) -> SurfaceMm:
     raise DatasetError(f"unknown synthetic shape {shape!r} (known: {SHAPES})")
 
 
-def depth_map_from_surface(surface: SurfaceMm, size: int, crop_mm: float, y_far_m: float,
-                           oversample: int = 3) -> np.ndarray:
+def depth_map_from_surface(
+    surface: SurfaceMm, size: int, crop_mm: float, y_far_m: float, oversample: int = 3
+) -> np.ndarray:
     """size x size depth-map (float32 m) of a crop_mm-wide square centred on the gel: the min
     y over ``oversample`` ** 2 samples per bin, y_far_m where nothing is nearer."""
     n = size * oversample
@@ -81,8 +84,9 @@ def depth_map_from_surface(surface: SurfaceMm, size: int, crop_mm: float, y_far_
     return np.minimum(y_m, y_far_m).astype(np.float32)
 
 
-def gel_gap_from_surface(surface: SurfaceMm, height: int, width: int,
-                         pixel_pitch_mm: tuple[float, float]) -> np.ndarray:
+def gel_gap_from_surface(
+    surface: SurfaceMm, height: int, width: int, pixel_pitch_mm: tuple[float, float]
+) -> np.ndarray:
     """height x width gel gap in mm at the tactile pixel centres (+inf = nothing there);
     ``pixel_pitch_mm`` is (between rows, between columns)."""
     rows = (np.arange(height) + 0.5 - height / 2) * pixel_pitch_mm[0]
@@ -102,16 +106,22 @@ def gelsight_renderer(size: int) -> tuple[TactileRenderer, tuple[float, float]]:
         from sim.gelsight import GelSightConfig, GelSightRenderer  # noqa: PLC0415 (other part)
     except ImportError as err:
         raise DatasetError(f"the synthetic dataset needs sim.gelsight.GelSightRenderer ({err})") from err
-    renderer = GelSightRenderer(GelSightConfig(image_height=size, image_width=size,
-                                               mm_per_px=CAMERA_FIELD_WIDTH_MM / size))
+    renderer = GelSightRenderer(
+        GelSightConfig(image_height=size, image_width=size, mm_per_px=CAMERA_FIELD_WIDTH_MM / size)
+    )
     return renderer, tuple(float(p) for p in renderer.pixel_pitch_mm)  # type: ignore[return-value]
 
 
-def write_synthetic_dataset(out: str | os.PathLike[str], samples: int, seed: int,
-                            renderer: TactileRenderer | None = None,
-                            pixel_pitch_mm: tuple[float, float] = (0.0, 0.0), crop_scale: float = 1.2,
-                            depth_range_m: tuple[float, float] = (-0.0015, 0.0025),
-                            progress: bool = False) -> DatasetWriter:
+def write_synthetic_dataset(
+    out: str | os.PathLike[str],
+    samples: int,
+    seed: int,
+    renderer: TactileRenderer | None = None,
+    pixel_pitch_mm: tuple[float, float] = (0.0, 0.0),
+    crop_scale: float = 1.2,
+    depth_range_m: tuple[float, float] = (-0.0015, 0.0025),
+    progress: bool = False,
+) -> DatasetWriter:
     """Write ``samples`` 100 x 100 samples to ``out``, two fingers per grasp. Resumes:
     samples already present are regenerated identically and skipped. Without ``renderer``
     the simulated GelSight renders the images (``pixel_pitch_mm`` is then its own)."""
@@ -123,27 +133,44 @@ def write_synthetic_dataset(out: str | os.PathLike[str], samples: int, seed: int
     if not min(pixel_pitch_mm) > 0:
         raise DatasetError(f"pixel_pitch_mm must be positive, got {pixel_pitch_mm}")
     background = renderer.render(np.full((size, size), np.inf, np.float32))
-    info = DatasetInfo(image_height=size, image_width=size, depth_range_m=depth_range_m,
-                       scene=f"synthetic analytic contacts (seed {seed}, crop x{crop_scale})",
-                       effects=(), code_version=code_version(), split_seed=seed)
+    info = DatasetInfo(
+        image_height=size,
+        image_width=size,
+        depth_range_m=depth_range_m,
+        scene=f"synthetic analytic contacts (seed {seed}, crop x{crop_scale})",
+        effects=(),
+        code_version=code_version(),
+        split_seed=seed,
+    )
     writer = DatasetWriter(out, info)
     n_grasps = (samples + 1) // 2
     for grasp_id in tqdm(range(n_grasps), desc="synth grasps", disable=not progress):
         # One generator per grasp: a resumed run draws exactly the same grasps.
         rng = np.random.default_rng([seed, grasp_id])
         shape = SHAPES[int(rng.integers(len(SHAPES)))]
-        pose = (float(rng.uniform(-0.05, 0.05)), float(rng.uniform(-0.05, 0.05)),
-                float(rng.uniform(0.05, 0.15)), float(rng.uniform(-np.pi, np.pi)))
+        pose = (
+            float(rng.uniform(-0.05, 0.05)),
+            float(rng.uniform(-0.05, 0.05)),
+            float(rng.uniform(0.05, 0.15)),
+            float(rng.uniform(-np.pi, np.pi)),
+        )
         for finger in ("left", "right")[: min(2, samples - 2 * grasp_id)]:
             surface = random_surface(shape, rng)
             sample_id = f"{shape}-g{grasp_id:05d}-{finger}"
             if sample_id in writer:
                 continue
             tactile = renderer.render(gel_gap_from_surface(surface, size, size, pixel_pitch_mm))
-            writer.write(sample_id=sample_id, object_name=shape, grasp_id=grasp_id, finger=finger,
-                         grasp_pose=pose, tactile_rgb=tactile,
-                         tactile_diff_rgb=subtract_background(tactile, background),
-                         depth_map_m=depth_map_from_surface(surface, size, size * pixel_pitch_mm[1] * crop_scale,
-                                                            depth_range_m[1]),
-                         registration_fitness=1.0)
+            writer.write(
+                sample_id=sample_id,
+                object_name=shape,
+                grasp_id=grasp_id,
+                finger=finger,
+                grasp_pose=pose,
+                tactile_rgb=tactile,
+                tactile_diff_rgb=subtract_background(tactile, background),
+                depth_map_m=depth_map_from_surface(
+                    surface, size, size * pixel_pitch_mm[1] * crop_scale, depth_range_m[1]
+                ),
+                registration_fitness=1.0,
+            )
     return writer

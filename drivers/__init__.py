@@ -6,6 +6,7 @@ and exposes ``make_backend(params)``: ``params["backend"]`` picks the class, the
 keys fill its config dataclass. Backends are imported only when chosen, so a lab without
 OpenNI2 can still run the GelSight, and the simulation needs no hardware library at all.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,8 +33,7 @@ class BackendEntry:
     config_class: str
 
 
-def build_backend(kind: str, params: dict[str, Any], backends: dict[str, BackendEntry],
-                  **extras: Any) -> Any:
+def build_backend(kind: str, params: dict[str, Any], backends: dict[str, BackendEntry], **extras: Any) -> Any:
     """Build the backend ``params["backend"]`` names, its config from the other params;
     ``extras`` are handed to the backend's constructor beside the config.
 
@@ -50,8 +50,7 @@ def build_backend(kind: str, params: dict[str, Any], backends: dict[str, Backend
     allowed = {field.name for field in dataclasses.fields(config_class)}
     unknown = sorted(set(remaining) - allowed)
     if unknown:
-        raise ValueError(f"{kind} backend {choice!r}: unknown parameter(s) {unknown}; "
-                         f"allowed: {sorted(allowed)}")
+        raise ValueError(f"{kind} backend {choice!r}: unknown parameter(s) {unknown}; allowed: {sorted(allowed)}")
     return getattr(module, entry.backend_class)(config_class(**remaining), **extras)
 
 
@@ -64,5 +63,7 @@ def require_text(config: Any, *names: str) -> None:
     for name in names:
         value = getattr(config, name)
         if not isinstance(value, str):
-            raise ValueError(f"{type(config).__name__}.{name} must be text, got {value!r} "
-                             f"({type(value).__name__}); quote it in the launch file")
+            raise ValueError(
+                f"{type(config).__name__}.{name} must be text, got {value!r} "
+                f"({type(value).__name__}); quote it in the launch file"
+            )

@@ -9,6 +9,7 @@ and disconnects. ``dtx hw acknowledge LAUNCHFILE`` is the operator's explicit st
 clears what the check refuses on a gripper: it acknowledges a FAST STOP and homes an
 unreferenced gripper (the fingers move).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,6 +54,7 @@ def check_device(node: NodeLike) -> DeviceCheck:
 
 def acknowledge_device(node: NodeLike) -> DeviceCheck:
     """Clear a gripper's FAST STOP and home it if it is not referenced, then preflight it."""
+
     def clear(gripper: Any) -> None:
         gripper.acknowledge()
         if not gripper.referenced():
@@ -112,12 +114,14 @@ def cmd_hw_check(args: argparse.Namespace) -> int:
 
 
 def cmd_hw_acknowledge(args: argparse.Namespace) -> int:
-    return _run_on_launch(args, "acknowledge",
-                          lambda nodes: [acknowledge_device(node) for node in nodes if node.module == "nodes.gripper"])
+    return _run_on_launch(
+        args,
+        "acknowledge",
+        lambda nodes: [acknowledge_device(node) for node in nodes if node.module == "nodes.gripper"],
+    )
 
 
-def _run_on_launch(args: argparse.Namespace, verb: str,
-                   run: Callable[[list[Any]], list[DeviceCheck]]) -> int:
+def _run_on_launch(args: argparse.Namespace, verb: str, run: Callable[[list[Any]], list[DeviceCheck]]) -> int:
     from dtx.launch import LaunchError, load_launch, parse_launch_args
 
     try:
@@ -127,8 +131,7 @@ def _run_on_launch(args: argparse.Namespace, verb: str,
         return 2
     checks = run(description.nodes)
     if not checks:
-        print(f"dtx hw {verb}: {args.file} starts no hardware node ({', '.join(HARDWARE_NODES)})",
-              file=sys.stderr)
+        print(f"dtx hw {verb}: {args.file} starts no hardware node ({', '.join(HARDWARE_NODES)})", file=sys.stderr)
         return 2
     print(format_report(checks))
     return 0 if all(check.ok for check in checks) else 1
@@ -141,8 +144,9 @@ def add_commands(subparsers: Any) -> None:
     check.add_argument("file", help="launch file, e.g. launch/collect_lab.yaml")
     check.add_argument("args", nargs="*", help="launch arguments name:=value")
     check.set_defaults(func=cmd_hw_check)
-    acknowledge = hw.add_parser("acknowledge", help="clear a gripper's FAST STOP and home it if unreferenced "
-                                                    "(the fingers move)")
+    acknowledge = hw.add_parser(
+        "acknowledge", help="clear a gripper's FAST STOP and home it if unreferenced (the fingers move)"
+    )
     acknowledge.add_argument("file", help="launch file, e.g. launch/collect_lab.yaml")
     acknowledge.add_argument("args", nargs="*", help="launch arguments name:=value")
     acknowledge.set_defaults(func=cmd_hw_acknowledge)

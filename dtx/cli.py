@@ -1,4 +1,5 @@
 """``dtx``: the one command line of the system, in the spirit of ``ros2``."""
+
 from __future__ import annotations
 
 import argparse
@@ -45,12 +46,14 @@ def message_to_yaml(message: Any, full: bool = False) -> str:
 
 def _bus(name: str) -> Any:
     from nodes.bus import Bus
+
     return Bus(name)
 
 
 # -- launch / node -----------------------------------------------------------------------
 def cmd_launch(args: argparse.Namespace) -> int:
     from dtx.launch import Launcher, LaunchError, load_launch, parse_launch_args
+
     try:
         description = load_launch(args.file, parse_launch_args(args.args))
     except LaunchError as exc:
@@ -61,19 +64,23 @@ def cmd_launch(args: argparse.Namespace) -> int:
 
 def cmd_node_list(args: argparse.Namespace) -> int:
     from nodes.registry import Registry
+
     rows = [s for s in Registry().node_statuses() if s["alive"] or args.all]
     print(f"{'NAME':24} {'PID':>7} {'STATUS':10} {'AGE_S':>6}  TOPICS")
     for s in rows:
         status = s.get("status", "?") if s["alive"] else "dead"
         age = time.time() - float(s.get("stamp", 0))
-        print(f"{s['node']:24} {s['pid']:>7} {status:10} {age:6.1f}  pub {len(s['publishers'])} "
-              f"sub {len(s['subscribers'])} srv {len(s['services'])}")
+        print(
+            f"{s['node']:24} {s['pid']:>7} {status:10} {age:6.1f}  pub {len(s['publishers'])} "
+            f"sub {len(s['subscribers'])} srv {len(s['services'])}"
+        )
     return 0
 
 
 # -- topics ------------------------------------------------------------------------------
 def cmd_topic_list(args: argparse.Namespace) -> int:
     from nodes.registry import Registry
+
     for topic, endpoints in Registry().names("topic").items():
         schemas = sorted({e.schema for e in endpoints})
         nodes = sorted({e.node for e in endpoints})
@@ -125,9 +132,11 @@ def cmd_topic_hz(args: argparse.Namespace) -> int:
         print(f"{args.topic}: fewer than two messages in {args.duration} s")
         return 1
     gaps = np.diff(stamps)
-    print(f"{args.topic}: average rate {1 / gaps.mean():.2f} Hz  min {gaps.min() * 1e3:.2f} ms  "
-          f"max {gaps.max() * 1e3:.2f} ms  std {gaps.std() * 1e3:.2f} ms  window {len(stamps)}  "
-          f"dropped {counters.dropped}")
+    print(
+        f"{args.topic}: average rate {1 / gaps.mean():.2f} Hz  min {gaps.min() * 1e3:.2f} ms  "
+        f"max {gaps.max() * 1e3:.2f} ms  std {gaps.std() * 1e3:.2f} ms  window {len(stamps)}  "
+        f"dropped {counters.dropped}"
+    )
     return 0
 
 
@@ -137,14 +146,17 @@ def cmd_topic_bw(args: argparse.Namespace) -> int:
         print(f"{args.topic}: fewer than two messages in {args.duration} s")
         return 1
     span = stamps[-1] - stamps[0]
-    print(f"{args.topic}: {sum(sizes[1:]) / span / 1e6:.3f} MB/s  mean {np.mean(sizes) / 1e3:.1f} kB  "
-          f"min {min(sizes) / 1e3:.1f} kB  max {max(sizes) / 1e3:.1f} kB  n {len(sizes)}")
+    print(
+        f"{args.topic}: {sum(sizes[1:]) / span / 1e6:.3f} MB/s  mean {np.mean(sizes) / 1e3:.1f} kB  "
+        f"min {min(sizes) / 1e3:.1f} kB  max {max(sizes) / 1e3:.1f} kB  n {len(sizes)}"
+    )
     return 0
 
 
 # -- services ----------------------------------------------------------------------------
 def cmd_service_list(args: argparse.Namespace) -> int:
     from nodes.registry import Registry
+
     for name, endpoints in Registry().names("service").items():
         e = endpoints[0]
         print(f"{name}  [{e.schema} -> {e.reply_schema}]  from {', '.join(sorted({x.node for x in endpoints}))}")
@@ -155,6 +167,7 @@ def cmd_service_call(args: argparse.Namespace) -> int:
     from msgs import MESSAGE_TYPES
     from nodes.bus import ServiceCallError
     from nodes.registry import Registry
+
     endpoints = Registry().lookup("service", args.name)
     if not endpoints:
         print(f"service {args.name} not found (see `dtx service list`)", file=sys.stderr)
@@ -163,7 +176,7 @@ def cmd_service_call(args: argparse.Namespace) -> int:
     reply_type = MESSAGE_TYPES[endpoints[0].reply_schema]
     fields = yaml.safe_load(args.request) or {}
     if not isinstance(fields, dict):
-        print("request must be a YAML mapping of fields, e.g. \"{action: home}\"", file=sys.stderr)
+        print('request must be a YAML mapping of fields, e.g. "{action: home}"', file=sys.stderr)
         return 2
     try:
         request = request_type(**_fields_from_yaml(request_type, fields))
@@ -194,14 +207,21 @@ def _fields_from_yaml(msg_type: type, fields: dict[str, Any]) -> dict[str, Any]:
 # -- bags --------------------------------------------------------------------------------
 def cmd_bag_record(args: argparse.Namespace) -> int:
     from nodes.bag import record
+
     stop_at = time.monotonic() + args.duration if args.duration else None
     stopping = {"now": False}
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stopping.update(now=True))
     bus = _bus("dtx_bag_record")
     bus.transport.high_water_mark = 100_000  # a recorder queues rather than drops
-    counts = record(args.output, bus, lambda: stopping["now"] or (stop_at is not None and time.monotonic() > stop_at),
-                    topics=args.topics or None, compression=args.compression, foxglove=not args.no_foxglove)
+    counts = record(
+        args.output,
+        bus,
+        lambda: stopping["now"] or (stop_at is not None and time.monotonic() > stop_at),
+        topics=args.topics or None,
+        compression=args.compression,
+        foxglove=not args.no_foxglove,
+    )
     bus.close()
     print(json.dumps({"bag": args.output, "recorded": counts}))
     return 0
@@ -209,13 +229,21 @@ def cmd_bag_record(args: argparse.Namespace) -> int:
 
 def cmd_bag_play(args: argparse.Namespace) -> int:
     from nodes.bag import BagError, play
+
     bus = _bus("dtx_bag_play")
     stopping = {"now": False}
     signal.signal(signal.SIGINT, lambda *_: stopping.update(now=True))
     started = time.monotonic()
     try:
-        counts = play(args.file, bus, rate=None if args.fast else args.rate, clock=args.clock,
-                      topics=args.topics or None, wait_for_subscribers_s=args.wait, stop=lambda: stopping["now"])
+        counts = play(
+            args.file,
+            bus,
+            rate=None if args.fast else args.rate,
+            clock=args.clock,
+            topics=args.topics or None,
+            wait_for_subscribers_s=args.wait,
+            stop=lambda: stopping["now"],
+        )
     except BagError as exc:
         print(f"bag play stopped: {exc}", file=sys.stderr)
         return 1
@@ -228,6 +256,7 @@ def cmd_bag_play(args: argparse.Namespace) -> int:
 
 def cmd_bag_info(args: argparse.Namespace) -> int:
     from nodes.bag import BagError, bag_info
+
     try:
         info = bag_info(args.file)
     except BagError as exc:
@@ -264,6 +293,7 @@ def _fmt(value: Any) -> str:
 
 def cmd_keys_create(args: argparse.Namespace) -> int:
     import zmq.auth
+
     Path(args.dir).mkdir(parents=True, exist_ok=True)
     public, secret = zmq.auth.create_certificates(args.dir, args.name)
     print(f"public key: {public}\nsecret key: {secret}")
@@ -271,8 +301,11 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 
 
 def _add_bench(sub: Any) -> None:
-    names = sorted(p.stem for p in (Path(__file__).resolve().parent.parent / "benchmarks").glob("*.py")
-                   if not p.stem.startswith("_"))
+    names = sorted(
+        p.stem
+        for p in (Path(__file__).resolve().parent.parent / "benchmarks").glob("*.py")
+        if not p.stem.startswith("_")
+    )
     bench = sub.add_parser("bench", help=f"benchmarks that print figures: {', '.join(names)}")
     bench.add_argument("name", choices=names)
     bench.add_argument("options", nargs=argparse.REMAINDER, help="the benchmark's own options (--json, ...)")
@@ -328,7 +361,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     service.add_parser("list").set_defaults(func=cmd_service_list)
     p = service.add_parser("call")
     p.add_argument("name")
-    p.add_argument("request", nargs="?", default="{}", help="request fields as YAML, e.g. \"{action: home}\"")
+    p.add_argument("request", nargs="?", default="{}", help='request fields as YAML, e.g. "{action: home}"')
     p.add_argument("--timeout", type=float, default=5.0)
     p.add_argument("--full", action="store_true")
     p.set_defaults(func=cmd_service_call)
@@ -369,6 +402,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from nodes.registry import BusDirectoryError
+
     args = build_parser(argv).parse_args(argv)
     try:
         return int(args.func(args) or 0)

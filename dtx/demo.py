@@ -11,6 +11,7 @@ Each step is the real command, run as a process; a step whose result is already 
 (a complete dataset, a finished checkpoint) is continued or skipped, so running the demo
 again resumes it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,8 +29,9 @@ SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/depth_
 def _run(step: str, command: list[str], capture: bool = False) -> str:
     print(f"\n== {step}\n$ dtx {' '.join(command)}", flush=True)
     started = time.monotonic()
-    result = subprocess.run([sys.executable, "-m", "dtx.cli", *command], text=True,
-                            stdout=subprocess.PIPE if capture else None)
+    result = subprocess.run(
+        [sys.executable, "-m", "dtx.cli", *command], text=True, stdout=subprocess.PIPE if capture else None
+    )
     if result.returncode != 0:
         raise SystemExit(f"demo: step '{step}' failed (exit {result.returncode})")
     print(f"== {step}: done in {time.monotonic() - started:.0f} s", flush=True)
@@ -40,10 +42,16 @@ def paper_table(evaluation: dict) -> str:
     """The paper's comparison, with its figures beside ours."""
     template = evaluation.get("template_match", {})
     rows = [
-        ("SSIM, estimate vs ground truth", f"{evaluation['ssim_model_mean']:.3f} ± {evaluation['ssim_model_se']:.4f}",
-         "0.84 ± 0.0056"),
-        ("SSIM, baseline (15 random ground truths)",
-         f"{evaluation['ssim_baseline_mean']:.3f} ± {evaluation['ssim_baseline_se']:.4f}", "0.80 ± 0.0036"),
+        (
+            "SSIM, estimate vs ground truth",
+            f"{evaluation['ssim_model_mean']:.3f} ± {evaluation['ssim_model_se']:.4f}",
+            "0.84 ± 0.0056",
+        ),
+        (
+            "SSIM, baseline (15 random ground truths)",
+            f"{evaluation['ssim_baseline_mean']:.3f} ± {evaluation['ssim_baseline_se']:.4f}",
+            "0.80 ± 0.0036",
+        ),
         ("dissimilarity ratio (1-SSIM model)/(1-SSIM base)", f"{evaluation['dissimilarity_ratio']:.2f}", "0.80"),
         ("p-value, Wilcoxon signed-rank", f"{evaluation['p_value_wilcoxon']:.2e}", "< 0.05"),
         ("p-value, paired t", f"{evaluation['p_value_t']:.2e}", ""),
@@ -51,26 +59,50 @@ def paper_table(evaluation: dict) -> str:
         ("template match distance, median (px)", f"{template.get('distance_px_median', float('nan')):.1f}", ""),
     ]
     if "psnr" in evaluation:
-        rows.insert(3, ("PSNR (dB), estimate / baseline", f"{evaluation['psnr']['psnr_db_model_mean']:.2f} / "
-                        f"{evaluation['psnr']['psnr_db_baseline_mean']:.2f}", ""))
+        rows.insert(
+            3,
+            (
+                "PSNR (dB), estimate / baseline",
+                f"{evaluation['psnr']['psnr_db_model_mean']:.2f} / {evaluation['psnr']['psnr_db_baseline_mean']:.2f}",
+                "",
+            ),
+        )
     contact = evaluation.get("contact", {})
     if "ssim_model_mean" in contact:
         rows += [
-            (f"SSIM on contact windows only ({contact['n']} pairs), model / baseline",
-             f"{contact['ssim_model_mean']:.3f} / {contact['ssim_baseline_mean']:.3f}", ""),
-            ("  its ratio (p Wilcoxon)", f"{contact['dissimilarity_ratio']:.2f} ({contact['p_value_wilcoxon']:.1e})", ""),
+            (
+                f"SSIM on contact windows only ({contact['n']} pairs), model / baseline",
+                f"{contact['ssim_model_mean']:.3f} / {contact['ssim_baseline_mean']:.3f}",
+                "",
+            ),
+            (
+                "  its ratio (p Wilcoxon)",
+                f"{contact['dissimilarity_ratio']:.2f} ({contact['p_value_wilcoxon']:.1e})",
+                "",
+            ),
         ]
     for name, stats in evaluation.get("objects", {}).items():
-        rows.append((f"  {name} ({stats['n']} pairs): SSIM model / baseline, ratio",
-                     f"{stats['ssim_model_mean']:.3f} / {stats['ssim_baseline_mean']:.3f}, "
-                     f"{stats['dissimilarity_ratio']:.2f}", ""))
+        rows.append(
+            (
+                f"  {name} ({stats['n']} pairs): SSIM model / baseline, ratio",
+                f"{stats['ssim_model_mean']:.3f} / {stats['ssim_baseline_mean']:.3f}, "
+                f"{stats['dissimilarity_ratio']:.2f}",
+                "",
+            )
+        )
     for row in evaluation.get("density", []):
         psnr = f" (PSNR {row['psnr_db_mean']:.1f} dB)" if "psnr_db_mean" in row else ""
-        rows.append((f"SSIM at {row['points_per_cm3']:g} points/cm^3{psnr}",
-                     f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
-                     {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], "")))
+        rows.append(
+            (
+                f"SSIM at {row['points_per_cm3']:g} points/cm^3{psnr}",
+                f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
+                {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], ""),
+            )
+        )
         if "contact_ssim_mean" in row:
-            rows.append(("  on contact windows only", f"{row['contact_ssim_mean']:.4f} ± {row['contact_ssim_se']:.4f}", ""))
+            rows.append(
+                ("  on contact windows only", f"{row['contact_ssim_mean']:.4f} ± {row['contact_ssim_se']:.4f}", "")
+            )
     width = max(len(r[0]) for r in rows)
     lines = [f"{'':{width}}  {'this run':>18}  {'paper':>14}"]
     lines += [f"{name:{width}}  {ours:>18}  {paper:>14}" for name, ours, paper in rows]
@@ -84,27 +116,48 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     session, library, train_dir, figures = out / "session", out / "library", out / "train", out / "figures"
-    collect = ["launch", "launch/collect_sim.yaml", f"out:={session}", f"grasps:={args.grasps}",
-               f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
+    collect = [
+        "launch",
+        "launch/collect_sim.yaml",
+        f"out:={session}",
+        f"grasps:={args.grasps}",
+        f"seed:={args.seed}",
+        f"record_topics:={SESSION_TOPICS}",
+    ]
     if (session / "manifest.jsonl").exists():
         collect.append("resume:=true")
     _run("1/5 collect (Algorithm 1 on the simulated scene)", collect)
     _run("1/5 check the dataset", ["dataset", "check", str(session)])
     train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]
     if args.library_samples:
-        _run("2/5 contact library (the simulated world's spheres, cylinders, edges, textures)",
-             ["dataset", "library", str(library), "--samples", str(args.library_samples), "--seed", str(args.seed)])
+        _run(
+            "2/5 contact library (the simulated world's spheres, cylinders, edges, textures)",
+            ["dataset", "library", str(library), "--samples", str(args.library_samples), "--seed", str(args.seed)],
+        )
         train += ["--library", str(library)]
     if (train_dir / "checkpoint.pt").exists():
         train.append("--resume")
     _run("3/5 train the cGAN", train)
     densities = density_dirs(session, [*PAPER_DENSITIES_PER_CM3, *DENSER_PER_CM3])
-    _run("4/5 depth-maps at the paper's point densities and denser",
-         ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities]])
-    report = _run("5/5 evaluate like the paper, and on real GelSight presses it never saw",
-                  ["evaluate", str(train_dir / "checkpoint.pt"), str(session), "--json", "--figures", str(figures),
-                   "--real-presses", REAL_PRESSES,
-                   *[f"--density={d:g}={path}" for d, path in densities.items()]], capture=True)
+    _run(
+        "4/5 depth-maps at the paper's point densities and denser",
+        ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities]],
+    )
+    report = _run(
+        "5/5 evaluate like the paper, and on real GelSight presses it never saw",
+        [
+            "evaluate",
+            str(train_dir / "checkpoint.pt"),
+            str(session),
+            "--json",
+            "--figures",
+            str(figures),
+            "--real-presses",
+            REAL_PRESSES,
+            *[f"--density={d:g}={path}" for d, path in densities.items()],
+        ],
+        capture=True,
+    )
     evaluation = json.loads(report)
     (out / "evaluation.json").write_text(json.dumps(evaluation, indent=2) + "\n")
     print("\n" + paper_table(evaluation))
@@ -117,9 +170,13 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser("demo", help="collect, train and evaluate on the simulated scene")
     demo.add_argument("--out", default="out/demo")
     demo.add_argument("--grasps", type=int, default=1200, help="grasps to collect (the paper's session: 289)")
-    demo.add_argument("--library-samples", type=int, default=LIBRARY_SAMPLES,
-                      help=f"contact-library pairs trained beside the session (default {LIBRARY_SAMPLES}; "
-                           "0: the session alone, as the paper)")
+    demo.add_argument(
+        "--library-samples",
+        type=int,
+        default=LIBRARY_SAMPLES,
+        help=f"contact-library pairs trained beside the session (default {LIBRARY_SAMPLES}; "
+        "0: the session alone, as the paper)",
+    )
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--config", default="configs/quick.yaml")
     demo.set_defaults(func=cmd_demo)

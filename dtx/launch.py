@@ -23,6 +23,7 @@ restarting cannot help)); when a ``required`` node ends otherwise, everything st
 left out. Every
 child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -44,8 +45,22 @@ import yaml
 from nodes.node import EXIT_DO_NOT_RESPAWN
 from nodes.registry import Registry
 
-NODE_KEYS = {"name", "module", "params", "remaps", "respawn", "respawn_delay_s", "required", "if",
-             "transport", "bind_host", "curve_secret_key", "curve_authorized_keys", "endpoints", "peers"}
+NODE_KEYS = {
+    "name",
+    "module",
+    "params",
+    "remaps",
+    "respawn",
+    "respawn_delay_s",
+    "required",
+    "if",
+    "transport",
+    "bind_host",
+    "curve_secret_key",
+    "curve_authorized_keys",
+    "endpoints",
+    "peers",
+}
 ENTRY_KEYS = {"arg", "include", "node"}
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
 
@@ -71,14 +86,28 @@ class NodeSpec:
     peers: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
 
     def command(self) -> list[str]:
-        command = [sys.executable, "-m", self.module, "--name", self.name,
-                   "--params", json.dumps(self.params), "--transport", self.transport,
-                   "--bind-host", self.bind_host]
+        command = [
+            sys.executable,
+            "-m",
+            self.module,
+            "--name",
+            self.name,
+            "--params",
+            json.dumps(self.params),
+            "--transport",
+            self.transport,
+            "--bind-host",
+            self.bind_host,
+        ]
         for source, target in self.remaps.items():
             command += ["--remap", f"{source}:={target}"]
         if self.curve_secret_key:
-            command += ["--curve-secret-key", self.curve_secret_key,
-                        "--curve-authorized-keys", self.curve_authorized_keys]
+            command += [
+                "--curve-secret-key",
+                self.curve_secret_key,
+                "--curve-authorized-keys",
+                self.curve_authorized_keys,
+            ]
         if self.endpoints:
             command += ["--endpoints", json.dumps(self.endpoints)]
         if self.peers:
@@ -177,8 +206,9 @@ def _mapping(path: Path, node: yaml.Node) -> dict[str, yaml.Node]:
     return {k.value: v for k, v in node.value}
 
 
-def _check_keys(path: Path, body: yaml.Node, fields: dict[str, yaml.Node], allowed: set[str],
-                required: set[str]) -> None:
+def _check_keys(
+    path: Path, body: yaml.Node, fields: dict[str, yaml.Node], allowed: set[str], required: set[str]
+) -> None:
     for key_node, _ in body.value:  # type: ignore[union-attr]
         if key_node.value not in allowed:
             raise LaunchError(f"{_where(path, key_node)}: unknown key {key_node.value!r}; allowed: {sorted(allowed)}")
@@ -196,11 +226,13 @@ def _substitute(path: Path, node: yaml.Node, args: dict[str, str]) -> Any:
         return [_substitute(path, v, args) for v in node.value]
     text = node.value
     if isinstance(text, str) and "$(" in text:
+
         def replace(match: re.Match[str]) -> str:
             name = match.group(1)
             if name not in args:
                 raise LaunchError(f"{_where(path, node)}: $(var {name}) used before its 'arg' entry")
             return args[name]
+
         replaced = _VAR.sub(replace, text)
         if "$(" in replaced:
             raise LaunchError(f"{_where(path, node)}: unknown substitution in {text!r} (only $(var NAME))")
@@ -230,8 +262,9 @@ class _Running:
 class Launcher:
     """Starts, watches and stops the nodes of one launch description."""
 
-    def __init__(self, description: LaunchDescription, output: TextIO = sys.stdout,
-                 stop_timeout_s: float = 5.0) -> None:
+    def __init__(
+        self, description: LaunchDescription, output: TextIO = sys.stdout, stop_timeout_s: float = 5.0
+    ) -> None:
         self.description = description
         self.output = output
         self.stop_timeout_s = stop_timeout_s
@@ -252,8 +285,13 @@ class Launcher:
     def _start(self, spec: NodeSpec, respawns: int = 0) -> None:
         # DTX_RESPAWN tells a node it is being restarted (a collector then resumes its dataset).
         process = subprocess.Popen(
-            spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            preexec_fn=_die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)})
+            spec.command(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            preexec_fn=_die_with_parent,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)},
+        )
         relay = threading.Thread(target=self._relay, args=(spec.name, process), daemon=True)
         self.running[spec.name] = _Running(spec, process, respawns, relay)
         relay.start()
@@ -270,9 +308,11 @@ class Launcher:
         taken = {spec.name: registry.live_node_pid(spec.name) for spec in self.description.nodes}
         taken = {name: pid for name, pid in taken.items() if pid is not None}
         if taken:
-            self.say(f"[launch] error: {', '.join(f'{n} (pid {p})' for n, p in taken.items())} already run on bus "
-                     f"{registry.root}: another graph is live in this domain. Stop it, or run this one on a bus of "
-                     "its own with DTX_DOMAIN=NAME")
+            self.say(
+                f"[launch] error: {', '.join(f'{n} (pid {p})' for n, p in taken.items())} already run on bus "
+                f"{registry.root}: another graph is live in this domain. Stop it, or run this one on a bus of "
+                "its own with DTX_DOMAIN=NAME"
+            )
             return 1
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: self._stop.set())

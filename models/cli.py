@@ -1,4 +1,5 @@
 """``dtx train`` and ``dtx evaluate``."""
+
 from __future__ import annotations
 
 import argparse
@@ -43,8 +44,15 @@ def _evaluate(args: argparse.Namespace) -> int:
         )
 
         try:
-            real, images = evaluate_real_presses(generator, depth_range_m, args.real_presses, args.scene,
-                                                 args.ball_radius_mm, args.mm_per_px, seed=args.seed)
+            real, images = evaluate_real_presses(
+                generator,
+                depth_range_m,
+                args.real_presses,
+                args.scene,
+                args.ball_radius_mm,
+                args.mm_per_px,
+                seed=args.seed,
+            )
         except ModelConfigError as err:  # the presses file or its options: the caller's input
             print(f"error: {err}", file=sys.stderr)
             return 2
@@ -53,9 +61,15 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.dataset is None:
         print(json.dumps(real, indent=2) if args.json else real_press_table(real))
         return 0
-    result, predictions = evaluate(generator, depth_range_m, args.dataset, split=args.split,
-                                   hold_out_object=args.hold_out_object, density=parse_density(args.density),
-                                   seed=args.seed)
+    result, predictions = evaluate(
+        generator,
+        depth_range_m,
+        args.dataset,
+        split=args.split,
+        hold_out_object=args.hold_out_object,
+        density=parse_density(args.density),
+        seed=args.seed,
+    )
     if args.figures:
         write_figures(result, predictions, depth_range_m, args.figures)
     if real is not None:
@@ -74,11 +88,19 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--config", required=True, help="training config (YAML), e.g. configs/quick.yaml")
     train.add_argument("--out", default="out/train", help="checkpoint and log directory (default: out/train)")
     train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    train.add_argument("--hold-out-object", default="", metavar="NAME",
-                       help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)")
-    train.add_argument("--library", action="append", default=[], metavar="DIR",
-                       help="a contact library (dtx dataset library) whose every sample joins the training "
-                            "set; repeatable")
+    train.add_argument(
+        "--hold-out-object",
+        default="",
+        metavar="NAME",
+        help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)",
+    )
+    train.add_argument(
+        "--library",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a contact library (dtx dataset library) whose every sample joins the training set; repeatable",
+    )
     train.set_defaults(func=_train)
 
     evaluate = subparsers.add_parser("evaluate", help="the paper's SSIM, baseline and template-matching analysis")
@@ -87,19 +109,34 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     evaluate.add_argument("--json", action="store_true", help="print the full result as JSON")
     evaluate.add_argument("--figures", metavar="DIR", help="write qualitative.png, ssim_bars.png (and density.png)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test", "all"))
-    evaluate.add_argument("--hold-out-object", default="", metavar="NAME",
-                          help="leave-one-object-out: evaluate on every sample of NAME (train the "
-                               "checkpoint with hold_out_object: NAME in its config)")
-    evaluate.add_argument("--density", action="append", default=[], metavar="PTS_PER_CM3=DIR",
-                          help="a dataset made from clouds downsampled to that density; repeat for the "
-                               "paper's table (1, 10, 20, 40, 80)")
+    evaluate.add_argument(
+        "--hold-out-object",
+        default="",
+        metavar="NAME",
+        help="leave-one-object-out: evaluate on every sample of NAME (train the "
+        "checkpoint with hold_out_object: NAME in its config)",
+    )
+    evaluate.add_argument(
+        "--density",
+        action="append",
+        default=[],
+        metavar="PTS_PER_CM3=DIR",
+        help="a dataset made from clouds downsampled to that density; repeat for the paper's table (1, 10, 20, 40, 80)",
+    )
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws")
-    evaluate.add_argument("--real-presses", metavar="FILE.npz",
-                          help="score the model on real GelSight presses of a ball (layout of "
-                               "assets/gelsight/ball_presses.npz) beside the background, renderer and random frames")
+    evaluate.add_argument(
+        "--real-presses",
+        metavar="FILE.npz",
+        help="score the model on real GelSight presses of a ball (layout of "
+        "assets/gelsight/ball_presses.npz) beside the background, renderer and random frames",
+    )
     evaluate.add_argument("--ball-radius-mm", type=float, default=2.0, help="radius of the pressed ball (default 2)")
-    evaluate.add_argument("--mm-per-px", type=float, default=0.1245,
-                          help="pixel pitch of the presses' frames (default 0.1245)")
-    evaluate.add_argument("--scene", default="scenes/ycb_three.yaml",
-                          help="scene whose gripper and GelSight the presses are seen with (default ycb_three)")
+    evaluate.add_argument(
+        "--mm-per-px", type=float, default=0.1245, help="pixel pitch of the presses' frames (default 0.1245)"
+    )
+    evaluate.add_argument(
+        "--scene",
+        default="scenes/ycb_three.yaml",
+        help="scene whose gripper and GelSight the presses are seen with (default ycb_three)",
+    )
     evaluate.set_defaults(func=_evaluate)

@@ -1,4 +1,5 @@
 """From dataset samples and depth-maps to network tensors, and back."""
+
 from __future__ import annotations
 
 import os
@@ -21,8 +22,9 @@ def depth_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], in
     empty (perception.depthmap stores y_far there, other sources NaN or +inf)."""
     maps = np.asarray(depth_maps_m)
     if maps.ndim != 3 or maps.shape[0] == 0 or not np.issubdtype(maps.dtype, np.floating):
-        raise ModelConfigError(f"depth-maps must be a non-empty N x H x W float array in metres, "
-                               f"got {maps.shape} {maps.dtype}")
+        raise ModelConfigError(
+            f"depth-maps must be a non-empty N x H x W float array in metres, got {maps.shape} {maps.dtype}"
+        )
     if np.any(np.isneginf(maps)):
         raise ModelConfigError("depth-maps contain -inf (empty bins are NaN or +inf)")
     channels = [normalise_depth_map(maps, depth_range_m)]
@@ -35,8 +37,13 @@ def depth_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], in
     return torch.from_numpy(np.stack(channels, axis=1))
 
 
-def network_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], config: GeneratorConfig,
-                  prior: PhysicsPrior | None, pose_sigma_mm: float | None = None) -> torch.Tensor:
+def network_input(
+    depth_maps_m: np.ndarray,
+    depth_range_m: tuple[float, float],
+    config: GeneratorConfig,
+    prior: PhysicsPrior | None,
+    pose_sigma_mm: float | None = None,
+) -> torch.Tensor:
     """What a generator of ``config`` takes for N x H x W depth-maps (m): :func:`depth_input`,
     then the physics prior's image of each map (models.prior) when the generator has one,
     expected over the maps' in-plane pose error ``pose_sigma_mm`` (None: the prior's default)."""
@@ -44,8 +51,10 @@ def network_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], 
     if not config.prior:
         return x
     if prior is None:
-        raise ModelConfigError("this generator corrects a physics prior, but none was given (a checkpoint "
-                               "trained with one stores its scene and crop: load it with load_generator)")
+        raise ModelConfigError(
+            "this generator corrects a physics prior, but none was given (a checkpoint "
+            "trained with one stores its scene and crop: load it with load_generator)"
+        )
     return torch.cat([x, torch.from_numpy(prior.channels(np.asarray(depth_maps_m), pose_sigma_mm))], dim=1)
 
 
@@ -61,8 +70,11 @@ def select_records(reader: DatasetReader, split: str, hold_out_object: str = "")
     """Records of one split: the dataset's 70/15/15 split, or with ``hold_out_object`` the
     leave-one-object-out split (its "test" is every sample of that object)."""
     seed = reader.info.split_seed
-    splits = (leave_one_object_out(reader.records, hold_out_object, seed) if hold_out_object
-              else split_records(reader.records, seed))
+    splits = (
+        leave_one_object_out(reader.records, hold_out_object, seed)
+        if hold_out_object
+        else split_records(reader.records, seed)
+    )
     if split not in splits:
         raise ModelConfigError(f"unknown split {split!r}; known: {sorted(splits)}")
     return splits[split]
@@ -72,14 +84,19 @@ def reader_for_model(root: str | os.PathLike[str], depth_range_m: tuple[float, f
     """The dataset at ``root``, refused unless it normalises depth as the model was trained."""
     reader = DatasetReader(root)
     if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
-        raise ModelConfigError(f"{root} normalises depth with {reader.info.depth_range_m}, the model was "
-                               f"trained with {depth_range_m}")
+        raise ModelConfigError(
+            f"{root} normalises depth with {reader.info.depth_range_m}, the model was trained with {depth_range_m}"
+        )
     return reader
 
 
-def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[SampleRecord] | None,
-               config: GeneratorConfig, prior: PhysicsPrior | None = None, pose_sigma_mm: float | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+def load_pairs(
+    root: str | os.PathLike[str] | DatasetReader,
+    records: Sequence[SampleRecord] | None,
+    config: GeneratorConfig,
+    prior: PhysicsPrior | None = None,
+    pose_sigma_mm: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Network input (:func:`network_input`) and target (N x C x H x W, N x 3 x H x W) for
     ``records`` (all if None), checksums verified."""
     reader = root if isinstance(root, DatasetReader) else DatasetReader(root)
@@ -87,6 +104,7 @@ def load_pairs(root: str | os.PathLike[str] | DatasetReader, records: Sequence[S
     if not chosen:
         raise ModelConfigError(f"no samples selected from {reader.root}")
     samples = [reader.load(r) for r in chosen]
-    depth = network_input(np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior,
-                          pose_sigma_mm)
+    depth = network_input(
+        np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior, pose_sigma_mm
+    )
     return depth, image_target(np.stack([s.tactile_rgb for s in samples]))

@@ -11,6 +11,7 @@
 * Density table: the same SSIM on datasets whose depth-maps were made from clouds
   downsampled to given densities (points/cm^3) - inputs from the collection session.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -31,9 +32,14 @@ from models.networks import ModelConfigError, UNetGenerator
 from models.ssim import WINDOW, psnr_rgb, ssim_rgb, to_uint8_rgb
 from workcell.scene import SceneError, load_scene
 
-PAPER = {"ssim_model_mean": 0.84, "ssim_model_se": 0.0056, "ssim_baseline_mean": 0.80, "ssim_baseline_se": 0.0036,
-         "dissimilarity_ratio": 0.80,
-         "density": {1: 0.8238, 10: 0.8278, 20: 0.8478, 40: 0.8480, 80: 0.8476}}
+PAPER = {
+    "ssim_model_mean": 0.84,
+    "ssim_model_se": 0.0056,
+    "ssim_baseline_mean": 0.80,
+    "ssim_baseline_se": 0.0036,
+    "dissimilarity_ratio": 0.80,
+    "density": {1: 0.8238, 10: 0.8278, 20: 0.8478, 40: 0.8480, 80: 0.8476},
+}
 
 
 @dataclasses.dataclass
@@ -54,18 +60,28 @@ class Predictions:
 
 
 @torch.no_grad()
-def predict(generator: UNetGenerator, depth_maps_m: np.ndarray, depth_range_m: tuple[float, float],
-            batch: int = 64, pose_sigma_mm: float | None = None) -> np.ndarray:
+def predict(
+    generator: UNetGenerator,
+    depth_maps_m: np.ndarray,
+    depth_range_m: tuple[float, float],
+    batch: int = 64,
+    pose_sigma_mm: float | None = None,
+) -> np.ndarray:
     """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates (generator in eval mode);
     ``pose_sigma_mm``: the maps' in-plane pose error for a physics prior (None: the model's
     default, its training session's)."""
     generator.eval()
     x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior, pose_sigma_mm)
-    return np.concatenate([to_uint8_rgb(generator(x[i:i + batch])) for i in range(0, len(x), batch)])
+    return np.concatenate([to_uint8_rgb(generator(x[i : i + batch])) for i in range(0, len(x), batch)])
 
 
-def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float], root: str | os.PathLike[str],
-                    split: str = "test", hold_out_object: str = "") -> Predictions:
+def predict_dataset(
+    generator: UNetGenerator,
+    depth_range_m: tuple[float, float],
+    root: str | os.PathLike[str],
+    split: str = "test",
+    hold_out_object: str = "",
+) -> Predictions:
     """Estimates for one split of a dataset (``split="all"``: every sample)."""
     reader = reader_for_model(root, depth_range_m)
     records = reader.records if split == "all" else select_records(reader, split, hold_out_object)
@@ -73,12 +89,17 @@ def predict_dataset(generator: UNetGenerator, depth_range_m: tuple[float, float]
         raise ModelConfigError(f"the {split} set of {root} has {len(records)} sample(s); need at least 2")
     samples = [reader.load(r) for r in records]
     depth = np.stack([s.depth_map_m for s in samples])
-    return Predictions(sample_ids=[r.sample_id for r in records], objects=[r.object_name for r in records],
-                       depth_maps_m=depth, truth=np.stack([s.tactile_rgb for s in samples]),
-                       truth_deformation=np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
-                       estimate=predict(generator, depth, depth_range_m),
-                       model_to_gel=[None if r.model_to_gel is None else np.array(r.model_to_gel) for r in records],
-                       scene=reader.info.scene, depth_crop_m=reader.info.depth_crop_m)
+    return Predictions(
+        sample_ids=[r.sample_id for r in records],
+        objects=[r.object_name for r in records],
+        depth_maps_m=depth,
+        truth=np.stack([s.tactile_rgb for s in samples]),
+        truth_deformation=np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
+        estimate=predict(generator, depth, depth_range_m),
+        model_to_gel=[None if r.model_to_gel is None else np.array(r.model_to_gel) for r in records],
+        scene=reader.info.scene,
+        depth_crop_m=reader.info.depth_crop_m,
+    )
 
 
 # Most random truths per estimate in the baseline (the paper draws 15); each draw costs one SSIM.
@@ -102,8 +123,9 @@ def _mean_se(values: np.ndarray) -> tuple[float, float]:
     return float(np.mean(values)), float(np.std(values, ddof=1) / np.sqrt(len(values)))
 
 
-def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15,
-                    seed: int = 0, windows: np.ndarray | None = None) -> dict[str, Any]:
+def ssim_statistics(
+    truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15, seed: int = 0, windows: np.ndarray | None = None
+) -> dict[str, Any]:
     """Model vs baseline SSIM statistics (see module docstring) for N >= 2 image pairs.
     ``windows`` (N x H x W bool) restricts each SSIM to the windows centred on a truth's True
     pixels (models.ssim.ssim_rgb); the baseline then uses each random truth's own windows.
@@ -117,15 +139,30 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     n = len(truth)
     if n < 2 or truth.shape != estimate.shape:
         raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
-    if not (isinstance(baseline_draws, (int, np.integer)) and not isinstance(baseline_draws, bool)
-            and 1 <= baseline_draws <= MAX_BASELINE_DRAWS):
-        raise ModelConfigError(f"baseline_draws must be an integer in [1, {MAX_BASELINE_DRAWS}], got {baseline_draws!r}")
+    if not (
+        isinstance(baseline_draws, (int, np.integer))
+        and not isinstance(baseline_draws, bool)
+        and 1 <= baseline_draws <= MAX_BASELINE_DRAWS
+    ):
+        raise ModelConfigError(
+            f"baseline_draws must be an integer in [1, {MAX_BASELINE_DRAWS}], got {baseline_draws!r}"
+        )
     model = ssim_rgb(truth, estimate, windows)
     if not np.all(np.isfinite(model)):
-        raise ModelConfigError(f"pairs {np.flatnonzero(~np.isfinite(model)).tolist()} have no SSIM window inside "
-                               f"the {WINDOW // 2}-pixel border (empty windows mask)")
-    baseline = _baseline(n, baseline_draws, seed, lambda i, draws: ssim_rgb(
-        truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0), None if windows is None else windows[draws]))
+        raise ModelConfigError(
+            f"pairs {np.flatnonzero(~np.isfinite(model)).tolist()} have no SSIM window inside "
+            f"the {WINDOW // 2}-pixel border (empty windows mask)"
+        )
+    baseline = _baseline(
+        n,
+        baseline_draws,
+        seed,
+        lambda i, draws: ssim_rgb(
+            truth[draws],
+            np.repeat(estimate[i : i + 1], len(draws), axis=0),
+            None if windows is None else windows[draws],
+        ),
+    )
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)
     diff = model - baseline
@@ -136,49 +173,80 @@ def ssim_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     # The ratio of dissimilarities needs a baseline that is dissimilar at all (SSIM can exceed 1
     # by rounding, so "at all" is more than a few ulps).
     base_dissimilarity = 1.0 - base_mean
-    undefined = {} if base_dissimilarity > 1e-12 else {
-        "dissimilarity_ratio_undefined": f"the baseline's mean SSIM is {base_mean!r}: every estimate equals the "
-                                         "other truths it is compared with (every truth the same frame, "
-                                         "estimated exactly), so there is no dissimilarity to compare with"}
+    undefined = (
+        {}
+        if base_dissimilarity > 1e-12
+        else {
+            "dissimilarity_ratio_undefined": f"the baseline's mean SSIM is {base_mean!r}: every estimate equals the "
+            "other truths it is compared with (every truth the same frame, "
+            "estimated exactly), so there is no dissimilarity to compare with"
+        }
+    )
     return {
         "n": n,
-        "ssim_model_mean": model_mean, "ssim_model_se": model_se,
-        "ssim_baseline_mean": base_mean, "ssim_baseline_se": base_se,
-        "p_value_wilcoxon": p_wilcoxon, "p_value_t": p_t,
+        "ssim_model_mean": model_mean,
+        "ssim_model_se": model_se,
+        "ssim_baseline_mean": base_mean,
+        "ssim_baseline_se": base_se,
+        "p_value_wilcoxon": p_wilcoxon,
+        "p_value_t": p_t,
         "dissimilarity_ratio": (1.0 - model_mean) / base_dissimilarity if not undefined else float("nan"),
         **undefined,
-        "ssim_model": model.tolist(), "ssim_baseline": baseline.tolist(),
+        "ssim_model": model.tolist(),
+        "ssim_baseline": baseline.tolist(),
     }
 
 
-def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15, seed: int = 0
-                    ) -> dict[str, Any]:
+def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15, seed: int = 0) -> dict[str, Any]:
     """PSNR (dB, models.ssim.psnr_rgb) of every estimate against its truth and against the same
     random other truths as the SSIM baseline (same draws for the same seed): mean and standard
     error of each. Cross-modal benchmarks report PSNR beside SSIM; PSNR weighs every pixel's
     error, SSIM the local structure."""
     n = len(truth)
     model = psnr_rgb(truth, estimate)
-    baseline = _baseline(n, baseline_draws, seed,
-                         lambda i, draws: psnr_rgb(truth[draws], np.repeat(estimate[i:i + 1], len(draws), axis=0)))
+    baseline = _baseline(
+        n,
+        baseline_draws,
+        seed,
+        lambda i, draws: psnr_rgb(truth[draws], np.repeat(estimate[i : i + 1], len(draws), axis=0)),
+    )
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)
-    return {"psnr_db_model_mean": model_mean, "psnr_db_model_se": model_se,
-            "psnr_db_baseline_mean": base_mean, "psnr_db_baseline_se": base_se}
+    return {
+        "psnr_db_model_mean": model_mean,
+        "psnr_db_model_se": model_se,
+        "psnr_db_baseline_mean": base_mean,
+        "psnr_db_baseline_se": base_se,
+    }
 
 
-SUMMARY_KEYS = ("n", "ssim_model_mean", "ssim_model_se", "ssim_baseline_mean", "ssim_baseline_se", "p_value_wilcoxon",
-                "dissimilarity_ratio", "dissimilarity_ratio_undefined")
+SUMMARY_KEYS = (
+    "n",
+    "ssim_model_mean",
+    "ssim_model_se",
+    "ssim_baseline_mean",
+    "ssim_baseline_se",
+    "p_value_wilcoxon",
+    "dissimilarity_ratio",
+    "dissimilarity_ratio_undefined",
+)
 
 
-def per_object_statistics(truth: np.ndarray, estimate: np.ndarray, objects: Sequence[str],
-                          baseline_draws: int = 15, seed: int = 0) -> dict[str, dict[str, Any]]:
+def per_object_statistics(
+    truth: np.ndarray, estimate: np.ndarray, objects: Sequence[str], baseline_draws: int = 15, seed: int = 0
+) -> dict[str, dict[str, Any]]:
     """:func:`ssim_statistics` (its summary: :data:`SUMMARY_KEYS`) of each object with at
     least 2 pairs, the baseline drawn from that object's own ground truths."""
     names = np.asarray(objects)
-    return {name: {k: v for k, v in ssim_statistics(truth[names == name], estimate[names == name], baseline_draws,
-                                                    seed).items() if k in SUMMARY_KEYS}
-            for name in sorted(set(names.tolist())) if np.sum(names == name) >= 2}
+    return {
+        name: {
+            k: v
+            for k, v in ssim_statistics(truth[names == name], estimate[names == name], baseline_draws, seed).items()
+            if k in SUMMARY_KEYS
+        }
+        for name in sorted(set(names.tolist()))
+        if np.sum(names == name) >= 2
+    }
 
 
 # Summed |change| over RGB (8-bit levels) from which a pixel counts as contact: well above the
@@ -192,7 +260,7 @@ def contact_windows(truth_deformation: np.ndarray) -> tuple[np.ndarray, np.ndarr
     CONTACT_LEVELS). A pair counts only if a contact pixel is far enough inside the image for
     a whole window."""
     contact = truth_deformation >= CONTACT_LEVELS
-    inner = contact[:, WINDOW // 2:-(WINDOW // 2), WINDOW // 2:-(WINDOW // 2)]
+    inner = contact[:, WINDOW // 2 : -(WINDOW // 2), WINDOW // 2 : -(WINDOW // 2)]
     return np.flatnonzero(inner.any(axis=(1, 2))), contact
 
 
@@ -203,8 +271,9 @@ def contact_ssim(truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.
     return ssim_rgb(truth[keep], estimate[keep], contact[keep]) if len(keep) else np.empty(0)
 
 
-def contact_ssim_statistics(truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray,
-                            baseline_draws: int = 15, seed: int = 0) -> dict[str, Any]:
+def contact_ssim_statistics(
+    truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15, seed: int = 0
+) -> dict[str, Any]:
     """The paper's comparison with SSIM taken only over the contact windows
     (:func:`contact_windows`). The whole-image SSIM of these images is mostly the sensor's own
     background, which a no-contact estimate gets right; here only the contact counts. Pairs
@@ -214,8 +283,10 @@ def contact_ssim_statistics(truth: np.ndarray, truth_deformation: np.ndarray, es
     if len(keep) < 2:
         return {"n": int(len(keep)), "contact_levels": CONTACT_LEVELS}
     result = ssim_statistics(truth[keep], estimate[keep], baseline_draws, seed, windows=contact[keep])
-    return {"contact_levels": CONTACT_LEVELS,
-            **{k: v for k, v in result.items() if k not in ("ssim_model", "ssim_baseline")}}
+    return {
+        "contact_levels": CONTACT_LEVELS,
+        **{k: v for k, v in result.items() if k not in ("ssim_model", "ssim_baseline")},
+    }
 
 
 def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
@@ -223,14 +294,21 @@ def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
     h, w = deformation.shape
     if not 0 < size_px <= min(h, w):
         raise ModelConfigError(f"template size {size_px} px does not fit a {h} x {w} image")
-    sums = cv2.boxFilter(deformation.astype(np.float32), -1, (size_px, size_px), normalize=False,
-                         anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)[: h - size_px + 1, : w - size_px + 1]
+    sums = cv2.boxFilter(
+        deformation.astype(np.float32),
+        -1,
+        (size_px, size_px),
+        normalize=False,
+        anchor=(0, 0),
+        borderType=cv2.BORDER_CONSTANT,
+    )[: h - size_px + 1, : w - size_px + 1]
     y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
     return int(x), int(y)
 
 
-def template_match(truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray,
-                   size_px: int = 32) -> list[dict[str, Any]]:
+def template_match(
+    truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray, size_px: int = 32
+) -> list[dict[str, Any]]:
     """Per pair: the template box in the truth, the best match in the estimate, its score
     (TM_CCOEFF_NORMED, -1..1) and the distance between the two boxes in pixels.
 
@@ -240,15 +318,23 @@ def template_match(truth: np.ndarray, truth_deformation: np.ndarray, estimate: n
     versions NaN): it scores 0. A pair with a flat template has no match: ``match_xy`` and
     ``distance_px`` are None."""
     truth, estimate = np.asarray(truth), np.asarray(estimate)
-    if truth.dtype != np.uint8 or truth.shape != estimate.shape or estimate.dtype != np.uint8 or truth.ndim != 4 \
-            or truth.shape[-1] != 3 or np.shape(truth_deformation) != truth.shape[:-1]:
-        raise ModelConfigError(f"template matching needs uint8 N x H x W x 3 truth and estimate and an N x H x W "
-                               f"deformation, got {truth.dtype} {truth.shape}, {estimate.dtype} {estimate.shape}, "
-                               f"{np.shape(truth_deformation)}")
+    if (
+        truth.dtype != np.uint8
+        or truth.shape != estimate.shape
+        or estimate.dtype != np.uint8
+        or truth.ndim != 4
+        or truth.shape[-1] != 3
+        or np.shape(truth_deformation) != truth.shape[:-1]
+    ):
+        raise ModelConfigError(
+            f"template matching needs uint8 N x H x W x 3 truth and estimate and an N x H x W "
+            f"deformation, got {truth.dtype} {truth.shape}, {estimate.dtype} {estimate.shape}, "
+            f"{np.shape(truth_deformation)}"
+        )
     results = []
     for gt, deform, est in zip(truth, truth_deformation, estimate):
         x, y = most_deformed_box(deform, size_px)
-        template = np.ascontiguousarray(gt[y:y + size_px, x:x + size_px])
+        template = np.ascontiguousarray(gt[y : y + size_px, x : x + size_px])
         if np.all(template == template[:1, :1]):
             results.append({"template_xy": [x, y], "match_xy": None, "score": 0.0, "distance_px": None})
             continue
@@ -259,17 +345,31 @@ def template_match(truth: np.ndarray, truth_deformation: np.ndarray, estimate: n
         window = (size_px, size_px)
         mean = cv2.boxFilter(levels, -1, window, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
         mean_sq = cv2.boxFilter(levels * levels, -1, window, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
-        variance = (mean_sq - mean * mean).sum(axis=-1)[:scores.shape[0], :scores.shape[1]]
+        variance = (mean_sq - mean * mean).sum(axis=-1)[: scores.shape[0], : scores.shape[1]]
         scores = np.where((variance > 1e-6) & np.isfinite(scores), scores, 0.0).astype(np.float32)
         _, score, _, (mx, my) = cv2.minMaxLoc(scores)
-        results.append({"template_xy": [x, y], "match_xy": [int(mx), int(my)], "score": float(score),
-                        "distance_px": float(np.hypot(mx - x, my - y))})
+        results.append(
+            {
+                "template_xy": [x, y],
+                "match_xy": [int(mx), int(my)],
+                "score": float(score),
+                "distance_px": float(np.hypot(mx - x, my - y)),
+            }
+        )
     return results
 
 
-def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root: str | os.PathLike[str],
-             split: str = "test", hold_out_object: str = "", density: Mapping[float, str | os.PathLike[str]] | None = None,
-             baseline_draws: int = 15, template_px: int = 32, seed: int = 0) -> tuple[dict[str, Any], Predictions]:
+def evaluate(
+    generator: UNetGenerator,
+    depth_range_m: tuple[float, float],
+    root: str | os.PathLike[str],
+    split: str = "test",
+    hold_out_object: str = "",
+    density: Mapping[float, str | os.PathLike[str]] | None = None,
+    baseline_draws: int = 15,
+    template_px: int = 32,
+    seed: int = 0,
+) -> tuple[dict[str, Any], Predictions]:
     """The paper's analysis on one split, plus the density table for the datasets given
     (points per cm^3 -> dataset made at that density; its ``split`` is evaluated too)."""
     predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
@@ -284,35 +384,49 @@ def evaluate(generator: UNetGenerator, depth_range_m: tuple[float, float], root:
         "per_sample": matches,
     }
     result["psnr"] = psnr_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
-    result["contact"] = contact_ssim_statistics(predictions.truth, predictions.truth_deformation,
-                                                predictions.estimate, baseline_draws, seed)
-    result["objects"] = per_object_statistics(predictions.truth, predictions.estimate, predictions.objects,
-                                              baseline_draws, seed)
+    result["contact"] = contact_ssim_statistics(
+        predictions.truth, predictions.truth_deformation, predictions.estimate, baseline_draws, seed
+    )
+    result["objects"] = per_object_statistics(
+        predictions.truth, predictions.estimate, predictions.objects, baseline_draws, seed
+    )
     result["density"] = []
-    full_contact = (contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
-                    if density else None)
+    full_contact = (
+        contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate) if density else None
+    )
     for points_per_cm3, density_root in sorted((density or {}).items()):
         at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
         mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
         psnr_mean, psnr_se = _mean_se(psnr_rgb(at_density.truth, at_density.estimate))
-        row = {"points_per_cm3": float(points_per_cm3), "ssim_mean": mean, "ssim_se": se,
-               "psnr_db_mean": psnr_mean, "psnr_db_se": psnr_se,
-               "paper_ssim_mean": PAPER["density"].get(points_per_cm3)}
+        row = {
+            "points_per_cm3": float(points_per_cm3),
+            "ssim_mean": mean,
+            "ssim_se": se,
+            "psnr_db_mean": psnr_mean,
+            "psnr_db_se": psnr_se,
+            "paper_ssim_mean": PAPER["density"].get(points_per_cm3),
+        }
         contact = contact_ssim(at_density.truth, at_density.truth_deformation, at_density.estimate)
         if len(contact) >= 2:
             row["contact_ssim_mean"], row["contact_ssim_se"] = _mean_se(contact)
             # What this density costs: the full cloud's estimates better on the same pairs'
             # contact windows (one-sided Wilcoxon; pairs matched by sample id).
             if at_density.sample_ids == predictions.sample_ids and np.any(contact != full_contact):
-                row["contact_p_full_better"] = float(stats.wilcoxon(full_contact, contact,
-                                                                    alternative="greater").pvalue)
+                row["contact_p_full_better"] = float(
+                    stats.wilcoxon(full_contact, contact, alternative="greater").pvalue
+                )
         result["density"].append(row)
     result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
     return result, predictions
 
 
-def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_m: tuple[float, float],
-                  out: str | os.PathLike[str], rows: int = 8) -> list[Path]:
+def write_figures(
+    result: dict[str, Any],
+    predictions: Predictions,
+    depth_range_m: tuple[float, float],
+    out: str | os.PathLike[str],
+    rows: int = 8,
+) -> list[Path]:
     """qualitative.png (object, depth-map, truth with template box in blue, estimate with
     matched box in red), ssim_bars.png (model vs baseline, standard-error bars) and, when
     the result has a density table, density.png. Returns the written paths."""
@@ -331,8 +445,12 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
     for row, ax in enumerate(axes):
         match = result["template_match"]["per_sample"][row]
         _draw_object(ax[0], predictions, row)
-        ax[1].imshow(np.nan_to_num(predictions.depth_maps_m[row], nan=depth_range_m[1]) * 1e3, cmap="viridis",
-                     vmin=depth_range_m[0] * 1e3, vmax=depth_range_m[1] * 1e3)
+        ax[1].imshow(
+            np.nan_to_num(predictions.depth_maps_m[row], nan=depth_range_m[1]) * 1e3,
+            cmap="viridis",
+            vmin=depth_range_m[0] * 1e3,
+            vmax=depth_range_m[1] * 1e3,
+        )
         ax[2].imshow(predictions.truth[row])
         ax[2].add_patch(patches.Rectangle(match["template_xy"], size, size, fill=False, color="blue"))
         ax[3].imshow(predictions.estimate[row])
@@ -350,8 +468,13 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(3, 3.5))
-    ax.bar(["baseline", "model"], [result["ssim_baseline_mean"], result["ssim_model_mean"]],
-           yerr=[result["ssim_baseline_se"], result["ssim_model_se"]], capsize=6, color=["grey", "tab:blue"])
+    ax.bar(
+        ["baseline", "model"],
+        [result["ssim_baseline_mean"], result["ssim_model_mean"]],
+        yerr=[result["ssim_baseline_se"], result["ssim_model_se"]],
+        capsize=6,
+        color=["grey", "tab:blue"],
+    )
     ax.set_ylabel("SSIM (mean ± s.e.)")
     ax.set_ylim(0, 1)
     ax.set_title(f"ratio {result['dissimilarity_ratio']:.2f}, p {result['p_value_wilcoxon']:.1e}", fontsize=9)
@@ -363,8 +486,14 @@ def write_figures(result: dict[str, Any], predictions: Predictions, depth_range_
     if result["density"]:
         rows_d = result["density"]
         fig, ax = plt.subplots(figsize=(4, 3))
-        ax.errorbar([r["points_per_cm3"] for r in rows_d], [r["ssim_mean"] for r in rows_d],
-                    yerr=[r["ssim_se"] for r in rows_d], marker="o", capsize=4, label="this model")
+        ax.errorbar(
+            [r["points_per_cm3"] for r in rows_d],
+            [r["ssim_mean"] for r in rows_d],
+            yerr=[r["ssim_se"] for r in rows_d],
+            marker="o",
+            capsize=4,
+            label="this model",
+        )
         paper = sorted(PAPER["density"].items())
         ax.plot([d for d, _ in paper], [v for _, v in paper], "s--", color="grey", label="paper")
         ax.set_xscale("log")
@@ -416,43 +545,61 @@ def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
 def summary_table(result: dict[str, Any]) -> str:
     """The paper-style table, beside the paper's numbers. A figure the data cannot give (NaN)
     prints as nan, and a line at the end says why."""
-    lines = [f"{'':28s}{'this model':>22s}{'paper':>18s}",
-             f"{'SSIM model':28s}{result['ssim_model_mean']:>13.4f} ± {result['ssim_model_se']:.4f}"
-             f"{PAPER['ssim_model_mean']:>11.2f} ± {PAPER['ssim_model_se']}",
-             f"{'SSIM baseline (15 random)':28s}{result['ssim_baseline_mean']:>13.4f} ± {result['ssim_baseline_se']:.4f}"
-             f"{PAPER['ssim_baseline_mean']:>11.2f} ± {PAPER['ssim_baseline_se']}",
-             f"{'dissimilarity ratio':28s}{result['dissimilarity_ratio']:>22.3f}{PAPER['dissimilarity_ratio']:>18.2f}",
-             f"{'p (Wilcoxon / t)':28s}{result['p_value_wilcoxon']:>12.2e} / {result['p_value_t']:.2e}",
-             f"{'template match score':28s}{result['template_match']['score_mean']:>22.3f}",
-             f"{'template distance (px, med)':28s}{result['template_match']['distance_px_median']:>22.1f}",
-             f"samples evaluated: {result['n']}"]
+    lines = [
+        f"{'':28s}{'this model':>22s}{'paper':>18s}",
+        f"{'SSIM model':28s}{result['ssim_model_mean']:>13.4f} ± {result['ssim_model_se']:.4f}"
+        f"{PAPER['ssim_model_mean']:>11.2f} ± {PAPER['ssim_model_se']}",
+        f"{'SSIM baseline (15 random)':28s}{result['ssim_baseline_mean']:>13.4f} ± {result['ssim_baseline_se']:.4f}"
+        f"{PAPER['ssim_baseline_mean']:>11.2f} ± {PAPER['ssim_baseline_se']}",
+        f"{'dissimilarity ratio':28s}{result['dissimilarity_ratio']:>22.3f}{PAPER['dissimilarity_ratio']:>18.2f}",
+        f"{'p (Wilcoxon / t)':28s}{result['p_value_wilcoxon']:>12.2e} / {result['p_value_t']:.2e}",
+        f"{'template match score':28s}{result['template_match']['score_mean']:>22.3f}",
+        f"{'template distance (px, med)':28s}{result['template_match']['distance_px_median']:>22.1f}",
+        f"samples evaluated: {result['n']}",
+    ]
     if "psnr" in result:
-        lines.insert(4, f"{'PSNR model / baseline (dB)':28s}{result['psnr']['psnr_db_model_mean']:>13.2f} / "
-                        f"{result['psnr']['psnr_db_baseline_mean']:.2f}")
+        lines.insert(
+            4,
+            f"{'PSNR model / baseline (dB)':28s}{result['psnr']['psnr_db_model_mean']:>13.2f} / "
+            f"{result['psnr']['psnr_db_baseline_mean']:.2f}",
+        )
     contact = result["contact"]
     if "ssim_model_mean" in contact:
-        lines.insert(-1, f"{'contact SSIM model / base':28s}{contact['ssim_model_mean']:>13.4f} / "
-                         f"{contact['ssim_baseline_mean']:.4f}  ratio {contact['dissimilarity_ratio']:.3f}, "
-                         f"p {contact['p_value_wilcoxon']:.1e}, {contact['n']} pairs")
+        lines.insert(
+            -1,
+            f"{'contact SSIM model / base':28s}{contact['ssim_model_mean']:>13.4f} / "
+            f"{contact['ssim_baseline_mean']:.4f}  ratio {contact['dissimilarity_ratio']:.3f}, "
+            f"p {contact['p_value_wilcoxon']:.1e}, {contact['n']} pairs",
+        )
     for name, row in result["objects"].items():
-        lines.insert(-1, f"{'  ' + name:28s}{row['ssim_model_mean']:>13.4f} / {row['ssim_baseline_mean']:.4f}  "
-                         f"ratio {row['dissimilarity_ratio']:.3f}, {row['n']} pairs")
-    undefined = [("all pairs", result), ("contact windows", contact),
-                 *((f"object {name}", row) for name, row in result["objects"].items())]
-    lines += [f"ratio undefined ({where}): {stats['dissimilarity_ratio_undefined']}"
-              for where, stats in undefined if "dissimilarity_ratio_undefined" in stats]
+        lines.insert(
+            -1,
+            f"{'  ' + name:28s}{row['ssim_model_mean']:>13.4f} / {row['ssim_baseline_mean']:.4f}  "
+            f"ratio {row['dissimilarity_ratio']:.3f}, {row['n']} pairs",
+        )
+    undefined = [
+        ("all pairs", result),
+        ("contact windows", contact),
+        *((f"object {name}", row) for name, row in result["objects"].items()),
+    ]
+    lines += [
+        f"ratio undefined ({where}): {stats['dissimilarity_ratio_undefined']}"
+        for where, stats in undefined
+        if "dissimilarity_ratio_undefined" in stats
+    ]
     if not any(m["distance_px"] is not None for m in result["template_match"]["per_sample"]):
         lines.append("template distance undefined: every template is flat (no correlation to locate)")
     if not result["objects"]:
         lines.append("per-object statistics: no object has 2 pairs")
     for row in result["density"]:
         paper = row["paper_ssim_mean"]
-        lines.append(f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"
-                     f"{row['ssim_mean']:>13.4f} ± {row['ssim_se']:.4f}{'' if paper is None else format(paper, '>18.4f')}"
-                     + (f"   PSNR {row['psnr_db_mean']:.2f} dB" if "psnr_db_mean" in row else "")
-                     + (f"   contact {row['contact_ssim_mean']:.4f}" if "contact_ssim_mean" in row else "")
-                     + (f" (full cloud better: p {row['contact_p_full_better']:.1e})"
-                        if "contact_p_full_better" in row else ""))
+        lines.append(
+            f"{'density ' + format(row['points_per_cm3'], 'g') + ' pts/cm3':28s}"
+            f"{row['ssim_mean']:>13.4f} ± {row['ssim_se']:.4f}{'' if paper is None else format(paper, '>18.4f')}"
+            + (f"   PSNR {row['psnr_db_mean']:.2f} dB" if "psnr_db_mean" in row else "")
+            + (f"   contact {row['contact_ssim_mean']:.4f}" if "contact_ssim_mean" in row else "")
+            + (f" (full cloud better: p {row['contact_p_full_better']:.1e})" if "contact_p_full_better" in row else "")
+        )
     return "\n".join(lines)
 
 

@@ -11,6 +11,7 @@ what the registration's offset, the surface relief and the sensor do to the idea
 The prior is fixed by the scene whose GelSight it renders and the crop the depth-maps cover;
 a checkpoint stores both (``PriorSpec``), so serving renders exactly what training rendered.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,8 +42,11 @@ class PriorSpec:
     def from_dict(data: dict[str, Any]) -> "PriorSpec":
         try:
             crop = tuple(float(v) for v in data["depth_crop_m"])
-            return PriorSpec(scene=str(data["scene"]), depth_crop_m=crop,  # type: ignore[arg-type]
-                             pose_sigma_mm=float(data.get("pose_sigma_mm", 0.0)))
+            return PriorSpec(
+                scene=str(data["scene"]),
+                depth_crop_m=crop,  # type: ignore[arg-type]
+                pose_sigma_mm=float(data.get("pose_sigma_mm", 0.0)),
+            )
         except (KeyError, TypeError, ValueError) as err:
             raise ModelConfigError(f"a physics prior needs a scene and a 3-value depth_crop_m, got {data!r}") from err
 
@@ -52,7 +56,9 @@ class PhysicsPrior:
 
     def __init__(self, spec: PriorSpec, size: int) -> None:
         if len(spec.depth_crop_m) != 3 or not all(np.isfinite(v) and v > 0 for v in spec.depth_crop_m):
-            raise ModelConfigError(f"the prior's depth crop must be three positive extents in m, got {spec.depth_crop_m}")
+            raise ModelConfigError(
+                f"the prior's depth crop must be three positive extents in m, got {spec.depth_crop_m}"
+            )
         try:
             scene = load_scene(spec.scene)
         except (SceneError, OSError) as err:
@@ -73,18 +79,27 @@ class PhysicsPrior:
         if not (np.isfinite(sigma_mm) and sigma_mm >= 0):
             raise ModelConfigError(f"pose_sigma_mm must be a finite number >= 0, got {sigma_mm}")
         try:
-            images = render_depth_maps(self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2]))
+            images = render_depth_maps(
+                self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
+            )
         except GelSightError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
         if sigma_mm == 0:
             return images
         pitch_rows_mm, pitch_cols_mm = self.renderer.pixel_pitch_mm
         background = self.renderer.background().astype(np.float32)
-        changes = [cv2.GaussianBlur(image.astype(np.float32) - background, (0, 0), sigmaX=sigma_mm / pitch_cols_mm,
-                                    sigmaY=sigma_mm / pitch_rows_mm, borderType=cv2.BORDER_REPLICATE)
-                   for image in images]
+        changes = [
+            cv2.GaussianBlur(
+                image.astype(np.float32) - background,
+                (0, 0),
+                sigmaX=sigma_mm / pitch_cols_mm,
+                sigmaY=sigma_mm / pitch_rows_mm,
+                borderType=cv2.BORDER_REPLICATE,
+            )
+            for image in images
+        ]
         return np.stack([np.clip(np.rint(background + change), 0, 255).astype(np.uint8) for change in changes])
 
     def channels(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
         """N x 3 x size x size float32 in [-1, 1] (the network's image units)."""
-        return (self.images(depth_maps_m, pose_sigma_mm).transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)
+        return self.images(depth_maps_m, pose_sigma_mm).transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0

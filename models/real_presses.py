@@ -27,6 +27,7 @@ and the distance from the match to the annotated place is given in mm.
 
 The real frames are for evaluation only: nothing here fits anything to them.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -58,15 +59,16 @@ DEFAULT_SCENE = "scenes/ycb_three.yaml"
 class PressGeometry:
     """One press in the gel frame and on the model's grid."""
 
-    centre_x_mm: float         # gel x of the ball's centre (along image columns)
-    centre_z_mm: float         # gel z (along image rows)
-    depth_mm: float            # lowest point of the ball below the gel surface
+    centre_x_mm: float  # gel x of the ball's centre (along image columns)
+    centre_z_mm: float  # gel z (along image rows)
+    depth_mm: float  # lowest point of the ball below the gel surface
     contact_radius_mm: float
     window: tuple[int, int, int, int]  # rows r0:r1, columns c0:c1 of the press box on the grid
 
 
-def press_geometry(presses: BallPresses, index: int, mm_per_px: float, ball_radius_mm: float,
-                   grid: tuple[int, int]) -> PressGeometry:
+def press_geometry(
+    presses: BallPresses, index: int, mm_per_px: float, ball_radius_mm: float, grid: tuple[int, int]
+) -> PressGeometry:
     """Where press ``index`` is: in the gel frame from the file's pixels, and on the model's
     ``grid`` (rows, columns), which shows the same camera field as the file's frames."""
     height, width = presses.background.shape[:2]
@@ -80,8 +82,12 @@ def press_geometry(presses: BallPresses, index: int, mm_per_px: float, ball_radi
     row_grid = (row_px + 0.5) * rows / height - 0.5
     half_cols = 0.5 * WINDOW_RADII * contact_mm / (mm_per_px * width / cols)
     half_rows = 0.5 * WINDOW_RADII * contact_mm / (mm_per_px * height / rows)
-    window = (max(0, int(round(row_grid - half_rows))), min(rows, int(round(row_grid + half_rows)) + 1),
-              max(0, int(round(col_grid - half_cols))), min(cols, int(round(col_grid + half_cols)) + 1))
+    window = (
+        max(0, int(round(row_grid - half_rows))),
+        min(rows, int(round(row_grid + half_rows)) + 1),
+        max(0, int(round(col_grid - half_cols))),
+        min(cols, int(round(col_grid + half_cols)) + 1),
+    )
     return PressGeometry(x_mm, z_mm, press_depth_mm(contact_mm, ball_radius_mm), contact_mm, window)
 
 
@@ -89,24 +95,29 @@ def ball_cloud_m(ball_radius_mm: float, spacing_m: float = MODEL_POINT_SPACING_M
     """Points uniformly on a sphere of ``ball_radius_mm`` about the origin (N x 3 m), one per
     ``spacing_m``² of surface, as ``perception.registration.sample_model_cloud`` samples a mesh."""
     radius_m = ball_radius_mm * 1e-3
-    count = max(int(4 * np.pi * radius_m ** 2 / spacing_m ** 2), 100)
+    count = max(int(4 * np.pi * radius_m**2 / spacing_m**2), 100)
     directions = np.random.default_rng(seed).standard_normal((count, 3))
     return radius_m * directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
-def press_depth_map(press: PressGeometry, ball_radius_mm: float, geometry: GripperGeometry,
-                    params: DepthMapParams, cloud_m: np.ndarray | None = None) -> np.ndarray:
+def press_depth_map(
+    press: PressGeometry,
+    ball_radius_mm: float,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+    cloud_m: np.ndarray | None = None,
+) -> np.ndarray:
     """The depth-map (m) the system would make of the press: the ball's cloud placed in the gel
     frame and binned as the inference node bins a region."""
     cloud = ball_cloud_m(ball_radius_mm) if cloud_m is None else cloud_m
     ball_to_gel = np.eye(4)
-    ball_to_gel[:3, 3] = [press.centre_x_mm * 1e-3, (ball_radius_mm - press.depth_mm) * 1e-3,
-                          press.centre_z_mm * 1e-3]
+    ball_to_gel[:3, 3] = [press.centre_x_mm * 1e-3, (ball_radius_mm - press.depth_mm) * 1e-3, press.centre_z_mm * 1e-3]
     return contact_depth_map(cloud, ball_to_gel, np.eye(4), geometry, params).depth_map_m
 
 
-def location_error_mm(truth: np.ndarray, estimate: np.ndarray, press: PressGeometry, field_mm: tuple[float, float]
-                      ) -> float:
+def location_error_mm(
+    truth: np.ndarray, estimate: np.ndarray, press: PressGeometry, field_mm: tuple[float, float]
+) -> float:
     """Distance (mm) between the press box's place in the truth and its best match
     (TM_CCOEFF_NORMED) in the estimate; ``field_mm`` is the grid's (height, width) in mm. An
     estimate with no structure matches nowhere: the distance is then NaN."""
@@ -120,10 +131,16 @@ def location_error_mm(truth: np.ndarray, estimate: np.ndarray, press: PressGeome
     return float(np.hypot((col - c0) * field_mm[1] / cols, (row - r0) * field_mm[0] / rows))
 
 
-def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, float],
-                          path: str | os.PathLike[str], scene: Scene | str = DEFAULT_SCENE,
-                          ball_radius_mm: float = 2.0, mm_per_px: float = 0.1245, margin_m: float = 0.002,
-                          seed: int = 0) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def evaluate_real_presses(
+    generator: UNetGenerator,
+    depth_range_m: tuple[float, float],
+    path: str | os.PathLike[str],
+    scene: Scene | str = DEFAULT_SCENE,
+    ball_radius_mm: float = 2.0,
+    mm_per_px: float = 0.1245,
+    margin_m: float = 0.002,
+    seed: int = 0,
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Scores of every estimate on every press (module docstring): the JSON of ``dtx evaluate
     --real-presses`` and the images behind it (for figures). Bad input raises ModelConfigError."""
     if not (np.isfinite(ball_radius_mm) and ball_radius_mm > 0):
@@ -146,8 +163,10 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
     geometries = [press_geometry(presses, i, mm_per_px, ball_radius_mm, grid) for i in range(n)]
     small = [i for i, g in enumerate(geometries) if min(g.window[1] - g.window[0], g.window[3] - g.window[2]) < WINDOW]
     if small:
-        raise ModelConfigError(f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
-                               "(contact radius too small for SSIM)")
+        raise ModelConfigError(
+            f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
+            "(contact radius too small for SSIM)"
+        )
     cloud = ball_cloud_m(ball_radius_mm)
     depth_maps = np.stack([press_depth_map(g, ball_radius_mm, geometry, params, cloud) for g in geometries])
     empty = np.full((1, *grid), depth_range_m[1], dtype=np.float32)
@@ -158,25 +177,33 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
         "model": predict(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0),
         "model_empty": np.repeat(predict(generator, empty, depth_range_m, pose_sigma_mm=0.0), n, axis=0),
         "background": np.repeat(resize_rgb(presses.background, *grid)[None], n, axis=0),
-        "renderer": np.stack([resize_rgb(renderer.render(ball_gap_map(
-            (height, width), presses.centers_xy_px[i], g.depth_mm, mm_per_px, ball_radius_mm)), *grid)
-            for i, g in enumerate(geometries)]),
+        "renderer": np.stack(
+            [
+                resize_rgb(
+                    renderer.render(
+                        ball_gap_map((height, width), presses.centers_xy_px[i], g.depth_mm, mm_per_px, ball_radius_mm)
+                    ),
+                    *grid,
+                )
+                for i, g in enumerate(geometries)
+            ]
+        ),
     }
     rng = np.random.default_rng(seed)
-    others = [rng.choice(np.delete(np.arange(n), i), size=min(RANDOM_FRAMES, n - 1), replace=False)
-              for i in range(n)]
+    others = [rng.choice(np.delete(np.arange(n), i), size=min(RANDOM_FRAMES, n - 1), replace=False) for i in range(n)]
     field_mm = (height * mm_per_px, width * mm_per_px)
-    scores: dict[str, dict[str, list[float]]] = {key: {e: [] for e in ESTIMATES} for key in
-                                                  ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db",
-                                                   "location_error_mm")}
+    scores: dict[str, dict[str, list[float]]] = {
+        key: {e: [] for e in ESTIMATES}
+        for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db", "location_error_mm")
+    }
     truth = images["truth"]
     for i in range(n):
         for name in ESTIMATES:
             if name == "random":
                 candidates = truth[others[i]]
             else:
-                candidates = images[name][i:i + 1]
-            reference = np.repeat(truth[i:i + 1], len(candidates), axis=0)
+                candidates = images[name][i : i + 1]
+            reference = np.repeat(truth[i : i + 1], len(candidates), axis=0)
             r0, r1, c0, c1 = geometries[i].window
             reference_window = np.ascontiguousarray(reference[:, r0:r1, c0:c1])
             candidates_window = np.ascontiguousarray(candidates[:, r0:r1, c0:c1])
@@ -184,19 +211,32 @@ def evaluate_real_presses(generator: UNetGenerator, depth_range_m: tuple[float, 
             scores["window_ssim"][name].append(float(ssim_rgb(reference_window, candidates_window).mean()))
             scores["full_psnr_db"][name].append(float(psnr_rgb(reference, candidates).mean()))
             scores["window_psnr_db"][name].append(float(psnr_rgb(reference_window, candidates_window).mean()))
-            scores["location_error_mm"][name].append(_finite_mean(
-                [location_error_mm(truth[i], c, geometries[i], field_mm) for c in candidates]))
-    result: dict[str, Any] = {"n": n, "file": str(path), "ball_radius_mm": ball_radius_mm, "mm_per_px": mm_per_px,
-                              "window_radii": WINDOW_RADII, "seed": seed}
+            scores["location_error_mm"][name].append(
+                _finite_mean([location_error_mm(truth[i], c, geometries[i], field_mm) for c in candidates])
+            )
+    result: dict[str, Any] = {
+        "n": n,
+        "file": str(path),
+        "ball_radius_mm": ball_radius_mm,
+        "mm_per_px": mm_per_px,
+        "window_radii": WINDOW_RADII,
+        "seed": seed,
+    }
     for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db"):
         result[key] = {name: float(np.mean(values)) for name, values in scores[key].items()}
     location = scores["location_error_mm"]
     result["location_error_mm_median"] = _nan_median(location["model"])
     result["location_error_mm_median_of"] = {name: _nan_median(values) for name, values in location.items()}
-    result["per_press"] = [{"index": i, "depth_mm": geometries[i].depth_mm,
-                            "contact_radius_mm": geometries[i].contact_radius_mm, "window": list(geometries[i].window),
-                            **{f"{key}_{name}": scores[key][name][i] for key in scores for name in ("model", "renderer")}}
-                           for i in range(n)]
+    result["per_press"] = [
+        {
+            "index": i,
+            "depth_mm": geometries[i].depth_mm,
+            "contact_radius_mm": geometries[i].contact_radius_mm,
+            "window": list(geometries[i].window),
+            **{f"{key}_{name}": scores[key][name][i] for key in scores for name in ("model", "renderer")},
+        }
+        for i in range(n)
+    ]
     return result, images
 
 
@@ -213,24 +253,33 @@ def _nan_median(values: list[float]) -> float | None:
 
 def real_press_table(result: dict[str, Any]) -> str:
     """The real-press scores of each estimate, one row each."""
-    names = {"model": "the model, fed the press's depth-map", "model_empty": "the model, fed an empty depth-map",
-             "background": "the real no-contact frame", "renderer": "the GelSight renderer, fed the same contact",
-             "random": f"{RANDOM_FRAMES} random other real frames"}
+    names = {
+        "model": "the model, fed the press's depth-map",
+        "model_empty": "the model, fed an empty depth-map",
+        "background": "the real no-contact frame",
+        "renderer": "the GelSight renderer, fed the same contact",
+        "random": f"{RANDOM_FRAMES} random other real frames",
+    }
     width = max(len(v) for v in names.values())
-    lines = [f"real presses: {result['file']} ({result['n']} frames; window of {result['window_radii']:g} contact "
-             "radii around each press)",
-             f"{'estimate':{width}}  {'window SSIM':>11}  {'full SSIM':>9}  {'window PSNR':>11}  {'full PSNR':>9}  "
-             f"{'location (mm, median)':>21}"]
+    lines = [
+        f"real presses: {result['file']} ({result['n']} frames; window of {result['window_radii']:g} contact "
+        "radii around each press)",
+        f"{'estimate':{width}}  {'window SSIM':>11}  {'full SSIM':>9}  {'window PSNR':>11}  {'full PSNR':>9}  "
+        f"{'location (mm, median)':>21}",
+    ]
     for key, label in names.items():
         location = result["location_error_mm_median_of"][key]
-        lines.append(f"{label:{width}}  {result['window_ssim'][key]:>11.3f}  {result['full_ssim'][key]:>9.3f}  "
-                     f"{result['window_psnr_db'][key]:>8.1f} dB  {result['full_psnr_db'][key]:>6.1f} dB  "
-                     f"{'—' if location is None else format(location, '.2f'):>21}")
+        lines.append(
+            f"{label:{width}}  {result['window_ssim'][key]:>11.3f}  {result['full_ssim'][key]:>9.3f}  "
+            f"{result['window_psnr_db'][key]:>8.1f} dB  {result['full_psnr_db'][key]:>6.1f} dB  "
+            f"{'—' if location is None else format(location, '.2f'):>21}"
+        )
     return "\n".join(lines)
 
 
-def write_real_press_figure(result: dict[str, Any], images: dict[str, np.ndarray], out: str | os.PathLike[str],
-                            rows: int = 6) -> Path:
+def write_real_press_figure(
+    result: dict[str, Any], images: dict[str, np.ndarray], out: str | os.PathLike[str], rows: int = 6
+) -> Path:
     """real_presses.png: per press the depth-map, the real frame, the model's and the
     renderer's images, the press window drawn on each image."""
     import matplotlib  # noqa: PLC0415 (only evaluation with --figures needs it)
@@ -250,7 +299,9 @@ def write_real_press_figure(result: dict[str, Any], images: dict[str, np.ndarray
         for a, key in zip(ax[1:], ("truth", "model", "renderer")):
             a.imshow(images[key][row])
             # The window is on the image grid; the depth-map's bins cover a wider crop.
-            a.add_patch(patches.Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False, color="red", linewidth=0.8))
+            a.add_patch(
+                patches.Rectangle((c0 - 0.5, r0 - 0.5), c1 - c0, r1 - r0, fill=False, color="red", linewidth=0.8)
+            )
         for a in ax:
             a.set_xticks([])
             a.set_yticks([])

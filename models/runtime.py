@@ -1,6 +1,7 @@
 """Running a trained generator outside training: eager PyTorch (fp32 or bf16 autocast) and
 the ONNX graph ONNX Runtime loads. The inference node and the inference benchmark share these,
 so the benchmark measures the graphs the node serves."""
+
 from __future__ import annotations
 
 import copy
@@ -31,9 +32,11 @@ class UncheckedGenerator(nn.Module):
 
 def eager_runner(module: nn.Module, bf16: bool) -> Runner:
     """N x C x H x W float32 -> the module's float32 output, under bf16 autocast if asked."""
+
     def run(x: np.ndarray) -> np.ndarray:
         with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             return module(torch.from_numpy(x)).float().numpy()
+
     return run
 
 
@@ -46,11 +49,16 @@ def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.By
         # TorchScript one still works but warns about its deprecation and about shape
         # arithmetic it handles, none of which concerns the exported model.
         warnings.simplefilter("ignore")
-        torch.onnx.export(UncheckedGenerator(generator).eval(),
-                          (torch.zeros(1, generator.config.input_channels, size, size),),
-                          target if isinstance(target, io.BytesIO) else str(target), dynamo=False,
-                          input_names=["depth"], output_names=["image"],
-                          dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}}, opset_version=17)
+        torch.onnx.export(
+            UncheckedGenerator(generator).eval(),
+            (torch.zeros(1, generator.config.input_channels, size, size),),
+            target if isinstance(target, io.BytesIO) else str(target),
+            dynamo=False,
+            input_names=["depth"],
+            output_names=["image"],
+            dynamic_axes={"depth": {0: "n"}, "image": {0: "n"}},
+            opset_version=17,
+        )
 
 
 class SampledDropout(nn.Module):

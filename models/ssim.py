@@ -6,6 +6,7 @@ fully inside the image count. This equals ``skimage.metrics.structural_similarit
 gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255,
 channel_axis=-1)``, which also discards the 5-pixel border.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -45,7 +46,7 @@ def _band_matrix(size: int, dtype: torch.dtype, device: torch.device) -> torch.T
     g = _gaussian_window(dtype, device)
     band = torch.zeros(size - WINDOW + 1, size, dtype=dtype, device=device)
     for i in range(size - WINDOW + 1):
-        band[i, i:i + WINDOW] = g
+        band[i, i : i + WINDOW] = g
     return band
 
 
@@ -62,8 +63,9 @@ def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The SSIM of every 11 x 11 window: N x C x (H - 10) x (W - 10); window (i, j) is centred
     on pixel (i + 5, j + 5). Inputs as :func:`ssim_torch`."""
     if a.shape != b.shape or a.ndim != 4 or a.shape[1] < 1:
-        raise ModelConfigError(f"SSIM needs two N x C x H x W batches of one shape (C >= 1), got "
-                               f"{tuple(a.shape)} and {tuple(b.shape)}")
+        raise ModelConfigError(
+            f"SSIM needs two N x C x H x W batches of one shape (C >= 1), got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
     if min(a.shape[2:]) < WINDOW:
         raise ModelConfigError(f"SSIM needs images of at least {WINDOW} x {WINDOW}, got {tuple(a.shape[2:])}")
     dtype = compute_dtype(a.dtype)
@@ -72,8 +74,10 @@ def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         for name, x in (("a", a), ("b", b)):
             low, high = torch.aminmax(x)  # NaN propagates and fails both comparisons
             if not (low >= 0 and high <= DATA_RANGE):
-                raise ModelConfigError(f"SSIM input {name} must be finite levels in [0, {DATA_RANGE:g}], "
-                                       f"got values in [{low.item()}, {high.item()}] (NaN or inf?)")
+                raise ModelConfigError(
+                    f"SSIM input {name} must be finite levels in [0, {DATA_RANGE:g}], "
+                    f"got values in [{low.item()}, {high.item()}] (NaN or inf?)"
+                )
     # Separable blur, 'valid' only (the result is exactly the border-cropped SSIM map),
     # written as two band-matrix products: far faster on CPU than grouped convolutions.
     rows = _band_matrix(a.shape[2], dtype, a.device)
@@ -87,7 +91,7 @@ def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     var_b = blur(b * b) - mu_b * mu_b
     cov = blur(a * b) - mu_a * mu_b
     c1, c2 = (K1 * DATA_RANGE) ** 2, (K2 * DATA_RANGE) ** 2
-    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
 
 
 def _rgb_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -142,5 +146,5 @@ def psnr_rgb(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a, b = _rgb_pair(a, b, "psnr_rgb")
     mse = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).reshape((-1,) + a.shape[-3:]).mean(axis=(1, 2, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
-        psnr = 10.0 * np.log10(DATA_RANGE ** 2 / mse)
+        psnr = 10.0 * np.log10(DATA_RANGE**2 / mse)
     return np.minimum(psnr, PSNR_MAX_DB).reshape(a.shape[:-3])

@@ -18,6 +18,7 @@ Outputs in ``--out``: ``checkpoint.pt`` (state dicts, configs and progress, load
 ``val_log.csv`` (validation L1 and SSIM after every epoch), and the same scalars as TensorBoard
 events in ``tensorboard/`` (``tensorboard --logdir OUT/tensorboard``).
 """
+
 from __future__ import annotations
 
 import copy
@@ -89,8 +90,9 @@ class TrainConfig:
 
     def validate(self) -> "TrainConfig":
         if self.epochs < 0 or self.epochs_decay < 0 or self.epochs + self.epochs_decay == 0:
-            raise ModelConfigError(f"epochs and epochs_decay must be >= 0 with a positive sum, "
-                                   f"got {self.epochs}, {self.epochs_decay}")
+            raise ModelConfigError(
+                f"epochs and epochs_decay must be >= 0 with a positive sum, got {self.epochs}, {self.epochs_decay}"
+            )
         for name in ("batch_size", "ndf", "log_every"):
             if getattr(self, name) < 1:
                 raise ModelConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -99,19 +101,24 @@ class TrainConfig:
         if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
             raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
         if not (np.isfinite(self.session_pose_sigma_mm) and self.session_pose_sigma_mm >= 0):
-            raise ModelConfigError(f"session_pose_sigma_mm must be a finite number >= 0, got {self.session_pose_sigma_mm}")
+            raise ModelConfigError(
+                f"session_pose_sigma_mm must be a finite number >= 0, got {self.session_pose_sigma_mm}"
+            )
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
-            raise ModelConfigError(f"need lr > 0, betas in [0, 1), lambda_l1 >= 0; got lr={self.lr}, "
-                                   f"betas=({self.beta1}, {self.beta2}), lambda_l1={self.lambda_l1}")
+            raise ModelConfigError(
+                f"need lr > 0, betas in [0, 1), lambda_l1 >= 0; got lr={self.lr}, "
+                f"betas=({self.beta1}, {self.beta2}), lambda_l1={self.lambda_l1}"
+            )
         self.generator.validate()
         return self
 
     @property
     def discriminator(self) -> DiscriminatorConfig:
-        return DiscriminatorConfig(in_channels=self.generator.input_channels + self.generator.out_channels,
-                                   ndf=self.ndf)
+        return DiscriminatorConfig(
+            in_channels=self.generator.input_channels + self.generator.out_channels, ndf=self.ndf
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -122,7 +129,9 @@ class TrainConfig:
             raise ModelConfigError(f"a training config is a mapping, got {type(data).__name__}")
         data = dict(data)
         generator = GeneratorConfig.from_dict(data.pop("generator", {}) or {})
-        return dataclasses.replace(config_from_dict(TrainConfig, data, "training config"), generator=generator).validate()
+        return dataclasses.replace(
+            config_from_dict(TrainConfig, data, "training config"), generator=generator
+        ).validate()
 
     @staticmethod
     def load(path: str | os.PathLike[str]) -> "TrainConfig":
@@ -240,17 +249,22 @@ def _validate(generator: nn.Module, x: torch.Tensor, y: torch.Tensor, batch: int
     generator.eval()
     l1, ssim = [], []
     for start in range(0, len(x), batch):
-        fake = generator(x[start:start + batch])
-        real = y[start:start + batch]
+        fake = generator(x[start : start + batch])
+        real = y[start : start + batch]
         l1.append((fake - real).abs().mean(dim=(1, 2, 3)))
-        ssim.append(ssim_torch(((fake + 1) * 127.5).round().clamp(0, 255).double(),
-                               ((real + 1) * 127.5).round().double()))
+        ssim.append(
+            ssim_torch(((fake + 1) * 127.5).round().clamp(0, 255).double(), ((real + 1) * 127.5).round().double())
+        )
     generator.train(was_training)
     return float(torch.cat(l1).mean()), float(torch.cat(ssim).mean())
 
 
-def load_library(libraries: Sequence[str | os.PathLike[str]], session: DatasetReader, config: GeneratorConfig,
-                 prior: PhysicsPrior | None) -> tuple[torch.Tensor, torch.Tensor] | None:
+def load_library(
+    libraries: Sequence[str | os.PathLike[str]],
+    session: DatasetReader,
+    config: GeneratorConfig,
+    prior: PhysicsPrior | None,
+) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Every sample of each library dataset (dataset.contact_library), as network input and
     target; refused unless its depth-maps are the session's (range and crop)."""
     parts = []
@@ -259,8 +273,10 @@ def load_library(libraries: Sequence[str | os.PathLike[str]], session: DatasetRe
         for name in ("depth_range_m", "depth_crop_m"):
             mine, theirs = getattr(reader.info, name), getattr(session.info, name)
             if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
-                raise ModelConfigError(f"library {library} has {name} {mine}, the dataset {theirs}: make it "
-                                       "with the session's settings (dtx dataset library --depth-range-m)")
+                raise ModelConfigError(
+                    f"library {library} has {name} {mine}, the dataset {theirs}: make it "
+                    "with the session's settings (dtx dataset library --depth-range-m)"
+                )
         parts.append(load_pairs(reader, None, config, prior, pose_sigma_mm=0.0))  # exact geometry
     if not parts:
         return None
@@ -277,9 +293,15 @@ def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm:
     return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m), pose_sigma_mm), config.image_size)
 
 
-def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.PathLike[str],
-          resume: bool = False, progress: bool = True, stop_after_epochs: int | None = None,
-          libraries: Sequence[str | os.PathLike[str]] = ()) -> Path:
+def train(
+    dataset: str | os.PathLike[str],
+    config: TrainConfig,
+    out: str | os.PathLike[str],
+    resume: bool = False,
+    progress: bool = True,
+    stop_after_epochs: int | None = None,
+    libraries: Sequence[str | os.PathLike[str]] = (),
+) -> Path:
     """Train on the dataset's train split (or, with ``hold_out_object``, on the other
     objects), joined by every sample of the ``libraries`` (contact libraries: they add kinds of
     contact, never a session's validation or test pairs); returns the checkpoint path.
@@ -293,9 +315,12 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
             torch.set_num_threads(config.threads)
         reader = DatasetReader(dataset)
         prior = session_prior(reader, config.generator, config.session_pose_sigma_mm)
-        x_train, y_train = load_pairs(reader, select_records(reader, "train", config.hold_out_object),
-                                      config.generator, prior)
-        x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), config.generator, prior)
+        x_train, y_train = load_pairs(
+            reader, select_records(reader, "train", config.hold_out_object), config.generator, prior
+        )
+        x_val, y_val = load_pairs(
+            reader, select_records(reader, "val", config.hold_out_object), config.generator, prior
+        )
         library = load_library(libraries, reader, config.generator, prior)
         if library is not None:
             x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
@@ -319,8 +344,10 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
         if resume and checkpoint_path.exists():
             state = load_checkpoint(checkpoint_path)
             if TrainConfig.from_dict(state["train_config"]) != config:
-                raise ModelConfigError(f"{checkpoint_path} was trained with a different config; "
-                                       "resume with the same config or train into a new --out")
+                raise ModelConfigError(
+                    f"{checkpoint_path} was trained with a different config; "
+                    "resume with the same config or train into a new --out"
+                )
             generator.load_state_dict(state["generator_raw"] if average is not None else state["generator"])
             if average is not None:
                 average.load_state_dict(state["generator"])
@@ -362,11 +389,11 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                 for group in opt.param_groups:
                     group["lr"] = config.lr * lr_factor(config, epoch)
             order = torch.randperm(len(x_train), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
-            mine = order[: per_rank * dist.world][dist.rank::dist.world].to(dist.device)
+            mine = order[: per_rank * dist.world][dist.rank :: dist.world].to(dist.device)
             for start in range(0, per_rank, config.batch_size):
                 if step >= total_steps:
                     break
-                index = mine[start:start + config.batch_size]
+                index = mine[start : start + config.batch_size]
                 x, y = x_train[index], y_train[index]
                 fake = generator(x)
 
@@ -401,12 +428,19 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
                 if step % config.log_every == 0 or step == total_steps:
                     means = np.mean(window, axis=0)
                     window.clear()
-                    bar.set_postfix(d_real=f"{means[0]:.3f}", d_fake=f"{means[1]:.3f}",
-                                    g_gan=f"{means[2]:.3f}", g_l1=f"{means[3]:.4f}")
+                    bar.set_postfix(
+                        d_real=f"{means[0]:.3f}",
+                        d_fake=f"{means[1]:.3f}",
+                        g_gan=f"{means[2]:.3f}",
+                        g_l1=f"{means[3]:.4f}",
+                    )
                     if board is not None:
                         names = ["loss_d_real", "loss_d_fake", "loss_g_gan", "loss_g_l1"]
-                        _append_csv(out_dir / "train_log.csv", ["epoch", "step", "lr", *names],
-                                    [epoch, step, opt_g.param_groups[0]["lr"], *[f"{m:.6g}" for m in means]])
+                        _append_csv(
+                            out_dir / "train_log.csv",
+                            ["epoch", "step", "lr", *names],
+                            [epoch, step, opt_g.param_groups[0]["lr"], *[f"{m:.6g}" for m in means]],
+                        )
                         for name, value in zip(names, means):
                             board.add_scalar(f"train/{name}", value, step)
                         board.add_scalar("train/lr", opt_g.param_groups[0]["lr"], step)
@@ -414,27 +448,33 @@ def train(dataset: str | os.PathLike[str], config: TrainConfig, out: str | os.Pa
             if board is not None:
                 served = average if average is not None else _unwrap(generator)
                 val_l1, val_ssim = _validate(served, x_val, y_val)
-                _append_csv(out_dir / "val_log.csv", ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
-                            [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - started:.1f}"])
+                _append_csv(
+                    out_dir / "val_log.csv",
+                    ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
+                    [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - started:.1f}"],
+                )
                 board.add_scalar("val/l1", val_l1, step)
                 board.add_scalar("val/ssim", val_ssim, step)
                 board.flush()
                 raw = {"generator_raw": _unwrap(generator).state_dict()} if average is not None else {}
-                _save_atomic({
-                    "generator": served.state_dict(),
-                    **raw,
-                    "discriminator": _unwrap(discriminator).state_dict(),
-                    "opt_generator": opt_g.state_dict(),
-                    "opt_discriminator": opt_d.state_dict(),
-                    "epoch": epoch + 1,
-                    "step": step,
-                    "rng_cpu": torch.get_rng_state(),
-                    "train_config": config.to_dict(),
-                    "depth_range_m": list(reader.info.depth_range_m),
-                    "dataset": str(Path(dataset).resolve()),
-                    "libraries": [str(Path(library).resolve()) for library in libraries],
-                    **({"prior": prior.spec.to_dict()} if prior is not None else {}),
-                }, checkpoint_path)
+                _save_atomic(
+                    {
+                        "generator": served.state_dict(),
+                        **raw,
+                        "discriminator": _unwrap(discriminator).state_dict(),
+                        "opt_generator": opt_g.state_dict(),
+                        "opt_discriminator": opt_d.state_dict(),
+                        "epoch": epoch + 1,
+                        "step": step,
+                        "rng_cpu": torch.get_rng_state(),
+                        "train_config": config.to_dict(),
+                        "depth_range_m": list(reader.info.depth_range_m),
+                        "dataset": str(Path(dataset).resolve()),
+                        "libraries": [str(Path(library).resolve()) for library in libraries],
+                        **({"prior": prior.spec.to_dict()} if prior is not None else {}),
+                    },
+                    checkpoint_path,
+                )
         bar.close()
         if board is not None:
             board.close()

@@ -1,4 +1,5 @@
 """Typed, versioned messages of the dtx bus and their wire codec (no pickle anywhere)."""
+
 from msgs.base import MESSAGE_TYPES, Header, Message
 from msgs.dataset import DatasetSample
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
@@ -8,9 +9,31 @@ from msgs.sensors import CameraIntrinsics, DepthImage, PointCloud, TactileImage
 from msgs.system import Clock, Empty, ErrorCode, FrameTransform, Heartbeat, Log, ServiceError
 
 __all__ = [
-    "MESSAGE_TYPES", "Header", "Message", "DatasetSample", "TactileEstimateReply",
-    "TactileEstimateRequest", "DepthMap", "PatchReply", "PatchRequest", "RegisterReply",
-    "RegisterRequest", "ArmMoveRequest", "ArmState", "GraspCommand", "GripperCommand",
-    "GripperState", "CameraIntrinsics", "DepthImage", "PointCloud", "TactileImage", "Clock",
-    "Empty", "ErrorCode", "FrameTransform", "Heartbeat", "Log", "ServiceError",
+    "MESSAGE_TYPES",
+    "Header",
+    "Message",
+    "DatasetSample",
+    "TactileEstimateReply",
+    "TactileEstimateRequest",
+    "DepthMap",
+    "PatchReply",
+    "PatchRequest",
+    "RegisterReply",
+    "RegisterRequest",
+    "ArmMoveRequest",
+    "ArmState",
+    "GraspCommand",
+    "GripperCommand",
+    "GripperState",
+    "CameraIntrinsics",
+    "DepthImage",
+    "PointCloud",
+    "TactileImage",
+    "Clock",
+    "Empty",
+    "ErrorCode",
+    "FrameTransform",
+    "Heartbeat",
+    "Log",
+    "ServiceError",
 ]

@@ -5,6 +5,7 @@ Every message class declares ``SCHEMA`` (a dotted name, unique on the bus) and `
 in the msgpack header (int, float, str, bool, lists/dicts of them) or ``numpy.ndarray``
 values that travel as raw buffers beside it. See ``msgs.codec`` for the wire form.
 """
+
 from __future__ import annotations
 
 import dataclasses

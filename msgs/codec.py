@@ -8,6 +8,7 @@ zero-copy path) and received as read-only views of the frame. Nothing is ever pi
 Decoding trusts nothing: every check that can fail raises :class:`MessageError`, one error
 type for callers to catch, with a sentence that says what was wrong.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -29,9 +30,7 @@ MAX_NDIM = 8
 # still matches an empty buffer, and NumPy refuses such shapes with its own error.
 MAX_DIMENSION = DEFAULT_MAX_MESSAGE_BYTES
 # Only plain little-endian numeric types cross the bus: no objects, no strings, no records.
-ALLOWED_DTYPES = frozenset(
-    ["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"]
-)
+ALLOWED_DTYPES = frozenset(["|b1", "|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"])
 _ARRAY_REF = "__array__"
 _HEADER_FIELDS = (("s", str), ("v", int), ("t", int), ("q", int), ("f", str), ("p", str), ("d", dict), ("a", list))
 
@@ -223,9 +222,7 @@ def _unflatten(
     plan = _plan(cls, with_header=not top)
     if len(values) != len(plan) or any(name not in values for name, _ in plan):
         names = {name for name, _ in plan}
-        raise MessageError(
-            f"{path}: fields {sorted(values)} do not match {cls.__name__}'s {sorted(names)}"
-        )
+        raise MessageError(f"{path}: fields {sorted(values)} do not match {cls.__name__}'s {sorted(names)}")
     return {name: convert(values[name], arrays, used, f"{path}.{name}") for name, convert in plan}
 
 
@@ -233,6 +230,7 @@ def _unflatten(
 def _converter(annotation: Any) -> Converter:
     origin = typing.get_origin(annotation)
     if annotation is np.ndarray:
+
         def array(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> np.ndarray:
             index = value.get(_ARRAY_REF) if isinstance(value, dict) and len(value) == 1 else None
             if not isinstance(index, int) or isinstance(index, bool):
@@ -241,12 +239,16 @@ def _converter(annotation: Any) -> Converter:
                 raise MessageError(f"{path}: array reference {index} is invalid or used twice")
             used.add(index)
             return arrays[index]
+
         return array
     if dataclasses.is_dataclass(annotation):
+
         def nested(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> Any:
             return annotation(**_unflatten(annotation, value, arrays, used, path))
+
         return nested
     if annotation is float:
+
         def number(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> float:
             kind = type(value)  # exact types: msgpack gives int, float or bool (not a number)
             if kind is not float and kind is not int:
@@ -254,25 +256,32 @@ def _converter(annotation: Any) -> Converter:
             if not math.isfinite(value):
                 raise MessageError(f"{path}: non-finite number")
             return float(value)
+
         return number
     if annotation in (int, str, bool):
+
         def exact(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> Any:
             if type(value) is not annotation:
                 raise MessageError(f"{path}: expected {annotation.__name__}, got {type(value).__name__}")
             return value
+
         return exact
     if origin is list:
         item = _converter(typing.get_args(annotation)[0])
+
         def sequence(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> list[Any]:
             if not isinstance(value, list):
                 raise MessageError(f"{path}: expected a list")
             return [item(v, arrays, used, f"{path}[{i}]") for i, v in enumerate(value)]
+
         return sequence
     if origin is dict:
         item = _converter(typing.get_args(annotation)[1])
+
         def mapping(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> dict[str, Any]:
             if not isinstance(value, dict):
                 raise MessageError(f"{path}: expected a map")
             return {k: item(v, arrays, used, f"{path}.{k}") for k, v in value.items()}
+
         return mapping
     raise TypeError(f"field type {annotation} is not supported on the wire")

@@ -1,4 +1,5 @@
 """One written (tactile image, depth-map) pair, as the collector announces it."""
+
 from __future__ import annotations
 
 import dataclasses

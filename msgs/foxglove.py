@@ -1,6 +1,7 @@
 """Foxglove's well-known message for each dtx message that has one (images, clouds,
 transforms): bags carry them beside the dtx encoding and the live bridge serves them, so
 Foxglove Studio shows a session without any plug-in."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -23,9 +24,13 @@ FOXGLOVE_SUFFIX = "/foxglove"
 def foxglove_schema(dtx_schema: str) -> Any | None:
     """The Foxglove schema of a dtx schema's view (None: it has none), known before any
     message comes, so a channel can be advertised as soon as its topic is discovered."""
-    view = {msgs.DepthImage.SCHEMA: fox.RawImage, msgs.TactileImage.SCHEMA: fox.RawImage,
-            msgs.DatasetSample.SCHEMA: fox.RawImage, msgs.PointCloud.SCHEMA: fox.PointCloud,
-            msgs.FrameTransform.SCHEMA: fox.FrameTransform}.get(dtx_schema)
+    view = {
+        msgs.DepthImage.SCHEMA: fox.RawImage,
+        msgs.TactileImage.SCHEMA: fox.RawImage,
+        msgs.DatasetSample.SCHEMA: fox.RawImage,
+        msgs.PointCloud.SCHEMA: fox.PointCloud,
+        msgs.FrameTransform.SCHEMA: fox.FrameTransform,
+    }.get(dtx_schema)
     return view().get_schema() if view is not None else None
 
 
@@ -35,32 +40,59 @@ def foxglove_view(message: Message) -> Any | None:
     if isinstance(message, msgs.DepthImage):
         depth = np.ascontiguousarray(message.depth)
         encoding = "16UC1" if depth.dtype == np.uint16 else "32FC1"
-        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
-                            width=depth.shape[1], height=depth.shape[0], encoding=encoding,
-                            step=depth.strides[0], data=depth.tobytes())
+        return fox.RawImage(
+            timestamp=_foxglove_time(header.stamp_ns),
+            frame_id=header.frame_id,
+            width=depth.shape[1],
+            height=depth.shape[0],
+            encoding=encoding,
+            step=depth.strides[0],
+            data=depth.tobytes(),
+        )
     if isinstance(message, msgs.TactileImage):
         image = np.ascontiguousarray(message.image)
-        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
-                            width=image.shape[1], height=image.shape[0], encoding="rgb8",
-                            step=image.strides[0], data=image.tobytes())
+        return fox.RawImage(
+            timestamp=_foxglove_time(header.stamp_ns),
+            frame_id=header.frame_id,
+            width=image.shape[1],
+            height=image.shape[0],
+            encoding="rgb8",
+            step=image.strides[0],
+            data=image.tobytes(),
+        )
     if isinstance(message, msgs.DatasetSample):
         # The sample's contact depth-map: 32FC1, metres along the gel's outward normal (bins with
         # no surface hold the far end of the depth range), in the gel frame of its finger.
         depth_map = np.ascontiguousarray(message.depth_map_m, dtype=np.float32)
-        return fox.RawImage(timestamp=_foxglove_time(header.stamp_ns), frame_id=f"gel_{message.finger}",
-                            width=depth_map.shape[1], height=depth_map.shape[0], encoding="32FC1",
-                            step=depth_map.strides[0], data=depth_map.tobytes())
+        return fox.RawImage(
+            timestamp=_foxglove_time(header.stamp_ns),
+            frame_id=f"gel_{message.finger}",
+            width=depth_map.shape[1],
+            height=depth_map.shape[0],
+            encoding="32FC1",
+            step=depth_map.strides[0],
+            data=depth_map.tobytes(),
+        )
     if isinstance(message, msgs.PointCloud):
         points = np.ascontiguousarray(message.points, dtype=np.float32)
-        fields = [fox.PackedElementField(name=axis, offset=4 * i, type=fox.PackedElementFieldNumericType.Float32)
-                  for i, axis in enumerate("xyz")]
-        return fox.PointCloud(timestamp=_foxglove_time(header.stamp_ns), frame_id=header.frame_id,
-                              point_stride=12, fields=fields, data=points.tobytes())
+        fields = [
+            fox.PackedElementField(name=axis, offset=4 * i, type=fox.PackedElementFieldNumericType.Float32)
+            for i, axis in enumerate("xyz")
+        ]
+        return fox.PointCloud(
+            timestamp=_foxglove_time(header.stamp_ns),
+            frame_id=header.frame_id,
+            point_stride=12,
+            fields=fields,
+            data=points.tobytes(),
+        )
     if isinstance(message, msgs.FrameTransform):
         t, q = message.translation, message.rotation
         return fox.FrameTransform(
-            timestamp=_foxglove_time(header.stamp_ns), parent_frame_id=header.frame_id,
+            timestamp=_foxglove_time(header.stamp_ns),
+            parent_frame_id=header.frame_id,
             child_frame_id=message.child_frame_id,
             translation=fox.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-            rotation=fox.Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+            rotation=fox.Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
     return None

@@ -1,4 +1,5 @@
 """The grasp planner's questions to the inference server, and its answers."""
+
 from __future__ import annotations
 
 import dataclasses

@@ -1,4 +1,5 @@
 """Patch extractor messages: registration and contact depth-maps."""
+
 from __future__ import annotations
 
 import dataclasses

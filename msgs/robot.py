@@ -1,4 +1,5 @@
 """Arm and gripper state and commands. Poses are metres and radians in ``world``."""
+
 from __future__ import annotations
 
 import dataclasses

@@ -1,4 +1,5 @@
 """Sensor streams: depth images, point clouds, tactile images."""
+
 from __future__ import annotations
 
 import dataclasses

@@ -1,4 +1,5 @@
 """Bus housekeeping: logs, heartbeats, clock, transforms, service errors."""
+
 from __future__ import annotations
 
 import dataclasses

@@ -8,6 +8,7 @@ ur_rtde or simulated and its config fields, see ``drivers.arm``). Targets outsid
 the backend before anything moves; a protective stop or a lost link makes the node report
 the error and stop (the session then stops safely).
 """
+
 from __future__ import annotations
 
 import dataclasses

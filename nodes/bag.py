@@ -15,6 +15,7 @@ decompression actually yields are bounded (by the bus's largest message) before 
 allocated, and a message that does not decode is a BagError, not a traceback. A bag cut
 short by a crash still reads up to the cut.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -91,7 +92,7 @@ def unpack_frames(topic: str, data: bytes | memoryview) -> list[Any]:
         offset += 8
         if offset + length > view.nbytes:
             raise BagError(f"{topic}: record announces {length} bytes, {view.nbytes - offset} left")
-        frames.append(view[offset:offset + length])
+        frames.append(view[offset : offset + length])
         offset += length
     return frames
 
@@ -107,8 +108,8 @@ def schema_description(msg_type: type[Message]) -> bytes:
         "description": (msg_type.__doc__ or "").strip(),
         "x-dtx-version": msg_type.VERSION,
         "x-dtx-payload": "length-prefixed frames (uint64 LE): msgpack header {s,v,t,q,f,p,d,a}, then one "
-                         "raw little-endian C-order buffer per entry of a ([dtype, shape]); this schema "
-                         "describes d. See docs/bag-format.md and docs/wire-protocol.md.",
+        "raw little-endian C-order buffer per entry of a ([dtype, shape]); this schema "
+        "describes d. See docs/bag-format.md and docs/wire-protocol.md.",
         **_object_schema(msg_type, skip_header=True),
     }
     return json.dumps(schema).encode()
@@ -118,18 +119,34 @@ def _object_schema(cls: type, skip_header: bool = False) -> dict[str, Any]:
     hints = typing.get_type_hints(cls)
     defaults = cls()  # the defaults give each array's dtype and rank
     names = [f.name for f in dataclasses.fields(cls) if not (skip_header and f.name == "header")]
-    return {"type": "object", "additionalProperties": False, "required": names,
-            "properties": {name: _field_schema(hints[name], getattr(defaults, name)) for name in names}}
+    return {
+        "type": "object",
+        "additionalProperties": False,
+        "required": names,
+        "properties": {name: _field_schema(hints[name], getattr(defaults, name)) for name in names},
+    }
 
 
 def _field_schema(annotation: Any, default: Any) -> dict[str, Any]:
     if annotation is np.ndarray:
-        return {"type": "object", "additionalProperties": False, "required": ["__array__"],
-                "properties": {"__array__": {"type": "integer", "minimum": 0,
-                                             "description": "index of this array's buffer (and of its entry in a)"}},
-                "x-dtx-array": {"dtype": default.dtype.str, "shape": [d or None for d in default.shape],
-                                "description": "dtype as this field is usually sent, shape with null for "
-                                               "a dimension of any length; the record's a is authoritative"}}
+        return {
+            "type": "object",
+            "additionalProperties": False,
+            "required": ["__array__"],
+            "properties": {
+                "__array__": {
+                    "type": "integer",
+                    "minimum": 0,
+                    "description": "index of this array's buffer (and of its entry in a)",
+                }
+            },
+            "x-dtx-array": {
+                "dtype": default.dtype.str,
+                "shape": [d or None for d in default.shape],
+                "description": "dtype as this field is usually sent, shape with null for "
+                "a dimension of any length; the record's a is authoritative",
+            },
+        }
     if dataclasses.is_dataclass(annotation):
         return _object_schema(annotation)
     simple = {int: "integer", float: "number", str: "string", bool: "boolean"}
@@ -146,8 +163,14 @@ def _field_schema(annotation: Any, default: Any) -> dict[str, Any]:
 class BagWriter:
     """Writes envelopes (with their raw frames) to an MCAP file, chunked and compressed."""
 
-    def __init__(self, path: str | Path, compression: str = "lz4", foxglove: bool = True,
-                 chunk_size: int = 4 * 1024 * 1024, chunk_period_s: float = CHUNK_PERIOD_S) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        compression: str = "lz4",
+        foxglove: bool = True,
+        chunk_size: int = 4 * 1024 * 1024,
+        chunk_period_s: float = CHUNK_PERIOD_S,
+    ) -> None:
         if compression not in COMPRESSIONS:
             raise BagError(f"compression {compression!r} unknown; allowed: {sorted(COMPRESSIONS)}")
         self.path = Path(path)
@@ -156,8 +179,7 @@ class BagWriter:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: BinaryIO = open(self.path, "wb")
         except OSError as error:
-            raise BagWriteError(f"bag {self.path} cannot be created: {error.strerror or error}", error.errno) \
-                from error
+            raise BagWriteError(f"bag {self.path} cannot be created: {error.strerror or error}", error.errno) from error
         try:
             self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
             self._writer.start(profile="dtx", library="dtx")
@@ -171,13 +193,11 @@ class BagWriter:
         self._channels: dict[str, int] = {}
         self.counts: dict[str, int] = {}
 
-    def _channel(self, topic: str, schema_name: str, encoding: str, schema_data: bytes,
-                 message_encoding: str) -> int:
+    def _channel(self, topic: str, schema_name: str, encoding: str, schema_data: bytes, message_encoding: str) -> int:
         if topic not in self._channels:
             if schema_name not in self._schemas:
                 self._schemas[schema_name] = self._writer.register_schema(schema_name, encoding, schema_data)
-            self._channels[topic] = self._writer.register_channel(
-                topic, message_encoding, self._schemas[schema_name])
+            self._channels[topic] = self._writer.register_channel(topic, message_encoding, self._schemas[schema_name])
         return self._channels[topic]
 
     def write(self, envelope: Envelope, frames: list[Any], log_time_ns: int | None = None) -> None:
@@ -190,10 +210,12 @@ class BagWriter:
     def _write(self, envelope: Envelope, frames: list[Any], log_time_ns: int | None) -> None:
         message = envelope.message
         log_time = log_time_ns if log_time_ns is not None else time.time_ns()
-        channel = self._channel(envelope.topic, message.SCHEMA, SCHEMA_ENCODING,
-                                schema_description(type(message)), MESSAGE_ENCODING)
-        self._writer.add_message(channel, log_time, pack_frames(frames[1:]),
-                                 message.header.stamp_ns, message.header.seq)
+        channel = self._channel(
+            envelope.topic, message.SCHEMA, SCHEMA_ENCODING, schema_description(type(message)), MESSAGE_ENCODING
+        )
+        self._writer.add_message(
+            channel, log_time, pack_frames(frames[1:]), message.header.stamp_ns, message.header.seq
+        )
         self.counts[envelope.topic] = self.counts.get(envelope.topic, 0) + 1
         if self._chunk_opened is None:
             self._chunk_opened = time.monotonic()
@@ -201,10 +223,12 @@ class BagWriter:
             view = foxglove_view(message)
             if view is not None:
                 schema = view.get_schema()
-                fox_channel = self._channel(envelope.topic + FOXGLOVE_SUFFIX, schema.name, schema.encoding,
-                                            schema.data, "protobuf")
-                self._writer.add_message(fox_channel, log_time, view.encode(),
-                                         message.header.stamp_ns, message.header.seq)
+                fox_channel = self._channel(
+                    envelope.topic + FOXGLOVE_SUFFIX, schema.name, schema.encoding, schema.data, "protobuf"
+                )
+                self._writer.add_message(
+                    fox_channel, log_time, view.encode(), message.header.stamp_ns, message.header.seq
+                )
 
         self.flush_if_due()
 
@@ -240,10 +264,14 @@ class BagWriter:
         kept = self.path.stat().st_size if self.path.exists() else 0
         if kept == 0:
             self.path.unlink(missing_ok=True)
-        return BagWriteError(f"bag {self.path}: the disk refused the data ({error.strerror or error}); recording "
-                             f"stopped, {kept} bytes kept, readable up to the last complete chunk"
-                             if kept else f"bag {self.path}: the disk refused the data ({error.strerror or error}); "
-                             "nothing could be written, the file is removed", error.errno)
+        return BagWriteError(
+            f"bag {self.path}: the disk refused the data ({error.strerror or error}); recording "
+            f"stopped, {kept} bytes kept, readable up to the last complete chunk"
+            if kept
+            else f"bag {self.path}: the disk refused the data ({error.strerror or error}); "
+            "nothing could be written, the file is removed",
+            error.errno,
+        )
 
 
 @dataclasses.dataclass
@@ -330,8 +358,10 @@ def _decompressed(chunk: Chunk, path: str | Path) -> bytes:
     except (zstandard.ZstdError, RuntimeError) as exc:
         raise BagError(f"bag {path}: a chunk does not decompress ({exc})") from exc
     if len(data) != size:
-        raise BagError(f"bag {path}: a chunk declares {size} bytes uncompressed but holds "
-                       f"{'more' if len(data) > size else len(data)}")
+        raise BagError(
+            f"bag {path}: a chunk declares {size} bytes uncompressed but holds "
+            f"{'more' if len(data) > size else len(data)}"
+        )
     return data
 
 
@@ -357,13 +387,15 @@ def read_records(path: str | Path) -> tuple[Iterator[BagRecord], BagReading]:
         with _open_bag(path) as raw:
             try:
                 stream = _BoundedFile(raw, path)
-                for record in StreamReader(stream, skip_magic=False, emit_chunks=True,
-                                           record_size_limit=MAX_RECORD_BYTES).records:
+                for record in StreamReader(
+                    stream, skip_magic=False, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES
+                ).records:
                     if isinstance(record, Chunk):
                         if reading.compression == "unknown":
                             reading.compression = record.compression or "none"
-                        inner = breakup_chunk(dataclasses.replace(record, compression="",
-                                                                  data=_decompressed(record, path)))
+                        inner = breakup_chunk(
+                            dataclasses.replace(record, compression="", data=_decompressed(record, path))
+                        )
                     else:
                         inner = [record]
                     for item in inner:
@@ -374,8 +406,13 @@ def read_records(path: str | Path) -> tuple[Iterator[BagRecord], BagReading]:
                         elif isinstance(item, McapMessage):
                             channel = channels[item.channel_id]
                             schema = schemas.get(channel.schema_id)
-                            yield BagRecord(channel.topic, schema.name if schema else "",
-                                            channel.message_encoding, item.log_time, item.data)
+                            yield BagRecord(
+                                channel.topic,
+                                schema.name if schema else "",
+                                channel.message_encoding,
+                                item.log_time,
+                                item.data,
+                            )
             except BagError:
                 raise
             except RecordLengthLimitExceeded as exc:
@@ -394,8 +431,9 @@ def bag_info(path: str | Path) -> BagInfo:
     start = end = 0
     count = 0
     for record in records:
-        entry = topics.setdefault(record.topic, {"schema": record.schema, "encoding": record.message_encoding,
-                                                 "count": 0, "bytes": 0})
+        entry = topics.setdefault(
+            record.topic, {"schema": record.schema, "encoding": record.message_encoding, "count": 0, "bytes": 0}
+        )
         entry["count"] += 1
         entry["bytes"] += len(record.data)
         start = record.log_time_ns if count == 0 else min(start, record.log_time_ns)
@@ -415,8 +453,10 @@ def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:
         except OSError as exc:
             raise BagError(f"bag {path} cannot be read: {exc}") from exc
     if summary is not None:
-        return {c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
-                          c.message_encoding) for c in summary.channels.values()}
+        return {
+            c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "", c.message_encoding)
+            for c in summary.channels.values()
+        }
     return {topic: (entry["schema"], entry["encoding"]) for topic, entry in bag_info(path).topics.items()}
 
 
@@ -428,15 +468,22 @@ def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
             try:
                 envelope = decode(unpack_frames(record.topic, record.data))
             except MessageError as exc:
-                raise BagError(f"bag {path}: message {number} ({record.topic}) is not a valid dtx message: "
-                               f"{exc}") from exc
+                raise BagError(
+                    f"bag {path}: message {number} ({record.topic}) is not a valid dtx message: {exc}"
+                ) from exc
             yield record.log_time_ns, envelope
 
 
-def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[str] | None = None,
-           compression: str = "lz4", foxglove: bool = True,
-           on_message: Callable[[str], None] | None = None,
-           on_subscriber: Callable[[Subscriber[Any]], None] | None = None) -> dict[str, int]:
+def record(
+    path: str | Path,
+    bus: Bus,
+    stop: Callable[[], bool],
+    topics: list[str] | None = None,
+    compression: str = "lz4",
+    foxglove: bool = True,
+    on_message: Callable[[str], None] | None = None,
+    on_subscriber: Callable[[Subscriber[Any]], None] | None = None,
+) -> dict[str, int]:
     """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
     Returns messages written per topic; the bag is closed properly when this returns. When the
     disk refuses the data, BagWriteError: recording stops, the bag keeps what it had.
@@ -470,8 +517,9 @@ def record(path: str | Path, bus: Bus, stop: Callable[[], bool], topics: list[st
     return dict(writer.counts)
 
 
-def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None,
-           limit: int | None) -> None:
+def _drain(
+    subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None, limit: int | None
+) -> None:
     """Write what is waiting on one subscriber: ``limit`` messages at most (None: all)."""
     count = 0
     while limit is None or count < limit:
@@ -487,9 +535,15 @@ def _drain(subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[
                 on_message(envelope.topic)
 
 
-def play(path: str | Path, bus: Bus, rate: float | None = 1.0, clock: bool = False,
-         topics: list[str] | None = None, wait_for_subscribers_s: float = 0.0,
-         stop: Callable[[], bool] = lambda: False) -> dict[str, int]:
+def play(
+    path: str | Path,
+    bus: Bus,
+    rate: float | None = 1.0,
+    clock: bool = False,
+    topics: list[str] | None = None,
+    wait_for_subscribers_s: float = 0.0,
+    stop: Callable[[], bool] = lambda: False,
+) -> dict[str, int]:
     """Publish a bag's dtx messages with their recorded timing scaled by ``rate`` (None: as
     fast as possible). With ``clock``, ``/clock`` carries the bag's time, like ROS's /clock.
     Returns messages published per topic."""

@@ -3,6 +3,7 @@ announces on the latched ``/bag/done`` how many messages it published per topic,
 nodes that rebuild something from the bag know when they have everything. A bag that
 cannot be played (damaged, refused by the reader's limits) is announced there too, at level
 ``error`` with the reason, so they end instead of waiting."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -31,9 +32,15 @@ class BagPlayerNode(Node):
 
     def spin(self, until: Any = None) -> None:
         try:
-            counts = play(self.params.bag, self.bus, rate=self.params.rate or None, clock=self.params.clock,
-                          topics=self.params.topics or None,
-                          wait_for_subscribers_s=self.params.wait_for_subscribers_s, stop=self.keep_alive)
+            counts = play(
+                self.params.bag,
+                self.bus,
+                rate=self.params.rate or None,
+                clock=self.params.clock,
+                topics=self.params.topics or None,
+                wait_for_subscribers_s=self.params.wait_for_subscribers_s,
+                stop=self.keep_alive,
+            )
         except BagError as error:
             # The listeners must not wait for an end that will not come: /bag/done says it failed.
             self.status = "error"

@@ -16,6 +16,7 @@
   ``SLICE_MESSAGES`` from one socket before serving the others, so a flood on one socket
   delays the rest by one slice, not by the whole flood.
 """
+
 from __future__ import annotations
 
 import collections
@@ -126,8 +127,13 @@ class Counters:
 class Bus:
     """One process's view of the bus: a ZeroMQ context, the registry and its settings."""
 
-    def __init__(self, node_name: str, registry: Registry | None = None,
-                 transport: TransportConfig | None = None, remaps: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        node_name: str,
+        registry: Registry | None = None,
+        transport: TransportConfig | None = None,
+        remaps: dict[str, str] | None = None,
+    ) -> None:
         self.node_name = node_name
         self.registry = registry or Registry()
         self.transport = transport or TransportConfig()
@@ -187,15 +193,18 @@ class Bus:
         schema = msg_type.SCHEMA if msg_type is not None else ""
         return Subscriber(self, topic, msg_type, self.peer_endpoints("topic", topic, schema))
 
-    def service(self, name: str, request_type: type[M], reply_type: type[R],
-                handler: Callable[[M], R]) -> "ServiceServer[M, R]":
+    def service(
+        self, name: str, request_type: type[M], reply_type: type[R], handler: Callable[[M], R]
+    ) -> "ServiceServer[M, R]":
         return ServiceServer(self, self.resolve(name), request_type, reply_type, handler)
 
-    def client(self, name: str, request_type: type[M], reply_type: type[R],
-               stop: Callable[[], bool] | None = None) -> "ServiceClient[M, R]":
+    def client(
+        self, name: str, request_type: type[M], reply_type: type[R], stop: Callable[[], bool] | None = None
+    ) -> "ServiceClient[M, R]":
         name = self.resolve(name)
-        return ServiceClient(self, name, request_type, reply_type,
-                             self.peer_endpoints("service", name, request_type.SCHEMA), stop)
+        return ServiceClient(
+            self, name, request_type, reply_type, self.peer_endpoints("service", name, request_type.SCHEMA), stop
+        )
 
     def close(self) -> None:
         if self.closed:
@@ -219,17 +228,30 @@ class Publisher(Generic[M]):
         self.seq = 0
         self.subscriptions = 0
         self._last_frames: list[Any] | None = None
-        self._entry = bus.registry.advertise(Endpoint(
-            "topic", topic, self.address, bus.node_name, os.getpid(), msg_type.SCHEMA,
-            latched=latched, curve_server_key=server_key))
+        self._entry = bus.registry.advertise(
+            Endpoint(
+                "topic",
+                topic,
+                self.address,
+                bus.node_name,
+                os.getpid(),
+                msg_type.SCHEMA,
+                latched=latched,
+                curve_server_key=server_key,
+            )
+        )
 
     def publish(self, message: M) -> None:
         if not isinstance(message, self.msg_type):
             raise TypeError(f"{self.topic} carries {self.msg_type.__name__}, not {type(message).__name__}")
         self.seq += 1
         header = message.header
-        frames = encode(self.topic, message, self.id, Header(
-            stamp_ns=header.stamp_ns or time.time_ns(), seq=self.seq, frame_id=header.frame_id))
+        frames = encode(
+            self.topic,
+            message,
+            self.id,
+            Header(stamp_ns=header.stamp_ns or time.time_ns(), seq=self.seq, frame_id=header.frame_id),
+        )
         self.service_subscriptions()
         self.sock.send_multipart(frames, copy=False)
         if self.latched:
@@ -269,8 +291,9 @@ class Subscriber(Generic[M]):
     """Receives one topic from every publisher of it. ``msg_type`` None accepts any schema
     (recorders, ``dtx topic echo``)."""
 
-    def __init__(self, bus: Bus, topic: str, msg_type: type[M] | None,
-                 static_endpoints: list[Endpoint] | None = None) -> None:
+    def __init__(
+        self, bus: Bus, topic: str, msg_type: type[M] | None, static_endpoints: list[Endpoint] | None = None
+    ) -> None:
         self.bus, self.topic, self.msg_type = bus, topic, msg_type
         self.sock = bus.context.socket(zmq.SUB)
         self.sock.setsockopt(zmq.RCVHWM, bus.transport.high_water_mark)
@@ -293,12 +316,14 @@ class Subscriber(Generic[M]):
         while self._monitor.poll(0):
             event = recv_monitor_message(self._monitor)
             address = event["endpoint"].decode()
-            still_advertised = any(e.address == address
-                                   for e in self._static + self.bus.registry.lookup("topic", self.topic))
+            still_advertised = any(
+                e.address == address for e in self._static + self.bus.registry.lookup("topic", self.topic)
+            )
             if address in self._connected and still_advertised:  # not a publisher that ended
                 self.counters.connection_resets += 1
-                log.warning("%s: connection to %s dropped (oversized or malformed data); reconnecting",
-                            self.topic, address)
+                log.warning(
+                    "%s: connection to %s dropped (oversized or malformed data); reconnecting", self.topic, address
+                )
                 self.sock.disconnect(address)
                 self.sock.connect(address)
 
@@ -314,8 +339,13 @@ class Subscriber(Generic[M]):
         for address, endpoint in live.items():
             if address not in self._connected:
                 if self.msg_type is not None and endpoint.schema != self.msg_type.SCHEMA:
-                    log.warning("%s: publisher %s sends %s, expected %s; not connecting",
-                                self.topic, endpoint.node, endpoint.schema, self.msg_type.SCHEMA)
+                    log.warning(
+                        "%s: publisher %s sends %s, expected %s; not connecting",
+                        self.topic,
+                        endpoint.node,
+                        endpoint.schema,
+                        self.msg_type.SCHEMA,
+                    )
                     continue
                 self.bus.secure_connection(self.sock, endpoint)
                 self.sock.connect(address)
@@ -378,8 +408,9 @@ class Subscriber(Generic[M]):
             return None  # prefix match of the ZeroMQ filter, another topic
         if self.msg_type is not None and not isinstance(envelope.message, self.msg_type):
             self.counters.wrong_type += 1
-            self._drop_log.warning("%s: dropped a %s, expected %s", self.topic,
-                                   envelope.message.SCHEMA, self.msg_type.SCHEMA)
+            self._drop_log.warning(
+                "%s: dropped a %s, expected %s", self.topic, envelope.message.SCHEMA, self.msg_type.SCHEMA
+            )
             return None
         seq = envelope.message.header.seq
         last = self._last_seq.get(envelope.publisher)
@@ -422,8 +453,9 @@ class ServiceServer(Generic[M, R]):
     REPLY_CACHE = 256
     REPLY_CACHE_BYTES = 64 * 1024 * 1024
 
-    def __init__(self, bus: Bus, name: str, request_type: type[M], reply_type: type[R],
-                 handler: Callable[[M], R]) -> None:
+    def __init__(
+        self, bus: Bus, name: str, request_type: type[M], reply_type: type[R], handler: Callable[[M], R]
+    ) -> None:
         self.bus, self.name = bus, name
         self.request_type, self.reply_type, self.handler = request_type, reply_type, handler
         self.id = bus.new_owner_id()
@@ -434,13 +466,23 @@ class ServiceServer(Generic[M, R]):
         self.counters = Counters()
         self._drop_log = DropLog()
         # (client identity, publisher, seq) -> (reply frames, their size, the request's digest)
-        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int, bytes]] = \
+        self._replies: collections.OrderedDict[tuple[bytes, str, int], tuple[list[Any], int, bytes]] = (
             collections.OrderedDict()
+        )
         self._reply_bytes = 0
         self._pending: list[tuple[tuple[bytes, str, int], Future[Any], bytes]] = []
-        self._entry = bus.registry.advertise(Endpoint(
-            "service", name, self.address, bus.node_name, os.getpid(), request_type.SCHEMA,
-            reply_schema=reply_type.SCHEMA, curve_server_key=server_key))
+        self._entry = bus.registry.advertise(
+            Endpoint(
+                "service",
+                name,
+                self.address,
+                bus.node_name,
+                os.getpid(),
+                request_type.SCHEMA,
+                reply_schema=reply_type.SCHEMA,
+                curve_server_key=server_key,
+            )
+        )
 
     def serve_ready(self, limit: int = SLICE_MESSAGES) -> int:
         """Answer every finished background request and up to ``limit`` waiting ones (the
@@ -475,15 +517,18 @@ class ServiceServer(Generic[M, R]):
             error = TypeError(f"handler returned {type(reply).__name__}, not {self.reply_type.__name__}")
         if error is not None:
             log.error("%s: handler failed: %s: %s", self.name, type(error).__name__, error)
-            return ServiceError(code=getattr(error, "code", ErrorCode.HANDLER_ERROR), text=f"{type(error).__name__}: {error}")
+            return ServiceError(
+                code=getattr(error, "code", ErrorCode.HANDLER_ERROR), text=f"{type(error).__name__}: {error}"
+            )
         return reply
 
     def _remember(self, key: tuple[bytes, str, int], frames: list[Any], digest: bytes) -> None:
         size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
         self._replies[key] = (frames, size, digest)
         self._reply_bytes += size
-        while len(self._replies) > self.REPLY_CACHE or (self._reply_bytes > self.REPLY_CACHE_BYTES
-                                                         and len(self._replies) > 1):
+        while len(self._replies) > self.REPLY_CACHE or (
+            self._reply_bytes > self.REPLY_CACHE_BYTES and len(self._replies) > 1
+        ):
             _, (_, dropped, _) = self._replies.popitem(last=False)
             self._reply_bytes -= dropped
 
@@ -512,10 +557,18 @@ class ServiceServer(Generic[M, R]):
             earlier = next((d for pending_key, _, d in self._pending if pending_key == key), None)
         if earlier is not None and earlier != digest:
             self.counters.malformed += 1
-            self._send(identity, ServiceError(code=ErrorCode.BAD_REQUEST, text=(
-                f"request {envelope.message.header.seq} of {envelope.publisher} was already used for another "
-                "request: a retry must resend the same request, a new request needs a new sequence number")),
-                envelope.publisher, envelope.message.header.seq)
+            self._send(
+                identity,
+                ServiceError(
+                    code=ErrorCode.BAD_REQUEST,
+                    text=(
+                        f"request {envelope.message.header.seq} of {envelope.publisher} was already used for another "
+                        "request: a retry must resend the same request, a new request needs a new sequence number"
+                    ),
+                ),
+                envelope.publisher,
+                envelope.message.header.seq,
+            )
             return
         if key in self._replies:
             self.counters.duplicates += 1
@@ -528,7 +581,8 @@ class ServiceServer(Generic[M, R]):
         if not isinstance(request, self.request_type):
             self.counters.wrong_type += 1
             reply: Message = ServiceError(
-                code=ErrorCode.WRONG_TYPE, text=f"{self.name} takes {self.request_type.SCHEMA}, got {request.SCHEMA}")
+                code=ErrorCode.WRONG_TYPE, text=f"{self.name} takes {self.request_type.SCHEMA}, got {request.SCHEMA}"
+            )
         else:
             self.counters.received += 1
             try:
@@ -543,8 +597,9 @@ class ServiceServer(Generic[M, R]):
         self._remember(key, self._send(identity, reply, envelope.publisher, envelope.message.header.seq), digest)
 
     def _send(self, identity: bytes, reply: Message, client: str, seq: int) -> list[Any]:
-        frames = encode(self.name, reply, client, Header(stamp_ns=time.time_ns(), seq=seq,
-                                                         frame_id=reply.header.frame_id))
+        frames = encode(
+            self.name, reply, client, Header(stamp_ns=time.time_ns(), seq=seq, frame_id=reply.header.frame_id)
+        )
         self.sock.send_multipart([identity, *frames], copy=False)
         return frames
 
@@ -560,8 +615,15 @@ class ServiceClient(Generic[M, R]):
     attempt resends to a live server (a respawn); with no attempt left the call fails with
     ``server_died``. ``stop`` (a node's shutdown flag) cancels a call: ``cancelled``."""
 
-    def __init__(self, bus: Bus, name: str, request_type: type[M], reply_type: type[R],
-                 static_endpoints: list[Endpoint] | None = None, stop: Callable[[], bool] | None = None) -> None:
+    def __init__(
+        self,
+        bus: Bus,
+        name: str,
+        request_type: type[M],
+        reply_type: type[R],
+        static_endpoints: list[Endpoint] | None = None,
+        stop: Callable[[], bool] | None = None,
+    ) -> None:
         self.bus, self.name = bus, name
         self.request_type, self.reply_type = request_type, reply_type
         self.id = bus.new_owner_id()
@@ -635,13 +697,17 @@ class ServiceClient(Generic[M, R]):
             self._check_cancelled()
             raise ServiceCallError(self.name, ErrorCode.UNAVAILABLE, "no server found on the bus")
         self.seq += 1
-        frames = encode(self.name, request, self.id, Header(stamp_ns=time.time_ns(), seq=self.seq,
-                                                             frame_id=request.header.frame_id))
+        frames = encode(
+            self.name, request, self.id, Header(stamp_ns=time.time_ns(), seq=self.seq, frame_id=request.header.frame_id)
+        )
         size = sum(memoryview(getattr(f, "buffer", f)).nbytes for f in frames)
         if size > self.bus.transport.max_message_bytes:
             # A server drops an oversized request unread, so no reply could ever say why.
-            raise ServiceCallError(self.name, ErrorCode.REQUEST_TOO_LARGE,
-                                   f"request of {size} bytes exceeds the limit of {self.bus.transport.max_message_bytes}")
+            raise ServiceCallError(
+                self.name,
+                ErrorCode.REQUEST_TOO_LARGE,
+                f"request of {size} bytes exceeds the limit of {self.bus.transport.max_message_bytes}",
+            )
         failure = (ErrorCode.TIMEOUT, f"no reply in {1 + retries} attempts of {timeout_s} s")
         for _attempt in range(1 + retries):
             deadline = time.monotonic() + timeout_s
@@ -650,8 +716,11 @@ class ServiceClient(Generic[M, R]):
                 continue  # every known server is gone; the next attempt looks again
             reply = self._await_reply(deadline)
             if isinstance(reply, list):  # the servers it may have gone to died: resend
-                failure = ("server_died", f"server pid {', '.join(str(e.pid) for e in reply)} ended while the "
-                                          f"request was in flight ({1 + retries} attempt(s))")
+                failure = (
+                    "server_died",
+                    f"server pid {', '.join(str(e.pid) for e in reply)} ended while the "
+                    f"request was in flight ({1 + retries} attempt(s))",
+                )
                 continue
             if reply is not None:
                 return reply

@@ -19,6 +19,7 @@ attempt), so a resumed session redoes exactly the grasps that are missing. The s
 with ``dtx dataset check`` on what it wrote: its last line says whether the dataset passed,
 and a failed check ends the collector (and the launch) with a non-zero status.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -83,7 +84,8 @@ class CollectorNode(Node):
         call_timeout_s: float = 10.0
         node_wait_s: float = 60.0
         tactile_topics: list = dataclasses.field(
-            default_factory=lambda: ["/gelsight_left/image", "/gelsight_right/image"])
+            default_factory=lambda: ["/gelsight_left/image", "/gelsight_right/image"]
+        )
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(name, params, **kwargs)
@@ -110,8 +112,11 @@ class CollectorNode(Node):
         if self.writer is not None:
             dropped = self.drop_incomplete_grasps(self.writer)
             if dropped:
-                self.log.warning("dropped lone finger sample(s) %s (a crash between a grasp's writes); "
-                                 "their grasps are redone whole", dropped)
+                self.log.warning(
+                    "dropped lone finger sample(s) %s (a crash between a grasp's writes); "
+                    "their grasps are redone whole",
+                    dropped,
+                )
         self.tactile: dict[str, msgs.TactileImage] = {}
         for finger, topic in zip(FINGERS, p.tactile_topics, strict=True):
             self.create_subscription(topic, msgs.TactileImage, lambda m, f=finger: self.tactile.__setitem__(f, m))
@@ -144,8 +149,13 @@ class CollectorNode(Node):
         plan = self.grasp_plan()
         todo = [(g, o) for g, o in plan if not all(self.written(self.sample_id(g, f)) for f in FINGERS)]
         self.stats.grasps_done = len(plan) - len(todo)
-        self.log.info("session: %d grasps of %s into %s (%d already there)", len(plan), self.objects,
-                      self.params.out, self.stats.grasps_done)
+        self.log.info(
+            "session: %d grasps of %s into %s (%d already there)",
+            len(plan),
+            self.objects,
+            self.params.out,
+            self.stats.grasps_done,
+        )
         self.wait_for_nodes()
         self.started = time.monotonic()
         for grasp_id, object_name in todo:
@@ -154,17 +164,26 @@ class CollectorNode(Node):
                 return
             self.collect_grasp(grasp_id, object_name)
             self.report_progress(len(plan), len(plan) - len(todo))
-        summary = {"stats": dataclasses.asdict(self.stats), "wall_s": round(time.monotonic() - self.started, 2),
-                   "stage_median_ms": {k: round(1e3 * float(np.median(v)), 2) for k, v in self.stage_s.items()}}
+        summary = {
+            "stats": dataclasses.asdict(self.stats),
+            "wall_s": round(time.monotonic() - self.started, 2),
+            "stage_median_ms": {k: round(1e3 * float(np.median(v)), 2) for k, v in self.stage_s.items()},
+        }
         (Path(self.params.out) / "session.json").write_text(json.dumps(summary, indent=2) + "\n")
         report = check_dataset(self.params.out)
         if not report.ok:
-            self.log.error("session ended: %d pairs in %s, but the dataset check FAILED (%d problem(s): %s) %s",
-                           self.pairs(), self.params.out, len(report.problems), "; ".join(report.problems[:5]),
-                           json.dumps(summary))
+            self.log.error(
+                "session ended: %d pairs in %s, but the dataset check FAILED (%d problem(s): %s) %s",
+                self.pairs(),
+                self.params.out,
+                len(report.problems),
+                "; ".join(report.problems[:5]),
+                json.dumps(summary),
+            )
             raise SystemExit(EXIT_DO_NOT_RESPAWN)
-        self.log.info("session complete: %d pairs in %s, dataset check OK %s", self.pairs(), self.params.out,
-                      json.dumps(summary))
+        self.log.info(
+            "session complete: %d pairs in %s, dataset check OK %s", self.pairs(), self.params.out, json.dumps(summary)
+        )
         self.request_shutdown()
 
     def pairs(self) -> int:
@@ -185,9 +204,12 @@ class CollectorNode(Node):
         remaining = total - self.stats.grasps_done - self.stats.skipped
         eta = f"{remaining / rate:.0f} s" if rate > 0 else "?"
         filled = int(30 * (self.stats.grasps_done + self.stats.skipped) / total)
-        print(f"[{'#' * filled}{'.' * (30 - filled)}] grasps {self.stats.grasps_done}/{total} | "
-              f"pairs {self.pairs()} | failed draws {self.stats.failed_draws} | skipped {self.stats.skipped} | "
-              f"device retries {self.stats.device_retries} | {rate * 60:.0f} grasps/min | ETA {eta}", flush=True)
+        print(
+            f"[{'#' * filled}{'.' * (30 - filled)}] grasps {self.stats.grasps_done}/{total} | "
+            f"pairs {self.pairs()} | failed draws {self.stats.failed_draws} | skipped {self.stats.skipped} | "
+            f"device retries {self.stats.device_retries} | {rate * 60:.0f} grasps/min | ETA {eta}",
+            flush=True,
+        )
 
     def collect_grasp(self, grasp_id: int, object_name: str) -> None:
         attempt = 0
@@ -223,10 +245,15 @@ class CollectorNode(Node):
     def registration(self, object_name: str) -> msgs.RegisterReply:
         if object_name not in self.registered:
             self.wait_for_tactile_and_depth()
-            reply = self.register.call(msgs.RegisterRequest(object_name=object_name, seed=self.params.seed),
-                                       timeout_s=60.0, retries=1)
-            self.log.info("%s registered: fitness %.3f, centroid %s", object_name, reply.fitness,
-                          np.round(reply.centroid_world, 3).tolist())
+            reply = self.register.call(
+                msgs.RegisterRequest(object_name=object_name, seed=self.params.seed), timeout_s=60.0, retries=1
+            )
+            self.log.info(
+                "%s registered: fitness %.3f, centroid %s",
+                object_name,
+                reply.fitness,
+                np.round(reply.centroid_world, 3).tolist(),
+            )
             self.registered[object_name] = reply
         return self.registered[object_name]
 
@@ -244,8 +271,10 @@ class CollectorNode(Node):
         p = self.params
         rng = np.random.default_rng([p.seed, grasp_id, attempt])
         theta = rng.uniform(-np.pi, np.pi)
-        along_gel, along_closing = rng.uniform(-p.offset_xy_m, p.offset_xy_m), \
-            rng.uniform(-p.offset_closing_m, p.offset_closing_m)
+        along_gel, along_closing = (
+            rng.uniform(-p.offset_xy_m, p.offset_xy_m),
+            rng.uniform(-p.offset_closing_m, p.offset_closing_m),
+        )
         closing_axis = np.array([-np.sin(theta), np.cos(theta)])  # tool y after the turn about world z
         gel_axis = np.array([np.cos(theta), np.sin(theta)])
         x, y = centroid[:2] + along_gel * gel_axis + along_closing * closing_axis
@@ -253,8 +282,9 @@ class CollectorNode(Node):
         z = max(lowest, centroid[2] + rng.uniform(-p.offset_z_m, p.offset_z_m))
         return np.array([x, y, z, theta])
 
-    def nominal_width_m(self, object_name: str, registered: msgs.RegisterReply, x: float, y: float, z: float,
-                        theta: float) -> float:
+    def nominal_width_m(
+        self, object_name: str, registered: msgs.RegisterReply, x: float, y: float, z: float, theta: float
+    ) -> float:
         """The registered model's extent across the fingers at the drawn grasp: its points in
         the gels' band (gel length along the gel axis, gel height about the gel centre)
         projected on the closing axis. The gripper is told this width, because a WSG detects
@@ -283,14 +313,19 @@ class CollectorNode(Node):
         above[2] += p.approach_height_m
         with self.stage("approach"):
             self.arm_to(above)
-            self.gripper.call(msgs.GripperCommand(action="move", width_m=self.geometry.max_width_m,
-                                                  speed_m_s=p.gripper_speed_m_s), timeout_s=p.call_timeout_s)
+            self.gripper.call(
+                msgs.GripperCommand(action="move", width_m=self.geometry.max_width_m, speed_m_s=p.gripper_speed_m_s),
+                timeout_s=p.call_timeout_s,
+            )
             arrived = self.arm_to(tcp)
         with self.stage("close"):
             self.grip_seen_ns = 0
-            held = self.gripper.call(msgs.GripperCommand(action="grasp", width_m=nominal_width_m,
-                                                         speed_m_s=p.gripper_speed_m_s, force_n=p.force_n),
-                                     timeout_s=p.call_timeout_s)
+            held = self.gripper.call(
+                msgs.GripperCommand(
+                    action="grasp", width_m=nominal_width_m, speed_m_s=p.gripper_speed_m_s, force_n=p.force_n
+                ),
+                timeout_s=p.call_timeout_s,
+            )
         if held.state != "holding":
             raise GraspFailed(f"fingers found nothing ({held.state})")
         with self.stage("capture"):
@@ -298,22 +333,29 @@ class CollectorNode(Node):
         gels = gel_poses_world(arrived.tcp_pose, held.width_m, self.geometry)
         with self.stage("depth_maps"):
             try:
-                patches = self.patch.call(msgs.PatchRequest(object_name=object_name, gel_left_to_world=gels["left"],
-                                                            gel_right_to_world=gels["right"]),
-                                          timeout_s=p.call_timeout_s)
+                patches = self.patch.call(
+                    msgs.PatchRequest(
+                        object_name=object_name, gel_left_to_world=gels["left"], gel_right_to_world=gels["right"]
+                    ),
+                    timeout_s=p.call_timeout_s,
+                )
             except ServiceCallError as error:
                 if error.code == ErrorCode.OUT_OF_REACH:
                     raise GraspFailed("the registered model is out of the gel's reach") from error
                 raise
         pose = [float(x), float(y), float(z), float(theta)]
         with self.stage("write"):
-            self.write_grasp(grasp_id, object_name, pose, images, {"left": patches.left, "right": patches.right},
-                             registered.fitness)
+            self.write_grasp(
+                grasp_id, object_name, pose, images, {"left": patches.left, "right": patches.right}, registered.fitness
+            )
 
     def arm_to(self, tcp_pose: np.ndarray) -> msgs.ArmState:
         self.last_arm = self.move.call(
-            msgs.ArmMoveRequest(target=tcp_pose, mode="moveL", speed=self.params.arm_speed_m_s,
-                                acceleration=self.params.arm_accel_m_s2), timeout_s=self.params.call_timeout_s)
+            msgs.ArmMoveRequest(
+                target=tcp_pose, mode="moveL", speed=self.params.arm_speed_m_s, acceleration=self.params.arm_accel_m_s2
+            ),
+            timeout_s=self.params.call_timeout_s,
+        )
         return self.last_arm
 
     def on_gripper_state(self, state: msgs.GripperState) -> None:
@@ -331,35 +373,64 @@ class CollectorNode(Node):
     def capture_at_contact(self, contact_ns: int) -> dict[str, msgs.TactileImage]:
         """The first frame of each GelSight taken after contact plus the settling time."""
         after = contact_ns + int(self.params.settle_s * 1e9)
-        if not self.spin_until(lambda: all(f in self.tactile and self.tactile[f].header.stamp_ns > after
-                                           for f in FINGERS), self.params.settle_s + 5.0):
+        if not self.spin_until(
+            lambda: all(f in self.tactile and self.tactile[f].header.stamp_ns > after for f in FINGERS),
+            self.params.settle_s + 5.0,
+        ):
             raise ServiceCallError("gelsight", ErrorCode.TIMEOUT, "no tactile frame after contact")
         return dict(self.tactile)
 
-    def write_grasp(self, grasp_id: int, object_name: str, pose: list[float], images: dict[str, msgs.TactileImage],
-                    depth_maps: dict[str, msgs.DepthMap], fitness: float) -> None:
+    def write_grasp(
+        self,
+        grasp_id: int,
+        object_name: str,
+        pose: list[float],
+        images: dict[str, msgs.TactileImage],
+        depth_maps: dict[str, msgs.DepthMap],
+        fitness: float,
+    ) -> None:
         """Both fingers' pairs into the dataset in one write (both land or neither), then
         announce them on ``/collector/sample``."""
         if self.writer is None:
             p, first = self.params, depth_maps["left"]
-            self.writer = self.open_writer(DatasetInfo(
-                image_height=100, image_width=100, depth_range_m=(first.y_range_m[0], first.y_range_m[1]),
-                scene=p.scene, effects=tuple(e.name for e in self.scene.effects), code_version=code_version(),
-                split_seed=p.seed, depth_crop_m=(first.crop_m[0], first.crop_m[1], first.crop_m[2])))
+            self.writer = self.open_writer(
+                DatasetInfo(
+                    image_height=100,
+                    image_width=100,
+                    depth_range_m=(first.y_range_m[0], first.y_range_m[1]),
+                    scene=p.scene,
+                    effects=tuple(e.name for e in self.scene.effects),
+                    code_version=code_version(),
+                    split_seed=p.seed,
+                    depth_crop_m=(first.crop_m[0], first.crop_m[1], first.crop_m[2]),
+                )
+            )
         info = self.writer.info
         size = (info.image_height, info.image_width)
         samples = []
         for finger in FINGERS:
             image, depth_map = images[finger], depth_maps[finger]
             tactile, background = resize_rgb(image.image, *size), resize_rgb(image.background, *size)
-            samples.append(msgs.DatasetSample(
-                sample_id=self.sample_id(grasp_id, finger), object_name=object_name, grasp_id=grasp_id,
-                finger=finger, grasp_pose=pose, tactile_image=tactile,
-                tactile_diff_image=subtract_background(tactile, background), depth_map_m=depth_map.depth_map_m,
-                depth_range_m=list(info.depth_range_m), registration_fitness=fitness,
-                model_to_gel=depth_map.model_to_gel, depth_crop_m=list(depth_map.crop_m),
-                stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()}, scene=info.scene,
-                effects=list(info.effects), split_seed=info.split_seed))
+            samples.append(
+                msgs.DatasetSample(
+                    sample_id=self.sample_id(grasp_id, finger),
+                    object_name=object_name,
+                    grasp_id=grasp_id,
+                    finger=finger,
+                    grasp_pose=pose,
+                    tactile_image=tactile,
+                    tactile_diff_image=subtract_background(tactile, background),
+                    depth_map_m=depth_map.depth_map_m,
+                    depth_range_m=list(info.depth_range_m),
+                    registration_fitness=fitness,
+                    model_to_gel=depth_map.model_to_gel,
+                    depth_crop_m=list(depth_map.crop_m),
+                    stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()},
+                    scene=info.scene,
+                    effects=list(info.effects),
+                    split_seed=info.split_seed,
+                )
+            )
         try:
             write_samples(self.writer, samples)
         except DatasetError as error:
@@ -394,9 +465,12 @@ class CollectorNode(Node):
 
     def _release_and_retreat(self) -> None:
         try:
-            self.gripper.call(msgs.GripperCommand(action="release", width_m=self.geometry.max_width_m,
-                                                  speed_m_s=self.params.gripper_speed_m_s),
-                              timeout_s=self.params.call_timeout_s)
+            self.gripper.call(
+                msgs.GripperCommand(
+                    action="release", width_m=self.geometry.max_width_m, speed_m_s=self.params.gripper_speed_m_s
+                ),
+                timeout_s=self.params.call_timeout_s,
+            )
             if self.last_arm is not None:
                 above = np.array(self.last_arm.tcp_pose, dtype=np.float64)
                 above[2] += self.params.approach_height_m

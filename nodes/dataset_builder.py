@@ -3,6 +3,7 @@ dataset — how ``launch/replay.yaml`` rebuilds a session's dataset from its bag
 device. Ends (with success) once it has written every sample ``/bag/done`` says was played,
 or with status 2 when ``/bag/done`` says the bag could not be played.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -38,8 +39,12 @@ class DatasetBuilderNode(Node):
     def on_done(self, message: msgs.Log) -> None:
         if message.level == "error":
             written = 0 if self.writer is None else len(self.writer)
-            self.log.error("the bag could not be played to its end (%s); dataset %s keeps the %d samples written",
-                           message.text, self.params.out, written)
+            self.log.error(
+                "the bag could not be played to its end (%s); dataset %s keeps the %d samples written",
+                message.text,
+                self.params.out,
+                written,
+            )
             raise SystemExit(EXIT_DO_NOT_RESPAWN)
         self.expected = int(json.loads(message.text).get(self.params.topic, 0))
         self.finish_if_complete()

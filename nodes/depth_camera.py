@@ -4,6 +4,7 @@
 Params: ``reconnect_after_errors`` and the backend's (``backend:`` and its config fields,
 see ``drivers.depth_camera``). The backend's ``read()`` paces the stream.
 """
+
 from __future__ import annotations
 
 import drivers.depth_camera

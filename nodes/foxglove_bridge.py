@@ -11,6 +11,7 @@ sent again when a client subscribes, so a cloud published once still reaches a v
 connects later. At most ``max_rate_hz`` per topic is forwarded, so a browser never slows the
 session. Off by default; the collection launch files switch it on with ``foxglove:=true``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -84,13 +85,18 @@ class SubprotocolAdapter:
         with client, socket.create_connection(self.upstream) as server:
             request, rest = _read_handshake(client)
             offered = re.search(rb"(?im)^sec-websocket-protocol:(.*)$", request)
-            legacy = offered is not None and SDK_SUBPROTOCOL not in offered.group(1) \
+            legacy = (
+                offered is not None
+                and SDK_SUBPROTOCOL not in offered.group(1)
                 and LEGACY_SUBPROTOCOL in offered.group(1)
+            )
             if legacy:
                 request = request.replace(LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL)
             server.sendall(request)
             response, from_server = _read_handshake(server)
-            client.sendall((response.replace(SDK_SUBPROTOCOL, LEGACY_SUBPROTOCOL) if legacy else response) + from_server)
+            client.sendall(
+                (response.replace(SDK_SUBPROTOCOL, LEGACY_SUBPROTOCOL) if legacy else response) + from_server
+            )
             threading.Thread(target=_pipe, args=(server, client), daemon=True).start()
             self._relay_client_frames(client, server, rest)
 
@@ -159,7 +165,7 @@ def _is_subscribe(frame: bytes) -> bool:
     length, start = frame[1] & 0x7F, 2
     if length >= 126:
         start = 4 if length == 126 else 10
-    mask, payload = frame[start:start + 4], frame[start + 4:]
+    mask, payload = frame[start : start + 4], frame[start + 4 :]
     try:
         message = json.loads(bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
     except ValueError:
@@ -210,13 +216,15 @@ class FoxgloveBridge(Node):
             schema = foxglove_schema(endpoints[0].schema)
             if topic in self.channels or schema is None:
                 continue
-            self.channels[topic] = foxglove.Channel(topic + FOXGLOVE_SUFFIX, schema=schema,
-                                                    message_encoding="protobuf")
+            self.channels[topic] = foxglove.Channel(topic + FOXGLOVE_SUFFIX, schema=schema, message_encoding="protobuf")
             if any(e.latched for e in endpoints):
                 self.latched.add(topic)
             self.last_sent[topic] = -float("inf")
-            self.create_subscription(topic, msgs.MESSAGE_TYPES[endpoints[0].schema],
-                                     lambda message, topic=topic: self.forward(topic, message))
+            self.create_subscription(
+                topic,
+                msgs.MESSAGE_TYPES[endpoints[0].schema],
+                lambda message, topic=topic: self.forward(topic, message),
+            )
 
     def forward(self, topic: str, message: msgs.Message) -> None:
         now = time.monotonic()

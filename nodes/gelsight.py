@@ -7,6 +7,7 @@ see ``drivers.gelsight``). A simulated sensor has no physics of its own: it foll
 ``/arm/state`` and ``/gripper/state`` to know what its finger touches. A video file that
 ends stops the node.
 """
+
 from __future__ import annotations
 
 from typing import Any

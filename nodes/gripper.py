@@ -10,6 +10,7 @@ the running motion (the driver is safe for that), never queued behind it: a stop
 for the grasp it should stop is no stop. ``acknowledge`` clears a FAST STOP once its cause is
 dealt with.
 """
+
 from __future__ import annotations
 
 import dataclasses

@@ -35,6 +35,7 @@ depth-maps), ``index_cache``,
 ``scene`` (gripper geometry for the points path), ``margin_m`` (crop margin, as the patch
 extractor's).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -135,16 +136,28 @@ class InferenceNode(Node):
         super().__init__(name, params, **kwargs)
         p = self.params
         if p.runtime not in RUNTIMES or p.precision not in PRECISIONS:
-            raise ValueError(f"runtime must be one of {RUNTIMES} and precision one of {PRECISIONS}, "
-                             f"got {p.runtime!r}, {p.precision!r}")
+            raise ValueError(
+                f"runtime must be one of {RUNTIMES} and precision one of {PRECISIONS}, "
+                f"got {p.runtime!r}, {p.precision!r}"
+            )
         if p.precision == "bf16" and p.runtime != "eager":
             raise ValueError("precision bf16 needs runtime eager")
-        limits = (p.threads, p.max_regions, p.max_points, p.max_batch, p.max_dropout_samples, p.max_sampled_regions,
-                  p.max_point_visits, p.index_cache)
+        limits = (
+            p.threads,
+            p.max_regions,
+            p.max_points,
+            p.max_batch,
+            p.max_dropout_samples,
+            p.max_sampled_regions,
+            p.max_point_visits,
+            p.index_cache,
+        )
         if min(limits) < 1 or p.batch_window_ms < 0:
-            raise ValueError("threads, max_regions, max_points, max_batch, max_dropout_samples, "
-                             "max_sampled_regions, max_point_visits and index_cache must be >= 1, "
-                             "batch_window_ms >= 0")
+            raise ValueError(
+                "threads, max_regions, max_points, max_batch, max_dropout_samples, "
+                "max_sampled_regions, max_point_visits and index_cache must be >= 1, "
+                "batch_window_ms >= 0"
+            )
         if not p.checkpoint:
             raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")
         started = time.perf_counter()
@@ -159,8 +172,7 @@ class InferenceNode(Node):
         self.geometry = load_scene(p.scene).gripper_geometry()
         size = self.config.image_size
         self.depth_map_params = DepthMapParams(shape=(size, size), margin_m=p.margin_m, y_range_m=self.depth_range_m)
-        self.model = (f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {p.runtime} {p.precision}) "
-                      f"on {self.name}")
+        self.model = f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {p.runtime} {p.precision}) on {self.name}"
         self.forward_passes = 0
         self._clouds: dict[str, VoxelIndex] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
@@ -169,8 +181,14 @@ class InferenceNode(Node):
         self._waiting: list[_Job] = []
         self._flush_queued = False
         self.create_service("/inference/estimate", TactileEstimateRequest, TactileEstimateReply, self.on_estimate)
-        self.log.info("loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms", self.model,
-                      time.perf_counter() - started, self.depth_range_m, p.max_batch, p.batch_window_ms)
+        self.log.info(
+            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms",
+            self.model,
+            time.perf_counter() - started,
+            self.depth_range_m,
+            p.max_batch,
+            p.batch_window_ms,
+        )
 
     # -- requests ---------------------------------------------------------------------------
     def close(self) -> None:
@@ -185,8 +203,10 @@ class InferenceNode(Node):
         if request.cloud_id and not request.points.size:
             held = self._held(request.cloud_id)
             if held is None:
-                raise UnknownCloud(f"this worker ({self.name}) does not hold cloud {request.cloud_id} (it keeps its "
-                                   f"last {self.params.index_cache}): send the points again")
+                raise UnknownCloud(
+                    f"this worker ({self.name}) does not hold cloud {request.cloud_id} (it keeps its "
+                    f"last {self.params.index_cache}): send the points again"
+                )
         job = _Job(request, regions, time.monotonic(), Future(), held)
         with self._lock:
             self._waiting.append(job)
@@ -201,8 +221,10 @@ class InferenceNode(Node):
         """Number of regions of a well-formed request; BadRequest otherwise."""
         regions = self._check_inputs(request)
         if request.dropout_samples > 1 and regions * request.dropout_samples > self.params.max_sampled_regions:
-            raise BadRequest(f"too many sampled regions: {regions} regions x {request.dropout_samples} "
-                             f"dropout_samples > {self.params.max_sampled_regions} per request")
+            raise BadRequest(
+                f"too many sampled regions: {regions} regions x {request.dropout_samples} "
+                f"dropout_samples > {self.params.max_sampled_regions} per request"
+            )
         return regions
 
     def _check_inputs(self, request: TactileEstimateRequest) -> int:
@@ -221,8 +243,10 @@ class InferenceNode(Node):
             _check_finite(maps, "depth_maps")
             return int(maps.shape[0])
         if not (points.size or request.cloud_id) or not poses.size:
-            raise BadRequest("empty request: give depth_maps (N x 100 x 100), or points (P x 3) or a cloud_id "
-                             "with gel_poses (N x 4 x 4)")
+            raise BadRequest(
+                "empty request: give depth_maps (N x 100 x 100), or points (P x 3) or a cloud_id "
+                "with gel_poses (N x 4 x 4)"
+            )
         if request.cloud_id and not _is_cloud_id(request.cloud_id):
             raise BadRequest(f"cloud_id must be the 64 hex digits a reply gave, got {request.cloud_id[:80]!r}")
         if points.size and (points.ndim != 2 or points.shape[1] != 3):
@@ -247,8 +271,10 @@ class InferenceNode(Node):
         """Wait out the batch window of the oldest request (or a full batch), then run all."""
         window_s = self.params.batch_window_ms / 1e3
         with self._lock:
-            self._lock.wait_for(lambda: sum(j.regions for j in self._waiting) >= self.params.max_batch,
-                                timeout=max(0.0, self._waiting[0].arrived + window_s - time.monotonic()))
+            self._lock.wait_for(
+                lambda: sum(j.regions for j in self._waiting) >= self.params.max_batch,
+                timeout=max(0.0, self._waiting[0].arrived + window_s - time.monotonic()),
+            )
             jobs, self._waiting, self._flush_queued = self._waiting, [], False
         try:
             self._run(jobs)
@@ -278,24 +304,33 @@ class InferenceNode(Node):
         samples = [job.request.dropout_samples for job in ready]
         offsets = np.cumsum([0] + [m.shape[0] for m in maps])
         # Every region of a job asking for S samples is repeated S times; all go through together.
-        repeated = [np.repeat(x[offsets[i]:offsets[i + 1]], s, axis=0) for i, s in enumerate(samples) if s > 1]
+        repeated = [np.repeat(x[offsets[i] : offsets[i + 1]], s, axis=0) for i, s in enumerate(samples) if s > 1]
         sampled = self._batched(self.sampled, np.concatenate(repeated)) if repeated else np.zeros((0,))
         cursor = 0
         for i, job in enumerate(ready):
             n, s = offsets[i + 1] - offsets[i], samples[i]
             uncertainty = np.zeros((n, *x.shape[2:]), np.float32)
             if s > 1:
-                draws = (sampled[cursor:cursor + n * s] + 1.0) * 127.5  # image units, as images
+                draws = (sampled[cursor : cursor + n * s] + 1.0) * 127.5  # image units, as images
                 cursor += n * s
                 uncertainty = draws.reshape(n, s, *draws.shape[1:]).std(axis=1).mean(axis=1).astype(np.float32)
-            job.future.set_result(TactileEstimateReply(
-                images=images[offsets[i]:offsets[i + 1]], uncertainty=uncertainty, model=self.model,
-                latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
-                region_status=["out_of_reach" if e else "ok" for e in errors[i]], region_errors=errors[i],
-                depth_range_m=[float(y) for y in self.depth_range_m], cloud_id=clouds[i], worker=self.name))
+            job.future.set_result(
+                TactileEstimateReply(
+                    images=images[offsets[i] : offsets[i + 1]],
+                    uncertainty=uncertainty,
+                    model=self.model,
+                    latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
+                    region_status=["out_of_reach" if e else "ok" for e in errors[i]],
+                    region_errors=errors[i],
+                    depth_range_m=[float(y) for y in self.depth_range_m],
+                    cloud_id=clouds[i],
+                    worker=self.name,
+                )
+            )
 
-    def _depth_maps(self, request: TactileEstimateRequest, held: VoxelIndex | None
-                    ) -> tuple[np.ndarray, list[str], str]:
+    def _depth_maps(
+        self, request: TactileEstimateRequest, held: VoxelIndex | None
+    ) -> tuple[np.ndarray, list[str], str]:
         """The request's depth-maps; per region, why its gel reaches no surface ("" when it
         does: such a region gets the empty map, every bin y_far, what the gel feels there); the
         id of the cloud they were cut from ("" for depth-maps). ``held``: the kept cloud the
@@ -304,13 +339,23 @@ class InferenceNode(Node):
             return request.depth_maps, [""] * len(request.depth_maps), ""
         cloud, index = (request.cloud_id, held) if held is not None else self._keep(request.points, request.cloud_id)
         try:
-            patches = contact_depth_maps(index, np.eye(4), request.gel_poses, self.geometry,
-                                         self.depth_map_params, self.params.max_point_visits, allow_empty=True)
+            patches = contact_depth_maps(
+                index,
+                np.eye(4),
+                request.gel_poses,
+                self.geometry,
+                self.depth_map_params,
+                self.params.max_point_visits,
+                allow_empty=True,
+            )
         except PerceptionError as exc:
-            raise BadRequest(f"{exc}; send fewer regions per request" if "too much work" in str(exc)
-                             else str(exc)) from exc
-        errors = ["" if count else f"region {i}: no model point in the contact volume: the gel does not reach "
-                  "the object" for i, count in enumerate(patches.point_counts)]
+            raise BadRequest(
+                f"{exc}; send fewer regions per request" if "too much work" in str(exc) else str(exc)
+            ) from exc
+        errors = [
+            "" if count else f"region {i}: no model point in the contact volume: the gel does not reach the object"
+            for i, count in enumerate(patches.point_counts)
+        ]
         return patches.depth_maps_m, errors, cloud
 
     def _warm_up_cutting(self) -> None:
@@ -350,7 +395,7 @@ class InferenceNode(Node):
         step = self.params.max_batch
         outputs = []
         for start in range(0, len(x), step):
-            outputs.append(forward(np.ascontiguousarray(x[start:start + step])))
+            outputs.append(forward(np.ascontiguousarray(x[start : start + step])))
             self.forward_passes += 1
         return np.concatenate(outputs)
 

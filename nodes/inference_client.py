@@ -8,6 +8,7 @@
 Every server of the name on the bus is used in turn (round robin), local or, with the
 launch file's ``peers:``, remote.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -49,8 +50,14 @@ class TactileClient:
     """Estimated tactile images (N x H x W x 3 uint8) and their per-pixel uncertainty
     (N x H x W float32, 0..255 units; zeros for one sample) for N candidate regions."""
 
-    def __init__(self, bus: Bus | None = None, timeout_s: float = 10.0, retries: int = 0,
-                 dropout_samples: int = 1, service: str = SERVICE) -> None:
+    def __init__(
+        self,
+        bus: Bus | None = None,
+        timeout_s: float = 10.0,
+        retries: int = 0,
+        dropout_samples: int = 1,
+        service: str = SERVICE,
+    ) -> None:
         self._own_bus = bus is None  # a planner that is a node lends its bus; a script gets its own
         self.bus = bus if bus is not None else Bus("tactile_client")
         # No retry by default: a retried batch may reach another worker and run twice.
@@ -61,11 +68,16 @@ class TactileClient:
     def estimate(self, depth_maps: np.ndarray, dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """From depth-maps: N x 100 x 100 metres in the gel frame (a single 100 x 100 map is one region)."""
         maps = np.asarray(depth_maps, dtype=np.float32)
-        return self._call(TactileEstimateRequest(depth_maps=maps[None] if maps.ndim == 2 else maps,
-                                                 dropout_samples=dropout_samples or self.dropout_samples))
+        return self._call(
+            TactileEstimateRequest(
+                depth_maps=maps[None] if maps.ndim == 2 else maps,
+                dropout_samples=dropout_samples or self.dropout_samples,
+            )
+        )
 
-    def estimate_at(self, cloud: Cloud | np.ndarray, gel_poses: np.ndarray,
-                    dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def estimate_at(
+        self, cloud: Cloud | np.ndarray, gel_poses: np.ndarray, dropout_samples: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """From the object's cloud (a ``Cloud``, or P x 3 points in world, metres, sent whole
         each time) and candidate gel poses (N x 4 x 4, gel to world). A gel that reaches no
         point of the cloud gets the no-contact estimate; which ones did is in
@@ -76,14 +88,17 @@ class TactileClient:
         samples = dropout_samples or self.dropout_samples
         if cloud.id and len(cloud.held_by) >= self.client.server_count():
             try:
-                return self._call(TactileEstimateRequest(cloud_id=cloud.id, gel_poses=poses, dropout_samples=samples),
-                                  cloud)
+                return self._call(
+                    TactileEstimateRequest(cloud_id=cloud.id, gel_poses=poses, dropout_samples=samples), cloud
+                )
             except InferenceError as exc:
                 if exc.code != "unknown_cloud":
                     raise
                 cloud.held_by.clear()  # a worker evicted it or was respawned: the points go again
-        return self._call(TactileEstimateRequest(points=cloud.points, cloud_id=cloud.id, gel_poses=poses,
-                                                 dropout_samples=samples), cloud)
+        return self._call(
+            TactileEstimateRequest(points=cloud.points, cloud_id=cloud.id, gel_poses=poses, dropout_samples=samples),
+            cloud,
+        )
 
     def _call(self, request: TactileEstimateRequest, cloud: Cloud | None = None) -> tuple[np.ndarray, np.ndarray]:
         try:
@@ -105,6 +120,7 @@ class TactileClient:
     def __enter__(self) -> "TactileClient":
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
-                 trace: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
         self.close()

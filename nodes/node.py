@@ -6,6 +6,7 @@ and timers run one at a time in ``spin``, so node code needs no locks. A node mo
 ``if __name__ == "__main__": run_node(MyNode)``; ``dtx launch`` starts it as
 ``python -m MODULE --name NAME --params JSON --remap FROM:=TO``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -96,17 +97,25 @@ class Node:
 
     Params: ClassVar[type] = NoParams
 
-    def __init__(self, name: str, params: dict[str, Any] | None = None, *,
-                 registry: Registry | None = None, transport: TransportConfig | None = None,
-                 remaps: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        name: str,
+        params: dict[str, Any] | None = None,
+        *,
+        registry: Registry | None = None,
+        transport: TransportConfig | None = None,
+        remaps: dict[str, str] | None = None,
+    ) -> None:
         self.name = name
         self.params = parse_params(self.Params, params or {}, name)
         registry = registry or Registry()
         holder = registry.live_node_pid(name)
         if holder is not None and holder != os.getpid():
             # Two graphs in one domain would answer each other's requests and mix their data.
-            raise ValueError(f"a node named {name!r} already runs (pid {holder}) on bus {registry.root}; stop that "
-                             "graph, or give this one a bus of its own with DTX_DOMAIN=NAME")
+            raise ValueError(
+                f"a node named {name!r} already runs (pid {holder}) on bus {registry.root}; stop that "
+                "graph, or give this one a bus of its own with DTX_DOMAIN=NAME"
+            )
         self.bus = Bus(name, registry, transport, remaps)
         self.log = logging.getLogger(f"dtx.{name}")
         self._publishers: list[Publisher[Any]] = []
@@ -143,10 +152,12 @@ class Node:
         self.count_subscriber(subscriber)
         return subscriber
 
-    def create_service(self, name: str, request_type: type[M], reply_type: type[R],
-                       handler: Callable[[M], R | Future[R]]) -> ServiceServer[M, R]:
+    def create_service(
+        self, name: str, request_type: type[M], reply_type: type[R], handler: Callable[[M], R | Future[R]]
+    ) -> ServiceServer[M, R]:
         """``handler`` may return a Future (work in ``self.background``): the executor is
         woken the moment it completes, and its reply goes out then."""
+
         def wake_when_done(request: M) -> R | Future[R]:
             result = handler(request)
             if isinstance(result, Future):
@@ -214,8 +225,9 @@ class Node:
             raise
         except Exception:
             subscriber.counters.handler_errors += 1
-            self.log.exception("%s: a callback failed on a %s; message dropped", subscriber.topic,
-                          envelope.message.SCHEMA)
+            self.log.exception(
+                "%s: a callback failed on a %s; message dropped", subscriber.topic, envelope.message.SCHEMA
+            )
 
     def spin(self, until: Callable[[], bool] | None = None) -> None:
         while not self._shutdown and not (until is not None and until()):
@@ -257,7 +269,9 @@ class Node:
 
     def _beat(self) -> None:
         info = Heartbeat(
-            node=self.name, pid=os.getpid(), status=self.status,
+            node=self.name,
+            pid=os.getpid(),
+            status=self.status,
             publishers=[p.topic for p in self._publishers],
             subscribers=[s.topic for s, _ in self._subscriptions],
             services=[s.name for s in self._services],
@@ -309,12 +323,12 @@ def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
     parser.add_argument("--peers", default="{}", help="JSON: name -> {address, server_key_file}")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")
-    curve = (CurveConfig(args.curve_secret_key, args.curve_authorized_keys)
-             if args.curve_secret_key else None)
+    curve = CurveConfig(args.curve_secret_key, args.curve_authorized_keys) if args.curve_secret_key else None
     try:
         peers = {name: PeerConfig(**peer) for name, peer in json.loads(args.peers).items()}
-        transport = TransportConfig(args.transport, args.bind_host, curve,
-                                    endpoints=json.loads(args.endpoints), peers=peers)
+        transport = TransportConfig(
+            args.transport, args.bind_host, curve, endpoints=json.loads(args.endpoints), peers=peers
+        )
         node = node_class(args.name, json.loads(args.params), transport=transport, remaps=dict(args.remap))
     except (ParameterError, ValueError, TypeError) as exc:
         print(f"{args.name}: cannot start: {exc}", file=sys.stderr)

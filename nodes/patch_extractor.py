@@ -15,6 +15,7 @@ Params: ``scene`` (which objects exist, their meshes and nominal places, the gri
 geometry — for the lab, a scene file describing the real table), ``cameras`` (depth topics),
 ``depth_map_rows``/``depth_map_cols``, ``margin_m``, ``seed``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -80,14 +81,18 @@ class PatchExtractorNode(Node):
         super().__init__(name, params, **kwargs)
         self.scene = load_scene(self.params.scene)
         self.geometry = self.scene.gripper_geometry()
-        self.depth_map_params = DepthMapParams(shape=(self.params.depth_map_rows, self.params.depth_map_cols),
-                                               margin_m=self.params.margin_m,
-                                               y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]),
-                                               fill_gaps_min_neighbours=self.params.fill_gaps_min_neighbours)
+        self.depth_map_params = DepthMapParams(
+            shape=(self.params.depth_map_rows, self.params.depth_map_cols),
+            margin_m=self.params.margin_m,
+            y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]),
+            fill_gaps_min_neighbours=self.params.fill_gaps_min_neighbours,
+        )
         self.reach_m = crop_reach_m(self.geometry, self.depth_map_params)
         self.latest: dict[str, msgs.DepthImage] = {}
         for topic in self.params.cameras:
-            self.create_subscription(topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image}))
+            self.create_subscription(
+                topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image})
+            )
         self.models: dict[str, tuple[VoxelIndex, PreparedModel]] = {}
         self.registered: dict[str, Registered] = {}
         self.cloud = self.create_publisher("/perception/object_cloud", msgs.PointCloud, latched=True)
@@ -117,22 +122,39 @@ class PatchExtractorNode(Node):
         if spec.name not in self.models:
             # Registration works on a 2 mm cloud; a depth-map needs a far denser one.
             dense = sample_model_cloud(spec.mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
-            self.models[spec.name] = (VoxelIndex(dense),
-                                      prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)))
+            self.models[spec.name] = (
+                VoxelIndex(dense),
+                prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)),
+            )
         dense, prepared = self.models[spec.name]
-        segmented = segment_object(depth_images_to_world(frames), segmentation_params_for(self.scene),
-                                   hint_world_m=np.array([spec.x_m, spec.y_m, 0.0]), seed=seed)
+        segmented = segment_object(
+            depth_images_to_world(frames),
+            segmentation_params_for(self.scene),
+            hint_world_m=np.array([spec.x_m, spec.y_m, 0.0]),
+            seed=seed,
+        )
         result = register_model(prepared, segmented.points_world_m, seed=seed)
         self.registered[spec.name] = Registered(dense, result.model_to_world)
-        self.cloud.publish(msgs.PointCloud(header=msgs.Header(frame_id="world"),
-                                           points=segmented.points_world_m.astype(np.float32)))
+        self.cloud.publish(
+            msgs.PointCloud(header=msgs.Header(frame_id="world"), points=segmented.points_world_m.astype(np.float32))
+        )
         self.object_pose.publish(frame_transform("world", "object", result.model_to_world, time.time_ns()))
-        self.log.info("registered %s: fitness %.3f, rmse %.2f mm, %d points", spec.name, result.fitness,
-                      result.inlier_rmse_m * 1e3, len(segmented.points_world_m))
+        self.log.info(
+            "registered %s: fitness %.3f, rmse %.2f mm, %d points",
+            spec.name,
+            result.fitness,
+            result.inlier_rmse_m * 1e3,
+            len(segmented.points_world_m),
+        )
         return msgs.RegisterReply(
-            header=msgs.Header(frame_id="world"), object_name=spec.name, model_to_world=result.model_to_world,
-            fitness=result.fitness, inlier_rmse_m=result.inlier_rmse_m,
-            centroid_world=segmented.centroid_world_m, point_counts=segmented.point_counts)
+            header=msgs.Header(frame_id="world"),
+            object_name=spec.name,
+            model_to_world=result.model_to_world,
+            fitness=result.fitness,
+            inlier_rmse_m=result.inlier_rmse_m,
+            centroid_world=segmented.centroid_world_m,
+            point_counts=segmented.point_counts,
+        )
 
     def on_patch(self, request: msgs.PatchRequest) -> msgs.PatchReply:
         registered = self.registered.get(request.object_name)
@@ -140,23 +162,33 @@ class PatchExtractorNode(Node):
             raise NotRegistered(f"object {request.object_name!r} is not registered; call /perception/register first")
         gels = {"left": request.gel_left_to_world, "right": request.gel_right_to_world}
         model_to_world = registered.model_to_world
-        near = {finger: registered.model.within(transform_points(gel[:3, 3][None], np.linalg.inv(model_to_world))[0],
-                                              self.reach_m)
-                for finger, gel in gels.items()}
+        near = {
+            finger: registered.model.within(
+                transform_points(gel[:3, 3][None], np.linalg.inv(model_to_world))[0], self.reach_m
+            )
+            for finger, gel in gels.items()
+        }
         if self.params.centre_between_gels:
-            model_to_world = centre_between_gels(np.concatenate(list(near.values())), model_to_world,
-                                                 gels["left"], gels["right"], self.geometry)
+            model_to_world = centre_between_gels(
+                np.concatenate(list(near.values())), model_to_world, gels["left"], gels["right"], self.geometry
+            )
         maps = {}
         for finger, gel_to_world in gels.items():
             try:
-                patch = contact_depth_map(near[finger], model_to_world, gel_to_world, self.geometry,
-                                          self.depth_map_params)
+                patch = contact_depth_map(
+                    near[finger], model_to_world, gel_to_world, self.geometry, self.depth_map_params
+                )
             except OutOfReachError as err:
                 raise GelOutOfReach(f"{finger} gel: {err}") from err
-            maps[finger] = msgs.DepthMap(header=msgs.Header(frame_id=f"gel_{finger}"), depth_map_m=patch.depth_map_m,
-                                         finger=finger, crop_m=list(patch.crop_m), y_range_m=list(patch.y_range_m),
-                                         point_count=patch.point_count,
-                                         model_to_gel=np.linalg.inv(gel_to_world) @ model_to_world)
+            maps[finger] = msgs.DepthMap(
+                header=msgs.Header(frame_id=f"gel_{finger}"),
+                depth_map_m=patch.depth_map_m,
+                finger=finger,
+                crop_m=list(patch.crop_m),
+                y_range_m=list(patch.y_range_m),
+                point_count=patch.point_count,
+                model_to_gel=np.linalg.inv(gel_to_world) @ model_to_world,
+            )
             self.depth_maps.publish(maps[finger])
         return msgs.PatchReply(left=maps["left"], right=maps["right"])
 

@@ -1,6 +1,7 @@
 """Recorder node: what ``dtx bag record`` does, as a node a launch file starts, so every
 session leaves an MCAP bag of every topic beside its dataset. On a full disk it stops with
 exit status 2 (the launcher does not respawn it) and the bag keeps what it had."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -26,9 +27,15 @@ class RecorderNode(Node):
     def spin(self, until: Any = None) -> None:
         bag = free_bag_path(Path(self.params.bag))
         try:
-            counts = record(bag, self.bus, self.keep_alive, topics=self.params.topics or None,
-                            compression=self.params.compression, foxglove=self.params.foxglove,
-                            on_subscriber=self.count_subscriber)
+            counts = record(
+                bag,
+                self.bus,
+                self.keep_alive,
+                topics=self.params.topics or None,
+                compression=self.params.compression,
+                foxglove=self.params.foxglove,
+                on_subscriber=self.count_subscriber,
+            )
         except BagWriteError as error:
             # A full disk stays full: a respawn would only leave one more empty bag per second.
             self.log.error("%s; the recorder stops (errno %s)", error, error.errno)

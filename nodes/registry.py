@@ -9,6 +9,7 @@ its owner may write it (whoever can write there could answer this user's request
 Chosen over a master process because there is nothing to start first and nothing to crash;
 crossing machines uses endpoints named in the launch file instead (see ``nodes.security``).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -49,14 +50,20 @@ def private_directory(path: Path) -> None:
         raise BusDirectoryError(f"cannot create the bus directory {path}: {exc}") from exc
     info = os.lstat(path)
     if not stat.S_ISDIR(info.st_mode):
-        raise BusDirectoryError(f"bus directory {path} is not a directory (a symbolic link or a file is in its "
-                                "place); remove it, or choose another with DTX_BUS_DIR")
+        raise BusDirectoryError(
+            f"bus directory {path} is not a directory (a symbolic link or a file is in its "
+            "place); remove it, or choose another with DTX_BUS_DIR"
+        )
     if info.st_uid != os.getuid():
-        raise BusDirectoryError(f"bus directory {path} belongs to uid {info.st_uid}, not to you (uid {os.getuid()}): "
-                                "another user may be squatting it; remove it, or choose another with DTX_BUS_DIR")
+        raise BusDirectoryError(
+            f"bus directory {path} belongs to uid {info.st_uid}, not to you (uid {os.getuid()}): "
+            "another user may be squatting it; remove it, or choose another with DTX_BUS_DIR"
+        )
     if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        raise BusDirectoryError(f"bus directory {path} is writable by others (mode {stat.S_IMODE(info.st_mode):o}); "
-                                f"chmod 700 {path}, or choose another with DTX_BUS_DIR")
+        raise BusDirectoryError(
+            f"bus directory {path} is writable by others (mode {stat.S_IMODE(info.st_mode):o}); "
+            f"chmod 700 {path}, or choose another with DTX_BUS_DIR"
+        )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,6 +4,7 @@ Keys are ZeroMQ certificate files (``zmq.auth.create_certificates``; ``dtx keys 
 A server socket gets its secret key and accepts only clients whose public certificates lie
 in ``authorized_keys_dir``; a client needs its own key pair and the server's public key.
 """
+
 from __future__ import annotations
 
 import dataclasses

@@ -1,6 +1,7 @@
 """What the depth camera and GelSight nodes share: a backend that ``read()``s frames at the
 sensor's own rate, published on ``/<node name>/<stream>``, with device errors counted and
 a lost device handed to the launcher (which respawns the node and so reconnects it)."""
+
 from __future__ import annotations
 
 import dataclasses

@@ -13,6 +13,7 @@
 Each frame is published ``rate_hz`` times a second once its source has been heard, with the
 stamp of the newest source message, so a slow topic never holds back a fast one.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -28,9 +29,12 @@ from workcell.kinematics import gel_poses_world, pose_to_matrix
 
 def frame_transform(parent: str, child: str, child_to_parent: np.ndarray, stamp_ns: int) -> msgs.FrameTransform:
     """The pose of ``child`` in ``parent`` from a 4 x 4 rigid transform."""
-    return msgs.FrameTransform(header=msgs.Header(stamp_ns=stamp_ns, frame_id=parent), child_frame_id=child,
-                               translation=np.array(child_to_parent[:3, 3], np.float64),
-                               rotation=Rotation.from_matrix(child_to_parent[:3, :3]).as_quat())
+    return msgs.FrameTransform(
+        header=msgs.Header(stamp_ns=stamp_ns, frame_id=parent),
+        child_frame_id=child,
+        translation=np.array(child_to_parent[:3, 3], np.float64),
+        rotation=Rotation.from_matrix(child_to_parent[:3, :3]).as_quat(),
+    )
 
 
 class TransformPublisher(Node):
@@ -49,10 +53,14 @@ class TransformPublisher(Node):
         # (parent, child) -> (child to parent, stamp) of the newest source message
         self.frames: dict[tuple[str, str], tuple[np.ndarray, int]] = {}
         for camera in self.params.cameras:
-            self.create_subscription(f"/{camera}/depth", msgs.DepthImage,
-                                     lambda m, camera=camera: self._set("world", camera, m.camera_to_world, m))
-        self.create_subscription("/arm/state", msgs.ArmState,
-                                 lambda m: self._set("world", "tcp", pose_to_matrix(m.tcp_pose), m))
+            self.create_subscription(
+                f"/{camera}/depth",
+                msgs.DepthImage,
+                lambda m, camera=camera: self._set("world", camera, m.camera_to_world, m),
+            )
+        self.create_subscription(
+            "/arm/state", msgs.ArmState, lambda m: self._set("world", "tcp", pose_to_matrix(m.tcp_pose), m)
+        )
         self.create_subscription("/gripper/state", msgs.GripperState, self._on_gripper)
         self.create_timer(1.0 / self.params.rate_hz, self.publish_tree)
 

@@ -9,6 +9,7 @@ D points per cm³ therefore means one point per voxel of volume 1/D cm³:
 This is an upper bound on the density in occupied space; a surface cloud finer than the voxel
 edge reaches it, a coarser one keeps its own spacing.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -35,6 +35,7 @@ Speed: one compiled pass (numba) transforms, crops and bins (~130 M points/s aga
 same steps in NumPy, ``dtx bench perception --only binning``); :func:`contact_depth_maps` cuts
 many gels' maps from one indexed cloud, reading only the cells within each crop's reach.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -56,15 +57,15 @@ MODEL_POINT_SPACING_M = 0.0001
 MODEL_CLOUD_SEED = 0
 # Most bins a depth-map may have: 2048 x 2048 keeps one map's working arrays (float64 minima,
 # float32 map and its normalised copy, flags) near 100 MB; the network sees 100 x 100 or 256 x 256.
-MAX_DEPTH_MAP_BINS = 2 ** 22
+MAX_DEPTH_MAP_BINS = 2**22
 
 
 @dataclasses.dataclass(frozen=True)
 class DepthMapParams:
-    shape: tuple[int, int] = (100, 100)           # (rows along gel z, columns along gel x)
-    margin_m: float = 0.002                        # added to each side of the gel in x and z
+    shape: tuple[int, int] = (100, 100)  # (rows along gel z, columns along gel x)
+    margin_m: float = 0.002  # added to each side of the gel in x and z
     # Default y range: one elastomer thickness in front of the gel to full indentation behind it.
-    y_range_m: tuple[float, float] | None = None   # (y_near, y_far); None: (-t, +t), t = elastomer
+    y_range_m: tuple[float, float] | None = None  # (y_near, y_far); None: (-t, +t), t = elastomer
     # An empty bin with at least this many occupied neighbours (of 8) is a gap in a sampled
     # surface, not free space: it takes the nearest surface of its neighbours. 0: leave gaps.
     # The default fills the ~10 % of bins a 0.2 mm model cloud leaves empty in 0.2 mm bins, and
@@ -74,10 +75,10 @@ class DepthMapParams:
 
 @dataclasses.dataclass
 class ContactPatch:
-    depth_map_m: np.ndarray        # (rows, cols) float32, min y per bin, empty bins = y_far
-    normalised: np.ndarray         # (rows, cols) float32 in [-1, 1] (perception.normalisation)
-    occupied: np.ndarray           # (rows, cols) bool, the bin holds at least one point
-    crop_m: tuple[float, float, float]        # full crop extent along gel x, y, z
+    depth_map_m: np.ndarray  # (rows, cols) float32, min y per bin, empty bins = y_far
+    normalised: np.ndarray  # (rows, cols) float32 in [-1, 1] (perception.normalisation)
+    occupied: np.ndarray  # (rows, cols) bool, the bin holds at least one point
+    crop_m: tuple[float, float, float]  # full crop extent along gel x, y, z
     y_range_m: tuple[float, float]
     point_count: int
 
@@ -97,23 +98,26 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
     y_near, y_far = y_range
     values = np.array([half_x, half_z, y_near, y_far], dtype=np.float64)
     if not np.all(np.abs(values) <= float(np.finfo(np.float32).max)):  # NaN fails too
-        raise DepthMapError(f"crop bounds must be finite in float32, got half x {half_x}, half z {half_z}, "
-                            f"y {y_near}..{y_far} m")
+        raise DepthMapError(
+            f"crop bounds must be finite in float32, got half x {half_x}, half z {half_z}, y {y_near}..{y_far} m"
+        )
     if not (half_x > 0 and half_z > 0):
         raise DepthMapError(f"crop must have positive extent, got half x {half_x} m, half z {half_z} m")
     if not y_far > y_near:
         raise DepthMapError(f"depth range must have y_far > y_near, got ({y_near}, {y_far}) m")
     shape = tuple(params.shape) if isinstance(params.shape, (tuple, list)) else ()
-    if len(shape) != 2 or not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1
-                                  for n in shape):
+    if len(shape) != 2 or not all(
+        isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1 for n in shape
+    ):
         raise DepthMapError(f"bin shape must be two positive integers (rows, cols), got {params.shape!r}")
     rows, cols = int(shape[0]), int(shape[1])
     # The map and its crop are stored as float32: bins narrower than float32 can tell apart at
     # the crop edge would alias, so such a map is refused rather than silently merged.
     for half, count, axis in ((half_x, cols, "x"), (half_z, rows, "z")):
         if 2.0 * half / count <= 4 * np.spacing(np.float32(half)):
-            raise DepthMapError(f"bin size {2.0 * half / count:.3g} m along {axis} is below float32 "
-                                f"resolution at {half:.3g} m")
+            raise DepthMapError(
+                f"bin size {2.0 * half / count:.3g} m along {axis} is below float32 resolution at {half:.3g} m"
+            )
     if not np.float32(y_far) > np.float32(y_near):
         raise DepthMapError(f"depth range ({y_near}, {y_far}) m is below float32 resolution")
     if rows * cols > MAX_DEPTH_MAP_BINS:
@@ -131,8 +135,12 @@ def _reach_m(geometry: GripperGeometry, bounds: tuple[float, float, float, float
     """:func:`crop_reach_m` from bounds already checked by :func:`crop_bounds`."""
     half_x, half_z, y_near, y_far = bounds
     deepest = max(abs(y_near), abs(y_far))
-    return float(max(np.linalg.norm([half_x, half_z, deepest]),
-                     np.linalg.norm([0.5 * geometry.gel_size_m[0], 0.5 * geometry.gel_size_m[1], deepest])))
+    return float(
+        max(
+            np.linalg.norm([half_x, half_z, deepest]),
+            np.linalg.norm([0.5 * geometry.gel_size_m[0], 0.5 * geometry.gel_size_m[1], deepest]),
+        )
+    )
 
 
 # Points are binned in chunks of this many: the bin indices of a chunk are computed without a
@@ -156,8 +164,18 @@ def _exact_bin(value: float, index: int, edges: np.ndarray) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _bin_chunk(x: np.ndarray, z: np.ndarray, y: np.ndarray, count: int, half_x: float, half_z: float,
-               x_edges: np.ndarray, z_edges: np.ndarray, flat: np.ndarray, min_y: np.ndarray) -> None:
+def _bin_chunk(
+    x: np.ndarray,
+    z: np.ndarray,
+    y: np.ndarray,
+    count: int,
+    half_x: float,
+    half_z: float,
+    x_edges: np.ndarray,
+    z_edges: np.ndarray,
+    flat: np.ndarray,
+    min_y: np.ndarray,
+) -> None:
     """min_y[bin] = min(min_y[bin], y) for the first ``count`` (<= _CHUNK) points, all inside the
     crop (one outside lands in an edge bin, never out of bounds). The scaled floor is exact
     unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds keeps
@@ -175,27 +193,46 @@ def _bin_chunk(x: np.ndarray, z: np.ndarray, y: np.ndarray, count: int, half_x: 
         flat[i] = row * cols + col
     if near:
         for i in range(count):
-            flat[i] = (_exact_bin(z[i], int((z[i] + half_z) * scale_z), z_edges) * cols
-                       + _exact_bin(x[i], int((x[i] + half_x) * scale_x), x_edges))
+            flat[i] = _exact_bin(z[i], int((z[i] + half_z) * scale_z), z_edges) * cols + _exact_bin(
+                x[i], int((x[i] + half_x) * scale_x), x_edges
+            )
     for i in range(count):
         min_y[flat[i]] = min(min_y[flat[i]], y[i])
 
 
 @numba.njit(cache=True, nogil=True)
-def _min_y_kernel(x: np.ndarray, z: np.ndarray, y: np.ndarray, half_x: float, half_z: float,
-                  x_edges: np.ndarray, z_edges: np.ndarray, min_y: np.ndarray) -> None:
+def _min_y_kernel(
+    x: np.ndarray,
+    z: np.ndarray,
+    y: np.ndarray,
+    half_x: float,
+    half_z: float,
+    x_edges: np.ndarray,
+    z_edges: np.ndarray,
+    min_y: np.ndarray,
+) -> None:
     """min_y[row * cols + col] = min(min_y[...], y) for every point (all inside the crop)."""
     flat = np.empty(_CHUNK, np.int64)
     for start in range(0, y.shape[0], _CHUNK):
         stop = min(start + _CHUNK, y.shape[0])
-        _bin_chunk(x[start:stop], z[start:stop], y[start:stop], stop - start, half_x, half_z, x_edges, z_edges,
-                   flat, min_y)
+        _bin_chunk(
+            x[start:stop], z[start:stop], y[start:stop], stop - start, half_x, half_z, x_edges, z_edges, flat, min_y
+        )
 
 
 @numba.njit(cache=True, nogil=True)
-def _cut_kernel(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray,
-                model_to_gel: np.ndarray, bounds: np.ndarray, x_edges: np.ndarray, z_edges: np.ndarray,
-                min_y: np.ndarray, counts: np.ndarray) -> None:
+def _cut_kernel(
+    points: np.ndarray,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    runs: np.ndarray,
+    model_to_gel: np.ndarray,
+    bounds: np.ndarray,
+    x_edges: np.ndarray,
+    z_edges: np.ndarray,
+    min_y: np.ndarray,
+    counts: np.ndarray,
+) -> None:
     """Transform, crop and bin in one pass, for every region k: the points of runs
     runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] (3 x 4, float64), kept when
     inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive), binned into min_y[k]
@@ -234,8 +271,9 @@ def _edges(half_m: float, count: int) -> np.ndarray:
     return np.linspace(-half_m, half_m, count + 1)
 
 
-def min_y_per_bin(x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: float, half_z_m: float,
-                  shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def min_y_per_bin(
+    x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: float, half_z_m: float, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """Minimum y per x-z bin of points already inside the crop; returns (min_y, occupied).
 
     ``min_y`` is float64 (rows, cols) with +inf in empty bins. One compiled pass (the bin rule of
@@ -253,9 +291,9 @@ def min_y_per_bin(x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: f
 class ContactPatches:
     """N regions' depth-maps, cut from one model cloud in one pass (:func:`contact_depth_maps`)."""
 
-    depth_maps_m: np.ndarray       # (N, rows, cols) float32, as ContactPatch.depth_map_m
-    occupied: np.ndarray           # (N, rows, cols) bool
-    point_counts: np.ndarray       # (N,) int64, points in each region's crop
+    depth_maps_m: np.ndarray  # (N, rows, cols) float32, as ContactPatch.depth_map_m
+    occupied: np.ndarray  # (N, rows, cols) bool
+    point_counts: np.ndarray  # (N,) int64, points in each region's crop
     crop_m: tuple[float, float, float]
     y_range_m: tuple[float, float]
 
@@ -271,9 +309,17 @@ def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
     return points
 
 
-def _cut(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray, model_to_gel: np.ndarray,
-         bounds: tuple[float, float, float, float], params: DepthMapParams, batch: bool,
-         allow_empty: bool = False) -> ContactPatches:
+def _cut(
+    points: np.ndarray,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    runs: np.ndarray,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    params: DepthMapParams,
+    batch: bool,
+    allow_empty: bool = False,
+) -> ContactPatches:
     """The kernel over already checked inputs (``bounds``: :func:`crop_bounds`), then the
     empty-bin policy and gap filling; an error about a region of a ``batch`` names it. With
     ``allow_empty`` a region with no point is no error: its map is all y_far (point count 0)."""
@@ -282,33 +328,55 @@ def _cut(points: np.ndarray, starts: np.ndarray, ends: np.ndarray, runs: np.ndar
     regions = model_to_gel.shape[0]
     min_y = np.full((regions, rows * cols), np.inf)
     counts = np.zeros(regions, np.int64)
-    _cut_kernel(points, starts, ends, runs, np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64),
-                np.array([half_x, half_z, y_near, y_far]), _edges(half_x, cols), _edges(half_z, rows), min_y, counts)
+    _cut_kernel(
+        points,
+        starts,
+        ends,
+        runs,
+        np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64),
+        np.array([half_x, half_z, y_near, y_far]),
+        _edges(half_x, cols),
+        _edges(half_z, rows),
+        min_y,
+        counts,
+    )
     empty = np.flatnonzero(counts == 0)
     if empty.size and not allow_empty:
-        raise OutOfReachError(f"{f'region {int(empty[0])}: ' if batch else ''}"
-                            f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
-                            f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
-                            "the gel does not reach the object")
+        raise OutOfReachError(
+            f"{f'region {int(empty[0])}: ' if batch else ''}"
+            f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
+            f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
+            "the gel does not reach the object"
+        )
     min_y = min_y.reshape(regions, rows, cols)
     occupied = np.isfinite(min_y)
     depth_maps_m = np.where(occupied, min_y, y_far).astype(np.float32)
     if params.fill_gaps_min_neighbours > 0:
         depth_maps_m = fill_sampling_gaps(depth_maps_m, occupied, params.fill_gaps_min_neighbours)
-    return ContactPatches(depth_maps_m=depth_maps_m, occupied=occupied, point_counts=counts,
-                          crop_m=(2 * half_x, y_far - y_near, 2 * half_z), y_range_m=(y_near, y_far))
+    return ContactPatches(
+        depth_maps_m=depth_maps_m,
+        occupied=occupied,
+        point_counts=counts,
+        crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
+        y_range_m=(y_near, y_far),
+    )
 
 
 def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray, names: list[str]) -> np.ndarray:
     """(N, 4, 4) float64 model-to-gel transforms, each composed in float64; ``model_to_world``
     already checked, each gel checked here (rigid)."""
-    return np.stack([np.linalg.inv(check_transform(gel, name)) @ model_to_world
-                     for gel, name in zip(gels_to_world, names)])
+    return np.stack(
+        [np.linalg.inv(check_transform(gel, name)) @ model_to_world for gel, name in zip(gels_to_world, names)]
+    )
 
 
-def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_to_world: np.ndarray,
-                      geometry: GripperGeometry = GripperGeometry(),
-                      params: DepthMapParams = DepthMapParams()) -> ContactPatch:
+def contact_depth_map(
+    points_model_m: np.ndarray,
+    model_to_world: np.ndarray,
+    gel_to_world: np.ndarray,
+    geometry: GripperGeometry = GripperGeometry(),
+    params: DepthMapParams = DepthMapParams(),
+) -> ContactPatch:
     """Depth-map of the model cloud (model frame, metres) in the contact volume of one gel.
 
     ``points_model_m``: finite (N, 3), any real dtype (float32 read as it is, others converted
@@ -320,17 +388,35 @@ def contact_depth_map(points_model_m: np.ndarray, model_to_world: np.ndarray, ge
     bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
     points = _points_for_kernel(points_model_m)
     model_to_gel = _model_to_gels(check_transform(model_to_world, "model_to_world"), [gel_to_world], ["gel_to_world"])
-    patches = _cut(points, np.array([0], np.int64), np.array([len(points)], np.int64), np.array([0, 1], np.int64),
-                   model_to_gel, bounds, params, batch=False)
-    return ContactPatch(depth_map_m=patches.depth_maps_m[0],
-                        normalised=normalise_depth_map(patches.depth_maps_m[0], patches.y_range_m),
-                        occupied=patches.occupied[0], crop_m=patches.crop_m, y_range_m=patches.y_range_m,
-                        point_count=int(patches.point_counts[0]))
+    patches = _cut(
+        points,
+        np.array([0], np.int64),
+        np.array([len(points)], np.int64),
+        np.array([0, 1], np.int64),
+        model_to_gel,
+        bounds,
+        params,
+        batch=False,
+    )
+    return ContactPatch(
+        depth_map_m=patches.depth_maps_m[0],
+        normalised=normalise_depth_map(patches.depth_maps_m[0], patches.y_range_m),
+        occupied=patches.occupied[0],
+        crop_m=patches.crop_m,
+        y_range_m=patches.y_range_m,
+        point_count=int(patches.point_counts[0]),
+    )
 
 
-def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_world: np.ndarray,
-                       geometry: GripperGeometry = GripperGeometry(), params: DepthMapParams = DepthMapParams(),
-                       max_point_visits: int | None = None, allow_empty: bool = False) -> ContactPatches:
+def contact_depth_maps(
+    model: VoxelIndex,
+    model_to_world: np.ndarray,
+    gels_to_world: np.ndarray,
+    geometry: GripperGeometry = GripperGeometry(),
+    params: DepthMapParams = DepthMapParams(),
+    max_point_visits: int | None = None,
+    allow_empty: bool = False,
+) -> ContactPatches:
     """Depth-maps of many gels (``gels_to_world``: (N, 4, 4)) on one indexed model cloud: each
     map equals :func:`contact_depth_map` on the whole cloud.
 
@@ -357,12 +443,26 @@ def contact_depth_maps(model: VoxelIndex, model_to_world: np.ndarray, gels_to_wo
     visits = int(np.sum(ends - starts))
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
-    return _cut(model.points_m, starts, ends, runs, model_to_gel, bounds, params, batch=True,  # float32 or 64
-                allow_empty=allow_empty)
+    return _cut(
+        model.points_m,
+        starts,
+        ends,
+        runs,
+        model_to_gel,
+        bounds,
+        params,
+        batch=True,  # float32 or 64
+        allow_empty=allow_empty,
+    )
 
 
-def centre_between_gels(points_model_m: np.ndarray, model_to_world: np.ndarray, gel_left_to_world: np.ndarray,
-                        gel_right_to_world: np.ndarray, geometry: GripperGeometry = GripperGeometry()) -> np.ndarray:
+def centre_between_gels(
+    points_model_m: np.ndarray,
+    model_to_world: np.ndarray,
+    gel_left_to_world: np.ndarray,
+    gel_right_to_world: np.ndarray,
+    geometry: GripperGeometry = GripperGeometry(),
+) -> np.ndarray:
     """``model_to_world`` moved along the closing axis so the model sits centred between the gels.
 
     A parallel gripper that closes on a free-standing object pushes it until both gels hold it,
@@ -377,12 +477,15 @@ def centre_between_gels(points_model_m: np.ndarray, model_to_world: np.ndarray, 
         raise DepthMapError(f"model points must be finite (N, 3), got shape {points.shape}")
     nearest = []
     for gel_to_world in (gel_left_to_world, gel_right_to_world):
-        model_to_gel = np.linalg.inv(check_transform(gel_to_world, "gel_to_world")) @ \
-            check_transform(model_to_world, "model_to_world")
+        model_to_gel = np.linalg.inv(check_transform(gel_to_world, "gel_to_world")) @ check_transform(
+            model_to_world, "model_to_world"
+        )
         # The face is a small part of the model: y only for the points in front of it.
         x = points @ model_to_gel[0, :3] + model_to_gel[0, 3]
         z = points @ model_to_gel[2, :3] + model_to_gel[2, 3]
-        on_face = np.flatnonzero((np.abs(x) <= 0.5 * geometry.gel_size_m[0]) & (np.abs(z) <= 0.5 * geometry.gel_size_m[1]))
+        on_face = np.flatnonzero(
+            (np.abs(x) <= 0.5 * geometry.gel_size_m[0]) & (np.abs(z) <= 0.5 * geometry.gel_size_m[1])
+        )
         if on_face.size == 0:
             return np.asarray(model_to_world, dtype=np.float64).copy()
         y = np.take(points, on_face, axis=0) @ model_to_gel[1, :3] + model_to_gel[1, 3]
@@ -414,7 +517,7 @@ def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighb
     for dr in range(3):
         for dc in range(3):
             if (dr, dc) != (1, 1):
-                neighbours += flags[..., dr:dr + rows, dc:dc + cols]
-                np.minimum(nearest, surface[..., dr:dr + rows, dc:dc + cols], out=nearest)
+                neighbours += flags[..., dr : dr + rows, dc : dc + cols]
+                np.minimum(nearest, surface[..., dr : dr + rows, dc : dc + cols], out=nearest)
     gaps = ~occupied & (neighbours >= min_neighbours)
     return np.where(gaps, nearest, depth_map_m).astype(np.float32)

@@ -1,4 +1,5 @@
 """Exceptions of the perception pipeline: each names the step that could not give an answer."""
+
 from __future__ import annotations
 
 

@@ -5,6 +5,7 @@ is that far from the gel, y < 0: it indents the gel). The network sees values in
 ``depth_range_m = (y_near, y_far)`` maps y_near -> -1 and y_far -> +1, values outside are
 clipped. Empty bins are stored as y_far (nothing within reach), so they read as "no contact".
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,8 +21,9 @@ def _check_range(depth_range_m: tuple[float, float]) -> tuple[float, float]:
     try:
         y_near, y_far = (float(v) for v in depth_range_m)
     except (TypeError, ValueError) as err:
-        raise NormalisationError(f"depth_range_m must be two numbers (y_near, y_far), got {depth_range_m!r}: "
-                                 f"{err}") from None
+        raise NormalisationError(
+            f"depth_range_m must be two numbers (y_near, y_far), got {depth_range_m!r}: {err}"
+        ) from None
     if not (np.isfinite(y_near) and np.isfinite(y_far)):
         raise NormalisationError(f"depth range must be finite, got {depth_range_m}")
     if not max(abs(y_near), abs(y_far)) <= float(np.finfo(np.float32).max):

@@ -4,6 +4,7 @@ A depth pixel holds the z coordinate (metres) of the surface point in the camera
 frame (z forward, x right, y down), as the Kinect v2 / OpenNI report it — not the range
 along the ray.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -60,8 +61,15 @@ def transform_points(points_a_m: np.ndarray, a_to_b: np.ndarray) -> np.ndarray:
 
 def _intrinsics_key(intrinsics: CameraIntrinsics) -> tuple:
     distortion = tuple(float(d) for d in intrinsics.distortion)
-    return (int(intrinsics.width), int(intrinsics.height), float(intrinsics.fx), float(intrinsics.fy),
-            float(intrinsics.cx), float(intrinsics.cy), distortion)
+    return (
+        int(intrinsics.width),
+        int(intrinsics.height),
+        float(intrinsics.fx),
+        float(intrinsics.fy),
+        float(intrinsics.cx),
+        float(intrinsics.cy),
+        distortion,
+    )
 
 
 @functools.lru_cache(maxsize=16)
@@ -91,14 +99,14 @@ def pixel_rays(intrinsics: CameraIntrinsics) -> np.ndarray:
     return _normalised_rays(key)
 
 
-def depth_to_points_camera(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
-                           range_m: tuple[float, float] = DEFAULT_RANGE_M) -> np.ndarray:
+def depth_to_points_camera(
+    depth_m: np.ndarray, intrinsics: CameraIntrinsics, range_m: tuple[float, float] = DEFAULT_RANGE_M
+) -> np.ndarray:
     """Back-project a depth image (H, W, metres, NaN = no return) to (N, 3) float64 points in
     the camera frame. NaN, inf and depths outside ``range_m`` (inclusive) are dropped."""
     depth = np.asarray(depth_m)
     if depth.shape != (intrinsics.height, intrinsics.width):
-        raise PointCloudError(f"depth image is {depth.shape}, intrinsics say "
-                              f"{(intrinsics.height, intrinsics.width)}")
+        raise PointCloudError(f"depth image is {depth.shape}, intrinsics say {(intrinsics.height, intrinsics.width)}")
     near, far = float(range_m[0]), float(range_m[1])
     if not (0.0 < near < far and np.isfinite(far)):
         raise PointCloudError(f"depth range must satisfy 0 < near < far < inf, got {range_m}")
@@ -111,18 +119,19 @@ def depth_to_points_camera(depth_m: np.ndarray, intrinsics: CameraIntrinsics,
     return np.column_stack([rays_valid[:, 0] * z_valid, rays_valid[:, 1] * z_valid, z_valid])
 
 
-def depth_images_to_world(images: Sequence[DepthImage],
-                          range_m: tuple[float, float] = DEFAULT_RANGE_M) -> list[np.ndarray]:
+def depth_images_to_world(
+    images: Sequence[DepthImage], range_m: tuple[float, float] = DEFAULT_RANGE_M
+) -> list[np.ndarray]:
     """One (N_i, 3) float64 world cloud per depth image, using each image's ``camera_to_world``."""
     if len(images) == 0:
         raise PointCloudError("no depth images given")
-    return [transform_points(depth_to_points_camera(image.depth_m(), image.intrinsics, range_m),
-                             image.camera_to_world)
-            for image in images]
+    return [
+        transform_points(depth_to_points_camera(image.depth_m(), image.intrinsics, range_m), image.camera_to_world)
+        for image in images
+    ]
 
 
-def merge_depth_images(images: Sequence[DepthImage],
-                       range_m: tuple[float, float] = DEFAULT_RANGE_M) -> np.ndarray:
+def merge_depth_images(images: Sequence[DepthImage], range_m: tuple[float, float] = DEFAULT_RANGE_M) -> np.ndarray:
     """All cameras' points merged in ``world``, (N, 3) float64."""
     return np.concatenate(depth_images_to_world(images, range_m), axis=0)
 
@@ -207,7 +216,7 @@ class VoxelIndex:
     """
 
     # Cell keys are int64 row-major indices of the bounding grid of cells.
-    MAX_GRID_CELLS = 2 ** 62
+    MAX_GRID_CELLS = 2**62
 
     def __init__(self, points_m: np.ndarray, cell_m: float = 0.005) -> None:
         # float32 points are kept as they are (exact, and half the memory and memory traffic of a
@@ -225,13 +234,15 @@ class VoxelIndex:
             extent_cells = np.floor((hi - self.origin_m) / self.cell_m) + 1 if len(points) else np.ones(3)
             grid_cells = np.prod(extent_cells)
         if not grid_cells <= self.MAX_GRID_CELLS:
-            raise PointCloudError(f"points span {np.ptp(points, axis=0)} m: {extent_cells} cells of {self.cell_m} m, "
-                                  f"more than 2^62; use larger cells or drop far outliers")
+            raise PointCloudError(
+                f"points span {np.ptp(points, axis=0)} m: {extent_cells} cells of {self.cell_m} m, "
+                f"more than 2^62; use larger cells or drop far outliers"
+            )
         self.shape = extent_cells.astype(np.int64)
         keys = np.empty(len(points), np.int64)
         _cell_keys(points, self.origin_m, self.cell_m, self.shape, keys)
         grid_size = int(np.prod(self.shape))
-        if grid_size <= COUNTING_SORT_CELLS_PER_POINT * len(points) + 2 ** 20:
+        if grid_size <= COUNTING_SORT_CELLS_PER_POINT * len(points) + 2**20:
             # Few cells for the points (a dense model cloud: ~10^4 cells of 5 mm for millions of
             # points): a stable counting sort, O(N + cells), ~10x faster than the argsort below.
             counts = np.bincount(keys, minlength=grid_size)
@@ -245,8 +256,11 @@ class VoxelIndex:
             order = np.argsort(keys, kind="stable")
             self.points_m = np.take(points, order, axis=0)
             sorted_keys = keys[order]
-            self.starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(points) \
+            self.starts = (
+                np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+                if len(points)
                 else np.zeros(0, np.int64)
+            )
             self.keys = sorted_keys[self.starts]
             self.ends = np.r_[self.starts[1:], len(points)].astype(self.starts.dtype)
 

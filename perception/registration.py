@@ -18,6 +18,7 @@ RegistrationError says why each attempt was refused — never a silently wrong p
 The model's FPFH features are computed once per object (:func:`prepare_model`). Scores:
 :func:`add_error_m` (ADD) and :func:`add_s_error_m` (ADD-S, fair to symmetric objects).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,12 +42,12 @@ MAX_MODEL_POINTS = 32_000_000
 class RegistrationParams:
     """The coarse voxel size drives the feature scales; distances are metres."""
 
-    voxel_size_m: float = 0.008             # coarse stage: features and RANSAC
-    icp_voxel_size_m: float = 0.004         # fine stage: ICP
-    normal_radius_factor: float = 2.0       # x voxel size
-    feature_radius_factor: float = 5.0      # x voxel size (FPFH support)
-    feature_max_nn: int = 50                # FPFH cost grows linearly with it
-    ransac_distance_factor: float = 1.5     # x voxel size
+    voxel_size_m: float = 0.008  # coarse stage: features and RANSAC
+    icp_voxel_size_m: float = 0.004  # fine stage: ICP
+    normal_radius_factor: float = 2.0  # x voxel size
+    feature_radius_factor: float = 5.0  # x voxel size (FPFH support)
+    feature_max_nn: int = 50  # FPFH cost grows linearly with it
+    ransac_distance_factor: float = 1.5  # x voxel size
     ransac_max_iterations: int = 20_000
     ransac_confidence: float = 0.999
     icp_distances_m: tuple[float, ...] = (0.016, 0.008)  # ICP stages; fitness is judged at the last
@@ -58,27 +59,27 @@ class RegistrationParams:
     # None for an object that is held or stacked.
     table_z_m: float | None = 0.0
     table_tolerance_m: float = 0.01
-    resting_yaw_steps: int = 24             # upright search: yaws tried, 15 deg apart
-    resting_sweep_iterations: int = 10      # planar ICP steps per yaw on the coarse clouds
-    resting_sweep_points: int = 256         # observed points the sweep pairs (a seeded random subset)
-    resting_candidates: int = 3             # the best yaws of the sweep refined on the fine clouds
+    resting_yaw_steps: int = 24  # upright search: yaws tried, 15 deg apart
+    resting_sweep_iterations: int = 10  # planar ICP steps per yaw on the coarse clouds
+    resting_sweep_points: int = 256  # observed points the sweep pairs (a seeded random subset)
+    resting_candidates: int = 3  # the best yaws of the sweep refined on the fine clouds
 
 
 @dataclasses.dataclass
 class ModelCloud:
     """Model points and outward normals in the model (mesh) frame, metres."""
 
-    points_m: np.ndarray   # (N, 3) float64
-    normals: np.ndarray    # (N, 3) float64, unit
+    points_m: np.ndarray  # (N, 3) float64
+    normals: np.ndarray  # (N, 3) float64, unit
 
 
 @dataclasses.dataclass
 class RegistrationResult:
-    model_to_world: np.ndarray     # (4, 4) float64
-    fitness: float                 # fraction of observed points within the last ICP distance of the model
+    model_to_world: np.ndarray  # (4, 4) float64
+    fitness: float  # fraction of observed points within the last ICP distance of the model
     inlier_rmse_m: float
-    attempts: int                  # RANSAC attempts used; 0 when the upright search gave the pose
-    time_ms: dict[str, float]      # "coarse", "fine", "total"
+    attempts: int  # RANSAC attempts used; 0 when the upright search gave the pose
+    time_ms: dict[str, float]  # "coarse", "fine", "total"
 
 
 def sample_model_cloud(mesh_path: str | Path, point_spacing_m: float = 0.002, seed: int = 0) -> ModelCloud:
@@ -109,13 +110,16 @@ def sample_model_cloud(mesh_path: str | Path, point_spacing_m: float = 0.002, se
     # Divided twice, not by spacing², which underflows to 0 below ~1e-162 m.
     wanted = area_m2 / spacing / spacing
     if not wanted <= MAX_MODEL_POINTS:
-        raise RegistrationError(f"point spacing {point_spacing_m!r} m asks for {wanted:.3g} points on the "
-                                f"{area_m2:.3g} m² of {mesh_path}, more than {MAX_MODEL_POINTS}")
+        raise RegistrationError(
+            f"point spacing {point_spacing_m!r} m asks for {wanted:.3g} points on the "
+            f"{area_m2:.3g} m² of {mesh_path}, more than {MAX_MODEL_POINTS}"
+        )
     count = max(int(wanted), 100)
     with seeded_open3d(seed):
         cloud = mesh.sample_points_uniformly(count, use_triangle_normal=True)
-    return ModelCloud(points_m=np.asarray(cloud.points, dtype=np.float64),
-                      normals=np.asarray(cloud.normals, dtype=np.float64))
+    return ModelCloud(
+        points_m=np.asarray(cloud.points, dtype=np.float64), normals=np.asarray(cloud.normals, dtype=np.float64)
+    )
 
 
 def _to_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
@@ -127,7 +131,9 @@ def _to_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geom
 
 def _features(cloud: o3d.geometry.PointCloud, params: RegistrationParams) -> o3d.pipelines.registration.Feature:
     radius = params.voxel_size_m * params.feature_radius_factor
-    return _reg.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=params.feature_max_nn))
+    return _reg.compute_fpfh_feature(
+        cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=params.feature_max_nn)
+    )
 
 
 def _check_cloud(points: np.ndarray, name: str, minimum: int) -> np.ndarray:
@@ -151,8 +157,9 @@ def _check_not_degenerate(points: np.ndarray, voxel_size_m: float, name: str, re
     spread = principal_spread_m(points)
     shape = "linear" if spread[1] < voxel_size_m else "planar" if spread[0] < 0.25 * voxel_size_m else ""
     if shape:
-        raise RegistrationError("; ".join([*rejections, f"{name} is nearly {shape} (spread {spread[::-1]} m); "
-                                           "pose not observable"]))
+        raise RegistrationError(
+            "; ".join([*rejections, f"{name} is nearly {shape} (spread {spread[::-1]} m); pose not observable"])
+        )
 
 
 @dataclasses.dataclass
@@ -183,12 +190,17 @@ def prepare_model(model: ModelCloud, params: RegistrationParams = RegistrationPa
     if normals.shape != points.shape or not np.all(np.isfinite(normals)):
         raise RegistrationError(f"model normals must be finite and shaped like the points {points.shape}")
     coarse = _thin(points, normals, params.voxel_size_m, "model cloud")
-    return PreparedModel(coarse=coarse, features=_features(coarse, params),
-                         fine=_thin(points, normals, params.icp_voxel_size_m, "model cloud"), params=params)
+    return PreparedModel(
+        coarse=coarse,
+        features=_features(coarse, params),
+        fine=_thin(points, normals, params.icp_voxel_size_m, "model cloud"),
+        params=params,
+    )
 
 
-def register_model(model: PreparedModel, observed_world_m: np.ndarray,
-                   params: RegistrationParams | None = None, seed: int = 0) -> RegistrationResult:
+def register_model(
+    model: PreparedModel, observed_world_m: np.ndarray, params: RegistrationParams | None = None, seed: int = 0
+) -> RegistrationResult:
     """Pose of the model in world (4x4 model_to_world) that lays it onto the observed cluster.
 
     ``params`` default to those ``model`` was prepared with; the voxel sizes and feature
@@ -197,15 +209,20 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     params = model.params if params is None else params
     shared = ("voxel_size_m", "icp_voxel_size_m", "normal_radius_factor", "feature_radius_factor", "feature_max_nn")
     if any(getattr(model.params, name) != getattr(params, name) for name in shared):
-        raise RegistrationError(f"model was prepared with other {', '.join(shared)} than asked for; "
-                                "prepare it again with these parameters")
+        raise RegistrationError(
+            f"model was prepared with other {', '.join(shared)} than asked for; prepare it again with these parameters"
+        )
     if len(params.icp_distances_m) == 0 or min(params.icp_distances_m) <= 0:
         raise RegistrationError(f"ICP needs at least one positive distance, got {params.icp_distances_m}")
-    if min(params.resting_yaw_steps, params.resting_candidates, params.resting_sweep_iterations) < 1 \
-            or params.resting_sweep_points < 3:
-        raise RegistrationError("the upright search needs at least 1 yaw step, candidate and sweep iteration and "
-                                f"3 sweep points, got {params.resting_yaw_steps}, {params.resting_candidates}, "
-                                f"{params.resting_sweep_iterations} and {params.resting_sweep_points}")
+    if (
+        min(params.resting_yaw_steps, params.resting_candidates, params.resting_sweep_iterations) < 1
+        or params.resting_sweep_points < 3
+    ):
+        raise RegistrationError(
+            "the upright search needs at least 1 yaw step, candidate and sweep iteration and "
+            f"3 sweep points, got {params.resting_yaw_steps}, {params.resting_candidates}, "
+            f"{params.resting_sweep_iterations} and {params.resting_sweep_points}"
+        )
     observed = _check_cloud(observed_world_m, "observed cluster", 10)
     started = time.perf_counter()
     # Registration runs about the observed centroid: a scene far from the origin would otherwise
@@ -219,14 +236,24 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     coarse_s = fine_s = 0.0
 
     def result(model_to_world: np.ndarray, fitness: float, rmse_m: float, attempt: int) -> RegistrationResult:
-        return RegistrationResult(model_to_world=model_to_world, fitness=fitness, inlier_rmse_m=rmse_m,
-                                  attempts=attempt, time_ms={"coarse": coarse_s * 1e3, "fine": fine_s * 1e3,
-                                                             "total": (time.perf_counter() - started) * 1e3})
+        return RegistrationResult(
+            model_to_world=model_to_world,
+            fitness=fitness,
+            inlier_rmse_m=rmse_m,
+            attempts=attempt,
+            time_ms={"coarse": coarse_s * 1e3, "fine": fine_s * 1e3, "total": (time.perf_counter() - started) * 1e3},
+        )
 
     if params.table_z_m is not None:
         model_to_world, fitness, rmse_m, coarse_s, fine_s = _register_resting(
-            model_fine_points, np.asarray(model.coarse.points), np.asarray(source.points),
-            np.asarray(source_fine.points), params.table_z_m - offset[2], params, seed)
+            model_fine_points,
+            np.asarray(model.coarse.points),
+            np.asarray(source.points),
+            np.asarray(source_fine.points),
+            params.table_z_m - offset[2],
+            params,
+            seed,
+        )
         model_to_world[:3, 3] += offset
         problem = _quality_problem(fitness, rmse_m, model_to_world, model_fine_points, params)
         if not problem:
@@ -240,25 +267,43 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     source_fine.estimate_normals(normal_search)
 
     ransac_distance = voxel * params.ransac_distance_factor
-    checkers = [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-                _reg.CorrespondenceCheckerBasedOnDistance(ransac_distance)]
+    checkers = [
+        _reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+        _reg.CorrespondenceCheckerBasedOnDistance(ransac_distance),
+    ]
     criteria = _reg.RANSACConvergenceCriteria(params.ransac_max_iterations, params.ransac_confidence)
-    icp_criteria = _reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5,
-                                               max_iteration=params.icp_max_iterations)
+    icp_criteria = _reg.ICPConvergenceCriteria(
+        relative_fitness=1e-5, relative_rmse=1e-5, max_iteration=params.icp_max_iterations
+    )
     for attempt in range(1, params.attempts + 1):
         t0 = time.perf_counter()
         # No mutual filter: on small partial views it leaves too few correspondences.
         with seeded_open3d(seed, attempt):
             coarse = _reg.registration_ransac_based_on_feature_matching(
-                source, model.coarse, source_features, model.features, False, ransac_distance,
-                _reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria)
+                source,
+                model.coarse,
+                source_features,
+                model.features,
+                False,
+                ransac_distance,
+                _reg.TransformationEstimationPointToPoint(False),
+                3,
+                checkers,
+                criteria,
+            )
         t1 = time.perf_counter()
         fine = coarse
         # ICP from a wide capture distance down to the final one: a coarse pose several mm off
         # would otherwise lock onto the few correspondences inside the final distance.
         for distance in params.icp_distances_m:
-            fine = _reg.registration_icp(source_fine, model.fine, distance, fine.transformation,
-                                         _reg.TransformationEstimationPointToPlane(), icp_criteria)
+            fine = _reg.registration_icp(
+                source_fine,
+                model.fine,
+                distance,
+                fine.transformation,
+                _reg.TransformationEstimationPointToPlane(),
+                icp_criteria,
+            )
         t2 = time.perf_counter()
         coarse_s += t1 - t0
         fine_s += t2 - t1
@@ -274,9 +319,15 @@ def register_model(model: PreparedModel, observed_world_m: np.ndarray,
     raise RegistrationError(f"no pose passed after {params.attempts} attempts: " + "; ".join(rejections))
 
 
-def _planar_icp(observed_m: np.ndarray, model_tree: cKDTree, model_points_m: np.ndarray,
-                pose: tuple[float, float, float], model_z_m: float, distances_m: tuple[float, ...], max_iterations: int
-                ) -> tuple[tuple[float, float, float], float, float]:
+def _planar_icp(
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    pose: tuple[float, float, float],
+    model_z_m: float,
+    distances_m: tuple[float, ...],
+    max_iterations: int,
+) -> tuple[tuple[float, float, float], float, float]:
     """ICP over (yaw, x, y) of a model standing at height ``model_z_m``: the observed points pair
     with their nearest model points within each distance in turn, and a 2-D Kabsch fit on the
     pairs' x, y moves the model (a turn about z keeps every z). (pose, fitness, RMSE metres)."""
@@ -306,9 +357,15 @@ def _planar_icp(observed_m: np.ndarray, model_tree: cKDTree, model_points_m: np.
     return (yaw, x_m, y_m), fitness, rmse_m
 
 
-def _register_resting(model_points_m: np.ndarray, model_coarse_m: np.ndarray, observed_coarse_m: np.ndarray,
-                      observed_fine_m: np.ndarray, table_z_m: float, params: RegistrationParams, seed: int
-                      ) -> tuple[np.ndarray, float, float, float, float]:
+def _register_resting(
+    model_points_m: np.ndarray,
+    model_coarse_m: np.ndarray,
+    observed_coarse_m: np.ndarray,
+    observed_fine_m: np.ndarray,
+    table_z_m: float,
+    params: RegistrationParams,
+    seed: int,
+) -> tuple[np.ndarray, float, float, float, float]:
     """Best upright pose (model to the observed points' frame, fitness, RMSE m, sweep s,
     refinement s) of a model resting on the table at ``table_z_m`` (that frame), as its mesh
     frame stands, turned about the vertical.
@@ -326,32 +383,53 @@ def _register_resting(model_points_m: np.ndarray, model_coarse_m: np.ndarray, ob
     # Ranking the yaws needs only a fitness estimate: a few hundred observed points give it.
     observed_all_coarse_m = observed_coarse_m
     if len(observed_coarse_m) > params.resting_sweep_points:
-        observed_coarse_m = observed_coarse_m[np.random.default_rng(seed).choice(
-            len(observed_coarse_m), params.resting_sweep_points, replace=False)]
+        observed_coarse_m = observed_coarse_m[
+            np.random.default_rng(seed).choice(len(observed_coarse_m), params.resting_sweep_points, replace=False)
+        ]
     sweep = []
     for yaw in np.arange(params.resting_yaw_steps) * 2.0 * np.pi / params.resting_yaw_steps:
         c, s = np.cos(yaw), np.sin(yaw)
         start_xy = observed_coarse_m[:, :2].mean(axis=0) - np.array([[c, -s], [s, c]]) @ centre_xy
-        pose, fitness, rmse_m = _planar_icp(observed_coarse_m, coarse_tree, model_coarse_m, (float(yaw), *start_xy),
-                                            model_z_m, params.icp_distances_m[:1], params.resting_sweep_iterations)
+        pose, fitness, rmse_m = _planar_icp(
+            observed_coarse_m,
+            coarse_tree,
+            model_coarse_m,
+            (float(yaw), *start_xy),
+            model_z_m,
+            params.icp_distances_m[:1],
+            params.resting_sweep_iterations,
+        )
         sweep.append((fitness, -rmse_m, pose))
     t1 = time.perf_counter()
     refined = []
-    for _, _, pose in sorted(sweep, key=lambda row: row[:2], reverse=True)[:params.resting_candidates]:
-        pose, fitness, rmse_m = _planar_icp(observed_all_coarse_m, coarse_tree, model_coarse_m, pose, model_z_m,
-                                            params.icp_distances_m, params.icp_max_iterations)
+    for _, _, pose in sorted(sweep, key=lambda row: row[:2], reverse=True)[: params.resting_candidates]:
+        pose, fitness, rmse_m = _planar_icp(
+            observed_all_coarse_m,
+            coarse_tree,
+            model_coarse_m,
+            pose,
+            model_z_m,
+            params.icp_distances_m,
+            params.icp_max_iterations,
+        )
         refined.append((fitness, -rmse_m, pose))
     pose = max(refined, key=lambda row: row[:2])[2]
-    (yaw, x_m, y_m), fitness, rmse_m = _planar_icp(observed_fine_m, tree, model_points_m, pose, model_z_m,
-                                                   params.icp_distances_m[-1:], params.icp_max_iterations)
+    (yaw, x_m, y_m), fitness, rmse_m = _planar_icp(
+        observed_fine_m, tree, model_points_m, pose, model_z_m, params.icp_distances_m[-1:], params.icp_max_iterations
+    )
     model_to_world = np.eye(4)
     model_to_world[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
     model_to_world[:3, 3] = [x_m, y_m, model_z_m]
     return model_to_world, fitness, rmse_m, t1 - t0, time.perf_counter() - t1
 
 
-def _quality_problem(fitness: float, inlier_rmse_m: float, model_to_world: np.ndarray, model_points_m: np.ndarray,
-                     params: RegistrationParams) -> str:
+def _quality_problem(
+    fitness: float,
+    inlier_rmse_m: float,
+    model_to_world: np.ndarray,
+    model_points_m: np.ndarray,
+    params: RegistrationParams,
+) -> str:
     """Why an ICP result cannot be trusted, or "" if it passes every check."""
     if fitness < params.min_fitness:
         return f"fitness {fitness:.3f} < {params.min_fitness}"
@@ -363,8 +441,10 @@ def _quality_problem(fitness: float, inlier_rmse_m: float, model_to_world: np.nd
         # floating above it. A resting object touches the table with its lowest point.
         lowest = float((model_points_m @ model_to_world[2, :3]).min() + model_to_world[2, 3])
         if abs(lowest - params.table_z_m) > params.table_tolerance_m:
-            return (f"model's lowest point at z = {lowest * 1e3:.1f} mm, not resting on the table "
-                    f"(z = {params.table_z_m * 1e3:.1f} ± {params.table_tolerance_m * 1e3:.1f} mm)")
+            return (
+                f"model's lowest point at z = {lowest * 1e3:.1f} mm, not resting on the table "
+                f"(z = {params.table_z_m * 1e3:.1f} ± {params.table_tolerance_m * 1e3:.1f} mm)"
+            )
     return ""
 
 

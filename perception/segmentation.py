@@ -8,6 +8,7 @@ clustering with a density floor); keep the cluster nearest to a hint point (defa
 largest) and return its points at full resolution. ``point_counts`` holds the count after each
 step ("voxel" and "clustered" count grid points, "object" full-resolution points).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -49,10 +50,10 @@ class SegmentationParams:
 
 @dataclasses.dataclass
 class SegmentationResult:
-    points_world_m: np.ndarray          # (N, 3) float64, the object cluster (levelled onto z = 0 table)
-    centroid_world_m: np.ndarray        # (3,)
-    table_planes: list[np.ndarray]      # per camera (4,): a x + b y + c z + d = 0, unit normal, c > 0
-    point_counts: dict[str, int]        # after each step, in order
+    points_world_m: np.ndarray  # (N, 3) float64, the object cluster (levelled onto z = 0 table)
+    centroid_world_m: np.ndarray  # (3,)
+    table_planes: list[np.ndarray]  # per camera (4,): a x + b y + c z + d = 0, unit normal, c > 0
+    point_counts: dict[str, int]  # after each step, in order
 
 
 def crop_to_workspace(points_world_m: np.ndarray, params: SegmentationParams) -> np.ndarray:
@@ -68,8 +69,9 @@ def crop_to_workspace(points_world_m: np.ndarray, params: SegmentationParams) ->
     return points_world_m[inside]
 
 
-def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed: int = 0,
-                    camera_index: int = 0) -> np.ndarray:
+def fit_table_plane(
+    points_world_m: np.ndarray, params: SegmentationParams, seed: int = 0, camera_index: int = 0
+) -> np.ndarray:
     """RANSAC table plane (a, b, c, d), unit normal pointing up (c > 0), of a cropped cloud.
 
     ``points_world_m``: finite (N, 3) metres, N >= 3, not all on one line (identical or
@@ -79,22 +81,30 @@ def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed
     if points_world_m.ndim != 2 or points_world_m.shape[1] != 3 or not np.all(np.isfinite(points_world_m)):
         raise SegmentationError(f"points must be finite (N, 3), got shape {points_world_m.shape}")
     if len(points_world_m) < 3:
-        raise SegmentationError(f"only {len(points_world_m)} points inside the workspace "
-                                f"{params.workspace_min_m}..{params.workspace_max_m} m")
+        raise SegmentationError(
+            f"only {len(points_world_m)} points inside the workspace "
+            f"{params.workspace_min_m}..{params.workspace_max_m} m"
+        )
     # Three plane parameters are well fixed by a few thousand points; running RANSAC on all
     # ~10^5 table points would only cost time. The caller applies the plane to every point.
     rng = np.random.default_rng([abs(int(seed)), camera_index])
-    sample = points_world_m if len(points_world_m) <= params.plane_sample_points else \
-        points_world_m[rng.choice(len(points_world_m), params.plane_sample_points, replace=False)]
+    sample = (
+        points_world_m
+        if len(points_world_m) <= params.plane_sample_points
+        else points_world_m[rng.choice(len(points_world_m), params.plane_sample_points, replace=False)]
+    )
     # Spread of the sample across its second principal direction: zero for identical or
     # collinear points, where RANSAC's three-point planes have no normal.
     spread_m = principal_spread_m(sample)
     if not spread_m[1] > 1e-9 * max(1.0, float(np.abs(sample).max())):
-        raise SegmentationError(f"the {len(points_world_m)} workspace points are identical or collinear "
-                                f"(spread {spread_m[::-1]} m): no table plane")
+        raise SegmentationError(
+            f"the {len(points_world_m)} workspace points are identical or collinear "
+            f"(spread {spread_m[::-1]} m): no table plane"
+        )
     with seeded_open3d(seed):
         plane, _ = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample)).segment_plane(
-            params.plane_distance_m, 3, params.plane_iterations)
+            params.plane_distance_m, 3, params.plane_iterations
+        )
     plane = np.asarray(plane, dtype=np.float64)
     if not (np.all(np.isfinite(plane)) and np.linalg.norm(plane[:3]) > 0):
         raise SegmentationError(f"RANSAC found no plane in the {len(points_world_m)} workspace points")
@@ -103,8 +113,9 @@ def fit_table_plane(points_world_m: np.ndarray, params: SegmentationParams, seed
         plane = -plane
     tilt = np.arccos(np.clip(plane[2], -1.0, 1.0))
     if tilt > params.max_table_tilt_rad:
-        raise SegmentationError(f"largest plane is tilted {np.rad2deg(tilt):.1f} deg from horizontal; "
-                                "no table in the workspace")
+        raise SegmentationError(
+            f"largest plane is tilted {np.rad2deg(tilt):.1f} deg from horizontal; no table in the workspace"
+        )
     return plane
 
 
@@ -135,7 +146,7 @@ def above_table(points_xy_m: np.ndarray, height_m: np.ndarray, params: Segmentat
     band = np.abs(height_m) <= params.plane_distance_m
     band_height = height_m[band]
     # Robust σ (median absolute deviation) of the band; a few thousand points fix it well.
-    sample = band_height[::max(1, len(band_height) // params.plane_sample_points)]
+    sample = band_height[:: max(1, len(band_height) // params.plane_sample_points)]
     sigma_m = 1.4826 * float(np.median(np.abs(sample - np.median(sample)))) if len(sample) else 0.0
     cell = np.floor(points_xy_m[band] / params.voxel_size_m).astype(np.int64)
     cell -= cell.min(axis=0)
@@ -148,8 +159,12 @@ def above_table(points_xy_m: np.ndarray, height_m: np.ndarray, params: Segmentat
     return kept
 
 
-def segment_object(clouds_world_m: Sequence[np.ndarray], params: SegmentationParams = SegmentationParams(),
-                   hint_world_m: np.ndarray | None = None, seed: int = 0) -> SegmentationResult:
+def segment_object(
+    clouds_world_m: Sequence[np.ndarray],
+    params: SegmentationParams = SegmentationParams(),
+    hint_world_m: np.ndarray | None = None,
+    seed: int = 0,
+) -> SegmentationResult:
     """Cluster of object points from the cameras' world clouds, with point counts per step.
 
     Pass one (N, 3) cloud per camera (a single array is taken as one camera): the table plane is fitted per camera because each camera's
@@ -206,8 +221,9 @@ def segment_object(clouds_world_m: Sequence[np.ndarray], params: SegmentationPar
     counts["object"] = len(obj)
     if len(obj) < params.min_object_points:
         raise SegmentationError(f"object cluster has {len(obj)} points, fewer than {params.min_object_points}")
-    return SegmentationResult(points_world_m=obj, centroid_world_m=obj.mean(axis=0),
-                              table_planes=planes, point_counts=counts)
+    return SegmentationResult(
+        points_world_m=obj, centroid_world_m=obj.mean(axis=0), table_planes=planes, point_counts=counts
+    )
 
 
 # The table plane must be inside the crop even when a camera's calibration error lowers it.

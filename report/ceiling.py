@@ -18,6 +18,7 @@ knowledge gives reference estimates, scored exactly as ``dtx evaluate`` scores a
 A model's dissimilarity ratio is bounded by the rung that knows what its input knows; a target
 below that rung asks the depth-map for information it does not hold.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -49,8 +50,9 @@ def _without(scene: Scene, names: set[str]) -> Scene:
     return dataclasses.replace(scene, effects=[e for e in scene.effects if e.name not in names])
 
 
-def true_contact_images(scene: Scene, records: Sequence[SampleRecord], force_n: float,
-                        size: tuple[int, int]) -> np.ndarray:
+def true_contact_images(
+    scene: Scene, records: Sequence[SampleRecord], force_n: float, size: tuple[int, int]
+) -> np.ndarray:
     """N x H x W x 3 uint8: each record's grasp rendered again in ``scene`` at its true pose
     (the commanded top-down grasp, closed with ``force_n``), resized to ``size`` as the
     collector resizes its frames."""
@@ -64,14 +66,16 @@ def true_contact_images(scene: Scene, records: Sequence[SampleRecord], force_n: 
     return np.stack(images)
 
 
-def depth_map_images(scene: Scene, depth_maps_m: np.ndarray, depth_crop_m: Sequence[float],
-                     size: tuple[int, int]) -> np.ndarray:
+def depth_map_images(
+    scene: Scene, depth_maps_m: np.ndarray, depth_crop_m: Sequence[float], size: tuple[int, int]
+) -> np.ndarray:
     """N x H x W x 3 uint8: each depth-map (gel frame, m; over the crop ``depth_crop_m`` = (x, y,
     z) extents) rendered as the gel gap map of the GelSight's field of view, without GelSight
     effects (sim.gelsight.render_depth_maps), resized to ``size`` as the collector resizes."""
     try:
-        images = render_depth_maps(scene_renderer(scene, effects=False), depth_maps_m,
-                                   (depth_crop_m[0], depth_crop_m[2]))
+        images = render_depth_maps(
+            scene_renderer(scene, effects=False), depth_maps_m, (depth_crop_m[0], depth_crop_m[2])
+        )
     except GelSightError as err:
         raise CeilingError(str(err)) from err
     return np.stack([resize_rgb(image, *size) for image in images])
@@ -83,8 +87,13 @@ def _scored(truth: np.ndarray, estimate: np.ndarray, objects: np.ndarray, seed: 
     return row
 
 
-def information_ceiling(root: str | os.PathLike[str], split: str = "test", force_n: float = GRASP_FORCE_N,
-                        seed: int = 0, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+def information_ceiling(
+    root: str | os.PathLike[str],
+    split: str = "test",
+    force_n: float = GRASP_FORCE_N,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
     """The three reference estimates of the module docstring for one split of a simulated
     session, each scored against the session's images like a model (``seed``: the
     baseline's random draws), overall and per object."""
@@ -109,29 +118,41 @@ def information_ceiling(root: str | os.PathLike[str], split: str = "test", force
     report(f"{RUNGS[0]}: rendering {len(records)} grasps again")
     estimates[RUNGS[0]] = true_contact_images(_without(scene, {"sensor_noise"}), records, force_n, size)
     report(f"{RUNGS[1]}: rendering {len(records)} grasps again")
-    estimates[RUNGS[1]] = true_contact_images(_without(scene, {"sensor_noise", "micro_relief"}), records, force_n,
-                                              size)
+    estimates[RUNGS[1]] = true_contact_images(_without(scene, {"sensor_noise", "micro_relief"}), records, force_n, size)
     report(f"{RUNGS[2]}: rendering {len(records)} depth-maps")
-    estimates[RUNGS[2]] = depth_map_images(scene, np.stack([s.depth_map_m for s in samples]),
-                                           reader.info.depth_crop_m, size)
+    estimates[RUNGS[2]] = depth_map_images(
+        scene, np.stack([s.depth_map_m for s in samples]), reader.info.depth_crop_m, size
+    )
     rungs = {name: _scored(truth, estimate, objects, seed) for name, estimate in estimates.items()}
-    return {"dataset": str(root), "scene": reader.info.scene, "split": split, "force_n": force_n,
-            "reproduces_session": rungs[RUNGS[0]]["ssim_model_mean"] >= REPRODUCES_SSIM, "rungs": rungs}
+    return {
+        "dataset": str(root),
+        "scene": reader.info.scene,
+        "split": split,
+        "force_n": force_n,
+        "reproduces_session": rungs[RUNGS[0]]["ssim_model_mean"] >= REPRODUCES_SSIM,
+        "rungs": rungs,
+    }
 
 
 def format_table(result: dict[str, Any]) -> str:
     """The ceiling as a plain-text table: one row per rung, then per object."""
     rungs = result["rungs"]
     n = rungs[RUNGS[0]]["n"]
-    lines = [f"information ceiling of {result['dataset']} ({result['split']} split, {n} pairs; scene "
-             f"{result['scene']}, grasp force {result['force_n']:g} N), scored like dtx evaluate:",
-             f"{'estimate':<34}{'object':<18}{'SSIM':>8}{'baseline':>10}{'ratio':>7}"]
+    lines = [
+        f"information ceiling of {result['dataset']} ({result['split']} split, {n} pairs; scene "
+        f"{result['scene']}, grasp force {result['force_n']:g} N), scored like dtx evaluate:",
+        f"{'estimate':<34}{'object':<18}{'SSIM':>8}{'baseline':>10}{'ratio':>7}",
+    ]
     for name, row in rungs.items():
         for label, stats in [("all", row), *row["objects"].items()]:
-            lines.append(f"{name if label == 'all' else '':<34}{label:<18}{stats['ssim_model_mean']:>8.3f}"
-                         f"{stats['ssim_baseline_mean']:>10.3f}{stats['dissimilarity_ratio']:>7.2f}")
+            lines.append(
+                f"{name if label == 'all' else '':<34}{label:<18}{stats['ssim_model_mean']:>8.3f}"
+                f"{stats['ssim_baseline_mean']:>10.3f}{stats['dissimilarity_ratio']:>7.2f}"
+            )
     if not result["reproduces_session"]:
-        lines.append(f"warning: the true-contact rendering scores {rungs[RUNGS[0]]['ssim_model_mean']:.3f} "
-                     f"(< {REPRODUCES_SSIM}) against the session's images: they were not made by this scene at "
-                     f"{result['force_n']:g} N, so the rungs are no ceiling for them")
+        lines.append(
+            f"warning: the true-contact rendering scores {rungs[RUNGS[0]]['ssim_model_mean']:.3f} "
+            f"(< {REPRODUCES_SSIM}) against the session's images: they were not made by this scene at "
+            f"{result['force_n']:g} N, so the rungs are no ceiling for them"
+        )
     return "\n".join(lines)

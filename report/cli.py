@@ -6,6 +6,7 @@ config (configs/quick.yaml) that made them; --reuse takes a cached sweep made by
 and config instead of measuring it again. Datasets and trained models live in DIR/work/<plan>
 and are reused by later runs either way (a model only if trained with the current config).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,13 +33,24 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """The ``report`` group and its ``accuracy-time`` command."""
     group = subparsers.add_parser("report", help="reports measured across the pipeline")
     commands = group.add_subparsers(dest="report_command", required=True, metavar="REPORT")
-    p = commands.add_parser("accuracy-time", help="what accuracy costs in time: sweeps, Pareto fronts, defaults",
-                            description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = commands.add_parser(
+        "accuracy-time",
+        help="what accuracy costs in time: sweeps, Pareto fronts, defaults",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", required=True, type=_out_dir, metavar="DIR", help="where report.md, plots, points go")
     p.add_argument("--quick", action="store_true", help="reduced sweeps for CI (<= 10 min on 2 cores)")
-    p.add_argument("--reuse", action="store_true", help="take sweeps cached in DIR/cache by the same plan and training config")
-    p.add_argument("--only", action="append", choices=SWEEP_NAMES, metavar="SWEEP",
-                   help=f"measure only these sweeps (repeatable): {', '.join(SWEEP_NAMES)}")
+    p.add_argument(
+        "--reuse", action="store_true", help="take sweeps cached in DIR/cache by the same plan and training config"
+    )
+    p.add_argument(
+        "--only",
+        action="append",
+        choices=SWEEP_NAMES,
+        metavar="SWEEP",
+        help=f"measure only these sweeps (repeatable): {', '.join(SWEEP_NAMES)}",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=run_accuracy_time)
 
@@ -72,9 +84,12 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
             print(f"report: measuring {name} ...", file=sys.stderr, flush=True)
             sweep_started = time.monotonic()
             measured = sweep(workspace)
-            entry = {**made_by, "seconds": round(time.monotonic() - sweep_started, 1),
-                     "measured_at": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-                     "points": json.loads(dumps(measured))}
+            entry = {
+                **made_by,
+                "seconds": round(time.monotonic() - sweep_started, 1),
+                "measured_at": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+                "points": json.loads(dumps(measured)),
+            }
             (cache / f"{name}.json").write_text(json.dumps(entry, indent=1) + "\n")
             timings.append(f"{name} {entry['seconds']:.0f} s")
         else:
@@ -83,18 +98,27 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
         entries.append(entry)
     elapsed = time.monotonic() - started
     measured = sum(entry["seconds"] for entry in entries)
-    header = [f"Mode: **{plan.name}**, seed {plan.seed}; this run took **{elapsed / 60:.1f} min** of wall time on "
-              f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}); "
-              f"measuring every sweep shown took **{measured / 60:.1f} min**.",
-              "", "Sweep times: " + "; ".join(timings) + "."]
+    header = [
+        f"Mode: **{plan.name}**, seed {plan.seed}; this run took **{elapsed / 60:.1f} min** of wall time on "
+        f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}); "
+        f"measuring every sweep shown took **{measured / 60:.1f} min**.",
+        "",
+        "Sweep times: " + "; ".join(timings) + ".",
+    ]
     if workspace.reused_models:
-        header += ["", f"Trained models reused from an earlier run in {workspace.root} (their training is not in "
-                   f"the times above; its CPU seconds per epoch are in the tables): "
-                   f"{', '.join(sorted(workspace.reused_models))}."]
+        header += [
+            "",
+            f"Trained models reused from an earlier run in {workspace.root} (their training is not in "
+            f"the times above; its CPU seconds per epoch are in the tables): "
+            f"{', '.join(sorted(workspace.reused_models))}.",
+        ]
     if plan.name != FULL.name:
-        header += ["", "Reduced from the full report: " + "; ".join(plan.reductions(FULL)) + ". These figures check "
-                   "the pipeline end to end; with so few contacts and epochs, SSIM differences within a few standard "
-                   "errors are noise, so take the defaults from the full report."]
+        header += [
+            "",
+            "Reduced from the full report: " + "; ".join(plan.reductions(FULL)) + ". These figures check "
+            "the pipeline end to end; with so few contacts and epochs, SSIM differences within a few standard "
+            "errors are noise, so take the defaults from the full report.",
+        ]
     path = write_report(args.out, points, header)
     print(f"report: {path} ({elapsed:.0f} s)")
     return 0

@@ -1,4 +1,5 @@
 """Pareto front of (time, accuracy) points and the recommended default among them."""
+
 from __future__ import annotations
 
 import math
@@ -15,8 +16,10 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:
     point dominates it. Equal points do not dominate each other, so both stay on the front.
     Points with a NaN coordinate are never on it (a failed measurement is no option)."""
     valid = [not (math.isnan(t) or math.isnan(s)) for t, s in points]
-    return [valid[i] and not any(valid[j] and dominates(points[j], p) for j in range(len(points)))
-            for i, p in enumerate(points)]
+    return [
+        valid[i] and not any(valid[j] and dominates(points[j], p) for j in range(len(points)))
+        for i, p in enumerate(points)
+    ]
 
 
 def recommend(points: Sequence[tuple[float, float]], tolerance: float) -> int | None:

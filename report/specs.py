@@ -1,5 +1,6 @@
 """What each sweep's "time" and "accuracy" are, how a table shows them and how close to the
 best accuracy a setting must be to be recommended."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,47 +38,135 @@ class Spec:
 
 
 SPECS: dict[str, Spec] = {
-    "density": Spec("Point-cloud density", "How dense must the object cloud be for the estimate? (collected "
-                    "session: depth-maps made again from the recorded model poses; SSIM on the contact windows, "
-                    "where a sparse map's no-contact estimate cannot score)", "density", "depth-map ms",
-                    "contact SSIM", True, 0.01,
-                    (("points_median", "model points"), ("thinning_ms", "thinning + index ms (once per cloud)"),
-                     ("contact_ssim_se", "contact s.e."), ("p_vs_no_contact", "p vs empty map"),
-                     ("ssim", "whole-image SSIM"), ("paper_ssim", "paper SSIM")),
-                    pipeline_setting="unfiltered"),
-    "registration_voxel": Spec("Registration voxel size", "Coarser FPFH voxels: faster, but how much pose error?",
-                               "voxel", "ms per registration", "ADD-S median (mm)", False, 0.5,
-                               (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted"))),
-    "registration_ransac": Spec("RANSAC iterations", "How many sample-consensus iterations are worth it?",
-                                "iterations", "ms per registration", "ADD-S median (mm)", False, 0.5,
-                                (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted"))),
-    "registration_icp": Spec("ICP distance stages", "Which ICP correspondence distances?",
-                             "stages", "ms per registration", "ADD-S median (mm)", False, 0.5,
-                             (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted"))),
-    "resolution": Spec("Depth-map resolution", "Finer bins: do they pay for their training and inference time? "
-                       "(collected session, depth-maps made again at each size; SSIM at 100 x 100 on the contact "
-                       "windows)", "bins", "training CPU s/epoch", "contact SSIM", True, 0.01,
-                       (("inference_ms_per_region", "inference ms/region"), ("contact_ssim_se", "contact s.e."),
-                        ("p_vs_no_contact", "p vs empty map"), ("ssim", "whole-image SSIM")),
-                       pipeline_setting="100 x 100"),
-    "training_length": Spec("Training length", "When does more training stop paying?",
-                            "epochs", "training CPU s", "validation SSIM", True, 0.01, (("val_l1", "val L1"),)),
-    "depth_effects": Spec("Simulated depth effects", "What does realistic depth data cost per frame, and "
-                          "what does registration lose on it?", "effects", "ms per depth frame",
-                          "ADD-S median (mm)", False, 0.5,
-                          (("registration_ms", "registration ms"), ("accepted_rate", "accepted")), realism=True),
-    "gelsight_effects": Spec("Simulated GelSight effects", "What does a model trained without an effect lose "
-                             "when tested with it, and what does the effect cost per frame?", "effects on",
-                             "ms per GelSight frame", "SSIM tested with them", True, 0.01,
-                             (("ssim_lost", "SSIM lost"), ("ssim_se", "SSIM s.e.")), realism=True),
-    "width": Spec("Generator width (trained)", "Does a wider generator estimate better, for its time?",
-                  "width", "ms per region (eager fp32)", "SSIM", True, 0.01,
-                  (("training_s_per_epoch", "training CPU s/epoch"), ("parameters", "parameters"),
-                   ("ssim_se", "SSIM s.e."))),
-    "inference": Spec("Generator width, precision, runtime", "Which variant serves the most regions per second "
-                      "without changing the estimate?", "variant", "ms per region", "SSIM vs fp32 eager",
-                      True, 0.01, (("regions_per_s", "regions/s"), ("p50_ms", "p50 ms (1 region)"))),
-    "dropout": Spec("Dropout samples for the uncertainty", "How many dropout passes make a calibrated "
-                    "uncertainty?", "samples", "ms per region", "r(std, error) per pixel", True, 0.05,
-                    (("image_r", "r per image"), ("mean_std", "mean std"))),
+    "density": Spec(
+        "Point-cloud density",
+        "How dense must the object cloud be for the estimate? (collected "
+        "session: depth-maps made again from the recorded model poses; SSIM on the contact windows, "
+        "where a sparse map's no-contact estimate cannot score)",
+        "density",
+        "depth-map ms",
+        "contact SSIM",
+        True,
+        0.01,
+        (
+            ("points_median", "model points"),
+            ("thinning_ms", "thinning + index ms (once per cloud)"),
+            ("contact_ssim_se", "contact s.e."),
+            ("p_vs_no_contact", "p vs empty map"),
+            ("ssim", "whole-image SSIM"),
+            ("paper_ssim", "paper SSIM"),
+        ),
+        pipeline_setting="unfiltered",
+    ),
+    "registration_voxel": Spec(
+        "Registration voxel size",
+        "Coarser FPFH voxels: faster, but how much pose error?",
+        "voxel",
+        "ms per registration",
+        "ADD-S median (mm)",
+        False,
+        0.5,
+        (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted")),
+    ),
+    "registration_ransac": Spec(
+        "RANSAC iterations",
+        "How many sample-consensus iterations are worth it?",
+        "iterations",
+        "ms per registration",
+        "ADD-S median (mm)",
+        False,
+        0.5,
+        (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted")),
+    ),
+    "registration_icp": Spec(
+        "ICP distance stages",
+        "Which ICP correspondence distances?",
+        "stages",
+        "ms per registration",
+        "ADD-S median (mm)",
+        False,
+        0.5,
+        (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted")),
+    ),
+    "resolution": Spec(
+        "Depth-map resolution",
+        "Finer bins: do they pay for their training and inference time? "
+        "(collected session, depth-maps made again at each size; SSIM at 100 x 100 on the contact "
+        "windows)",
+        "bins",
+        "training CPU s/epoch",
+        "contact SSIM",
+        True,
+        0.01,
+        (
+            ("inference_ms_per_region", "inference ms/region"),
+            ("contact_ssim_se", "contact s.e."),
+            ("p_vs_no_contact", "p vs empty map"),
+            ("ssim", "whole-image SSIM"),
+        ),
+        pipeline_setting="100 x 100",
+    ),
+    "training_length": Spec(
+        "Training length",
+        "When does more training stop paying?",
+        "epochs",
+        "training CPU s",
+        "validation SSIM",
+        True,
+        0.01,
+        (("val_l1", "val L1"),),
+    ),
+    "depth_effects": Spec(
+        "Simulated depth effects",
+        "What does realistic depth data cost per frame, and what does registration lose on it?",
+        "effects",
+        "ms per depth frame",
+        "ADD-S median (mm)",
+        False,
+        0.5,
+        (("registration_ms", "registration ms"), ("accepted_rate", "accepted")),
+        realism=True,
+    ),
+    "gelsight_effects": Spec(
+        "Simulated GelSight effects",
+        "What does a model trained without an effect lose "
+        "when tested with it, and what does the effect cost per frame?",
+        "effects on",
+        "ms per GelSight frame",
+        "SSIM tested with them",
+        True,
+        0.01,
+        (("ssim_lost", "SSIM lost"), ("ssim_se", "SSIM s.e.")),
+        realism=True,
+    ),
+    "width": Spec(
+        "Generator width (trained)",
+        "Does a wider generator estimate better, for its time?",
+        "width",
+        "ms per region (eager fp32)",
+        "SSIM",
+        True,
+        0.01,
+        (("training_s_per_epoch", "training CPU s/epoch"), ("parameters", "parameters"), ("ssim_se", "SSIM s.e.")),
+    ),
+    "inference": Spec(
+        "Generator width, precision, runtime",
+        "Which variant serves the most regions per second without changing the estimate?",
+        "variant",
+        "ms per region",
+        "SSIM vs fp32 eager",
+        True,
+        0.01,
+        (("regions_per_s", "regions/s"), ("p50_ms", "p50 ms (1 region)")),
+    ),
+    "dropout": Spec(
+        "Dropout samples for the uncertainty",
+        "How many dropout passes make a calibrated uncertainty?",
+        "samples",
+        "ms per region",
+        "r(std, error) per pixel",
+        True,
+        0.05,
+        (("image_r", "r per image"), ("mean_std", "mean std")),
+    ),
 }

@@ -8,6 +8,7 @@ The density and resolution sweeps run on a collected session, since what they ch
 the patch extractor makes depth-maps from registered models; the other learned sweeps compare
 networks and GelSight effects on analytic contacts, whose ground truth can be rendered again.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -59,8 +60,13 @@ REFERENCE_SIZE = 100  # the paper's depth-map and image size: every SSIM is take
 
 
 def _point(sweep: str, setting: str, time_value: float, accuracy: float | None, **extra: Any) -> Point:
-    return {"sweep": sweep, "setting": setting, "time": float(time_value),
-            "accuracy": float("nan") if accuracy is None else float(accuracy), **extra}
+    return {
+        "sweep": sweep,
+        "setting": setting,
+        "time": float(time_value),
+        "accuracy": float("nan") if accuracy is None else float(accuracy),
+        **extra,
+    }
 
 
 def _median_ms(function, runs: int) -> float:
@@ -77,8 +83,8 @@ class SessionTest:
     """The collected session's test split: records and 100 x 100 ground truth."""
 
     records: list[SampleRecord]
-    truth: np.ndarray         # N x 100 x 100 x 3 uint8
-    deformation: np.ndarray   # N x 100 x 100, summed |change| from the no-contact image (levels)
+    truth: np.ndarray  # N x 100 x 100 x 3 uint8
+    deformation: np.ndarray  # N x 100 x 100, summed |change| from the no-contact image (levels)
 
 
 def training_config() -> TrainConfig:
@@ -108,8 +114,17 @@ class Workspace:
         """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
         operator runs (Algorithm 1), ``plan.session_grasps`` grasps; resumed if interrupted."""
         out = (self.root / "session").resolve()
-        command = [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}",
-                   f"grasps:={self.plan.session_grasps}", f"seed:={self.plan.seed}", "record:=false"]
+        command = [
+            sys.executable,
+            "-m",
+            "dtx.cli",
+            "launch",
+            "launch/collect_sim.yaml",
+            f"out:={out}",
+            f"grasps:={self.plan.session_grasps}",
+            f"seed:={self.plan.seed}",
+            "record:=false",
+        ]
         if (out / "manifest.jsonl").exists():
             command.append("resume:=true")
         # A bus of its own, so that a graph the lab is running meanwhile is never touched; the
@@ -120,8 +135,9 @@ class Workspace:
         finally:
             shutil.rmtree(bus, ignore_errors=True)
         if result.returncode != 0:
-            raise RuntimeError(f"the collection session for the report failed (exit {result.returncode}): "
-                               f"dtx {' '.join(command[3:])}")
+            raise RuntimeError(
+                f"the collection session for the report failed (exit {result.returncode}): dtx {' '.join(command[3:])}"
+            )
         return out
 
     def session_at(self, bins: int) -> Path:
@@ -135,8 +151,11 @@ class Workspace:
         reader = DatasetReader(self.session)
         records = select_records(reader, "test")
         samples = [reader.load(r) for r in records]
-        return SessionTest(records, np.stack([s.tactile_rgb for s in samples]),
-                           np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]))
+        return SessionTest(
+            records,
+            np.stack([s.tactile_rgb for s in samples]),
+            np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
+        )
 
     def config(self, size: int, width: int, registered: bool) -> TrainConfig:
         """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``;
@@ -147,14 +166,21 @@ class Workspace:
         generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
         # One thread: on a shared machine extra OpenMP threads mostly wait for a core, and
         # the CPU seconds a sweep reports are then comparable from run to run.
-        return dataclasses.replace(base, seed=self.plan.seed, epochs=self.plan.epochs,
-                                   epochs_decay=self.plan.epochs, generator=generator, threads=1,
-                                   session_pose_sigma_mm=base.session_pose_sigma_mm if registered else 0.0)
+        return dataclasses.replace(
+            base,
+            seed=self.plan.seed,
+            epochs=self.plan.epochs,
+            epochs_decay=self.plan.epochs,
+            generator=generator,
+            threads=1,
+            session_pose_sigma_mm=base.session_pose_sigma_mm if registered else 0.0,
+        )
 
     def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:
         """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""
-        return self._trained(self.dataset(size), self.config(size, width, registered=False),
-                             self.root / f"train_{size}_w{width}")
+        return self._trained(
+            self.dataset(size), self.config(size, width, registered=False), self.root / f"train_{size}_w{width}"
+        )
 
     def library_at(self, bins: int) -> Path:
         """``plan.library_samples`` contact-library pairs (dataset.contact_library) in the
@@ -165,14 +191,25 @@ class Workspace:
             return out  # made by an earlier run, whose code version its dataset.json keeps
         session = DatasetReader(self.session)
         params, _ = depth_map_params(session)
-        return write_contact_library(out, self.plan.library_samples, self.plan.seed,
-                                     session.info.scene, params.y_range_m, params.margin_m, size=bins).root
+        return write_contact_library(
+            out,
+            self.plan.library_samples,
+            self.plan.seed,
+            session.info.scene,
+            params.y_range_m,
+            params.margin_m,
+            size=bins,
+        ).root
 
     def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
         """The width-16 model trained as the default is (the session with a contact library)
         at ``bins`` x ``bins``: see :meth:`_trained`."""
-        return self._trained(self.session_at(bins), self.config(bins, 16, registered=True),
-                             self.root / f"train_session_{bins}", libraries=(self.library_at(bins),))
+        return self._trained(
+            self.session_at(bins),
+            self.config(bins, 16, registered=True),
+            self.root / f"train_session_{bins}",
+            libraries=(self.library_at(bins),),
+        )
 
     def _trained(self, dataset: Path, config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
         """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
@@ -221,9 +258,15 @@ def _session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndar
     floor = contact_ssim(test.truth, test.deformation, np.repeat(no_contact[None], len(test.truth), axis=0))
     whole = ssim_rgb(test.truth, estimate)
     better = stats.wilcoxon(contact, floor, alternative="greater").pvalue if np.any(contact != floor) else 1.0
-    return {"contact_ssim": float(contact.mean()), "contact_ssim_se": _se(contact), "contact_pairs": len(contact),
-            "no_contact_ssim": round(float(floor.mean()), 4), "p_vs_no_contact": float(better),
-            "ssim": round(float(whole.mean()), 4), "ssim_se": _se(whole)}
+    return {
+        "contact_ssim": float(contact.mean()),
+        "contact_ssim_se": _se(contact),
+        "contact_pairs": len(contact),
+        "no_contact_ssim": round(float(floor.mean()), 4),
+        "p_vs_no_contact": float(better),
+        "ssim": round(float(whole.mean()), 4),
+        "ssim_se": _se(whole),
+    }
 
 
 def _no_contact_estimate(generator: torch.nn.Module, depth_range: tuple[float, float], size: int) -> np.ndarray:
@@ -245,10 +288,19 @@ def resolution(ws: Workspace) -> list[Point]:
         depth = np.stack([reader.load(r.sample_id).depth_map_m for r in test.records])
         estimate = predict(generator, depth, depth_range)
         inference_ms = _median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
-        scores = _session_scores(test, _resize(estimate, REFERENCE_SIZE),
-                                 _no_contact_estimate(generator, depth_range, size))
-        points.append(_point("resolution", f"{size} x {size}", _epoch_s(model), scores.pop("contact_ssim"),
-                             inference_ms_per_region=round(inference_ms, 3), **scores))
+        scores = _session_scores(
+            test, _resize(estimate, REFERENCE_SIZE), _no_contact_estimate(generator, depth_range, size)
+        )
+        points.append(
+            _point(
+                "resolution",
+                f"{size} x {size}",
+                _epoch_s(model),
+                scores.pop("contact_ssim"),
+                inference_ms_per_region=round(inference_ms, 3),
+                **scores,
+            )
+        )
     return points
 
 
@@ -276,9 +328,17 @@ def width(ws: Workspace) -> list[Point]:
         generator, depth_range = load_generator(model / "checkpoint.pt")
         ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
         inference_ms = _median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
-        points.append(_point("width", f"width {ngf}", inference_ms, ssim.mean(), ssim_se=_se(ssim),
-                             training_s_per_epoch=round(_epoch_s(model), 2),
-                             parameters=sum(p.numel() for p in generator.parameters())))
+        points.append(
+            _point(
+                "width",
+                f"width {ngf}",
+                inference_ms,
+                ssim.mean(),
+                ssim_se=_se(ssim),
+                training_s_per_epoch=round(_epoch_s(model), 2),
+                parameters=sum(p.numel() for p in generator.parameters()),
+            )
+        )
     return points
 
 
@@ -294,8 +354,10 @@ def _val_log(model: Path) -> list[dict[str, float]]:
 def training_length(ws: Workspace) -> list[Point]:
     """Validation SSIM after each epoch of the 100 x 100 model against its training CPU time."""
     model = ws.model()
-    return [_point("training_length", f"{int(row['epoch']) + 1} epoch(s)", cpu, row["val_ssim"], val_l1=row["val_l1"])
-            for row, cpu in zip(_val_log(model), np.cumsum(_cpu_s(model)))]
+    return [
+        _point("training_length", f"{int(row['epoch']) + 1} epoch(s)", cpu, row["val_ssim"], val_l1=row["val_l1"])
+        for row, cpu in zip(_val_log(model), np.cumsum(_cpu_s(model)))
+    ]
 
 
 def density(ws: Workspace) -> list[Point]:
@@ -323,11 +385,18 @@ def density(ws: Workspace) -> list[Point]:
             maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
             walls.append((time.perf_counter() - started) * 1e3)
         scores = _session_scores(test, predict(generator, np.stack(maps), depth_range), no_contact)
-        points.append(_point("density", "unfiltered" if value is None else f"{value:g} pts/cm³",
-                             statistics.median(walls), scores.pop("contact_ssim"),
-                             points_median=int(np.median([len(c.points_m) for c in clouds.values()])),
-                             thinning_ms=round(statistics.median(thinning), 3),
-                             paper_ssim=None if value is None else PAPER["density"].get(int(value)), **scores))
+        points.append(
+            _point(
+                "density",
+                "unfiltered" if value is None else f"{value:g} pts/cm³",
+                statistics.median(walls),
+                scores.pop("contact_ssim"),
+                points_median=int(np.median([len(c.points_m) for c in clouds.values()])),
+                thinning_ms=round(statistics.median(thinning), 3),
+                paper_ssim=None if value is None else PAPER["density"].get(int(value)),
+                **scores,
+            )
+        )
     return points
 
 
@@ -337,20 +406,30 @@ def gelsight_effects(ws: Workspace) -> list[Point]:
     items, _ = ws.test
     generator, depth_range = load_generator(ws.model() / "checkpoint.pt")
     reader = DatasetReader(ws.dataset(REFERENCE_SIZE))
-    estimate = predict(generator, np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")]),
-                       depth_range)
+    estimate = predict(
+        generator, np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")]), depth_range
+    )
     plain, pitch = gelsight_renderer(REFERENCE_SIZE)
     gaps = [gel_gap_from_surface(c.surface, REFERENCE_SIZE, REFERENCE_SIZE, pitch) for c in items]
     points, ideal = [], None
     for names in ((), *((n,) for n in GELSIGHT_EFFECTS), tuple(GELSIGHT_EFFECTS)):
-        renderer = GelSightRenderer(plain.config, effects=[make_effect(n) for n in names],
-                                    rng=np.random.default_rng(ws.plan.seed))
+        renderer = GelSightRenderer(
+            plain.config, effects=[make_effect(n) for n in names], rng=np.random.default_rng(ws.plan.seed)
+        )
         frame_ms = _median_ms(lambda: renderer.render(gaps[0]), 5)
         ssim = ssim_rgb(np.stack([renderer.render(g) for g in gaps]), estimate)
         ideal = ssim.mean() if ideal is None else ideal
         setting = "none" if not names else ("all" if len(names) > 1 else names[0])
-        points.append(_point("gelsight_effects", setting, frame_ms, ssim.mean(), ssim_se=_se(ssim),
-                             ssim_lost=round(float(ideal - ssim.mean()), 4)))
+        points.append(
+            _point(
+                "gelsight_effects",
+                setting,
+                frame_ms,
+                ssim.mean(),
+                ssim_se=_se(ssim),
+                ssim_lost=round(float(ideal - ssim.mean()), 4),
+            )
+        )
     return points
 
 
@@ -374,8 +453,16 @@ def depth_effects(ws: Workspace) -> list[Point]:
         cases = _sweep_cases(SCENE, ws.plan.registration_poses, ws.plan.seed, [e for e in every if e not in kept])
         row = _sweep_row(cases, RegistrationParams(), {})
         setting = "none" if not kept else ("all" if len(kept) > 1 else kept[0])
-        points.append(_point("depth_effects", setting, frame_ms, row["add_s_mm_median"],
-                             accepted_rate=row["accepted_rate"], registration_ms=row["ms_median"]))
+        points.append(
+            _point(
+                "depth_effects",
+                setting,
+                frame_ms,
+                row["add_s_mm_median"],
+                accepted_rate=row["accepted_rate"],
+                registration_ms=row["ms_median"],
+            )
+        )
     return points
 
 
@@ -383,8 +470,16 @@ def _registration_points(sweep: str, cases, settings) -> list[Point]:
     points = []
     for label, params in settings:
         row = _sweep_row(cases, params, {})
-        points.append(_point(sweep, label, row["ms_median"], row["add_s_mm_median"],
-                             add_s_mm_p90=row["add_s_mm_p90"], accepted_rate=row["accepted_rate"]))
+        points.append(
+            _point(
+                sweep,
+                label,
+                row["ms_median"],
+                row["add_s_mm_median"],
+                add_s_mm_p90=row["add_s_mm_p90"],
+                accepted_rate=row["accepted_rate"],
+            )
+        )
     return points
 
 
@@ -393,31 +488,56 @@ def registration(ws: Workspace) -> list[Point]:
     effects): voxel size, RANSAC iterations, ICP distance stages -> ADD-S median and time."""
     cases = _sweep_cases(SCENE, ws.plan.registration_poses, ws.plan.seed, [])
     base = RegistrationParams()
-    voxel = [(f"{v} mm", dataclasses.replace(base, voxel_size_m=v * 1e-3,
-                                             icp_voxel_size_m=min(v * 1e-3, base.icp_voxel_size_m)))
-             for v in ws.plan.voxel_mm]
+    voxel = [
+        (
+            f"{v} mm",
+            dataclasses.replace(base, voxel_size_m=v * 1e-3, icp_voxel_size_m=min(v * 1e-3, base.icp_voxel_size_m)),
+        )
+        for v in ws.plan.voxel_mm
+    ]
     ransac = [(f"{n:,}", dataclasses.replace(base, ransac_max_iterations=n)) for n in ws.plan.ransac_iterations]
-    icp = [("/".join(map(str, stages)) + " mm",
-            dataclasses.replace(base, icp_distances_m=tuple(d * 1e-3 for d in stages)))
-           for stages in ws.plan.icp_distances_mm]
-    return (_registration_points("registration_voxel", cases, voxel)
-            + _registration_points("registration_ransac", cases, ransac)
-            + _registration_points("registration_icp", cases, icp))
+    icp = [
+        ("/".join(map(str, stages)) + " mm", dataclasses.replace(base, icp_distances_m=tuple(d * 1e-3 for d in stages)))
+        for stages in ws.plan.icp_distances_mm
+    ]
+    return (
+        _registration_points("registration_voxel", cases, voxel)
+        + _registration_points("registration_ransac", cases, ransac)
+        + _registration_points("registration_icp", cases, icp)
+    )
 
 
 def inference(ws: Workspace) -> list[Point]:
     """benchmarks.inference: width x precision x runtime -> SSIM against fp32 eager of the same
     weights, and time per region at batch 16."""
     threads = torch.get_num_threads()
-    args = argparse.Namespace(checkpoint=[], dataset=None, widths=list(ws.plan.widths), precisions=list(ws.plan.precisions),
-                              runtimes=list(ws.plan.runtimes), batch=16, seconds=ws.plan.inference_seconds,
-                              threads=threads, seed=ws.plan.seed, json=True)
+    args = argparse.Namespace(
+        checkpoint=[],
+        dataset=None,
+        widths=list(ws.plan.widths),
+        precisions=list(ws.plan.precisions),
+        runtimes=list(ws.plan.runtimes),
+        batch=16,
+        seconds=ws.plan.inference_seconds,
+        threads=threads,
+        seed=ws.plan.seed,
+        json=True,
+    )
     try:
         rows = inference_bench.run(args)
     finally:
         torch.set_num_threads(threads)
-    return [_point("inference", f"width {r['width']} {r['precision']} {r['runtime']}", 1e3 / r["regions_per_s"],
-                   r["ssim"], regions_per_s=r["regions_per_s"], p50_ms=r["p50_ms"]) for r in rows]
+    return [
+        _point(
+            "inference",
+            f"width {r['width']} {r['precision']} {r['runtime']}",
+            1e3 / r["regions_per_s"],
+            r["ssim"],
+            regions_per_s=r["regions_per_s"],
+            p50_ms=r["p50_ms"],
+        )
+        for r in rows
+    ]
 
 
 def dropout(ws: Workspace) -> list[Point]:
@@ -440,11 +560,27 @@ def dropout(ws: Workspace) -> list[Point]:
         ms = (time.perf_counter() - started) * 1e3 / len(items)
         pixel_r = float(np.corrcoef(std.ravel(), error.ravel())[0, 1])
         image_r = float(np.corrcoef(std.mean(axis=(1, 2)), error.mean(axis=(1, 2)))[0, 1])
-        points.append(_point("dropout", f"{samples} samples", ms, pixel_r, image_r=round(image_r, 4),
-                             mean_std=round(float(std.mean()), 3)))
+        points.append(
+            _point(
+                "dropout",
+                f"{samples} samples",
+                ms,
+                pixel_r,
+                image_r=round(image_r, 4),
+                mean_std=round(float(std.mean()), 3),
+            )
+        )
     return points
 
 
-SWEEPS = {"resolution": resolution, "training_length": training_length, "width": width, "density": density,
-          "gelsight_effects": gelsight_effects, "dropout": dropout, "inference": inference,
-          "registration": registration, "depth_effects": depth_effects}
+SWEEPS = {
+    "resolution": resolution,
+    "training_length": training_length,
+    "width": width,
+    "density": density,
+    "gelsight_effects": gelsight_effects,
+    "dropout": dropout,
+    "inference": inference,
+    "registration": registration,
+    "depth_effects": depth_effects,
+}

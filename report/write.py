@@ -1,4 +1,5 @@
 """report.md, one PNG per sweep (accuracy against time, Pareto front drawn) and points.json."""
+
 from __future__ import annotations
 
 import json
@@ -84,28 +85,36 @@ def reason(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
     if spec.realism and _spread(spec, points) > spec.tolerance:
         worst = min(valid, key=lambda p: spec.score(p["accuracy"]))
         plain = min(valid, key=lambda p: p["time"])
-        return (f"**{chosen['setting']}** — with {worst['setting']} the {spec.accuracy} is "
-                f"{_format(worst['accuracy'])} "
-                f"against {_format(best['accuracy'])} with {best['setting']}: figures measured without the effects "
-                f"would not hold on real data, and simulating them costs {_format(chosen['time'])} instead of "
-                f"{_format(plain['time'])} {spec.time}.")
+        return (
+            f"**{chosen['setting']}** — with {worst['setting']} the {spec.accuracy} is "
+            f"{_format(worst['accuracy'])} "
+            f"against {_format(best['accuracy'])} with {best['setting']}: figures measured without the effects "
+            f"would not hold on real data, and simulating them costs {_format(chosen['time'])} instead of "
+            f"{_format(plain['time'])} {spec.time}."
+        )
     left_out = ""
     if spec.informative:
         uninformative = [p["setting"] for p in valid if not _informative(p)]
         valid = [p for p in valid if _informative(p)]
         if uninformative:
-            left_out = (f" Left out: {', '.join(uninformative)} — the model's estimates from these maps do not beat "
-                        f"its estimate from an empty map on the contact windows (one-sided Wilcoxon p ≥ "
-                        f"{INFORMATIVE_P:g}), so their speed comes from dropping the contact.")
+            left_out = (
+                f" Left out: {', '.join(uninformative)} — the model's estimates from these maps do not beat "
+                f"its estimate from an empty map on the contact windows (one-sided Wilcoxon p ≥ "
+                f"{INFORMATIVE_P:g}), so their speed comes from dropping the contact."
+            )
         if not valid:
-            return (f"**{chosen['setting']}**, the pipeline's own — in no row do the model's estimates beat its "
-                    f"estimate from an empty map on the contact windows (one-sided Wilcoxon p < {INFORMATIVE_P:g}), "
-                    "so no setting earns its time or its savings: the model, not this setting, limits the "
-                    "accuracy here. Measure again with a model that uses the contact.")
+            return (
+                f"**{chosen['setting']}**, the pipeline's own — in no row do the model's estimates beat its "
+                f"estimate from an empty map on the contact windows (one-sided Wilcoxon p < {INFORMATIVE_P:g}), "
+                "so no setting earns its time or its savings: the model, not this setting, limits the "
+                "accuracy here. Measure again with a model that uses the contact."
+            )
         best = max(valid, key=lambda p: spec.score(p["accuracy"]))
-    text = (f"**{chosen['setting']}** — {spec.accuracy} {_format(chosen['accuracy'])} at "
-            f"{_format(chosen['time'])} {spec.time}: the fastest Pareto setting within {spec.tolerance:g} of the "
-            f"best {spec.accuracy} ({_format(best['accuracy'])}, {best['setting']})")
+    text = (
+        f"**{chosen['setting']}** — {spec.accuracy} {_format(chosen['accuracy'])} at "
+        f"{_format(chosen['time'])} {spec.time}: the fastest Pareto setting within {spec.tolerance:g} of the "
+        f"best {spec.accuracy} ({_format(best['accuracy'])}, {best['setting']})"
+    )
     if best is not chosen and chosen["time"] > 0:
         text += f", which takes {best['time'] / chosen['time']:.2g}x as long"
     return text + "." + left_out
@@ -115,9 +124,14 @@ def table(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
     header = [spec.setting, spec.accuracy, spec.time, *(title for _, title in spec.extras), "Pareto", "default"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for p in points:
-        cells = [p["setting"], _format(p["accuracy"]), _format(p["time"]),
-                 *(_format(p.get(key)) for key, _ in spec.extras),
-                 PARETO_MARK if p["pareto"] else "", DEFAULT_MARK if p["recommended"] else ""]
+        cells = [
+            p["setting"],
+            _format(p["accuracy"]),
+            _format(p["time"]),
+            *(_format(p.get(key)) for key, _ in spec.extras),
+            PARETO_MARK if p["pareto"] else "",
+            DEFAULT_MARK if p["recommended"] else "",
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -136,8 +150,9 @@ def plot(spec: Spec, points: Sequence[dict[str, Any]], path: Path) -> None:
     for p in valid:
         ax.annotate(p["setting"], (p["time"], p["accuracy"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
         if p["recommended"]:
-            ax.scatter([p["time"]], [p["accuracy"]], s=160, facecolors="none", edgecolors="tab:red",
-                       label="recommended")
+            ax.scatter(
+                [p["time"]], [p["accuracy"]], s=160, facecolors="none", edgecolors="tab:red", label="recommended"
+            )
     times = [p["time"] for p in valid if p["time"] > 0]
     if times and max(times) / min(times) > 20:
         ax.set_xscale("log")
@@ -155,17 +170,33 @@ def write_report(out: Path, points: Sequence[dict[str, Any]], header: Sequence[s
     duration, what was reduced) open the report. Returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
     marked = annotate(points)
-    lines = ["# What accuracy costs in time", "", *header, "",
-             f"In every table {PARETO_MARK} marks a Pareto-optimal setting (no other setting is both at least as "
-             f"fast and at least as accurate, and better in one) and {DEFAULT_MARK} the recommended one. "
-             "Every measured point is in points.json.", ""]
+    lines = [
+        "# What accuracy costs in time",
+        "",
+        *header,
+        "",
+        f"In every table {PARETO_MARK} marks a Pareto-optimal setting (no other setting is both at least as "
+        f"fast and at least as accurate, and better in one) and {DEFAULT_MARK} the recommended one. "
+        "Every measured point is in points.json.",
+        "",
+    ]
     for sweep, spec in SPECS.items():
         mine = [p for p in marked if p["sweep"] == sweep]
         if not mine:
             continue
         plot(spec, mine, out / f"{sweep}.png")
-        lines += [f"## {spec.title}", "", spec.question, "", table(spec, mine), "",
-                  "Recommended: " + reason(spec, mine), "", f"![{spec.title}]({sweep}.png)", ""]
+        lines += [
+            f"## {spec.title}",
+            "",
+            spec.question,
+            "",
+            table(spec, mine),
+            "",
+            "Recommended: " + reason(spec, mine),
+            "",
+            f"![{spec.title}]({sweep}.png)",
+            "",
+        ]
     (out / "points.json").write_text(dumps(marked))
     path = out / "report.md"
     path.write_text("\n".join(lines))

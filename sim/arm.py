@@ -10,6 +10,7 @@ as about 3 sigma). Joint positions come from the published DH parameters
 
 Poses are UR poses [x, y, z, rx, ry, rz] in ``world``; ``base_to_world`` places the robot.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -80,7 +81,9 @@ class ArmKinematics:
     """UR forward/inverse kinematics with the robot base placed in ``world``."""
 
     model: str = "ur5e"
-    base_to_world: np.ndarray = dataclasses.field(default_factory=lambda: pose_matrix(np.array([0.0, -0.4, 0.0, 0, 0, 0])))
+    base_to_world: np.ndarray = dataclasses.field(
+        default_factory=lambda: pose_matrix(np.array([0.0, -0.4, 0.0, 0, 0, 0]))
+    )
     tcp_offset: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(6))
 
     def __post_init__(self) -> None:
@@ -115,8 +118,10 @@ class ArmKinematics:
             if norm > 0.5:
                 step *= 0.5 / norm
             q += step
-        raise UnreachablePoseError(f"pose {np.round(pose_world, 4).tolist()} is out of reach of the {self.model} "
-                             f"(inverse kinematics did not converge)")
+        raise UnreachablePoseError(
+            f"pose {np.round(pose_world, 4).tolist()} is out of reach of the {self.model} "
+            f"(inverse kinematics did not converge)"
+        )
 
     @staticmethod
     def _error(target: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -164,8 +169,9 @@ class Motion:
         return pose, q
 
 
-def plan_linear(start: np.ndarray, q_start: np.ndarray, target: np.ndarray, q_target: np.ndarray,
-                speed: float, accel: float) -> Motion:
+def plan_linear(
+    start: np.ndarray, q_start: np.ndarray, target: np.ndarray, q_target: np.ndarray, speed: float, accel: float
+) -> Motion:
     """moveL: translation on the commanded profile; a pure rotation uses the same numbers in
     rad/s and rad/s^2 (as the UR controller does); the slower of the two sets the time."""
     dist = float(np.linalg.norm(target[:3] - start[:3]))
@@ -177,8 +183,9 @@ def plan_linear(start: np.ndarray, q_start: np.ndarray, target: np.ndarray, q_ta
     return Motion("linear", start, target, q_start, q_target, t_rot, angle, speed, accel)
 
 
-def plan_joints(start: np.ndarray, q_start: np.ndarray, target: np.ndarray, q_target: np.ndarray,
-                speed: float, accel: float) -> Motion:
+def plan_joints(
+    start: np.ndarray, q_start: np.ndarray, target: np.ndarray, q_target: np.ndarray, speed: float, accel: float
+) -> Motion:
     """moveJ: all joints start and stop together; the largest joint travel sets the time."""
     dq = float(np.max(np.abs(np.asarray(q_target) - np.asarray(q_start))))
     return Motion("joint", start, target, q_start, q_target, trapezoid_duration(dq, speed, accel), dq, speed, accel)

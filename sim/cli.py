@@ -1,4 +1,5 @@
 """``dtx sim ...`` commands (``dtx/cli.py`` calls :func:`add_commands`)."""
+
 from __future__ import annotations
 
 import argparse
@@ -13,34 +14,46 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     sim = subparsers.add_parser("sim", help="the simulated world")
     commands = sim.add_subparsers(dest="sim_command", required=True)
     check = commands.add_parser(
-        "gelsight-check", help="SSIM of rendered ball presses against real GelSight frames",
+        "gelsight-check",
+        help="SSIM of rendered ball presses against real GelSight frames",
         description="Render each ball press of FILE.npz (layout of assets/gelsight/ball_presses.npz) from its "
-                    "annotated centre and radius and compare it with the real frame by SSIM, full frame and "
-                    "48x48 crop, next to the background and random-frame baselines.")
+        "annotated centre and radius and compare it with the real frame by SSIM, full frame and "
+        "48x48 crop, next to the background and random-frame baselines.",
+    )
     check.add_argument("file", metavar="FILE.npz", help="background, frames, touch_center, touch_radius")
     check.add_argument("--json", action="store_true", help="print the result as JSON")
     check.add_argument("--seed", type=int, default=0, help="seed of the random-frame baseline (default 0)")
-    check.add_argument("--holdout", action="store_true",
-                       help="also refit the renderer's parameters on the even frames and score the odd ones "
-                            "(a minute or two)")
+    check.add_argument(
+        "--holdout",
+        action="store_true",
+        help="also refit the renderer's parameters on the even frames and score the odd ones (a minute or two)",
+    )
     check.set_defaults(func=gelsight_check)
     ceiling = commands.add_parser(
-        "ceiling", help="how well any model could estimate a simulated session's images from its depth-maps",
+        "ceiling",
+        help="how well any model could estimate a simulated session's images from its depth-maps",
         description="Render each pair of a simulated session again with what the simulated world knows and "
-                    "the depth-map hides (the true contact, the micro-relief) and score those estimates like "
-                    "dtx evaluate scores a model: the ceiling a model's SSIM and dissimilarity ratio can reach.")
+        "the depth-map hides (the true contact, the micro-relief) and score those estimates like "
+        "dtx evaluate scores a model: the ceiling a model's SSIM and dissimilarity ratio can reach.",
+    )
     ceiling.add_argument("dataset", help="a session collected on the simulated scene (launch/collect_sim.yaml)")
     ceiling.add_argument("--split", default="test", choices=["train", "val", "test", "all"])
-    ceiling.add_argument("--force-n", type=float, default=None,
-                         help="grasp force of the session in N (a dataset does not record it; default: the "
-                              "collector's, workcell.kinematics.GRASP_FORCE_N)")
+    ceiling.add_argument(
+        "--force-n",
+        type=float,
+        default=None,
+        help="grasp force of the session in N (a dataset does not record it; default: the "
+        "collector's, workcell.kinematics.GRASP_FORCE_N)",
+    )
     ceiling.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws (default 0)")
     ceiling.add_argument("--json", action="store_true", help="print the result as JSON")
     ceiling.set_defaults(func=information_ceiling)
     shapes = commands.add_parser(
-        "shapes", help="write the generated thin, flat and symmetric test objects as meshes",
+        "shapes",
+        help="write the generated thin, flat and symmetric test objects as meshes",
         description="Write the objects of sim/shapes.py (a flat tool, a thin plate, a flat L bracket, a puck, a "
-                    "disc, a cylinder, a sphere) as DIR/<name>.obj, e.g. for dtx perception register-check DIR/*.obj.")
+        "disc, a cylinder, a sphere) as DIR/<name>.obj, e.g. for dtx perception register-check DIR/*.obj.",
+    )
     shapes.add_argument("directory", metavar="DIR", help="where to write the meshes (made if missing)")
     shapes.add_argument("--only", nargs="+", metavar="NAME", help="write only these shapes")
     shapes.set_defaults(func=write_shape_files)
@@ -67,8 +80,13 @@ def information_ceiling(args: argparse.Namespace) -> int:
 
     force_n = GRASP_FORCE_N if args.force_n is None else args.force_n
     try:
-        result = ceiling(args.dataset, args.split, force_n, args.seed,
-                         progress=lambda line: print(f"ceiling: {line}", file=sys.stderr, flush=True))
+        result = ceiling(
+            args.dataset,
+            args.split,
+            force_n,
+            args.seed,
+            progress=lambda line: print(f"ceiling: {line}", file=sys.stderr, flush=True),
+        )
     except (CeilingError, DatasetError, ModelConfigError) as exc:
         print(f"dtx sim ceiling: {exc}", file=sys.stderr)
         return 2

@@ -30,6 +30,7 @@ Sources:
 - Microsoft Kinect v2 specification: depth range 0.5-4.5 m, 512 x 424 depth image, depth
   delivered as 16-bit millimetres (hence the 1 mm quantisation).
 """
+
 from __future__ import annotations
 
 import math
@@ -149,7 +150,9 @@ class AxialNoise:
     name = "axial_noise"
 
     def __init__(self, params: dict[str, Any]):
-        self.a0, self.a1, self.a2, self.a3 = (float(params[k]) for k in ("a0_mm", "a1_mm_per_m", "a2_mm_per_m2", "a3_mm"))
+        self.a0, self.a1, self.a2, self.a3 = (
+            float(params[k]) for k in ("a0_mm", "a1_mm_per_m", "a2_mm_per_m2", "a3_mm")
+        )
         self.scale = float(params["scale"])
 
     def sigma_m(self, z: np.ndarray, cos_incidence: np.ndarray) -> np.ndarray:
@@ -159,8 +162,14 @@ class AxialNoise:
         sigma_mm = self.a0 + self.a1 * z + self.a2 * z * z + self.a3 * z * np.sqrt(z) * ratio * ratio
         return np.maximum(sigma_mm, 0.0) * (1e-3 * self.scale)
 
-    def apply(self, z: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator,
-              sigma_static: np.ndarray | None = None, dynamic_idx: np.ndarray | None = None) -> np.ndarray:
+    def apply(
+        self,
+        z: np.ndarray,
+        cos_incidence: np.ndarray,
+        rng: np.random.Generator,
+        sigma_static: np.ndarray | None = None,
+        dynamic_idx: np.ndarray | None = None,
+    ) -> np.ndarray:
         """``sigma_static`` (optional, HxW): sigma already evaluated on the exact geometry
         (range and incidence are properties of the true surface); pixels in ``dynamic_idx``
         (re-cast this frame) and pixels without a static value are evaluated here."""
@@ -228,8 +237,9 @@ class Quantisation:
         return (np.round(z / self.step_m) * self.step_m).astype(np.float32)
 
 
-DEPTH_EFFECT_CLASSES = {cls.name: cls for cls in (ExtrinsicOffset, LateralNoise, FlyingPixels, AxialNoise,
-                                                    MissingReturns, Quantisation)}
+DEPTH_EFFECT_CLASSES = {
+    cls.name: cls for cls in (ExtrinsicOffset, LateralNoise, FlyingPixels, AxialNoise, MissingReturns, Quantisation)
+}
 
 
 class DepthEffectChain:
@@ -259,8 +269,14 @@ class DepthEffectChain:
                 static["axial_sigma"] = self.axial.sigma_m(z, cos_incidence).astype(np.float32)
         return static
 
-    def measure(self, z: np.ndarray, cos_incidence: np.ndarray | None, rng: np.random.Generator,
-                static: dict | None = None, dynamic_idx: np.ndarray | None = None) -> np.ndarray:
+    def measure(
+        self,
+        z: np.ndarray,
+        cos_incidence: np.ndarray | None,
+        rng: np.random.Generator,
+        static: dict | None = None,
+        dynamic_idx: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Run the measurement effects on the z-depth image, in the order of
         ``workcell.scene.DEPTH_EFFECT_ORDER``. ``static`` comes from :meth:`prepare` on the exact
         image; ``dynamic_idx`` are the pixels whose ray changed this frame."""

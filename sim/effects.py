@@ -7,6 +7,7 @@ effects it wants; an effect that is not listed is never run. The scene file list
 (``workcell.scene``); :func:`resolve_effects` checks them here, where they are simulated, and
 fills in the defaults. Every problem is a :class:`SceneError` naming the file and the key.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -48,56 +49,76 @@ EFFECTS: dict[str, EffectInfo] = {
     # --- depth camera (Kinect v2); models and sources in sim/depth_effects.py ---
     "extrinsic_offset": EffectInfo(
         "depth",
-        {"translation_mm": Param([0.0, 0.0, 0.0], -100.0, 100.0, "mm", size=3),
-         "rotation_deg": Param([0.0, 0.0, 0.0], -10.0, 10.0, "deg", size=3)},
+        {
+            "translation_mm": Param([0.0, 0.0, 0.0], -100.0, 100.0, "mm", size=3),
+            "rotation_deg": Param([0.0, 0.0, 0.0], -10.0, 10.0, "deg", size=3),
+        },
         "true camera pose = nominal pose * offset (camera frame); the driver reports the nominal",
-        per_camera=True),
+        per_camera=True,
+    ),
     "lateral_noise": EffectInfo(
         "depth",
         {"sigma_px": Param(0.5, 0.0, 5.0, "px")},
-        "Gaussian jitter of each pixel's viewing ray (edges wander)", per_camera=True),
+        "Gaussian jitter of each pixel's viewing ray (edges wander)",
+        per_camera=True,
+    ),
     "flying_pixels": EffectInfo(
         "depth",
-        {"jump_m": Param(0.02, 0.002, 1.0, "m"),
-         "probability": Param(0.5, 0.0, 1.0)},
-        "mixed foreground/background returns at depth discontinuities", per_camera=True),
+        {"jump_m": Param(0.02, 0.002, 1.0, "m"), "probability": Param(0.5, 0.0, 1.0)},
+        "mixed foreground/background returns at depth discontinuities",
+        per_camera=True,
+    ),
     "axial_noise": EffectInfo(
         "depth",
-        {"a0_mm": Param(1.5, 0.0, 50.0, "mm"),
-         "a1_mm_per_m": Param(-0.5, -50.0, 50.0, "mm/m"),
-         "a2_mm_per_m2": Param(0.3, 0.0, 50.0, "mm/m^2"),
-         "a3_mm": Param(0.1, 0.0, 50.0, "mm/m^1.5"),
-         "scale": Param(1.0, 0.0, 10.0)},
-        "Gaussian range noise sigma(z, theta) (Fankhauser et al. 2015)", per_camera=True),
+        {
+            "a0_mm": Param(1.5, 0.0, 50.0, "mm"),
+            "a1_mm_per_m": Param(-0.5, -50.0, 50.0, "mm/m"),
+            "a2_mm_per_m2": Param(0.3, 0.0, 50.0, "mm/m^2"),
+            "a3_mm": Param(0.1, 0.0, 50.0, "mm/m^1.5"),
+            "scale": Param(1.0, 0.0, 10.0),
+        },
+        "Gaussian range noise sigma(z, theta) (Fankhauser et al. 2015)",
+        per_camera=True,
+    ),
     "missing_returns": EffectInfo(
         "depth",
-        {"min_range_m": Param(0.5, 0.0, 2.0, "m"),
-         "max_range_m": Param(4.5, 0.5, 10.0, "m"),
-         "max_incidence_deg": Param(80.0, 30.0, 90.0, "deg"),
-         "ramp_deg": Param(10.0, 0.0, 40.0, "deg"),
-         "dropout_probability": Param(0.0, 0.0, 0.5)},
-        "no return out of range, at grazing incidence, and at random", per_camera=True),
+        {
+            "min_range_m": Param(0.5, 0.0, 2.0, "m"),
+            "max_range_m": Param(4.5, 0.5, 10.0, "m"),
+            "max_incidence_deg": Param(80.0, 30.0, 90.0, "deg"),
+            "ramp_deg": Param(10.0, 0.0, 40.0, "deg"),
+            "dropout_probability": Param(0.0, 0.0, 0.5),
+        },
+        "no return out of range, at grazing incidence, and at random",
+        per_camera=True,
+    ),
     "quantisation": EffectInfo(
-        "depth",
-        {"step_mm": Param(1.0, 0.01, 20.0, "mm")},
-        "depth rounded to the sensor's step", per_camera=True),
+        "depth", {"step_mm": Param(1.0, 0.01, 20.0, "mm")}, "depth rounded to the sensor's step", per_camera=True
+    ),
     # --- objects ---
     "micro_relief": EffectInfo(
         "object",
         {"scale": Param(1.0, 0.0, 5.0)},
-        "displaces object surfaces by the relief listed on each object (ridges, knurling, bumps)"),
+        "displaces object surfaces by the relief listed on each object (ridges, knurling, bumps)",
+    ),
     # --- arm ---
     "arm_repeatability": EffectInfo(
         "arm",
-        {"sigma_mm": Param(0.033, 0.0, 5.0, "mm"),
-         "sigma_deg": Param(0.0, 0.0, 1.0, "deg")},
-        "each move ends at the target plus Gaussian position (and orientation) error"),
+        {"sigma_mm": Param(0.033, 0.0, 5.0, "mm"), "sigma_deg": Param(0.0, 0.0, 1.0, "deg")},
+        "each move ends at the target plus Gaussian position (and orientation) error",
+    ),
 }
 
 # Order in which depth effects run, whatever the order in the scene file: the geometric
 # ones change what the rays hit, the measurement ones what the sensor reports.
-DEPTH_EFFECT_ORDER = ("extrinsic_offset", "lateral_noise", "flying_pixels", "axial_noise",
-                      "missing_returns", "quantisation")
+DEPTH_EFFECT_ORDER = (
+    "extrinsic_offset",
+    "lateral_noise",
+    "flying_pixels",
+    "axial_noise",
+    "missing_returns",
+    "quantisation",
+)
 
 
 def _gelsight_effect_info(name: str, cls: type) -> EffectInfo:
@@ -152,8 +173,11 @@ def _resolve(r: SceneReader, spec: EffectSpec) -> EffectSpec:
             make_effect(name, params)
         except Exception as exc:  # noqa: BLE001 - GelSightError or a bad type, reported with its key
             bad = next((k for k in params if k in str(exc)), None)
-            r.fail(f"{key}.{bad}" if bad else key, f"invalid GelSight effect parameters: {exc}",
-                   {k: p.default for k, p in info.params.items()})
+            r.fail(
+                f"{key}.{bad}" if bad else key,
+                f"invalid GelSight effect parameters: {exc}",
+                {k: p.default for k, p in info.params.items()},
+            )
     if name == "missing_returns" and params["max_range_m"] <= params["min_range_m"]:
         r.fail(f"{key}.max_range_m", "must exceed min_range_m", f"({params['min_range_m']}, 10.0] m")
     return dataclasses.replace(spec, params=params)

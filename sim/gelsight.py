@@ -26,6 +26,7 @@ nothing. The image is made in four steps, all in mm and pixels:
 The calibration was made on 120x160 images at ``calibration_mm_per_px``; other image sizes
 map each pixel to its position on the gel and evaluate the calibration there.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,9 +42,22 @@ from sim.effects import effects_of, resolve_effects
 from sim.gelsight_effects import EFFECTS, GelSightError, LightingDrift, Markers, SensorNoise, make_effect
 from workcell.scene import Scene
 
-__all__ = ["EFFECTS", "GelSightConfig", "GelSightError", "GelSightRenderer", "LightingDrift", "Markers",
-           "PolyCalibration", "SensorNoise", "gel_surface_depth_mm", "indentation_mm", "load_calibration",
-           "make_effect", "render_depth_maps", "scene_renderer"]
+__all__ = [
+    "EFFECTS",
+    "GelSightConfig",
+    "GelSightError",
+    "GelSightRenderer",
+    "LightingDrift",
+    "Markers",
+    "PolyCalibration",
+    "SensorNoise",
+    "gel_surface_depth_mm",
+    "indentation_mm",
+    "load_calibration",
+    "make_effect",
+    "render_depth_maps",
+    "scene_renderer",
+]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 POLYNOMIAL_FILE = "polycalib_small.npz"
@@ -109,25 +123,34 @@ class GelSightConfig:
             if not isinstance(value, (int, np.integer)) or not 3 <= value <= 4096:
                 raise GelSightError(f"GelSightConfig.{name} must be an integer in [3, 4096], got {value!r}")
         pitches = ("mm_per_px", "calibration_mm_per_px")
-        lengths = ("elastomer_thickness_mm", "spreading_length_mm", "optical_blur_mm", "compression_saturation_mm",
-                   "background_smoothing_mm")
+        lengths = (
+            "elastomer_thickness_mm",
+            "spreading_length_mm",
+            "optical_blur_mm",
+            "compression_saturation_mm",
+            "background_smoothing_mm",
+        )
         for name in pitches + lengths + ("shading_gain",):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise GelSightError(f"GelSightConfig.{name} must be a finite number, got {value!r}")
         for name in lengths:
             if not 0 < getattr(self, name) <= MAX_LENGTH_MM:
-                raise GelSightError(f"GelSightConfig.{name} must be in (0, {MAX_LENGTH_MM}] mm, "
-                                    f"got {getattr(self, name)!r}")
+                raise GelSightError(
+                    f"GelSightConfig.{name} must be in (0, {MAX_LENGTH_MM}] mm, got {getattr(self, name)!r}"
+                )
         for name in pitches:
             low, high = PIXEL_PITCH_RANGE_MM
             if not low <= getattr(self, name) <= high:
-                raise GelSightError(f"GelSightConfig.{name} must be in [{low}, {high}] mm per pixel, "
-                                    f"got {getattr(self, name)!r}")
+                raise GelSightError(
+                    f"GelSightConfig.{name} must be in [{low}, {high}] mm per pixel, got {getattr(self, name)!r}"
+                )
         if self.background_smoothing_mm / self.calibration_mm_per_px > MAX_BACKGROUND_SIGMA_PX:
-            raise GelSightError(f"GelSightConfig.background_smoothing_mm {self.background_smoothing_mm!r} is "
-                                f"{self.background_smoothing_mm / self.calibration_mm_per_px:.3g} calibration "
-                                f"pixels, more than {MAX_BACKGROUND_SIGMA_PX:g}")
+            raise GelSightError(
+                f"GelSightConfig.background_smoothing_mm {self.background_smoothing_mm!r} is "
+                f"{self.background_smoothing_mm / self.calibration_mm_per_px:.3g} calibration "
+                f"pixels, more than {MAX_BACKGROUND_SIGMA_PX:g}"
+            )
         if not 0.0 <= self.shading_gain <= 2.0:
             raise GelSightError(f"GelSightConfig.shading_gain must be in [0, 2], got {self.shading_gain!r}")
 
@@ -186,11 +209,12 @@ def _load_calibration(directory_name: str) -> PolyCalibration:
         tables = [np.asarray(poly[k], np.float64) for k in ("grad_r", "grad_g", "grad_b")]
     for table in tables:
         if table.shape != (n, n, 6) or not np.all(np.isfinite(table)):
-            raise GelSightError(f"{poly_path}: each grad_* must be a finite ({n}, {n}, 6) array, "
-                                f"got shape {table.shape}")
+            raise GelSightError(
+                f"{poly_path}: each grad_* must be a finite ({n}, {n}, 6) array, got shape {table.shape}"
+            )
     # Taxim's n bins are n - 1 bins of width range / (n - 1) plus one for the range's end
     # point alone; keep the n - 1 (the end point falls in the last of them).
-    coeffs = np.stack(tables, axis=2)[:n - 1, :n - 1]  # (n - 1, n - 1, 3, 6)
+    coeffs = np.stack(tables, axis=2)[: n - 1, : n - 1]  # (n - 1, n - 1, 3, 6)
     # The calibration saw almost no pixels at zero slope (only each press's centre), so the
     # direction bins of magnitude 0 disagree by noise; a flat gel has no direction, so use
     # their mean: the colour is then continuous at zero slope and the same for every flat pixel.
@@ -217,7 +241,7 @@ def _refine_bins(coeffs: np.ndarray, factor: int) -> np.ndarray:
     wrapped = np.concatenate([table[:, -1:], table, table[:, :1]], axis=1)
     # cv2.resize samples at pixel centres, so fine bin centres interpolate coarse bin centres.
     fine = cv2.resize(wrapped, ((n_dir + 2) * factor, n_mag * factor), interpolation=cv2.INTER_LINEAR)
-    fine = fine[:, factor:(n_dir + 1) * factor]
+    fine = fine[:, factor : (n_dir + 1) * factor]
     return np.ascontiguousarray(fine.reshape(n_mag * factor, n_dir * factor, *coeffs.shape[2:]))
 
 
@@ -238,8 +262,9 @@ def indentation_mm(gel_gap_mm: np.ndarray, max_mm: float) -> np.ndarray:
     return np.clip(-gel_gap_mm, 0.0, max_mm).astype(np.float32)
 
 
-def gel_surface_depth_mm(indentation: np.ndarray, spreading_sigma_px: tuple[float, float],
-                         blur_sigma_px: tuple[float, float]) -> np.ndarray:
+def gel_surface_depth_mm(
+    indentation: np.ndarray, spreading_sigma_px: tuple[float, float], blur_sigma_px: tuple[float, float]
+) -> np.ndarray:
     """Depth (mm, >= 0) of the deformed gel surface below its rest plane.
 
     The elastic spread of the indentation, with the contact re-imposed where the object is
@@ -251,10 +276,12 @@ def gel_surface_depth_mm(indentation: np.ndarray, spreading_sigma_px: tuple[floa
     # few times coarser than that length and interpolated back: the same field, far cheaper.
     coarsening = max(1, int(min(spreading_sigma_px) // SPREAD_GRID_PER_SIGMA))
     if coarsening > 1:
-        coarse = cv2.resize(indentation, (max(1, w // coarsening), max(1, h // coarsening)),
-                            interpolation=cv2.INTER_AREA)
-        spread = _gaussian_blur(coarse, (spreading_sigma_px[0] * coarse.shape[0] / h,
-                                         spreading_sigma_px[1] * coarse.shape[1] / w))
+        coarse = cv2.resize(
+            indentation, (max(1, w // coarsening), max(1, h // coarsening)), interpolation=cv2.INTER_AREA
+        )
+        spread = _gaussian_blur(
+            coarse, (spreading_sigma_px[0] * coarse.shape[0] / h, spreading_sigma_px[1] * coarse.shape[1] / w)
+        )
         spread = cv2.resize(spread, (w, h), interpolation=cv2.INTER_LINEAR)
     else:
         spread = _gaussian_blur(indentation, spreading_sigma_px)
@@ -282,8 +309,13 @@ class GelSightRenderer:
     background keeps the image's full resolution.
     """
 
-    def __init__(self, config: GelSightConfig = GelSightConfig(), effects: Sequence = (),
-                 rng: np.random.Generator | None = None, background: np.ndarray | None = None):
+    def __init__(
+        self,
+        config: GelSightConfig = GelSightConfig(),
+        effects: Sequence = (),
+        rng: np.random.Generator | None = None,
+        background: np.ndarray | None = None,
+    ):
         if not isinstance(config, GelSightConfig):
             raise GelSightError(f"config must be a GelSightConfig, got {type(config).__name__}")
         for effect in effects:
@@ -296,10 +328,13 @@ class GelSightRenderer:
         native = self.calibration.native_shape
         if background is None:
             background = self.calibration.background
-        if not (isinstance(background, np.ndarray) and background.dtype == np.uint8
-                and background.shape == native + (3,)):
-            raise GelSightError(f"background must be a {native[0]}x{native[1]}x3 uint8 frame (the calibration's "
-                                f"size), got {getattr(background, 'shape', None)} {getattr(background, 'dtype', None)}")
+        if not (
+            isinstance(background, np.ndarray) and background.dtype == np.uint8 and background.shape == native + (3,)
+        ):
+            raise GelSightError(
+                f"background must be a {native[0]}x{native[1]}x3 uint8 frame (the calibration's "
+                f"size), got {getattr(background, 'shape', None)} {getattr(background, 'dtype', None)}"
+            )
 
         h, w = config.shape
         row_mm = config.mm_per_px * (w / h) * (native[0] / native[1])
@@ -326,9 +361,12 @@ class GelSightRenderer:
         self._spread_px = tuple(config.spreading_length_mm / p for p in work_pitch_mm)
         self._blur_px = tuple(config.optical_blur_mm / p for p in work_pitch_mm)
 
-        smoothed = cv2.GaussianBlur(background.astype(np.float32), (0, 0),
-                                    config.background_smoothing_mm / config.calibration_mm_per_px,
-                                    borderType=cv2.BORDER_REPLICATE)
+        smoothed = cv2.GaussianBlur(
+            background.astype(np.float32),
+            (0, 0),
+            config.background_smoothing_mm / config.calibration_mm_per_px,
+            borderType=cv2.BORDER_REPLICATE,
+        )
         xx, yy = self._calibration_positions((h, w), self.pixel_pitch_mm)
         self._background = cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
@@ -407,21 +445,29 @@ class GelSightRenderer:
         return change
 
 
-def scene_renderer(scene: Scene, size: tuple[int, int] | None = None, effects: bool = True,
-                   rng: np.random.Generator | None = None) -> GelSightRenderer:
+def scene_renderer(
+    scene: Scene, size: tuple[int, int] | None = None, effects: bool = True, rng: np.random.Generator | None = None
+) -> GelSightRenderer:
     """The GelSight a scene describes: its gel and field of view, at its image size or at
     ``size`` (rows, columns; the same field in more or fewer pixels), with the GelSight effects
     the scene calls for unless ``effects`` is False."""
     gs = scene.gelsight
     h, w = size or (gs.image_height, gs.image_width)
-    config = GelSightConfig(image_height=h, image_width=w, mm_per_px=gs.mm_per_px * gs.image_width / w,
-                            elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3)
-    called_for = [make_effect(e.name, e.params) for e in effects_of(resolve_effects(scene), "gelsight")] if effects else []
+    config = GelSightConfig(
+        image_height=h,
+        image_width=w,
+        mm_per_px=gs.mm_per_px * gs.image_width / w,
+        elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3,
+    )
+    called_for = (
+        [make_effect(e.name, e.params) for e in effects_of(resolve_effects(scene), "gelsight")] if effects else []
+    )
     return GelSightRenderer(config, effects=called_for, rng=rng)
 
 
-def render_depth_maps(renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop_xz_m: tuple[float, float]
-                      ) -> np.ndarray:
+def render_depth_maps(
+    renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop_xz_m: tuple[float, float]
+) -> np.ndarray:
     """The renderer's image (N x H x W x 3 uint8, its own size) of each contact depth-map, read
     as the gel gap: N x rows x cols maps in the gel frame (m; rows along gel z, columns along gel
     x; perception.depthmap) over a crop of ``crop_xz_m`` (x, z extents) centred on the gel,
@@ -429,21 +475,29 @@ def render_depth_maps(renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop
     exactly what a learned model is fed; the crop must cover the renderer's field of view."""
     maps = np.asarray(depth_maps_m)
     if maps.ndim != 3 or not np.issubdtype(maps.dtype, np.floating):
-        raise GelSightError(f"depth-maps must be an N x rows x cols float array in metres, got {maps.shape} {maps.dtype}")
+        raise GelSightError(
+            f"depth-maps must be an N x rows x cols float array in metres, got {maps.shape} {maps.dtype}"
+        )
     h, w = renderer.config.shape
     pitch_rows_mm, pitch_cols_mm = renderer.pixel_pitch_mm
     crop_x_mm, crop_z_mm = crop_xz_m[0] * 1e3, crop_xz_m[1] * 1e3
     if w * pitch_cols_mm > crop_x_mm + 1e-6 or h * pitch_rows_mm > crop_z_mm + 1e-6:
-        raise GelSightError(f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
-                            f"GelSight's field of view ({w * pitch_cols_mm:.1f} x {h * pitch_rows_mm:.1f} mm)")
+        raise GelSightError(
+            f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
+            f"GelSight's field of view ({w * pitch_cols_mm:.1f} x {h * pitch_rows_mm:.1f} mm)"
+        )
     rows, cols = maps.shape[1:]
     # Bin-index coordinates of the camera's pixel centres on the gel (bin centres at integers).
     u = ((np.arange(w) - (w - 1) / 2) * pitch_cols_mm + crop_x_mm / 2) / crop_x_mm * cols - 0.5
     v = ((np.arange(h) - (h - 1) / 2) * pitch_rows_mm + crop_z_mm / 2) / crop_z_mm * rows - 0.5
     map_u, map_v = np.meshgrid(u.astype(np.float32), v.astype(np.float32))
     gaps_mm = np.nan_to_num(maps.astype(np.float32) * 1e3, nan=np.inf)
-    return np.stack([renderer.render(cv2.remap(gap, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
-                     for gap in gaps_mm])
+    return np.stack(
+        [
+            renderer.render(cv2.remap(gap, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+            for gap in gaps_mm
+        ]
+    )
 
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ touch, next to two baselines computed the same way: the background alone, and th
 ``--holdout`` refits the renderer's physical parameters on the even frames and reports the
 odd frames, with the fitted and with the default parameters: the defaults should hold there.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,8 +33,13 @@ KEYS = ("crop", "full", "background_crop", "background_full", "random_crop", "ra
 # The renderer's fitted parameters and where a fit starts: neutral, physically plausible
 # values (spread and blur of the order of the gel's features, no gain, light smoothing), not
 # the defaults, so that a holdout fit shows what the data alone determine.
-FIT_START = {"spreading_length_mm": 1.0, "optical_blur_mm": 0.25, "compression_saturation_mm": 1.0,
-             "shading_gain": 1.0, "background_smoothing_mm": 0.3}
+FIT_START = {
+    "spreading_length_mm": 1.0,
+    "optical_blur_mm": 0.25,
+    "compression_saturation_mm": 1.0,
+    "shading_gain": 1.0,
+    "background_smoothing_mm": 0.3,
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,14 +68,16 @@ def load_ball_presses(path: str | Path) -> BallPresses:
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
         raise GelSightError(f"{path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
     if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
-        raise GelSightError(f"{path}: frames must be Nx{'x'.join(map(str, background.shape))} uint8, "
-                            f"got {frames.shape} {frames.dtype}")
+        raise GelSightError(
+            f"{path}: frames must be Nx{'x'.join(map(str, background.shape))} uint8, got {frames.shape} {frames.dtype}"
+        )
     n = frames.shape[0]
     if n < 2:
         raise GelSightError(f"{path}: needs at least 2 frames for the random-frame baseline, got {n}")
     if centers.shape != (n, 2) or radii.shape != (n,):
-        raise GelSightError(f"{path}: touch_center must be {n}x2 and touch_radius {n}, "
-                            f"got {centers.shape} and {radii.shape}")
+        raise GelSightError(
+            f"{path}: touch_center must be {n}x2 and touch_radius {n}, got {centers.shape} and {radii.shape}"
+        )
     centers, radii = centers.astype(np.float64), radii.astype(np.float64)
     if not (np.all(np.isfinite(centers)) and np.all(np.isfinite(radii))):
         raise GelSightError(f"{path}: touch_center and touch_radius must be finite")
@@ -78,8 +86,9 @@ def load_ball_presses(path: str | Path) -> BallPresses:
     h, w = background.shape[:2]
     outside = (centers[:, 0] < 0) | (centers[:, 0] > w - 1) | (centers[:, 1] < 0) | (centers[:, 1] > h - 1)
     if np.any(outside):
-        raise GelSightError(f"{path}: touch_center outside the {w}x{h} frame for frames "
-                            f"{np.flatnonzero(outside).tolist()}")
+        raise GelSightError(
+            f"{path}: touch_center outside the {w}x{h} frame for frames {np.flatnonzero(outside).tolist()}"
+        )
     return BallPresses(background, frames, centers, radii)
 
 
@@ -91,24 +100,32 @@ def press_depth_mm(contact_radius_mm: float, ball_radius_mm: float = BALL_RADIUS
     if not (contact_radius_mm > 0 and ball_radius_mm > 0):
         raise GelSightError(f"contact and ball radius must be > 0 mm, got {contact_radius_mm!r}, {ball_radius_mm!r}")
     a = min(contact_radius_mm, ball_radius_mm)
-    return ball_radius_mm - math.sqrt(ball_radius_mm ** 2 - a ** 2)
+    return ball_radius_mm - math.sqrt(ball_radius_mm**2 - a**2)
 
 
-def ball_gap_map(shape: tuple[int, int], center_xy_px: Sequence[float], depth_mm: float, mm_per_px: float,
-                 ball_radius_mm: float = BALL_RADIUS_MM) -> np.ndarray:
+def ball_gap_map(
+    shape: tuple[int, int],
+    center_xy_px: Sequence[float],
+    depth_mm: float,
+    mm_per_px: float,
+    ball_radius_mm: float = BALL_RADIUS_MM,
+) -> np.ndarray:
     """Gel gap map (HxW float32 mm) of a ball whose lowest point is ``depth_mm`` into the gel."""
-    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
-    r2 = ((cols - center_xy_px[0]) ** 2 + (rows - center_xy_px[1]) ** 2) * mm_per_px ** 2
-    under_ball = r2 < ball_radius_mm ** 2
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
+    r2 = ((cols - center_xy_px[0]) ** 2 + (rows - center_xy_px[1]) ** 2) * mm_per_px**2
+    under_ball = r2 < ball_radius_mm**2
     gap = np.full(shape, np.inf)
-    gap[under_ball] = ball_radius_mm - np.sqrt(ball_radius_mm ** 2 - r2[under_ball]) - depth_mm
+    gap[under_ball] = ball_radius_mm - np.sqrt(ball_radius_mm**2 - r2[under_ball]) - depth_mm
     return gap.astype(np.float32)
 
 
 def ssim_rgb(a: np.ndarray, b: np.ndarray) -> float:
     """SSIM of two RGB uint8 images, Gaussian window sigma 1.5, mean over channels."""
-    return float(structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                                       data_range=255, channel_axis=-1))
+    return float(
+        structural_similarity(
+            a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255, channel_axis=-1
+        )
+    )
 
 
 def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int = CROP_PX) -> np.ndarray:
@@ -116,7 +133,7 @@ def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int = CRO
     h, w = image.shape[:2]
     x0 = int(np.clip(round(center_xy_px[0]) - size // 2, 0, w - size))
     y0 = int(np.clip(round(center_xy_px[1]) - size // 2, 0, h - size))
-    return image[y0:y0 + size, x0:x0 + size]
+    return image[y0 : y0 + size, x0 : x0 + size]
 
 
 def render_presses(presses: BallPresses, indices: Sequence[int], config: GelSightConfig) -> list[np.ndarray]:
@@ -160,8 +177,9 @@ def fit_parameters(presses: BallPresses, indices: Sequence[int], max_evaluations
         score = _mean_ssim(presses, indices, config)
         return -(score["crop"] + score["full"])
 
-    result = minimize(loss, start, method="Nelder-Mead",
-                      options={"maxfev": max_evaluations, "initial_simplex": simplex})
+    result = minimize(
+        loss, start, method="Nelder-Mead", options={"maxfev": max_evaluations, "initial_simplex": simplex}
+    )
     return dict(zip(names, map(float, result.x)))
 
 
@@ -183,16 +201,31 @@ def run_check(npz_path: str | Path, seed: int = 0, holdout: bool = False) -> dic
         full, crop = full_and_crop(renders[i])
         bg_full, bg_crop = full_and_crop(presses.background)
         random_scores = np.array([full_and_crop(presses.frames[j]) for j in others])
-        frames.append({"index": i, "crop": crop, "full": full, "background_crop": bg_crop,
-                       "background_full": bg_full, "random_crop": float(random_scores[:, 1].mean()),
-                       "random_full": float(random_scores[:, 0].mean())})
-    result = {"file": str(npz_path), "seed": seed, "n_frames": n,
-              "mean": {key: float(np.mean([f[key] for f in frames])) for key in KEYS}, "frames": frames}
+        frames.append(
+            {
+                "index": i,
+                "crop": crop,
+                "full": full,
+                "background_crop": bg_crop,
+                "background_full": bg_full,
+                "random_crop": float(random_scores[:, 1].mean()),
+                "random_full": float(random_scores[:, 0].mean()),
+            }
+        )
+    result = {
+        "file": str(npz_path),
+        "seed": seed,
+        "n_frames": n,
+        "mean": {key: float(np.mean([f[key] for f in frames])) for key in KEYS},
+        "frames": frames,
+    }
     if holdout:
         train, test = list(range(0, n, 2)), list(range(1, n, 2))
         fitted = fit_parameters(presses, train)
         result["holdout"] = {
-            "fit_frames": train, "test_frames": test, "fitted_parameters": fitted,
+            "fit_frames": train,
+            "test_frames": test,
+            "fitted_parameters": fitted,
             "test_default": _mean_ssim(presses, test, _file_config(presses)),
             "test_fitted": _mean_ssim(presses, test, _file_config(presses, **fitted)),
             "train_fitted": _mean_ssim(presses, train, _file_config(presses, **fitted)),
@@ -203,8 +236,7 @@ def run_check(npz_path: str | Path, seed: int = 0, holdout: bool = False) -> dic
 def format_table(result: dict) -> str:
     """The check's result as a readable table."""
     header = f"{'frame':>6} " + " ".join(f"{key:>16}" for key in KEYS)
-    lines = [f"gelsight-check {result['file']} ({result['n_frames']} frames, seed {result['seed']}): SSIM",
-             header]
+    lines = [f"gelsight-check {result['file']} ({result['n_frames']} frames, seed {result['seed']}): SSIM", header]
     for f in result["frames"]:
         lines.append(f"{f['index']:>6} " + " ".join(f"{f[key]:>16.4f}" for key in KEYS))
     lines.append(f"{'mean':>6} " + " ".join(f"{result['mean'][key]:>16.4f}" for key in KEYS))

@@ -15,6 +15,7 @@ that the renderer (``sim.gelsight``) can import the effects without an import cy
 Shadows are not modelled: the calibration carries no shadow data and the renderer must not
 invent lights.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -33,8 +34,10 @@ def _require(ok: bool, message: str) -> None:
 
 
 def _finite_in(name: str, value: float, lo: float, hi: float, unit: str) -> None:
-    _require(isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi,
-             f"{name} must be a number in [{lo}, {hi}] {unit}, got {value!r}")
+    _require(
+        isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi,
+        f"{name} must be a number in [{lo}, {hi}] {unit}, got {value!r}",
+    )
 
 
 @dataclasses.dataclass
@@ -46,8 +49,9 @@ class SensorNoise:
     def __post_init__(self) -> None:
         _finite_in("sensor_noise.sigma_levels", self.sigma_levels, 0.0, 50.0, "levels")
 
-    def apply(self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float],
-              rng: np.random.Generator) -> np.ndarray:
+    def apply(
+        self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float], rng: np.random.Generator
+    ) -> np.ndarray:
         noise = rng.standard_normal(image.shape, dtype=np.float32)
         return image + np.float32(self.sigma_levels) * noise
 
@@ -73,8 +77,9 @@ class Markers:
         _finite_in("markers.darkness", self.darkness, 0.0, 1.0, "")
         _finite_in("markers.lateral_shift_per_slope_mm", self.lateral_shift_per_slope_mm, 0.0, 5.0, "mm")
 
-    def apply(self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float],
-              rng: np.random.Generator) -> np.ndarray:
+    def apply(
+        self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float], rng: np.random.Generator
+    ) -> np.ndarray:
         h, w = gel_depth_mm.shape
         pitch_row, pitch_col = pixel_pitch_mm
         slope_row, slope_col = np.gradient(gel_depth_mm.astype(np.float32), pitch_row, pitch_col)
@@ -114,8 +119,9 @@ class LightingDrift:
         self.gain = np.ones(3, np.float32)  # state, not a parameter
         self._steps: np.random.Generator | None = None
 
-    def apply(self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float],
-              rng: np.random.Generator) -> np.ndarray:
+    def apply(
+        self, image: np.ndarray, gel_depth_mm: np.ndarray, pixel_pitch_mm: tuple[float, float], rng: np.random.Generator
+    ) -> np.ndarray:
         if self._steps is None:
             self._steps = np.random.default_rng(rng.integers(0, 2**63))
         step = self._steps.normal(0.0, self.step_fraction, 3).astype(np.float32)

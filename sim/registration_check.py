@@ -6,6 +6,7 @@ table (uniform x, y in the workspace, uniform yaw), both depth cameras are rende
 scene's depth effects (calibration offset included), and the pipeline runs on what the
 drivers would report: the depth images with the *nominal* extrinsics.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,11 +38,11 @@ DEFAULT_SCENE = "scenes/ycb_three.yaml"
 
 @dataclasses.dataclass
 class Trial:
-    accepted: bool          # the pipeline returned a pose (no PerceptionError)
-    add_s_mm: float         # NaN when not accepted
+    accepted: bool  # the pipeline returned a pose (no PerceptionError)
+    add_s_mm: float  # NaN when not accepted
     add_mm: float
-    total_ms: float         # segmentation + registration wall time, also when it failed
-    cpu_ms: float           # the same in process CPU time (steadier on a shared machine)
+    total_ms: float  # segmentation + registration wall time, also when it failed
+    cpu_ms: float  # the same in process CPU time (steadier on a shared machine)
     segmentation_ms: float
     registration_ms: float
     coarse_ms: float
@@ -53,28 +54,42 @@ def render_depth_images(world: SimWorld, scene: Scene) -> list[DepthImage]:
     """Both cameras' depth frames as the drivers publish them (nominal extrinsic)."""
     images = []
     for camera in scene.cameras:
-        intrinsics = CameraIntrinsics(width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy,
-                                      cx=camera.cx, cy=camera.cy)
-        images.append(DepthImage(depth=world.render_depth(camera.name), intrinsics=intrinsics,
-                                 camera_to_world=world.nominal_camera_to_world(camera.name)))
+        intrinsics = CameraIntrinsics(
+            width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy
+        )
+        images.append(
+            DepthImage(
+                depth=world.render_depth(camera.name),
+                intrinsics=intrinsics,
+                camera_to_world=world.nominal_camera_to_world(camera.name),
+            )
+        )
     return images
 
 
-def scene_with_object(scene: Scene, mesh_path: str | Path, rng: np.random.Generator,
-                      footprint_radius_m: float) -> Scene:
+def scene_with_object(
+    scene: Scene, mesh_path: str | Path, rng: np.random.Generator, footprint_radius_m: float
+) -> Scene:
     """The scene with its objects replaced by ``mesh_path`` at a random pose resting on the table."""
     low = np.asarray(scene.workspace_min_m[:2]) + footprint_radius_m
     high = np.asarray(scene.workspace_max_m[:2]) - footprint_radius_m
     if np.any(high <= low):
         raise PerceptionError(f"object of radius {footprint_radius_m:.3f} m does not fit the workspace")
     x_m, y_m = rng.uniform(low, high)
-    obj = ObjectSpec(name=Path(mesh_path).stem, mesh=str(mesh_path), primitive=None, x_m=float(x_m),
-                     y_m=float(y_m), yaw_rad=float(rng.uniform(0.0, 2.0 * np.pi)), z_m=None, relief=[])
+    obj = ObjectSpec(
+        name=Path(mesh_path).stem,
+        mesh=str(mesh_path),
+        primitive=None,
+        x_m=float(x_m),
+        y_m=float(y_m),
+        yaw_rad=float(rng.uniform(0.0, 2.0 * np.pi)),
+        z_m=None,
+        relief=[],
+    )
     return dataclasses.replace(scene, objects=[obj])
 
 
-def run_trial(scene: Scene, model: ModelCloud, prepared: PreparedModel, params: RegistrationParams,
-              seed: int) -> Trial:
+def run_trial(scene: Scene, model: ModelCloud, prepared: PreparedModel, params: RegistrationParams, seed: int) -> Trial:
     world = SimWorld(scene, seed=seed)
     clouds = depth_images_to_world(render_depth_images(world, scene))
     truth = world.object_to_world[0]
@@ -85,12 +100,30 @@ def run_trial(scene: Scene, model: ModelCloud, prepared: PreparedModel, params: 
         result = register_model(prepared, segmented.points_world_m, params, seed=seed)
     except PerceptionError as exc:
         nan = float("nan")
-        return Trial(False, nan, nan, (time.perf_counter() - started) * 1e3,
-                     (time.process_time() - started_cpu) * 1e3, nan, nan, nan, nan, str(exc))
+        return Trial(
+            False,
+            nan,
+            nan,
+            (time.perf_counter() - started) * 1e3,
+            (time.process_time() - started_cpu) * 1e3,
+            nan,
+            nan,
+            nan,
+            nan,
+            str(exc),
+        )
     total_ms, cpu_ms = (time.perf_counter() - started) * 1e3, (time.process_time() - started_cpu) * 1e3
-    return Trial(True, add_s_error_m(model.points_m, result.model_to_world, truth) * 1e3,
-                 add_error_m(model.points_m, result.model_to_world, truth) * 1e3, total_ms, cpu_ms,
-                 segmentation_ms, result.time_ms["total"], result.time_ms["coarse"], result.time_ms["fine"])
+    return Trial(
+        True,
+        add_s_error_m(model.points_m, result.model_to_world, truth) * 1e3,
+        add_error_m(model.points_m, result.model_to_world, truth) * 1e3,
+        total_ms,
+        cpu_ms,
+        segmentation_ms,
+        result.time_ms["total"],
+        result.time_ms["coarse"],
+        result.time_ms["fine"],
+    )
 
 
 def summarise(trials: Sequence[Trial], success_add_s_mm: float) -> dict:
@@ -121,9 +154,15 @@ def summarise(trials: Sequence[Trial], success_add_s_mm: float) -> dict:
     }
 
 
-def register_check(mesh_paths: Sequence[str | Path], trials: int, seed: int, scene_path: str = DEFAULT_SCENE,
-                   params: RegistrationParams = RegistrationParams(), success_add_s_mm: float = 10.0,
-                   drop_effects: Sequence[str] = ()) -> dict[str, dict]:
+def register_check(
+    mesh_paths: Sequence[str | Path],
+    trials: int,
+    seed: int,
+    scene_path: str = DEFAULT_SCENE,
+    params: RegistrationParams = RegistrationParams(),
+    success_add_s_mm: float = 10.0,
+    drop_effects: Sequence[str] = (),
+) -> dict[str, dict]:
     """Per mesh stem: success rate, ADD-S/ADD statistics (mm) and median stage times (ms).
 
     ``drop_effects`` names scene effects to switch off (e.g. ``extrinsic_offset`` to see the
@@ -140,8 +179,15 @@ def register_check(mesh_paths: Sequence[str | Path], trials: int, seed: int, sce
         prepared = prepare_model(model, params)
         # The simulator turns the mesh about its own origin, so that is where the radius counts from.
         footprint = float(np.max(np.linalg.norm(model.points_m[:, :2], axis=1)))
-        results = [run_trial(scene_with_object(scene, mesh_path, rng, footprint), model, prepared, params,
-                             seed=int(rng.integers(2 ** 31)))
-                   for _ in range(trials)]
+        results = [
+            run_trial(
+                scene_with_object(scene, mesh_path, rng, footprint),
+                model,
+                prepared,
+                params,
+                seed=int(rng.integers(2**31)),
+            )
+            for _ in range(trials)
+        ]
         report[Path(mesh_path).stem] = summarise(results, success_add_s_mm)
     return report

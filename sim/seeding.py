@@ -13,6 +13,7 @@ where it landed before. An effect that is a process over frames (the GelSight's
 ``lighting_drift`` walk) still follows the frame count, so a scene that calls for it is not
 reproducible frame for frame.
 """
+
 from __future__ import annotations
 
 import hashlib

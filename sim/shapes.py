@@ -11,6 +11,7 @@ Every mesh is closed and manifold (the simulator requires it), in metres, with i
 the centre of its footprint and its lowest point at z = 0 (the simulator turns an object about
 its origin and rests its lowest point on the table).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,8 +20,9 @@ import numpy as np
 import open3d as o3d
 
 
-def _extrude(outline_xy_m: np.ndarray, fan_centre_xy_m: tuple[float, float],
-             thickness_m: float) -> o3d.geometry.TriangleMesh:
+def _extrude(
+    outline_xy_m: np.ndarray, fan_centre_xy_m: tuple[float, float], thickness_m: float
+) -> o3d.geometry.TriangleMesh:
     """A flat part: the counter-clockwise outline extruded from z = 0 to ``thickness_m``.
 
     Caps are triangle fans from ``fan_centre_xy_m``, so the outline must be star-shaped about it
@@ -35,8 +37,12 @@ def _extrude(outline_xy_m: np.ndarray, fan_centre_xy_m: tuple[float, float],
     triangles = []
     for i in range(count):
         j = (i + 1) % count
-        triangles += [[2 * count, j, i], [2 * count + 1, count + i, count + j],  # caps: normals down, up
-                      [i, j, count + j], [i, count + j, count + i]]               # side: outward
+        triangles += [
+            [2 * count, j, i],
+            [2 * count + 1, count + i, count + j],  # caps: normals down, up
+            [i, j, count + j],
+            [i, count + j, count + i],
+        ]  # side: outward
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
     return mesh.subdivide_midpoint(2)  # smaller triangles on the long sides: even surface sampling
 
@@ -51,8 +57,16 @@ def _centred(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
 def shape_meshes() -> dict[str, o3d.geometry.TriangleMesh]:
     """The generated objects by name (the file stem :func:`write_shapes` gives them)."""
     # A flat tool (a scraper or spatula): 180 mm handle 20 mm wide, a 40 x 50 mm blade, 5 mm thick.
-    tool = [(0.0, -0.010), (0.130, -0.010), (0.130, -0.025), (0.180, -0.025),
-            (0.180, 0.025), (0.130, 0.025), (0.130, 0.010), (0.0, 0.010)]
+    tool = [
+        (0.0, -0.010),
+        (0.130, -0.010),
+        (0.130, -0.025),
+        (0.180, -0.025),
+        (0.180, 0.025),
+        (0.130, 0.025),
+        (0.130, 0.010),
+        (0.0, 0.010),
+    ]
     # An angle bracket lying flat: legs 100 and 60 mm long, 25 mm wide, 4 mm thick.
     bracket = [(0.0, 0.0), (0.100, 0.0), (0.100, 0.025), (0.025, 0.025), (0.025, 0.060), (0.0, 0.060)]
     return {

@@ -30,6 +30,7 @@ the gel around the contact is the GelSight renderer's business (``sim.gelsight``
 Depth frames: the world is static (objects do not move and the robot is not drawn), so
 each camera's exact ray cast is done once and cached; a frame then costs its effects only.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -59,6 +60,7 @@ _CONTACT_GRID_MM = 0.3
 # --------------------------------------------------------------------------------------
 # Meshes
 # --------------------------------------------------------------------------------------
+
 
 @functools.lru_cache(maxsize=32)
 def _load_mesh_file(path: str) -> tuple[np.ndarray, np.ndarray, str]:
@@ -105,6 +107,7 @@ def _rot_z(yaw: float) -> np.ndarray:
 # Micro-relief
 # --------------------------------------------------------------------------------------
 
+
 def _perpendicular(a: np.ndarray) -> np.ndarray:
     helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     e = np.cross(a, helper)
@@ -139,6 +142,7 @@ def relief_height_mm(relief: list[ReliefSpec], p_obj_m: np.ndarray, scale: float
 # --------------------------------------------------------------------------------------
 # Contact results
 # --------------------------------------------------------------------------------------
+
 
 @dataclasses.dataclass
 class FingerContact:
@@ -199,6 +203,7 @@ class _Camera:
 # The world
 # --------------------------------------------------------------------------------------
 
+
 class SimWorld:
     """Ray-cast world of one scene. ``seed`` (default: the scene's) seeds every effect's
     draws (``sim.seeding``); two worlds with the same scene and seed produce identical frames."""
@@ -224,10 +229,13 @@ class SimWorld:
             world_verts = verts @ R.T + T[:3, 3]
             lo, hi = world_verts.min(0), world_verts.max(0)
             if check and (np.any(lo < scene.workspace_min_m - 1e-6) or np.any(hi > scene.workspace_max_m + 1e-6)):
-                raise SceneError(label, f"objects[{i}].pose",
-                                 f"object {obj.name!r} spans {lo.round(3).tolist()}..{hi.round(3).tolist()} m, "
-                                 "outside the workspace",
-                                 f"workspace min_m {scene.workspace_min_m.tolist()} .. max_m {scene.workspace_max_m.tolist()}")
+                raise SceneError(
+                    label,
+                    f"objects[{i}].pose",
+                    f"object {obj.name!r} spans {lo.round(3).tolist()}..{hi.round(3).tolist()} m, "
+                    "outside the workspace",
+                    f"workspace min_m {scene.workspace_min_m.tolist()} .. max_m {scene.workspace_max_m.tolist()}",
+                )
             self.object_to_world.append(T)
             self.object_meshes.append((world_verts, tris))
             self.object_aabbs.append((lo, hi))
@@ -246,8 +254,11 @@ class SimWorld:
         self._relief_objects = [i for i, o in enumerate(scene.objects) if o.relief and self.relief_scale > 0]
         # Sphere primitives are ray-cast on their tessellation, then the hit is moved onto the
         # analytic sphere (float precision instead of the tessellation's chord error).
-        self._spheres = {i: (self.object_to_world[i][:3, 3].copy(), float(o.primitive["sphere"]))
-                         for i, o in enumerate(scene.objects) if o.primitive and "sphere" in o.primitive}
+        self._spheres = {
+            i: (self.object_to_world[i][:3, 3].copy(), float(o.primitive["sphere"]))
+            for i, o in enumerate(scene.objects)
+            if o.primitive and "sphere" in o.primitive
+        }
 
         self.cameras: dict[str, _Camera] = {}
         for ci, cam in enumerate(scene.cameras):
@@ -269,12 +280,20 @@ class SimWorld:
             return _primitive_mesh(obj.primitive)
         path = resolve_path(obj.mesh)
         if not Path(path).is_file():
-            raise SceneError(label, f"objects[{i}].mesh", f"mesh file {obj.mesh!r} not found",
-                             "a mesh path relative to the repository, e.g. assets/ycb/MustardBottle.obj")
+            raise SceneError(
+                label,
+                f"objects[{i}].mesh",
+                f"mesh file {obj.mesh!r} not found",
+                "a mesh path relative to the repository, e.g. assets/ycb/MustardBottle.obj",
+            )
         verts, tris, problem = _load_mesh_file(str(path))
         if problem:
-            raise SceneError(label, f"objects[{i}].mesh", f"{obj.mesh}: {problem}",
-                             "a non-empty, edge- and vertex-manifold triangle mesh (OBJ/PLY/STL, metres)")
+            raise SceneError(
+                label,
+                f"objects[{i}].mesh",
+                f"{obj.mesh}: {problem}",
+                "a non-empty, edge- and vertex-manifold triangle mesh (OBJ/PLY/STL, metres)",
+            )
         return verts, tris
 
     def _table_mesh(self) -> tuple[np.ndarray, np.ndarray]:
@@ -289,7 +308,7 @@ class SimWorld:
         chain = DepthEffectChain([s for s in specs if s is not None])
         nominal = cam.camera_to_world.copy()
         true = nominal @ chain.extrinsic.offset_matrix() if chain.extrinsic else nominal
-        vv, uu = np.mgrid[0:cam.height, 0:cam.width].astype(np.float32)
+        vv, uu = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float32)
         u, v = uu.reshape(-1), vv.reshape(-1)
         dirs_cam = self._pixel_dirs(cam, u, v)
         dirs_world, rays = self._rays(true, dirs_cam)
@@ -315,7 +334,7 @@ class SimWorld:
     def _check_camera_sees_workspace(self, cam, index: int, label: str) -> None:
         c = self.cameras[cam.name]
         step = 8
-        sel = ((c.u.astype(int) % step == 0) & (c.v.astype(int) % step == 0))
+        sel = (c.u.astype(int) % step == 0) & (c.v.astype(int) % step == 0)
         rays = c.rays.numpy()[sel]
         ans = self._scene.cast_rays(o3c.Tensor(np.ascontiguousarray(rays)))
         t = ans["t_hit"].numpy()
@@ -325,10 +344,13 @@ class SimWorld:
         hi = self.scene.workspace_max_m + 0.01
         inside = np.all((pts >= lo) & (pts <= hi), axis=1)
         if not np.any(inside):
-            raise SceneError(label, f"cameras[{index}].pose",
-                             f"camera {cam.name!r} sees nothing of the workspace",
-                             "a pose whose view contains part of the workspace box "
-                             f"{self.scene.workspace_min_m.tolist()}..{self.scene.workspace_max_m.tolist()} m")
+            raise SceneError(
+                label,
+                f"cameras[{index}].pose",
+                f"camera {cam.name!r} sees nothing of the workspace",
+                "a pose whose view contains part of the workspace box "
+                f"{self.scene.workspace_min_m.tolist()}..{self.scene.workspace_max_m.tolist()} m",
+            )
 
     # ---------------------------------------------------------------- depth
     def camera_names(self) -> list[str]:
@@ -365,8 +387,9 @@ class SimWorld:
             cos_inc = cos_inc.reshape(cam.height, cam.width)
         return chain.measure(z, cos_inc, rng, c.static, c.recast_idx if chain.lateral is not None else None)
 
-    def _cast_camera(self, c: "_Camera", rays: o3c.Tensor, dirs_world: np.ndarray,
-                     nthreads: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _cast_camera(
+        self, c: "_Camera", rays: o3c.Tensor, dirs_world: np.ndarray, nthreads: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Exact cast: (z-depth float32 with NaN, cos incidence float32 or None, geometry ids)."""
         ans = self._scene.cast_rays(rays, nthreads=nthreads)
         # Ray directions have a camera-frame z component of exactly 1, so the hit parameter
@@ -393,8 +416,10 @@ class SimWorld:
     def _build_cache(self, c: "_Camera") -> None:
         z, cos_inc, gids = self._cast_camera(c, c.rays, c.dirs_world)
         c.cache = (z, cos_inc)
-        c.static = c.effects.prepare(z.reshape(c.spec.height, c.spec.width),
-                                     None if cos_inc is None else cos_inc.reshape(c.spec.height, c.spec.width))
+        c.static = c.effects.prepare(
+            z.reshape(c.spec.height, c.spec.width),
+            None if cos_inc is None else cos_inc.reshape(c.spec.height, c.spec.width),
+        )
         if c.effects.lateral is None:
             return
         # Pixels whose jittered ray may land on another surface (depth jump, another
@@ -457,8 +482,14 @@ class SimWorld:
                 cos_inc[idx] = cr
         return z, cos_inc
 
-    def _refine_spheres(self, rays: np.ndarray, t: np.ndarray, gids: np.ndarray, normals: np.ndarray | None,
-                        geom_to_object: dict[int, int]) -> None:
+    def _refine_spheres(
+        self,
+        rays: np.ndarray,
+        t: np.ndarray,
+        gids: np.ndarray,
+        normals: np.ndarray | None,
+        geom_to_object: dict[int, int],
+    ) -> None:
         """In place: hits on sphere primitives moved onto the analytic sphere (t, normals)."""
         for gid, oi in geom_to_object.items():
             if oi not in self._spheres:
@@ -558,8 +589,9 @@ class SimWorld:
                     t[idx] += self._relief_dt(oi, p, ndotd[idx], np.ones(idx.size))
         return t, front
 
-    def near_gel(self, gel_to_world: np.ndarray, extent_mm: tuple[float, float] | None = None,
-                 reach_m: float = 0.01) -> bool:
+    def near_gel(
+        self, gel_to_world: np.ndarray, extent_mm: tuple[float, float] | None = None, reach_m: float = 0.01
+    ) -> bool:
         """Whether any object's bounding box comes within ``reach_m`` in front of (or up to
         the ray start behind) the gel area: a cheap test before casting a gap map."""
         extent_mm = self.default_extent_mm() if extent_mm is None else extent_mm
@@ -569,8 +601,13 @@ class SimWorld:
         lo, hi = pts.min(0), pts.max(0)
         return any(np.all(hi >= olo) and np.all(lo <= ohi) for olo, ohi in self.object_aabbs)
 
-    def gap_map(self, gel_to_world: np.ndarray, size: tuple[int, int],
-                extent_mm: tuple[float, float] | None = None, indentation_mm: float = 0.0) -> np.ndarray:
+    def gap_map(
+        self,
+        gel_to_world: np.ndarray,
+        size: tuple[int, int],
+        extent_mm: tuple[float, float] | None = None,
+        indentation_mm: float = 0.0,
+    ) -> np.ndarray:
         """Gel gap map (H x W float32 mm; + free, - pressing, +inf nothing) of a gel at
         ``gel_to_world`` with the object pressed ``indentation_mm`` further in."""
         extent_mm = self.default_extent_mm() if extent_mm is None else extent_mm
@@ -603,9 +640,14 @@ class SimWorld:
         area = float(np.count_nonzero(g < d) * cell_area_mm2)
         return d, area, saturated
 
-    def grasp_contact(self, tcp_pose_world: np.ndarray, force_n: float, size: tuple[int, int] | None = None,
-                      extent_mm: tuple[float, float] | None = None,
-                      gap_fingers: tuple[str, ...] = ("left", "right")) -> GraspContact:
+    def grasp_contact(
+        self,
+        tcp_pose_world: np.ndarray,
+        force_n: float,
+        size: tuple[int, int] | None = None,
+        extent_mm: tuple[float, float] | None = None,
+        gap_fingers: tuple[str, ...] = ("left", "right"),
+    ) -> GraspContact:
         """Close both gels from the open gripper along the tool y axis until each meets the
         object surface (each finger independently; no object reached = it closes to the
         centre), press with ``force_n`` on the gel's compliance (the finger closes further by
@@ -646,8 +688,15 @@ class SimWorld:
                 gaps[finger] = self.gap_map(gel, size, extent_mm)
         t_left, t_right = fingers["left"].travel_m, fingers["right"].travel_m
         width = max(0.0, gr.max_width_m - t_left - t_right)
-        return GraspContact(np.asarray(tcp_pose_world, float).copy(), float(force_n), width, fingers, gaps, self,
-                            centre_shift_m=0.5 * (t_right - t_left))
+        return GraspContact(
+            np.asarray(tcp_pose_world, float).copy(),
+            float(force_n),
+            width,
+            fingers,
+            gaps,
+            self,
+            centre_shift_m=0.5 * (t_right - t_left),
+        )
 
     def contact_width_m(self, tcp_pose_world: np.ndarray, force_n: float = 0.0) -> float | None:
         """Gripper width (m) at which closing at ``tcp_pose_world`` holds the object with

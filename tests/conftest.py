@@ -1,4 +1,5 @@
 """Shared fixtures: every test gets its own bus directory, so tests never hear each other."""
+
 from __future__ import annotations
 
 import shutil

@@ -1,4 +1,5 @@
 """MCAP bags: self-describing records, Foxglove copies, truncated files, record and replay."""
+
 from __future__ import annotations
 
 import contextlib
@@ -26,15 +27,23 @@ from nodes.registry import Registry
 
 
 def sample_messages() -> list[tuple[str, msgs.Message]]:
-    depth = msgs.DepthImage(header=msgs.Header(stamp_ns=1_000, frame_id="camera_left"),
-                            depth=np.arange(12, dtype=np.uint16).reshape(3, 4))
-    tactile = msgs.TactileImage(header=msgs.Header(stamp_ns=2_000, frame_id="gel_left"),
-                                image=np.full((2, 3, 3), 7, np.uint8), sensor="left")
-    cloud = msgs.PointCloud(header=msgs.Header(stamp_ns=3_000, frame_id="world"),
-                            points=np.random.default_rng(0).random((5, 3)).astype(np.float32))
+    depth = msgs.DepthImage(
+        header=msgs.Header(stamp_ns=1_000, frame_id="camera_left"), depth=np.arange(12, dtype=np.uint16).reshape(3, 4)
+    )
+    tactile = msgs.TactileImage(
+        header=msgs.Header(stamp_ns=2_000, frame_id="gel_left"), image=np.full((2, 3, 3), 7, np.uint8), sensor="left"
+    )
+    cloud = msgs.PointCloud(
+        header=msgs.Header(stamp_ns=3_000, frame_id="world"),
+        points=np.random.default_rng(0).random((5, 3)).astype(np.float32),
+    )
     state = msgs.GripperState(header=msgs.Header(stamp_ns=4_000), width_m=0.05)
-    return [("/camera/left/depth", depth), ("/gelsight/left/image", tactile), ("/cloud", cloud),
-            ("/gripper/state", state)]
+    return [
+        ("/camera/left/depth", depth),
+        ("/gelsight/left/image", tactile),
+        ("/cloud", cloud),
+        ("/gripper/state", state),
+    ]
 
 
 def write_bag(path: Path, compression: str = "lz4", repeat: int = 1, chunk_size: int = 1024 * 1024) -> None:
@@ -81,7 +90,7 @@ def _decodes_from_the_bag_alone(path: Path) -> None:
             frames, offset = [], 0
             while offset < len(record.data):
                 (length,) = struct.unpack_from("<Q", record.data, offset)
-                frames.append(record.data[offset + 8:offset + 8 + length])
+                frames.append(record.data[offset + 8 : offset + 8 + length])
                 offset += 8 + length
             header = msgpack.unpackb(frames[0])
             assert header["s"] == description["title"] and header["v"] == description["x-dtx-version"]
@@ -106,8 +115,9 @@ def test_truncated_bag_still_opens_and_says_so(tmp_path: Path) -> None:
     assert 0 < info.message_count < whole
     dtx_messages = sum(t["count"] for name, t in info.topics.items() if not name.endswith("/foxglove"))
     assert len(list(iter_envelopes(path))) == dtx_messages
-    result = subprocess.run([sys.executable, "-m", "dtx.cli", "bag", "info", str(path)], capture_output=True,
-                            text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "dtx.cli", "bag", "info", str(path)], capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0 and "truncated:   yes" in result.stdout
 
 
@@ -133,9 +143,11 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     counts: dict[str, int] = {}
     seen: list[str] = []
     subscribed: list = []  # a recorder node counts these subscribers' drops in its heartbeat
-    thread = threading.Thread(target=lambda: counts.update(record(path, recorder_bus, stop.is_set,
-                                                                  on_message=seen.append,
-                                                                  on_subscriber=subscribed.append)))
+    thread = threading.Thread(
+        target=lambda: counts.update(
+            record(path, recorder_bus, stop.is_set, on_message=seen.append, on_subscriber=subscribed.append)
+        )
+    )
     thread.start()
     assert publisher.wait_for_subscribers(1, 10.0)
     for i in range(50):
@@ -159,8 +171,10 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
         while (envelope := source.receive(3.0)) is not None:
             into.append(getattr(envelope.message, field))
 
-    listeners = [threading.Thread(target=listen, args=(subscriber, widths, "width_m")),
-                 threading.Thread(target=listen, args=(clock, ticks, "sim_time_ns"))]
+    listeners = [
+        threading.Thread(target=listen, args=(subscriber, widths, "width_m")),
+        threading.Thread(target=listen, args=(clock, ticks, "sim_time_ns")),
+    ]
     for listener in listeners:
         listener.start()
     published = play(path, player_bus, rate=None, clock=True, wait_for_subscribers_s=10.0)
@@ -182,8 +196,9 @@ def test_play_refuses_a_non_positive_rate(registry: Registry, tmp_path: Path) ->
     bus.close()
 
 
-def test_a_recorder_killed_at_random_moments_loses_at_most_a_second(registry: Registry, bus_dir: Path,
-                                                                     tmp_path: Path) -> None:
+def test_a_recorder_killed_at_random_moments_loses_at_most_a_second(
+    registry: Registry, bus_dir: Path, tmp_path: Path
+) -> None:
     """kill -9 of `dtx bag record` while a 50 Hz topic streams: the bag opens, is never empty,
     and holds everything published up to at most 1 s before the kill."""
     rng = np.random.default_rng()
@@ -192,9 +207,12 @@ def test_a_recorder_killed_at_random_moments_loses_at_most_a_second(registry: Re
         publisher = bus.publisher("/gripper/state", msgs.GripperState)
         for trial in range(4):
             path = tmp_path / f"cut{trial}.mcap"
-            recorder = subprocess.Popen([sys.executable, "-m", "dtx.cli", "bag", "record", "-o", str(path),
-                                         "/gripper/state"], env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            recorder = subprocess.Popen(
+                [sys.executable, "-m", "dtx.cli", "bag", "record", "-o", str(path), "/gripper/state"],
+                env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
             try:
                 assert publisher.wait_for_subscribers(1, timeout_s=120), "the recorder never subscribed"
                 # The kill window starts once the recorder has written its first chunk: a kill
@@ -235,21 +253,24 @@ def test_a_samples_contact_depth_map_is_a_foxglove_image_in_its_gel_frame(tmp_pa
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
     depth_map = np.linspace(-0.002, 0.01, 20, dtype=np.float32).reshape(4, 5)
-    sample = msgs.DatasetSample(header=msgs.Header(stamp_ns=5_000), sample_id="g00007_right", finger="right",
-                                depth_map_m=depth_map)
+    sample = msgs.DatasetSample(
+        header=msgs.Header(stamp_ns=5_000), sample_id="g00007_right", finger="right", depth_map_m=depth_map
+    )
     path = tmp_path / "session.mcap"
     writer = BagWriter(path)
     frames = encode("/collector/sample", sample, "test")
     writer.write(decode(frames), frames, log_time_ns=5_000)
     writer.close()
     with open(path, "rb") as stream:
-        [(schema, channel, record)] = [m for m in make_reader(stream).iter_messages()
-                                       if m[1].topic == "/collector/sample/foxglove"]
+        [(schema, channel, record)] = [
+            m for m in make_reader(stream).iter_messages() if m[1].topic == "/collector/sample/foxglove"
+        ]
     assert (schema.name, schema.encoding, channel.message_encoding) == ("foxglove.RawImage", "protobuf", "protobuf")
     pool = descriptor_pool.DescriptorPool()
     for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
         pool.Add(file)
     image = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(record.data)
     assert (image.frame_id, image.encoding, image.width, image.height) == ("gel_right", "32FC1", 5, 4)
-    np.testing.assert_array_equal(np.frombuffer(image.data, np.float32).reshape(image.height, image.step // 4),
-                                  depth_map)
+    np.testing.assert_array_equal(
+        np.frombuffer(image.data, np.float32).reshape(image.height, image.step // 4), depth_map
+    )

@@ -1,4 +1,5 @@
 """Topics and services between real ZeroMQ sockets: discovery, slow joiners, drops, bad peers."""
+
 from __future__ import annotations
 
 import contextlib
@@ -116,8 +117,7 @@ def test_a_stranger_sending_garbage_is_counted_and_ignored(buses: tuple[Bus, Bus
     stranger = stranger_context.socket(zmq.XPUB)
     address = registry.socket_address("stranger")
     stranger.bind(address)
-    registry.advertise(Endpoint("topic", "/depth", address, "stranger", os.getpid(),
-                                msgs.DepthImage.SCHEMA))
+    registry.advertise(Endpoint("topic", "/depth", address, "stranger", os.getpid(), msgs.DepthImage.SCHEMA))
     subscriber = b.subscriber("/depth", msgs.DepthImage)
     stranger.recv()  # subscription arrived
     stranger.send_multipart([b"/depth", b"\xff\x00garbage"])
@@ -213,9 +213,9 @@ def test_a_broken_request_whose_p_and_q_can_be_read_gets_them_back(buses: tuple[
     good = encode("/double", msgs.GripperCommand(width_m=0.1), "planner-7")
     header = msgpack.unpackb(good[1])
     broken = [
-        [b"/double", msgpack.packb({**header, "q": 41, "t": 1.5})],                # t a float
+        [b"/double", msgpack.packb({**header, "q": 41, "t": 1.5})],  # t a float
         [b"/double", msgpack.packb({**header, "q": 42, "s": "dtx.nothing.Here"})],  # unknown schema
-        [b"/double", msgpack.packb({**header, "q": 43, "v": 99})],                 # another version
+        [b"/double", msgpack.packb({**header, "q": 43, "v": 99})],  # another version
         [b"/double", msgpack.packb({**header, "q": 44, "d": {**header["d"], "extra": 1}})],
     ]
     context = zmq.Context()
@@ -298,6 +298,7 @@ def test_missing_key_file_is_a_clear_error(registry: Registry, tmp_path: Path) -
 
 def _free_port() -> int:
     import socket
+
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
@@ -313,16 +314,25 @@ def test_peer_on_another_machine_is_reached_through_the_launch_endpoints(tmp_pat
     authorized.mkdir()
     (authorized / "planner_pc.key").write_bytes((keys / "planner_pc.key").read_bytes())
     address = f"tcp://127.0.0.1:{_free_port()}"
-    robot = Bus("robot", Registry(tmp_path / "robot_machine"), TransportConfig(
-        curve=CurveConfig(server_keys.secret_key_file, authorized_keys_dir=str(authorized)),
-        endpoints={"/estimate": address, "/status": address.rsplit(":", 1)[0] + f":{_free_port()}"}))
-    planner = Bus("planner", Registry(tmp_path / "planner_machine"), TransportConfig(
-        curve=client_keys, peers={"/estimate": PeerConfig(address, str(keys / "robot_pc.key"))}))
+    robot = Bus(
+        "robot",
+        Registry(tmp_path / "robot_machine"),
+        TransportConfig(
+            curve=CurveConfig(server_keys.secret_key_file, authorized_keys_dir=str(authorized)),
+            endpoints={"/estimate": address, "/status": address.rsplit(":", 1)[0] + f":{_free_port()}"},
+        ),
+    )
+    planner = Bus(
+        "planner",
+        Registry(tmp_path / "planner_machine"),
+        TransportConfig(curve=client_keys, peers={"/estimate": PeerConfig(address, str(keys / "robot_pc.key"))}),
+    )
     server = robot.service("/estimate", msgs.GripperCommand, msgs.GripperState, _double)
     assert server.address == address
     with pumping(server):
         reply = planner.client("/estimate", msgs.GripperCommand, msgs.GripperState).call(
-            msgs.GripperCommand(width_m=0.25), timeout_s=5.0)
+            msgs.GripperCommand(width_m=0.25), timeout_s=5.0
+        )
     assert reply.width_m == pytest.approx(0.5)
     robot.close()
     planner.close()
@@ -345,8 +355,9 @@ def test_the_default_bus_directory_is_private(default_bus: Path) -> None:
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="giving a directory to another user needs root")
-def test_a_bus_directory_another_user_made_first_is_refused(default_bus: Path,
-                                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_bus_directory_another_user_made_first_is_refused(
+    default_bus: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from dtx.cli import main
     from nodes.registry import BusDirectoryError
 
@@ -370,8 +381,7 @@ def test_a_bus_directory_another_user_made_first_is_refused(default_bus: Path,
         Registry(explicit)
 
 
-def test_a_flood_is_served_in_slices_and_logged_sparingly(registry: Registry,
-                                                          caplog: pytest.LogCaptureFixture) -> None:
+def test_a_flood_is_served_in_slices_and_logged_sparingly(registry: Registry, caplog: pytest.LogCaptureFixture) -> None:
     from nodes.bus import SLICE_MESSAGES
 
     bus = Bus("server", registry)
@@ -416,8 +426,7 @@ def test_a_publisher_refuses_an_oversized_message_before_allocating_it(registry:
     bus.close()
 
 
-def test_a_reused_request_number_with_other_content_is_refused_not_answered_from_the_cache(
-        registry: Registry) -> None:
+def test_a_reused_request_number_with_other_content_is_refused_not_answered_from_the_cache(registry: Registry) -> None:
     from msgs.system import ServiceError
 
     bus = Bus("server", registry)
@@ -470,17 +479,23 @@ FIXTURE_NODES = Path(__file__).parent / "launch_fixtures"
 def start_fixture_node(name: str, params: str) -> "subprocess.Popen[bytes]":
     """A counter node (tests/launch_fixtures) in a process of its own, on this test's bus."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FIXTURE_NODES), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", name, "--params", params],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return subprocess.Popen(
+        [sys.executable, "-m", "fixture_nodes", "--name", name, "--params", params],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 def kill_mid_call(server: "subprocess.Popen[bytes]") -> threading.Thread:
     """SIGKILL ``server`` a second after the caller found it (its request is in flight by then,
     held for hold_s), then reap it as a launcher does (a zombie's pid still answers kill(pid, 0))."""
+
     def kill() -> None:
         time.sleep(1.0)  # the call has been sent by then; a held request never answers before hold_s
         server.kill()
         server.wait()
+
     thread = threading.Thread(target=kill, daemon=True)
     thread.start()
     return thread
@@ -523,6 +538,7 @@ def test_a_call_whose_server_is_killed_is_answered_by_its_respawn(registry: Regi
             nonlocal second
             kill_mid_call(first).join()
             second = start_fixture_node("holder", '{"hold_s": 0}')
+
         threading.Thread(target=respawn, daemon=True).start()
         timeout_s = 60.0
         started = time.monotonic()
@@ -539,6 +555,7 @@ def test_a_call_whose_server_is_killed_is_answered_by_its_respawn(registry: Regi
 
 def test_a_node_asked_to_stop_cancels_its_calls(registry: Registry) -> None:
     from nodes.node import Node
+
     server = start_fixture_node("holder", '{"hold_s": 600}')
     node = Node("caller", registry=registry)
     try:

@@ -1,5 +1,6 @@
 """The collection session end to end on the simulated scene: Algorithm 1 through every node,
 crash safety under kill -9, a clear stop on an unwritable output, and replay from a bag."""
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,11 @@ SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 
 
 def tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def collected(out: Path, grasps: int, seed: int) -> Path:
@@ -49,8 +53,9 @@ def uninterrupted_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("node", ["collector", "gripper"])
-def test_a_killed_node_is_respawned_and_the_dataset_is_exact(tmp_path: Path, node: str,
-                                                              uninterrupted_session: Path) -> None:
+def test_a_killed_node_is_respawned_and_the_dataset_is_exact(
+    tmp_path: Path, node: str, uninterrupted_session: Path
+) -> None:
     result = run_session(tmp_path / "session", grasps=6, seed=1, record=False, kill=node)
     assert result["exit_code"] == 0, result.get("collector_log")
     assert result["killed_pid"] is not None and result["respawned"]
@@ -70,8 +75,10 @@ def test_a_recorder_killed_mid_session_leaves_no_empty_file_and_the_dataset_whol
     result = run_recorder_kills(tmp_path / "session", grasps=30, seed=0, kills=2)
     assert result["kills"] == 2 and result["exit_code"] == 0 and result["dataset_check_ok"], result
     assert result["files"] == 3 and result["empty_files"] == 0, result
-    assert all(kill["lost_before_kill_s"] is not None and kill["gap_until_respawned_s"] is not None
-               for kill in result["per_kill"]), result
+    assert all(
+        kill["lost_before_kill_s"] is not None and kill["gap_until_respawned_s"] is not None
+        for kill in result["per_kill"]
+    ), result
 
 
 @pytest.fixture(scope="module")
@@ -115,12 +122,15 @@ def test_the_information_ceiling_reproduces_the_session_and_orders_its_rungs(sma
     assert rungs[0]["dissimilarity_ratio"] < rungs[2]["dissimilarity_ratio"]
     assert "true contact, no relief" in format_table(result)
     # At another force the true contact is rendered pressed differently: flagged, not trusted.
-    assert information_ceiling(small_session, split="all", force_n=40.0)["rungs"][RUNGS[0]]["ssim_model_mean"] < \
-        rungs[0]["ssim_model_mean"]
+    assert (
+        information_ceiling(small_session, split="all", force_n=40.0)["rungs"][RUNGS[0]]["ssim_model_mean"]
+        < rungs[0]["ssim_model_mean"]
+    )
 
 
-def test_the_information_ceiling_refuses_what_it_cannot_score(small_session: Path, tmp_path: Path,
-                                                              capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_information_ceiling_refuses_what_it_cannot_score(
+    small_session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert sim_cli(["sim", "ceiling", str(tmp_path / "none")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert sim_cli(["sim", "ceiling", str(small_session), "--force-n", "-3"]) == 2
@@ -150,9 +160,13 @@ def test_an_unwritable_output_stops_the_session_with_a_clear_error(tmp_path: Pat
 
 def replay(bag: Path, out: Path) -> subprocess.CompletedProcess[str]:
     with tempfile.TemporaryDirectory(prefix="dtxr") as bus_dir:
-        return subprocess.run([sys.executable, "-m", "dtx.cli", "launch", "launch/replay.yaml", f"bag:={bag}",
-                               f"out:={out}"], capture_output=True, text=True, timeout=300,
-                              env={**os.environ, "DTX_BUS_DIR": bus_dir})
+        return subprocess.run(
+            [sys.executable, "-m", "dtx.cli", "launch", "launch/replay.yaml", f"bag:={bag}", f"out:={out}"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, "DTX_BUS_DIR": bus_dir},
+        )
 
 
 def test_replaying_the_shipped_bag_twice_gives_identical_datasets(tmp_path: Path) -> None:
@@ -178,7 +192,9 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> 
         np.testing.assert_array_equal(sparse.load(record.sample_id).tactile_rgb, original.tactile_rgb)
         thinned = sparse.load(record.sample_id).depth_map_m
         assert np.count_nonzero(thinned != y_far) < 0.1 * np.count_nonzero(original.depth_map_m != y_far)
-    assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [r.sample_id for r in collected.records]
+    assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [
+        r.sample_id for r in collected.records
+    ]
     coarse = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "coarse", bins=50, progress=False).root)
     assert (coarse.info.image_height, coarse.info.image_width) == (50, 50)
     for record in collected.records:
@@ -203,13 +219,25 @@ def test_a_recorded_session_carries_the_transform_tree(tmp_path: Path) -> None:
     result = run_session(out, grasps=2, seed=3, record=True)
     assert result["exit_code"] == 0
     bag = next(out.glob("session*.mcap"))
-    frames = {(e.message.header.frame_id, e.message.child_frame_id) for _, e in iter_envelopes(bag)
-              if e.topic in ("/tf", "/perception/object_pose")}
-    assert frames == {("world", "camera_left"), ("world", "camera_right"), ("world", "tcp"),
-                      ("tcp", "gel_left"), ("tcp", "gel_right"), ("world", "object")}
+    frames = {
+        (e.message.header.frame_id, e.message.child_frame_id)
+        for _, e in iter_envelopes(bag)
+        if e.topic in ("/tf", "/perception/object_pose")
+    }
+    assert frames == {
+        ("world", "camera_left"),
+        ("world", "camera_right"),
+        ("world", "tcp"),
+        ("tcp", "gel_left"),
+        ("tcp", "gel_right"),
+        ("world", "object"),
+    }
     topics = bag_info(bag).topics
-    assert topics["/tf/foxglove"]["schema"] == topics["/perception/object_pose/foxglove"]["schema"] == \
-        "foxglove.FrameTransform"
+    assert (
+        topics["/tf/foxglove"]["schema"]
+        == topics["/perception/object_pose/foxglove"]["schema"]
+        == "foxglove.FrameTransform"
+    )
 
 
 @pytest.mark.slow
@@ -223,8 +251,12 @@ def test_malformed_messages_at_every_endpoint_of_a_live_session_crash_nothing() 
     assert result["nodes_crashed"] == [] and result["respawns"] == 0 and result["nodes_checked"] >= 10, result
     services = [row for row in result["endpoints"] if row["kind"] == "service"]
     topics = [row for row in result["endpoints"] if row["kind"] == "topic"]
-    assert {row["endpoint"] for row in services} >= {"/arm/move", "/gripper/command", "/perception/patch",
-                                                      "/perception/register"}
+    assert {row["endpoint"] for row in services} >= {
+        "/arm/move",
+        "/gripper/command",
+        "/perception/patch",
+        "/perception/register",
+    }
     assert all(row["sent"] == 200 and row["error_replies"] == 200 for row in services), services
     assert {"/gripper/state", "/camera_left/depth", "/gelsight_left/image"} <= {row["endpoint"] for row in topics}
     assert all(row["subscribers"] >= 1 for row in topics if row["endpoint"] == "/gripper/state")

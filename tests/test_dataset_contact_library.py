@@ -1,5 +1,6 @@
 """The contact library: pairs made in a session's geometry, reproducible, resumable, and each
 depth-map showing its contact where its image does."""
+
 from __future__ import annotations
 
 import argparse
@@ -72,11 +73,13 @@ def test_an_unknown_family_and_a_bad_count_are_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("depth_range", [["0.01", "-0.005"], ["nan", "0.01"]])
-def test_the_command_refuses_a_bad_depth_range_and_writes_nothing(tmp_path: Path, depth_range: list[str],
-                                                                 capsys: pytest.CaptureFixture) -> None:
+def test_the_command_refuses_a_bad_depth_range_and_writes_nothing(
+    tmp_path: Path, depth_range: list[str], capsys: pytest.CaptureFixture
+) -> None:
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers())
-    args = parser.parse_args(["dataset", "library", str(tmp_path / "lib"), "--samples", "2",
-                              "--depth-range-m", *depth_range])
+    args = parser.parse_args(
+        ["dataset", "library", str(tmp_path / "lib"), "--samples", "2", "--depth-range-m", *depth_range]
+    )
     assert args.func(args) == 2
     assert "error:" in capsys.readouterr().err and not (tmp_path / "lib").exists()

@@ -1,4 +1,5 @@
 """The on-disk dataset: atomic writes, resume, failures, checks, splits, export."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -22,8 +23,15 @@ from dataset.format import DatasetError, DatasetInfo, DatasetReader, DatasetWrit
 from dataset.splits import leave_one_object_out, split_grasps, split_records
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface, write_synthetic_dataset
 
-INFO = DatasetInfo(image_height=100, image_width=100, depth_range_m=(-0.0015, 0.0025), scene="test",
-                   effects=("none",), code_version="test", split_seed=3)
+INFO = DatasetInfo(
+    image_height=100,
+    image_width=100,
+    depth_range_m=(-0.0015, 0.0025),
+    scene="test",
+    effects=("none",),
+    code_version="test",
+    split_seed=3,
+)
 
 
 class ShadingRenderer:
@@ -41,17 +49,31 @@ def sample_arrays(seed: int) -> dict[str, np.ndarray]:
     image = rng.integers(0, 256, (100, 100, 3), dtype=np.uint8)
     depth = rng.uniform(-0.001, 0.002, (100, 100)).astype(np.float32)
     depth[:5] = np.nan
-    return {"tactile_rgb": image, "tactile_diff_rgb": subtract_background(image, np.full_like(image, 100)),
-            "depth_map_m": depth}
+    return {
+        "tactile_rgb": image,
+        "tactile_diff_rgb": subtract_background(image, np.full_like(image, 100)),
+        "depth_map_m": depth,
+    }
 
 
-def write_sample(writer: DatasetWriter, grasp: int, finger: str, obj: str = "mug",
-                 pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3),
-                 stamps_ns: dict[str, int] | None = None) -> fmt.SampleRecord:
-    return writer.write(sample_id=f"{obj}-g{grasp:03d}-{finger}", object_name=obj, grasp_id=grasp, finger=finger,
-                        grasp_pose=pose, registration_fitness=0.9,
-                        stamps_ns=stamps_ns or {"tactile": 1, "depth": 2},
-                        **sample_arrays(grasp * 2 + (finger == "right")))
+def write_sample(
+    writer: DatasetWriter,
+    grasp: int,
+    finger: str,
+    obj: str = "mug",
+    pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3),
+    stamps_ns: dict[str, int] | None = None,
+) -> fmt.SampleRecord:
+    return writer.write(
+        sample_id=f"{obj}-g{grasp:03d}-{finger}",
+        object_name=obj,
+        grasp_id=grasp,
+        finger=finger,
+        grasp_pose=pose,
+        registration_fitness=0.9,
+        stamps_ns=stamps_ns or {"tactile": 1, "depth": 2},
+        **sample_arrays(grasp * 2 + (finger == "right")),
+    )
 
 
 def test_round_trip_preserves_arrays_and_manifest(tmp_path: Path) -> None:
@@ -120,20 +142,30 @@ def test_missing_file_fails_the_check(tmp_path: Path) -> None:
     assert not report.ok and "cannot read" in report.problems[0]
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"tactile_rgb": np.zeros((100, 100, 3), np.float32)}, "uint8"),
-    ({"tactile_rgb": np.zeros((64, 100, 3), np.uint8)}, "dataset images are"),
-    ({"depth_map_m": np.zeros((100, 100), np.float64)}, "float32"),
-    ({"depth_map_m": np.full((100, 100), -np.inf, np.float32)}, "-inf"),
-    ({"finger": "thumb"}, "finger"),
-    ({"grasp_pose": (0.0, 0.0, np.nan, 0.0)}, "grasp_pose"),
-    ({"registration_fitness": float("nan")}, "registration_fitness"),
-    ({"sample_id": "../escape"}, "sample id"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"tactile_rgb": np.zeros((100, 100, 3), np.float32)}, "uint8"),
+        ({"tactile_rgb": np.zeros((64, 100, 3), np.uint8)}, "dataset images are"),
+        ({"depth_map_m": np.zeros((100, 100), np.float64)}, "float32"),
+        ({"depth_map_m": np.full((100, 100), -np.inf, np.float32)}, "-inf"),
+        ({"finger": "thumb"}, "finger"),
+        ({"grasp_pose": (0.0, 0.0, np.nan, 0.0)}, "grasp_pose"),
+        ({"registration_fitness": float("nan")}, "registration_fitness"),
+        ({"sample_id": "../escape"}, "sample id"),
+    ],
+)
 def test_bad_samples_are_refused_with_a_clear_error(tmp_path: Path, change: dict, message: str) -> None:
     writer = DatasetWriter(tmp_path, INFO)
-    kwargs = dict(sample_id="s-1", object_name="mug", grasp_id=1, finger="left", grasp_pose=(0, 0, 0, 0),
-                  registration_fitness=1.0, **sample_arrays(0))
+    kwargs = dict(
+        sample_id="s-1",
+        object_name="mug",
+        grasp_id=1,
+        finger="left",
+        grasp_pose=(0, 0, 0, 0),
+        registration_fitness=1.0,
+        **sample_arrays(0),
+    )
     kwargs.update(change)
     with pytest.raises(DatasetError, match=message):
         writer.write(**kwargs)
@@ -177,8 +209,9 @@ def test_permission_denied_is_a_clear_error_even_as_root(tmp_path: Path, monkeyp
 
 
 @pytest.mark.parametrize("failing_call", [1, 3, 4])
-def test_full_disk_leaves_dataset_intact_and_resumable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                       failing_call: int) -> None:
+def test_full_disk_leaves_dataset_intact_and_resumable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failing_call: int
+) -> None:
     """ENOSPC at the first file, the third file, or the manifest append (4th fsync of files)."""
     writer = DatasetWriter(tmp_path, INFO)
     write_sample(writer, 1, "left")
@@ -213,10 +246,10 @@ def test_missing_dataset_and_bad_info_are_clear(tmp_path: Path) -> None:
 
 
 @settings(max_examples=30, deadline=None)
-@given(n=st.integers(1, 300), seed=st.integers(0, 2 ** 31), shift=st.integers(0, 50))
+@given(n=st.integers(1, 300), seed=st.integers(0, 2**31), shift=st.integers(0, 50))
 def test_split_is_deterministic_order_free_and_proportional(n: int, seed: int, shift: int) -> None:
     keys = [f"obj/{i}" for i in range(n)]
-    rotated = keys[shift % n:] + keys[: shift % n]
+    rotated = keys[shift % n :] + keys[: shift % n]
     a, b = split_grasps(keys, seed), split_grasps(rotated, seed)
     assert a == b
     counts = {name: sum(v == name for v in a.values()) for name in ("train", "val", "test")}
@@ -317,8 +350,16 @@ def test_model_pose_and_crop_round_trip_and_bad_ones_are_refused(tmp_path: Path)
     pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
     pose[:3, 3] = [0.01, -0.02, 0.123456789012345]
     arrays = sample_arrays(0)
-    record = writer.write(sample_id="a", object_name="mug", grasp_id=0, finger="left", grasp_pose=(0, 0, 0, 0),
-                          registration_fitness=1.0, model_to_gel=pose, **arrays)
+    record = writer.write(
+        sample_id="a",
+        object_name="mug",
+        grasp_id=0,
+        finger="left",
+        grasp_pose=(0, 0, 0, 0),
+        registration_fitness=1.0,
+        model_to_gel=pose,
+        **arrays,
+    )
     reader = DatasetReader(tmp_path)
     assert reader.info.depth_crop_m == (0.0239, 0.015, 0.0189)
     assert np.array_equal(np.array(reader.record("a").model_to_gel), pose) and reader.records == [record]
@@ -326,8 +367,16 @@ def test_model_pose_and_crop_round_trip_and_bad_ones_are_refused(tmp_path: Path)
     skewed[0, 0] = 2.0
     for bad in (skewed, np.full((4, 4), np.nan), np.eye(3)):
         with pytest.raises(DatasetError, match="sample b: model_to_gel must be a finite 4x4 rigid transform"):
-            writer.write(sample_id="b", object_name="mug", grasp_id=1, finger="left", grasp_pose=(0, 0, 0, 0),
-                         registration_fitness=1.0, model_to_gel=bad, **arrays)
+            writer.write(
+                sample_id="b",
+                object_name="mug",
+                grasp_id=1,
+                finger="left",
+                grasp_pose=(0, 0, 0, 0),
+                registration_fitness=1.0,
+                model_to_gel=bad,
+                **arrays,
+            )
     assert len(DatasetReader(tmp_path)) == 1
     meta = json.loads((tmp_path / "dataset.json").read_text())
     (tmp_path / "dataset.json").write_text(json.dumps({**meta, "depth_crop_m": [0.02, -1.0, 0.02]}))
@@ -343,10 +392,11 @@ def test_redepth_cli_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFi
     root = tmp_path / "ds"
     write_sample(DatasetWriter(root, INFO), 0, "left")  # no crop, no model pose: not made from a model
     for argv, code, message in (
-            ([], 2, "give --density"),
-            (["--density", "1", "10", "--out", str(tmp_path / "x")], 2, "--out takes one density"),
-            (["--density", "10", "--bins", "50"], 2, "--bins needs --out"),
-            (["--density", "10"], 1, "records no depth-map crop")):
+        ([], 2, "give --density"),
+        (["--density", "1", "10", "--out", str(tmp_path / "x")], 2, "--out takes one density"),
+        (["--density", "10", "--bins", "50"], 2, "--bins needs --out"),
+        (["--density", "10"], 1, "records no depth-map crop"),
+    ):
         args = parser.parse_args(["dataset", "redepth", str(root), *argv])
         assert args.func(args) == code
         assert message in capsys.readouterr().err
@@ -366,10 +416,19 @@ def test_resize_rgb_averages_when_shrinking_and_keeps_a_right_sized_image() -> N
 
 def encoded_grasp(writer: DatasetWriter, grasp: int, attempt: int) -> list[fmt.EncodedSample]:
     """Both fingers of one attempt at a grasp: the attempt sets the pose and the stamps."""
-    return [writer.encode(sample_id=f"mug-g{grasp:03d}-{finger}", object_name="mug", grasp_id=grasp, finger=finger,
-                          grasp_pose=(0.1, 0.2, 0.05 + 0.001 * attempt, 0.3), registration_fitness=0.9,
-                          stamps_ns={"tactile": attempt}, **sample_arrays(10 * attempt + (finger == "right")))
-            for finger in fmt.FINGERS]
+    return [
+        writer.encode(
+            sample_id=f"mug-g{grasp:03d}-{finger}",
+            object_name="mug",
+            grasp_id=grasp,
+            finger=finger,
+            grasp_pose=(0.1, 0.2, 0.05 + 0.001 * attempt, 0.3),
+            registration_fitness=0.9,
+            stamps_ns={"tactile": attempt},
+            **sample_arrays(10 * attempt + (finger == "right")),
+        )
+        for finger in fmt.FINGERS
+    ]
 
 
 def resume_and_redo(root: Path, grasp: int) -> None:
@@ -385,7 +444,8 @@ def assert_every_grasp_whole(root: Path, grasps: int) -> None:
     assert report.ok, report.problems
     records = DatasetReader(root).records
     assert sorted(r.sample_id for r in records) == sorted(
-        f"mug-g{g:03d}-{f}" for g in range(grasps) for f in fmt.FINGERS)
+        f"mug-g{g:03d}-{f}" for g in range(grasps) for f in fmt.FINGERS
+    )
     for g in range(grasps):
         pair = [r for r in records if r.grasp_id == g]
         assert pair[0].stamps_ns == pair[1].stamps_ns and pair[0].grasp_pose == pair[1].grasp_pose
@@ -415,6 +475,7 @@ def test_a_kill_9_at_any_point_of_a_grasp_write_leaves_whole_grasps(tmp_path: Pa
                     if steps["n"] == kill_at:
                         os.kill(os.getpid(), signal.SIGKILL)
                     return real(*args)
+
                 return call
 
             os.fsync, os.replace = step(real_fsync), step(real_replace)
@@ -461,8 +522,13 @@ def test_samples_given_together_are_refused_together(tmp_path: Path) -> None:
     assert [r.sample_id for r in DatasetReader(tmp_path).records] == ["mug-g000-left"]
 
 
-def write_grasps(root: Path, order: list[int], stamp: int = 1, info: DatasetInfo = INFO,
-                 pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3)) -> None:
+def write_grasps(
+    root: Path,
+    order: list[int],
+    stamp: int = 1,
+    info: DatasetInfo = INFO,
+    pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3),
+) -> None:
     writer = DatasetWriter(root, info)
     for grasp in order:
         for finger in ("left", "right"):

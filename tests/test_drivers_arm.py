@@ -3,6 +3,7 @@
 Each test runs its own fake controller process on its own 127.x.y.z address (the client's
 ports are fixed), and every test has a time-out so a hung client fails instead of blocking.
 """
+
 from __future__ import annotations
 
 import random
@@ -34,8 +35,7 @@ from workcell.ur_kinematics import tcp_pose
 
 pytestmark = pytest.mark.timeout(90)
 
-WORKSPACE = {"x_min_m": -0.8, "x_max_m": 0.8, "y_min_m": -0.8, "y_max_m": 0.8,
-             "z_min_m": 0.1, "z_max_m": 0.8}
+WORKSPACE = {"x_min_m": -0.8, "x_max_m": 0.8, "y_min_m": -0.8, "y_max_m": 0.8, "z_min_m": 0.1, "z_max_m": 0.8}
 
 
 def start_fake_controller() -> FakeURController:
@@ -74,8 +74,14 @@ def arm(fake: FakeURController) -> Iterator[URArm]:
 
 
 def arm_params(fake: FakeURController, **extra: object) -> dict:
-    return {"backend": "ur_rtde", "robot_ip": fake.host, "workspace": WORKSPACE, "stale_state_s": 3.0,
-            "watchdog_hz": 2.0, **extra}
+    return {
+        "backend": "ur_rtde",
+        "robot_ip": fake.host,
+        "workspace": WORKSPACE,
+        "stale_state_s": 3.0,
+        "watchdog_hz": 2.0,
+        **extra,
+    }
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
@@ -104,6 +110,7 @@ def move_in_thread(move: Callable[[], None]) -> tuple[threading.Thread, list[Bas
 def wait_until_moving(fake: FakeURController) -> None:
     """Wait until the fake arm moves and the client has finished handing over the command:
     a cut inside that handshake would leave ur_rtde waiting out its 300 s time-out."""
+
     def moving_and_handed_over() -> bool:
         snapshot = fake.snapshot()
         return snapshot["moving"] and snapshot["command_register"] == 0
@@ -150,8 +157,7 @@ def test_move_joints_reaches_the_target(fake: FakeURController, arm: URArm) -> N
     np.testing.assert_allclose(arm.read().joint_positions, target, atol=1e-9)
 
 
-def test_a_target_outside_the_workspace_is_refused_before_sending(
-        fake: FakeURController, arm: URArm) -> None:
+def test_a_target_outside_the_workspace_is_refused_before_sending(fake: FakeURController, arm: URArm) -> None:
     below_the_table = arm.read().tcp_pose.copy()
     below_the_table[2] = 0.05
     with pytest.raises(WorkspaceError, match=r"z = 0\.0500 m is below z_min_m = 0\.1 m"):
@@ -162,8 +168,7 @@ def test_a_target_outside_the_workspace_is_refused_before_sending(
     assert sent_after_connect(fake) == []
 
 
-def test_a_speed_over_the_limit_is_refused_before_sending(
-        fake: FakeURController, arm: URArm) -> None:
+def test_a_speed_over_the_limit_is_refused_before_sending(fake: FakeURController, arm: URArm) -> None:
     target = arm.read().tcp_pose + np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])
     with pytest.raises(MotionLimitError, match="TCP speed 0.5 m/s exceeds the limit of 0.25 m/s"):
         arm.move_linear(target, speed_m_s=0.5, accel_m_s2=1.0)
@@ -172,8 +177,7 @@ def test_a_speed_over_the_limit_is_refused_before_sending(
     assert sent_after_connect(fake) == []
 
 
-def test_a_move_is_refused_while_the_controller_is_in_protective_stop(
-        fake: FakeURController, arm: URArm) -> None:
+def test_a_move_is_refused_while_the_controller_is_in_protective_stop(fake: FakeURController, arm: URArm) -> None:
     fake.set_safety("protective_stop")
     wait_until(lambda: arm.read().safety_status == "protective_stop", "the stop is reported")
     target = arm.read().tcp_pose + np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])
@@ -200,8 +204,7 @@ def test_connect_to_a_controller_in_protective_stop_says_so(fake: FakeURControll
     assert not fake.snapshot()["program_running"]
 
 
-def test_a_connection_cut_mid_motion_raises_connection_lost(
-        fake: FakeURController, arm: URArm) -> None:
+def test_a_connection_cut_mid_motion_raises_connection_lost(fake: FakeURController, arm: URArm) -> None:
     target = arm.read().tcp_pose + np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0])
     thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))
     wait_until_moving(fake)
@@ -238,8 +241,7 @@ def test_an_unreachable_controller_is_a_connection_error() -> None:
         backend.connect()
 
 
-def test_the_fake_packs_every_variable_of_the_clients_default_recipe(
-        fake: FakeURController) -> None:
+def test_the_fake_packs_every_variable_of_the_clients_default_recipe(fake: FakeURController) -> None:
     # With no variable list, RTDEReceiveInterface subscribes to everything it knows for the
     # controller version; one wrongly sized type would shift every value after it.
     receive = rtde_receive.RTDEReceiveInterface(fake.host, 500.0)
@@ -293,8 +295,7 @@ def test_the_move_deadline_follows_the_speed_slider(fake: FakeURController) -> N
         backend.disconnect()
 
 
-def test_a_move_after_an_unlocked_protective_stop_uploads_the_script_again(
-        fake: FakeURController, arm: URArm) -> None:
+def test_a_move_after_an_unlocked_protective_stop_uploads_the_script_again(fake: FakeURController, arm: URArm) -> None:
     """U2: the protective stop ended the control script; after the unlock the next move
     re-uploads it instead of being refused."""
     fake.set_safety("protective_stop")
@@ -328,13 +329,15 @@ def test_the_watchdog_stops_the_arm_when_the_link_is_cut(fake: FakeURController,
     assert errors and isinstance(errors[0], ArmError)
 
 
-@pytest.mark.parametrize("fault, reason, fix", [
-    ("power_off", "is in robot mode POWER_OFF", "power it on and release the brakes"),
-    ("local", "is in local control", "switch the pendant to remote control"),
-    ("protective_stop", "the UR controller is in a protective stop", "inspect the cause, then unlock it"),
-])
-def test_hw_check_refuses_an_arm_that_cannot_move(fake: FakeURController, fault: str, reason: str,
-                                                  fix: str) -> None:
+@pytest.mark.parametrize(
+    "fault, reason, fix",
+    [
+        ("power_off", "is in robot mode POWER_OFF", "power it on and release the brakes"),
+        ("local", "is in local control", "switch the pendant to remote control"),
+        ("protective_stop", "the UR controller is in a protective stop", "inspect the cause, then unlock it"),
+    ],
+)
+def test_hw_check_refuses_an_arm_that_cannot_move(fake: FakeURController, fault: str, reason: str, fix: str) -> None:
     if fault == "power_off":
         dashboard = dashboard_client.DashboardClient(fake.host)
         dashboard.connect()

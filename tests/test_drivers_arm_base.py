@@ -1,4 +1,5 @@
 """Arm limits, workspace, UR kinematics and backend selection: no controller needed."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,11 +49,18 @@ def test_a_tcp_offset_moves_the_tcp_along_the_flange_axis() -> None:
 
 
 def test_make_backend_builds_the_ur_backend_with_nested_config() -> None:
-    backend = make_backend({"backend": "ur_rtde", "robot_ip": "10.0.0.5",
-                            "workspace": {"z_min_m": 0.02}, "limits": {"max_tcp_speed_m_s": 0.1}})
+    backend = make_backend(
+        {
+            "backend": "ur_rtde",
+            "robot_ip": "10.0.0.5",
+            "workspace": {"z_min_m": 0.02},
+            "limits": {"max_tcp_speed_m_s": 0.1},
+        }
+    )
     assert isinstance(backend, URArm)
-    assert backend.config == URArmConfig(robot_ip="10.0.0.5", workspace=WorkspaceBox(z_min_m=0.02),
-                                         limits=MotionLimits(max_tcp_speed_m_s=0.1))
+    assert backend.config == URArmConfig(
+        robot_ip="10.0.0.5", workspace=WorkspaceBox(z_min_m=0.02), limits=MotionLimits(max_tcp_speed_m_s=0.1)
+    )
 
 
 def test_make_backend_lists_what_is_allowed() -> None:

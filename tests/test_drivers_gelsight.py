@@ -1,5 +1,6 @@
 """GelSight V4L2 backend: real GelSight frames played back from a video, camera discovery
 on a sysfs tree laid out like the kernel's, and the end / loss of a stream."""
+
 from __future__ import annotations
 
 import os
@@ -28,8 +29,7 @@ def video(tmp_path, presses):
     """Warm-up and no-contact frames, then the 30 real ball presses, losslessly (FFV1)."""
     background, frames = presses
     path = tmp_path / "presses.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30,
-                             (background.shape[1], background.shape[0]))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30, (background.shape[1], background.shape[0]))
     assert writer.isOpened()
     for rgb in [background] * (WARMUP + BACKGROUND) + list(frames):
         writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -38,8 +38,15 @@ def video(tmp_path, presses):
 
 
 def play(video, **params):
-    sensor = make_backend({"backend": "v4l2", "video_file": str(video), "warmup_frames": WARMUP,
-                           "background_frames": BACKGROUND, **params})
+    sensor = make_backend(
+        {
+            "backend": "v4l2",
+            "video_file": str(video),
+            "warmup_frames": WARMUP,
+            "background_frames": BACKGROUND,
+            **params,
+        }
+    )
     sensor.connect()
     return sensor
 
@@ -84,8 +91,9 @@ def test_looping_video_starts_over(video, presses):
 
 def test_camera_that_stops_delivering_frames(video):
     """A live source whose frames stop (here: a file that runs out) reports a lost camera."""
-    source = FrameSource(cv2.VideoCapture(str(video)), "/dev/video4 (GelSight Mini, USB 1-2)",
-                         live=True, max_failed_reads=3)
+    source = FrameSource(
+        cv2.VideoCapture(str(video)), "/dev/video4 (GelSight Mini, USB 1-2)", live=True, max_failed_reads=3
+    )
     try:
         for _ in range(37):
             source.next_rgb()
@@ -124,12 +132,17 @@ def make_sysfs(root: Path, nodes: list[tuple[int, str, int, str]]) -> Path:
 
 @pytest.fixture
 def sysfs(tmp_path):
-    return str(make_sysfs(tmp_path, [
-        (0, "GelSight Mini R0B 28J3-CWXU: Ge", 0, "1-2"),
-        (1, "GelSight Mini R0B 28J3-CWXU: Ge", 1, "1-2"),  # its metadata node
-        (2, "GelSight Mini R0B 2BNK-CE0U: Ge", 0, "1-3"),
-        (4, "Integrated Camera: Integrated C", 0, "3-8"),
-    ]))
+    return str(
+        make_sysfs(
+            tmp_path,
+            [
+                (0, "GelSight Mini R0B 28J3-CWXU: Ge", 0, "1-2"),
+                (1, "GelSight Mini R0B 28J3-CWXU: Ge", 1, "1-2"),  # its metadata node
+                (2, "GelSight Mini R0B 2BNK-CE0U: Ge", 0, "1-3"),
+                (4, "Integrated Camera: Integrated C", 0, "3-8"),
+            ],
+        )
+    )
 
 
 def test_finds_camera_by_name_and_port(sysfs):
@@ -143,8 +156,11 @@ def test_two_identical_sensors_need_a_port(sysfs):
 
 
 def test_absent_camera_lists_what_was_found(sysfs):
-    with pytest.raises(GelSightError, match=r"no camera named like 'DIGIT'; cameras found: "
-                                            r"/dev/video0 .*\(USB 1-2\).*/dev/video4"):
+    with pytest.raises(
+        GelSightError,
+        match=r"no camera named like 'DIGIT'; cameras found: "
+        r"/dev/video0 .*\(USB 1-2\).*/dev/video4",
+    ):
         find_camera("DIGIT", "", sysfs)
 
 

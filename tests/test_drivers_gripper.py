@@ -1,4 +1,5 @@
 """The WSG-50 client against the firmware simulator on a pty: every command, end to end."""
+
 from __future__ import annotations
 
 import os
@@ -200,8 +201,7 @@ def test_missing_serial_port_names_what_exists(tmp_path):
 
 def test_simulated_backend_is_the_client_on_the_firmware(world):
     world.object_width_m = 0.06
-    gripper = make_backend({"backend": "simulated", "initial_width_m": 0.08},
-                           contact_width_m=world.contact_width_m)
+    gripper = make_backend({"backend": "simulated", "initial_width_m": 0.08}, contact_width_m=world.contact_width_m)
     gripper.connect()
     try:
         assert gripper.read().width_m == pytest.approx(0.08)

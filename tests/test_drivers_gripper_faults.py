@@ -3,6 +3,7 @@
 Under each fault every command must either complete with the right result or raise a
 GripperError that says what happened; none may hang or return wrong data.
 """
+
 from __future__ import annotations
 
 import os
@@ -24,8 +25,7 @@ OBJECT_WIDTH_M = 0.045
 class CorruptingRelay:
     """client <-> (pty) <-> relay <-> (pty) <-> firmware, mangling bytes both ways."""
 
-    def __init__(self, firmware_port: str, seed: int, flip: float = 0.0, drop: float = 0.0,
-                 extra: float = 0.0) -> None:
+    def __init__(self, firmware_port: str, seed: int, flip: float = 0.0, drop: float = 0.0, extra: float = 0.0) -> None:
         self._rng = random.Random(seed)
         self._flip, self._drop, self._extra = flip, drop, extra
         self._firmware_side = os.open(firmware_port, os.O_RDWR | os.O_NOCTTY)
@@ -82,10 +82,12 @@ def run_session(fault: dict[str, float], seed: int, cycles: int) -> tuple[int, l
         try:
             for _ in range(cycles):
                 motion_failed = False
-                for command in (lambda: client.grasp(OBJECT_WIDTH_M, FAST, 20.0),
-                                lambda: client.release(0.1, FAST),
-                                lambda: client.move(0.08, FAST),
-                                client.read):
+                for command in (
+                    lambda: client.grasp(OBJECT_WIDTH_M, FAST, 20.0),
+                    lambda: client.release(0.1, FAST),
+                    lambda: client.move(0.08, FAST),
+                    client.read,
+                ):
                     try:
                         state = command()
                     except GripperError as exc:
@@ -107,20 +109,24 @@ def run_session(fault: dict[str, float], seed: int, cycles: int) -> tuple[int, l
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fault", [{"flip": 0.01}, {"drop": 0.01}, {"extra": 0.01}],
-                         ids=["1%-flipped", "1%-dropped", "1%-extra"])
+@pytest.mark.parametrize(
+    "fault", [{"flip": 0.01}, {"drop": 0.01}, {"extra": 0.01}], ids=["1%-flipped", "1%-dropped", "1%-extra"]
+)
 def test_every_command_completes_or_fails_clearly(fault):
     completed, errors, mangled, skipped = run_session(fault, seed=7, cycles=8)
     assert mangled > 0, "the relay must actually have corrupted the line"
     assert skipped > 0, "the client must have resynchronised past bad bytes"
     assert completed >= 28  # of 32: retries recover nearly everything
     for message in errors:
-        assert any(reason in message for reason in ("no answer to", "another motion is running",
-                                                    "did not finish", "failed:")), message
+        assert any(
+            reason in message for reason in ("no answer to", "another motion is running", "did not finish", "failed:")
+        ), message
 
 
 def test_heavy_corruption_fails_clearly_instead_of_hanging():
     _, errors, _, _ = run_session({"flip": 0.2}, seed=3, cycles=2)
     assert errors
-    assert all("no answer to" in message or "failed" in message or "blocked" in message
-               or "motion is running" in message for message in errors)
+    assert all(
+        "no answer to" in message or "failed" in message or "blocked" in message or "motion is running" in message
+        for message in errors
+    )

@@ -1,4 +1,5 @@
 """WSG frame codec and CRC: properties over arbitrary frames, and resynchronisation."""
+
 from __future__ import annotations
 
 import struct
@@ -65,7 +66,7 @@ def test_frames_split_across_reads(command_id, payload, chunk):
     stream = encode_frame(command_id, payload) * 2
     parser, frames = FrameParser(), []
     for start in range(0, len(stream), chunk):
-        frames += parser.feed(stream[start:start + chunk])
+        frames += parser.feed(stream[start : start + chunk])
     assert frames == [(command_id, payload)] * 2
 
 
@@ -83,6 +84,6 @@ def test_oversized_length_field_is_rejected_without_waiting():
 
 
 def test_response_status_split():
-    (command_id, payload), = FrameParser().feed(encode_response(0x43, 26, b"\x01"))
+    ((command_id, payload),) = FrameParser().feed(encode_response(0x43, 26, b"\x01"))
     assert command_id == 0x43
     assert split_response(payload) == (26, b"\x01")

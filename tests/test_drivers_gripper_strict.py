@@ -1,5 +1,6 @@
 """The WSG-50 client against the strict firmware simulator: the device behaviours of the public
 command set (issue 14, W1 W3 W4 W6) and the firmware's own strictness, byte for byte."""
+
 from __future__ import annotations
 
 import os
@@ -119,8 +120,9 @@ def test_home_waits_for_its_final_status_though_the_state_reads_idle():
 
 
 def test_an_unreferenced_gripper_refuses_motion_until_homed():
-    with GripperFirmware(initial_width_m=0.04, homing_speed_m_s=0.05,
-                         strictness=Strictness(referenced=False)) as firmware:
+    with GripperFirmware(
+        initial_width_m=0.04, homing_speed_m_s=0.05, strictness=Strictness(referenced=False)
+    ) as firmware:
         gripper = connect(firmware.port)
         try:
             with pytest.raises(GripperError, match="not referenced") as refused:
@@ -150,8 +152,9 @@ def test_grasping_state_is_idle_while_homing_and_system_state_says_moving():
 # -- W3: an aborted motion is reported aborted ------------------------------------------------
 def test_a_stopped_grasp_whose_final_answer_is_lost_is_reported_aborted():
     with GripperFirmware() as firmware:
-        relay = DroppingRelay(firmware.port, lambda command, status: (command, status) == (Command.GRASP,
-                                                                                          Status.E_CMD_ABORTED))
+        relay = DroppingRelay(
+            firmware.port, lambda command, status: (command, status) == (Command.GRASP, Status.E_CMD_ABORTED)
+        )
         gripper = connect(relay.port)
         try:
             grasping, outcome = run_in_thread(lambda: gripper.grasp(0.02, 0.01, force_n=10.0))  # 9 s

@@ -1,4 +1,5 @@
 """``dtx hw check``: every configured device is connected and reported, OK or why not."""
+
 from __future__ import annotations
 
 import argparse
@@ -14,23 +15,35 @@ from drivers.cli import HARDWARE_NODES, add_commands, check_devices, format_repo
 from dtx.launch import NodeSpec, load_launch
 
 LAB_LAUNCH = Path(__file__).resolve().parent.parent / "launch" / "collect_lab.yaml"
-node_modules_present = all(importlib.util.find_spec(f"nodes.{kind}") is not None
-                           for kind in ("depth_camera", "gelsight", "arm", "gripper"))
-needs_node_modules = pytest.mark.skipif(not node_modules_present,
-                                        reason="the hardware node modules (nodes.*) are not written yet")
+node_modules_present = all(
+    importlib.util.find_spec(f"nodes.{kind}") is not None for kind in ("depth_camera", "gelsight", "arm", "gripper")
+)
+needs_node_modules = pytest.mark.skipif(
+    not node_modules_present, reason="the hardware node modules (nodes.*) are not written yet"
+)
 
 
 @pytest.fixture
 def mixed_nodes(tmp_path):
     return [
         NodeSpec(name="gripper_sim", module="nodes.gripper", params={"backend": "simulated"}),
-        NodeSpec(name="gripper", module="nodes.gripper",
-                 params={"backend": "wsg50", "port": str(tmp_path / "ttyUSB7")}),
-        NodeSpec(name="gelsight_left", module="nodes.gelsight",
-                 params={"backend": "v4l2", "sysfs_root": str(tmp_path / "video4linux")}),
-        NodeSpec(name="kinect_left", module="nodes.depth_camera",
-                 params={"backend": "openni2", "library_dir": str(tmp_path),
-                         "calibration_file": str(LAB_LAUNCH.parent / "calibration" / "kinect_left.yaml")}),
+        NodeSpec(
+            name="gripper", module="nodes.gripper", params={"backend": "wsg50", "port": str(tmp_path / "ttyUSB7")}
+        ),
+        NodeSpec(
+            name="gelsight_left",
+            module="nodes.gelsight",
+            params={"backend": "v4l2", "sysfs_root": str(tmp_path / "video4linux")},
+        ),
+        NodeSpec(
+            name="kinect_left",
+            module="nodes.depth_camera",
+            params={
+                "backend": "openni2",
+                "library_dir": str(tmp_path),
+                "calibration_file": str(LAB_LAUNCH.parent / "calibration" / "kinect_left.yaml"),
+            },
+        ),
         NodeSpec(name="kinect_right", module="nodes.depth_camera", params={"backend": "kinect_v1"}),
         NodeSpec(name="collector", module="nodes.collector", params={}),
     ]
@@ -114,20 +127,24 @@ def test_hw_check_on_the_lab_launch_file_here(capsys):
 
 def gripper_launch(tmp_path: Path, port: str) -> Path:
     launch = tmp_path / "gripper.yaml"
-    launch.write_text("launch:\n  - node:\n      name: gripper\n      module: nodes.gripper\n"
-                      f"      params: {{backend: wsg50, port: {port}}}\n")
+    launch.write_text(
+        "launch:\n  - node:\n      name: gripper\n      module: nodes.gripper\n"
+        f"      params: {{backend: wsg50, port: {port}}}\n"
+    )
     return launch
 
 
-@pytest.mark.parametrize("fault, reason, fix", [
-    ("fast_stop", "the gripper is in FAST STOP", "fix: clear its cause, then `dtx hw acknowledge"),
-    ("unreferenced", "the gripper is not referenced", "fix: home it"),
-])
+@pytest.mark.parametrize(
+    "fault, reason, fix",
+    [
+        ("fast_stop", "the gripper is in FAST STOP", "fix: clear its cause, then `dtx hw acknowledge"),
+        ("unreferenced", "the gripper is not referenced", "fix: home it"),
+    ],
+)
 def test_a_gripper_that_cannot_move_fails_the_check_until_acknowledged(tmp_path, capsys, fault, reason, fix):
     from drivers.gripper.firmware import GripperFirmware, Strictness
 
-    with GripperFirmware(strictness=Strictness(referenced=fault != "unreferenced"),
-                         homing_speed_m_s=0.4) as firmware:
+    with GripperFirmware(strictness=Strictness(referenced=fault != "unreferenced"), homing_speed_m_s=0.4) as firmware:
         if fault == "fast_stop":
             firmware.trip_fast_stop()
         launch = gripper_launch(tmp_path, firmware.port)

@@ -1,4 +1,5 @@
 """The live Foxglove bridge: topics appear as Foxglove channels on a real WebSocket server."""
+
 from __future__ import annotations
 
 import base64
@@ -26,9 +27,13 @@ def test_image_topic_is_served_to_foxglove_studio(registry: Registry) -> None:
         assert "/gelsight_left/image" in bridge.channels
         with socket.create_connection(("127.0.0.1", bridge.port), timeout=5) as client:
             key = base64.b64encode(os.urandom(16)).decode()
-            client.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                            f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
-                            "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n").encode())
+            client.sendall(
+                (
+                    f"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+                    "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+                ).encode()
+            )
             answer = client.recv(4096)
             while b'"op":"advertise"' not in answer and b"/gelsight_left/image" not in answer:
                 chunk = client.recv(65536)

@@ -1,5 +1,6 @@
 """The gripper node on the strict firmware simulator: a stop preempts a running grasp (W5),
 and a FAST STOP is acknowledged through the service."""
+
 from __future__ import annotations
 
 import threading
@@ -22,8 +23,9 @@ def firmware():
 
 @pytest.fixture
 def node(registry: Registry, firmware: GripperFirmware):
-    gripper = GripperNode("gripper", {"backend": "wsg50", "port": firmware.port, "state_rate_hz": 20.0},
-                          registry=registry)
+    gripper = GripperNode(
+        "gripper", {"backend": "wsg50", "port": firmware.port, "state_rate_hz": 20.0}, registry=registry
+    )
     done = threading.Event()
     spinner = threading.Thread(target=gripper.spin, kwargs={"until": done.is_set})
     spinner.start()
@@ -37,8 +39,11 @@ def call_in_thread(registry: Registry, command: msgs.GripperCommand, outcome: li
     def run() -> None:
         bus = Bus("grasper", registry)
         try:
-            outcome.append(bus.client("/gripper/command", msgs.GripperCommand, msgs.GripperState)
-                           .call(command, timeout_s=30.0, retries=0))
+            outcome.append(
+                bus.client("/gripper/command", msgs.GripperCommand, msgs.GripperState).call(
+                    command, timeout_s=30.0, retries=0
+                )
+            )
         except ServiceCallError as error:
             outcome.append(error)
         finally:
@@ -56,8 +61,9 @@ def test_stop_through_the_node_preempts_a_running_grasp(registry, node, firmware
         assert command.wait_for_service(10.0)
         outcome: list = []
         # 9 s from 110 mm to 20 mm at 10 mm/s, with nothing to find.
-        grasping = call_in_thread(registry, msgs.GripperCommand(action="grasp", width_m=0.03, speed_m_s=0.01,
-                                                                force_n=10.0), outcome)
+        grasping = call_in_thread(
+            registry, msgs.GripperCommand(action="grasp", width_m=0.03, speed_m_s=0.01, force_n=10.0), outcome
+        )
         while not firmware.moving:
             time.sleep(0.01)
         stopped = command.call(msgs.GripperCommand(action="stop"), timeout_s=10.0, retries=0)

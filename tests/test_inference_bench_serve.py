@@ -1,4 +1,5 @@
 """``dtx bench serve`` runs the real node in its own process and reports its figures."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,8 +12,9 @@ from benchmarks.serve import add_arguments, run
 def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -> None:
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    result = run(parser.parse_args(["--width", "8", "--threads", "1", "--requests", "5", "--regions", "4",
-                                    "--seconds", "0.3"]))
+    result = run(
+        parser.parse_args(["--width", "8", "--threads", "1", "--requests", "5", "--regions", "4", "--seconds", "0.3"])
+    )
     assert result["weights"] == "fresh generator, width 8 (seeded, untrained)"
     assert result["model"].startswith("fresh.pt (ngf 8, onnxrt fp32)")
     assert 0 < result["p50_ms"] <= result["p99_ms"]
@@ -24,15 +26,41 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
     --points sends a YCB model cloud with gel poses on its surface beside the depth-map form."""
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    result = run(parser.parse_args(["--width", "8", "--threads", "1", "--requests", "3", "--regions", "2",
-                                    "--seconds", "0.2", "--prior", "--points", "--objects", "1", "--poses", "4",
-                                    "--point-requests", "1"]))
+    result = run(
+        parser.parse_args(
+            [
+                "--width",
+                "8",
+                "--threads",
+                "1",
+                "--requests",
+                "3",
+                "--regions",
+                "2",
+                "--seconds",
+                "0.2",
+                "--prior",
+                "--points",
+                "--objects",
+                "1",
+                "--poses",
+                "4",
+                "--point-requests",
+                "1",
+            ]
+        )
+    )
     assert result["weights"] == "fresh generator, width 8, physics prior (seeded, untrained)"
     assert 0 < result["prior_cpu_ms_per_region"] and 0 < result["prior_share_of_server_cpu"]
     (row,) = result["points"]
     assert row["poses"] == 4 and row["cloud_points"] > 1_000_000
-    for key in ("cut_regions_per_s", "cut_per_gel_regions_per_s", "handle_regions_per_s", "points_regions_per_s",
-                "maps_regions_per_s"):
+    for key in (
+        "cut_regions_per_s",
+        "cut_per_gel_regions_per_s",
+        "handle_regions_per_s",
+        "points_regions_per_s",
+        "maps_regions_per_s",
+    ):
         assert row[key] > 0
 
 
@@ -45,11 +73,13 @@ def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:
     from perception.pointcloud import VoxelIndex, check_transform
     from perception.registration import sample_model_cloud
     from workcell.kinematics import GripperGeometry
+
     cloud = sample_model_cloud(YCB[1], 0.0003, seed=0)
     poses = surface_gel_poses(cloud, 8, seed=1)
     for pose in poses:
         check_transform(pose)
-    maps = contact_depth_maps(VoxelIndex(cloud.points_m), np.eye(4), poses, GripperGeometry(),
-                              DepthMapParams(fill_gaps_min_neighbours=0)).depth_maps_m
+    maps = contact_depth_maps(
+        VoxelIndex(cloud.points_m), np.eye(4), poses, GripperGeometry(), DepthMapParams(fill_gaps_min_neighbours=0)
+    ).depth_maps_m
     assert np.all(maps.min(axis=(1, 2)) <= -0.0004)
     np.testing.assert_allclose(maps[:, 49:51, 49:51].min(axis=(1, 2)), -0.0005, atol=2e-4)

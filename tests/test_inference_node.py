@@ -1,6 +1,7 @@
 """The inference server node in this process: replies, uncertainty, the points path, bad
 requests, and batching across clients. Weights: a tiny untrained generator (ngf 8) saved in
 models/train.py's checkpoint format."""
+
 from __future__ import annotations
 
 import contextlib
@@ -59,8 +60,9 @@ def reference(checkpoint: Path, maps: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("runtime", ["onnxrt", "eager"])
-def test_estimates_are_the_generators_and_one_sample_is_deterministic(registry: Registry, checkpoint: Path,
-                                                                      runtime: str) -> None:
+def test_estimates_are_the_generators_and_one_sample_is_deterministic(
+    registry: Registry, checkpoint: Path, runtime: str
+) -> None:
     maps = depth_maps(3, seed=1)
     with serving(registry, checkpoint, runtime=runtime), planner(registry) as client:
         images, uncertainty = client.estimate(maps)
@@ -74,8 +76,7 @@ def test_estimates_are_the_generators_and_one_sample_is_deterministic(registry: 
     assert "tiny.pt" in model and runtime in model
 
 
-def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry,
-                                                                       tmp_path: Path) -> None:
+def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry, tmp_path: Path) -> None:
     checkpoint = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
     maps = depth_maps(2, seed=2)
     with serving(registry, checkpoint), planner(registry) as client:
@@ -131,8 +132,7 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=0), "dropout_samples must be 1..3"),
     (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=4), "dropout_samples must be 1..3"),
     (TactileEstimateRequest(depth_maps=_maps(3), dropout_samples=3), "too many sampled regions: 3 regions x 3"),
-    (TactileEstimateRequest(depth_maps=_maps(), points=np.zeros((10, 3)), gel_poses=np.eye(4)[None]),
-     "not both"),
+    (TactileEstimateRequest(depth_maps=_maps(), points=np.zeros((10, 3)), gel_poses=np.eye(4)[None]), "not both"),
     (TactileEstimateRequest(points=np.zeros((10, 3))), "empty request"),
     (TactileEstimateRequest(cloud_id="ab" * 32), "empty request"),
     (TactileEstimateRequest(cloud_id="not an id", gel_poses=np.eye(4)[None]), "cloud_id must be the 64 hex digits"),
@@ -140,19 +140,24 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(gel_poses=np.eye(4)[None]), "empty request"),
     (TactileEstimateRequest(points=np.zeros((10, 2)), gel_poses=np.eye(4)[None]), "points must be P x 3"),
     (TactileEstimateRequest(points=np.zeros((1001, 3)), gel_poses=np.eye(4)[None]), "too many points"),
-    (TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4)),
-     "too much work: 2400 model points near 4 gels > 2000"),
+    (
+        TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4)),
+        "too much work: 2400 model points near 4 gels > 2000",
+    ),
     (TactileEstimateRequest(points=np.zeros((10, 3), np.int32), gel_poses=np.eye(4)[None]), "float32 or float64"),
     (TactileEstimateRequest(points=np.full((10, 3), np.nan), gel_poses=np.eye(4)[None]), "NaN or inf"),
     (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.eye(3)[None]), "gel_poses must be N x 4 x 4"),
     (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=2 * np.eye(4)[None]), "not a proper rotation"),
-    (TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.stack([np.eye(4), np.ones((4, 4))])),
-     r"gel_poses\[1\]"),
+    (
+        TactileEstimateRequest(points=np.zeros((10, 3)), gel_poses=np.stack([np.eye(4), np.ones((4, 4))])),
+        r"gel_poses\[1\]",
+    ),
 ]
 
 
-def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served(registry: Registry,
-                                                                                 checkpoint: Path) -> None:
+def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served(
+    registry: Registry, checkpoint: Path
+) -> None:
     """A planner asks about many candidate poses at once; one that misses the object must not
     cost it the answers for the others."""
     _, depth_range_m = load_generator(checkpoint)
@@ -170,10 +175,14 @@ def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served
     np.testing.assert_array_equal(images[1], empty[0])  # what the gel feels touching nothing
 
 
-def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry,
-                                                                         checkpoint: Path) -> None:
-    limits = {"max_regions": 4, "max_points": 1000, "max_dropout_samples": 3, "max_sampled_regions": 8,
-              "max_point_visits": 2000}
+def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry, checkpoint: Path) -> None:
+    limits = {
+        "max_regions": 4,
+        "max_points": 1000,
+        "max_dropout_samples": 3,
+        "max_sampled_regions": 8,
+        "max_point_visits": 2000,
+    }
     with serving(registry, checkpoint, **limits), contextlib.closing(Bus("planner", registry)) as bus:
         raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
         for request, message in BAD_REQUESTS:
@@ -226,8 +235,9 @@ def test_a_request_larger_than_max_batch_runs_in_several_passes(registry: Regist
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
 
-def test_a_cloud_handle_answers_like_its_points_and_an_evicted_one_is_sent_again(registry: Registry,
-                                                                             checkpoint: Path) -> None:
+def test_a_cloud_handle_answers_like_its_points_and_an_evicted_one_is_sent_again(
+    registry: Registry, checkpoint: Path
+) -> None:
     """A cloud's points travel once; later requests name it by the id its reply gave and get
     the same images. A worker that no longer holds it (index_cache 1, another cloud came) says
     unknown_cloud, and the client sends the points again on its own."""
@@ -236,8 +246,11 @@ def test_a_cloud_handle_answers_like_its_points_and_an_evicted_one_is_sent_again
     moved = points.copy()
     moved[:, 1] += np.float32(0.0002)
     poses = np.stack([np.eye(4)] * 2)
-    with serving(registry, checkpoint, runtime="eager", index_cache=1), planner(registry) as client, \
-            contextlib.closing(Bus("raw", registry)) as bus:
+    with (
+        serving(registry, checkpoint, runtime="eager", index_cache=1),
+        planner(registry) as client,
+        contextlib.closing(Bus("raw", registry)) as bus,
+    ):
         raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
         sent = raw.call(TactileEstimateRequest(points=points, gel_poses=poses), timeout_s=30.0)
         assert sent.cloud_id == cloud_id(points) and sent.worker == "inference"
@@ -271,8 +284,11 @@ def test_a_request_refused_while_its_maps_are_cut_fails_alone_in_its_batch(check
 
     from nodes.inference import BadRequest, _Job
 
-    node = InferenceNode("batch_probe", {"checkpoint": str(checkpoint), "runtime": "eager", "max_point_visits": 2000},
-                         registry=Registry(tmp_path / "bus"))
+    node = InferenceNode(
+        "batch_probe",
+        {"checkpoint": str(checkpoint), "runtime": "eager", "max_point_visits": 2000},
+        registry=Registry(tmp_path / "bus"),
+    )
     try:
         heavy = TactileEstimateRequest(points=np.zeros((600, 3)), gel_poses=np.stack([np.eye(4)] * 4))
         light = TactileEstimateRequest(depth_maps=depth_maps(1, seed=3))

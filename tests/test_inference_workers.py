@@ -1,4 +1,5 @@
 """launch/serve.yaml as real processes: both workers come up and share the requests."""
+
 from __future__ import annotations
 
 import contextlib
@@ -21,8 +22,12 @@ def test_two_workers_from_the_launch_file_both_serve(registry: Registry, bus_dir
     checkpoint = write_checkpoint(tmp_path / "tiny.pt", width=8)
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dtx.cli", "launch", "launch/serve.yaml", f"checkpoint:={checkpoint}"],
-        cwd=ROOT, env={**os.environ, "DTX_BUS_DIR": str(bus_dir)}, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        cwd=ROOT,
+        env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     try:
         deadline = time.monotonic() + 120
         while len(registry.lookup("service", SERVICE)) < 2:

@@ -1,4 +1,5 @@
 """Launch files and the supervisor, with real node processes."""
+
 from __future__ import annotations
 
 import os
@@ -29,8 +30,14 @@ def launch_env(bus_dir: Path) -> dict[str, str]:
 
 
 def dtx(*args: str, env: dict[str, str], **kwargs: object) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "dtx.cli", *args], env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kwargs)  # type: ignore[call-overload]
+    return subprocess.Popen(
+        [sys.executable, "-m", "dtx.cli", *args],
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        **kwargs,
+    )  # type: ignore[call-overload]
 
 
 def wait_for_nodes(registry: Registry, names: set[str], timeout_s: float = 30.0) -> dict[str, int]:
@@ -61,23 +68,31 @@ def test_missing_module_error_names_the_line(tmp_path: Path, launch_env: dict[st
         load_launch(path)
 
 
-@pytest.mark.parametrize("text, message", [
-    ("nodes: []\n", "single key 'launch'"),
-    ("launch:\n  - group: {}\n", "launch.yaml:2: unknown entry 'group'"),
-    ("launch:\n  - node: {name: a, module: fixture_nodes, params: {p: $(var nope)}}\n", "used before its 'arg'"),
-    ("launch:\n  - node: {name: a, module: fixture_nodes, params: {p: $(env HOME)}}\n", "unknown substitution"),
-    ("launch:\n  - arg: {name: out}\n", "has no default"),
-    ("launch:\n  - node: {name: a}\n", "missing key(s) ['module']"),
-    ("launch: [\n", "not valid YAML"),
-])
-def test_malformed_launch_files_are_refused(tmp_path: Path, launch_env: dict[str, str], text: str, message: str) -> None:
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("nodes: []\n", "single key 'launch'"),
+        ("launch:\n  - group: {}\n", "launch.yaml:2: unknown entry 'group'"),
+        ("launch:\n  - node: {name: a, module: fixture_nodes, params: {p: $(var nope)}}\n", "used before its 'arg'"),
+        ("launch:\n  - node: {name: a, module: fixture_nodes, params: {p: $(env HOME)}}\n", "unknown substitution"),
+        ("launch:\n  - arg: {name: out}\n", "has no default"),
+        ("launch:\n  - node: {name: a}\n", "missing key(s) ['module']"),
+        ("launch: [\n", "not valid YAML"),
+    ],
+)
+def test_malformed_launch_files_are_refused(
+    tmp_path: Path, launch_env: dict[str, str], text: str, message: str
+) -> None:
     with pytest.raises(LaunchError, match=__import__("re").escape(message)):
         load_launch(write(tmp_path, text))
 
 
 def test_quoted_substitution_stays_text(tmp_path: Path, launch_env: dict[str, str]) -> None:
-    path = write(tmp_path, 'launch:\n  - arg: {name: serial, default: "003726261447"}\n'
-                           '  - node: {name: a, module: fixture_nodes, params: {s: "$(var serial)", n: $(var serial)}}\n')
+    path = write(
+        tmp_path,
+        'launch:\n  - arg: {name: serial, default: "003726261447"}\n'
+        '  - node: {name: a, module: fixture_nodes, params: {s: "$(var serial)", n: $(var serial)}}\n',
+    )
     params = load_launch(path).nodes[0].params
     assert params["s"] == "003726261447"
     assert isinstance(params["n"], int)  # unquoted: YAML reads the value itself (here, as octal)
@@ -141,8 +156,13 @@ def test_a_second_graph_in_the_same_domain_is_refused(registry: Registry, launch
         output, _ = second.communicate(timeout=60)
         assert second.returncode == 1, output
         assert f"steady (pid {pids['steady']})" in output and "DTX_DOMAIN" in output and "started" not in output
-        by_hand = subprocess.run([sys.executable, "-m", "fixture_nodes", "--name", "steady"], env=launch_env,
-                                 text=True, capture_output=True, timeout=60)
+        by_hand = subprocess.run(
+            [sys.executable, "-m", "fixture_nodes", "--name", "steady"],
+            env=launch_env,
+            text=True,
+            capture_output=True,
+            timeout=60,
+        )
         assert by_hand.returncode == 2 and "a node named 'steady' already runs" in by_hand.stderr
         third = dtx("launch", str(FIXTURES / "two_counters.yaml"), "finish_after:=3", env=elsewhere)
         output, _ = third.communicate(timeout=60)
@@ -171,8 +191,9 @@ def test_command_line_tools_see_the_running_graph(registry: Registry, launch_env
         wait_for_nodes(registry, {"steady", "finisher"})
 
         def run(*args: str) -> str:
-            result = subprocess.run([sys.executable, "-m", "dtx.cli", *args], env=launch_env, text=True,
-                                    capture_output=True, timeout=60)
+            result = subprocess.run(
+                [sys.executable, "-m", "dtx.cli", *args], env=launch_env, text=True, capture_output=True, timeout=60
+            )
             assert result.returncode == 0, result.stderr
             return result.stdout
 
@@ -190,15 +211,19 @@ def test_command_line_tools_see_the_running_graph(registry: Registry, launch_env
         launcher.communicate(timeout=30)
 
 
-def test_nodes_that_die_together_are_respawned_together(registry: Registry, launch_env: dict[str, str],
-                                                        tmp_path: Path) -> None:
+def test_nodes_that_die_together_are_respawned_together(
+    registry: Registry, launch_env: dict[str, str], tmp_path: Path
+) -> None:
     """Each crashed node waits its own respawn delay while the launcher watches the others:
     both deaths are seen before either respawn (they were served one after the other, each
     waiting out its delay while the other stayed dead)."""
-    path = write(tmp_path, "launch:\n"
-                           "  - node: {name: one, module: fixture_nodes, respawn: true, respawn_delay_s: 3}\n"
-                           "  - node: {name: two, module: fixture_nodes, respawn: true, respawn_delay_s: 3,\n"
-                           "           remaps: {/count: /two/count, /echo: /two/echo, /hold: /two/hold}}\n")
+    path = write(
+        tmp_path,
+        "launch:\n"
+        "  - node: {name: one, module: fixture_nodes, respawn: true, respawn_delay_s: 3}\n"
+        "  - node: {name: two, module: fixture_nodes, respawn: true, respawn_delay_s: 3,\n"
+        "           remaps: {/count: /two/count, /echo: /two/echo, /hold: /two/hold}}\n",
+    )
     launcher = dtx("launch", str(path), env=launch_env)
     try:
         pids = wait_for_nodes(registry, {"one", "two"})
@@ -225,27 +250,35 @@ def test_nodes_that_die_together_are_respawned_together(registry: Registry, laun
 def limit_file_size(limit_bytes: int) -> Callable[[], None]:
     """A preexec_fn under which no file grows past ``limit_bytes``: writes beyond fail (EFBIG;
     Python ignores SIGXFSZ), as on a full disk, without needing root to mount a small one."""
+
     def apply() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
     return apply
 
 
 def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
-        registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
+    registry: Registry, launch_env: dict[str, str], tmp_path: Path
+) -> None:
     """It crash-looped: each respawn opened one more bag (session.1.mcap, ...) that the disk
     refused in turn. Now it stops with the do-not-respawn status and its bag reads."""
     from nodes.bag import bag_info
+
     bag = tmp_path / "session.mcap"
-    path = write(tmp_path, "launch:\n"
-                           "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.02, text_bytes: 4000}}\n"
-                           "  - node:\n      name: recorder\n      module: nodes.recorder\n      respawn: true\n"
-                           f"      params: {{bag: {bag}, compression: none, foxglove: false}}\n")
+    path = write(
+        tmp_path,
+        "launch:\n"
+        "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.02, text_bytes: 4000}}\n"
+        "  - node:\n      name: recorder\n      module: nodes.recorder\n      respawn: true\n"
+        f"      params: {{bag: {bag}, compression: none, foxglove: false}}\n",
+    )
     launcher = dtx("launch", str(path), env=launch_env, preexec_fn=limit_file_size(1024 * 1024))
     try:
         deadline = time.monotonic() + 60  # the recorder may fill its file before the talker is seen up
 
         def recorder_ended() -> bool:
             return any(s["node"] == "recorder" and not s["alive"] for s in registry.node_statuses())
+
         while not recorder_ended() and time.monotonic() < deadline:
             time.sleep(0.2)
         time.sleep(5.0)  # time for a respawn, if the launcher wrongly made one
@@ -261,20 +294,28 @@ def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
 
 
 def test_a_loaded_graph_stops_within_the_grace_time_without_a_kill(
-        registry: Registry, launch_env: dict[str, str], tmp_path: Path) -> None:
+    registry: Registry, launch_env: dict[str, str], tmp_path: Path
+) -> None:
     """Ctrl-C while a node waits on a long call (the collector during a registration), beside a
     flooding talker and a recorder: every node exits by itself, status 0; none is killed after
     the grace time (the caller used to wait out its call's time-out). The server is outside the
     graph and keeps holding the request, so only the caller's own stop can end the wait."""
-    server = subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", "server", "--params",
-                               '{"hold_s": 600}'], env=launch_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    path = write(tmp_path, "launch:\n"
-                           "  - node: {name: caller, module: fixture_nodes, params: {period_s: 0.5, call_hold: true},\n"
-                           "           remaps: {/count: /caller/count, /echo: /caller/echo, /hold: /caller/hold,"
-                           " /target/hold: /hold}}\n"
-                           "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.005, text_bytes: 2000},\n"
-                           "           remaps: {/count: /talker/count, /echo: /talker/echo, /hold: /talker/hold}}\n"
-                           f"  - node: {{name: recorder, module: nodes.recorder, params: {{bag: {tmp_path / 'b.mcap'}}}}}\n")
+    server = subprocess.Popen(
+        [sys.executable, "-m", "fixture_nodes", "--name", "server", "--params", '{"hold_s": 600}'],
+        env=launch_env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    path = write(
+        tmp_path,
+        "launch:\n"
+        "  - node: {name: caller, module: fixture_nodes, params: {period_s: 0.5, call_hold: true},\n"
+        "           remaps: {/count: /caller/count, /echo: /caller/echo, /hold: /caller/hold,"
+        " /target/hold: /hold}}\n"
+        "  - node: {name: talker, module: fixture_nodes, params: {period_s: 0.005, text_bytes: 2000},\n"
+        "           remaps: {/count: /talker/count, /echo: /talker/echo, /hold: /talker/hold}}\n"
+        f"  - node: {{name: recorder, module: nodes.recorder, params: {{bag: {tmp_path / 'b.mcap'}}}}}\n",
+    )
     launcher = dtx("launch", str(path), env=launch_env)
     try:
         wait_for_nodes(registry, {"server", "talker", "recorder"}, timeout_s=60)

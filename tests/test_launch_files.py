@@ -1,6 +1,7 @@
 """The shipped launch files: the lab's runs Algorithm 1 with the same nodes as the simulated
 session, and each pipeline node's parameters are ones it accepts and that name the graph's own
 topics. (A device node's parameters go to its backend: tests/test_drivers_hw_check.py.)"""
+
 from __future__ import annotations
 
 import importlib
@@ -14,15 +15,22 @@ from nodes.node import Node, parse_params
 
 LAUNCH = Path(__file__).resolve().parent.parent / "launch"
 # Everything a session needs beyond its devices.
-PIPELINE = {"patch_extractor": "nodes.patch_extractor", "collector": "nodes.collector",
-            "transforms": "nodes.transforms", "recorder": "nodes.recorder"}
+PIPELINE = {
+    "patch_extractor": "nodes.patch_extractor",
+    "collector": "nodes.collector",
+    "transforms": "nodes.transforms",
+    "recorder": "nodes.recorder",
+}
 
 
 def node_params(module: str, name: str, values: dict[str, Any]) -> Any:
     """The node's parameter dataclass built from ``values`` as the node itself builds it."""
     namespace = vars(importlib.import_module(module))
-    [node_class] = [c for c in namespace.values() if isinstance(c, type) and issubclass(c, Node)
-                    and c.__module__ == module and hasattr(c, "Params")]
+    [node_class] = [
+        c
+        for c in namespace.values()
+        if isinstance(c, type) and issubclass(c, Node) and c.__module__ == module and hasattr(c, "Params")
+    ]
     return parse_params(node_class.Params, values, name)
 
 

@@ -1,6 +1,7 @@
 """The import graph, read from the source: every import (deferred ones inside functions too)
 goes down the layers the README draws, and no two modules import each other, directly or
 round a circle. A new module must be placed in :data:`LAYERS` before this passes."""
+
 from __future__ import annotations
 
 import ast
@@ -13,8 +14,18 @@ REPO = Path(__file__).resolve().parent.parent
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("messages", ("msgs",)),
     ("workcell", ("workcell",)),
-    ("bus", ("nodes.bus", "nodes.registry", "nodes.security", "nodes.node", "nodes.bag", "nodes.sensor",
-             "nodes.inference_client")),
+    (
+        "bus",
+        (
+            "nodes.bus",
+            "nodes.registry",
+            "nodes.security",
+            "nodes.node",
+            "nodes.bag",
+            "nodes.sensor",
+            "nodes.inference_client",
+        ),
+    ),
     ("perception", ("perception",)),
     ("simulated world", ("sim",)),
     ("device backends", ("drivers",)),
@@ -23,8 +34,19 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("nodes", ("nodes",)),
     ("command line and reports", ("dtx", "report", "benchmarks", "*.cli")),
 ]
-PACKAGES = ("msgs", "workcell", "nodes", "perception", "sim", "drivers", "dataset", "models", "dtx", "report",
-            "benchmarks")
+PACKAGES = (
+    "msgs",
+    "workcell",
+    "nodes",
+    "perception",
+    "sim",
+    "drivers",
+    "dataset",
+    "models",
+    "dtx",
+    "report",
+    "benchmarks",
+)
 
 
 def _module_name(path: Path) -> str:
@@ -77,9 +99,12 @@ def _graph() -> dict[str, set[str]]:
 
 
 def test_every_import_goes_down_the_layers() -> None:
-    upward = [f"{module} ({LAYERS[_layer(module)][0]}) imports {target} ({LAYERS[_layer(target)][0]})"
-              for module, targets in sorted(_graph().items()) for target in sorted(targets)
-              if _layer(target) > _layer(module)]
+    upward = [
+        f"{module} ({LAYERS[_layer(module)][0]}) imports {target} ({LAYERS[_layer(target)][0]})"
+        for module, targets in sorted(_graph().items())
+        for target in sorted(targets)
+        if _layer(target) > _layer(module)
+    ]
     assert upward == []
 
 

@@ -1,6 +1,7 @@
 """Numerical contracts of SSIM and the evaluation statistics (issue 20): a right finite answer
 or ModelConfigError, for every dtype, layout and degenerate data set; ``dtx evaluate`` reports
 what it can and says what it cannot."""
+
 from __future__ import annotations
 
 import argparse
@@ -33,10 +34,23 @@ def as_batch(x: np.ndarray) -> torch.Tensor:
 
 # --- family 1: ssim_torch dtypes --------------------------------------------------------------
 
+
 @FAST
-@given(seed=st.integers(0, 2 ** 16),
-       dtype=st.sampled_from([torch.uint8, torch.int16, torch.int32, torch.int64, torch.float16, torch.bfloat16,
-                              torch.float32, torch.float64]))
+@given(
+    seed=st.integers(0, 2**16),
+    dtype=st.sampled_from(
+        [
+            torch.uint8,
+            torch.int16,
+            torch.int32,
+            torch.int64,
+            torch.float16,
+            torch.bfloat16,
+            torch.float32,
+            torch.float64,
+        ]
+    ),
+)
 def test_property_ssim_is_the_float64_ssim_in_every_dtype(seed: int, dtype: torch.dtype) -> None:
     a, b = images(2, seed), images(2, seed + 1)
     reference = ssim_torch(as_batch(a).double(), as_batch(b).double())
@@ -45,8 +59,12 @@ def test_property_ssim_is_the_float64_ssim_in_every_dtype(seed: int, dtype: torc
     # 8-bit levels are exact in every dtype here; only float32 arithmetic differs.
     torch.testing.assert_close(got.double(), reference, atol=1e-4, rtol=0)
     assert torch.all(reference < 0.5)  # unrelated noise images: far from 1
-    torch.testing.assert_close(ssim_torch(as_batch(a).to(dtype), as_batch(a).to(dtype)).double(),
-                               torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        ssim_torch(as_batch(a).to(dtype), as_batch(a).to(dtype)).double(),
+        torch.ones(2, dtype=torch.float64),
+        atol=1e-5,
+        rtol=0,
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.uint8, torch.int32, torch.int64])
@@ -59,7 +77,8 @@ def test_float16_ssim_is_not_nan() -> None:
     a, b = images(1, 0), images(1, 1)
     value = ssim_torch(as_batch(a).half(), as_batch(b).half())
     assert torch.isfinite(value).all() and value.item() == pytest.approx(
-        ssim_torch(as_batch(a).double(), as_batch(b).double()).item(), abs=1e-4)
+        ssim_torch(as_batch(a).double(), as_batch(b).double()).item(), abs=1e-4
+    )
 
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), -1.0, 255.5, 1e300])
@@ -82,12 +101,18 @@ def test_ssim_refuses_bad_shapes_and_complex() -> None:
 
 # --- family 9: ssim_rgb views ------------------------------------------------------------------
 
+
 @FAST
-@given(seed=st.integers(0, 2 ** 16), view=st.sampled_from(["flip_x", "flip_y", "flip_c", "step", "fortran"]))
+@given(seed=st.integers(0, 2**16), view=st.sampled_from(["flip_x", "flip_y", "flip_c", "step", "fortran"]))
 def test_property_ssim_rgb_of_a_view_is_the_ssim_of_its_copy(seed: int, view: str) -> None:
     a, b = images(2, seed, 30), images(2, seed + 1, 30)
-    make = {"flip_x": lambda x: x[:, :, ::-1], "flip_y": lambda x: x[:, ::-1], "flip_c": lambda x: x[..., ::-1],
-            "step": lambda x: x[:, ::2, ::2], "fortran": np.asfortranarray}[view]
+    make = {
+        "flip_x": lambda x: x[:, :, ::-1],
+        "flip_y": lambda x: x[:, ::-1],
+        "flip_c": lambda x: x[..., ::-1],
+        "step": lambda x: x[:, ::2, ::2],
+        "fortran": np.asfortranarray,
+    }[view]
     va, vb = make(a), make(b)
     np.testing.assert_array_equal(ssim_rgb(va, vb), ssim_rgb(va.copy(), vb.copy()))
     windows = np.ones(va.shape[:-1], bool)[:, ::-1]
@@ -103,13 +128,14 @@ def test_ssim_rgb_refuses_windows_of_another_shape_or_dtype() -> None:
 
 
 @FAST
-@given(seed=st.integers(0, 2 ** 16), level=st.integers(1, 40))
+@given(seed=st.integers(0, 2**16), level=st.integers(1, 40))
 def test_property_psnr_is_the_8_bit_formula_and_capped(seed: int, level: int) -> None:
     a = images(2, seed).astype(np.int16)
     b = np.clip(a + level, 0, 255)
     mse = ((a - b) ** 2).reshape(2, -1).mean(axis=1)
-    np.testing.assert_allclose(psnr_rgb(a.astype(np.uint8), b.astype(np.uint8)), 10 * np.log10(255.0 ** 2 / mse),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        psnr_rgb(a.astype(np.uint8), b.astype(np.uint8)), 10 * np.log10(255.0**2 / mse), rtol=1e-12
+    )
     assert psnr_rgb(a[0].astype(np.uint8), a[0].astype(np.uint8)) == PSNR_MAX_DB
 
 
@@ -122,6 +148,7 @@ def test_psnr_refuses_what_ssim_refuses() -> None:
 
 
 # --- family 3: template_match ------------------------------------------------------------------
+
 
 def test_flat_template_scores_0_and_has_no_match() -> None:
     truth = np.full((1, 40, 40, 3), 90, np.uint8)
@@ -139,7 +166,7 @@ def test_flat_estimate_scores_0_against_a_textured_template() -> None:
 
 
 @FAST
-@given(seed=st.integers(0, 2 ** 16), flat_fraction=st.floats(0.0, 1.0))
+@given(seed=st.integers(0, 2**16), flat_fraction=st.floats(0.0, 1.0))
 def test_property_template_scores_are_finite_correlations(seed: int, flat_fraction: float) -> None:
     rng = np.random.default_rng(seed)
     truth, estimate = images(2, seed, 32), images(2, seed + 7, 32)
@@ -160,12 +187,19 @@ def test_template_match_refuses_mismatched_inputs() -> None:
 
 # --- family 4: ssim_statistics and dtx evaluate on degenerate data ------------------------------
 
+
 def test_identical_truths_give_an_undefined_ratio_with_its_reason() -> None:
     truth = np.repeat(images(1, 0), 4, axis=0)
     result = ssim_statistics(truth, truth.copy())  # was ZeroDivisionError
     assert math.isnan(result["dissimilarity_ratio"]) and "same frame" in result["dissimilarity_ratio_undefined"]
-    for key in ("ssim_model_mean", "ssim_model_se", "ssim_baseline_mean", "ssim_baseline_se", "p_value_wilcoxon",
-                "p_value_t"):
+    for key in (
+        "ssim_model_mean",
+        "ssim_model_se",
+        "ssim_baseline_mean",
+        "ssim_baseline_se",
+        "p_value_wilcoxon",
+        "p_value_t",
+    ):
         assert math.isfinite(result[key])
 
 
@@ -184,8 +218,12 @@ def test_an_empty_window_mask_is_refused_not_nan() -> None:
 
 
 @FAST
-@given(seed=st.integers(0, 2 ** 16), n=st.integers(2, 5), draws=st.integers(1, 20),
-       same=st.sampled_from(["none", "truths", "pairs", "estimates"]))
+@given(
+    seed=st.integers(0, 2**16),
+    n=st.integers(2, 5),
+    draws=st.integers(1, 20),
+    same=st.sampled_from(["none", "truths", "pairs", "estimates"]),
+)
 def test_property_statistics_are_finite_or_explained(seed: int, n: int, draws: int, same: str) -> None:
     truth, estimate = images(n, seed, 16), images(n, seed + 1, 16)
     if same == "truths":
@@ -206,19 +244,26 @@ def _degenerate_predictions(n: int, identical: bool) -> Predictions:
     templates); otherwise random truths and flat estimates."""
     flat = np.full((n, 40, 40, 3), 120, np.uint8)
     truth = flat.copy() if identical else images(n, 0, 40)
-    return Predictions(sample_ids=[f"s{i}" for i in range(n)], objects=["only"] * n,
-                       depth_maps_m=np.zeros((n, 40, 40), np.float32), truth=truth,
-                       truth_deformation=np.zeros(truth.shape[:-1], np.float32), estimate=flat)
+    return Predictions(
+        sample_ids=[f"s{i}" for i in range(n)],
+        objects=["only"] * n,
+        depth_maps_m=np.zeros((n, 40, 40), np.float32),
+        truth=truth,
+        truth_deformation=np.zeros(truth.shape[:-1], np.float32),
+        estimate=flat,
+    )
 
 
 @pytest.mark.parametrize("n, identical", [(1, False), (2, True), (3, True), (3, False)])
 def test_dtx_evaluate_reports_degenerate_data_without_a_traceback(
-        n: int, identical: bool, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    n: int, identical: bool, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """One object, identical (flat) truths, a single pair: the table says what it cannot give."""
     predictions = _degenerate_predictions(n, identical)
 
-    def predict_dataset(generator: object, depth_range_m: object, root: object, split: str = "test",
-                        hold_out_object: str = "") -> Predictions:
+    def predict_dataset(
+        generator: object, depth_range_m: object, root: object, split: str = "test", hold_out_object: str = ""
+    ) -> Predictions:
         if n < 2:
             raise ModelConfigError(f"the {split} set of {root} has {n} sample(s); need at least 2")
         return predictions
@@ -247,10 +292,17 @@ def test_dtx_evaluate_reports_degenerate_data_without_a_traceback(
 def test_summary_table_prints_every_undefined_figure() -> None:
     predictions = _degenerate_predictions(3, True)
     result = ssim_statistics(predictions.truth, predictions.estimate)
-    result.update(template_match={"template_px": 8, "score_mean": 0.0, "distance_px_median": float("nan"),
-                                  "per_sample": template_match(predictions.truth, predictions.truth_deformation,
-                                                               predictions.estimate, 8)},
-                  contact={"n": 0}, objects={}, density=[])
+    result.update(
+        template_match={
+            "template_px": 8,
+            "score_mean": 0.0,
+            "distance_px_median": float("nan"),
+            "per_sample": template_match(predictions.truth, predictions.truth_deformation, predictions.estimate, 8),
+        },
+        contact={"n": 0},
+        objects={},
+        density=[],
+    )
     table = summary_table(result)
     assert "ratio undefined (all pairs)" in table and "every template is flat" in table
     assert "no object has 2 pairs" in table

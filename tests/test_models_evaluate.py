@@ -1,4 +1,5 @@
 """Evaluation: SSIM statistics, baseline, template matching, figures and the CLI."""
+
 from __future__ import annotations
 
 import argparse
@@ -48,7 +49,8 @@ def test_good_estimates_beat_the_random_baseline_significantly() -> None:
     assert result["ssim_model_mean"] > result["ssim_baseline_mean"] + 0.05
     assert result["p_value_wilcoxon"] < 1e-6 and result["p_value_t"] < 1e-6
     assert result["dissimilarity_ratio"] == pytest.approx(
-        (1 - result["ssim_model_mean"]) / (1 - result["ssim_baseline_mean"]))
+        (1 - result["ssim_model_mean"]) / (1 - result["ssim_baseline_mean"])
+    )
     assert result["ssim_model_se"] > 0 and len(result["ssim_baseline"]) == 40
 
 
@@ -88,17 +90,35 @@ def test_bad_inputs_are_refused() -> None:
 def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     dataset = tmp_path / "ds"
     write_synthetic_dataset(dataset, 32, seed=2, renderer=ShadingRenderer(), pixel_pitch_mm=(0.15, 0.2))
-    config = TrainConfig(epochs=1, epochs_decay=0, batch_size=8, ndf=8, threads=1, max_steps=2,
-                         generator=GeneratorConfig(ngf=8))
+    config = TrainConfig(
+        epochs=1, epochs_decay=0, batch_size=8, ndf=8, threads=1, max_steps=2, generator=GeneratorConfig(ngf=8)
+    )
     checkpoint = train(dataset, config, tmp_path / "run", progress=False)
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers())
-    args = parser.parse_args(["evaluate", str(checkpoint), str(dataset), "--json", "--figures",
-                              str(tmp_path / "fig"), "--density", f"20={dataset}"])
+    args = parser.parse_args(
+        [
+            "evaluate",
+            str(checkpoint),
+            str(dataset),
+            "--json",
+            "--figures",
+            str(tmp_path / "fig"),
+            "--density",
+            f"20={dataset}",
+        ]
+    )
     assert args.func(args) == 0
     result = json.loads(capsys.readouterr().out)
-    for key in ("ssim_model_mean", "ssim_model_se", "ssim_baseline_mean", "ssim_baseline_se", "p_value_wilcoxon",
-                "p_value_t", "dissimilarity_ratio"):
+    for key in (
+        "ssim_model_mean",
+        "ssim_model_se",
+        "ssim_baseline_mean",
+        "ssim_baseline_se",
+        "p_value_wilcoxon",
+        "p_value_t",
+        "dissimilarity_ratio",
+    ):
         assert np.isfinite(result[key])
     assert set(result["template_match"]) >= {"score_mean", "distance_px_median"}
     assert result["contact"]["contact_levels"] == CONTACT_LEVELS
@@ -109,8 +129,7 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
     assert result["contact"]["n"] >= 2
     assert result["density"][0]["contact_ssim_mean"] == pytest.approx(result["contact"]["ssim_model_mean"])
     assert "contact_p_full_better" not in result["density"][0]  # the same maps: nothing to compare
-    assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["density.png", "qualitative.png",
-                                                                     "ssim_bars.png"]
+    assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["density.png", "qualitative.png", "ssim_bars.png"]
     args = parser.parse_args(["evaluate", str(tmp_path / "missing.pt"), str(dataset)])
     assert args.func(args) == 1 and "does not exist" in capsys.readouterr().err
 
@@ -128,17 +147,31 @@ def test_contact_ssim_does_not_reward_drawing_no_contact() -> None:
     perfect = contact_ssim_statistics(truth, deformation, truth)
     assert perfect["ssim_model_mean"] == pytest.approx(1.0) and perfect["n"] == 8
     assert contact_ssim_statistics(truth, deformation, no_contact)["ssim_model_mean"] < whole["ssim_model_mean"]
-    assert contact_ssim_statistics(truth, np.zeros_like(deformation), truth) == {"n": 0, "contact_levels": CONTACT_LEVELS}
+    assert contact_ssim_statistics(truth, np.zeros_like(deformation), truth) == {
+        "n": 0,
+        "contact_levels": CONTACT_LEVELS,
+    }
 
 
 def test_the_demo_table_sets_the_paper_beside_each_figure_and_gives_each_object() -> None:
     from dtx.demo import paper_table
 
-    stats = {"n": 10, "ssim_model_mean": 0.95, "ssim_model_se": 0.01, "ssim_baseline_mean": 0.9,
-             "ssim_baseline_se": 0.01, "p_value_wilcoxon": 1e-3, "dissimilarity_ratio": 0.5}
-    evaluation = {**stats, "p_value_t": 1e-3, "template_match": {"score_mean": 0.9, "distance_px_median": 2.0},
-                  "objects": {"mustard_bottle": stats},
-                  "density": [{"points_per_cm3": 20.0, "ssim_mean": 0.94, "ssim_se": 0.01}]}
+    stats = {
+        "n": 10,
+        "ssim_model_mean": 0.95,
+        "ssim_model_se": 0.01,
+        "ssim_baseline_mean": 0.9,
+        "ssim_baseline_se": 0.01,
+        "p_value_wilcoxon": 1e-3,
+        "dissimilarity_ratio": 0.5,
+    }
+    evaluation = {
+        **stats,
+        "p_value_t": 1e-3,
+        "template_match": {"score_mean": 0.9, "distance_px_median": 2.0},
+        "objects": {"mustard_bottle": stats},
+        "density": [{"points_per_cm3": 20.0, "ssim_mean": 0.94, "ssim_se": 0.01}],
+    }
     table = paper_table(evaluation)
     assert "mustard_bottle (10 pairs)" in table and "0.950 / 0.900, 0.50" in table
     assert "0.84 ± 0.0056" in table and "0.8478" in table

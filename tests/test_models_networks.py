@@ -1,4 +1,5 @@
 """Generator, discriminator, initialisation, SSIM and the network input."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,9 @@ torch.set_num_threads(1)
 @pytest.mark.parametrize("num_downs, pad_to, in_channels", [(7, 128, 1), (4, 112, 2), (6, 128, 1)])
 def test_generator_maps_100x100_depth_to_rgb_in_tanh_range(num_downs: int, pad_to: int, in_channels: int) -> None:
     torch.manual_seed(0)
-    config = GeneratorConfig(in_channels=in_channels, ngf=8, num_downs=num_downs, pad_to=pad_to,
-                             dropout_blocks=min(3, num_downs - 2))
+    config = GeneratorConfig(
+        in_channels=in_channels, ngf=8, num_downs=num_downs, pad_to=pad_to, dropout_blocks=min(3, num_downs - 2)
+    )
     generator = UNetGenerator(config)
     init_weights(generator)
     out = generator(torch.randn(2, in_channels, 100, 100))
@@ -51,19 +53,24 @@ def test_discriminator_gives_10x10_patch_logits_and_init_is_n_0_002() -> None:
     init_weights(discriminator)
     logits = discriminator(torch.randn(3, 1, 100, 100), torch.randn(3, 3, 100, 100))
     assert logits.shape == (3, 1, 10, 10)
-    weights = torch.cat([m.weight.detach().flatten() for m in discriminator.modules() if isinstance(m, torch.nn.Conv2d)])
+    weights = torch.cat(
+        [m.weight.detach().flatten() for m in discriminator.modules() if isinstance(m, torch.nn.Conv2d)]
+    )
     assert abs(float(weights.mean())) < 1e-3 and abs(float(weights.std()) - 0.02) < 1e-3
     strides = [m.stride[0] for m in discriminator.modules() if isinstance(m, torch.nn.Conv2d)]
     assert strides == [2, 2, 2, 1, 1]
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"in_channels": 3}, "in_channels"),
-    ({"pad_to": 100}, "multiple of"),
-    ({"pad_to": 64, "num_downs": 4}, "pad_to"),
-    ({"dropout": 1.0}, "dropout"),
-    ({"num_downs": 4, "pad_to": 112, "dropout_blocks": 3}, "dropout_blocks"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"in_channels": 3}, "in_channels"),
+        ({"pad_to": 100}, "multiple of"),
+        ({"pad_to": 64, "num_downs": 4}, "pad_to"),
+        ({"dropout": 1.0}, "dropout"),
+        ({"num_downs": 4, "pad_to": 112, "dropout_blocks": 3}, "dropout_blocks"),
+    ],
+)
 def test_bad_generator_config_is_refused(change: dict, message: str) -> None:
     with pytest.raises(ModelConfigError, match=message):
         GeneratorConfig(**change).validate()
@@ -80,8 +87,17 @@ def test_generator_refuses_wrong_input_shape_and_unknown_settings() -> None:
 
 
 def _skimage_ssim(a: np.ndarray, b: np.ndarray) -> float:
-    return structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                                 data_range=255, K1=0.01, K2=0.03, channel_axis=-1)
+    return structural_similarity(
+        a,
+        b,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+        data_range=255,
+        K1=0.01,
+        K2=0.03,
+        channel_axis=-1,
+    )
 
 
 @settings(max_examples=25, deadline=None)
@@ -109,8 +125,13 @@ def test_ssim_refuses_bad_input() -> None:
 
 
 @settings(max_examples=30, deadline=None)
-@given(depth=arrays(np.float32, (2, 12, 12), elements=st.one_of(
-    st.floats(-0.0078125, 0.0078125, width=32), st.just(np.nan), st.just(np.inf))))
+@given(
+    depth=arrays(
+        np.float32,
+        (2, 12, 12),
+        elements=st.one_of(st.floats(-0.0078125, 0.0078125, width=32), st.just(np.nan), st.just(np.inf)),
+    )
+)
 def test_network_input_is_normalised_depth_and_validity_mask(depth: np.ndarray) -> None:
     x = depth_input(depth, (-0.0015, 0.0025), in_channels=2).numpy()
     assert x.shape == (2, 2, 12, 12) and x.dtype == np.float32

@@ -1,5 +1,6 @@
 """The physics prior's image expected over a pose error (models.prior): the sensor's background
 stays, the contact's change spreads as the offsets do, and a bad uncertainty is refused."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -31,7 +32,7 @@ def ball_press(centre_mm: tuple[float, float], radius_mm: float = 2.0, depth_mm:
     x = (np.arange(BINS) + 0.5) / BINS * CROP_M[0] * 1e3 - CROP_M[0] * 1e3 / 2
     z = (np.arange(BINS) + 0.5) / BINS * CROP_M[2] * 1e3 - CROP_M[2] * 1e3 / 2
     r2 = (x[None, :] - centre_mm[0]) ** 2 + (z[:, None] - centre_mm[1]) ** 2
-    gap_mm = np.where(r2 < radius_mm ** 2, radius_mm - depth_mm - np.sqrt(np.maximum(radius_mm ** 2 - r2, 0)), np.inf)
+    gap_mm = np.where(r2 < radius_mm**2, radius_mm - depth_mm - np.sqrt(np.maximum(radius_mm**2 - r2, 0)), np.inf)
     return np.minimum(gap_mm * 1e-3, FAR_M).astype(np.float32)[None]
 
 

@@ -1,5 +1,6 @@
 """Real-frame evaluation (``dtx evaluate --real-presses``): the press seen as the system sees a
 contact, every estimate scored the same way, and a bad presses file refused clearly."""
+
 from __future__ import annotations
 
 import argparse
@@ -37,8 +38,16 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     its depth-map puts it."""
     root = tmp_path_factory.mktemp("real")
     write_contact_library(root / "library", 96, seed=3, scene=SCENE, depth_range_m=DEPTH_RANGE_M)
-    config = TrainConfig(epochs=8, epochs_decay=4, batch_size=8, ndf=8, threads=1, lambda_l1=1000.0,
-                         contact_weight=4.0, generator=GeneratorConfig(ngf=8, background=True, dropout=0.0))
+    config = TrainConfig(
+        epochs=8,
+        epochs_decay=4,
+        batch_size=8,
+        ndf=8,
+        threads=1,
+        lambda_l1=1000.0,
+        contact_weight=4.0,
+        generator=GeneratorConfig(ngf=8, background=True, dropout=0.0),
+    )
     return train(root / "library", config, root / "train", progress=False)
 
 
@@ -69,8 +78,9 @@ def test_an_off_centre_press_lands_on_the_same_side_in_depth_map_render_and_pred
     change = np.abs(image.astype(float) - renderer.background().astype(float)).sum(axis=2)
     assert np.array_equal(np.sign(_offset_from_centre(change)), expected)
 
-    estimate, empty = predict(generator, np.stack([depth_map, np.full_like(depth_map, depth_range_m[1])]),
-                              depth_range_m)
+    estimate, empty = predict(
+        generator, np.stack([depth_map, np.full_like(depth_map, depth_range_m[1])]), depth_range_m
+    )
     predicted_change = np.abs(estimate.astype(float) - empty.astype(float)).sum(axis=2)
     assert np.array_equal(np.sign(_offset_from_centre(predicted_change)), expected)
 
@@ -102,16 +112,20 @@ def _bad_file(tmp_path: Path, **changes: object) -> Path:
     return path
 
 
-@pytest.mark.parametrize(("changes", "message"), [
-    ({"touch_radius": None}, "missing keys"),
-    ({"frames": np.zeros((30, 120, 159, 3), np.uint8)}, "frames must be"),
-    ({"frames": np.zeros((30, 120, 160, 3), np.float32)}, "frames must be"),
-    ({"touch_center": np.full((30, 2), np.nan)}, "finite"),
-    ({"touch_center": np.full((30, 2), 500.0)}, "outside"),
-    ({"touch_radius": np.zeros(30, np.int64)}, "> 0"),
-])
-def test_a_bad_presses_file_gets_a_clear_error_and_exit_2(checkpoint: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
-                                                          changes: dict, message: str) -> None:
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"touch_radius": None}, "missing keys"),
+        ({"frames": np.zeros((30, 120, 159, 3), np.uint8)}, "frames must be"),
+        ({"frames": np.zeros((30, 120, 160, 3), np.float32)}, "frames must be"),
+        ({"touch_center": np.full((30, 2), np.nan)}, "finite"),
+        ({"touch_center": np.full((30, 2), 500.0)}, "outside"),
+        ({"touch_radius": np.zeros(30, np.int64)}, "> 0"),
+    ],
+)
+def test_a_bad_presses_file_gets_a_clear_error_and_exit_2(
+    checkpoint: Path, tmp_path: Path, capsys: pytest.CaptureFixture, changes: dict, message: str
+) -> None:
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers())
     args = parser.parse_args(["evaluate", str(checkpoint), "--real-presses", str(_bad_file(tmp_path, **changes))])

@@ -1,4 +1,5 @@
 """Training: reproducibility, resume, checkpoints, configs, DistributedDataParallel."""
+
 from __future__ import annotations
 
 import csv
@@ -22,8 +23,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_dataset_format import ShadingRenderer
 
 REPO = Path(__file__).resolve().parent.parent
-TINY = TrainConfig(epochs=1, epochs_decay=1, batch_size=8, ndf=8, threads=1, log_every=1,
-                   generator=GeneratorConfig(ngf=8))
+TINY = TrainConfig(
+    epochs=1, epochs_decay=1, batch_size=8, ndf=8, threads=1, log_every=1, generator=GeneratorConfig(ngf=8)
+)
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +73,8 @@ def test_checkpoint_loads_with_weights_only_and_gives_an_eval_generator(dataset:
     events.Reload()
     assert [e.step for e in events.Scalars("train/loss_g_l1")] == [1, 2]
     assert [float(e.value) for e in events.Scalars("train/loss_g_l1")] == pytest.approx(
-        [float(r["loss_g_l1"]) for r in rows], rel=1e-4)
+        [float(r["loss_g_l1"]) for r in rows], rel=1e-4
+    )
     assert len(events.Scalars("val/ssim")) == 1
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ModelConfigError, match="not a readable"):
@@ -91,12 +94,21 @@ def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
     # The generalisation table's variants differ from the default only in what they compare.
     for variant in sorted((REPO / "configs" / "variants").glob("*.yaml")):
         config = TrainConfig.load(variant)
-        assert (config.lr, config.batch_size, config.lambda_l1, config.generator.ngf) == \
-            (quick.lr, quick.batch_size, quick.lambda_l1, quick.generator.ngf), variant.name
+        assert (config.lr, config.batch_size, config.lambda_l1, config.generator.ngf) == (
+            quick.lr,
+            quick.batch_size,
+            quick.lambda_l1,
+            quick.generator.ngf,
+        ), variant.name
     bad = tmp_path / "bad.yaml"
-    for text, message in [("lr: -1\n", "lr > 0"), ("epochs: 0\nepochs_decay: 0\n", "positive sum"),
-                          ("learning_rate: 1\n", "unknown training config"), ("generator: {ngf: 0}\n", "ngf"),
-                          ("[1, 2]\n", "mapping"), ("a: [\n", "not valid YAML")]:
+    for text, message in [
+        ("lr: -1\n", "lr > 0"),
+        ("epochs: 0\nepochs_decay: 0\n", "positive sum"),
+        ("learning_rate: 1\n", "unknown training config"),
+        ("generator: {ngf: 0}\n", "ngf"),
+        ("[1, 2]\n", "mapping"),
+        ("a: [\n", "not valid YAML"),
+    ]:
         bad.write_text(text)
         with pytest.raises(ModelConfigError, match=message):
             TrainConfig.load(bad)
@@ -106,17 +118,24 @@ def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
 
 def test_runs_under_torchrun_with_two_gloo_processes(dataset: Path, tmp_path: Path) -> None:
     script = tmp_path / "ddp_train.py"
-    script.write_text(textwrap.dedent(f"""
+    script.write_text(
+        textwrap.dedent(f"""
         import torch
         from models.networks import GeneratorConfig
         from models.train import TrainConfig, train
         config = TrainConfig(epochs=1, epochs_decay=0, batch_size=4, ndf=8, threads=1, max_steps=2,
                              generator=GeneratorConfig(ngf=8))
-        train({str(dataset)!r}, config, {str(tmp_path / 'out')!r}, progress=False)
-    """))
+        train({str(dataset)!r}, config, {str(tmp_path / "out")!r}, progress=False)
+    """)
+    )
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
-    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                           str(script)], env=env, capture_output=True, text=True, timeout=240)
+    done = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", str(script)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     state = load_checkpoint(tmp_path / "out" / "checkpoint.pt")
     assert state["step"] == 2 and state["epoch"] == 1
@@ -131,7 +150,9 @@ def test_leave_one_object_out_trains_without_the_held_out_object(dataset: Path, 
     assert {r.object_name for r in select_records(reader, "test", held_out)} == {held_out}
     assert held_out not in {r.object_name for r in select_records(reader, "train", held_out)}
     config = TrainConfig(**{**TINY.__dict__, "max_steps": 1, "hold_out_object": held_out})
-    assert load_checkpoint(train(dataset, config, tmp_path, progress=False))["train_config"]["hold_out_object"] == held_out
+    assert (
+        load_checkpoint(train(dataset, config, tmp_path, progress=False))["train_config"]["hold_out_object"] == held_out
+    )
     with pytest.raises(ModelConfigError, match="unknown split"):
         select_records(reader, "holdout")
 
@@ -172,8 +193,9 @@ def test_a_generator_with_a_physics_prior_starts_from_the_renderer_and_exports(t
     from models.runtime import export_onnx
 
     library = write_contact_library(tmp_path / "library", 16, seed=1, scene=REPO / "scenes" / "ycb_three.yaml").root
-    config = TrainConfig(**{**TINY.__dict__, "max_steps": 1,
-                            "generator": GeneratorConfig(ngf=8, prior=True, background=False)})
+    config = TrainConfig(
+        **{**TINY.__dict__, "max_steps": 1, "generator": GeneratorConfig(ngf=8, prior=True, background=False)}
+    )
     generator, depth_range = load_generator(train(library, config, tmp_path / "prior", progress=False))
     assert isinstance(generator.prior, PhysicsPrior) and generator.prior.spec.scene.endswith("scenes/ycb_three.yaml")
     reader = DatasetReader(library)

@@ -1,4 +1,5 @@
 """The wire codec: round trips of every message, and every malformed input refused clearly."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -49,10 +50,16 @@ arrays = dtypes.flatmap(lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, m
 
 
 @settings(max_examples=150, deadline=None)
-@given(points=arrays, colors=arrays, stamp=st.integers(0, 2**63 - 1), seq=st.integers(0, 2**63 - 1),
-       frame_id=st.text(max_size=30))
-def test_arrays_and_headers_round_trip(points: np.ndarray, colors: np.ndarray, stamp: int, seq: int,
-                                       frame_id: str) -> None:
+@given(
+    points=arrays,
+    colors=arrays,
+    stamp=st.integers(0, 2**63 - 1),
+    seq=st.integers(0, 2**63 - 1),
+    frame_id=st.text(max_size=30),
+)
+def test_arrays_and_headers_round_trip(
+    points: np.ndarray, colors: np.ndarray, stamp: int, seq: int, frame_id: str
+) -> None:
     message = msgs.PointCloud(header=msgs.Header(stamp, seq, frame_id), points=points, colors=colors)
     envelope = decode(_bytes(encode("/cloud", message, "p1")))
     out = envelope.message
@@ -64,8 +71,11 @@ def test_arrays_and_headers_round_trip(points: np.ndarray, colors: np.ndarray, s
 
 
 @settings(max_examples=100, deadline=None)
-@given(width=st.floats(allow_nan=False, allow_infinity=False), state=st.text(max_size=20),
-       code=st.integers(-(2**63), 2**63 - 1))
+@given(
+    width=st.floats(allow_nan=False, allow_infinity=False),
+    state=st.text(max_size=20),
+    code=st.integers(-(2**63), 2**63 - 1),
+)
 def test_plain_values_round_trip(width: float, state: str, code: int) -> None:
     message = msgs.GripperState(width_m=width, state=state, status_code=code)
     assert decode(_bytes(encode("/g", message))).message == message
@@ -212,7 +222,8 @@ _DIMENSIONS = st.one_of(st.integers(0, 4), st.sampled_from([2**31, 2**32, 2**62,
     field=st.sampled_from(["depth", "unused"]),
 )
 def test_any_announced_array_decodes_or_raises_message_error(
-        shape: list[int], dtype: str, buffer: bytes, field: str) -> None:
+    shape: list[int], dtype: str, buffer: bytes, field: str
+) -> None:
     frames = encode("/depth", msgs.DepthImage(depth=np.zeros((1, 1), np.uint16)), "fuzzer")
     header = msgpack.unpackb(bytes(frames[1]))
     header["a"] = [[dtype, shape]]
@@ -229,8 +240,14 @@ def test_mutated_headers_of_every_message_type_only_ever_raise_message_error(dat
     msg_type = data.draw(st.sampled_from(sorted(msgs.MESSAGE_TYPES.values(), key=lambda t: t.SCHEMA)))
     frames = encode("/t", msg_type(), "fuzzer")
     header = msgpack.unpackb(bytes(frames[1]))
-    plain = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(),
-                      st.text(max_size=8), st.lists(st.integers(0, 2**63), max_size=3))
+    plain = st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(-(2**63), 2**64 - 1),
+        st.floats(),
+        st.text(max_size=8),
+        st.lists(st.integers(0, 2**63), max_size=3),
+    )
     for key in data.draw(st.lists(st.sampled_from(sorted(header)), max_size=3)):
         header[key] = data.draw(plain)
     if isinstance(header.get("d"), dict) and header["d"]:

@@ -1,4 +1,5 @@
 """The node base: parameters, timers, background service work, heartbeats."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -36,6 +37,7 @@ class SlowMover(Node):
         def move() -> msgs.GripperState:
             time.sleep(self.params.move_s)
             return msgs.GripperState(width_m=command.width_m, state="holding")
+
         return self.background.submit(move)
 
 
@@ -57,7 +59,8 @@ def test_state_keeps_flowing_while_a_service_works_in_the_background(registry: R
         assert states.receive(5.0) is not None
         asked_ns = time.time_ns()
         reply = caller.client("/mover/move", msgs.GripperCommand, msgs.GripperState).call(
-            msgs.GripperCommand(width_m=0.03), timeout_s=5.0)
+            msgs.GripperCommand(width_m=0.03), timeout_s=5.0
+        )
         answered_ns = time.time_ns()
         stamps = [0]
         while stamps[-1] <= answered_ns and (envelope := states.receive(2.0)) is not None:
@@ -82,15 +85,18 @@ def test_heartbeat_reaches_the_registry(registry: Registry) -> None:
 
 def test_a_launch_entry_can_be_switched_off(tmp_path: Path) -> None:
     path = tmp_path / "l.yaml"
-    path.write_text("launch:\n  - arg: {name: viewer, default: 'false'}\n"
-                    "  - node: {name: a, module: nodes.recorder}\n"
-                    "  - node: {name: b, module: nodes.foxglove_bridge, if: $(var viewer)}\n")
+    path.write_text(
+        "launch:\n  - arg: {name: viewer, default: 'false'}\n"
+        "  - node: {name: a, module: nodes.recorder}\n"
+        "  - node: {name: b, module: nodes.foxglove_bridge, if: $(var viewer)}\n"
+    )
     assert [n.name for n in load_launch(path).nodes] == ["a"]
     assert [n.name for n in load_launch(path, {"viewer": "true"}).nodes] == ["a", "b"]
 
 
 def test_a_respawned_recorder_never_overwrites_a_bag(tmp_path: Path) -> None:
     from nodes.recorder import free_bag_path
+
     first = tmp_path / "session.mcap"
     assert free_bag_path(first) == first
     first.write_bytes(b"bag of the first life")
@@ -108,8 +114,9 @@ class Listener(Node):
         super().__init__(name, None, **kwargs)
         self.heard: list[float] = []
         self.create_subscription("/listener/in", msgs.GripperCommand, self.on_command)
-        self.create_service("/listener/echo", msgs.GripperCommand, msgs.GripperState,
-                            lambda c: msgs.GripperState(width_m=c.width_m))
+        self.create_service(
+            "/listener/echo", msgs.GripperCommand, msgs.GripperState, lambda c: msgs.GripperState(width_m=c.width_m)
+        )
 
     def on_command(self, command: msgs.GripperCommand) -> None:
         if command.width_m < 0:
@@ -119,6 +126,7 @@ class Listener(Node):
 
 def test_a_live_node_survives_malformed_messages_and_failing_callbacks(registry: Registry) -> None:
     from msgs.codec import encode
+
     node = Listener("listener", registry=registry)
     stop = threading.Event()
     spinner = threading.Thread(target=lambda: node.spin(until=stop.is_set))
@@ -156,10 +164,15 @@ def test_a_service_answers_every_call_in_time_through_a_20000_message_flood(regi
     """A node in its own process gets 20,000 mutated requests on its service socket while a
     client keeps calling it: every call is answered within its time-out, the node lives on."""
     from msgs.codec import encode
+
     fixtures = Path(__file__).parent / "launch_fixtures"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(fixtures), os.environ.get("PYTHONPATH", "")])}
-    server = subprocess.Popen([sys.executable, "-m", "fixture_nodes", "--name", "flooded"], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "fixture_nodes", "--name", "flooded"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     bus = Bus("flooder", registry)
     try:
         client = bus.client("/echo", msgs.GripperCommand, msgs.GripperState)
@@ -177,6 +190,7 @@ def test_a_service_answers_every_call_in_time_through_a_20000_message_flood(regi
                 while flooder.sock.poll(0):  # the bad_request replies, read so none backs up
                     flooder.sock.recv_multipart()
                     refused += 1
+
         thread = threading.Thread(target=flood, daemon=True)
         thread.start()
         answered = 0
@@ -192,8 +206,10 @@ def test_a_service_answers_every_call_in_time_through_a_20000_message_flood(regi
         assert sent == 20_000 and answered >= 1
         assert refused > 10_000  # the flood reached the server: most mutants are answered bad_request
         assert server.poll() is None  # alive
-        print(f"flood: {sent} mutated requests ({refused} answered with an error), "
-              f"{answered} calls answered within 5 s each")
+        print(
+            f"flood: {sent} mutated requests ({refused} answered with an error), "
+            f"{answered} calls answered within 5 s each"
+        )
     finally:
         server.kill()
         server.wait()

@@ -1,4 +1,5 @@
 """The patch extractor's refusals carry codes the collector branches on, not sentences."""
+
 from __future__ import annotations
 
 import threading
@@ -29,8 +30,13 @@ def test_a_patch_of_an_unregistered_object_is_refused_with_its_code(registry: Re
     try:
         patch = caller.client("/perception/patch", msgs.PatchRequest, msgs.PatchReply)
         with pytest.raises(ServiceCallError) as refused:
-            patch.call(msgs.PatchRequest(object_name="mustard_bottle", gel_left_to_world=_gel_at(0.0),
-                                         gel_right_to_world=_gel_at(0.05)), timeout_s=10.0, retries=0)
+            patch.call(
+                msgs.PatchRequest(
+                    object_name="mustard_bottle", gel_left_to_world=_gel_at(0.0), gel_right_to_world=_gel_at(0.05)
+                ),
+                timeout_s=10.0,
+                retries=0,
+            )
         assert refused.value.code == ErrorCode.NOT_REGISTERED
         assert "mustard_bottle" in refused.value.text
     finally:
@@ -45,8 +51,9 @@ def test_a_gel_that_reaches_nothing_is_refused_as_out_of_reach(registry: Registr
     try:
         cube_m = np.random.default_rng(0).uniform(-0.01, 0.01, (2000, 3))
         node.registered["mustard_bottle"] = Registered(VoxelIndex(cube_m), np.eye(4))
-        far = msgs.PatchRequest(object_name="mustard_bottle", gel_left_to_world=_gel_at(1.0),
-                                gel_right_to_world=_gel_at(1.05))
+        far = msgs.PatchRequest(
+            object_name="mustard_bottle", gel_left_to_world=_gel_at(1.0), gel_right_to_world=_gel_at(1.05)
+        )
         with pytest.raises(GelOutOfReach) as refused:
             node.on_patch(far)
         assert refused.value.code == ErrorCode.OUT_OF_REACH

@@ -1,4 +1,5 @@
 """`dtx perception register-check` on the simulated scene, and the benchmark's binning figures."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,7 +18,9 @@ def parse(argv):
 
 
 def test_register_check_prints_one_json_object_keyed_by_mesh_stem(capsys):
-    args = parse(["perception", "register-check", "assets/ycb/GelatinBox.obj", "--trials", "2", "--seed", "4", "--json"])
+    args = parse(
+        ["perception", "register-check", "assets/ycb/GelatinBox.obj", "--trials", "2", "--seed", "4", "--json"]
+    )
     assert args.func(args) == 0
     report = json.loads(capsys.readouterr().out)
     assert list(report) == ["GelatinBox"]

@@ -1,6 +1,7 @@
 """Numerical contracts of the perception core (issue 20): every public function gives a right,
 finite answer or its module's own error naming the argument, on every input - dtype families,
 extremes and degenerate geometry - and stays inside its documented time and memory bounds."""
+
 from __future__ import annotations
 
 import os
@@ -31,8 +32,14 @@ EXTREMES = [0.0, -0.0, 1e-300, -1e-300, 1e300, -1e300, np.inf, -np.inf, np.nan]
 
 def dtype_variants(points: np.ndarray) -> list[np.ndarray]:
     """The same values in every dtype family and layout a caller may hand over."""
-    variants = [points.astype(np.float32), points.astype(np.float16), points.astype(">f8"),
-                np.asfortranarray(points), np.repeat(points, 2, axis=0)[::2], points[::-1][::-1]]
+    variants = [
+        points.astype(np.float32),
+        points.astype(np.float16),
+        points.astype(">f8"),
+        np.asfortranarray(points),
+        np.repeat(points, 2, axis=0)[::2],
+        points[::-1][::-1],
+    ]
     if np.all(points == np.round(points)) and np.all(np.abs(points) < 100):
         variants += [points.astype(np.int8), points.astype(np.int64), np.abs(points).astype(np.uint16)]
     return variants
@@ -47,8 +54,9 @@ def random_rigid(seed: int, offset_m: float = 0.0) -> np.ndarray:
 
 # --- family 2: transform_points ---------------------------------------------------------------
 
+
 @FAST
-@given(n=st.integers(0, 20), seed=st.integers(0, 2 ** 16), offset=st.sampled_from([0.0, 1e3, 1e6]))
+@given(n=st.integers(0, 20), seed=st.integers(0, 2**16), offset=st.sampled_from([0.0, 1e3, 1e6]))
 def test_property_transform_points_is_the_rigid_map_in_every_dtype(n: int, seed: int, offset: float) -> None:
     points = np.random.default_rng(seed).integers(-50, 50, (n, 3)).astype(np.float64)
     transform = random_rigid(seed, offset)
@@ -86,11 +94,17 @@ def test_check_transform_tolerance_is_1e6_not_1e5() -> None:
 
 # --- family 5: VoxelIndex ----------------------------------------------------------------------
 
+
 @FAST
-@given(seed=st.integers(0, 2 ** 16), radius=st.sampled_from([0.0, 5e-324, 0.003, 1.0, 1e30, 2e20, 1e300, np.inf]),
-       offset=st.sampled_from([0.0, -1e5, 1e6]), cell=st.sampled_from([1e-6, 0.005, 1.0]))
-def test_property_voxel_index_ball_is_a_superset_of_the_true_ball(seed: int, radius: float, offset: float,
-                                                                  cell: float) -> None:
+@given(
+    seed=st.integers(0, 2**16),
+    radius=st.sampled_from([0.0, 5e-324, 0.003, 1.0, 1e30, 2e20, 1e300, np.inf]),
+    offset=st.sampled_from([0.0, -1e5, 1e6]),
+    cell=st.sampled_from([1e-6, 0.005, 1.0]),
+)
+def test_property_voxel_index_ball_is_a_superset_of_the_true_ball(
+    seed: int, radius: float, offset: float, cell: float
+) -> None:
     rng = np.random.default_rng(seed)
     points = rng.uniform(-0.05, 0.05, (200, 3)) + offset
     index = VoxelIndex(points, cell_m=cell)
@@ -110,8 +124,17 @@ def test_voxel_index_huge_radius_returns_every_point(radius: float) -> None:
     assert len(VoxelIndex(points).within([0.0, 0.0, 0.0], radius)) == 50
 
 
-@pytest.mark.parametrize("centre, radius", [([np.nan, 0, 0], 1.0), ([0, 0, 0], np.nan), ([0, 0, 0], -1.0),
-                                            ([np.inf, 0, 0], 1.0), ([0, 0], 1.0), ([0, 0, 0], "big")])
+@pytest.mark.parametrize(
+    "centre, radius",
+    [
+        ([np.nan, 0, 0], 1.0),
+        ([0, 0, 0], np.nan),
+        ([0, 0, 0], -1.0),
+        ([np.inf, 0, 0], 1.0),
+        ([0, 0], 1.0),
+        ([0, 0, 0], "big"),
+    ],
+)
 def test_voxel_index_refuses_undefined_queries(centre: list, radius: float) -> None:
     with pytest.raises(PointCloudError, match="centre_m|radius_m"):
         VoxelIndex(np.zeros((3, 3))).within(centre, radius)
@@ -143,12 +166,18 @@ def test_voxel_index_micrometre_cells_answer_a_millimetre_query_from_the_occupie
 
 # --- family 6: normalise_depth_map, crop_bounds -----------------------------------------------
 
+
 @FAST
-@given(y_near=st.floats(-1e3, 1e3), width=st.floats(1e-3, 1e3),
-       values=st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from(EXTREMES)),
-                       min_size=1, max_size=30))
-def test_property_normalised_depth_is_finite_in_range_and_monotone(y_near: float, width: float,
-                                                                   values: list[float]) -> None:
+@given(
+    y_near=st.floats(-1e3, 1e3),
+    width=st.floats(1e-3, 1e3),
+    values=st.lists(
+        st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from(EXTREMES)), min_size=1, max_size=30
+    ),
+)
+def test_property_normalised_depth_is_finite_in_range_and_monotone(
+    y_near: float, width: float, values: list[float]
+) -> None:
     depth = np.array(values)
     with np.errstate(over="ignore"):  # values beyond float32 become +-inf there
         as_float32 = depth.astype(np.float32)
@@ -160,8 +189,21 @@ def test_property_normalised_depth_is_finite_in_range_and_monotone(y_near: float
     assert np.all(np.diff(normalise_depth_map(finite, (y_near, y_near + width))) >= 0)
 
 
-@pytest.mark.parametrize("depth_range", [(-1e308, 1e308), (-1e39, 0.0), (0.0, np.inf), (np.nan, 1.0), (1.0, 1.0),
-                                         (1.0, np.nextafter(1.0, 2.0)), (0.0,), (0.0, 1.0, 2.0), "ab", 3.0])
+@pytest.mark.parametrize(
+    "depth_range",
+    [
+        (-1e308, 1e308),
+        (-1e39, 0.0),
+        (0.0, np.inf),
+        (np.nan, 1.0),
+        (1.0, 1.0),
+        (1.0, np.nextafter(1.0, 2.0)),
+        (0.0,),
+        (0.0, 1.0, 2.0),
+        "ab",
+        3.0,
+    ],
+)
 def test_undefined_depth_ranges_are_refused(depth_range: object) -> None:
     with pytest.raises(NormalisationError, match="depth range|depth_range_m"):
         normalise_depth_map(np.zeros((2, 2)), depth_range)
@@ -180,8 +222,10 @@ def test_crop_bounds_refuses_ranges_float32_cannot_hold(y_range: tuple) -> None:
 
 # --- family 10: DepthMapParams.shape ----------------------------------------------------------
 
-@pytest.mark.parametrize("shape", [(100.0, 100.0), (100,), (10, 10, 10), (True, 5), "ab", 7, (np.float32(4), 4),
-                                   (0, 4), (-1, 4)])
+
+@pytest.mark.parametrize(
+    "shape", [(100.0, 100.0), (100,), (10, 10, 10), (True, 5), "ab", 7, (np.float32(4), 4), (0, 4), (-1, 4)]
+)
 def test_bin_shapes_that_are_not_two_positive_integers_are_refused(shape: object) -> None:
     with pytest.raises(DepthMapError, match="bin shape"):
         contact_depth_map(np.zeros((1, 3)), np.eye(4), np.eye(4), params=DepthMapParams(shape=shape))
@@ -189,7 +233,7 @@ def test_bin_shapes_that_are_not_two_positive_integers_are_refused(shape: object
 
 def test_bin_count_is_bounded() -> None:
     with pytest.raises(DepthMapError, match="bins, more than"):
-        crop_bounds(GripperGeometry(), DepthMapParams(shape=(10 ** 5, 10 ** 5)))
+        crop_bounds(GripperGeometry(), DepthMapParams(shape=(10**5, 10**5)))
     side = int(np.sqrt(MAX_DEPTH_MAP_BINS))
     crop_bounds(GripperGeometry(), DepthMapParams(shape=(np.int64(side), side)))  # numpy ints are integers
     with pytest.raises(DepthMapError, match="bins, more than"):
@@ -197,10 +241,15 @@ def test_bin_count_is_bounded() -> None:
 
 
 @FAST
-@given(seed=st.integers(0, 2 ** 16), dtype=st.sampled_from([np.float16, np.float32, np.float64, ">f8"]),
-       offset=st.sampled_from([0.0, 1e4, -1e6]), layout=st.sampled_from(["c", "f", "reversed"]))
-def test_property_depth_map_is_finite_for_any_dtype_far_from_the_origin(seed: int, dtype: str, offset: float,
-                                                                         layout: str) -> None:
+@given(
+    seed=st.integers(0, 2**16),
+    dtype=st.sampled_from([np.float16, np.float32, np.float64, ">f8"]),
+    offset=st.sampled_from([0.0, 1e4, -1e6]),
+    layout=st.sampled_from(["c", "f", "reversed"]),
+)
+def test_property_depth_map_is_finite_for_any_dtype_far_from_the_origin(
+    seed: int, dtype: str, offset: float, layout: str
+) -> None:
     points = (np.random.default_rng(seed).integers(-8, 9, (300, 3)) * 1e-3).astype(dtype)
     points = {"c": points, "f": np.asfortranarray(points), "reversed": points[::-1]}[layout]
     shift = np.eye(4)
@@ -233,6 +282,7 @@ def test_depth_map_refuses_non_finite_points_or_transforms(bad: float) -> None:
 
 # --- family 7: kinematics ---------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ["x_m", "y_m", "z_m", "theta_z_rad"])
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, "one", None])
 def test_grasp_pose_refuses_non_finite_arguments(name: str, bad: object) -> None:
@@ -260,10 +310,17 @@ def test_gel_poses_refuse_a_tcp_transform_that_is_not_rigid(tcp: np.ndarray) -> 
 
 
 @FAST
-@given(x=st.floats(-1e6, 1e6), y=st.floats(-1e6, 1e6), z=st.floats(-1e3, 1e3), theta=st.floats(-1e3, 1e3),
-       width=st.floats(0.0, 0.11), as_matrix=st.booleans())
-def test_property_gel_poses_are_finite_and_rigid(x: float, y: float, z: float, theta: float, width: float,
-                                                 as_matrix: bool) -> None:
+@given(
+    x=st.floats(-1e6, 1e6),
+    y=st.floats(-1e6, 1e6),
+    z=st.floats(-1e3, 1e3),
+    theta=st.floats(-1e3, 1e3),
+    width=st.floats(0.0, 0.11),
+    as_matrix=st.booleans(),
+)
+def test_property_gel_poses_are_finite_and_rigid(
+    x: float, y: float, z: float, theta: float, width: float, as_matrix: bool
+) -> None:
     from workcell.kinematics import pose_to_matrix
 
     pose = grasp_to_tcp_pose(x, y, z, theta)
@@ -282,9 +339,16 @@ def test_gel_poses_refuse_widths_outside_the_gripper(width: object) -> None:
 
 # --- family 8: table plane --------------------------------------------------------------------
 
-@pytest.mark.parametrize("points", [np.zeros((100, 3)), np.full((100, 3), 0.1),
-                                    np.outer(np.linspace(-0.3, 0.3, 100), [1.0, 0.5, 0.0]),
-                                    np.outer(np.linspace(-0.3, 0.3, 100), [0.0, 0.0, 1.0]) + 1e3])
+
+@pytest.mark.parametrize(
+    "points",
+    [
+        np.zeros((100, 3)),
+        np.full((100, 3), 0.1),
+        np.outer(np.linspace(-0.3, 0.3, 100), [1.0, 0.5, 0.0]),
+        np.outer(np.linspace(-0.3, 0.3, 100), [0.0, 0.0, 1.0]) + 1e3,
+    ],
+)
 def test_identical_or_collinear_points_have_no_table_plane(points: np.ndarray) -> None:
     with pytest.raises(SegmentationError, match="identical or collinear"):
         fit_table_plane(points, SegmentationParams())
@@ -297,8 +361,12 @@ def test_segment_object_says_why_a_line_has_no_table() -> None:
 
 
 @FAST
-@given(seed=st.integers(0, 2 ** 16), tilt_deg=st.floats(0.0, 5.0), height=st.floats(-0.04, 0.04),
-       dtype=st.sampled_from([np.float32, np.float64, ">f8"]))
+@given(
+    seed=st.integers(0, 2**16),
+    tilt_deg=st.floats(0.0, 5.0),
+    height=st.floats(-0.04, 0.04),
+    dtype=st.sampled_from([np.float32, np.float64, ">f8"]),
+)
 def test_property_plane_of_a_coplanar_table_is_its_plane(seed: int, tilt_deg: float, height: float, dtype: str) -> None:
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-0.3, 0.3, (400, 2))
@@ -311,6 +379,7 @@ def test_property_plane_of_a_coplanar_table_is_its_plane(seed: int, tilt_deg: fl
 
 
 # --- family 11: sample_model_cloud ------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def box_mesh(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -326,7 +395,7 @@ def test_model_cloud_spacing_that_asks_too_much_or_is_no_number_is_refused(box_m
 
 
 def test_model_cloud_at_the_bound_and_just_inside(box_mesh: Path) -> None:
-    area = 6 * 0.05 ** 2
+    area = 6 * 0.05**2
     at_bound = np.sqrt(area / MAX_MODEL_POINTS)
     with pytest.raises(RegistrationError, match="more than"):
         sample_model_cloud(box_mesh, np.nextafter(at_bound, 0.0) * (1 - 1e-9))
@@ -335,6 +404,7 @@ def test_model_cloud_at_the_bound_and_just_inside(box_mesh: Path) -> None:
 
 
 # --- memory bound -----------------------------------------------------------------------------
+
 
 def test_documented_bounds_hold_under_a_memory_cap() -> None:
     """Under an address-space cap of what the imports take plus 400 MiB, a 1 mm query of a
@@ -368,6 +438,12 @@ def test_documented_bounds_hold_under_a_memory_cap() -> None:
         print("bounded")
     """)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
-    done = subprocess.run([sys.executable, "-c", script, str(Path(os.environ.get("TMPDIR", "/tmp")) / f"box{os.getpid()}.ply")],
-                          capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(Path(os.environ.get("TMPDIR", "/tmp")) / f"box{os.getpid()}.ply")],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO,
+        timeout=120,
+    )
     assert done.returncode == 0 and "bounded" in done.stdout, done.stderr[-2000:]

@@ -1,4 +1,5 @@
 """Contact depth-maps: binning rules, empty-bin policy, normalisation, and the hard cases."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,7 +18,7 @@ from perception.normalisation import denormalise_depth_map
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 
 GEOMETRY = GripperGeometry()
-SMALL = DepthMapParams(shape=(4, 5), margin_m=0.0)   # bins of 4.98 mm (z) x 3.72 mm (x)
+SMALL = DepthMapParams(shape=(4, 5), margin_m=0.0)  # bins of 4.98 mm (z) x 3.72 mm (x)
 HALF_X, HALF_Z = 0.5 * GEOMETRY.gel_size_m[0], 0.5 * GEOMETRY.gel_size_m[1]
 T = GEOMETRY.elastomer_thickness_m
 
@@ -25,8 +26,9 @@ T = GEOMETRY.elastomer_thickness_m
 def depth_map(points_gel_m, params=SMALL, gel_to_world=np.eye(4), model_to_world=np.eye(4)):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        return contact_depth_map(np.asarray(points_gel_m, dtype=np.float64), model_to_world, gel_to_world,
-                                 GEOMETRY, params)
+        return contact_depth_map(
+            np.asarray(points_gel_m, dtype=np.float64), model_to_world, gel_to_world, GEOMETRY, params
+        )
 
 
 def reference_min_y(points, half_x, half_z, y_range, shape):
@@ -39,8 +41,14 @@ def reference_min_y(points, half_x, half_z, y_range, shape):
         for c in range(cols):
             x_hi_ok = points[:, 0] <= x_edges[c + 1] if c == cols - 1 else points[:, 0] < x_edges[c + 1]
             z_hi_ok = points[:, 2] <= z_edges[r + 1] if r == rows - 1 else points[:, 2] < z_edges[r + 1]
-            mask = ((points[:, 0] >= x_edges[c]) & x_hi_ok & (points[:, 2] >= z_edges[r]) & z_hi_ok
-                    & (points[:, 1] >= y_range[0]) & (points[:, 1] <= y_range[1]))
+            mask = (
+                (points[:, 0] >= x_edges[c])
+                & x_hi_ok
+                & (points[:, 2] >= z_edges[r])
+                & z_hi_ok
+                & (points[:, 1] >= y_range[0])
+                & (points[:, 1] <= y_range[1])
+            )
             if mask.any():
                 out[r, c] = points[mask, 1].min()
     return out
@@ -83,8 +91,12 @@ def test_points_exactly_on_bin_edges_go_to_the_upper_bin_and_far_edge_to_the_las
 
 def test_crop_boundary_is_inclusive_and_just_outside_is_dropped():
     on = [[HALF_X, T, HALF_Z], [-HALF_X, -T, -HALF_Z]]
-    outside = [[np.nextafter(HALF_X, 1.0), 0.0, 0.0], [0.0, np.nextafter(T, 1.0), 0.0],
-               [0.0, np.nextafter(-T, -1.0), 0.0], [0.0, 0.0, np.nextafter(-HALF_Z, -1.0)]]
+    outside = [
+        [np.nextafter(HALF_X, 1.0), 0.0, 0.0],
+        [0.0, np.nextafter(T, 1.0), 0.0],
+        [0.0, np.nextafter(-T, -1.0), 0.0],
+        [0.0, 0.0, np.nextafter(-HALF_Z, -1.0)],
+    ]
     patch = depth_map(on + outside)
     check_clean(patch)
     assert patch.point_count == 2
@@ -94,7 +106,9 @@ def test_crop_boundary_is_inclusive_and_just_outside_is_dropped():
 
 def test_every_point_in_one_bin_and_duplicates():
     rng = np.random.default_rng(0)
-    points = np.column_stack([rng.uniform(0.0001, 0.001, 500), rng.uniform(-T, T, 500), rng.uniform(0.0001, 0.004, 500)])
+    points = np.column_stack(
+        [rng.uniform(0.0001, 0.001, 500), rng.uniform(-T, T, 500), rng.uniform(0.0001, 0.004, 500)]
+    )
     points = np.concatenate([points, points])  # every point twice
     patch = depth_map(points)
     check_clean(patch)
@@ -130,8 +144,8 @@ def test_zero_negative_or_unresolvable_depth_range_is_refused(y_range):
 def test_bin_size_below_float32_resolution_is_refused():
     # 18.6 mm over 10^7 columns: 1.9 nm bins, under 4 float32 steps (4 x 0.93 nm) at 9.3 mm.
     with pytest.raises(DepthMapError, match="below float32 resolution"):
-        depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10 ** 7), margin_m=0.0))
-    patch = depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10 ** 5), margin_m=0.0))  # 0.19 um bins
+        depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10**7), margin_m=0.0))
+    patch = depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10**5), margin_m=0.0))  # 0.19 um bins
     check_clean(patch)
 
 
@@ -147,8 +161,9 @@ def test_scene_a_kilometre_from_the_origin_gives_the_same_map():
     """Model and gel poses near (1 km, 1 km, 0): float32 world coordinates would be 61 um apart,
     but the map is computed through one float64 model-to-gel transform."""
     rng = np.random.default_rng(1)
-    points_model = np.column_stack([rng.uniform(-0.012, 0.012, 2000), rng.uniform(-0.0015, 0.0015, 2000),
-                                    rng.uniform(-0.015, 0.015, 2000)])
+    points_model = np.column_stack(
+        [rng.uniform(-0.012, 0.012, 2000), rng.uniform(-0.0015, 0.0015, 2000), rng.uniform(-0.015, 0.015, 2000)]
+    )
     near = depth_map(points_model, DepthMapParams())
     shift = np.eye(4)
     shift[:3, 3] = [1000.0, 1000.0, 0.0]
@@ -177,8 +192,9 @@ def test_gel_frame_from_kinematics_sees_the_object_it_grasps():
 
 def test_grasp_at_the_object_edge_with_few_points():
     """Only a corner of the surface reaches the crop: the rest of the map reads 'far'."""
-    points = np.array([[HALF_X - 0.0001, 0.0002, HALF_Z - 0.0001], [HALF_X, -0.0001, HALF_Z],
-                       [HALF_X + 0.005, -0.0005, 0.0]])  # last one outside the crop
+    points = np.array(
+        [[HALF_X - 0.0001, 0.0002, HALF_Z - 0.0001], [HALF_X, -0.0001, HALF_Z], [HALF_X + 0.005, -0.0005, 0.0]]
+    )  # last one outside the crop
     patch = depth_map(points, DepthMapParams(shape=(100, 100), margin_m=0.0))
     check_clean(patch)
     assert patch.point_count == 2 and patch.occupied.sum() == 1
@@ -187,8 +203,9 @@ def test_grasp_at_the_object_edge_with_few_points():
 
 def test_normalisation_round_trip_gives_millimetres_back():
     rng = np.random.default_rng(2)
-    points = np.column_stack([rng.uniform(-HALF_X, HALF_X, 3000), rng.uniform(-T, T, 3000),
-                              rng.uniform(-HALF_Z, HALF_Z, 3000)])
+    points = np.column_stack(
+        [rng.uniform(-HALF_X, HALF_X, 3000), rng.uniform(-T, T, 3000), rng.uniform(-HALF_Z, HALF_Z, 3000)]
+    )
     patch = depth_map(points, DepthMapParams(shape=(10, 10), margin_m=0.0))
     back = denormalise_depth_map(patch.normalised, patch.y_range_m)
     np.testing.assert_allclose(back, patch.depth_map_m, atol=2 * T * 1e-6)
@@ -206,9 +223,18 @@ special = st.sampled_from([-HALF_X, HALF_X, -HALF_Z, HALF_Z, -T, T, 0.0, np.lins
 
 
 @settings(max_examples=150, deadline=None)
-@given(points=st.lists(st.tuples(st.one_of(finite_coordinate, special), st.one_of(finite_coordinate, special),
-                                 st.one_of(finite_coordinate, special)), min_size=1, max_size=60),
-       shape=st.tuples(st.integers(1, 7), st.integers(1, 7)))
+@given(
+    points=st.lists(
+        st.tuples(
+            st.one_of(finite_coordinate, special),
+            st.one_of(finite_coordinate, special),
+            st.one_of(finite_coordinate, special),
+        ),
+        min_size=1,
+        max_size=60,
+    ),
+    shape=st.tuples(st.integers(1, 7), st.integers(1, 7)),
+)
 def test_property_matches_brute_force_and_stays_finite(points, shape):
     points = np.array(points, dtype=np.float64)
     params = DepthMapParams(shape=shape, margin_m=0.0)
@@ -224,7 +250,7 @@ def test_property_matches_brute_force_and_stays_finite(points, shape):
 
 
 @settings(max_examples=60, deadline=None)
-@given(n=st.integers(1, 2000), rows=st.integers(1, 50), cols=st.integers(1, 50), seed=st.integers(0, 2 ** 32 - 1))
+@given(n=st.integers(1, 2000), rows=st.integers(1, 50), cols=st.integers(1, 50), seed=st.integers(0, 2**32 - 1))
 def test_property_min_y_per_bin_equals_sorting_reference(n, rows, cols, seed):
     rng = np.random.default_rng(seed)
     x, z = rng.uniform(-HALF_X, HALF_X, n), rng.uniform(-HALF_Z, HALF_Z, n)
@@ -243,6 +269,7 @@ def test_property_min_y_per_bin_equals_sorting_reference(n, rows, cols, seed):
 
 def test_sampling_gaps_inside_a_surface_are_filled_and_free_space_is_not() -> None:
     from perception.depthmap import fill_sampling_gaps
+
     depth = np.full((6, 6), 0.002, np.float32)
     occupied = np.zeros((6, 6), bool)
     occupied[:, :3] = True
@@ -272,8 +299,12 @@ def test_sampling_gaps_are_filled_but_free_space_is_not():
     params = DepthMapParams(shape=(10, 10), margin_m=0.0)
     x_edges = np.linspace(-HALF_X, HALF_X, 11)
     z_edges = np.linspace(-HALF_Z, HALF_Z, 11)
-    centres = [(0.5 * (x_edges[c] + x_edges[c + 1]), 0.5 * (z_edges[r] + z_edges[r + 1]))
-               for r in range(10) for c in range(5) if (r, c) not in {(3, 2), (6, 1)}]
+    centres = [
+        (0.5 * (x_edges[c] + x_edges[c + 1]), 0.5 * (z_edges[r] + z_edges[r + 1]))
+        for r in range(10)
+        for c in range(5)
+        if (r, c) not in {(3, 2), (6, 1)}
+    ]
     points = np.array([[x, -0.0005, z] for x, z in centres])
     patch = depth_map(points, params)
     check_clean(patch)
@@ -332,6 +363,7 @@ def test_centring_leaves_the_pose_when_a_gel_faces_nothing():
 
 # --- the batched, indexed path (contact_depth_maps) and the compiled kernel -----------------------
 
+
 def numpy_reference_map(points_model, model_to_world, gel_to_world, params):
     """The plain NumPy pipeline (float64 transform, masks, np.searchsorted on the edges,
     np.minimum.at), with the module's rules, before gap filling."""
@@ -356,15 +388,20 @@ def _random_pose(rng, offset_m):
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1), regions=st.integers(1, 6), offset=st.sampled_from([0.0, 1e3, -2e4]),
-       dtype=st.sampled_from([np.float32, np.float64]), cell=st.sampled_from([0.001, 0.005, 0.05]),
-       shape=st.tuples(st.integers(1, 40), st.integers(1, 40)))
-def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(seed, regions, offset, dtype, cell,
-                                                                             shape):
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    regions=st.integers(1, 6),
+    offset=st.sampled_from([0.0, 1e3, -2e4]),
+    dtype=st.sampled_from([np.float32, np.float64]),
+    cell=st.sampled_from([0.001, 0.005, 0.05]),
+    shape=st.tuples(st.integers(1, 40), st.integers(1, 40)),
+)
+def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(seed, regions, offset, dtype, cell, shape):
     """Gels anywhere around a cloud of a few mm (and a km from the origin): the indexed batch
     gives each gel exactly contact_depth_map's map, and both the plain NumPy pipeline's."""
     from perception.depthmap import contact_depth_maps
     from perception.pointcloud import VoxelIndex
+
     rng = np.random.default_rng(seed)
     points = rng.uniform(-0.015, 0.015, (3000, 3)).astype(dtype)
     model_to_world = _random_pose(rng, offset)
@@ -390,32 +427,42 @@ def test_float32_points_give_the_map_of_their_float64_values():
     rng = np.random.default_rng(5)
     points = rng.uniform(-0.012, 0.012, (20000, 3)).astype(np.float32)
     gel = _random_pose(rng, 0.0)
-    wide, narrow = (contact_depth_map(p, np.eye(4), gel, GEOMETRY, DepthMapParams()) for p in
-                    (points.astype(np.float64), points))
+    wide, narrow = (
+        contact_depth_map(p, np.eye(4), gel, GEOMETRY, DepthMapParams()) for p in (points.astype(np.float64), points)
+    )
     np.testing.assert_array_equal(wide.depth_map_m, narrow.depth_map_m)
 
 
 def test_batched_maps_name_the_region_that_misses_and_bound_the_work():
     from perception.depthmap import contact_depth_maps
     from perception.pointcloud import VoxelIndex
+
     index = VoxelIndex(np.random.default_rng(0).uniform(-0.005, 0.005, (1000, 3)))
     away = np.eye(4)
     away[1, 3] = -1.0
     with pytest.raises(DepthMapError, match="region 1: no model point"):
         contact_depth_maps(index, np.eye(4), np.stack([np.eye(4), away]), GEOMETRY, DepthMapParams())
     with pytest.raises(DepthMapError, match="too much work: 2000 model points near 2 gels > 1999"):
-        contact_depth_maps(index, np.eye(4), np.stack([np.eye(4)] * 2), GEOMETRY, DepthMapParams(),
-                           max_point_visits=1999)
+        contact_depth_maps(
+            index, np.eye(4), np.stack([np.eye(4)] * 2), GEOMETRY, DepthMapParams(), max_point_visits=1999
+        )
     with pytest.raises(DepthMapError, match=r"\(N, 4, 4\)"):
         contact_depth_maps(index, np.eye(4), np.eye(4), GEOMETRY, DepthMapParams())
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1), stack=st.integers(0, 3), rows=st.integers(1, 12), cols=st.integers(1, 12),
-       min_neighbours=st.integers(1, 8), density=st.floats(0.0, 1.0))
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    stack=st.integers(0, 3),
+    rows=st.integers(1, 12),
+    cols=st.integers(1, 12),
+    min_neighbours=st.integers(1, 8),
+    density=st.floats(0.0, 1.0),
+)
 def test_property_gap_filling_equals_scipy_filters(seed, stack, rows, cols, min_neighbours, density):
     """The shifted-view neighbourhoods equal scipy.ndimage's 3 x 3 count and minimum, map by map."""
     from perception.depthmap import fill_sampling_gaps
+
     rng = np.random.default_rng(seed)
     shape = (stack, rows, cols) if stack else (rows, cols)
     occupied = rng.random(shape) < density

@@ -1,4 +1,5 @@
 """Back-projection with distortion, invalid pixels, merging cameras; density control."""
+
 from __future__ import annotations
 
 import warnings
@@ -21,8 +22,9 @@ from perception.pointcloud import (
     transform_points,
 )
 
-DISTORTED = CameraIntrinsics(width=64, height=48, fx=60.0, fy=58.0, cx=31.7, cy=24.2,
-                             distortion=[0.09, -0.27, 0.001, -0.002, 0.09])
+DISTORTED = CameraIntrinsics(
+    width=64, height=48, fx=60.0, fy=58.0, cx=31.7, cy=24.2, distortion=[0.09, -0.27, 0.001, -0.002, 0.09]
+)
 
 
 def test_back_projected_points_reproject_onto_their_pixels_with_distortion():
@@ -65,15 +67,19 @@ def test_uint16_millimetres_with_zero_as_no_return():
 
 def test_two_cameras_facing_each_other_merge_in_world():
     """Two cameras 2 m apart looking at each other see a wall at x = 0 from both sides."""
+
     def camera_at(x, forward):
         transform = np.eye(4)
         transform[:3, :3] = np.column_stack([np.cross([0, 0, -1.0], forward), [0, 0, -1.0], forward])
         transform[:3, 3] = [x, 0, 0]
         return transform
+
     intrinsics = CameraIntrinsics(width=16, height=12, fx=20.0, fy=20.0, cx=7.5, cy=5.5)
     depth = np.full((12, 16), 1.0, dtype=np.float32)
-    images = [DepthImage(depth=depth, intrinsics=intrinsics, camera_to_world=camera_at(-1.0, np.array([1.0, 0, 0]))),
-              DepthImage(depth=depth, intrinsics=intrinsics, camera_to_world=camera_at(1.0, np.array([-1.0, 0, 0])))]
+    images = [
+        DepthImage(depth=depth, intrinsics=intrinsics, camera_to_world=camera_at(-1.0, np.array([1.0, 0, 0]))),
+        DepthImage(depth=depth, intrinsics=intrinsics, camera_to_world=camera_at(1.0, np.array([-1.0, 0, 0]))),
+    ]
     clouds = depth_images_to_world(images)
     assert [len(c) for c in clouds] == [192, 192]
     merged = merge_depth_images(images)
@@ -118,13 +124,13 @@ def test_downsampled_solid_cloud_has_at_most_the_requested_density(density):
     assert density * 0.9 <= measured <= density * 1.35
 
 
-depth_value = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32),
-                        st.sampled_from([0.5, 4.5, 0.0, -0.0, np.nan, np.inf]))
+depth_value = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=32), st.sampled_from([0.5, 4.5, 0.0, -0.0, np.nan, np.inf])
+)
 
 
 @settings(max_examples=100, deadline=None)
-@given(values=st.lists(depth_value, min_size=12, max_size=12),
-       offset=st.sampled_from([0.0, 1000.0, -1000.0]))
+@given(values=st.lists(depth_value, min_size=12, max_size=12), offset=st.sampled_from([0.0, 1000.0, -1000.0]))
 def test_property_only_finite_in_range_points_come_out(values, offset):
     """Any float32 depth, including NaN, inf, zero, negatives and the range limits, with the
     camera placed up to a kilometre from the origin: no NaN or inf escapes, no warning."""
@@ -143,8 +149,12 @@ def test_property_only_finite_in_range_points_come_out(values, offset):
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**31), radius_m=st.floats(0.0, 0.05), cell_m=st.floats(0.001, 0.02),
-       offset_m=st.floats(-1e3, 1e3))
+@given(
+    seed=st.integers(0, 2**31),
+    radius_m=st.floats(0.0, 0.05),
+    cell_m=st.floats(0.001, 0.02),
+    offset_m=st.floats(-1e3, 1e3),
+)
 def test_voxel_index_hands_out_every_point_of_the_ball(seed, radius_m, cell_m, offset_m):
     rng = np.random.default_rng(seed)
     points = rng.uniform(-0.05, 0.05, size=(2000, 3)) + offset_m
@@ -169,8 +179,13 @@ def test_voxel_index_edge_cases():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**31), n=st.integers(0, 3000), cell_m=st.sampled_from([1e-7, 0.0005, 0.005, 0.05]),
-       dtype=st.sampled_from([np.float32, np.float64]), offset_m=st.sampled_from([0.0, -250.0, 1e4]))
+@given(
+    seed=st.integers(0, 2**31),
+    n=st.integers(0, 3000),
+    cell_m=st.sampled_from([1e-7, 0.0005, 0.005, 0.05]),
+    dtype=st.sampled_from([np.float32, np.float64]),
+    offset_m=st.sampled_from([0.0, -250.0, 1e4]),
+)
 def test_voxel_index_buckets_as_a_stable_sort_of_the_cell_keys(seed, n, cell_m, dtype, offset_m):
     """Counting sort (few cells per point) and argsort (a sparse grid) both give what a stable
     argsort of the row-major cell keys gives: the same points, order, runs and keys."""

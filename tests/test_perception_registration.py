@@ -1,6 +1,7 @@
 """Segmentation and model registration on ray-cast views made here with Open3D, including the
 degenerate and far-from-origin cases; then the generated thin, flat and symmetric shapes
 (sim.shapes) and the unseen-objects scene in the simulator with its depth effects."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -110,7 +111,10 @@ def test_segmentation_keeps_the_object_and_reports_counts(drill_view):
 def test_per_camera_table_survives_opposite_calibration_errors(drill_view):
     """Each camera's table 4 mm off in opposite directions and tilted: no table band left over."""
     clouds, _ = drill_view
-    errors = [Rotation.from_euler("xy", [0.3, -0.2], degrees=True), Rotation.from_euler("xy", [-0.2, 0.25], degrees=True)]
+    errors = [
+        Rotation.from_euler("xy", [0.3, -0.2], degrees=True),
+        Rotation.from_euler("xy", [-0.2, 0.25], degrees=True),
+    ]
     shifted = [rotation.apply(cloud) + [0, 0, dz] for cloud, rotation, dz in zip(clouds, errors, (0.004, -0.004))]
     result = segment_object(shifted)
     assert result.point_counts["object"] >= 0.98 * result.point_counts["above_table"]
@@ -258,10 +262,16 @@ def test_a_flat_tool_is_registered_upright_with_its_head_at_the_right_end(shape_
 
 def test_an_object_lying_on_its_side_falls_back_to_the_general_search(drill):
     model, prepared = drill
-    side = o3d.io.read_triangle_mesh(DRILL).rotate(Rotation.from_euler("x", 90, degrees=True).as_matrix(), center=(0, 0, 0))
+    side = o3d.io.read_triangle_mesh(DRILL).rotate(
+        Rotation.from_euler("x", 90, degrees=True).as_matrix(), center=(0, 0, 0)
+    )
     mesh, placement = placed(side, 0.0, 0.0, 0.5)
-    truth = placement @ np.block([[Rotation.from_euler("x", 90, degrees=True).as_matrix(), np.zeros((3, 1))],
-                                  [np.zeros((1, 3)), np.ones((1, 1))]])
+    truth = placement @ np.block(
+        [
+            [Rotation.from_euler("x", 90, degrees=True).as_matrix(), np.zeros((3, 1))],
+            [np.zeros((1, 3)), np.ones((1, 1))],
+        ]
+    )
     result = register_model(prepared, segment_object(render_clouds([mesh])).points_world_m, seed=3)
     assert result.attempts >= 1
     assert add_s_error_m(model.points_m, result.model_to_world, truth) < 0.003

@@ -1,4 +1,5 @@
 """``dtx report accuracy-time``: argument errors (nothing is measured here)."""
+
 from __future__ import annotations
 
 import argparse
@@ -64,13 +65,21 @@ def test_every_named_sweep_exists() -> None:
 
 def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     (tmp_path / "cache").mkdir()
-    points = [{"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.8},
-              {"sweep": "density", "setting": "80 pts/cm³", "time": 0.3, "accuracy": None}]
-    entry = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict(), "seconds": 5.0,
-             "measured_at": "then", "points": points}
+    points = [
+        {"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.8},
+        {"sweep": "density", "setting": "80 pts/cm³", "time": 0.3, "accuracy": None},
+    ]
+    entry = {
+        "plan": dataclasses.asdict(QUICK),
+        "training_config": training_config().to_dict(),
+        "seconds": 5.0,
+        "measured_at": "then",
+        "points": points,
+    }
     (tmp_path / "cache" / "density.json").write_text(json.dumps(entry))
-    args = _parser().parse_args(["report", "accuracy-time", "--out", str(tmp_path), "--quick", "--reuse",
-                                 "--only", "density"])
+    args = _parser().parse_args(
+        ["report", "accuracy-time", "--out", str(tmp_path), "--quick", "--reuse", "--only", "density"]
+    )
     assert args.func(args) == 0
     report = (tmp_path / "report.md").read_text()
     assert "density reused (5 s on then)" in report

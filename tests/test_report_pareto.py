@@ -1,4 +1,5 @@
 """report.pareto: the front holds exactly the undominated points; the default is on it."""
+
 from __future__ import annotations
 
 import math

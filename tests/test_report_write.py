@@ -1,5 +1,6 @@
 """report.write on a small fixed set of points: tables carry the Pareto and default marks,
 plots and points.json are written, effects sweeps recommend realism when it matters."""
+
 from __future__ import annotations
 
 import json
@@ -11,14 +12,38 @@ from report.write import DEFAULT_MARK, PARETO_MARK, annotate, dumps, loads, writ
 POINTS = [
     # 1 pts/cm³ is fast and within 0.01 of the best, but its estimates do not beat the model's
     # estimate from an empty map (p_vs_no_contact): it is no candidate.
-    {"sweep": "density", "setting": "1 pts/cm³", "time": 0.2, "accuracy": 0.832, "points_median": 7,
-     "p_vs_no_contact": 0.4},
-    {"sweep": "density", "setting": "40 pts/cm³", "time": 0.3, "accuracy": 0.835, "points_median": 70,
-     "p_vs_no_contact": 0.001},
-    {"sweep": "density", "setting": "80 pts/cm³", "time": 0.5, "accuracy": 0.84, "points_median": 97,
-     "p_vs_no_contact": 0.001},
-    {"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.83, "points_median": 38000,
-     "p_vs_no_contact": 0.002},
+    {
+        "sweep": "density",
+        "setting": "1 pts/cm³",
+        "time": 0.2,
+        "accuracy": 0.832,
+        "points_median": 7,
+        "p_vs_no_contact": 0.4,
+    },
+    {
+        "sweep": "density",
+        "setting": "40 pts/cm³",
+        "time": 0.3,
+        "accuracy": 0.835,
+        "points_median": 70,
+        "p_vs_no_contact": 0.001,
+    },
+    {
+        "sweep": "density",
+        "setting": "80 pts/cm³",
+        "time": 0.5,
+        "accuracy": 0.84,
+        "points_median": 97,
+        "p_vs_no_contact": 0.001,
+    },
+    {
+        "sweep": "density",
+        "setting": "unfiltered",
+        "time": 1.0,
+        "accuracy": 0.83,
+        "points_median": 38000,
+        "p_vs_no_contact": 0.002,
+    },
     {"sweep": "registration_voxel", "setting": "4 mm", "time": 430.0, "accuracy": 2.0},
     {"sweep": "registration_voxel", "setting": "8 mm", "time": 170.0, "accuracy": 4.0},
     {"sweep": "registration_voxel", "setting": "10 mm", "time": 150.0, "accuracy": math.nan},
@@ -30,14 +55,21 @@ POINTS = [
 
 def _rows(report: str, title: str) -> dict[str, str]:
     section = report.split(f"## {title}")[1].split("\n## ")[0]
-    return {line.split(" | ")[0].lstrip("| "): line for line in section.splitlines()
-            if line.startswith("| ") and not line.startswith("| density |")}
+    return {
+        line.split(" | ")[0].lstrip("| "): line
+        for line in section.splitlines()
+        if line.startswith("| ") and not line.startswith("| density |")
+    }
 
 
 def test_marks_front_and_default() -> None:
     marked = {(p["sweep"], p["setting"]): p for p in annotate(POINTS)}
-    assert [marked["density", s]["pareto"] for s in ("1 pts/cm³", "40 pts/cm³", "80 pts/cm³", "unfiltered")] == \
-        [True, True, True, False]
+    assert [marked["density", s]["pareto"] for s in ("1 pts/cm³", "40 pts/cm³", "80 pts/cm³", "unfiltered")] == [
+        True,
+        True,
+        True,
+        False,
+    ]
     # 40 is within 0.01 SSIM of the best (80) and the fastest that beats an empty map: the default.
     assert marked["density", "40 pts/cm³"]["recommended"]
     # Lower ADD-S is better; a failed measurement is on no front.

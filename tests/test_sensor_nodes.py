@@ -1,4 +1,5 @@
 """The GelSight node on a recorded tactile video: frames published, a clean stop at its end."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -22,8 +23,11 @@ def test_gelsight_node_plays_a_video_and_stops_at_its_end(registry: Registry, tm
     for frame in frames:
         writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     writer.release()
-    node = GelSightNode("gelsight_left", {"backend": "v4l2", "video_file": str(video), "warmup_frames": 0,
-                                          "background_frames": 2}, registry=registry)
+    node = GelSightNode(
+        "gelsight_left",
+        {"backend": "v4l2", "video_file": str(video), "warmup_frames": 0, "background_frames": 2},
+        registry=registry,
+    )
     listener = Bus("listener", registry)
     images = listener.subscriber("/gelsight_left/image", msgs.TactileImage)
     received = []

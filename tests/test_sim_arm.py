@@ -1,4 +1,5 @@
 """Simulated arm: trapezoidal motion time, workspace and motion limits, repeatability."""
+
 from __future__ import annotations
 
 import threading

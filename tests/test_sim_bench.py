@@ -1,4 +1,5 @@
 """`dtx bench sim` runs end to end and reports every figure (a short run)."""
+
 from __future__ import annotations
 
 import argparse

@@ -1,5 +1,6 @@
 """Grasp contact: the gels close onto a box and a cylinder, press in as the gel's compliance
 and the force say, and give gap maps at the GelSight size and at 100 x 100."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,12 +16,16 @@ GEL = (18.6, 24.9)  # mm
 
 
 def make_world(obj: dict, effects=None) -> SimWorld:
-    return SimWorld(parse_scene({
-        "workspace": {"min_m": [-0.35, -0.3, 0.0], "max_m": [0.35, 0.3, 0.5]},
-        "objects": [obj],
-        "cameras": [{"name": "top", "pose": {"position_m": [0, 0, 1.0], "look_at_m": [0, 0, 0]}}],
-        "effects": effects or [],
-    }))
+    return SimWorld(
+        parse_scene(
+            {
+                "workspace": {"min_m": [-0.35, -0.3, 0.0], "max_m": [0.35, 0.3, 0.5]},
+                "objects": [obj],
+                "cameras": [{"name": "top", "pose": {"position_m": [0, 0, 1.0], "look_at_m": [0, 0, 0]}}],
+                "effects": effects or [],
+            }
+        )
+    )
 
 
 BOX = {"name": "box", "primitive": {"box": [0.06, 0.08, 0.10]}, "pose": {"x_m": 0.0, "y_m": 0.0}}
@@ -72,7 +77,7 @@ def test_cylinder_contact_line_press() -> None:
     assert f.contact_area_mm2 == pytest.approx(2 * np.sqrt(2 * R * d) * L, rel=0.05)
     gap = c.gap_mm["left"]
     x = (np.arange(160) - 79.5) * 0.1245  # columns run along gel x (across the cylinder axis)
-    expected = R - np.sqrt(R ** 2 - x ** 2) - f.indentation_mm  # the circle
+    expected = R - np.sqrt(R**2 - x**2) - f.indentation_mm  # the circle
     np.testing.assert_allclose(gap[60, :], expected, atol=0.02)
     # constant along the cylinder axis (rows, gel z)
     assert np.ptp(gap[:, 80]) < 0.01

@@ -1,4 +1,5 @@
 """Simulated backends: depth camera and GelSight deliver the bus messages."""
+
 from __future__ import annotations
 
 import time
@@ -89,8 +90,9 @@ def test_gelsight_contact_and_background() -> None:
 def test_a_frame_never_claims_a_time_the_robot_state_it_has_seen_cannot_vouch_for() -> None:
     # A gripper message that reaches the sensor late must not leave frames stamped after the
     # grip but rendered before it: stamps stop one state period after the last state seen.
-    gs = SimulatedGelSight(SimulatedGelSightConfig(scene="scenes/ideal.yaml", sensor="left", pace=False,
-                                                   robot_state_period_s=0.05))
+    gs = SimulatedGelSight(
+        SimulatedGelSightConfig(scene="scenes/ideal.yaml", sensor="left", pace=False, robot_state_period_s=0.05)
+    )
     gs.connect()
     assert abs(gs.read().header.stamp_ns - time.time_ns()) < 5e9  # no state seen yet: the clock
     seen_ns = time.time_ns() - 2_000_000_000  # the last state was published 2 s ago
@@ -102,8 +104,11 @@ def test_a_frame_never_claims_a_time_the_robot_state_it_has_seen_cannot_vouch_fo
 
 
 def test_gelsight_native_and_large_size() -> None:
-    gs = SimulatedGelSight(SimulatedGelSightConfig(scene="scenes/ideal.yaml", sensor="right", pace=False,
-                                                   image_height=480, image_width=640))
+    gs = SimulatedGelSight(
+        SimulatedGelSightConfig(
+            scene="scenes/ideal.yaml", sensor="right", pace=False, image_height=480, image_width=640
+        )
+    )
     gs.connect()
     msg = gs.read()
     assert msg.image.shape == (480, 640, 3)

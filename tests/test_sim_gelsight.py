@@ -1,4 +1,5 @@
 """GelSight renderer: shapes, exactness without effects, physics properties, bad input, effects."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,9 +42,15 @@ def upsampled(small: np.ndarray) -> np.ndarray:
 
 
 # Gap maps of any finite or +inf values, at the image's aspect ratio (3x4 cells).
-gap_cells = hnp.arrays(np.float32, (6, 8), elements=st.one_of(
-    st.floats(width=32, allow_nan=False, allow_infinity=False), st.floats(-3.0, 3.0, width=32),
-    st.just(np.float32(np.inf))))
+gap_cells = hnp.arrays(
+    np.float32,
+    (6, 8),
+    elements=st.one_of(
+        st.floats(width=32, allow_nan=False, allow_infinity=False),
+        st.floats(-3.0, 3.0, width=32),
+        st.just(np.float32(np.inf)),
+    ),
+)
 
 
 @settings(max_examples=40, deadline=None)
@@ -119,23 +126,34 @@ def test_other_sizes_render_the_same_gel(height, width):
     assert np.array_equal(renderer.render(np.full((7, 9), np.inf)), renderer.background())
 
 
-@pytest.mark.parametrize("gap", [
-    np.zeros((H, W), np.int32),
-    np.zeros((H, W, 1), np.float32),
-    np.zeros((2, 2), np.float32),
-    np.full((H, W), np.nan, np.float32),
-    np.full((H, W), -np.inf, np.float32),
-    [[0.0] * 4] * 3,
-])
+@pytest.mark.parametrize(
+    "gap",
+    [
+        np.zeros((H, W), np.int32),
+        np.zeros((H, W, 1), np.float32),
+        np.zeros((2, 2), np.float32),
+        np.full((H, W), np.nan, np.float32),
+        np.full((H, W), -np.inf, np.float32),
+        [[0.0] * 4] * 3,
+    ],
+)
 def test_bad_gap_map_is_rejected(gap):
     with pytest.raises(GelSightError):
         RENDERER.render(gap)
 
 
-@pytest.mark.parametrize("change", [
-    {"image_height": 0}, {"image_width": 2.5}, {"mm_per_px": 0.0}, {"spreading_length_mm": -1.0},
-    {"shading_gain": float("nan")}, {"compression_saturation_mm": 0.0}, {"shading_gain": 5.0},
-])
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"image_height": 0},
+        {"image_width": 2.5},
+        {"mm_per_px": 0.0},
+        {"spreading_length_mm": -1.0},
+        {"shading_gain": float("nan")},
+        {"compression_saturation_mm": 0.0},
+        {"shading_gain": 5.0},
+    ],
+)
 def test_bad_config_is_rejected(change):
     with pytest.raises(GelSightError):
         GelSightConfig(**change)
@@ -152,8 +170,9 @@ def test_bad_calibration_dir_and_background_are_rejected(tmp_path):
 
 def test_sensor_noise_is_seeded_zero_mean_and_of_its_size():
     clean = RENDERER.render(ball(1.0)).astype(float)
-    noisy = [GelSightRenderer(effects=(SensorNoise(3.0),), rng=np.random.default_rng(s)).render(ball(1.0))
-             for s in (1, 1, 2)]
+    noisy = [
+        GelSightRenderer(effects=(SensorNoise(3.0),), rng=np.random.default_rng(s)).render(ball(1.0)) for s in (1, 1, 2)
+    ]
     assert np.array_equal(noisy[0], noisy[1]) and not np.array_equal(noisy[0], noisy[2])
     residual = noisy[0] - clean
     assert abs(residual.mean()) < 0.2 and 2.5 < residual.std() < 3.5
@@ -165,14 +184,14 @@ def test_markers_are_dark_dots_that_move_with_the_gel():
     flat = renderer.render(ball(-1.0))  # nothing touches
     background = RENDERER.background()
     assert np.all(flat <= background)
-    dark = (flat.astype(int).sum(axis=2) < 0.6 * background.astype(int).sum(axis=2))
-    assert dark[H // 2 - 1:H // 2 + 1, W // 2 - 1:W // 2 + 1].any()  # a dot at the gel centre
+    dark = flat.astype(int).sum(axis=2) < 0.6 * background.astype(int).sum(axis=2)
+    assert dark[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].any()  # a dot at the gel centre
     pitch_px = markers.pitch_mm / RENDERER.config.mm_per_px
-    assert 0.5 * (W * H) / pitch_px ** 2 < cv2.connectedComponents(dark.astype(np.uint8))[0] - 1
+    assert 0.5 * (W * H) / pitch_px**2 < cv2.connectedComponents(dark.astype(np.uint8))[0] - 1
     pressed = renderer.render(ball(1.5))
     without = RENDERER.render(ball(1.5))
     moved = (pressed < without).any(axis=2) != (flat < background).any(axis=2)
-    assert moved[H // 2 - 20:H // 2 + 20, W // 2 - 20:W // 2 + 20].any()
+    assert moved[H // 2 - 20 : H // 2 + 20, W // 2 - 20 : W // 2 + 20].any()
     assert not moved[:, :15].any()  # far from the contact the dots stay put
 
 

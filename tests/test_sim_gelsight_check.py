@@ -1,4 +1,5 @@
 """``dtx sim gelsight-check``: geometry helpers, file checks, JSON layout, CLI, calibration."""
+
 from __future__ import annotations
 
 import argparse
@@ -33,8 +34,12 @@ def presses():
 
 
 def write_presses(path, presses, indices=(0, 1, 2, 3), **override):
-    data = {"background": presses.background, "frames": presses.frames[list(indices)],
-            "touch_center": presses.centers_xy_px[list(indices)], "touch_radius": presses.radii_px[list(indices)]}
+    data = {
+        "background": presses.background,
+        "frames": presses.frames[list(indices)],
+        "touch_center": presses.centers_xy_px[list(indices)],
+        "touch_radius": presses.radii_px[list(indices)],
+    }
     data.update(override)
     np.savez(path, **{k: v for k, v in data.items() if v is not None})
     return path
@@ -43,7 +48,7 @@ def write_presses(path, presses, indices=(0, 1, 2, 3), **override):
 @given(st.floats(0.01, 1.99))
 def test_press_depth_is_the_sphere_cap_depth(a):
     depth = press_depth_mm(a, 2.0)
-    assert math.isclose((2.0 - depth) ** 2 + a ** 2, 4.0, rel_tol=1e-9)  # rim point lies on the sphere
+    assert math.isclose((2.0 - depth) ** 2 + a**2, 4.0, rel_tol=1e-9)  # rim point lies on the sphere
 
 
 def test_press_depth_caps_the_contact_radius_at_the_ball_radius():
@@ -69,13 +74,16 @@ def test_touch_crop_is_always_48x48_inside_the_frame():
     assert touch_crop(image, (80, 60))[24, 24] == image[60, 80]
 
 
-@pytest.mark.parametrize(("override", "message"), [
-    ({"touch_radius": None}, "missing keys"),
-    ({"frames": np.zeros((4, 120, 160, 3), np.float32)}, "frames must be"),
-    ({"touch_center": np.array([[10.0, 10.0]] * 3 + [[200.0, 10.0]])}, "outside"),
-    ({"touch_radius": np.array([17, 17, 0, 17])}, "touch_radius must be > 0"),
-    ({"touch_center": np.array([[np.nan, 10.0]] * 4)}, "finite"),
-])
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ({"touch_radius": None}, "missing keys"),
+        ({"frames": np.zeros((4, 120, 160, 3), np.float32)}, "frames must be"),
+        ({"touch_center": np.array([[10.0, 10.0]] * 3 + [[200.0, 10.0]])}, "outside"),
+        ({"touch_radius": np.array([17, 17, 0, 17])}, "touch_radius must be > 0"),
+        ({"touch_center": np.array([[np.nan, 10.0]] * 4)}, "finite"),
+    ],
+)
 def test_bad_press_files_are_rejected(tmp_path, presses, override, message):
     path = write_presses(tmp_path / "bad.npz", presses, **override)
     with pytest.raises(GelSightError, match=message):

@@ -1,5 +1,6 @@
 """Scene files: the shipped scenes load; every kind of bad input is refused with an error that
 names the file, the key and the allowed values."""
+
 from __future__ import annotations
 
 import copy
@@ -71,8 +72,10 @@ def test_generated_shapes_are_usable_scene_objects(tmp_path: Path) -> None:
     """Closed, manifold, resting on their lowest point: a scene with every shape loads."""
     data = _ideal()
     spots_m = [(-0.2, -0.15), (0.0, -0.15), (0.2, -0.15), (-0.2, 0.15), (0.0, 0.15), (0.2, 0.15), (0.0, 0.0)]
-    data["objects"] = [{"name": path.stem, "mesh": str(path), "pose": {"x_m": x_m, "y_m": y_m}}
-                       for path, (x_m, y_m) in zip(write_shapes(tmp_path), spots_m, strict=True)]
+    data["objects"] = [
+        {"name": path.stem, "mesh": str(path), "pose": {"x_m": x_m, "y_m": y_m}}
+        for path, (x_m, y_m) in zip(write_shapes(tmp_path), spots_m, strict=True)
+    ]
     data["workspace"] = {"min_m": [-0.4, -0.3, 0.0], "max_m": [0.4, 0.3, 0.5]}
     scene = load_scene(_write(tmp_path, data, "shapes.yaml"))
     assert len(scene.objects) == 7
@@ -133,8 +136,10 @@ def test_empty_mesh(tmp_path: Path) -> None:
 def test_non_manifold_mesh(tmp_path: Path) -> None:
     # three triangles sharing the edge (1, 2): not edge-manifold
     mesh = tmp_path / "fin.obj"
-    mesh.write_text("v 0 0 0\nv 0.05 0 0\nv 0 0.05 0\nv 0 0 0.05\nv 0.05 0.05 0.05\nv -0.05 0.02 0.03\n"
-                    "f 1 2 3\nf 2 3 4\nf 2 3 5\nf 2 3 6\n")
+    mesh.write_text(
+        "v 0 0 0\nv 0.05 0 0\nv 0 0.05 0\nv 0 0 0.05\nv 0.05 0.05 0.05\nv -0.05 0.02 0.03\n"
+        "f 1 2 3\nf 2 3 4\nf 2 3 5\nf 2 3 6\n"
+    )
     data = _ideal()
     data["objects"][0]["mesh"] = str(mesh)
     err = _error(tmp_path, data)
@@ -155,20 +160,37 @@ def test_object_outside_workspace(tmp_path: Path) -> None:
     assert err.key == "objects[2].pose" and "workspace" in str(err.allowed)
 
 
-@pytest.mark.parametrize("mutate, key", [
-    (lambda d: d["effects"].append({"name": "axial_noise", "scale": 50}), "effects[0].scale"),
-    (lambda d: d["effects"].append({"name": "quantisation", "step_mm": -1}), "effects[0].step_mm"),
-    (lambda d: d["effects"].append({"name": "missing_returns", "min_range_m": 2.0, "max_range_m": 1.0}),
-     "effects[0].max_range_m"),
-    (lambda d: d["effects"].append({"name": "extrinsic_offset", "rotation_deg": [0, 0, 45]}),
-     "effects[0].rotation_deg[2]"),
-    (lambda d: d["objects"][1]["relief"][0].update(depth_mm=5.0), "objects[1].relief[0].depth_mm"),
-    (lambda d: d["objects"][1]["relief"][0].update(pitch_mm=0.01), "objects[1].relief[0].pitch_mm"),
-    (lambda d: d["gripper"].update(elastomer_thickness_mm=-2), "gripper.elastomer_thickness_mm"),
-    (lambda d: d["cameras"][0]["intrinsics"].update(fx=0.0), "cameras[0].intrinsics.fx"),
-    (lambda d: d["gelsight"].update(mm_per_px=5.0), "gelsight.mm_per_px"),
-], ids=["axial_scale", "quant_step", "range_order", "extrinsic_rotation", "relief_depth", "relief_pitch",
-        "elastomer", "fx", "mm_per_px"])
+@pytest.mark.parametrize(
+    "mutate, key",
+    [
+        (lambda d: d["effects"].append({"name": "axial_noise", "scale": 50}), "effects[0].scale"),
+        (lambda d: d["effects"].append({"name": "quantisation", "step_mm": -1}), "effects[0].step_mm"),
+        (
+            lambda d: d["effects"].append({"name": "missing_returns", "min_range_m": 2.0, "max_range_m": 1.0}),
+            "effects[0].max_range_m",
+        ),
+        (
+            lambda d: d["effects"].append({"name": "extrinsic_offset", "rotation_deg": [0, 0, 45]}),
+            "effects[0].rotation_deg[2]",
+        ),
+        (lambda d: d["objects"][1]["relief"][0].update(depth_mm=5.0), "objects[1].relief[0].depth_mm"),
+        (lambda d: d["objects"][1]["relief"][0].update(pitch_mm=0.01), "objects[1].relief[0].pitch_mm"),
+        (lambda d: d["gripper"].update(elastomer_thickness_mm=-2), "gripper.elastomer_thickness_mm"),
+        (lambda d: d["cameras"][0]["intrinsics"].update(fx=0.0), "cameras[0].intrinsics.fx"),
+        (lambda d: d["gelsight"].update(mm_per_px=5.0), "gelsight.mm_per_px"),
+    ],
+    ids=[
+        "axial_scale",
+        "quant_step",
+        "range_order",
+        "extrinsic_rotation",
+        "relief_depth",
+        "relief_pitch",
+        "elastomer",
+        "fx",
+        "mm_per_px",
+    ],
+)
 def test_parameter_out_of_range(tmp_path: Path, mutate, key: str) -> None:
     data = copy.deepcopy(_ideal())
     data["effects"] = []

@@ -1,5 +1,6 @@
 """SimWorld depth rendering: exact geometry without effects, each effect alone changes only
 what it models, determinism with a seed."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -76,7 +77,7 @@ def test_sphere_exact() -> None:
     oc = o - centre
     a = np.einsum("ij,ij->i", d, d)
     b = np.einsum("ij,ij->i", oc, d)
-    cc = np.einsum("ij,ij->i", oc, oc) - 0.1 ** 2
+    cc = np.einsum("ij,ij->i", oc, oc) - 0.1**2
     disc = b * b - a * cc
     t = np.where(disc > 0, (-b - np.sqrt(np.clip(disc, 0, None))) / a, np.nan).reshape(z.shape)
     on_sphere = np.isfinite(t) & (np.abs(z - TOP_H) > 1e-3)
@@ -101,6 +102,7 @@ def test_no_effects_cost_nothing() -> None:
 
 
 # ------------------------------------------------------------------ effect isolation
+
 
 def _pair(effect: dict, objects=BOX, seed=0):
     ideal = world(objects, seed=seed).render_depth("side")
@@ -158,8 +160,9 @@ def test_flying_pixels_only_at_discontinuities() -> None:
 
 
 def test_missing_returns_only_drop_pixels() -> None:
-    ideal, noisy = _pair({"name": "missing_returns", "max_incidence_deg": 60.0, "ramp_deg": 0.0,
-                          "min_range_m": 0.5, "max_range_m": 1.2})
+    ideal, noisy = _pair(
+        {"name": "missing_returns", "max_incidence_deg": 60.0, "ramp_deg": 0.0, "min_range_m": 0.5, "max_range_m": 1.2}
+    )
     kept = np.isfinite(noisy)
     np.testing.assert_array_equal(noisy[kept], ideal[kept])
     assert np.all(np.isnan(noisy[np.isnan(ideal)]))
@@ -183,8 +186,12 @@ def test_quantisation_only_rounds() -> None:
 
 
 def test_extrinsic_offset_is_a_moved_camera() -> None:
-    eff = {"name": "extrinsic_offset", "camera": "side", "translation_mm": [5.0, -3.0, 4.0],
-           "rotation_deg": [0.3, -0.2, 0.1]}
+    eff = {
+        "name": "extrinsic_offset",
+        "camera": "side",
+        "translation_mm": [5.0, -3.0, 4.0],
+        "rotation_deg": [0.3, -0.2, 0.1],
+    }
     w = world(BOX, [eff])
     offset = w.cameras["side"]
     assert not np.allclose(offset.true_to_world, offset.nominal_to_world)
@@ -201,9 +208,15 @@ def test_extrinsic_offset_is_a_moved_camera() -> None:
 
 
 def test_micro_relief_only_on_relief_objects() -> None:
-    objs = [{"name": "box", "primitive": {"box": [0.06, 0.08, 0.10]}, "pose": {"x_m": 0.0, "y_m": 0.0},
-             "relief": [{"kind": "ridges", "pitch_mm": 2.0, "depth_mm": 0.5, "axis": [0, 0, 1]}]},
-            {"name": "plain", "primitive": {"box": [0.05, 0.05, 0.05]}, "pose": {"x_m": 0.2, "y_m": 0.1}}]
+    objs = [
+        {
+            "name": "box",
+            "primitive": {"box": [0.06, 0.08, 0.10]},
+            "pose": {"x_m": 0.0, "y_m": 0.0},
+            "relief": [{"kind": "ridges", "pitch_mm": 2.0, "depth_mm": 0.5, "axis": [0, 0, 1]}],
+        },
+        {"name": "plain", "primitive": {"box": [0.05, 0.05, 0.05]}, "pose": {"x_m": 0.2, "y_m": 0.1}},
+    ]
     ideal = world(objs).render_depth("side")
     w = world(objs, [{"name": "micro_relief"}])
     relief = w.render_depth("side")
@@ -221,16 +234,27 @@ def test_micro_relief_only_on_relief_objects() -> None:
 
 
 def test_relief_listed_but_not_called_for_is_ideal() -> None:
-    objs = [{"name": "box", "primitive": {"box": [0.06, 0.08, 0.10]}, "pose": {"x_m": 0.0, "y_m": 0.0},
-             "relief": [{"kind": "bumps", "pitch_mm": 2.0, "depth_mm": 0.5}]}]
+    objs = [
+        {
+            "name": "box",
+            "primitive": {"box": [0.06, 0.08, 0.10]},
+            "pose": {"x_m": 0.0, "y_m": 0.0},
+            "relief": [{"kind": "bumps", "pitch_mm": 2.0, "depth_mm": 0.5}],
+        }
+    ]
     plain = [{"name": "box", "primitive": {"box": [0.06, 0.08, 0.10]}, "pose": {"x_m": 0.0, "y_m": 0.0}}]
     np.testing.assert_array_equal(world(objs).render_depth("side"), world(plain).render_depth("side"))
 
 
 # ------------------------------------------------------------------ determinism
 
-ALL = [{"name": "lateral_noise"}, {"name": "flying_pixels"}, {"name": "axial_noise"},
-       {"name": "missing_returns", "dropout_probability": 0.05}, {"name": "quantisation"}]
+ALL = [
+    {"name": "lateral_noise"},
+    {"name": "flying_pixels"},
+    {"name": "axial_noise"},
+    {"name": "missing_returns", "dropout_probability": 0.05},
+    {"name": "quantisation"},
+]
 
 
 def test_fixed_seed_reproduces_frames() -> None:
@@ -242,8 +266,9 @@ def test_fixed_seed_reproduces_frames() -> None:
     # the static world's frames carry the noise of the state they show: whichever frame a node
     # takes, it sees the same one (sim.seeding); a fresh generator still draws fresh noise
     np.testing.assert_array_equal(a.render_depth("side"), a.render_depth("side"))
-    assert not np.array_equal(a.render_depth("side"), a.render_depth("side", rng=np.random.default_rng(1)),
-                              equal_nan=True)
+    assert not np.array_equal(
+        a.render_depth("side"), a.render_depth("side", rng=np.random.default_rng(1)), equal_nan=True
+    )
 
 
 def test_explicit_rng() -> None:

@@ -2,6 +2,7 @@
 the wire protocol (docs/wire-protocol.md) is a contract only if a stranger can keep it.
 
 Needs `node` and the pinned packages `make setup` installs (clients/node/node_modules)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -32,8 +33,9 @@ from nodes.registry import Registry
 ROOT = Path(__file__).resolve().parent.parent
 CLIENTS = ROOT / "clients" / "node"
 NODE = shutil.which("node")
-pytestmark = pytest.mark.skipif(NODE is None, reason="node (Node.js) is not installed: the third-party "
-                                                      "client tests need it")
+pytestmark = pytest.mark.skipif(
+    NODE is None, reason="node (Node.js) is not installed: the third-party client tests need it"
+)
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +46,14 @@ def node_modules() -> Path:
 
 
 def node(*args: str, bus_dir: Path, timeout_s: float = 300) -> dict:
-    done = subprocess.run([str(NODE), str(CLIENTS / "planner.mjs"), *args], cwd=CLIENTS, text=True,
-                          capture_output=True, timeout=timeout_s, env={**os.environ, "DTX_BUS_DIR": str(bus_dir)})
+    done = subprocess.run(
+        [str(NODE), str(CLIENTS / "planner.mjs"), *args],
+        cwd=CLIENTS,
+        text=True,
+        capture_output=True,
+        timeout=timeout_s,
+        env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
+    )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -58,8 +66,12 @@ def served(node_modules: Path, tmp_path_factory: pytest.TempPathFactory) -> Iter
     checkpoint = write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dtx.cli", "launch", "launch/serve.yaml", f"checkpoint:={checkpoint}"],
-        cwd=ROOT, env={**os.environ, "DTX_BUS_DIR": str(bus_dir)}, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        cwd=ROOT,
+        env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     try:
         deadline = time.monotonic() + 180
         while len(registry.lookup("service", SERVICE)) < 2:
@@ -73,8 +85,9 @@ def served(node_modules: Path, tmp_path_factory: pytest.TempPathFactory) -> Iter
         shutil.rmtree(bus_dir, ignore_errors=True)
 
 
-def test_the_node_planner_gets_the_python_clients_images_byte_for_byte(served: tuple[Path, Registry],
-                                                                       tmp_path: Path) -> None:
+def test_the_node_planner_gets_the_python_clients_images_byte_for_byte(
+    served: tuple[Path, Registry], tmp_path: Path
+) -> None:
     bus_dir, registry = served
     maps = depth_maps(3, seed=5).astype("<f4")
     (tmp_path / "maps.f32").write_bytes(maps.tobytes())
@@ -92,8 +105,9 @@ def test_every_malformed_request_of_the_node_planner_gets_an_error_reply(served:
     assert result["served_after"]
 
 
-def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(served: tuple[Path, Registry],
-                                                                         tmp_path: Path) -> None:
+def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(
+    served: tuple[Path, Registry], tmp_path: Path
+) -> None:
     """§3's cloud handle from the page alone: six requests about one cloud over two workers carry
     its points twice (once to each), then the id; the images are the Python client's, byte for
     byte; an id no worker holds is refused with unknown_cloud."""
@@ -105,8 +119,16 @@ def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(served: 
     poses = np.stack([np.eye(4), shifted, away]).astype("<f8")
     (tmp_path / "points.f32").write_bytes(points.tobytes())
     (tmp_path / "poses.f64").write_bytes(poses.tobytes())
-    result = node("cloud", str(tmp_path / "points.f32"), str(len(points)), str(tmp_path / "poses.f64"), "3", "6",
-                  str(tmp_path / "images.u8"), bus_dir=bus_dir)
+    result = node(
+        "cloud",
+        str(tmp_path / "points.f32"),
+        str(len(points)),
+        str(tmp_path / "poses.f64"),
+        "3",
+        "6",
+        str(tmp_path / "images.u8"),
+        bus_dir=bus_dir,
+    )
     assert (result["with_points"], result["id_only"], result["refused"]) == (2, 4, 0), result
     assert result["unknown_id"] == "unknown_cloud"
     with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, timeout_s=60.0) as client:
@@ -121,9 +143,14 @@ def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple
     """kill -9 of one worker mid-session: the spec's liveness and retry rules carry every request."""
     bus_dir, registry = served
     count = 40
-    planner = subprocess.Popen([str(NODE), str(CLIENTS / "planner.mjs"), "steady", str(count)], cwd=CLIENTS,
-                               text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               env={**os.environ, "DTX_BUS_DIR": str(bus_dir)})
+    planner = subprocess.Popen(
+        [str(NODE), str(CLIENTS / "planner.mjs"), "steady", str(count)],
+        cwd=CLIENTS,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
+    )
     assert planner.stderr is not None
     try:
         for line in planner.stderr:
@@ -146,36 +173,46 @@ def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple
 
 
 @pytest.mark.parametrize("compression", ["none", "lz4", "zstd"])
-def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(node_modules: Path, tmp_path: Path,
-                                                                     compression: str) -> None:
+def test_the_official_mcap_reader_reads_a_recorded_bag_and_a_cut_one(
+    node_modules: Path, tmp_path: Path, compression: str
+) -> None:
     """@mcap/core with @mcap/support's decompressors (as Foxglove Studio reads), knowing only
     docs/bag-format.md, decodes every dtx channel of a bag in each chunk compression, and of the
     same bag cut short by a crash as much as the Python reader does."""
     path = tmp_path / "session.mcap"
     writer = BagWriter(path, compression=compression, chunk_size=64 * 1024)
     for i in range(20):
-        for topic, message in (("/gripper/state", msgs.GripperState(width_m=0.01 * i)),
-                               ("/camera/left/depth", msgs.DepthImage(depth=np.full((48, 64), i, np.uint16))),
-                               ("/cloud", msgs.PointCloud(points=np.full((30, 3), i, np.float32)))):
+        for topic, message in (
+            ("/gripper/state", msgs.GripperState(width_m=0.01 * i)),
+            ("/camera/left/depth", msgs.DepthImage(depth=np.full((48, 64), i, np.uint16))),
+            ("/cloud", msgs.PointCloud(points=np.full((30, 3), i, np.float32))),
+        ):
             message.header.stamp_ns = 1_000_000 * (i + 1)
             frames = encode(topic, message, "test")
             writer.write(decode(frames), frames, log_time_ns=message.header.stamp_ns)
     writer.close()
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(path.read_bytes()[:int(path.stat().st_size * 0.6)])
+    cut.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
     for bag, complete in ((path, True), (cut, False)):
-        done = subprocess.run([str(NODE), str(CLIENTS / "read_bag.mjs"), str(bag)], cwd=CLIENTS, text=True,
-                              capture_output=True, timeout=120)
+        done = subprocess.run(
+            [str(NODE), str(CLIENTS / "read_bag.mjs"), str(bag)],
+            cwd=CLIENTS,
+            text=True,
+            capture_output=True,
+            timeout=120,
+        )
         assert done.returncode == 0, done.stderr
         result = json.loads(done.stdout)
         python = bag_info(bag)
         assert python.truncated is not complete and result["stream"]["done"] is complete
         readers = [result["stream"], result["indexed"]] if complete else [result["stream"]]
         for read in readers:
-            assert {topic: entry["count"] for topic, entry in read["topics"].items()} == \
-                {topic: entry["count"] for topic, entry in python.topics.items()}
-            assert read["decoded"] == sum(entry["count"] for topic, entry in python.topics.items()
-                                          if entry["encoding"] == "dtx/msgpack+buffers")
+            assert {topic: entry["count"] for topic, entry in read["topics"].items()} == {
+                topic: entry["count"] for topic, entry in python.topics.items()
+            }
+            assert read["decoded"] == sum(
+                entry["count"] for topic, entry in python.topics.items() if entry["encoding"] == "dtx/msgpack+buffers"
+            )
         assert read["topics"]["/gripper/state"]["encoding"] == "dtx/jsonschema"
     assert 0 < sum(e["count"] for e in result["stream"]["topics"].values()) < 120
 
@@ -195,9 +232,13 @@ def running_bridge(registry: Registry) -> Iterator[FoxgloveBridge]:
 
 def start_viewer(bridge: FoxgloveBridge, subprotocol: str, seconds: int) -> subprocess.Popen[str]:
     """clients/node/foxglove_view.mjs: subscribes to each channel on advertise, reports at the end."""
-    return subprocess.Popen([str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}",
-                             subprotocol, str(seconds)], cwd=CLIENTS, text=True, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{bridge.port}", subprotocol, str(seconds)],
+        cwd=CLIENTS,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def viewer_report(viewer: subprocess.Popen[str]) -> dict:
@@ -210,7 +251,8 @@ def viewer_report(viewer: subprocess.Popen[str]) -> dict:
 
 @pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
 def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_cloud(
-        node_modules: Path, registry: Registry, subprotocol: str) -> None:
+    node_modules: Path, registry: Registry, subprotocol: str
+) -> None:
     """@foxglove/ws-protocol, as Studio 1.x and Lichtblick connect: a cloud published once
     before the viewer came is still shown, and so are the images that stream."""
     with contextlib.closing(Bus("sensors", registry)) as bus, running_bridge(registry) as bridge:
@@ -234,8 +276,9 @@ def test_foxglove_clients_of_either_subprotocol_see_every_channel_and_a_latched_
     assert seen["messages"].get("/gelsight_left/image/foxglove", 0) >= 1, seen
 
 
-def test_a_hundred_subscriptions_right_after_advertise_are_never_refused(node_modules: Path,
-                                                                        registry: Registry) -> None:
+def test_a_hundred_subscriptions_right_after_advertise_are_never_refused(
+    node_modules: Path, registry: Registry
+) -> None:
     """100 topics appear while the official client is connected and subscribes to each channel
     the moment it is advertised: no "Unknown channel ID" (or any other status), and every
     channel's messages reach it."""
@@ -246,8 +289,9 @@ def test_a_hundred_subscriptions_right_after_advertise_are_never_refused(node_mo
         image = msgs.TactileImage(image=np.zeros((4, 4, 3), np.uint8), sensor="left")
         while viewer.poll() is None:
             if len(publishers) < len(topics):  # 20 new topics per discovery round (1 s)
-                publishers += [bus.publisher(topic, msgs.TactileImage)
-                               for topic in topics[len(publishers):len(publishers) + 20]]
+                publishers += [
+                    bus.publisher(topic, msgs.TactileImage) for topic in topics[len(publishers) : len(publishers) + 20]
+                ]
             for publisher in publishers:
                 publisher.publish(image)
             time.sleep(1.0)

@@ -1,4 +1,5 @@
 """The transform tree: every frame the cell uses reaches /tf, each from its source."""
+
 from __future__ import annotations
 
 import contextlib

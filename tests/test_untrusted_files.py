@@ -1,6 +1,7 @@
 """Readers trust no file: malicious datasets and bags give a clear error, read nothing outside
 the dataset, never hang and stay within 1 GiB of memory (each case runs in a subprocess
 whose address space is capped at 1 GiB above what its imports took)."""
+
 from __future__ import annotations
 
 import hashlib
@@ -27,36 +28,65 @@ from msgs.codec import encode
 from nodes.bag import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 
 MAGIC = b"\x89MCAP0\r\n"
-INFO = DatasetInfo(image_height=100, image_width=100, depth_range_m=(-0.0015, 0.0025), scene="test",
-                   effects=("none",), code_version="test", split_seed=3)
+INFO = DatasetInfo(
+    image_height=100,
+    image_width=100,
+    depth_range_m=(-0.0015, 0.0025),
+    scene="test",
+    effects=("none",),
+    code_version="test",
+    split_seed=3,
+)
 
 
 def run_capped(body: str, timeout_s: float = 120.0) -> dict:
     """Run ``body`` (which sets ``result``) in a fresh interpreter capped at 1 GiB of address
     space above its imports; its result, as JSON."""
-    script = textwrap.dedent("""
+    script = (
+        textwrap.dedent("""
         import json, resource
         from dataset.check import check_dataset
         from nodes.bag import BagError, bag_info, iter_envelopes
         vm = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
         resource.setrlimit(resource.RLIMIT_AS, (vm + (1 << 30), vm + (1 << 30)))
         result = {}
-    """) + textwrap.dedent(body) + "\nprint(json.dumps(result))\n"
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout_s,
-                          cwd=Path(__file__).parent.parent)
+    """)
+        + textwrap.dedent(body)
+        + "\nprint(json.dumps(result))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        cwd=Path(__file__).parent.parent,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.splitlines()[-1])
 
 
 # -- datasets ----------------------------------------------------------------------------
 
+
 def one_grasp_dataset(root: Path) -> None:
     writer = DatasetWriter(root, INFO)
     image = np.random.default_rng(0).integers(0, 256, (100, 100, 3), dtype=np.uint8)
-    writer.write_together([writer.encode(
-        sample_id=f"g0-{finger}", object_name="mug", grasp_id=0, finger=finger, grasp_pose=(0, 0, 0, 0),
-        registration_fitness=1.0, tactile_rgb=image, tactile_diff_rgb=subtract_background(image, image),
-        depth_map_m=np.zeros((100, 100), np.float32)) for finger in ("left", "right")])
+    writer.write_together(
+        [
+            writer.encode(
+                sample_id=f"g0-{finger}",
+                object_name="mug",
+                grasp_id=0,
+                finger=finger,
+                grasp_pose=(0, 0, 0, 0),
+                registration_fitness=1.0,
+                tactile_rgb=image,
+                tactile_diff_rgb=subtract_background(image, image),
+                depth_map_m=np.zeros((100, 100), np.float32),
+            )
+            for finger in ("left", "right")
+        ]
+    )
 
 
 def edit_left(root: Path, kind: str, path: str | None = None, content: bytes | None = None) -> None:
@@ -136,23 +166,33 @@ def make_malicious_datasets(base: Path) -> dict[str, str]:
 @pytest.mark.skipif(os.geteuid() != 0, reason="making a device node needs root")
 def test_malicious_datasets_are_refused_clearly_within_bounds(tmp_path: Path) -> None:
     cases = make_malicious_datasets(tmp_path)
-    result = run_capped(f"""
+    result = run_capped(
+        f"""
         for name in {sorted(cases)!r}:
             report = check_dataset({str(tmp_path)!r} + "/" + name)
             result[name] = report.problems
-    """, timeout_s=120)
+    """,
+        timeout_s=120,
+    )
     for name, expected in cases.items():
         assert result[name] and any(expected in p for p in result[name]), (name, result[name])
 
 
 # -- bags --------------------------------------------------------------------------------
 
+
 def bag_with_chunk(path: Path, data: bytes, uncompressed_size: int, compression: str = "zstd") -> None:
     """A bag whose only chunk holds ``data`` and declares ``uncompressed_size``."""
     builder = RecordBuilder()
     Header(profile="dtx", library="test").write(builder)
-    Chunk(compression=compression, data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
-          uncompressed_size=uncompressed_size).write(builder)
+    Chunk(
+        compression=compression,
+        data=data,
+        message_start_time=0,
+        message_end_time=0,
+        uncompressed_crc=0,
+        uncompressed_size=uncompressed_size,
+    ).write(builder)
     path.write_bytes(MAGIC + builder.end())
 
 
@@ -199,7 +239,8 @@ def make_malicious_bags(base: Path) -> dict[str, str]:
 
 def test_malicious_bags_are_refused_clearly_within_bounds(tmp_path: Path) -> None:
     cases = make_malicious_bags(tmp_path)
-    result = run_capped(f"""
+    result = run_capped(
+        f"""
         for name in {sorted(cases)!r}:
             path = {str(tmp_path)!r} + "/" + name
             for reader in ("info", "play"):
@@ -208,7 +249,9 @@ def test_malicious_bags_are_refused_clearly_within_bounds(tmp_path: Path) -> Non
                     result[name + " " + reader] = "read without an error"
                 except BagError as error:
                     result[name + " " + reader] = str(error)
-    """, timeout_s=120)
+    """,
+        timeout_s=120,
+    )
     decoded_only_in_play = {"array_claims_10_GB.mcap", "frame_claims_10_GB.mcap"}  # info counts records
     for name, expected in cases.items():
         assert expected in result[f"{name} play"], (name, result[f"{name} play"])
@@ -220,11 +263,28 @@ def test_bag_play_and_replay_end_with_a_clear_error_on_a_bad_bag(tmp_path: Path)
     bag_with_chunk(tmp_path / "bomb.mcap", zstd_bomb(8 << 20), 4 << 30)
     with tempfile.TemporaryDirectory(prefix="dtxu") as bus_dir:
         env = {**os.environ, "DTX_BUS_DIR": bus_dir}
-        play = subprocess.run([sys.executable, "-m", "dtx.cli", "bag", "play", str(tmp_path / "bomb.mcap"), "--fast"],
-                              capture_output=True, text=True, timeout=120, env=env)
+        play = subprocess.run(
+            [sys.executable, "-m", "dtx.cli", "bag", "play", str(tmp_path / "bomb.mcap"), "--fast"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=env,
+        )
         assert play.returncode == 1 and "bag play stopped" in play.stderr and "over the limit" in play.stderr
-        replay = subprocess.run([sys.executable, "-m", "dtx.cli", "launch", "launch/replay.yaml",
-                                 f"bag:={tmp_path / 'bomb.mcap'}", f"out:={tmp_path / 'replayed'}"],
-                                capture_output=True, text=True, timeout=120, env=env)
+        replay = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "dtx.cli",
+                "launch",
+                "launch/replay.yaml",
+                f"bag:={tmp_path / 'bomb.mcap'}",
+                f"out:={tmp_path / 'replayed'}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=env,
+        )
     assert replay.returncode != 0, replay.stdout[-2000:]
     assert "the bag could not be played to its end" in replay.stdout, replay.stdout[-2000:]

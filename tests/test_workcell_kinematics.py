@@ -1,4 +1,5 @@
 """Grasp kinematics: top-down TCP poses, UR pose conversions, gel frames."""
+
 from __future__ import annotations
 
 import numpy as np

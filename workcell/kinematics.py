@@ -14,6 +14,7 @@ Conventions chosen here (and relied on by the simulated world and the patch extr
 
 UR poses are [x, y, z, rx, ry, rz]: position in metres and a rotation vector in radians.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -67,8 +68,10 @@ def rigid_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
         raise KinematicsError(f"{name} must be a finite 4x4 matrix, got shape {matrix.shape}")
     rotation = matrix[:3, :3]
     # rtol=0: np.allclose's default rtol (1e-5) would loosen the tolerance to 1.1e-5.
-    if not np.allclose(rotation.T @ rotation, np.eye(3), rtol=0.0, atol=ROTATION_TOLERANCE) \
-            or np.linalg.det(rotation) <= 0:
+    if (
+        not np.allclose(rotation.T @ rotation, np.eye(3), rtol=0.0, atol=ROTATION_TOLERANCE)
+        or np.linalg.det(rotation) <= 0
+    ):
         raise KinematicsError(f"{name} rotation block is not a proper rotation")
     if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
         raise KinematicsError(f"{name} last row must be [0, 0, 0, 1], got {matrix[3]}")
@@ -117,8 +120,9 @@ def matrix_to_pose(transform: np.ndarray) -> np.ndarray:
     return np.concatenate([matrix[:3, 3], rotvec])
 
 
-def gel_poses_world(tcp_pose_world: np.ndarray, gripper_width_m: float,
-                    geometry: GripperGeometry = GripperGeometry()) -> dict[str, np.ndarray]:
+def gel_poses_world(
+    tcp_pose_world: np.ndarray, gripper_width_m: float, geometry: GripperGeometry = GripperGeometry()
+) -> dict[str, np.ndarray]:
     """Gel-to-world transforms (4x4) of both fingers, keys ``"left"`` and ``"right"``.
 
     ``tcp_pose_world`` is a finite UR pose (6,) or a rigid 4x4 tcp-to-world transform

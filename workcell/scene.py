@@ -11,6 +11,7 @@ what their parameters mean is the simulator's (``sim.effects``), which checks th
 same kind of error, when it reads the scene (``SimWorld.from_file``). A lab node never runs an
 effect, so it does not need to know them.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -153,32 +154,38 @@ class Scene:
         for cam in self.cameras:
             if cam.name == name:
                 return cam
-        raise SceneError(self.path, "cameras", f"no camera named {name!r}",
-                         [c.name for c in self.cameras])
+        raise SceneError(self.path, "cameras", f"no camera named {name!r}", [c.name for c in self.cameras])
 
     def mesh(self, object_name: str) -> str:
         """The mesh path of the object named ``object_name`` (SceneError if it has none)."""
         for obj in self.objects:
             if obj.name == object_name and obj.mesh:
                 return obj.mesh
-        raise SceneError(self.path, "objects", f"no object with a mesh named {object_name!r}",
-                         [o.name for o in self.objects if o.mesh])
+        raise SceneError(
+            self.path,
+            "objects",
+            f"no object with a mesh named {object_name!r}",
+            [o.name for o in self.objects if o.mesh],
+        )
 
     def gripper_geometry(self) -> GripperGeometry:
         """The :class:`GripperGeometry` of this scene's gripper; its sensed area is the GelSight
         image's field of view (``image_width`` x ``image_height`` pixels of ``mm_per_px``,
         centred on the gel)."""
         gs = self.gelsight
-        return GripperGeometry(tcp_to_gel_centre_m=self.gripper.tcp_to_gel_centre_m,
-                               gel_size_m=tuple(self.gripper.gel_size_m),
-                               elastomer_thickness_m=self.gripper.elastomer_thickness_m,
-                               max_width_m=self.gripper.max_width_m,
-                               sensed_area_m=(gs.image_width * gs.mm_per_px * 1e-3, gs.image_height * gs.mm_per_px * 1e-3))
+        return GripperGeometry(
+            tcp_to_gel_centre_m=self.gripper.tcp_to_gel_centre_m,
+            gel_size_m=tuple(self.gripper.gel_size_m),
+            elastomer_thickness_m=self.gripper.elastomer_thickness_m,
+            max_width_m=self.gripper.max_width_m,
+            sensed_area_m=(gs.image_width * gs.mm_per_px * 1e-3, gs.image_height * gs.mm_per_px * 1e-3),
+        )
 
 
 # --------------------------------------------------------------------------------------
 # Validation helpers
 # --------------------------------------------------------------------------------------
+
 
 class SceneReader:
     """Checks one value of a scene file at a time, raising SceneError with the file and key."""
@@ -200,8 +207,15 @@ class SceneReader:
                 self.fail(f"{key}.{k}" if key else k, "missing required key", sorted(allowed))
         return value
 
-    def number(self, value: Any, key: str, lo: float | None = None, hi: float | None = None,
-               unit: str = "", lo_open: bool = False) -> float:
+    def number(
+        self,
+        value: Any,
+        key: str,
+        lo: float | None = None,
+        hi: float | None = None,
+        unit: str = "",
+        lo_open: bool = False,
+    ) -> float:
         rng = f"[{lo}, {hi}]{' ' + unit if unit else ''}"
         if lo_open:
             rng = f"({lo}, {hi}]{' ' + unit if unit else ''}"
@@ -223,11 +237,15 @@ class SceneReader:
             self.fail(key, f"{value} out of range", f"[{lo}, {hi}]")
         return int(value)
 
-    def vector(self, value: Any, key: str, n: int, lo: float | None = None, hi: float | None = None,
-               unit: str = "") -> np.ndarray:
+    def vector(
+        self, value: Any, key: str, n: int, lo: float | None = None, hi: float | None = None, unit: str = ""
+    ) -> np.ndarray:
         if not isinstance(value, (list, tuple)) or len(value) != n:
-            self.fail(key, f"expected a list of {n} numbers, got {value!r}",
-                      f"{n} numbers in [{lo}, {hi}]{' ' + unit if unit else ''}")
+            self.fail(
+                key,
+                f"expected a list of {n} numbers, got {value!r}",
+                f"{n} numbers in [{lo}, {hi}]{' ' + unit if unit else ''}",
+            )
         return np.array([self.number(v, f"{key}[{i}]", lo, hi, unit) for i, v in enumerate(value)])
 
     def string(self, value: Any, key: str, choices: tuple | None = None) -> str:
@@ -257,9 +275,17 @@ def look_at(position: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0), roll_r
 # load_scene
 # --------------------------------------------------------------------------------------
 
-_TOP_KEYS = {"name": "scene name", "seed": "default random seed", "workspace": "box the objects and the TCP stay in",
-             "table": "the table", "objects": "objects on the table", "cameras": "depth cameras",
-             "gripper": "gripper geometry", "gelsight": "GelSight sensors", "effects": "effects to simulate"}
+_TOP_KEYS = {
+    "name": "scene name",
+    "seed": "default random seed",
+    "workspace": "box the objects and the TCP stay in",
+    "table": "the table",
+    "objects": "objects on the table",
+    "cameras": "depth cameras",
+    "gripper": "gripper geometry",
+    "gelsight": "GelSight sensors",
+    "effects": "effects to simulate",
+}
 
 
 def resolve_path(path: str | os.PathLike) -> Path:
@@ -302,8 +328,7 @@ def parse_scene(data: Any, file: str = "<scene>") -> Scene:
     ws_min = r.vector(ws["min_m"], "workspace.min_m", 3, -5.0, 5.0, "m")
     ws_max = r.vector(ws["max_m"], "workspace.max_m", 3, -5.0, 5.0, "m")
     if np.any(ws_max <= ws_min):
-        r.fail("workspace.max_m", f"must exceed workspace.min_m {ws_min.tolist()} on every axis",
-               "max > min per axis")
+        r.fail("workspace.max_m", f"must exceed workspace.min_m {ws_min.tolist()} on every axis", "max > min per axis")
 
     table = TableSpec()
     if "table" in data:
@@ -321,9 +346,19 @@ def parse_scene(data: Any, file: str = "<scene>") -> Scene:
     effects = _parse_effects(r, data.get("effects", []) or [], [c.name for c in cameras])
     # An object's relief is simulated only when the scene lists micro_relief: without it the
     # geometry is the exact mesh.
-    return Scene(path=file, name=name, workspace_min_m=ws_min, workspace_max_m=ws_max, table=table,
-                 objects=objects, cameras=cameras, gripper=gripper, gelsight=gelsight,
-                 effects=effects, seed=seed)
+    return Scene(
+        path=file,
+        name=name,
+        workspace_min_m=ws_min,
+        workspace_max_m=ws_max,
+        table=table,
+        objects=objects,
+        cameras=cameras,
+        gripper=gripper,
+        gelsight=gelsight,
+        effects=effects,
+        seed=seed,
+    )
 
 
 _OBJECT_KEYS = {"name": "", "mesh": "", "primitive": "", "pose": "", "relief": ""}
@@ -348,8 +383,11 @@ def _parse_objects(r: SceneReader, value: Any) -> list[ObjectSpec]:
         if "mesh" in o:
             mesh = r.string(o["mesh"], f"{key}.mesh")
             if not resolve_path(mesh).is_file():
-                r.fail(f"{key}.mesh", f"mesh file {mesh!r} not found",
-                       "a mesh path relative to the repository, e.g. assets/ycb/MustardBottle.obj")
+                r.fail(
+                    f"{key}.mesh",
+                    f"mesh file {mesh!r} not found",
+                    "a mesh path relative to the repository, e.g. assets/ycb/MustardBottle.obj",
+                )
         else:
             p = r.mapping(o["primitive"], f"{key}.primitive", {"box": "", "cylinder": "", "sphere": ""})
             if len(p) != 1:
@@ -358,7 +396,9 @@ def _parse_objects(r: SceneReader, value: Any) -> list[ObjectSpec]:
             if kind == "box":
                 primitive = {"box": r.vector(p["box"], f"{key}.primitive.box", 3, 0.002, 1.0, "m").tolist()}
             elif kind == "cylinder":
-                primitive = {"cylinder": r.vector(p["cylinder"], f"{key}.primitive.cylinder", 2, 0.001, 1.0, "m").tolist()}
+                primitive = {
+                    "cylinder": r.vector(p["cylinder"], f"{key}.primitive.cylinder", 2, 0.001, 1.0, "m").tolist()
+                }
             else:
                 primitive = {"sphere": r.number(p["sphere"], f"{key}.primitive.sphere", 0.001, 1.0, "m")}
         pose = r.mapping(o["pose"], f"{key}.pose", _POSE_KEYS, required=("x_m", "y_m"))
@@ -427,8 +467,13 @@ def _parse_cameras(r: SceneReader, value: Any) -> list[CameraSpec]:
     return cams
 
 
-_GRIPPER_KEYS = {"tcp_to_gel_centre_m": "", "max_width_m": "", "gel_size_mm": "",
-                 "elastomer_thickness_mm": "", "gel_youngs_modulus_mpa": ""}
+_GRIPPER_KEYS = {
+    "tcp_to_gel_centre_m": "",
+    "max_width_m": "",
+    "gel_size_mm": "",
+    "elastomer_thickness_mm": "",
+    "gel_youngs_modulus_mpa": "",
+}
 _GELSIGHT_KEYS = {"image_height": "", "image_width": "", "mm_per_px": ""}
 
 
@@ -440,13 +485,17 @@ def _parse_gripper(r: SceneReader, g: Any, s: Any) -> tuple[GripperSpec, GelSigh
     if "max_width_m" in g:
         spec.max_width_m = r.number(g["max_width_m"], "gripper.max_width_m", 0.01, 0.3, "m")
     if "gel_size_mm" in g:
-        spec.gel_size_m = tuple((r.vector(g["gel_size_mm"], "gripper.gel_size_mm", 2, 2.0, 100.0, "mm") * 1e-3).tolist())
+        spec.gel_size_m = tuple(
+            (r.vector(g["gel_size_mm"], "gripper.gel_size_mm", 2, 2.0, 100.0, "mm") * 1e-3).tolist()
+        )
     if "elastomer_thickness_mm" in g:
-        spec.elastomer_thickness_m = r.number(g["elastomer_thickness_mm"], "gripper.elastomer_thickness_mm",
-                                              0.2, 10.0, "mm") * 1e-3
+        spec.elastomer_thickness_m = (
+            r.number(g["elastomer_thickness_mm"], "gripper.elastomer_thickness_mm", 0.2, 10.0, "mm") * 1e-3
+        )
     if "gel_youngs_modulus_mpa" in g:
-        spec.gel_youngs_modulus_mpa = r.number(g["gel_youngs_modulus_mpa"], "gripper.gel_youngs_modulus_mpa",
-                                               0.01, 10.0, "MPa")
+        spec.gel_youngs_modulus_mpa = r.number(
+            g["gel_youngs_modulus_mpa"], "gripper.gel_youngs_modulus_mpa", 0.01, 10.0, "MPa"
+        )
     s = r.mapping(s or {}, "gelsight", _GELSIGHT_KEYS)
     gs = GelSightSpec()
     if "image_height" in s:

@@ -3,6 +3,7 @@
 Used to check, before a joint move is sent, that the TCP it ends at lies in the workspace.
 The controller applies the TCP offset configured on the pendant; pass the same offset here.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,18 +32,19 @@ def joint_frames(q_rad: np.ndarray, model: str = "ur5e") -> list[np.ndarray]:
     frames = [np.eye(4)]
     for theta, d, a, alpha in zip(q_rad, dh["d"], dh["a"], dh["alpha"]):
         ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
-        link = np.array([
-            [ct, -st * ca, st * sa, a * ct],
-            [st, ct * ca, -ct * sa, a * st],
-            [0.0, sa, ca, d],
-            [0.0, 0.0, 0.0, 1.0],
-        ])
+        link = np.array(
+            [
+                [ct, -st * ca, st * sa, a * ct],
+                [st, ct * ca, -ct * sa, a * st],
+                [0.0, sa, ca, d],
+                [0.0, 0.0, 0.0, 1.0],
+            ]
+        )
         frames.append(frames[-1] @ link)
     return frames
 
 
-def tcp_pose(q_rad: np.ndarray, model: str = "ur5e",
-             tcp_offset: np.ndarray | None = None) -> np.ndarray:
+def tcp_pose(q_rad: np.ndarray, model: str = "ur5e", tcp_offset: np.ndarray | None = None) -> np.ndarray:
     """TCP pose [x, y, z, rx, ry, rz] (m, rad) in the base frame for joint angles ``q_rad``.
 
     ``tcp_offset`` is the TCP pose in the flange frame (as set on the pendant); none means

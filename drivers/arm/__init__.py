@@ -4,6 +4,7 @@ Every backend has ``connect()``, ``read() -> msgs.ArmState``, ``move_linear(tcp_
 speed_m_s, accel_m_s2)``, ``move_joints(q_rad, speed_rad_s, accel_rad_s2)``, ``stop()`` and
 ``disconnect()``, and raises the errors of ``drivers.arm.base``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -40,8 +41,7 @@ def build_config(config_class: type, params: dict[str, Any]) -> Any:
     fields = {field.name: field for field in dataclasses.fields(config_class)}
     unknown = sorted(set(params) - set(fields))
     if unknown:
-        raise ValueError(f"unknown parameter(s) {unknown} for {config_class.__name__}; "
-                         f"allowed: {sorted(fields)}")
+        raise ValueError(f"unknown parameter(s) {unknown} for {config_class.__name__}; allowed: {sorted(fields)}")
     hints = typing.get_type_hints(config_class)
     values = {}
     for key, value in params.items():

@@ -4,6 +4,7 @@ Poses are [x, y, z, rx, ry, rz] in the robot base frame: metres, and a rotation 
 radians (the Universal Robots convention). The checks here run before a backend sends
 anything to the robot, so a refused command never reaches the controller.
 """
+
 from __future__ import annotations
 
 import dataclasses

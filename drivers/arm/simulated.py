@@ -6,6 +6,7 @@
 always advances by the full motion time. The reported TCP pose is where the arm really
 ended (with the repeatability error when the scene calls for it), in ``world``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -62,15 +63,28 @@ class SimulatedArm:
         self.scene = None
         if config.scene:
             self.scene = resolve_effects(load_scene(config.scene))
-        ws_min = np.array(config.workspace_min_m if config.workspace_min_m is not None else
-                          (self.scene.workspace_min_m if self.scene else [-0.4, -0.3, 0.0]), float)
-        ws_max = np.array(config.workspace_max_m if config.workspace_max_m is not None else
-                          (self.scene.workspace_max_m if self.scene else [0.4, 0.3, 0.6]), float)
+        ws_min = np.array(
+            config.workspace_min_m
+            if config.workspace_min_m is not None
+            else (self.scene.workspace_min_m if self.scene else [-0.4, -0.3, 0.0]),
+            float,
+        )
+        ws_max = np.array(
+            config.workspace_max_m
+            if config.workspace_max_m is not None
+            else (self.scene.workspace_max_m if self.scene else [0.4, 0.3, 0.6]),
+            float,
+        )
         self.workspace = (ws_min, ws_max)
-        self.limits = MotionLimits(config.max_tcp_speed_m_s, config.max_tcp_accel_m_s2,
-                                   config.max_joint_speed_rad_s, config.max_joint_accel_rad_s2)
-        self.kin = ArmKinematics(config.model, pose_matrix(np.asarray(config.base_pose_world, float)),
-                                 np.asarray(config.tcp_offset, float))
+        self.limits = MotionLimits(
+            config.max_tcp_speed_m_s,
+            config.max_tcp_accel_m_s2,
+            config.max_joint_speed_rad_s,
+            config.max_joint_accel_rad_s2,
+        )
+        self.kin = ArmKinematics(
+            config.model, pose_matrix(np.asarray(config.base_pose_world, float)), np.asarray(config.tcp_offset, float)
+        )
         seed = config.seed if config.seed is not None else (self.scene.seed if self.scene else 0)
         eff = self.scene.effect("arm_repeatability") if self.scene else None
         self.repeatability = Repeatability(eff.params, seed) if eff else None
@@ -87,7 +101,6 @@ class SimulatedArm:
 
     # ------------------------------------------------------------------ lifecycle
     def connect(self) -> None:
-
         if self.config.home_tcp_pose is not None:
             home = as_six_vector(self.config.home_tcp_pose, "home_tcp_pose")
         else:
@@ -134,8 +147,9 @@ class SimulatedArm:
             qd = (q2 - q) / dt
         self._seq += 1
         header = Header(stamp_ns=time.time_ns(), seq=self._seq, frame_id="world")
-        return ArmState(header=header, tcp_pose=pose, joint_positions=q, joint_velocities=qd, moving=moving,
-                        safety_status="normal")
+        return ArmState(
+            header=header, tcp_pose=pose, joint_positions=q, joint_velocities=qd, moving=moving, safety_status="normal"
+        )
 
     # ------------------------------------------------------------------ commands
     def _check_target(self, pose: np.ndarray) -> None:

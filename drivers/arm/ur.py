@@ -19,6 +19,7 @@ Known limit of ur_rtde 1.6.5: if the connection drops during the few millisecond
 the client hands a command over (it waits for the script's "done" flag), the client keeps
 waiting on its stale state for up to its 300 s execution time-out, holding the GIL.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -51,13 +52,26 @@ from workcell.ur_kinematics import DH_PARAMETERS, tcp_pose
 # What the receive interface subscribes to: only what read() needs, which keeps the RTDE
 # stream small (the controller drops clients that do not drain it).
 STATE_VARIABLES = [
-    "timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "robot_mode", "safety_status_bits",
+    "timestamp",
+    "actual_q",
+    "actual_qd",
+    "actual_TCP_pose",
+    "robot_mode",
+    "safety_status_bits",
     "target_speed_fraction",
 ]
 ROBOT_MODE_RUNNING = 7
 ROBOT_MODE_NAMES = {
-    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
+    -1: "NO_CONTROLLER",
+    0: "DISCONNECTED",
+    1: "CONFIRM_SAFETY",
+    2: "BOOTING",
+    3: "POWER_OFF",
+    4: "POWER_ON",
+    5: "IDLE",
+    6: "BACKDRIVE",
+    7: "RUNNING",
+    8: "UPDATING_FIRMWARE",
 }
 UR_JOINT_RANGE_RAD = 2.0 * np.pi
 MOVING_SPEED_RAD_S = 1e-3
@@ -127,7 +141,8 @@ class URArm:
             raise
         try:
             self._control = rtde_control.RTDEControlInterface(
-                ip, frequency, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT)
+                ip, frequency, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+            )
         except RuntimeError as error:
             self._receive.disconnect()
             self._receive = None
@@ -141,19 +156,23 @@ class URArm:
             name = ROBOT_MODE_NAMES.get(robot_mode, str(robot_mode))
             raise ArmConnectionError(
                 f"UR at {self.config.robot_ip} is in robot mode {name}",
-                "power it on and release the brakes (pendant, or dashboard 'power on' then 'brake release')")
+                "power it on and release the brakes (pendant, or dashboard 'power on' then 'brake release')",
+            )
         dashboard = dashboard_client.DashboardClient(self.config.robot_ip)
         try:
             dashboard.connect()
             remote = dashboard.isInRemoteControl()
         except RuntimeError as error:
-            raise ArmConnectionError(f"cannot reach the UR dashboard server at {self.config.robot_ip}: "
-                                     f"{error}") from error
+            raise ArmConnectionError(
+                f"cannot reach the UR dashboard server at {self.config.robot_ip}: {error}"
+            ) from error
         finally:
             dashboard.disconnect()
         if not remote:
-            raise ArmConnectionError(f"UR at {self.config.robot_ip} is in local control",
-                                     "switch the pendant to remote control (top right of PolyScope)")
+            raise ArmConnectionError(
+                f"UR at {self.config.robot_ip} is in local control",
+                "switch the pendant to remote control (top right of PolyScope)",
+            )
 
     def _start_watchdog(self) -> None:
         """Arm the script's watchdog and kick it from a thread of this process: if the
@@ -186,8 +205,10 @@ class URArm:
                 uploaded = False
             time.sleep(POLL_PERIOD_S)
         if not uploaded:
-            raise ArmConnectionError(f"{description}: ur_rtde's control script did not start again",
-                                     "check that the pendant is in remote control and no popup is open")
+            raise ArmConnectionError(
+                f"{description}: ur_rtde's control script did not start again",
+                "check that the pendant is in remote control and no popup is open",
+            )
         self._start_watchdog()
 
     def _stop_watchdog(self) -> None:
@@ -239,13 +260,17 @@ class URArm:
         travel = max(float(np.linalg.norm(target[:3] - start[:3])), _rotation_between(start, target))
 
         def arrived(state: ArmState) -> bool:
-            return (float(np.linalg.norm(state.tcp_pose[:3] - target[:3])) <= self.config.position_tolerance_m
-                    and _rotation_between(state.tcp_pose, target) <= self.config.orientation_tolerance_rad)
+            return (
+                float(np.linalg.norm(state.tcp_pose[:3] - target[:3])) <= self.config.position_tolerance_m
+                and _rotation_between(state.tcp_pose, target) <= self.config.orientation_tolerance_rad
+            )
 
         self._execute(
             f"moveL to {np.round(target, 4).tolist()}",
             send=lambda: self._control.moveL(target.tolist(), speed_m_s, accel_m_s2, True),
-            arrived=arrived, expected_s=travel / speed_m_s + speed_m_s / accel_m_s2)
+            arrived=arrived,
+            expected_s=travel / speed_m_s + speed_m_s / accel_m_s2,
+        )
 
     def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
         """Move the joints to ``q_rad`` (rad) at ``speed_rad_s`` (rad/s) and
@@ -268,7 +293,9 @@ class URArm:
         self._execute(
             f"moveJ to {np.round(target, 4).tolist()}",
             send=lambda: self._control.moveJ(target.tolist(), speed_rad_s, accel_rad_s2, True),
-            arrived=arrived, expected_s=travel / speed_rad_s + speed_rad_s / accel_rad_s2)
+            arrived=arrived,
+            expected_s=travel / speed_rad_s + speed_rad_s / accel_rad_s2,
+        )
 
     def stop(self) -> None:
         """Decelerate the arm to rest and return once the controller reports it stopped. A
@@ -297,8 +324,9 @@ class URArm:
         if receive is not None:
             receive.disconnect()
 
-    def _execute(self, description: str, send: Callable[[], bool],
-                 arrived: Callable[[ArmState], bool], expected_s: float) -> None:
+    def _execute(
+        self, description: str, send: Callable[[], bool], arrived: Callable[[ArmState], bool], expected_s: float
+    ) -> None:
         if self._control is None:
             raise ArmConnectionError(f"{description}: connect() first")
         if not self._move_lock.acquire(blocking=False):
@@ -326,8 +354,9 @@ class URArm:
                     # a few packages after the control stream, and it is the better error.
                     time.sleep(SAFETY_REPORT_WAIT_S)
                     self._raise_if_unsafe(self.read(), description)
-                    raise MotionAbortedError(f"{description}: ur_rtde's control script stopped "
-                                             "running (program stopped on the pendant?)")
+                    raise MotionAbortedError(
+                        f"{description}: ur_rtde's control script stopped running (program stopped on the pendant?)"
+                    )
                 status = self._control.getAsyncOperationProgressEx()
                 if status.operationId() != operation_before and not status.isAsyncOperationRunning():
                     break
@@ -336,9 +365,11 @@ class URArm:
                 last = now
                 if elapsed_s > allowed_s:
                     self.stop()
-                    raise MotionAbortedError(f"{description}: not finished after {expected_s:.1f} s "
-                                             f"+ {self.config.move_timeout_margin_s} s at the speed "
-                                             "slider's pace; stopped")
+                    raise MotionAbortedError(
+                        f"{description}: not finished after {expected_s:.1f} s "
+                        f"+ {self.config.move_timeout_margin_s} s at the speed "
+                        "slider's pace; stopped"
+                    )
                 time.sleep(POLL_PERIOD_S)
             final = self.read()
             if not arrived(final):
@@ -346,8 +377,7 @@ class URArm:
                 # after the move's end (as above): it is the better error.
                 time.sleep(SAFETY_REPORT_WAIT_S)
                 self._raise_if_unsafe(self.read(), description)
-                raise MotionAbortedError(f"{description}: stopped short at TCP "
-                                         f"{np.round(final.tcp_pose, 4).tolist()}")
+                raise MotionAbortedError(f"{description}: stopped short at TCP {np.round(final.tcp_pose, 4).tolist()}")
         finally:
             self._move_lock.release()
 
@@ -356,11 +386,12 @@ class URArm:
         if state.safety_status == "disconnected":
             raise ConnectionLostError(f"{action}: lost the RTDE connection to the UR controller")
         if state.safety_status == "protective_stop":
-            raise ProtectiveStopError(f"{action}: the UR controller is in a protective stop",
-                                      "inspect the cause, then unlock it on the pendant")
+            raise ProtectiveStopError(
+                f"{action}: the UR controller is in a protective stop",
+                "inspect the cause, then unlock it on the pendant",
+            )
         if state.safety_status == "emergency_stop":
-            raise EmergencyStopError(f"{action}: the UR emergency stop is active",
-                                     "release it and restart the arm")
+            raise EmergencyStopError(f"{action}: the UR emergency stop is active", "release it and restart the arm")
 
 
 def _rotation_between(pose_a: np.ndarray, pose_b: np.ndarray) -> float:

@@ -37,6 +37,7 @@ The client's compiled code holds the GIL, so the fake runs in its own (spawned) 
 tests drive it through :class:`FakeURController`. Every fake gets its own 127.x.y.z
 address because the client's ports are fixed.
 """
+
 from __future__ import annotations
 
 import collections
@@ -79,45 +80,93 @@ TEXT_MESSAGE_EXCEPTION = 0
 
 # Wire format of each RTDE data type (big-endian, RTDE guide).
 TYPE_FORMATS = {
-    "BOOL": "?", "UINT8": "B", "UINT32": "I", "UINT64": "Q", "INT32": "i", "DOUBLE": "d",
-    "VECTOR3D": "3d", "VECTOR6D": "6d", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I",
+    "BOOL": "?",
+    "UINT8": "B",
+    "UINT32": "I",
+    "UINT64": "Q",
+    "INT32": "i",
+    "DOUBLE": "d",
+    "VECTOR3D": "3d",
+    "VECTOR6D": "6d",
+    "VECTOR6INT32": "6i",
+    "VECTOR6UINT32": "6I",
 }
 
 # Types of the RTDE variables with fixed names (RTDE guide, PolyScope 5.11).
 VARIABLE_TYPES = {
-    "timestamp": "DOUBLE", "target_q": "VECTOR6D", "target_qd": "VECTOR6D",
-    "target_qdd": "VECTOR6D", "target_current": "VECTOR6D", "target_moment": "VECTOR6D",
-    "actual_q": "VECTOR6D", "actual_qd": "VECTOR6D", "actual_current": "VECTOR6D",
-    "joint_control_output": "VECTOR6D", "actual_TCP_pose": "VECTOR6D",
-    "actual_TCP_speed": "VECTOR6D", "actual_TCP_force": "VECTOR6D",
-    "target_TCP_pose": "VECTOR6D", "target_TCP_speed": "VECTOR6D",
-    "actual_digital_input_bits": "UINT64", "joint_temperatures": "VECTOR6D",
-    "actual_execution_time": "DOUBLE", "robot_mode": "INT32", "joint_mode": "VECTOR6INT32",
-    "safety_mode": "INT32", "safety_status": "INT32", "actual_tool_accelerometer": "VECTOR3D",
-    "speed_scaling": "DOUBLE", "target_speed_fraction": "DOUBLE", "actual_momentum": "DOUBLE",
-    "actual_main_voltage": "DOUBLE", "actual_robot_voltage": "DOUBLE",
-    "actual_robot_current": "DOUBLE", "actual_joint_voltage": "VECTOR6D",
-    "actual_digital_output_bits": "UINT64", "runtime_state": "UINT32",
-    "elbow_position": "VECTOR3D", "elbow_velocity": "VECTOR3D",
-    "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
-    "analog_io_types": "UINT32", "standard_analog_input0": "DOUBLE",
-    "standard_analog_input1": "DOUBLE", "standard_analog_output0": "DOUBLE",
-    "standard_analog_output1": "DOUBLE", "io_current": "DOUBLE", "tool_mode": "UINT32",
-    "tool_analog_input_types": "UINT32", "tool_analog_input0": "DOUBLE",
-    "tool_analog_input1": "DOUBLE", "tool_output_voltage": "INT32",
-    "tool_output_current": "DOUBLE", "tool_temperature": "DOUBLE",
-    "tcp_force_scalar": "DOUBLE", "output_bit_registers0_to_31": "UINT32",
-    "output_bit_registers32_to_63": "UINT32", "ft_raw_wrench": "VECTOR6D",
-    "payload": "DOUBLE", "payload_cog": "VECTOR3D", "payload_inertia": "VECTOR6D",
-    "script_control_line": "UINT32", "actual_current_as_torque": "VECTOR6D",
+    "timestamp": "DOUBLE",
+    "target_q": "VECTOR6D",
+    "target_qd": "VECTOR6D",
+    "target_qdd": "VECTOR6D",
+    "target_current": "VECTOR6D",
+    "target_moment": "VECTOR6D",
+    "actual_q": "VECTOR6D",
+    "actual_qd": "VECTOR6D",
+    "actual_current": "VECTOR6D",
+    "joint_control_output": "VECTOR6D",
+    "actual_TCP_pose": "VECTOR6D",
+    "actual_TCP_speed": "VECTOR6D",
+    "actual_TCP_force": "VECTOR6D",
+    "target_TCP_pose": "VECTOR6D",
+    "target_TCP_speed": "VECTOR6D",
+    "actual_digital_input_bits": "UINT64",
+    "joint_temperatures": "VECTOR6D",
+    "actual_execution_time": "DOUBLE",
+    "robot_mode": "INT32",
+    "joint_mode": "VECTOR6INT32",
+    "safety_mode": "INT32",
+    "safety_status": "INT32",
+    "actual_tool_accelerometer": "VECTOR3D",
+    "speed_scaling": "DOUBLE",
+    "target_speed_fraction": "DOUBLE",
+    "actual_momentum": "DOUBLE",
+    "actual_main_voltage": "DOUBLE",
+    "actual_robot_voltage": "DOUBLE",
+    "actual_robot_current": "DOUBLE",
+    "actual_joint_voltage": "VECTOR6D",
+    "actual_digital_output_bits": "UINT64",
+    "runtime_state": "UINT32",
+    "elbow_position": "VECTOR3D",
+    "elbow_velocity": "VECTOR3D",
+    "robot_status_bits": "UINT32",
+    "safety_status_bits": "UINT32",
+    "analog_io_types": "UINT32",
+    "standard_analog_input0": "DOUBLE",
+    "standard_analog_input1": "DOUBLE",
+    "standard_analog_output0": "DOUBLE",
+    "standard_analog_output1": "DOUBLE",
+    "io_current": "DOUBLE",
+    "tool_mode": "UINT32",
+    "tool_analog_input_types": "UINT32",
+    "tool_analog_input0": "DOUBLE",
+    "tool_analog_input1": "DOUBLE",
+    "tool_output_voltage": "INT32",
+    "tool_output_current": "DOUBLE",
+    "tool_temperature": "DOUBLE",
+    "tcp_force_scalar": "DOUBLE",
+    "output_bit_registers0_to_31": "UINT32",
+    "output_bit_registers32_to_63": "UINT32",
+    "ft_raw_wrench": "VECTOR6D",
+    "payload": "DOUBLE",
+    "payload_cog": "VECTOR3D",
+    "payload_inertia": "VECTOR6D",
+    "script_control_line": "UINT32",
+    "actual_current_as_torque": "VECTOR6D",
     # Inputs a client may write.
-    "speed_slider_mask": "UINT32", "speed_slider_fraction": "DOUBLE",
-    "standard_digital_output_mask": "UINT8", "standard_digital_output": "UINT8",
-    "configurable_digital_output_mask": "UINT8", "configurable_digital_output": "UINT8",
-    "tool_digital_output_mask": "UINT8", "tool_digital_output": "UINT8",
-    "standard_analog_output_mask": "UINT8", "standard_analog_output_type": "UINT8",
-    "standard_analog_output_0": "DOUBLE", "standard_analog_output_1": "DOUBLE",
-    "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
+    "speed_slider_mask": "UINT32",
+    "speed_slider_fraction": "DOUBLE",
+    "standard_digital_output_mask": "UINT8",
+    "standard_digital_output": "UINT8",
+    "configurable_digital_output_mask": "UINT8",
+    "configurable_digital_output": "UINT8",
+    "tool_digital_output_mask": "UINT8",
+    "tool_digital_output": "UINT8",
+    "standard_analog_output_mask": "UINT8",
+    "standard_analog_output_type": "UINT8",
+    "standard_analog_output_0": "DOUBLE",
+    "standard_analog_output_1": "DOUBLE",
+    "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32",
     "external_force_torque": "VECTOR6D",
 }
 REGISTER_NAME = re.compile(r"(input|output)_(int|double|bit)_register_(\d+)$")
@@ -197,8 +246,9 @@ def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _small_rotation_vector(rotation: np.ndarray) -> np.ndarray:
     """Rotation vector of a rotation matrix close to identity (error terms, per-tick turns)."""
-    return 0.5 * np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
-                           rotation[1, 0] - rotation[0, 1]])
+    return 0.5 * np.array(
+        [rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]]
+    )
 
 
 @dataclasses.dataclass
@@ -220,14 +270,14 @@ class _Motion:
     stop_decel: float | None = None  # set by stopL/stopJ
 
     @staticmethod
-    def joint(q_start: np.ndarray, q_target: np.ndarray, speed: float, accel: float,
-              asynchronous: bool) -> "_Motion":
+    def joint(q_start: np.ndarray, q_target: np.ndarray, speed: float, accel: float, asynchronous: bool) -> "_Motion":
         length = float(np.max(np.abs(q_target - q_start)))
         return _Motion("joint", q_start, q_target, length, speed, accel, asynchronous)
 
     @staticmethod
-    def linear(tcp_start: np.ndarray, pose_target: np.ndarray, speed: float, accel: float,
-               asynchronous: bool) -> "_Motion":
+    def linear(
+        tcp_start: np.ndarray, pose_target: np.ndarray, speed: float, accel: float, asynchronous: bool
+    ) -> "_Motion":
         target = pose_to_matrix(pose_target)
         turn = Rotation.from_matrix(tcp_start[:3, :3].T @ target[:3, :3]).as_rotvec()
         turn_angle = float(np.linalg.norm(turn))
@@ -248,8 +298,11 @@ class _Motion:
         if self.stop_decel is not None:
             self.v = max(0.0, self.v - self.stop_decel * dt)
         else:
-            self.v = min(self.speed, self.v + self.accel * dt,
-                         float(np.sqrt(2.0 * self.accel * max(remaining, 0.0))) + self.accel * dt)
+            self.v = min(
+                self.speed,
+                self.v + self.accel * dt,
+                float(np.sqrt(2.0 * self.accel * max(remaining, 0.0))) + self.accel * dt,
+            )
         self.s = min(self.length, self.s + self.v * dt)
 
     def setpoint(self) -> np.ndarray:
@@ -260,8 +313,7 @@ class _Motion:
             return self.start + fraction * (self.target - self.start)
         transform = np.eye(4)
         transform[:3, 3] = self.start[:3, 3] + fraction * (self.target[:3, 3] - self.start[:3, 3])
-        transform[:3, :3] = self.start[:3, :3] @ _axis_angle_matrix(
-            self.turn_axis, fraction * self.turn_angle)
+        transform[:3, :3] = self.start[:3, :3] @ _axis_angle_matrix(self.turn_axis, fraction * self.turn_angle)
         return transform
 
 
@@ -282,10 +334,12 @@ class _KinematicArm:
         self.tcp_transform = joint_frames(self.q)[-1]
         self.tcp = _pose(self.tcp_transform)
         self.qd = (self.q - previous_q) / dt
-        self.tcp_speed = np.concatenate([
-            (self.tcp_transform[:3, 3] - previous[:3, 3]) / dt,
-            _small_rotation_vector(self.tcp_transform[:3, :3] @ previous[:3, :3].T) / dt,
-        ])
+        self.tcp_speed = np.concatenate(
+            [
+                (self.tcp_transform[:3, 3] - previous[:3, 3]) / dt,
+                _small_rotation_vector(self.tcp_transform[:3, :3] @ previous[:3, :3].T) / dt,
+            ]
+        )
 
     def track(self, target: np.ndarray, iterations: int) -> float:
         """Move the joints toward a TCP transform by damped least squares steps; return the
@@ -294,10 +348,12 @@ class _KinematicArm:
         for _ in range(iterations):
             frames = joint_frames(self.q)
             tcp = frames[-1]
-            error = np.concatenate([
-                target[:3, 3] - tcp[:3, 3],
-                _small_rotation_vector(target[:3, :3] @ tcp[:3, :3].T),
-            ])
+            error = np.concatenate(
+                [
+                    target[:3, 3] - tcp[:3, 3],
+                    _small_rotation_vector(target[:3, :3] @ tcp[:3, :3].T),
+                ]
+            )
             position_error = float(np.linalg.norm(error[:3]))
             if np.linalg.norm(error) < 1e-13:
                 break
@@ -356,16 +412,22 @@ class _Controller:
         program_running = self.script is not None and self.safety == "normal"
         return {
             "timestamp": self.ticks * self.dt,
-            "actual_q": q, "target_q": q, "actual_qd": qd, "target_qd": qd,
-            "actual_TCP_pose": tcp, "target_TCP_pose": tcp,
-            "actual_TCP_speed": tcp_speed, "target_TCP_speed": tcp_speed,
+            "actual_q": q,
+            "target_q": q,
+            "actual_qd": qd,
+            "target_qd": qd,
+            "actual_TCP_pose": tcp,
+            "target_TCP_pose": tcp,
+            "actual_TCP_speed": tcp_speed,
+            "target_TCP_speed": tcp_speed,
             "robot_mode": self.robot_mode,
-            "safety_mode": SAFETY_MODES[self.safety], "safety_status": SAFETY_MODES[self.safety],
+            "safety_mode": SAFETY_MODES[self.safety],
+            "safety_status": SAFETY_MODES[self.safety],
             "safety_status_bits": SAFETY_STATUS_BITS[self.safety],
-            "robot_status_bits": ROBOT_STATUS_POWER_ON
-            | (ROBOT_STATUS_PROGRAM_RUNNING if program_running else 0),
+            "robot_status_bits": ROBOT_STATUS_POWER_ON | (ROBOT_STATUS_PROGRAM_RUNNING if program_running else 0),
             "runtime_state": self.runtime_state(),
-            "speed_scaling": self.speed_fraction, "target_speed_fraction": self.speed_fraction,
+            "speed_scaling": self.speed_fraction,
+            "target_speed_fraction": self.speed_fraction,
         }
 
     def output_value(self, name: str) -> Any:
@@ -443,8 +505,7 @@ class _Controller:
     def _process_command(self, command: int) -> None:
         script = self.script
         assert script is not None
-        doubles = [float(self.registers.get(f"input_double_register_{script.offset + i}", 0.0))
-                   for i in range(8)]
+        doubles = [float(self.registers.get(f"input_double_register_{script.offset + i}", 0.0)) for i in range(8)]
         asynchronous = int(self.registers.get(f"input_int_register_{script.offset + 1}", 0)) == 1
         if command in (CMD_MOVEJ, CMD_MOVEL):
             self._stop_async_motion()
@@ -592,11 +653,15 @@ class _Controller:
             offset = self.script.offset if self.script is not None else 0
             return {
                 "command_register": self.registers.get(f"input_int_register_{offset}", CMD_NONE),
-                "q": self.arm.q.tolist(), "qd": self.arm.qd.tolist(), "tcp_pose": self.arm.tcp.tolist(),
-                "moving": self.motion is not None, "safety": self.safety,
+                "q": self.arm.q.tolist(),
+                "qd": self.arm.qd.tolist(),
+                "tcp_pose": self.arm.tcp.tolist(),
+                "moving": self.motion is not None,
+                "safety": self.safety,
                 "program_running": self.script is not None,
                 "commands_received": list(self.commands_received),
-                "events": list(self.events), "controller_time_s": self.ticks * self.dt,
+                "events": list(self.events),
+                "controller_time_s": self.ticks * self.dt,
             }
 
     def note_command(self, name: str, value: Any, received_ns: int) -> None:
@@ -635,7 +700,7 @@ class _RTDESession:
                 size, package_type = RTDE_HEADER.unpack_from(buffer)
                 if size < RTDE_HEADER.size or len(buffer) < size:
                     break
-                payload, buffer = buffer[RTDE_HEADER.size:size], buffer[size:]
+                payload, buffer = buffer[RTDE_HEADER.size : size], buffer[size:]
                 self._handle(package_type, payload, time.monotonic_ns())
         self.streaming = False
         with self.controller.lock:
@@ -671,8 +736,7 @@ class _RTDESession:
             self.output_recipe_id = 1
             self.ticks_per_package = max(1, round(self.controller.state_rate_hz / frequency))
         recipe_id = self.output_recipe_id if valid else 0
-        self._send(RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS,
-                   struct.pack(">B", recipe_id) + ",".join(types).encode())
+        self._send(RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">B", recipe_id) + ",".join(types).encode())
 
     def _setup_inputs(self, names: list[str]) -> None:
         types = [variable_type(name) or "NOT_FOUND" for name in names]
@@ -680,15 +744,14 @@ class _RTDESession:
         if "NOT_FOUND" not in types:
             recipe_id = len(self.input_recipes) + 1
             self.input_recipes[recipe_id] = (names, recipe_struct(types))
-        self._send(RTDE_CONTROL_PACKAGE_SETUP_INPUTS,
-                   struct.pack(">B", recipe_id) + ",".join(types).encode())
+        self._send(RTDE_CONTROL_PACKAGE_SETUP_INPUTS, struct.pack(">B", recipe_id) + ",".join(types).encode())
 
     def _apply_inputs(self, payload: bytes, received_ns: int) -> None:
         recipe = self.input_recipes.get(payload[0])
         if recipe is None:
             return
         names, layout = recipe
-        flat = list(layout.unpack(payload[1:1 + layout.size]))
+        flat = list(layout.unpack(payload[1 : 1 + layout.size]))
         controller = self.controller
         with controller.lock:
             for name in names:
@@ -713,16 +776,19 @@ class _RTDESession:
 
     def send_text_message(self, message: str, source: str, level: int) -> None:
         encoded_message, encoded_source = message.encode()[:255], source.encode()[:255]
-        self._send(RTDE_TEXT_MESSAGE,
-                   struct.pack(">B", len(encoded_message)) + encoded_message
-                   + struct.pack(">B", len(encoded_source)) + encoded_source
-                   + struct.pack(">B", level))
+        self._send(
+            RTDE_TEXT_MESSAGE,
+            struct.pack(">B", len(encoded_message))
+            + encoded_message
+            + struct.pack(">B", len(encoded_source))
+            + encoded_source
+            + struct.pack(">B", level),
+        )
 
     def _send(self, package_type: int, payload: bytes) -> None:
         with self.send_lock:
             try:
-                self.sock.sendall(RTDE_HEADER.pack(RTDE_HEADER.size + len(payload), package_type)
-                                  + payload)
+                self.sock.sendall(RTDE_HEADER.pack(RTDE_HEADER.size + len(payload), package_type) + payload)
             except OSError:
                 self.streaming = False
 
@@ -757,10 +823,12 @@ def _dashboard_answer(controller: _Controller, command: str) -> str:
     with controller.lock:
         controller.events.append(f"dashboard: {command}")
         running = controller.script is not None
-        modes = {ROBOT_MODE_POWER_OFF: "POWER_OFF", ROBOT_MODE_IDLE: "IDLE",
-                 ROBOT_MODE_RUNNING: "RUNNING"}
-        safety_names = {"normal": "NORMAL", "protective_stop": "PROTECTIVE_STOP",
-                        "emergency_stop": "ROBOT_EMERGENCY_STOP"}
+        modes = {ROBOT_MODE_POWER_OFF: "POWER_OFF", ROBOT_MODE_IDLE: "IDLE", ROBOT_MODE_RUNNING: "RUNNING"}
+        safety_names = {
+            "normal": "NORMAL",
+            "protective_stop": "PROTECTIVE_STOP",
+            "emergency_stop": "ROBOT_EMERGENCY_STOP",
+        }
         if command == "PolyscopeVersion":
             return POLYSCOPE_VERSION_LINE
         if command == "get serial number":
@@ -826,15 +894,14 @@ def _serve_script(controller: _Controller, sock: socket.socket) -> None:
                 if match is None:
                     break
                 controller.start_program(match.group(0))
-                program = program[match.end():]
+                program = program[match.end() :]
     except OSError:
         pass
     finally:
         sock.close()
 
 
-def _accept_loop(controller: _Controller, listener: socket.socket,
-                 serve: Callable[[socket.socket], None]) -> None:
+def _accept_loop(controller: _Controller, listener: socket.socket, serve: Callable[[socket.socket], None]) -> None:
     while controller.running:
         try:
             sock, _ = listener.accept()
@@ -864,18 +931,19 @@ def _listen(host: str, port: int) -> socket.socket:
     return listener
 
 
-def _controller_process(pipe: multiprocessing.connection.Connection, host: str,
-                        state_rate_hz: float, initial_q: Sequence[float]) -> None:
+def _controller_process(
+    pipe: multiprocessing.connection.Connection, host: str, state_rate_hz: float, initial_q: Sequence[float]
+) -> None:
     """Entry point of the fake's process: serve the ports, tick, and obey the test's pipe."""
     controller = _Controller(host, state_rate_hz, initial_q)
     try:
-        servers = {RTDE_PORT: _serve_rtde, DASHBOARD_PORT: _serve_dashboard,
-                   SCRIPT_PORT: _serve_script}
+        servers = {RTDE_PORT: _serve_rtde, DASHBOARD_PORT: _serve_dashboard, SCRIPT_PORT: _serve_script}
         for port, serve in servers.items():
             listener = _listen(host, port)
             controller.listeners.append(listener)
-            threading.Thread(target=_accept_loop, daemon=True,
-                             args=(controller, listener, lambda s, f=serve: f(controller, s))).start()
+            threading.Thread(
+                target=_accept_loop, daemon=True, args=(controller, listener, lambda s, f=serve: f(controller, s))
+            ).start()
     except OSError as error:
         pipe.send(("error", f"cannot listen on {host}: {error}"))
         return
@@ -923,8 +991,7 @@ class FakeURController:
     Use as a context manager; ``start()`` raises OSError if the address is taken.
     """
 
-    def __init__(self, host: str, state_rate_hz: float = 500.0,
-                 initial_q: Sequence[float] = HOME_Q) -> None:
+    def __init__(self, host: str, state_rate_hz: float = 500.0, initial_q: Sequence[float] = HOME_Q) -> None:
         self.host = host
         self.state_rate_hz = state_rate_hz
         self.initial_q = tuple(float(v) for v in initial_q)
@@ -935,8 +1002,11 @@ class FakeURController:
         context = multiprocessing.get_context("spawn")
         self._pipe, child_pipe = context.Pipe()
         self._process = context.Process(
-            target=_controller_process, daemon=True, name=f"fake-ur-{self.host}",
-            args=(child_pipe, self.host, self.state_rate_hz, self.initial_q))
+            target=_controller_process,
+            daemon=True,
+            name=f"fake-ur-{self.host}",
+            args=(child_pipe, self.host, self.state_rate_hz, self.initial_q),
+        )
         self._process.start()
         child_pipe.close()
         if not self._pipe.poll(timeout_s):

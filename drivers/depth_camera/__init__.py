@@ -1,4 +1,5 @@
 """Depth camera backends: Kinect v2 through OpenNI2 or libfreenect2, and the ray-cast scene."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -7,12 +8,9 @@ from drivers import BackendEntry, build_backend
 from drivers.depth_camera.base import DepthCameraError
 
 BACKENDS = {
-    "openni2": BackendEntry("drivers.depth_camera.openni2", "OpenNI2DepthCamera",
-                            "OpenNI2DepthCameraConfig"),
-    "freenect2": BackendEntry("drivers.depth_camera.freenect2", "Freenect2DepthCamera",
-                              "Freenect2DepthCameraConfig"),
-    "simulated": BackendEntry("drivers.depth_camera.simulated", "SimulatedDepthCamera",
-                              "SimulatedDepthCameraConfig"),
+    "openni2": BackendEntry("drivers.depth_camera.openni2", "OpenNI2DepthCamera", "OpenNI2DepthCameraConfig"),
+    "freenect2": BackendEntry("drivers.depth_camera.freenect2", "Freenect2DepthCamera", "Freenect2DepthCameraConfig"),
+    "simulated": BackendEntry("drivers.depth_camera.simulated", "SimulatedDepthCamera", "SimulatedDepthCameraConfig"),
 }
 
 __all__ = ["BACKENDS", "DepthCameraError", "make_backend"]

@@ -9,6 +9,7 @@ world frame (4x4, metres), as an extrinsic calibration of the lab produces them:
                  distortion: [0.09, -0.27, 0.0, 0.0, 0.09]}   # k1 k2 p1 p2 k3
     camera_to_world: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -35,20 +36,30 @@ def load_calibration(path: str) -> Calibration:
     """Read and check a calibration file; DepthCameraError naming the file and the problem."""
     file = Path(path)
     if not file.is_file():
-        raise DepthCameraError(f"calibration file {path} does not exist; copy one from "
-                               "launch/calibration/ and fill in your camera's values")
+        raise DepthCameraError(
+            f"calibration file {path} does not exist; copy one from "
+            "launch/calibration/ and fill in your camera's values"
+        )
     try:
         data = yaml.safe_load(file.read_text())
         width, height = (int(v) for v in data["image_size"])
         k = data["intrinsics"]
-        intrinsics = CameraIntrinsics(width=width, height=height, fx=float(k["fx"]), fy=float(k["fy"]),
-                                      cx=float(k["cx"]), cy=float(k["cy"]),
-                                      distortion=[float(v) for v in k.get("distortion", [0.0] * 5)])
+        intrinsics = CameraIntrinsics(
+            width=width,
+            height=height,
+            fx=float(k["fx"]),
+            fy=float(k["fy"]),
+            cx=float(k["cx"]),
+            cy=float(k["cy"]),
+            distortion=[float(v) for v in k.get("distortion", [0.0] * 5)],
+        )
         pose = np.array(data["camera_to_world"], dtype=np.float64)
         camera = str(data.get("camera", file.stem))
     except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise DepthCameraError(f"calibration file {path} is malformed ({exc!r}); expected the layout "
-                               "documented in drivers/depth_camera/base.py") from exc
+        raise DepthCameraError(
+            f"calibration file {path} is malformed ({exc!r}); expected the layout "
+            "documented in drivers/depth_camera/base.py"
+        ) from exc
     _check(path, intrinsics, pose)
     return Calibration(camera, intrinsics, pose)
 
@@ -61,21 +72,31 @@ def _check(path: str, intrinsics: CameraIntrinsics, pose: np.ndarray) -> None:
     if pose.shape != (4, 4):
         raise DepthCameraError(f"{path}: camera_to_world must be 4x4, got {pose.shape}")
     rotation = pose[:3, :3]
-    rigid = (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
-             and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-4)
-             and np.allclose(pose[3], [0, 0, 0, 1]))
+    rigid = (
+        np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
+        and np.isclose(np.linalg.det(rotation), 1.0, atol=1e-4)
+        and np.allclose(pose[3], [0, 0, 0, 1])
+    )
     if not rigid:
-        raise DepthCameraError(f"{path}: camera_to_world is not a rigid transform "
-                               "(rotation must be orthonormal with det +1, last row 0 0 0 1)")
+        raise DepthCameraError(
+            f"{path}: camera_to_world is not a rigid transform "
+            "(rotation must be orthonormal with det +1, last row 0 0 0 1)"
+        )
 
 
 def depth_image(depth_mm: np.ndarray, calibration: Calibration, camera_name: str, seq: int) -> DepthImage:
     """Wrap an HxW uint16 millimetre frame (0 = no return) with its calibration."""
     expected = (calibration.intrinsics.height, calibration.intrinsics.width)
     if depth_mm.shape != expected:
-        raise DepthCameraError(f"camera {camera_name} sends {depth_mm.shape[1]}x{depth_mm.shape[0]} "
-                               f"frames but its calibration is for {expected[1]}x{expected[0]}")
+        raise DepthCameraError(
+            f"camera {camera_name} sends {depth_mm.shape[1]}x{depth_mm.shape[0]} "
+            f"frames but its calibration is for {expected[1]}x{expected[0]}"
+        )
     header = Header.now(f"camera_{camera_name}")
     header.seq = seq
-    return DepthImage(header=header, depth=depth_mm.astype(np.uint16, copy=False),
-                      intrinsics=calibration.intrinsics, camera_to_world=calibration.camera_to_world)
+    return DepthImage(
+        header=header,
+        depth=depth_mm.astype(np.uint16, copy=False),
+        intrinsics=calibration.intrinsics,
+        camera_to_world=calibration.camera_to_world,
+    )

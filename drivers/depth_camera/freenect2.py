@@ -1,6 +1,7 @@
 """Kinect v2 through libfreenect2's own Python binding (``pylibfreenect2``), for labs that
 built libfreenect2 and prefer it to the OpenNI2 path. Optional: imported only when chosen.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -14,10 +15,16 @@ from drivers import require_text
 from drivers.depth_camera.base import Calibration, DepthCameraError, depth_image, load_calibration
 from msgs import DepthImage
 
-PIPELINES = {"cpu": "CpuPacketPipeline", "opengl": "OpenGLPacketPipeline",
-             "opencl": "OpenCLPacketPipeline", "cuda": "CudaPacketPipeline"}
-_INSTALL = ("build libfreenect2 (https://github.com/OpenKinect/libfreenect2), then "
-            "`LIBFREENECT2_INSTALL_PREFIX=<its prefix> pip install 'dtx[freenect2]'`")
+PIPELINES = {
+    "cpu": "CpuPacketPipeline",
+    "opengl": "OpenGLPacketPipeline",
+    "opencl": "OpenCLPacketPipeline",
+    "cuda": "CudaPacketPipeline",
+}
+_INSTALL = (
+    "build libfreenect2 (https://github.com/OpenKinect/libfreenect2), then "
+    "`LIBFREENECT2_INSTALL_PREFIX=<its prefix> pip install 'dtx[freenect2]'`"
+)
 
 
 @dataclasses.dataclass
@@ -27,7 +34,7 @@ class Freenect2DepthCameraConfig:
     name: str = "left"
     calibration_file: str = "launch/calibration/kinect_left.yaml"
     serial: str = ""
-    pipeline: str = "cpu"               # cpu | opengl | opencl | cuda
+    pipeline: str = "cpu"  # cpu | opengl | opencl | cuda
     read_timeout_s: float = 1.0
 
     def __post_init__(self) -> None:
@@ -38,8 +45,10 @@ def _import_binding() -> Any:
     try:
         return importlib.import_module("pylibfreenect2")
     except ImportError as exc:
-        raise DepthCameraError(f"the freenect2 backend needs pylibfreenect2, which is not installed "
-                               f"({exc}): {_INSTALL}; or use backend: openni2") from exc
+        raise DepthCameraError(
+            f"the freenect2 backend needs pylibfreenect2, which is not installed "
+            f"({exc}): {_INSTALL}; or use backend: openni2"
+        ) from exc
 
 
 class Freenect2DepthCamera:
@@ -63,10 +72,12 @@ class Freenect2DepthCamera:
         wanted = self.config.serial.encode()
         matches = [s for s in serials if wanted in s]
         if len(matches) != 1:
-            raise DepthCameraError(f"{'no' if not matches else len(matches)} Kinect v2 "
-                                   f"{'with serial ' + self.config.serial + ' ' if wanted else ''}found by "
-                                   f"libfreenect2; serials: {[s.decode() for s in serials] or 'none'}. "
-                                   "Connect it to a USB 3 port; with several, set serial.")
+            raise DepthCameraError(
+                f"{'no' if not matches else len(matches)} Kinect v2 "
+                f"{'with serial ' + self.config.serial + ' ' if wanted else ''}found by "
+                f"libfreenect2; serials: {[s.decode() for s in serials] or 'none'}. "
+                "Connect it to a USB 3 port; with several, set serial."
+            )
         pipeline = getattr(lib, PIPELINES[self.config.pipeline])()
         self._device = freenect.openDevice(matches[0], pipeline=pipeline)
         self._listener = lib.SyncMultiFrameListener(lib.FrameType.Depth)
@@ -87,8 +98,10 @@ class Freenect2DepthCamera:
         deadline = time.monotonic() + self.config.read_timeout_s
         while not self._listener.hasNewFrame():
             if time.monotonic() > deadline:
-                raise DepthCameraError(f"no depth frame from Kinect {self.config.serial or '(any)'} "
-                                       f"within {self.config.read_timeout_s} s: was it unplugged?")
+                raise DepthCameraError(
+                    f"no depth frame from Kinect {self.config.serial or '(any)'} "
+                    f"within {self.config.read_timeout_s} s: was it unplugged?"
+                )
             time.sleep(0.002)
         frames = self._listener.waitForNewFrame()
         try:

@@ -4,6 +4,7 @@ A Kinect v2 reaches OpenNI2 through libfreenect2's OpenNI2 driver (libfreenect2-
 in the library's OpenNI2/Drivers directory); its device URIs carry the serial number, which
 is how two Kinects are told apart. An ``.oni`` recording plays back through the same path.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,16 +26,16 @@ from msgs import DepthImage
 class OpenNI2DepthCameraConfig:
     """Which device (URI, serial or recording), its depth mode, and its calibration."""
 
-    name: str = "left"                  # frame id camera_<name>
+    name: str = "left"  # frame id camera_<name>
     calibration_file: str = "launch/calibration/kinect_left.yaml"
-    uri: str = ""                       # exact OpenNI2 URI; empty: pick by serial
-    serial: str = ""                    # part of the URI; empty: the only device present
-    oni_file: str = ""                  # play this recording instead of a device
+    uri: str = ""  # exact OpenNI2 URI; empty: pick by serial
+    serial: str = ""  # part of the URI; empty: the only device present
+    oni_file: str = ""  # play this recording instead of a device
     library_dir: str = "/usr/lib/x86_64-linux-gnu"
-    width: int = 512                    # Kinect v2 depth: 512x424 px at 30 Hz
+    width: int = 512  # Kinect v2 depth: 512x424 px at 30 Hz
     height: int = 424
     fps: int = 30
-    registration: bool = False          # map depth onto the colour camera (then calibrate that one)
+    registration: bool = False  # map depth onto the colour camera (then calibrate that one)
     read_timeout_s: float = 1.0
 
     def __post_init__(self) -> None:
@@ -46,17 +47,20 @@ def load_openni2(library_dir: str) -> None:
     directory = Path(library_dir)
     has_development_link = (directory / "libOpenNI2.so").is_file()
     if not has_development_link and not (directory / "libOpenNI2.so.0").is_file():
-        raise DepthCameraError(f"OpenNI2 library not found in {directory} (no libOpenNI2.so or "
-                               "libOpenNI2.so.0): install it with `sudo apt-get install libopenni2-0`, "
-                               "or set library_dir to the directory that holds it")
+        raise DepthCameraError(
+            f"OpenNI2 library not found in {directory} (no libOpenNI2.so or "
+            "libOpenNI2.so.0): install it with `sudo apt-get install libopenni2-0`, "
+            "or set library_dir to the directory that holds it"
+        )
     if openni2.is_initialized():
         return
     load_from = directory if has_development_link else _loader_directory(directory)
     try:
         openni2.initialize(str(load_from))
     except (InitializationError, OpenNIError) as exc:
-        raise DepthCameraError(f"OpenNI2 in {directory} failed to start: {exc}. Its drivers must be "
-                               f"in {directory / 'OpenNI2' / 'Drivers'}") from exc
+        raise DepthCameraError(
+            f"OpenNI2 in {directory} failed to start: {exc}. Its drivers must be in {directory / 'OpenNI2' / 'Drivers'}"
+        ) from exc
 
 
 def _loader_directory(directory: Path) -> Path:
@@ -68,8 +72,10 @@ def _loader_directory(directory: Path) -> Path:
     """
     shim = Path(tempfile.gettempdir()) / f"dtx-openni2-{os.getuid()}"
     (shim / "OpenNI2").mkdir(parents=True, exist_ok=True)
-    for link, target in ((shim / "libOpenNI2.so", directory / "libOpenNI2.so.0"),
-                         (shim / "OpenNI2" / "Drivers", directory / "OpenNI2" / "Drivers")):
+    for link, target in (
+        (shim / "libOpenNI2.so", directory / "libOpenNI2.so.0"),
+        (shim / "OpenNI2" / "Drivers", directory / "OpenNI2" / "Drivers"),
+    ):
         staged = link.with_name(f"{link.name}.{os.getpid()}")
         staged.unlink(missing_ok=True)
         staged.symlink_to(target)
@@ -139,11 +145,15 @@ class OpenNI2DepthCamera:
             raise DepthCameraError(f"{self._label} failed after {self._seq} frames: {exc}") from exc
         if frame is None:
             if self.config.oni_file:
-                raise DepthCameraError(f"recording {self.config.oni_file} gave no frame within "
-                                       f"{self.config.read_timeout_s} s after {self._seq} of its "
-                                       f"{self._stream.get_number_of_frames()} frames")
-            raise DepthCameraError(f"no depth frame from {self._label} within {self.config.read_timeout_s} s "
-                                   f"after {self._seq} frames: was the camera unplugged?")
+                raise DepthCameraError(
+                    f"recording {self.config.oni_file} gave no frame within "
+                    f"{self.config.read_timeout_s} s after {self._seq} of its "
+                    f"{self._stream.get_number_of_frames()} frames"
+                )
+            raise DepthCameraError(
+                f"no depth frame from {self._label} within {self.config.read_timeout_s} s "
+                f"after {self._seq} frames: was the camera unplugged?"
+            )
         try:
             depth = np.frombuffer(frame.get_buffer_as_uint16(), np.uint16)
             depth = depth.reshape(frame.height, frame.width).copy()
@@ -171,13 +181,16 @@ class OpenNI2DepthCamera:
                     f"{problem} OpenNI2 depth camera {wanted}found; devices: {uris or 'none'}. "
                     "Connect the Kinect v2 to a USB 3 port (`lsusb` shows 045e:02c4 or 02d8) and "
                     "install libfreenect2's OpenNI2 driver (libfreenect2-openni2.so); "
-                    f"{_drivers_present(config.library_dir)}. With several cameras, set serial.")
+                    f"{_drivers_present(config.library_dir)}. With several cameras, set serial."
+                )
             uri = matches[0]
         try:
             return openni2.Device(uri.encode())
         except OpenNIError as exc:
-            raise DepthCameraError(f"cannot open OpenNI2 device {uri!r}: {exc}; devices found: "
-                                   f"{uris or 'none'}; {_drivers_present(config.library_dir)}") from exc
+            raise DepthCameraError(
+                f"cannot open OpenNI2 device {uri!r}: {exc}; devices found: "
+                f"{uris or 'none'}; {_drivers_present(config.library_dir)}"
+            ) from exc
 
     def _start_depth_stream(self, device: openni2.Device) -> None:
         assert self.calibration is not None
@@ -191,12 +204,15 @@ class OpenNI2DepthCamera:
             self._set_mode(device, stream)
         mode = stream.get_video_mode()
         if mode.pixelFormat != openni2.PIXEL_FORMAT_DEPTH_1_MM:
-            raise DepthCameraError(f"{self._label} gives {_mode_text(mode)}; only millimetre depth "
-                                   "(PIXEL_FORMAT_DEPTH_1_MM) is supported")
+            raise DepthCameraError(
+                f"{self._label} gives {_mode_text(mode)}; only millimetre depth (PIXEL_FORMAT_DEPTH_1_MM) is supported"
+            )
         calibrated = (self.calibration.intrinsics.width, self.calibration.intrinsics.height)
         if (mode.resolutionX, mode.resolutionY) != calibrated:
-            raise DepthCameraError(f"{self._label} gives {_mode_text(mode)} but its calibration "
-                                   f"({self.config.calibration_file}) is for {calibrated[0]}x{calibrated[1]}")
+            raise DepthCameraError(
+                f"{self._label} gives {_mode_text(mode)} but its calibration "
+                f"({self.config.calibration_file}) is for {calibrated[0]}x{calibrated[1]}"
+            )
         stream.start()
 
     def _set_mode(self, device: openni2.Device, stream: openni2.VideoStream) -> None:
@@ -206,13 +222,13 @@ class OpenNI2DepthCamera:
         if wanted not in [_mode_key(m) for m in modes]:
             raise DepthCameraError(
                 f"{self._label} has no depth mode {config.width}x{config.height}@{config.fps} "
-                f"in millimetres; it offers: {[_mode_text(m) for m in modes]}")
+                f"in millimetres; it offers: {[_mode_text(m) for m in modes]}"
+            )
         # Only change the mode when needed: some drivers refuse even setting the current one.
         if _mode_key(stream.get_video_mode()) != wanted:
             stream.set_video_mode(modes[[_mode_key(m) for m in modes].index(wanted)])
         if config.registration:
             registration = openni2.IMAGE_REGISTRATION_DEPTH_TO_COLOR
             if not device.is_image_registration_mode_supported(registration):
-                raise DepthCameraError(f"{self._label} cannot register depth to colour; "
-                                       "set registration: false")
+                raise DepthCameraError(f"{self._label} cannot register depth to colour; set registration: false")
             device.set_image_registration_mode(registration)

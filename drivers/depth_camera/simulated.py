@@ -6,6 +6,7 @@ The reported ``camera_to_world`` is the nominal extrinsic of the scene; when the
 for ``extrinsic_offset`` the rays are cast from the true (offset) pose, as with a camera
 whose calibration is slightly wrong.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -53,11 +54,13 @@ class SimulatedDepthCamera:
         except SceneError as exc:
             raise DepthCameraError(str(exc)) from exc
         if self.config.camera not in self.world.cameras:
-            raise DepthCameraError(f"scene {self.config.scene} has no camera {self.config.camera!r} "
-                                   f"(cameras: {self.world.camera_names()})")
+            raise DepthCameraError(
+                f"scene {self.config.scene} has no camera {self.config.camera!r} (cameras: {self.world.camera_names()})"
+            )
         spec = self.world.cameras[self.config.camera].spec
-        self.intrinsics = CameraIntrinsics(width=spec.width, height=spec.height, fx=spec.fx, fy=spec.fy,
-                                           cx=spec.cx, cy=spec.cy, distortion=[0.0] * 5)
+        self.intrinsics = CameraIntrinsics(
+            width=spec.width, height=spec.height, fx=spec.fx, fy=spec.fy, cx=spec.cx, cy=spec.cy, distortion=[0.0] * 5
+        )
         self.camera_to_world = self.world.nominal_camera_to_world(self.config.camera)
         self._next_t = time.monotonic()
 
@@ -84,5 +87,6 @@ class SimulatedDepthCamera:
             depth = z.astype(np.float32, copy=False)
         self._seq += 1
         header = Header(stamp_ns=time.time_ns(), seq=self._seq, frame_id=f"camera_{self.config.camera}")
-        return DepthImage(header=header, depth=depth, intrinsics=self.intrinsics,
-                          camera_to_world=self.camera_to_world.copy())
+        return DepthImage(
+            header=header, depth=depth, intrinsics=self.intrinsics, camera_to_world=self.camera_to_world.copy()
+        )

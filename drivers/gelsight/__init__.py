@@ -1,4 +1,5 @@
 """GelSight backends: a V4L2 camera (or a recorded video) through OpenCV, and the renderer."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -8,8 +9,7 @@ from drivers.gelsight.base import EndOfStreamError, GelSightError
 
 BACKENDS = {
     "v4l2": BackendEntry("drivers.gelsight.v4l2", "V4L2GelSight", "V4L2GelSightConfig"),
-    "simulated": BackendEntry("drivers.gelsight.simulated", "SimulatedGelSight",
-                              "SimulatedGelSightConfig"),
+    "simulated": BackendEntry("drivers.gelsight.simulated", "SimulatedGelSight", "SimulatedGelSightConfig"),
 }
 
 __all__ = ["BACKENDS", "EndOfStreamError", "GelSightError", "make_backend"]

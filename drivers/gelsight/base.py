@@ -4,6 +4,7 @@ A preset says which part of the camera image shows the gel (margins as fractions
 image, so they hold at any capture resolution), the size frames are resized to, and the
 gel's scale at that size.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -24,16 +25,16 @@ class EndOfStreamError(GelSightError):
 class SensorPreset:
     """Gel area within the camera image and the output frame geometry."""
 
-    device_name: str            # what the camera calls itself in /sys/class/video4linux/*/name
-    capture_width: int          # px, asked of the camera
+    device_name: str  # what the camera calls itself in /sys/class/video4linux/*/name
+    capture_width: int  # px, asked of the camera
     capture_height: int
-    margin_left: float          # fraction of the image width cut on the left
+    margin_left: float  # fraction of the image width cut on the left
     margin_right: float
-    margin_top: float           # fraction of the image height cut at the top
+    margin_top: float  # fraction of the image height cut at the top
     margin_bottom: float
-    output_width: int           # px, after crop and resize
+    output_width: int  # px, after crop and resize
     output_height: int
-    mm_per_px: float            # gel scale at the output size
+    mm_per_px: float  # gel scale at the output size
 
     def crop_and_resize(self, frame: np.ndarray) -> np.ndarray:
         """The gel area of ``frame`` (HxWx3), resized to the output size."""
@@ -54,8 +55,7 @@ PRESETS = {
     # seventh of each side (as GelSight's own SDK crops it). The scale is for an 18.6 mm-wide
     # gel over the remaining 5/7 of the width, resized back to 320 px; check it with a
     # calibration target and override ``mm_per_px`` in the launch file if it differs.
-    "gelsight_mini": SensorPreset("GelSight Mini", 320, 240, 1 / 7, 1 / 7, 1 / 7, 1 / 7,
-                                  320, 240, 0.0581),
+    "gelsight_mini": SensorPreset("GelSight Mini", 320, 240, 1 / 7, 1 / 7, 1 / 7, 1 / 7, 320, 240, 0.0581),
 }
 
 

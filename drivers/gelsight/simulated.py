@@ -11,6 +11,7 @@ the fingers meet the object, the gel presses in as ``SimWorld.grasp_contact`` co
 (the force on the gel's compliance); otherwise the gel sits where the kinematics put it and
 only geometry counts (no press).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -90,8 +91,9 @@ class SimulatedGelSight:
     def is_connected(self) -> bool:
         return self.renderer is not None
 
-    def observe_robot(self, tcp_pose_world: np.ndarray, gripper_width_m: float, force_n: float,
-                      stamp_ns: int | None = None) -> None:
+    def observe_robot(
+        self, tcp_pose_world: np.ndarray, gripper_width_m: float, force_n: float, stamp_ns: int | None = None
+    ) -> None:
         """Latest robot state: TCP pose (UR pose, world), gripper width (m), grasp force (N), and
         when the state was published (``stamp_ns``, wall clock ns; None: no bound on frames)."""
         if self.world is None:
@@ -148,9 +150,13 @@ class SimulatedGelSight:
             gap = self._gap
         # The frame's noise is keyed on the gap it shows (sim.seeding): whichever frame of a
         # grasp the collector takes, the same grasp gives the same image.
-        image = self.renderer.render(gap, state_rng(gap, self.world.seed, 11,
-                                                    SENSORS.index(self.config.sensor)))
+        image = self.renderer.render(gap, state_rng(gap, self.world.seed, 11, SENSORS.index(self.config.sensor)))
         self._seq += 1
         header = Header(stamp_ns=stamp_ns, seq=self._seq, frame_id=f"gel_{self.config.sensor}")
-        return TactileImage(header=header, image=image, background=self._background.copy(),
-                            sensor=self.config.sensor, mm_per_px=float(self.mm_per_px))
+        return TactileImage(
+            header=header,
+            image=image,
+            background=self._background.copy(),
+            sensor=self.config.sensor,
+            mm_per_px=float(self.mm_per_px),
+        )

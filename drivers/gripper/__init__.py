@@ -1,4 +1,5 @@
 """Gripper backends: the WSG-50 over a serial line, and its firmware simulator on a pty."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -8,8 +9,7 @@ from drivers.gripper.protocol import GripperError
 
 BACKENDS = {
     "wsg50": BackendEntry("drivers.gripper.wsg50", "WSG50Gripper", "WSG50Config"),
-    "simulated": BackendEntry("drivers.gripper.simulated", "SimulatedGripper",
-                              "SimulatedGripperConfig"),
+    "simulated": BackendEntry("drivers.gripper.simulated", "SimulatedGripper", "SimulatedGripperConfig"),
 }
 
 __all__ = ["BACKENDS", "GripperError", "make_backend"]

@@ -12,6 +12,7 @@ behaviour (all strict by default, the tests' setting), so a test can show what a
 simulator hid. Where the public sources leave a byte-level detail open, the simulator keeps
 what it did before and its docstring says so.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -72,8 +73,13 @@ class Strictness:
     referenced: bool = True
 
 
-LENIENT = Strictness(idle_while_homing=False, clamping_travel_m=None, stop_releases=False,
-                     clamp_out_of_range=False, answer_bad_checksum=False)
+LENIENT = Strictness(
+    idle_while_homing=False,
+    clamping_travel_m=None,
+    stop_releases=False,
+    clamp_out_of_range=False,
+    answer_bad_checksum=False,
+)
 
 
 @dataclasses.dataclass
@@ -98,10 +104,18 @@ class _Motion:
 class GripperFirmware:
     """Simulated WSG-50 behind a pty; use as a context manager or call start()/close()."""
 
-    def __init__(self, contact_width_m: Callable[[], float | None] = lambda: None, *,
-                 max_width_m: float = 0.110, max_speed_m_s: float = 0.42,
-                 max_force_n: float = 80.0, initial_width_m: float = 0.110, time_scale: float = 1.0,
-                 homing_speed_m_s: float = 0.1, strictness: Strictness = Strictness()) -> None:
+    def __init__(
+        self,
+        contact_width_m: Callable[[], float | None] = lambda: None,
+        *,
+        max_width_m: float = 0.110,
+        max_speed_m_s: float = 0.42,
+        max_force_n: float = 80.0,
+        initial_width_m: float = 0.110,
+        time_scale: float = 1.0,
+        homing_speed_m_s: float = 0.1,
+        strictness: Strictness = Strictness(),
+    ) -> None:
         """Limits as the WSG 50-110 data sheet: stroke 110 mm, 420 mm/s, 80 N. ``time_scale``
         stretches finger motions in wall time (0: instantaneous, for fast simulated sessions).
         ``homing_speed_m_s``: referencing runs slower than a move (the value is this
@@ -209,11 +223,16 @@ class GripperFirmware:
     # -- commands -------------------------------------------------------------------------
     def _handle(self, command_id: int, payload: bytes) -> None:
         handlers = {
-            Command.HOMING: self._homing, Command.PREPOSITION: self._preposition,
-            Command.GRASP: self._grasp, Command.RELEASE: self._release,
-            Command.STOP: self._stop, Command.SET_FORCE_LIMIT: self._set_force_limit,
-            Command.FAST_STOP: self._fast_stop, Command.ACK_FAST_STOP: self._acknowledge,
-            Command.SET_ACCELERATION: self._set_acceleration, Command.DISCONNECT: self._disconnect,
+            Command.HOMING: self._homing,
+            Command.PREPOSITION: self._preposition,
+            Command.GRASP: self._grasp,
+            Command.RELEASE: self._release,
+            Command.STOP: self._stop,
+            Command.SET_FORCE_LIMIT: self._set_force_limit,
+            Command.FAST_STOP: self._fast_stop,
+            Command.ACK_FAST_STOP: self._acknowledge,
+            Command.SET_ACCELERATION: self._set_acceleration,
+            Command.DISCONNECT: self._disconnect,
             Command.TARE_FORCE: self._tare_force,
         }
         getters = {
@@ -235,11 +254,18 @@ class GripperFirmware:
         else:
             self._send(command_id, Status.E_CMD_UNKNOWN)
 
-    def _start_motion(self, command: Command, target_m: float, speed_m_s: float,
-                      moving_state: GraspingState, final_status: Status,
-                      final_state: GraspingState) -> None:
-        self._motion = _Motion(command, self._width_m, target_m, speed_m_s, time.monotonic(),
-                               final_status, final_state, self.time_scale)
+    def _start_motion(
+        self,
+        command: Command,
+        target_m: float,
+        speed_m_s: float,
+        moving_state: GraspingState,
+        final_status: Status,
+        final_state: GraspingState,
+    ) -> None:
+        self._motion = _Motion(
+            command, self._width_m, target_m, speed_m_s, time.monotonic(), final_status, final_state, self.time_scale
+        )
         self._state = moving_state
         self._holding_force_n = 0.0
         self._flags &= ~SystemFlag.AXIS_STOPPED
@@ -250,7 +276,8 @@ class GripperFirmware:
         referenced (homing excepted), E_ACCESS_DENIED (Weiss command set; the public homing
         handler checks SF_FAST_STOP first, then SF_MOVING, then the format)."""
         if self._flags & SystemFlag.FAST_STOP or (
-                command != Command.HOMING and not self._flags & SystemFlag.REFERENCED):
+            command != Command.HOMING and not self._flags & SystemFlag.REFERENCED
+        ):
             self._send(command, Status.E_ACCESS_DENIED)
         elif self._motion is not None:
             self._send(command, Status.E_ALREADY_RUNNING)
@@ -267,8 +294,7 @@ class GripperFirmware:
         if not self.strictness.clamp_out_of_range:
             self._send(command, Status.E_RANGE_ERROR)
             return None
-        return (min(max(width_m, 0.0), self.max_width_m),
-                min(max(speed_m_s, _MIN_SPEED_M_S), self.max_speed_m_s))
+        return (min(max(width_m, 0.0), self.max_width_m), min(max(speed_m_s, _MIN_SPEED_M_S), self.max_speed_m_s))
 
     def _contact_between(self, from_m: float, to_m: float) -> float | None:
         """Where closing from ``from_m`` towards ``to_m`` touches the object, if it does."""
@@ -285,8 +311,7 @@ class GripperFirmware:
             return
         target = 0.0 if payload[0] == 2 else self.max_width_m
         moving = GraspingState.IDLE if self.strictness.idle_while_homing else GraspingState.POSITIONING
-        self._start_motion(Command.HOMING, target, self.homing_speed_m_s, moving,
-                           Status.E_SUCCESS, GraspingState.IDLE)
+        self._start_motion(Command.HOMING, target, self.homing_speed_m_s, moving, Status.E_SUCCESS, GraspingState.IDLE)
 
     def _preposition(self, payload: bytes) -> None:
         """Move without force control; flag 0x01 makes the width relative. An object in the way
@@ -302,11 +327,18 @@ class GripperFirmware:
         target, speed = limited
         contact = self._contact_between(self._width_m, target)
         if contact is None:
-            self._start_motion(Command.PREPOSITION, target, speed, GraspingState.POSITIONING,
-                               Status.E_SUCCESS, GraspingState.IDLE)
+            self._start_motion(
+                Command.PREPOSITION, target, speed, GraspingState.POSITIONING, Status.E_SUCCESS, GraspingState.IDLE
+            )
         else:
-            self._start_motion(Command.PREPOSITION, contact, speed, GraspingState.POSITIONING,
-                               Status.E_AXIS_BLOCKED, GraspingState.IDLE)
+            self._start_motion(
+                Command.PREPOSITION,
+                contact,
+                speed,
+                GraspingState.POSITIONING,
+                Status.E_AXIS_BLOCKED,
+                GraspingState.IDLE,
+            )
 
     def _grasp(self, payload: bytes) -> None:
         """Close on a part of nominal width ``width`` (wsg50-ros-pkg: functions.cpp
@@ -329,14 +361,17 @@ class GripperFirmware:
             return
         contact = self._contact_between(self._width_m, target)
         if contact is None:
-            self._start_motion(Command.GRASP, target, speed, GraspingState.GRASPING,
-                               Status.E_CMD_FAILED, GraspingState.NO_PART_FOUND)
+            self._start_motion(
+                Command.GRASP, target, speed, GraspingState.GRASPING, Status.E_CMD_FAILED, GraspingState.NO_PART_FOUND
+            )
         elif travel is not None and contact > nominal + travel:
-            self._start_motion(Command.GRASP, contact, speed, GraspingState.GRASPING,
-                               Status.E_CMD_FAILED, GraspingState.NO_PART_FOUND)
+            self._start_motion(
+                Command.GRASP, contact, speed, GraspingState.GRASPING, Status.E_CMD_FAILED, GraspingState.NO_PART_FOUND
+            )
         else:
-            self._start_motion(Command.GRASP, contact, speed, GraspingState.GRASPING,
-                               Status.E_SUCCESS, GraspingState.HOLDING)
+            self._start_motion(
+                Command.GRASP, contact, speed, GraspingState.GRASPING, Status.E_SUCCESS, GraspingState.HOLDING
+            )
 
     def _release(self, payload: bytes) -> None:
         """Open to ``width``, which must be wider than now (E_RANGE_ERROR otherwise, as the
@@ -351,8 +386,9 @@ class GripperFirmware:
         if target < self._width_m:
             self._send(Command.RELEASE, Status.E_RANGE_ERROR)
             return
-        self._start_motion(Command.RELEASE, target, speed, GraspingState.RELEASING,
-                           Status.E_SUCCESS, GraspingState.IDLE)
+        self._start_motion(
+            Command.RELEASE, target, speed, GraspingState.RELEASING, Status.E_SUCCESS, GraspingState.IDLE
+        )
 
     def _stop(self, payload: bytes) -> None:
         """Stop the fingers: a running command ends E_CMD_ABORTED, then STOP answers E_SUCCESS;

@@ -7,6 +7,7 @@ so a whole frame, CRC included, checks to 0. Every response payload starts with 
 status code; motion commands first answer E_CMD_PENDING, then the final status when the
 fingers stop. Values travel as float32 LE in millimetres, mm/s and newtons.
 """
+
 from __future__ import annotations
 
 import enum
@@ -112,8 +113,7 @@ class SystemFlag(enum.IntFlag):
 
 
 # Faults that keep the gripper from moving until an operator has dealt with the cause.
-FAULT_FLAGS = (SystemFlag.TEMP_FAULT | SystemFlag.POWER_FAULT | SystemFlag.CURR_FAULT
-               | SystemFlag.FINGER_FAULT)
+FAULT_FLAGS = SystemFlag.TEMP_FAULT | SystemFlag.POWER_FAULT | SystemFlag.CURR_FAULT | SystemFlag.FINGER_FAULT
 # The fast stop is acknowledged with the three bytes "ack" (wsg50-ros-pkg: functions.cpp, ack_fault()).
 ACK_PAYLOAD = b"ack"
 
@@ -208,7 +208,7 @@ class FrameParser:
                     self._on_bad_checksum(command_id)
                 self._discard(1)
                 continue
-            frames.append((command_id, bytes(self._buffer[HEADER_BYTES:HEADER_BYTES + length])))
+            frames.append((command_id, bytes(self._buffer[HEADER_BYTES : HEADER_BYTES + length])))
             del self._buffer[:total]
 
     def _discard(self, count: int) -> None:

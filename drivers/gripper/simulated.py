@@ -3,6 +3,7 @@
 Nothing is short-cut: every command crosses the same framing, CRC and status handling as
 on the lab's serial line, so the simulation exercises the driver the lab runs.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,17 +35,29 @@ class SimulatedGripper(WSG50Gripper):
     """``contact_width_m()`` (m, or None when nothing is between the fingers) comes from the
     simulated world; the firmware asks it when a grasp or a closing move starts."""
 
-    def __init__(self, config: SimulatedGripperConfig,
-                 contact_width_m: Callable[[], float | None] = lambda: None) -> None:
+    def __init__(
+        self, config: SimulatedGripperConfig, contact_width_m: Callable[[], float | None] = lambda: None
+    ) -> None:
         self._firmware = GripperFirmware(
-            contact_width_m, max_width_m=config.max_width_m, max_speed_m_s=config.max_speed_m_s,
-            max_force_n=config.max_force_n, initial_width_m=config.initial_width_m, time_scale=config.time_scale,
-            strictness=Strictness(clamping_travel_m=config.clamping_travel_m, referenced=config.referenced))
-        super().__init__(WSG50Config(port=self._firmware.port,
-                                     response_timeout_s=config.response_timeout_s,
-                                     motion_timeout_s=config.motion_timeout_s,
-                                     frame_id=config.frame_id, max_width_m=config.max_width_m,
-                                     max_speed_m_s=config.max_speed_m_s, max_force_n=config.max_force_n))
+            contact_width_m,
+            max_width_m=config.max_width_m,
+            max_speed_m_s=config.max_speed_m_s,
+            max_force_n=config.max_force_n,
+            initial_width_m=config.initial_width_m,
+            time_scale=config.time_scale,
+            strictness=Strictness(clamping_travel_m=config.clamping_travel_m, referenced=config.referenced),
+        )
+        super().__init__(
+            WSG50Config(
+                port=self._firmware.port,
+                response_timeout_s=config.response_timeout_s,
+                motion_timeout_s=config.motion_timeout_s,
+                frame_id=config.frame_id,
+                max_width_m=config.max_width_m,
+                max_speed_m_s=config.max_speed_m_s,
+                max_force_n=config.max_force_n,
+            )
+        )
 
     def connect(self) -> None:
         self._firmware.start()

@@ -9,6 +9,7 @@ stopped (the grasping state cannot: it stays IDLE while the gripper homes), and 
 meanwhile makes the motion's outcome E_CMD_ABORTED. Targets are checked against the
 gripper's limits before sending, because the device clamps them silently.
 """
+
 from __future__ import annotations
 
 import collections
@@ -39,14 +40,21 @@ from drivers.gripper.protocol import (
 from msgs import GripperState, Header
 
 _STATE_NAMES = {
-    GraspingState.IDLE: "idle", GraspingState.GRASPING: "moving",
-    GraspingState.RELEASING: "moving", GraspingState.POSITIONING: "moving",
-    GraspingState.HOLDING: "holding", GraspingState.NO_PART_FOUND: "no_part",
-    GraspingState.PART_LOST: "no_part", GraspingState.ERROR: "error",
+    GraspingState.IDLE: "idle",
+    GraspingState.GRASPING: "moving",
+    GraspingState.RELEASING: "moving",
+    GraspingState.POSITIONING: "moving",
+    GraspingState.HOLDING: "holding",
+    GraspingState.NO_PART_FOUND: "no_part",
+    GraspingState.PART_LOST: "no_part",
+    GraspingState.ERROR: "error",
 }
 # Outcome of a motion whose final status frame was lost, judged from where it ended.
-_OUTCOME_OF_STATE = {GraspingState.IDLE: Status.E_SUCCESS, GraspingState.HOLDING: Status.E_SUCCESS,
-                     GraspingState.NO_PART_FOUND: Status.E_CMD_FAILED}
+_OUTCOME_OF_STATE = {
+    GraspingState.IDLE: Status.E_SUCCESS,
+    GraspingState.HOLDING: Status.E_SUCCESS,
+    GraspingState.NO_PART_FOUND: Status.E_CMD_FAILED,
+}
 # How far (m) a finished move may end from its target before it counts as blocked.
 _WIDTH_TOLERANCE_M = 0.5e-3
 
@@ -94,8 +102,10 @@ class WSG50Gripper:
             self._link = serial.Serial(self.config.port, self.config.baudrate, timeout=0.05)
         except serial.SerialException as exc:
             found = [port.device for port in list_ports.comports()] or "none"
-            raise GripperError(f"cannot open the gripper's serial port {self.config.port}: {exc}. "
-                               f"Serial ports found: {found}; set `port` to the WSG's.") from exc
+            raise GripperError(
+                f"cannot open the gripper's serial port {self.config.port}: {exc}. "
+                f"Serial ports found: {found}; set `port` to the WSG's."
+            ) from exc
         self._closing.clear()
         self._reader = threading.Thread(target=self._read_loop, name="wsg50-reader", daemon=True)
         self._reader.start()
@@ -130,17 +140,25 @@ class WSG50Gripper:
         grasping state ERROR (0x41). GripperError with the fix."""
         flags = self._system_flags()
         if flags & SystemFlag.FAST_STOP:
-            raise GripperError("the gripper is in FAST STOP", "clear its cause, then `dtx hw acknowledge "
-                               "LAUNCHFILE` (or /gripper/command action acknowledge)")
+            raise GripperError(
+                "the gripper is in FAST STOP",
+                "clear its cause, then `dtx hw acknowledge LAUNCHFILE` (or /gripper/command action acknowledge)",
+            )
         if flags & FAULT_FLAGS:
-            raise GripperError(f"the gripper reports a fault ({SystemFlag(flags & FAULT_FLAGS)!r})",
-                               "see its web interface, let it cool or check the power, then power-cycle it")
+            raise GripperError(
+                f"the gripper reports a fault ({SystemFlag(flags & FAULT_FLAGS)!r})",
+                "see its web interface, let it cool or check the power, then power-cycle it",
+            )
         if not flags & SystemFlag.REFERENCED:
-            raise GripperError("the gripper is not referenced", "home it: `dtx hw acknowledge LAUNCHFILE` "
-                               "(or /gripper/command action home)")
+            raise GripperError(
+                "the gripper is not referenced",
+                "home it: `dtx hw acknowledge LAUNCHFILE` (or /gripper/command action home)",
+            )
         if self._grasping_state() == GraspingState.ERROR:
-            raise GripperError("the gripper's grasping state is ERROR", "see its web interface for the cause, "
-                               "then `dtx hw acknowledge LAUNCHFILE`")
+            raise GripperError(
+                "the gripper's grasping state is ERROR",
+                "see its web interface for the cause, then `dtx hw acknowledge LAUNCHFILE`",
+            )
 
     def acknowledge(self) -> GripperState:
         """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again;
@@ -161,8 +179,10 @@ class WSG50Gripper:
         Returns when homing's own final status comes (the grasping state says IDLE throughout)."""
         status = self._motion(Command.HOMING, b"\x00")
         if status != Status.E_SUCCESS:
-            raise GripperError(f"homing failed: {status_name(status)}; clear the fingers' path "
-                               "and check the gripper's web interface for a fault")
+            raise GripperError(
+                f"homing failed: {status_name(status)}; clear the fingers' path "
+                "and check the gripper's web interface for a fault"
+            )
         return self._state(status)
 
     def move(self, width_m: float, speed_m_s: float) -> GripperState:
@@ -173,9 +193,12 @@ class WSG50Gripper:
         self._raise_on_refusal(status, "move")
         state = self._state(status)
         if status == Status.E_AXIS_BLOCKED or (
-                status == Status.E_SUCCESS and abs(state.width_m - width_m) > _WIDTH_TOLERANCE_M):
-            raise GripperError(f"move to {width_m * 1e3:.1f} mm blocked at {state.width_m * 1e3:.1f} mm: "
-                               "something is between the fingers; use grasp() to close on it")
+            status == Status.E_SUCCESS and abs(state.width_m - width_m) > _WIDTH_TOLERANCE_M
+        ):
+            raise GripperError(
+                f"move to {width_m * 1e3:.1f} mm blocked at {state.width_m * 1e3:.1f} mm: "
+                "something is between the fingers; use grasp() to close on it"
+            )
         if status != Status.E_SUCCESS:
             raise GripperError(f"move to {width_m * 1e3:.1f} mm failed: {status_name(status)}")
         return state
@@ -218,8 +241,9 @@ class WSG50Gripper:
     def set_force_limit(self, force_n: float) -> None:
         """Grasping force (N) the next grasp holds with."""
         if not 0.0 < force_n <= self.config.max_force_n:
-            raise GripperError(f"force limit {force_n} N is outside the gripper's range "
-                               f"(up to {self.config.max_force_n} N)")
+            raise GripperError(
+                f"force limit {force_n} N is outside the gripper's range (up to {self.config.max_force_n} N)"
+            )
         status, _ = self._request(Command.SET_FORCE_LIMIT, struct.pack("<f", force_n))
         if status == Status.E_RANGE_ERROR:
             raise GripperError(f"force limit {force_n} N is outside the gripper's range")
@@ -235,8 +259,7 @@ class WSG50Gripper:
         name = _STATE_NAMES[self._grasping_state()]
         if name == "idle" and self._system_flags() & SystemFlag.MOVING:
             name = "moving"  # homing: the grasping state has no name for it
-        return GripperState(header=header, width_m=width_m, force_n=force_n, state=name,
-                            status_code=int(status))
+        return GripperState(header=header, width_m=width_m, force_n=force_n, state=name, status_code=int(status))
 
     def _system_flags(self) -> SystemFlag:
         status, data = self._request(Command.GET_SYSTEM_STATE, b"\x00\x00\x00")
@@ -264,17 +287,20 @@ class WSG50Gripper:
         """Refuse what the device would clamp without saying so (nothing is sent)."""
         config = self.config
         if not (0.0 <= width_m <= config.max_width_m and 0.0 < speed_m_s <= config.max_speed_m_s):
-            raise GripperError(f"{what} to {width_m * 1e3:.1f} mm at {speed_m_s * 1e3:.0f} mm/s is outside "
-                               f"the gripper's range (width 0-{config.max_width_m * 1e3:.0f} mm, speed up "
-                               f"to {config.max_speed_m_s * 1e3:.0f} mm/s)")
+            raise GripperError(
+                f"{what} to {width_m * 1e3:.1f} mm at {speed_m_s * 1e3:.0f} mm/s is outside "
+                f"the gripper's range (width 0-{config.max_width_m * 1e3:.0f} mm, speed up "
+                f"to {config.max_speed_m_s * 1e3:.0f} mm/s)"
+            )
 
     def _raise_on_refusal(self, status: int, what: str) -> None:
         if status == Status.E_RANGE_ERROR:
             raise GripperError(f"{what} refused (E_RANGE_ERROR): grasp closes, release opens")
         if status == Status.E_ACCESS_DENIED:
-            raise GripperError(f"{what} refused (E_ACCESS_DENIED): the gripper is in FAST STOP or not "
-                               "referenced", "acknowledge the fast stop or home the gripper "
-                               "(`dtx hw acknowledge LAUNCHFILE`)")
+            raise GripperError(
+                f"{what} refused (E_ACCESS_DENIED): the gripper is in FAST STOP or not referenced",
+                "acknowledge the fast stop or home the gripper (`dtx hw acknowledge LAUNCHFILE`)",
+            )
 
     # -- request / response ----------------------------------------------------------------
     def _motion(self, command: Command, payload: bytes) -> int:
@@ -297,8 +323,9 @@ class WSG50Gripper:
         with self._lock_for(command):
             return self._send_until_answered(command, payload, self._queue_for(command), motion=False)
 
-    def _send_until_answered(self, command: Command, payload: bytes,
-                             replies: queue.Queue[tuple[int, bytes]], motion: bool) -> tuple[int, bytes]:
+    def _send_until_answered(
+        self, command: Command, payload: bytes, replies: queue.Queue[tuple[int, bytes]], motion: bool
+    ) -> tuple[int, bytes]:
         while not replies.empty():  # answers that came after an earlier time-out
             replies.get_nowait()
         frame = encode_frame(command, payload)
@@ -313,10 +340,10 @@ class WSG50Gripper:
         raise GripperError(
             f"no answer to {command.name} from the gripper on {self.config.port} after "
             f"{self.config.retries + 1} tries of {self.config.response_timeout_s} s: check that it is "
-            f"powered, the cable, and the baud rate ({self.config.baudrate}; the WSG default is 115200)")
+            f"powered, the cable, and the baud rate ({self.config.baudrate}; the WSG default is 115200)"
+        )
 
-    def _await_final(self, command: Command, replies: queue.Queue[tuple[int, bytes]],
-                     stops_before: int) -> int:
+    def _await_final(self, command: Command, replies: queue.Queue[tuple[int, bytes]], stops_before: int) -> int:
         """The motion's final status; after a silence, ask SF_MOVING whether it still runs.
         Stopped without its final answer: E_CMD_ABORTED if a stop went out meanwhile (a
         stopped grasp also ends IDLE), else judged from the grasping state."""
@@ -332,8 +359,10 @@ class WSG50Gripper:
                 if self._stops != stops_before:
                     return Status.E_CMD_ABORTED
                 return _OUTCOME_OF_STATE.get(self._grasping_state(), Status.E_CMD_FAILED)
-        raise GripperError(f"{command.name} did not finish within {self.config.motion_timeout_s} s; "
-                           "the fingers may still be moving: call stop()")
+        raise GripperError(
+            f"{command.name} did not finish within {self.config.motion_timeout_s} s; "
+            "the fingers may still be moving: call stop()"
+        )
 
     def _wait(self, replies: queue.Queue[tuple[int, bytes]], timeout_s: float) -> tuple[int, bytes] | None:
         try:

@@ -1,4 +1,5 @@
 """Small nodes that launch tests start as real processes."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -30,8 +31,12 @@ class CounterNode(Node):
         super().__init__(name, params, **kwargs)
         self.count = 0
         self.publisher = self.create_publisher("/count", msgs.Log)
-        self.create_service("/echo", msgs.GripperCommand, msgs.GripperState,
-                            lambda request: msgs.GripperState(width_m=request.width_m, state="echo"))
+        self.create_service(
+            "/echo",
+            msgs.GripperCommand,
+            msgs.GripperState,
+            lambda request: msgs.GripperState(width_m=request.width_m, state="echo"),
+        )
         self.create_service("/hold", msgs.GripperCommand, msgs.GripperState, self.hold)
         self.hold_client = self.create_client("/target/hold", msgs.GripperCommand, msgs.GripperState)
         self.create_timer(self.params.period_s, self.tick)
@@ -43,6 +48,7 @@ class CounterNode(Node):
             while time.monotonic() < deadline and not self.shutting_down:
                 time.sleep(0.01)
             return msgs.GripperState(width_m=request.width_m, state=f"held by {os.getpid()}")
+
         return self.background.submit(work)
 
     def tick(self) -> None:
