@@ -13,6 +13,8 @@ import dataclasses
 import importlib
 from typing import Any
 
+from msgs.config import ConfigError, config_from_dict
+
 
 class DeviceError(RuntimeError):
     """A device failure told to people: ``reason`` says what is wrong and, where an operator
@@ -37,8 +39,8 @@ def build_backend(kind: str, params: dict[str, Any], backends: dict[str, Backend
     """Build the backend ``params["backend"]`` names, its config from the other params;
     ``extras`` are handed to the backend's constructor beside the config.
 
-    Raises ValueError naming the allowed backends, or the allowed config keys, when
-    ``params`` asks for something that does not exist.
+    Raises ValueError naming the allowed backends, or (msgs.config.ConfigError) the key and
+    what it allows when ``params`` asks for something that does not exist or has the wrong type.
     """
     remaining = dict(params)
     choice = remaining.pop("backend", None)
@@ -46,24 +48,8 @@ def build_backend(kind: str, params: dict[str, Any], backends: dict[str, Backend
         raise ValueError(f"{kind}: unknown backend {choice!r}; allowed: {sorted(backends)}")
     entry = backends[choice]
     module = importlib.import_module(entry.module)
-    config_class = getattr(module, entry.config_class)
-    allowed = {field.name for field in dataclasses.fields(config_class)}
-    unknown = sorted(set(remaining) - allowed)
-    if unknown:
-        raise ValueError(f"{kind} backend {choice!r}: unknown parameter(s) {unknown}; allowed: {sorted(allowed)}")
-    return getattr(module, entry.backend_class)(config_class(**remaining), **extras)
-
-
-def require_text(config: Any, *names: str) -> None:
-    """Raise ValueError if a config field meant as text came from YAML as a number.
-
-    Launch files are YAML: an unquoted serial such as 003726261447 reads as an octal
-    integer and a USB port such as 3 as an int, silently changing which device is meant.
-    """
-    for name in names:
-        value = getattr(config, name)
-        if not isinstance(value, str):
-            raise ValueError(
-                f"{type(config).__name__}.{name} must be text, got {value!r} "
-                f"({type(value).__name__}); quote it in the launch file"
-            )
+    try:
+        config = config_from_dict(getattr(module, entry.config_class), remaining)
+    except ConfigError as exc:
+        raise ConfigError(f"{kind} backend {choice!r}: {exc}") from None
+    return getattr(module, entry.backend_class)(config, **extras)

@@ -15,12 +15,15 @@ time, so it is the default (``configs/*.yaml``).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
 
 from models.errors import ModelConfigError
+from msgs import config as typed_config
+
+C = TypeVar("C")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,24 +92,13 @@ class DiscriminatorConfig:
         return self
 
 
-def config_from_dict(cls: type, data: dict[str, Any], what: str) -> Any:
-    """A config dataclass from a mapping (e.g. YAML): unknown keys and values whose type
-    differs from the field default's (ints accepted for floats) raise ModelConfigError."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        raise ModelConfigError(f"unknown {what} setting(s) {sorted(unknown)}; known: {sorted(names)}")
-    values = {}
-    for field in dataclasses.fields(cls):
-        if field.name in data:
-            kind = type(field.default)
-            value = data[field.name]
-            if kind is float and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-            if type(value) is not kind:
-                raise ModelConfigError(f"{what}.{field.name} must be {kind.__name__}, got {value!r}")
-            values[field.name] = value
-    return cls(**values)
+def config_from_dict(cls: type[C], data: dict[str, Any], what: str) -> C:
+    """A config dataclass from a mapping (e.g. YAML), checked by msgs.config; any problem is a
+    ModelConfigError naming ``what`` ("generator", "training config") and the key."""
+    try:
+        return typed_config.config_from_dict(cls, data, noun=f"{what} setting")
+    except typed_config.ConfigError as exc:
+        raise ModelConfigError(f"{what}: {exc}") from None
 
 
 class UNetGenerator(nn.Module):

@@ -18,7 +18,6 @@ import os
 import signal
 import sys
 import time
-import typing
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, ClassVar, TypeVar
@@ -27,6 +26,7 @@ import zmq
 
 from msgs.base import Message
 from msgs.codec import Envelope
+from msgs.config import ConfigError, config_from_dict
 from msgs.system import Heartbeat, Log
 from nodes.bus import Bus, Counters, PeerConfig, Publisher, ServiceClient, ServiceServer, Subscriber, TransportConfig
 from nodes.registry import Registry
@@ -49,25 +49,11 @@ class ParameterError(ValueError):
 
 
 def parse_params(params_type: type[P], values: dict[str, Any], node: str = "") -> P:
-    """Build the node's parameter dataclass, refusing unknown keys and wrong types."""
-    fields = {f.name: f for f in dataclasses.fields(params_type)}  # type: ignore[arg-type]
-    unknown = sorted(set(values) - set(fields))
-    if unknown:
-        raise ParameterError(f"node {node}: unknown parameter(s) {unknown}; allowed: {sorted(fields)}")
-    hints = typing.get_type_hints(params_type)
-    converted = {}
-    for key, value in values.items():
-        expected = hints[key]
-        if expected is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        base = typing.get_origin(expected) or expected
-        if isinstance(base, type) and not isinstance(value, base):
-            raise ParameterError(f"node {node}: parameter {key!r} must be {base.__name__}, got {value!r}")
-        converted[key] = value
+    """Build the node's parameter dataclass (msgs.config), refusing unknown keys and wrong types."""
     try:
-        return params_type(**converted)
-    except TypeError as exc:
-        raise ParameterError(f"node {node}: {exc}") from exc
+        return config_from_dict(params_type, values)
+    except ConfigError as exc:
+        raise ParameterError(f"node {node}: {exc}") from None
 
 
 def split_params(params_type: type, values: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

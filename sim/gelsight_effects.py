@@ -23,6 +23,8 @@ import math
 
 import numpy as np
 
+from msgs.config import ConfigError, config_from_dict
+
 
 class GelSightError(ValueError):
     """Bad input to the GelSight renderer, its effects or the calibration check."""
@@ -137,11 +139,10 @@ EFFECTS: dict[str, type] = {
 }
 
 
-def make_effect(name: str, params: dict | None = None):
-    """Build the effect called ``name`` from a scene's parameter mapping."""
+def make_effect(name: str, params: dict | None = None) -> SensorNoise | Markers | LightingDrift:
+    """Build the effect called ``name`` from a scene's parameter mapping (msgs.config)."""
     _require(name in EFFECTS, f"unknown GelSight effect {name!r} (allowed: {sorted(EFFECTS)})")
-    cls = EFFECTS[name]
-    allowed = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(params or {}) - set(allowed))
-    _require(not unknown, f"GelSight effect {name!r}: unknown parameters {unknown} (allowed: {allowed})")
-    return cls(**(params or {}))
+    try:
+        return config_from_dict(EFFECTS[name], params or {})
+    except ConfigError as exc:
+        raise GelSightError(f"GelSight effect {name!r}: {exc}") from None

@@ -211,7 +211,7 @@ def test_effects_are_built_by_name_with_checked_parameters():
         assert dataclasses.is_dataclass(cls)
     with pytest.raises(GelSightError, match="unknown GelSight effect"):
         make_effect("shadows")
-    with pytest.raises(GelSightError, match="unknown parameters"):
+    with pytest.raises(GelSightError, match=r"unknown parameter\(s\) \['pitch'\]"):
         make_effect("markers", {"pitch": 1.0})
     with pytest.raises(GelSightError, match="sigma_levels"):
         make_effect("sensor_noise", {"sigma_levels": -1.0})

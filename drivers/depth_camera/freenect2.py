@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 
-from drivers import require_text
 from drivers.depth_camera.base import Calibration, DepthCameraError, depth_image, load_calibration
 from msgs import DepthImage
 
@@ -36,9 +35,6 @@ class Freenect2DepthCameraConfig:
     serial: str = ""
     pipeline: str = "cpu"  # cpu | opengl | opencl | cuda
     read_timeout_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        require_text(self, "serial", "calibration_file")
 
 
 def _import_binding() -> Any:

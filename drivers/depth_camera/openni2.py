@@ -17,7 +17,6 @@ import numpy as np
 from openni import openni2
 from openni.utils import InitializationError, OpenNIError
 
-from drivers import require_text
 from drivers.depth_camera.base import Calibration, DepthCameraError, depth_image, load_calibration
 from msgs import DepthImage
 
@@ -37,9 +36,6 @@ class OpenNI2DepthCameraConfig:
     fps: int = 30
     registration: bool = False  # map depth onto the colour camera (then calibrate that one)
     read_timeout_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        require_text(self, "uri", "serial", "oni_file", "library_dir", "calibration_file")
 
 
 def load_openni2(library_dir: str) -> None:

@@ -16,7 +16,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers import require_text
 from drivers.gelsight.base import EndOfStreamError, GelSightError, SensorPreset, preset
 from msgs import Header, TactileImage
 
@@ -44,9 +43,6 @@ class V4L2GelSightConfig:
     max_failed_reads: int = 3
     mm_per_px: float = 0.0  # 0: the preset's
     sysfs_root: str = "/sys/class/video4linux"
-
-    def __post_init__(self) -> None:
-        require_text(self, "device_name", "usb_port", "video_file", "sysfs_root")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,7 +23,6 @@ import time
 import serial
 from serial.tools import list_ports
 
-from drivers import require_text
 from drivers.gripper.protocol import (
     ACK_PAYLOAD,
     FAULT_FLAGS,
@@ -73,9 +72,6 @@ class WSG50Config:
     max_width_m: float = 0.110
     max_speed_m_s: float = 0.42
     max_force_n: float = 80.0
-
-    def __post_init__(self) -> None:
-        require_text(self, "port")
 
 
 class WSG50Gripper:
