@@ -1,17 +1,23 @@
 """Hardware backends, one package per device kind (LeRobot style).
 
-Each ``drivers/<kind>/`` holds the real backends and the simulated one side by side behind
-the same methods (``connect()``, ``read()``, ``disconnect()`` plus kind-specific commands),
-and exposes ``make_backend(params)``: ``params["backend"]`` picks the class, the remaining
-keys fill its config dataclass. Backends are imported only when chosen, so a lab without
-OpenNI2 can still run the GelSight, and the simulation needs no hardware library at all.
+Every backend keeps the contract of :class:`Device`: ``connect()`` opens and checks the
+device, ``read()`` returns its latest message, ``disconnect()`` releases it, and it works as
+a context manager. Each ``drivers/<kind>/`` declares its kind's contract in ``base.py``
+(:class:`Device` plus the kind's commands and return types), holds the real backends and the
+simulated one side by side behind it, and exposes ``make_backend(params)``:
+``params["backend"]`` picks the class, the remaining keys fill its config dataclass
+(msgs.config). Backends are imported only when chosen, so a lab without OpenNI2 can still run
+the GelSight, and the simulation needs no hardware library at all.
 """
 
 from __future__ import annotations
 
+import abc
 import dataclasses
+import functools
 import importlib
-from typing import Any
+from collections.abc import Callable
+from typing import Any, ClassVar, Self, TypeVar
 
 from msgs.config import ConfigError, config_from_dict
 
@@ -26,6 +32,59 @@ class DeviceError(RuntimeError):
         self.fix = fix
 
 
+class DeviceNotConnectedError(DeviceError):
+    """A device read or commanded before ``connect()`` or after ``disconnect()``."""
+
+
+class Device(abc.ABC):
+    """What every backend of every kind does; the kind's ``base.py`` adds its commands and
+    names its not-connected error (a DeviceNotConnectedError that is also the kind's error,
+    so a node catching the kind's errors catches it too)."""
+
+    NOT_CONNECTED: ClassVar[type[DeviceNotConnectedError]] = DeviceNotConnectedError
+
+    @property
+    @abc.abstractmethod
+    def is_connected(self) -> bool:
+        """True between a successful ``connect()`` and ``disconnect()``."""
+
+    @abc.abstractmethod
+    def connect(self) -> None:
+        """Open the device and check it can work; raise the kind's error, with the fix, if not."""
+
+    @abc.abstractmethod
+    def read(self) -> Any:
+        """The device's latest state or frame, as the message its node publishes."""
+
+    @abc.abstractmethod
+    def disconnect(self) -> None:
+        """Release the device; safe to call twice or after a failed ``connect()``."""
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.disconnect()
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def requires_connection(method: F) -> F:
+    """Make a device method raise DeviceNotConnectedError unless the device is connected."""
+
+    @functools.wraps(method)
+    def checked(self: Device, *args: Any, **kwargs: Any) -> Any:
+        if not self.is_connected:
+            raise type(self).NOT_CONNECTED(
+                f"{type(self).__name__}.{method.__name__}: the device is not connected; call connect() first"
+            )
+        return method(self, *args, **kwargs)
+
+    return checked  # type: ignore[return-value]
+
+
 @dataclasses.dataclass(frozen=True)
 class BackendEntry:
     """Where a backend lives: ``module`` holds both ``backend_class`` and ``config_class``."""
@@ -35,9 +94,15 @@ class BackendEntry:
     config_class: str
 
 
-def build_backend(kind: str, params: dict[str, Any], backends: dict[str, BackendEntry], **extras: Any) -> Any:
-    """Build the backend ``params["backend"]`` names, its config from the other params;
-    ``extras`` are handed to the backend's constructor beside the config.
+D = TypeVar("D", bound=Device)
+
+
+def build_backend(
+    contract: type[D], kind: str, params: dict[str, Any], backends: dict[str, BackendEntry], **extras: Any
+) -> D:
+    """Build the ``kind`` backend ``params["backend"]`` names, its config from the other params;
+    ``extras`` are handed to the backend's constructor beside the config. The backend keeps
+    ``contract`` (the kind's :class:`Device` subclass).
 
     Raises ValueError naming the allowed backends, or (msgs.config.ConfigError) the key and
     what it allows when ``params`` asks for something that does not exist or has the wrong type.
@@ -52,4 +117,7 @@ def build_backend(kind: str, params: dict[str, Any], backends: dict[str, Backend
         config = config_from_dict(getattr(module, entry.config_class), remaining)
     except ConfigError as exc:
         raise ConfigError(f"{kind} backend {choice!r}: {exc}") from None
-    return getattr(module, entry.backend_class)(config, **extras)
+    backend = getattr(module, entry.backend_class)(config, **extras)
+    if not isinstance(backend, contract):
+        raise TypeError(f"{entry.module}.{entry.backend_class} does not keep the {contract.__name__} contract")
+    return backend

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from drivers import BackendEntry, build_backend
+from drivers.arm.base import Arm
 
 # Modules load only when chosen, so the simulated world does not need ur_rtde and the lab
 # does not need the simulator.
@@ -21,7 +22,7 @@ BACKENDS = {
 __all__ = ["BACKENDS", "make_backend"]
 
 
-def make_backend(params: dict[str, Any]) -> Any:
+def make_backend(params: dict[str, Any]) -> Arm:
     """Arm backend chosen by ``params["backend"]``; a field holding a config dataclass (e.g.
     ``workspace``) takes a mapping."""
-    return build_backend("arm", params, BACKENDS)
+    return build_backend(Arm, "arm", params, BACKENDS)

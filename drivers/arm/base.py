@@ -7,11 +7,13 @@ anything to the robot, so a refused command never reaches the controller.
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 
 import numpy as np
 
-from drivers import DeviceError
+from drivers import Device, DeviceError, DeviceNotConnectedError
+from msgs import ArmState
 
 
 class ArmError(DeviceError):
@@ -34,6 +36,10 @@ class EmergencyStopError(ArmError):
     """An emergency stop is pressed; an operator must release it and restart the arm."""
 
 
+class ArmNotConnectedError(DeviceNotConnectedError, ArmConnectionError):
+    """An arm read or commanded before ``connect()`` or after ``disconnect()``."""
+
+
 class WorkspaceError(ArmError):
     """A target lies outside the allowed workspace; nothing was sent."""
 
@@ -44,6 +50,29 @@ class MotionLimitError(ArmError):
 
 class MotionAbortedError(ArmError):
     """A move ended before reaching its target (stopped, or the controller gave up)."""
+
+
+class Arm(Device):
+    """The arm contract. Moves block until the arm arrives; ``stop()`` and ``read()`` may be
+    called from another thread while a move waits (the move then raises MotionAbortedError)."""
+
+    NOT_CONNECTED = ArmNotConnectedError
+
+    @abc.abstractmethod
+    def read(self) -> ArmState:
+        """Joint angles and the TCP pose (base frame) as of the controller's last report."""
+
+    @abc.abstractmethod
+    def move_linear(self, tcp_pose: np.ndarray, speed_m_s: float, accel_m_s2: float) -> None:
+        """moveL to ``tcp_pose`` [x, y, z, rx, ry, rz] (m, rad)."""
+
+    @abc.abstractmethod
+    def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
+        """moveJ to joint angles ``q_rad``."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop any move in progress where it is."""
 
 
 @dataclasses.dataclass(frozen=True)

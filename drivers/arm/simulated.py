@@ -15,8 +15,9 @@ import time
 
 import numpy as np
 
+from drivers import requires_connection
 from drivers.arm.base import (
-    ArmConnectionError,
+    Arm,
     ArmError,
     MotionAbortedError,
     MotionLimits,
@@ -57,7 +58,7 @@ class SimulatedArmConfig:
 _SEED_JOINTS = np.array([-np.pi / 2, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
 
 
-class SimulatedArm:
+class SimulatedArm(Arm):
     def __init__(self, config: SimulatedArmConfig):
         self.config = config
         self.scene = None
@@ -133,9 +134,8 @@ class SimulatedArm:
         pose, q = motion.pose_at(t, self.kin)
         return pose, q, t < motion.duration_s
 
+    @requires_connection
     def read(self) -> ArmState:
-        if not self._connected:
-            raise ArmConnectionError("simulated arm is not connected")
         pose, q, moving = self._current()
         qd = np.zeros(6)
         with self._lock:
@@ -168,6 +168,7 @@ class SimulatedArm:
             if lowest < 0.0:
                 raise WorkspaceError(f"target z = {pose[2]:.4f} m puts the gels {-lowest * 1e3:.1f} mm into the table")
 
+    @requires_connection
     def move_linear(self, tcp_pose: np.ndarray, speed_m_s: float, accel_m_s2: float) -> None:
         """moveL to ``tcp_pose`` (world); blocks until reached. Raises WorkspaceError,
         MotionLimitError (nothing moves) or MotionAbortedError (stopped on the way)."""
@@ -179,6 +180,7 @@ class SimulatedArm:
         motion = plan_linear(self._pose.copy(), self._q.copy(), target, q_target, speed_m_s, accel_m_s2)
         self._run(motion)
 
+    @requires_connection
     def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
         """moveJ to joints ``q_rad``; blocks until reached."""
         q_target = as_six_vector(q_rad, "q_rad")
@@ -200,8 +202,6 @@ class SimulatedArm:
             raise WorkspaceError(str(err)) from None
 
     def _require_idle(self) -> None:
-        if not self._connected:
-            raise ArmConnectionError("simulated arm is not connected")
         with self._lock:
             if self._motion is not None:
                 raise ArmError("a move is already in progress")

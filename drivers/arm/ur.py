@@ -33,7 +33,9 @@ import rtde_control
 import rtde_receive
 from scipy.spatial.transform import Rotation
 
+from drivers import requires_connection
 from drivers.arm.base import (
+    Arm,
     ArmConnectionError,
     ArmError,
     ConnectionLostError,
@@ -106,7 +108,7 @@ class URArmConfig:
         self.tcp_offset = tuple(as_six_vector(self.tcp_offset, "tcp_offset"))
 
 
-class URArm:
+class URArm(Arm):
     """A UR arm behind ur_rtde. Safe to call ``stop()`` and ``read()`` from another thread
     while a move is waiting."""
 
@@ -217,10 +219,16 @@ class URArm:
             self._kicker.join()
             self._kicker = None
 
+    @property
+    def is_connected(self) -> bool:
+        return self._receive is not None and self._control is not None
+
     def read(self) -> ArmState:
         """Latest state: TCP pose (m, rotation vector rad, base frame), joints (rad, rad/s).
 
-        ``safety_status`` is "disconnected" when the stream closed or went stale.
+        ``safety_status`` is "disconnected" when the stream closed or went stale, and before
+        ``connect()``: the arm node publishes that state rather than failing, so read() is the
+        one method of this backend that works unconnected.
         """
         receive = self._receive
         if receive is None:
@@ -247,6 +255,7 @@ class URArm:
             safety_status=safety_status,
         )
 
+    @requires_connection
     def move_linear(self, tcp_pose: np.ndarray, speed_m_s: float, accel_m_s2: float) -> None:
         """Move the TCP in a straight line to ``tcp_pose`` [x, y, z, rx, ry, rz] (m, rad)
         at ``speed_m_s`` (m/s) and ``accel_m_s2`` (m/s²); block until it arrives.
@@ -272,6 +281,7 @@ class URArm:
             expected_s=travel / speed_m_s + speed_m_s / accel_m_s2,
         )
 
+    @requires_connection
     def move_joints(self, q_rad: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> None:
         """Move the joints to ``q_rad`` (rad) at ``speed_rad_s`` (rad/s) and
         ``accel_rad_s2`` (rad/s²); block until it arrives.
@@ -327,8 +337,6 @@ class URArm:
     def _execute(
         self, description: str, send: Callable[[], bool], arrived: Callable[[ArmState], bool], expected_s: float
     ) -> None:
-        if self._control is None:
-            raise ArmConnectionError(f"{description}: connect() first")
         if not self._move_lock.acquire(blocking=False):
             raise ArmError(f"{description}: another move is in progress")
         try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from drivers import BackendEntry, build_backend
-from drivers.depth_camera.base import DepthCameraError
+from drivers.depth_camera.base import DepthCamera, DepthCameraError
 
 BACKENDS = {
     "openni2": BackendEntry("drivers.depth_camera.openni2", "OpenNI2DepthCamera", "OpenNI2DepthCameraConfig"),
@@ -16,6 +16,6 @@ BACKENDS = {
 __all__ = ["BACKENDS", "DepthCameraError", "make_backend"]
 
 
-def make_backend(params: dict[str, Any], **extras: Any) -> Any:
+def make_backend(params: dict[str, Any], **extras: Any) -> DepthCamera:
     """Depth camera backend chosen by ``params["backend"]``."""
-    return build_backend("depth_camera", params, BACKENDS, **extras)
+    return build_backend(DepthCamera, "depth_camera", params, BACKENDS, **extras)

@@ -12,17 +12,33 @@ world frame (4x4, metres), as an extrinsic calibration of the lab produces them:
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from drivers import Device, DeviceError, DeviceNotConnectedError
 from msgs import CameraIntrinsics, DepthImage, Header
 
 
-class DepthCameraError(RuntimeError):
+class DepthCameraError(DeviceError):
     """Any failure of a depth camera backend; the message says what is missing and what to do."""
+
+
+class DepthCameraNotConnectedError(DeviceNotConnectedError, DepthCameraError):
+    """A depth camera read before ``connect()`` or after ``disconnect()``."""
+
+
+class DepthCamera(Device):
+    """The depth camera contract: ``read()`` blocks until the next frame."""
+
+    NOT_CONNECTED = DepthCameraNotConnectedError
+
+    @abc.abstractmethod
+    def read(self) -> DepthImage:
+        """The next depth frame (metres, camera optical frame) with the calibrated extrinsics."""
 
 
 @dataclasses.dataclass

@@ -11,7 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.depth_camera.base import Calibration, DepthCameraError, depth_image, load_calibration
+from drivers import requires_connection
+from drivers.depth_camera.base import Calibration, DepthCamera, DepthCameraError, depth_image, load_calibration
 from msgs import DepthImage
 
 PIPELINES = {
@@ -47,7 +48,7 @@ def _import_binding() -> Any:
         ) from exc
 
 
-class Freenect2DepthCamera:
+class Freenect2DepthCamera(DepthCamera):
     """``read()`` gives uint16 millimetre frames (512x424) with the calibration."""
 
     def __init__(self, config: Freenect2DepthCameraConfig) -> None:
@@ -86,10 +87,13 @@ class Freenect2DepthCamera:
             self._device.close()
             self._device = None
 
+    @property
+    def is_connected(self) -> bool:
+        return self._device is not None and self.calibration is not None
+
+    @requires_connection
     def read(self) -> DepthImage:
         """The next depth frame; DepthCameraError when none comes within ``read_timeout_s``."""
-        if self._device is None or self.calibration is None:
-            raise DepthCameraError("depth camera not connected: call connect() first")
         # Poll rather than block: the binding's waitForNewFrame() has no time-out.
         deadline = time.monotonic() + self.config.read_timeout_s
         while not self._listener.hasNewFrame():

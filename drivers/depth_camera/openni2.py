@@ -17,7 +17,8 @@ import numpy as np
 from openni import openni2
 from openni.utils import InitializationError, OpenNIError
 
-from drivers.depth_camera.base import Calibration, DepthCameraError, depth_image, load_calibration
+from drivers import requires_connection
+from drivers.depth_camera.base import Calibration, DepthCamera, DepthCameraError, depth_image, load_calibration
 from msgs import DepthImage
 
 
@@ -94,7 +95,7 @@ def _mode_text(mode: openni2.VideoMode) -> str:
     return f"{mode.resolutionX}x{mode.resolutionY}@{mode.fps} {pixel_format}"
 
 
-class OpenNI2DepthCamera:
+class OpenNI2DepthCamera(DepthCamera):
     """``read()`` gives uint16 millimetre frames in ``camera_<name>`` with the calibration."""
 
     def __init__(self, config: OpenNI2DepthCameraConfig) -> None:
@@ -130,10 +131,13 @@ class OpenNI2DepthCamera:
             self._device.close()
             self._device = None
 
+    @property
+    def is_connected(self) -> bool:
+        return self._stream is not None and self.calibration is not None
+
+    @requires_connection
     def read(self) -> DepthImage:
         """The next depth frame; DepthCameraError when none comes within ``read_timeout_s``."""
-        if self._stream is None or self.calibration is None:
-            raise DepthCameraError("depth camera not connected: call connect() first")
         try:
             ready = openni2.wait_for_any_stream([self._stream], self.config.read_timeout_s)
             frame = self._stream.read_frame() if ready is not None else None

@@ -14,7 +14,8 @@ import time
 
 import numpy as np
 
-from drivers.depth_camera.base import DepthCameraError
+from drivers import requires_connection
+from drivers.depth_camera.base import DepthCamera, DepthCameraError
 from msgs import CameraIntrinsics, DepthImage, Header
 from workcell.scene import SceneError
 
@@ -39,7 +40,7 @@ class SimulatedDepthCameraConfig:
             raise ValueError(f"rate_hz {self.rate_hz} outside (0, 1000]")
 
 
-class SimulatedDepthCamera:
+class SimulatedDepthCamera(DepthCamera):
     def __init__(self, config: SimulatedDepthCameraConfig):
         self.config = config
         self.world = None
@@ -71,9 +72,8 @@ class SimulatedDepthCamera:
     def is_connected(self) -> bool:
         return self.world is not None
 
+    @requires_connection
     def read(self) -> DepthImage:
-        if self.world is None:
-            raise DepthCameraError("simulated depth camera is not connected")
         if self.config.pace:
             now = time.monotonic()
             if self._next_t > now:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from drivers import BackendEntry, build_backend
-from drivers.gelsight.base import EndOfStreamError, GelSightError
+from drivers.gelsight.base import EndOfStreamError, GelSight, GelSightError
 
 BACKENDS = {
     "v4l2": BackendEntry("drivers.gelsight.v4l2", "V4L2GelSight", "V4L2GelSightConfig"),
@@ -15,6 +15,6 @@ BACKENDS = {
 __all__ = ["BACKENDS", "EndOfStreamError", "GelSightError", "make_backend"]
 
 
-def make_backend(params: dict[str, Any], **extras: Any) -> Any:
+def make_backend(params: dict[str, Any], **extras: Any) -> GelSight:
     """GelSight backend chosen by ``params["backend"]``."""
-    return build_backend("gelsight", params, BACKENDS, **extras)
+    return build_backend(GelSight, "gelsight", params, BACKENDS, **extras)

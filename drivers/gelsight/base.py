@@ -7,14 +7,32 @@ gel's scale at that size.
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 
 import cv2
 import numpy as np
 
+from drivers import Device, DeviceError, DeviceNotConnectedError
+from msgs import TactileImage
 
-class GelSightError(RuntimeError):
+
+class GelSightError(DeviceError):
     """Any failure of a GelSight backend; the message says which device and what to do."""
+
+
+class GelSightNotConnectedError(DeviceNotConnectedError, GelSightError):
+    """A GelSight read before ``connect()`` or after ``disconnect()``."""
+
+
+class GelSight(Device):
+    """The GelSight contract: ``read()`` blocks until the next tactile frame."""
+
+    NOT_CONNECTED = GelSightNotConnectedError
+
+    @abc.abstractmethod
+    def read(self) -> TactileImage:
+        """The next frame, cropped to the gel and resized to the preset's size (RGB)."""
 
 
 class EndOfStreamError(GelSightError):

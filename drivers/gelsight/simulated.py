@@ -19,7 +19,8 @@ import time
 
 import numpy as np
 
-from drivers.gelsight.base import GelSightError
+from drivers import requires_connection
+from drivers.gelsight.base import GelSight, GelSightError
 from msgs import Header, TactileImage
 from sim.seeding import state_rng
 from workcell.kinematics import gel_poses_world
@@ -53,7 +54,7 @@ class SimulatedGelSightConfig:
             raise ValueError(f"robot_state_period_s {self.robot_state_period_s} outside (0, 10] s")
 
 
-class SimulatedGelSight:
+class SimulatedGelSight(GelSight):
     def __init__(self, config: SimulatedGelSightConfig):
         self.config = config
         self.world = None
@@ -91,13 +92,12 @@ class SimulatedGelSight:
     def is_connected(self) -> bool:
         return self.renderer is not None
 
+    @requires_connection
     def observe_robot(
         self, tcp_pose_world: np.ndarray, gripper_width_m: float, force_n: float, stamp_ns: int | None = None
     ) -> None:
         """Latest robot state: TCP pose (UR pose, world), gripper width (m), grasp force (N), and
         when the state was published (``stamp_ns``, wall clock ns; None: no bound on frames)."""
-        if self.world is None:
-            raise GelSightError("simulated GelSight is not connected")
         if stamp_ns is not None:
             self._known_until_ns = int(stamp_ns) + int(self.config.robot_state_period_s * 1e9)
         pose = np.asarray(tcp_pose_world, dtype=np.float64)
@@ -128,9 +128,8 @@ class SimulatedGelSight:
         object comes within 1 cm of the gel it is all +inf (the cast is skipped)."""
         return None if self._gap is None else self._gap.copy()
 
+    @requires_connection
     def read(self) -> TactileImage:
-        if self.renderer is None:
-            raise GelSightError("simulated GelSight is not connected")
         if self.config.pace:
             now = time.monotonic()
             if self._next_t > now:

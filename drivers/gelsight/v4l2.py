@@ -16,7 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.gelsight.base import EndOfStreamError, GelSightError, SensorPreset, preset
+from drivers import requires_connection
+from drivers.gelsight.base import EndOfStreamError, GelSight, GelSightError, SensorPreset, preset
 from msgs import Header, TactileImage
 
 # V4L2's V4L2_CID_EXPOSURE_AUTO value for manual exposure (OpenCV passes it through).
@@ -129,7 +130,7 @@ class FrameSource:
         self.capture.release()
 
 
-class V4L2GelSight:
+class V4L2GelSight(GelSight):
     """``read()`` gives the cropped, resized frame with the background captured at connect."""
 
     def __init__(self, config: V4L2GelSightConfig) -> None:
@@ -159,6 +160,11 @@ class V4L2GelSight:
             self._source.release()
             self._source = None
 
+    @property
+    def is_connected(self) -> bool:
+        return self._source is not None
+
+    @requires_connection
     def read(self) -> TactileImage:
         """The next tactile frame (raises EndOfStreamError when a video ends)."""
         image = self._processed()
@@ -170,8 +176,7 @@ class V4L2GelSight:
         )
 
     def _processed(self) -> np.ndarray:
-        if self._source is None:
-            raise GelSightError("GelSight not connected: call connect() first")
+        assert self._source is not None  # read() requires a connection
         return self._preset.crop_and_resize(self._source.next_rgb())
 
     def _open_video(self) -> FrameSource:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from drivers import BackendEntry, build_backend
+from drivers.gripper.base import Gripper
 from drivers.gripper.protocol import GripperError
 
 BACKENDS = {
@@ -15,7 +16,7 @@ BACKENDS = {
 __all__ = ["BACKENDS", "GripperError", "make_backend"]
 
 
-def make_backend(params: dict[str, Any], **extras: Any) -> Any:
+def make_backend(params: dict[str, Any], **extras: Any) -> Gripper:
     """Gripper backend chosen by ``params["backend"]``; ``extras`` go to its constructor
     (the simulated world passes ``contact_width_m`` this way)."""
-    return build_backend("gripper", params, BACKENDS, **extras)
+    return build_backend(Gripper, "gripper", params, BACKENDS, **extras)

@@ -23,6 +23,8 @@ import time
 import serial
 from serial.tools import list_ports
 
+from drivers import requires_connection
+from drivers.gripper.base import Gripper
 from drivers.gripper.protocol import (
     ACK_PAYLOAD,
     FAULT_FLAGS,
@@ -74,7 +76,7 @@ class WSG50Config:
     max_force_n: float = 80.0
 
 
-class WSG50Gripper:
+class WSG50Gripper(Gripper):
     """Commands take and return SI units; the wire carries mm, mm/s and N."""
 
     def __init__(self, config: WSG50Config) -> None:
@@ -121,15 +123,21 @@ class WSG50Gripper:
             self._link = None
 
     @property
+    def is_connected(self) -> bool:
+        return self._link is not None
+
+    @property
     def discarded_bytes(self) -> int:
         """Bytes the client skipped as garbage or corrupted frames since it was made."""
         return self._parser.discarded_bytes
 
     # -- commands --------------------------------------------------------------------------
+    @requires_connection
     def read(self) -> GripperState:
         """Current opening, grasping force and grasping state."""
         return self._state(Status.E_SUCCESS)
 
+    @requires_connection
     def preflight(self) -> None:
         """Refuse a gripper that answers but cannot move: in FAST STOP, faulted, not
         referenced (every motion would get E_ACCESS_DENIED; system state 0x40), or in the
@@ -156,6 +164,7 @@ class WSG50Gripper:
                 "see its web interface for the cause, then `dtx hw acknowledge LAUNCHFILE`",
             )
 
+    @requires_connection
     def acknowledge(self) -> GripperState:
         """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again;
         nothing is sent when the gripper is not in FAST STOP."""
@@ -166,10 +175,12 @@ class WSG50Gripper:
             raise GripperError(f"acknowledging the fast stop failed: {status_name(status)}")
         return self._state(status)
 
+    @requires_connection
     def referenced(self) -> bool:
         """Whether the gripper has been homed since it powered up."""
         return bool(self._system_flags() & SystemFlag.REFERENCED)
 
+    @requires_connection
     def home(self) -> GripperState:
         """Reference the fingers (they open fully); needed after the gripper powers up.
         Returns when homing's own final status comes (the grasping state says IDLE throughout)."""
@@ -181,6 +192,7 @@ class WSG50Gripper:
             )
         return self._state(status)
 
+    @requires_connection
     def move(self, width_m: float, speed_m_s: float) -> GripperState:
         """Move the fingers to ``width_m`` at ``speed_m_s`` without force control."""
         self._check_range("move", width_m, speed_m_s)
@@ -199,6 +211,7 @@ class WSG50Gripper:
             raise GripperError(f"move to {width_m * 1e3:.1f} mm failed: {status_name(status)}")
         return state
 
+    @requires_connection
     def grasp(self, width_m: float, speed_m_s: float, force_n: float) -> GripperState:
         """Close towards ``width_m`` until contact, then hold at ``force_n``.
 
@@ -216,6 +229,7 @@ class WSG50Gripper:
             return state
         raise GripperError(f"grasp failed: {status_name(status)} (gripper state {state.state})")
 
+    @requires_connection
     def release(self, width_m: float, speed_m_s: float) -> GripperState:
         """Open to ``width_m`` (wider than now) at ``speed_m_s``, letting go of the part."""
         self._check_range("release", width_m, speed_m_s)
@@ -225,6 +239,7 @@ class WSG50Gripper:
             raise GripperError(f"release failed: {status_name(status)}")
         return self._state(status)
 
+    @requires_connection
     def stop(self) -> GripperState:
         """Stop the fingers where they are; a running command ends with E_CMD_ABORTED (and
         is reported so even if its final answer is lost). The gripper lets go of a held part."""
@@ -234,6 +249,7 @@ class WSG50Gripper:
             raise GripperError(f"stop failed: {status_name(status)}")
         return self._state(status)
 
+    @requires_connection
     def set_force_limit(self, force_n: float) -> None:
         """Grasping force (N) the next grasp holds with."""
         if not 0.0 < force_n <= self.config.max_force_n:
@@ -377,8 +393,8 @@ class WSG50Gripper:
             return self._replies[command]
 
     def _write(self, frame: bytes) -> None:
-        if self._link is None:
-            raise GripperError("gripper not connected: call connect() first")
+        if self._link is None:  # disconnect() ran while a command was under way
+            raise self.NOT_CONNECTED("the gripper was disconnected during the command")
         if self._link_error is not None:
             raise GripperError(f"serial link to the gripper lost: {self._link_error}")
         with self._write_lock:
