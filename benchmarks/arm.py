@@ -1,8 +1,7 @@
 """UR arm figures through the real ur_rtde client against the fake UR controller
-(drivers/arm/ur_controller_sim.py): the RTDE state rate the
-client actually receives from a 500 Hz controller, and the time from ``stop()`` on the
-backend to the controller receiving the stopL command (both clocks are the machine's
-monotonic clock)."""
+(sim/ur_controller/): the RTDE state rate the client actually receives from a 500 Hz
+controller, and the time from ``stop()`` on the backend to the controller receiving the
+stopL command (both clocks are the machine's monotonic clock)."""
 
 from __future__ import annotations
 
@@ -17,7 +16,7 @@ import rtde_receive
 
 from drivers.arm.base import MotionAbortedError
 from drivers.arm.ur import STATE_VARIABLES, URArm, URArmConfig
-from drivers.arm.ur_controller_sim import CMD_STOPL, FakeURController
+from sim.ur_controller import CMD_STOPL, FakeURController
 
 POLL_PERIOD_S = 50e-6
 

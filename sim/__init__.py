@@ -8,6 +8,8 @@
 - ``sim.gelsight``: the GelSight renderer; ``sim.gelsight_effects`` its optional effects.
 - ``sim.registration_check``, ``sim.gelsight_check``: perception and the renderer checked
   against the simulated ground truth and real presses.
+- ``sim.ur_controller``: a fake UR e-Series controller (RTDE, dashboard and script server)
+  that the real ur_rtde client drives in the UR backend's tests and benchmarks.
 
 ``import sim.gelsight`` does not load Open3D.
 """

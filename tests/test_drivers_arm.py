@@ -28,9 +28,9 @@ from drivers.arm.base import (
     WorkspaceError,
 )
 from drivers.arm.ur import URArm
-from drivers.arm.ur_controller_sim import CMD_MOVEL, CMD_SET_WATCHDOG, CMD_STOPJ, CMD_STOPL, HOME_Q, FakeURController
 from drivers.cli import check_device
 from dtx.launch import NodeSpec
+from sim.ur_controller import CMD_MOVEL, CMD_SET_WATCHDOG, CMD_STOPJ, CMD_STOPL, HOME_Q, FakeURController
 from workcell.ur_kinematics import tcp_pose
 
 pytestmark = pytest.mark.timeout(90)
