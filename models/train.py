@@ -2,7 +2,13 @@
 
 Paper settings by default: vanilla cGAN loss on logits (BCE), L1 weighted by lambda = 100,
 Adam lr 2e-4, betas (0.5, 0.999); the learning rate is constant for ``epochs`` and then
-decays linearly to zero over ``epochs_decay`` (as in pix2pix).
+decays linearly to zero over ``epochs_decay`` (as in pix2pix: a LambdaLR per optimiser,
+stepped after every epoch).
+
+The parts, as in pix2pix's reference implementation: :func:`build_state` (data, networks,
+optimisers, schedule: a :class:`TrainState`), :func:`resume_state`, :func:`train_step` (one
+discriminator step and one generator step: the paper's objective), :class:`TrainLog` and
+:func:`save_checkpoint`; :func:`train` runs them.
 
 Reproducible: the seed fixes the initial weights, the sample order of every epoch (a
 permutation seeded by seed and epoch) and dropout; on CPU the same seed gives the same
@@ -13,10 +19,12 @@ CUDA, gloo on CPU), wraps both networks in DistributedDataParallel and gives eac
 WORLD_SIZE-th sample of the epoch's permutation; rank 0 alone logs and saves. BatchNorm
 statistics stay per rank, as in pix2pix.
 
-Outputs in ``--out``: ``checkpoint.pt`` (state dicts, configs and progress, loadable with
-``torch.load(weights_only=True)``), ``train_log.csv`` (losses every ``log_every`` steps),
-``val_log.csv`` (validation L1 and SSIM after every epoch), and the same scalars as TensorBoard
-events in ``tensorboard/`` (``tensorboard --logdir OUT/tensorboard``).
+Outputs in ``--out``: ``checkpoint.pt`` (state dicts of the networks, optimisers and
+learning-rate schedulers, configs and progress, loadable with ``torch.load(weights_only=True)``;
+one from before the schedulers were saved resumes with the schedule rebuilt at its epoch),
+``train_log.csv`` (losses every ``log_every`` steps), ``val_log.csv`` (validation L1 and SSIM
+after every epoch), and the same scalars as TensorBoard events in ``tensorboard/``
+(``tensorboard --logdir OUT/tensorboard``).
 """
 
 from __future__ import annotations
@@ -27,7 +35,7 @@ import dataclasses
 import os
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +43,7 @@ import numpy as np
 import torch
 import yaml
 from torch import nn
+from torch.optim.lr_scheduler import LambdaLR
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
@@ -293,6 +302,296 @@ def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm:
     return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m), pose_sigma_mm), config.image_size)
 
 
+@dataclasses.dataclass
+class TrainState:
+    """A training run: the networks (``generator`` and ``discriminator`` are wrapped in
+    DistributedDataParallel once training starts on several ranks), their optimisers and
+    learning-rate schedulers, this rank's data and the schedule; ``epoch`` is the next epoch to
+    run and ``step`` the optimiser steps taken. ``meta`` is what every checkpoint records
+    about the data."""
+
+    config: TrainConfig
+    dist: _Dist
+    generator: nn.Module
+    discriminator: nn.Module
+    average: nn.Module | None  # the weight average of the generator (ema_decay), or None
+    opt_g: torch.optim.Optimizer
+    opt_d: torch.optim.Optimizer
+    schedulers: list[LambdaLR]  # one per optimiser: generator's, discriminator's
+    x_train: torch.Tensor
+    y_train: torch.Tensor
+    x_val: torch.Tensor
+    y_val: torch.Tensor
+    mean_image: torch.Tensor
+    per_rank: int  # training samples of each rank per epoch
+    total_steps: int
+    meta: dict[str, Any]
+    epoch: int = 0
+    step: int = 0
+    bce: nn.Module = dataclasses.field(default_factory=nn.BCEWithLogitsLoss)
+
+    @property
+    def served(self) -> nn.Module:
+        """The generator that is validated, saved as ``generator`` and served."""
+        return self.average if self.average is not None else _unwrap(self.generator)
+
+
+SCHEDULER_KEYS = ("scheduler_generator", "scheduler_discriminator")
+
+
+def lr_schedulers(config: TrainConfig, optimizers: Sequence[torch.optim.Optimizer], epoch: int = 0) -> list[LambdaLR]:
+    """One LambdaLR per optimiser, setting lr * lr_factor(config, epoch) for each epoch and
+    stepped once at the end of it, positioned at ``epoch`` (the next epoch to run; above 0 it
+    rebuilds the schedule of a checkpoint that did not save one)."""
+    if epoch:
+        for optimizer in optimizers:
+            for group in optimizer.param_groups:
+                group["initial_lr"] = config.lr
+
+    def factor(e: int) -> float:
+        return lr_factor(config, e)
+
+    return [LambdaLR(optimizer, factor, last_epoch=epoch - 1) for optimizer in optimizers]
+
+
+def _load_data(
+    dataset: str | os.PathLike[str], config: TrainConfig, libraries: Sequence[str | os.PathLike[str]], dist: _Dist
+) -> tuple[tuple[torch.Tensor, ...], dict[str, Any]]:
+    """Train and validation inputs and targets on the device, and the checkpoint's record of
+    the data (depth range, dataset, libraries, physics prior)."""
+    reader = DatasetReader(dataset)
+    prior = session_prior(reader, config.generator, config.session_pose_sigma_mm)
+    x_train, y_train = load_pairs(
+        reader, select_records(reader, "train", config.hold_out_object), config.generator, prior
+    )
+    x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), config.generator, prior)
+    library = load_library(libraries, reader, config.generator, prior)
+    if library is not None:
+        x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
+    meta = {
+        "depth_range_m": list(reader.info.depth_range_m),
+        "dataset": str(Path(dataset).resolve()),
+        "libraries": [str(Path(library).resolve()) for library in libraries],
+        **({"prior": prior.spec.to_dict()} if prior is not None else {}),
+    }
+    return tuple(t.to(dist.device) for t in (x_train, y_train, x_val, y_val)), meta
+
+
+def build_state(
+    dataset: str | os.PathLike[str],
+    config: TrainConfig,
+    libraries: Sequence[str | os.PathLike[str]] = (),
+    dist: _Dist | None = None,
+) -> TrainState:
+    """A fresh run: data, seeded and initialised networks, Adam optimisers, their
+    learning-rate schedulers at epoch 0, and the number of steps."""
+    dist = dist or _Dist()
+    (x_train, y_train, x_val, y_val), meta = _load_data(dataset, config, libraries, dist)
+    per_rank = len(x_train) // dist.world
+    if per_rank == 0:
+        raise ModelConfigError(f"{len(x_train)} training samples cannot be shared by {dist.world} ranks")
+    total_steps = (config.epochs + config.epochs_decay) * -(-per_rank // config.batch_size)
+    if config.max_steps:
+        total_steps = min(total_steps, config.max_steps)
+
+    torch.manual_seed(config.seed)
+    generator = UNetGenerator(config.generator).to(dist.device)
+    discriminator = PatchDiscriminator(config.discriminator).to(dist.device)
+    init_weights(generator)
+    init_weights(discriminator)
+    mean_image = y_train.mean(dim=0)
+    if config.generator.background:
+        generator.set_background(mean_image)
+    average = copy.deepcopy(generator).requires_grad_(False) if config.ema_decay else None
+    betas = (config.beta1, config.beta2)
+    opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
+    opt_d = torch.optim.Adam(discriminator.parameters(), lr=config.lr, betas=betas)
+    return TrainState(
+        config=config,
+        dist=dist,
+        generator=generator,
+        discriminator=discriminator,
+        average=average,
+        opt_g=opt_g,
+        opt_d=opt_d,
+        schedulers=lr_schedulers(config, (opt_g, opt_d)),
+        x_train=x_train,
+        y_train=y_train,
+        x_val=x_val,
+        y_val=y_val,
+        mean_image=mean_image,
+        per_rank=per_rank,
+        total_steps=total_steps,
+        meta=meta,
+    )
+
+
+def resume_state(state: TrainState, path: Path) -> None:
+    """Continue ``state`` where checkpoint ``path`` left off: weights, optimisers, learning-rate
+    schedule, progress and the CPU random state. A checkpoint saved before the schedule was
+    (no scheduler entries) gets it rebuilt at its epoch."""
+    checkpoint = load_checkpoint(path)
+    if TrainConfig.from_dict(checkpoint["train_config"]) != state.config:
+        raise ModelConfigError(
+            f"{path} was trained with a different config; resume with the same config or train into a new --out"
+        )
+    average = state.average
+    state.generator.load_state_dict(checkpoint["generator_raw"] if average is not None else checkpoint["generator"])
+    if average is not None:
+        average.load_state_dict(checkpoint["generator"])
+    state.discriminator.load_state_dict(checkpoint["discriminator"])
+    state.opt_g.load_state_dict(checkpoint["opt_generator"])
+    state.opt_d.load_state_dict(checkpoint["opt_discriminator"])
+    state.epoch, state.step = int(checkpoint["epoch"]), int(checkpoint["step"])
+    if all(key in checkpoint for key in SCHEDULER_KEYS):
+        for scheduler, key in zip(state.schedulers, SCHEDULER_KEYS):
+            scheduler.load_state_dict(checkpoint[key])
+    else:
+        state.schedulers = lr_schedulers(state.config, (state.opt_g, state.opt_d), state.epoch)
+    torch.set_rng_state(checkpoint["rng_cpu"])
+
+
+def _distribute(state: TrainState) -> None:
+    """Wrap both networks in DistributedDataParallel when training on several ranks."""
+    if state.dist.world > 1:
+        device_ids = [state.dist.device.index] if state.dist.device.type == "cuda" else None
+        state.generator = nn.parallel.DistributedDataParallel(state.generator, device_ids=device_ids)
+        state.discriminator = nn.parallel.DistributedDataParallel(state.discriminator, device_ids=device_ids)
+
+
+def train_step(state: TrainState, batch: tuple[torch.Tensor, torch.Tensor]) -> dict[str, float]:
+    """One pix2pix iteration on a batch of inputs x (depth-maps) and targets y (tactile images):
+
+    * D step: minimise (BCE(D(x, y), 1) + BCE(D(x, G(x)), 0)) / 2, real pairs against
+      generated ones (the generated image detached);
+    * G step: minimise BCE(D(x, G(x)), 1) + lambda_l1 * L1(G(x), y), the L1 weighted per
+      pixel by :func:`contact_weights` (all 1 with contact_weight 0: the paper's L1);
+    * the weight average (ema_decay) follows the generator.
+
+    Returns the four losses, in that order."""
+    config, bce = state.config, state.bce
+    x, y = batch
+    fake = state.generator(x)
+
+    # Discriminator: real pairs -> 1, generated pairs -> 0. One backward per forward, so that
+    # DistributedDataParallel reduces each pass cleanly.
+    state.discriminator.requires_grad_(True)
+    state.opt_d.zero_grad(set_to_none=True)
+    pred_real = state.discriminator(x, y)
+    loss_d_real = bce(pred_real, torch.ones_like(pred_real))
+    (0.5 * loss_d_real).backward()
+    pred_fake = state.discriminator(x, fake.detach())
+    loss_d_fake = bce(pred_fake, torch.zeros_like(pred_fake))
+    (0.5 * loss_d_fake).backward()
+    state.opt_d.step()
+
+    # Generator: fool the discriminator (its unwrapped module: no gradient reduction for D
+    # here) and stay close to the target in L1.
+    state.discriminator.requires_grad_(False)
+    state.opt_g.zero_grad(set_to_none=True)
+    pred = _unwrap(state.discriminator)(x, fake)
+    loss_g_gan = bce(pred, torch.ones_like(pred))
+    weights = contact_weights(y, state.mean_image, config.contact_weight)  # all 1: the paper's L1
+    loss_g_l1 = ((fake - y).abs() * weights).mean() / weights.mean()
+    (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
+    state.opt_g.step()
+    if state.average is not None:
+        _update_average(state.average, _unwrap(state.generator), config.ema_decay)
+    losses = {"loss_d_real": loss_d_real, "loss_d_fake": loss_d_fake, "loss_g_gan": loss_g_gan, "loss_g_l1": loss_g_l1}
+    return {name: loss.item() for name, loss in losses.items()}
+
+
+def _epoch_batches(state: TrainState, epoch: int) -> Iterator[torch.Tensor]:
+    """This rank's sample indices of ``epoch``, batch by batch: a permutation seeded by the seed
+    and the epoch, of which each rank takes every world-th sample."""
+    config, dist = state.config, state.dist
+    order = torch.randperm(len(state.x_train), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
+    mine = order[: state.per_rank * dist.world][dist.rank :: dist.world].to(dist.device)
+    for start in range(0, state.per_rank, config.batch_size):
+        yield mine[start : start + config.batch_size]
+
+
+class TrainLog:
+    """The progress bar, ``train_log.csv`` (window means of the losses every ``log_every``
+    steps), ``val_log.csv`` and TensorBoard scalars; only rank 0 writes files."""
+
+    def __init__(self, out_dir: Path, state: TrainState, resumed: bool, progress: bool = True) -> None:
+        self.out_dir, self.log_every, self.total_steps = out_dir, state.config.log_every, state.total_steps
+        rank0 = state.dist.rank == 0
+        if rank0 and not resumed:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            for log in ("train_log.csv", "val_log.csv"):
+                (out_dir / log).unlink(missing_ok=True)
+            shutil.rmtree(out_dir / "tensorboard", ignore_errors=True)
+        # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
+        self.board = SummaryWriter(out_dir / "tensorboard", purge_step=state.step) if rank0 else None
+        self.bar = tqdm(total=state.total_steps, initial=state.step, desc="train", disable=not progress or not rank0)
+        self.window: list[list[float]] = []
+        self.started = time.monotonic()
+
+    def losses(self, epoch: int, step: int, lr: float, losses: dict[str, float]) -> None:
+        """Step ``step``'s losses; their means since the last entry every ``log_every`` steps."""
+        self.bar.update(1)
+        self.window.append(list(losses.values()))
+        if step % self.log_every and step != self.total_steps:
+            return
+        means = np.mean(self.window, axis=0)
+        self.window.clear()
+        self.bar.set_postfix(
+            d_real=f"{means[0]:.3f}", d_fake=f"{means[1]:.3f}", g_gan=f"{means[2]:.3f}", g_l1=f"{means[3]:.4f}"
+        )
+        if self.board is not None:
+            names = list(losses)
+            _append_csv(
+                self.out_dir / "train_log.csv",
+                ["epoch", "step", "lr", *names],
+                [epoch, step, lr, *[f"{m:.6g}" for m in means]],
+            )
+            for name, value in zip(names, means):
+                self.board.add_scalar(f"train/{name}", value, step)
+            self.board.add_scalar("train/lr", lr, step)
+
+    def validation(self, epoch: int, step: int, generator: nn.Module, x_val: torch.Tensor, y_val: torch.Tensor) -> None:
+        """Validate ``generator`` after ``epoch``; rank 0 alone calls this."""
+        val_l1, val_ssim = _validate(generator, x_val, y_val)
+        _append_csv(
+            self.out_dir / "val_log.csv",
+            ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
+            [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - self.started:.1f}"],
+        )
+        self.board.add_scalar("val/l1", val_l1, step)
+        self.board.add_scalar("val/ssim", val_ssim, step)
+        self.board.flush()
+
+    def close(self) -> None:
+        self.bar.close()
+        if self.board is not None:
+            self.board.close()
+
+
+def save_checkpoint(state: TrainState, path: Path) -> None:
+    """Write ``state`` to ``path`` atomically: the served generator (and the raw one when it is
+    a weight average), the discriminator, both optimisers and learning-rate schedulers,
+    progress, the CPU random state, the config and the record of the data."""
+    raw = {"generator_raw": _unwrap(state.generator).state_dict()} if state.average is not None else {}
+    _save_atomic(
+        {
+            "generator": state.served.state_dict(),
+            **raw,
+            "discriminator": _unwrap(state.discriminator).state_dict(),
+            "opt_generator": state.opt_g.state_dict(),
+            "opt_discriminator": state.opt_d.state_dict(),
+            **{key: scheduler.state_dict() for key, scheduler in zip(SCHEDULER_KEYS, state.schedulers)},
+            "epoch": state.epoch,
+            "step": state.step,
+            "rng_cpu": torch.get_rng_state(),
+            "train_config": state.config.to_dict(),
+            **state.meta,
+        },
+        path,
+    )
+
+
 def train(
     dataset: str | os.PathLike[str],
     config: TrainConfig,
@@ -308,176 +607,35 @@ def train(
     ``stop_after_epochs`` ends this run early (the checkpoint can be resumed) without changing
     the schedule."""
     config.validate()
-    out_dir = Path(out)
+    checkpoint_path = Path(out) / CHECKPOINT
     dist = _setup_distributed()
     try:
         if config.threads:
             torch.set_num_threads(config.threads)
-        reader = DatasetReader(dataset)
-        prior = session_prior(reader, config.generator, config.session_pose_sigma_mm)
-        x_train, y_train = load_pairs(
-            reader, select_records(reader, "train", config.hold_out_object), config.generator, prior
-        )
-        x_val, y_val = load_pairs(
-            reader, select_records(reader, "val", config.hold_out_object), config.generator, prior
-        )
-        library = load_library(libraries, reader, config.generator, prior)
-        if library is not None:
-            x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
-        x_train, y_train = x_train.to(dist.device), y_train.to(dist.device)
-        x_val, y_val = x_val.to(dist.device), y_val.to(dist.device)
-
-        torch.manual_seed(config.seed)
-        generator = UNetGenerator(config.generator).to(dist.device)
-        discriminator = PatchDiscriminator(config.discriminator).to(dist.device)
-        init_weights(generator)
-        init_weights(discriminator)
-        mean_image = y_train.mean(dim=0)
-        if config.generator.background:
-            generator.set_background(mean_image)
-        average = copy.deepcopy(generator).requires_grad_(False) if config.ema_decay else None
-        betas = (config.beta1, config.beta2)
-        opt_g = torch.optim.Adam(generator.parameters(), lr=config.lr, betas=betas)
-        opt_d = torch.optim.Adam(discriminator.parameters(), lr=config.lr, betas=betas)
-        start_epoch, step = 0, 0
-        checkpoint_path = out_dir / CHECKPOINT
-        if resume and checkpoint_path.exists():
-            state = load_checkpoint(checkpoint_path)
-            if TrainConfig.from_dict(state["train_config"]) != config:
-                raise ModelConfigError(
-                    f"{checkpoint_path} was trained with a different config; "
-                    "resume with the same config or train into a new --out"
-                )
-            generator.load_state_dict(state["generator_raw"] if average is not None else state["generator"])
-            if average is not None:
-                average.load_state_dict(state["generator"])
-            discriminator.load_state_dict(state["discriminator"])
-            opt_g.load_state_dict(state["opt_generator"])
-            opt_d.load_state_dict(state["opt_discriminator"])
-            start_epoch, step = int(state["epoch"]), int(state["step"])
-            torch.set_rng_state(state["rng_cpu"])
-        elif dist.rank == 0:
-            out_dir.mkdir(parents=True, exist_ok=True)
-            for log in ("train_log.csv", "val_log.csv"):
-                (out_dir / log).unlink(missing_ok=True)
-            shutil.rmtree(out_dir / "tensorboard", ignore_errors=True)
-        # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
-        board = SummaryWriter(out_dir / "tensorboard", purge_step=step) if dist.rank == 0 else None
-
-        if dist.world > 1:
-            device_ids = [dist.device.index] if dist.device.type == "cuda" else None
-            generator = nn.parallel.DistributedDataParallel(generator, device_ids=device_ids)
-            discriminator = nn.parallel.DistributedDataParallel(discriminator, device_ids=device_ids)
-        bce = nn.BCEWithLogitsLoss()
+        state = build_state(dataset, config, libraries, dist)
+        resumed = resume and checkpoint_path.exists()
+        if resumed:
+            resume_state(state, checkpoint_path)
+        log = TrainLog(Path(out), state, resumed, progress)
+        _distribute(state)
         total_epochs = config.epochs + config.epochs_decay
-        per_rank = len(x_train) // dist.world
-        if per_rank == 0:
-            raise ModelConfigError(f"{len(x_train)} training samples cannot be shared by {dist.world} ranks")
-        steps_per_epoch = -(-per_rank // config.batch_size)
-        total_steps = total_epochs * steps_per_epoch
-        if config.max_steps:
-            total_steps = min(total_steps, config.max_steps)
-        bar = tqdm(total=total_steps, initial=step, desc="train", disable=not progress or dist.rank != 0)
-        window: list[list[float]] = []
-        last_epoch = total_epochs if stop_after_epochs is None else min(total_epochs, start_epoch + stop_after_epochs)
-        started = time.monotonic()
-
-        for epoch in range(start_epoch, last_epoch):
-            if step >= total_steps:
+        last_epoch = total_epochs if stop_after_epochs is None else min(total_epochs, state.epoch + stop_after_epochs)
+        for epoch in range(state.epoch, last_epoch):
+            if state.step >= state.total_steps:
                 break
-            for opt in (opt_g, opt_d):
-                for group in opt.param_groups:
-                    group["lr"] = config.lr * lr_factor(config, epoch)
-            order = torch.randperm(len(x_train), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
-            mine = order[: per_rank * dist.world][dist.rank :: dist.world].to(dist.device)
-            for start in range(0, per_rank, config.batch_size):
-                if step >= total_steps:
+            for index in _epoch_batches(state, epoch):
+                if state.step >= state.total_steps:
                     break
-                index = mine[start : start + config.batch_size]
-                x, y = x_train[index], y_train[index]
-                fake = generator(x)
-
-                # Discriminator: real pairs -> 1, generated pairs -> 0. One backward per
-                # forward, so that DistributedDataParallel reduces each pass cleanly.
-                discriminator.requires_grad_(True)
-                opt_d.zero_grad(set_to_none=True)
-                pred_real = discriminator(x, y)
-                loss_d_real = bce(pred_real, torch.ones_like(pred_real))
-                (0.5 * loss_d_real).backward()
-                pred_fake = discriminator(x, fake.detach())
-                loss_d_fake = bce(pred_fake, torch.zeros_like(pred_fake))
-                (0.5 * loss_d_fake).backward()
-                opt_d.step()
-
-                # Generator: fool the discriminator (its unwrapped module: no gradient
-                # reduction for D here) and stay close to the target in L1.
-                discriminator.requires_grad_(False)
-                opt_g.zero_grad(set_to_none=True)
-                pred = _unwrap(discriminator)(x, fake)
-                loss_g_gan = bce(pred, torch.ones_like(pred))
-                weights = contact_weights(y, mean_image, config.contact_weight)  # all 1: the paper's L1
-                loss_g_l1 = ((fake - y).abs() * weights).mean() / weights.mean()
-                (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
-                opt_g.step()
-                if average is not None:
-                    _update_average(average, _unwrap(generator), config.ema_decay)
-
-                step += 1
-                bar.update(1)
-                window.append([loss.item() for loss in (loss_d_real, loss_d_fake, loss_g_gan, loss_g_l1)])
-                if step % config.log_every == 0 or step == total_steps:
-                    means = np.mean(window, axis=0)
-                    window.clear()
-                    bar.set_postfix(
-                        d_real=f"{means[0]:.3f}",
-                        d_fake=f"{means[1]:.3f}",
-                        g_gan=f"{means[2]:.3f}",
-                        g_l1=f"{means[3]:.4f}",
-                    )
-                    if board is not None:
-                        names = ["loss_d_real", "loss_d_fake", "loss_g_gan", "loss_g_l1"]
-                        _append_csv(
-                            out_dir / "train_log.csv",
-                            ["epoch", "step", "lr", *names],
-                            [epoch, step, opt_g.param_groups[0]["lr"], *[f"{m:.6g}" for m in means]],
-                        )
-                        for name, value in zip(names, means):
-                            board.add_scalar(f"train/{name}", value, step)
-                        board.add_scalar("train/lr", opt_g.param_groups[0]["lr"], step)
-
-            if board is not None:
-                served = average if average is not None else _unwrap(generator)
-                val_l1, val_ssim = _validate(served, x_val, y_val)
-                _append_csv(
-                    out_dir / "val_log.csv",
-                    ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
-                    [epoch, step, f"{val_l1:.6g}", f"{val_ssim:.6g}", f"{time.monotonic() - started:.1f}"],
-                )
-                board.add_scalar("val/l1", val_l1, step)
-                board.add_scalar("val/ssim", val_ssim, step)
-                board.flush()
-                raw = {"generator_raw": _unwrap(generator).state_dict()} if average is not None else {}
-                _save_atomic(
-                    {
-                        "generator": served.state_dict(),
-                        **raw,
-                        "discriminator": _unwrap(discriminator).state_dict(),
-                        "opt_generator": opt_g.state_dict(),
-                        "opt_discriminator": opt_d.state_dict(),
-                        "epoch": epoch + 1,
-                        "step": step,
-                        "rng_cpu": torch.get_rng_state(),
-                        "train_config": config.to_dict(),
-                        "depth_range_m": list(reader.info.depth_range_m),
-                        "dataset": str(Path(dataset).resolve()),
-                        "libraries": [str(Path(library).resolve()) for library in libraries],
-                        **({"prior": prior.spec.to_dict()} if prior is not None else {}),
-                    },
-                    checkpoint_path,
-                )
-        bar.close()
-        if board is not None:
-            board.close()
+                losses = train_step(state, (state.x_train[index], state.y_train[index]))
+                state.step += 1
+                log.losses(epoch, state.step, state.opt_g.param_groups[0]["lr"], losses)
+            state.epoch = epoch + 1
+            for scheduler in state.schedulers:
+                scheduler.step()
+            if dist.rank == 0:
+                log.validation(epoch, state.step, state.served, state.x_val, state.y_val)
+                save_checkpoint(state, checkpoint_path)
+        log.close()
         return checkpoint_path
     finally:
         if dist.world > 1:

@@ -86,6 +86,38 @@ def test_learning_rate_is_constant_then_decays_linearly() -> None:
     assert [lr_factor(config, e) for e in range(5)] == pytest.approx([1, 1, 0.75, 0.5, 0.25])
 
 
+def _learning_rates(out: Path) -> dict[str, str]:
+    with open(out / "train_log.csv") as f:
+        return {row["step"]: row["lr"] for row in csv.DictReader(f)}
+
+
+def test_the_learning_rate_schedule_is_in_the_checkpoint_and_resumes_as_an_uninterrupted_run(
+    dataset: Path, tmp_path: Path
+) -> None:
+    config = TrainConfig(**{**TINY.__dict__, "epochs_decay": 2})  # lr x 1, 2/3, 1/3
+    train(dataset, config, tmp_path / "whole", progress=False)
+    whole = _learning_rates(tmp_path / "whole")  # every step's (log_every 1)
+    assert len(set(whole.values())) == 3
+    keys = {"scheduler_generator": "opt_generator", "scheduler_discriminator": "opt_discriminator"}
+    # A checkpoint written before the schedule was saved in it has no scheduler entries: the
+    # schedule is rebuilt at its epoch.
+    for old_checkpoint in (False, True):
+        out = tmp_path / ("old" if old_checkpoint else "new")
+        train(dataset, config, out, progress=False, stop_after_epochs=1)
+        state = load_checkpoint(out / "checkpoint.pt")
+        for scheduler, optimiser in keys.items():
+            assert state[scheduler]["last_epoch"] == state["epoch"] == 1
+            assert state[scheduler]["base_lrs"] == [config.lr]
+            assert state[optimiser]["param_groups"][0]["lr"] == config.lr * lr_factor(config, 1)
+        if old_checkpoint:
+            for scheduler in keys:
+                del state[scheduler]
+            torch.save(state, out / "checkpoint.pt")
+        train(dataset, config, out, resume=True, progress=False)
+        assert _learning_rates(out) == whole
+        assert load_checkpoint(out / "checkpoint.pt")["scheduler_generator"]["last_epoch"] == 3
+
+
 def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
     paper = TrainConfig.load(REPO / "configs" / "paper.yaml")
     assert (paper.lr, paper.beta1, paper.beta2, paper.lambda_l1) == (2e-4, 0.5, 0.999, 100.0)
