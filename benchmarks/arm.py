@@ -1,7 +1,7 @@
 """UR arm figures through the real ur_rtde client against the fake UR controller
 (sim/ur_controller/): the RTDE state rate the client actually receives from a 500 Hz
 controller, and the time from ``stop()`` on the backend to the controller receiving the
-stopL command (both clocks are the machine's monotonic clock)."""
+stopJ command (URArm.stop sends stopJ; see its docstring) (both clocks are the machine's monotonic clock)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import rtde_receive
 
 from drivers.arm.base import MotionAbortedError
 from drivers.arm.ur import STATE_VARIABLES, URArm, URArmConfig
-from sim.ur_controller import CMD_STOPL, FakeURController
+from sim.ur_controller import CMD_STOPJ, FakeURController
 
 POLL_PERIOD_S = 50e-6
 
@@ -54,7 +54,7 @@ def received_state_rate(host: str, frequency_hz: float, seconds: float) -> list[
 
 
 def stop_latency(fake: FakeURController, trials: int) -> dict[str, Any]:
-    """p50/p99 (ms) from URArm.stop() to the fake receiving stopL, during a moveL."""
+    """p50/p99 (ms) from URArm.stop() to the fake receiving stopJ, during a moveL."""
     arm = URArm(URArmConfig(robot_ip=fake.host))
     arm.connect()
     latencies_ms = []
@@ -69,13 +69,13 @@ def stop_latency(fake: FakeURController, trials: int) -> dict[str, Any]:
             arm.stop()
             mover.join()
             received_ns = min(
-                t for t, cmd in fake.snapshot()["commands_received"] if cmd == CMD_STOPL and t >= requested_ns
+                t for t, cmd in fake.snapshot()["commands_received"] if cmd == CMD_STOPJ and t >= requested_ns
             )
             latencies_ms.append((received_ns - requested_ns) / 1e6)
     finally:
         arm.disconnect()
     return {
-        "figure": "stop() to controller receiving stopL",
+        "figure": "stop() to controller receiving stopJ",
         "unit": "ms",
         "samples": trials,
         "p50": float(np.percentile(latencies_ms, 50)),
