@@ -241,7 +241,7 @@ def _converter(annotation: Any) -> Converter:
             return arrays[index]
 
         return array
-    if dataclasses.is_dataclass(annotation):
+    if isinstance(annotation, type) and dataclasses.is_dataclass(annotation):
 
         def nested(value: Any, arrays: list[np.ndarray], used: set[int], path: str) -> Any:
             return annotation(**_unflatten(annotation, value, arrays, used, path))

@@ -175,7 +175,7 @@ class Scene:
         gs = self.gelsight
         return GripperGeometry(
             tcp_to_gel_centre_m=self.gripper.tcp_to_gel_centre_m,
-            gel_size_m=tuple(self.gripper.gel_size_m),
+            gel_size_m=(self.gripper.gel_size_m[0], self.gripper.gel_size_m[1]),
             elastomer_thickness_m=self.gripper.elastomer_thickness_m,
             max_width_m=self.gripper.max_width_m,
             sensed_area_m=(gs.image_width * gs.mm_per_px * 1e-3, gs.image_height * gs.mm_per_px * 1e-3),

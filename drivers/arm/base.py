@@ -11,6 +11,7 @@ import abc
 import dataclasses
 
 import numpy as np
+import numpy.typing as npt
 
 from drivers import Device, DeviceError, DeviceNotConnectedError
 from msgs import ArmState
@@ -130,7 +131,7 @@ def _check_limit(name: str, value: float, limit: float, unit: str) -> None:
         raise MotionLimitError(f"{name} {value} {unit} exceeds the limit of {limit} {unit}")
 
 
-def as_six_vector(values: np.ndarray | list[float], what: str) -> np.ndarray:
+def as_six_vector(values: npt.ArrayLike, what: str) -> np.ndarray:
     """Return ``values`` as a finite float64 array of shape (6,), or raise ValueError."""
     array = np.asarray(values, dtype=np.float64)
     if array.shape != (6,) or not np.all(np.isfinite(array)):

@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
 import dashboard_client
 import numpy as np
@@ -114,8 +114,9 @@ class URArm(Arm):
 
     def __init__(self, config: URArmConfig) -> None:
         self.config = config
-        self._receive = None  # rtde_receive.RTDEReceiveInterface once connected
-        self._control = None  # rtde_control.RTDEControlInterface once connected
+        # ur_rtde's interfaces once connected (the binding has no type information).
+        self._receive: Any = None  # rtde_receive.RTDEReceiveInterface
+        self._control: Any = None  # rtde_control.RTDEControlInterface
         self._last_timestamp: float | None = None
         self._last_fresh = 0.0
         self._move_lock = threading.Lock()

@@ -94,6 +94,8 @@ class Freenect2DepthCamera(DepthCamera):
     @requires_connection
     def read(self) -> DepthImage:
         """The next depth frame; DepthCameraError when none comes within ``read_timeout_s``."""
+        calibration = self.calibration
+        assert calibration is not None  # requires_connection
         # Poll rather than block: the binding's waitForNewFrame() has no time-out.
         deadline = time.monotonic() + self.config.read_timeout_s
         while not self._listener.hasNewFrame():
@@ -110,4 +112,4 @@ class Freenect2DepthCamera(DepthCamera):
         finally:
             self._listener.release(frames)
         self._seq += 1
-        return depth_image(depth_mm, self.calibration, self.config.name, self._seq)
+        return depth_image(depth_mm, calibration, self.config.name, self._seq)

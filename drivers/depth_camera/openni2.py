@@ -138,9 +138,11 @@ class OpenNI2DepthCamera(DepthCamera):
     @requires_connection
     def read(self) -> DepthImage:
         """The next depth frame; DepthCameraError when none comes within ``read_timeout_s``."""
+        stream, calibration = self._stream, self.calibration
+        assert stream is not None and calibration is not None  # requires_connection
         try:
-            ready = openni2.wait_for_any_stream([self._stream], self.config.read_timeout_s)
-            frame = self._stream.read_frame() if ready is not None else None
+            ready = openni2.wait_for_any_stream([stream], self.config.read_timeout_s)
+            frame = stream.read_frame() if ready is not None else None
         except OpenNIError as exc:
             raise DepthCameraError(f"{self._label} failed after {self._seq} frames: {exc}") from exc
         if frame is None:
@@ -148,7 +150,7 @@ class OpenNI2DepthCamera(DepthCamera):
                 raise DepthCameraError(
                     f"recording {self.config.oni_file} gave no frame within "
                     f"{self.config.read_timeout_s} s after {self._seq} of its "
-                    f"{self._stream.get_number_of_frames()} frames"
+                    f"{stream.get_number_of_frames()} frames"
                 )
             raise DepthCameraError(
                 f"no depth frame from {self._label} within {self.config.read_timeout_s} s "
@@ -160,7 +162,7 @@ class OpenNI2DepthCamera(DepthCamera):
         finally:
             frame.close()
         self._seq += 1
-        return depth_image(depth, self.calibration, self.config.name, self._seq)
+        return depth_image(depth, calibration, self.config.name, self._seq)
 
     def _open_device(self) -> openni2.Device:
         config = self.config

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from drivers import requires_connection
 from drivers.depth_camera.base import DepthCamera, DepthCameraError
 from msgs import CameraIntrinsics, DepthImage, Header
 from workcell.scene import SceneError
+
+if TYPE_CHECKING:
+    from sim.world import SimWorld
 
 __all__ = ["SimulatedDepthCamera", "SimulatedDepthCameraConfig", "DepthCameraError"]
 
@@ -43,7 +47,7 @@ class SimulatedDepthCameraConfig:
 class SimulatedDepthCamera(DepthCamera):
     def __init__(self, config: SimulatedDepthCameraConfig):
         self.config = config
-        self.world = None
+        self.world: SimWorld | None = None
         self._seq = 0
         self._next_t = 0.0
 
@@ -51,19 +55,20 @@ class SimulatedDepthCamera(DepthCamera):
         from sim.world import shared_world  # noqa: PLC0415 - Open3D loads on connect
 
         try:
-            self.world = shared_world(self.config.scene, self.config.seed)
+            world = shared_world(self.config.scene, self.config.seed)
         except SceneError as exc:
             raise DepthCameraError(str(exc)) from exc
-        if self.config.camera not in self.world.cameras:
+        if self.config.camera not in world.cameras:
             raise DepthCameraError(
-                f"scene {self.config.scene} has no camera {self.config.camera!r} (cameras: {self.world.camera_names()})"
+                f"scene {self.config.scene} has no camera {self.config.camera!r} (cameras: {world.camera_names()})"
             )
-        spec = self.world.cameras[self.config.camera].spec
+        spec = world.cameras[self.config.camera].spec
         self.intrinsics = CameraIntrinsics(
             width=spec.width, height=spec.height, fx=spec.fx, fy=spec.fy, cx=spec.cx, cy=spec.cy, distortion=[0.0] * 5
         )
-        self.camera_to_world = self.world.nominal_camera_to_world(self.config.camera)
+        self.camera_to_world = world.nominal_camera_to_world(self.config.camera)
         self._next_t = time.monotonic()
+        self.world = world
 
     def disconnect(self) -> None:
         self.world = None
@@ -79,6 +84,7 @@ class SimulatedDepthCamera(DepthCamera):
             if self._next_t > now:
                 time.sleep(self._next_t - now)
             self._next_t = max(self._next_t, now) + 1.0 / self.config.rate_hz
+        assert self.world is not None  # requires_connection
         z = self.world.render_depth(self.config.camera)
         if self.config.output == "uint16_mm":
             mm = np.rint(np.nan_to_num(z, nan=0.0) * 1000.0)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,10 @@ from msgs import Header, TactileImage
 from sim.seeding import state_rng
 from workcell.kinematics import gel_poses_world
 from workcell.scene import SceneError
+
+if TYPE_CHECKING:
+    from sim.gelsight import GelSightRenderer
+    from sim.world import GraspContact, SimWorld
 
 __all__ = ["SimulatedGelSight", "SimulatedGelSightConfig", "GelSightError"]
 
@@ -57,32 +62,33 @@ class SimulatedGelSightConfig:
 class SimulatedGelSight(GelSight):
     def __init__(self, config: SimulatedGelSightConfig):
         self.config = config
-        self.world = None
-        self.renderer = None
+        self.world: SimWorld | None = None
+        self.renderer: GelSightRenderer | None = None
         self._gap: np.ndarray | None = None
         self._robot: tuple | None = None
         self._seq = 0
         self._next_t = 0.0
         self._known_until_ns: int | None = None  # the sensor knows the robot up to this time
-        self.last_contact = None  # the last sim.world.GraspContact used (ground truth)
+        self.last_contact: GraspContact | None = None  # the last contact used (ground truth)
 
     def connect(self) -> None:
         from sim.gelsight import scene_renderer  # noqa: PLC0415 - Open3D loads on connect
         from sim.world import shared_world  # noqa: PLC0415 - Open3D loads on connect
 
         try:
-            self.world = shared_world(self.config.scene, self.config.seed)
+            world = shared_world(self.config.scene, self.config.seed)
         except SceneError as exc:
             raise GelSightError(str(exc)) from exc
-        gs = self.world.scene.gelsight
+        gs = world.scene.gelsight
         self.size = (self.config.image_height or gs.image_height, self.config.image_width or gs.image_width)
-        self.extent_mm = self.world.default_extent_mm()
-        self.renderer = scene_renderer(self.world.scene, self.size)
+        self.extent_mm = world.default_extent_mm()
+        renderer = scene_renderer(world.scene, self.size)
         # the image covers the same field of view on the gel whatever its pixel count
-        self.mm_per_px = self.renderer.pixel_pitch_mm[1]
-        self._background = self.renderer.background()
+        self.mm_per_px = renderer.pixel_pitch_mm[1]
+        self._background = renderer.background()
         self._gap = None
         self._next_t = time.monotonic()
+        self.world, self.renderer = world, renderer
 
     def disconnect(self) -> None:
         self.world = None
@@ -106,6 +112,7 @@ class SimulatedGelSight(GelSight):
             return
         self._robot = key
 
+        assert self.world is not None  # requires_connection
         scene = self.world.scene
         sensor = self.config.sensor
         if force_n > 0:
@@ -149,6 +156,7 @@ class SimulatedGelSight(GelSight):
             gap = self._gap
         # The frame's noise is keyed on the gap it shows (sim.seeding): whichever frame of a
         # grasp the collector takes, the same grasp gives the same image.
+        assert self.world is not None and self.renderer is not None  # requires_connection
         image = self.renderer.render(gap, state_rng(gap, self.world.seed, 11, SENSORS.index(self.config.sensor)))
         self._seq += 1
         header = Header(stamp_ns=stamp_ns, seq=self._seq, frame_id=f"gel_{self.config.sensor}")

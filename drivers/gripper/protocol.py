@@ -184,7 +184,7 @@ class FrameParser:
     def feed(self, data: bytes) -> list[tuple[int, bytes]]:
         """Append ``data``; return every complete, valid (command id, payload) found."""
         self._buffer += data
-        frames = []
+        frames: list[tuple[int, bytes]] = []
         while True:
             start = self._buffer.find(PREAMBLE)
             if start < 0:

@@ -168,7 +168,7 @@ class WSG50Gripper(Gripper):
     def acknowledge(self) -> GripperState:
         """Acknowledge a FAST STOP (0x24 "ack") once its cause is cleared, so motions run again;
         nothing is sent when the gripper is not in FAST STOP."""
-        status = Status.E_SUCCESS
+        status: int = Status.E_SUCCESS
         if self._system_flags() & SystemFlag.FAST_STOP:
             status, _ = self._request(Command.ACK_FAST_STOP, ACK_PAYLOAD)
         if status != Status.E_SUCCESS:
