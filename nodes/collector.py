@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -119,7 +120,7 @@ class CollectorNode(Node):
                 )
         self.tactile: dict[str, msgs.TactileImage] = {}
         for finger, topic in zip(FINGERS, p.tactile_topics, strict=True):
-            self.create_subscription(topic, msgs.TactileImage, lambda m, f=finger: self.tactile.__setitem__(f, m))
+            self.create_subscription(topic, msgs.TactileImage, functools.partial(self.tactile.__setitem__, finger))
         self.grip_seen_ns = 0  # when /gripper/state first reported the current grip
         self.create_subscription("/gripper/state", msgs.GripperState, self.on_gripper_state)
         self.move = self.create_client("/arm/move", msgs.ArmMoveRequest, msgs.ArmState)
@@ -137,7 +138,7 @@ class CollectorNode(Node):
     def grasp_plan(self) -> list[tuple[int, str]]:
         """(grasp id, object) for the whole session: consecutive blocks per object."""
         per_object, extra = divmod(self.params.grasps, len(self.objects))
-        plan = []
+        plan: list[tuple[int, str]] = []
         for index, name in enumerate(self.objects):
             plan += [(len(plan) + i, name) for i in range(per_object + (1 if index < extra else 0))]
         return plan
@@ -290,7 +291,7 @@ class CollectorNode(Node):
         projected on the closing axis. The gripper is told this width, because a WSG detects
         the part only within its clamping travel around it (the web interface's setting)."""
         if object_name not in self.model_points:
-            mesh = next(o.mesh for o in self.scene.objects if o.name == object_name)
+            mesh = self.scene.mesh(object_name)
             self.model_points[object_name] = sample_model_cloud(mesh, seed=self.params.seed).points_m
         points = transform_points(self.model_points[object_name], registered.model_to_world) - np.array([x, y, z])
         gel_axis = np.array([np.cos(theta), np.sin(theta)])

@@ -15,6 +15,7 @@ session. Off by default; the collection launch files switch it on with ``foxglov
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import re
 import socket
@@ -223,7 +224,7 @@ class FoxgloveBridge(Node):
             self.create_subscription(
                 topic,
                 msgs.MESSAGE_TYPES[endpoints[0].schema],
-                lambda message, topic=topic: self.forward(topic, message),
+                functools.partial(self.forward, topic),
             )
 
     def forward(self, topic: str, message: msgs.Message) -> None:

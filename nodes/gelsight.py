@@ -10,12 +10,16 @@ ends stops the node.
 
 from __future__ import annotations
 
+import typing
 from typing import Any
 
 import drivers.gelsight
 import msgs
 from nodes.node import run_node
 from nodes.sensor import SensorNode
+
+if typing.TYPE_CHECKING:
+    from drivers.gelsight.simulated import SimulatedGelSight
 
 
 class GelSightNode(SensorNode):
@@ -38,9 +42,14 @@ class GelSightNode(SensorNode):
             self.create_subscription("/arm/state", msgs.ArmState, self.on_arm)
             self.create_subscription("/gripper/state", msgs.GripperState, self.on_gripper)
 
+    @property
+    def simulated(self) -> SimulatedGelSight:
+        """The backend, when it is the simulated GelSight (``follows_robot``)."""
+        return typing.cast("SimulatedGelSight", self.sensor)
+
     def frame_period_s(self) -> float:
         if self.follows_robot:
-            return 1.0 / self.sensor.config.rate_hz
+            return 1.0 / self.simulated.config.rate_hz
         return super().frame_period_s()
 
     def on_arm(self, state: msgs.ArmState) -> None:
@@ -48,7 +57,7 @@ class GelSightNode(SensorNode):
 
     def on_gripper(self, state: msgs.GripperState) -> None:
         if self.arm is not None:
-            self.sensor.observe_robot(self.arm.tcp_pose, state.width_m, state.force_n, state.header.stamp_ns)
+            self.simulated.observe_robot(self.arm.tcp_pose, state.width_m, state.force_n, state.header.stamp_ns)
 
 
 if __name__ == "__main__":

@@ -82,7 +82,7 @@ class UnknownCloud(ValueError):
 def cloud_id(points: np.ndarray) -> str:
     """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes."""
     digest = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode())
-    digest.update(memoryview(np.ascontiguousarray(points)).cast("B"))
+    digest.update(np.ascontiguousarray(points).data.cast("B"))
     return digest.hexdigest()
 
 

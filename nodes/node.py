@@ -93,7 +93,7 @@ class Node:
         remaps: dict[str, str] | None = None,
     ) -> None:
         self.name = name
-        self.params = parse_params(self.Params, params or {}, name)
+        self.params: Any = parse_params(self.Params, params or {}, name)
         registry = registry or Registry()
         holder = registry.live_node_pid(name)
         if holder is not None and holder != os.getpid():
@@ -181,7 +181,7 @@ class Node:
         poller.register(self._wake_read, zmq.POLLIN)
         next_timer = self._timers[0][0] if self._timers else time.monotonic() + timeout_s
         wait_s = max(0.0, min(timeout_s, next_timer - time.monotonic()))
-        ready = dict(poller.poll(wait_s * 1000))
+        ready = dict(poller.poll(wait_s * 1000))  # type: ignore[arg-type]  # pyzmq takes float ms; its stub says int
         if self._wake_read in ready:
             os.read(self._wake_read, 4096)
         for publisher in self._publishers:
@@ -196,10 +196,10 @@ class Node:
                     self._deliver(subscriber, callback, envelope)
         now = time.monotonic()
         while self._timers and self._timers[0][0] <= now:
-            due, count, period_s, callback = heapq.heappop(self._timers)
+            due, count, period_s, on_timer = heapq.heappop(self._timers)
             # Re-arm from the due time so a periodic timer keeps its rate, unless it fell behind.
-            heapq.heappush(self._timers, (max(due + period_s, now), count, period_s, callback))
-            callback()
+            heapq.heappush(self._timers, (max(due + period_s, now), count, period_s, on_timer))
+            on_timer()
 
     def _deliver(self, subscriber: Subscriber, callback: Callable[[Envelope], None], envelope: Envelope) -> None:
         # A message that passed decoding can still break a callback (a value its code did not

@@ -19,6 +19,7 @@ geometry — for the lab, a scene file describing the real table), ``cameras`` (
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from concurrent.futures import Future
 from typing import Any
@@ -90,9 +91,7 @@ class PatchExtractorNode(Node):
         self.reach_m = crop_reach_m(self.geometry, self.depth_map_params)
         self.latest: dict[str, msgs.DepthImage] = {}
         for topic in self.params.cameras:
-            self.create_subscription(
-                topic, msgs.DepthImage, lambda image, topic=topic: self.latest.update({topic: image})
-            )
+            self.create_subscription(topic, msgs.DepthImage, functools.partial(self.latest.__setitem__, topic))
         self.models: dict[str, tuple[VoxelIndex, PreparedModel]] = {}
         self.registered: dict[str, Registered] = {}
         self.cloud = self.create_publisher("/perception/object_cloud", msgs.PointCloud, latched=True)
@@ -121,9 +120,9 @@ class PatchExtractorNode(Node):
         frames = self.latest_frames()
         if spec.name not in self.models:
             # Registration works on a 2 mm cloud; a depth-map needs a far denser one.
-            dense = sample_model_cloud(spec.mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
+            dense_points = sample_model_cloud(spec.mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
             self.models[spec.name] = (
-                VoxelIndex(dense),
+                VoxelIndex(dense_points),
                 prepare_model(sample_model_cloud(spec.mesh, seed=self.params.seed)),
             )
         dense, prepared = self.models[spec.name]

@@ -8,6 +8,8 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, ClassVar
 
+from drivers import Device
+from nodes.bus import Publisher
 from nodes.node import Node, split_params
 
 
@@ -16,7 +18,7 @@ class SensorNode(Node):
     MESSAGE: ClassVar[type]
     DEVICE_ERROR: ClassVar[type[Exception]]
     END_OF_STREAM: ClassVar[tuple[type[Exception], ...]] = ()  # a recording that ends stops the node
-    make_backend: ClassVar[Callable[[dict[str, Any]], Any]]
+    make_backend: ClassVar[Callable[..., Device]]
 
     @dataclasses.dataclass
     class Params:
@@ -27,7 +29,7 @@ class SensorNode(Node):
         super().__init__(name, own, **kwargs)
         self.sensor = type(self).make_backend(backend_params)
         self.sensor.connect()
-        self.frames = self.create_publisher(f"/{name}/{self.STREAM}", self.MESSAGE)
+        self.frames: Publisher[Any] = self.create_publisher(f"/{name}/{self.STREAM}", self.MESSAGE)
         self.create_timer(self.frame_period_s(), self.publish_frame)
         self.errors = 0
 

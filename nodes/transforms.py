@@ -17,6 +17,7 @@ stamp of the newest source message, so a slow topic never holds back a fast one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import numpy as np
@@ -56,13 +57,16 @@ class TransformPublisher(Node):
             self.create_subscription(
                 f"/{camera}/depth",
                 msgs.DepthImage,
-                lambda m, camera=camera: self._set("world", camera, m.camera_to_world, m),
+                functools.partial(self._on_depth_image, camera),
             )
         self.create_subscription(
             "/arm/state", msgs.ArmState, lambda m: self._set("world", "tcp", pose_to_matrix(m.tcp_pose), m)
         )
         self.create_subscription("/gripper/state", msgs.GripperState, self._on_gripper)
         self.create_timer(1.0 / self.params.rate_hz, self.publish_tree)
+
+    def _on_depth_image(self, camera: str, image: msgs.DepthImage) -> None:
+        self._set("world", camera, image.camera_to_world, image)
 
     def _set(self, parent: str, child: str, child_to_parent: np.ndarray, source: msgs.Message) -> None:
         self.frames[(parent, child)] = (np.asarray(child_to_parent, np.float64), source.header.stamp_ns)

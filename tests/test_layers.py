@@ -22,7 +22,6 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "nodes.security",
             "nodes.node",
             "nodes.bag",
-            "nodes.sensor",
             "nodes.inference_client",
         ),
     ),
