@@ -18,7 +18,8 @@ import zmq
 
 import msgs
 from msgs.base import Header, Message
-from nodes.bus import Bus, TransportConfig
+from nodes.bus import Bus
+from nodes.bus_context import TransportConfig
 from nodes.registry import Registry
 
 PAYLOADS = {  # bytes -> the message a real node sends at that size

@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 
 from dataset.check import check_dataset
-from nodes.bag import BagError, iter_envelopes
+from nodes.bag import iter_envelopes
+from nodes.bag_format import BagError
 from nodes.registry import Registry
 
 NODES = [

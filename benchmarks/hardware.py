@@ -28,8 +28,9 @@ import numpy as np
 import msgs
 from drivers.gripper.firmware import GripperFirmware
 from drivers.gripper.wsg50 import WSG50Config, WSG50Gripper
-from nodes.bus import Bus, ServiceCallError
+from nodes.bus import Bus
 from nodes.registry import Registry
+from nodes.services import ServiceCallError
 
 OBJECT_WIDTH_M = 0.04  # the part between the fingers in the completion figures
 HOMING_SPEED_M_S = 0.1  # the firmware simulator's referencing speed

@@ -165,8 +165,8 @@ def cmd_service_list(args: argparse.Namespace) -> int:
 
 def cmd_service_call(args: argparse.Namespace) -> int:
     from msgs import MESSAGE_TYPES
-    from nodes.bus import ServiceCallError
     from nodes.registry import Registry
+    from nodes.services import ServiceCallError
 
     endpoints = Registry().lookup("service", args.name)
     if not endpoints:
@@ -206,7 +206,7 @@ def _fields_from_yaml(msg_type: type, fields: dict[str, Any]) -> dict[str, Any]:
 
 # -- bags --------------------------------------------------------------------------------
 def cmd_bag_record(args: argparse.Namespace) -> int:
-    from nodes.bag import record
+    from nodes.bag_record_play import record
 
     stop_at = time.monotonic() + args.duration if args.duration else None
     stopping = {"now": False}
@@ -228,7 +228,8 @@ def cmd_bag_record(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_play(args: argparse.Namespace) -> int:
-    from nodes.bag import BagError, play
+    from nodes.bag_format import BagError
+    from nodes.bag_record_play import play
 
     bus = _bus("dtx_bag_play")
     stopping = {"now": False}
@@ -255,7 +256,8 @@ def cmd_bag_play(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_info(args: argparse.Namespace) -> int:
-    from nodes.bag import BagError, bag_info
+    from nodes.bag import bag_info
+    from nodes.bag_format import BagError
 
     try:
         info = bag_info(args.file)

@@ -1,14 +1,10 @@
-"""MCAP bags: record the bus, read bags back (also ones cut short by a crash), replay them.
+"""MCAP bags: write them, read them back (also ones cut short by a crash). How a message is
+stored is nodes.bag_format's; recording the bus and replaying bags, nodes.bag_record_play's.
 
-A dtx message is stored in its own encoding: the channel's message encoding is
-``dtx/msgpack+buffers``, the data is the wire header and array buffers each prefixed by its
-length (uint64 little-endian), and the schema record (encoding ``dtx/jsonschema``) is a JSON
-Schema of the message's fields with each array's dtype and shape, so a bag explains itself to a
-tool in any language (docs/bag-format.md). Chunks are closed by age as well as size, and the
-file's header is on disk from the start, so a recorder killed at any moment loses at most
-``CHUNK_PERIOD_S`` and never leaves an empty file. Images, point clouds and transforms are also written to a
-``<topic>/foxglove`` channel in Foxglove's well-known protobuf schemas, so Foxglove Studio
-shows them directly.
+Chunks are closed by age as well as size, and the file's header is on disk from the start, so
+a recorder killed at any moment loses at most ``CHUNK_PERIOD_S`` and never leaves an empty
+file. Images, point clouds and transforms are also written to a ``<topic>/foxglove`` channel in
+Foxglove's well-known protobuf schemas, so Foxglove Studio shows them directly.
 
 Reading trusts no bag: every record's length, every chunk's uncompressed size and what its
 decompression actually yields are bounded (by the bus's largest message) before anything is
@@ -20,19 +16,15 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import json
 import os
 import stat
 import struct
 import time
-import typing
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import lz4.frame
-import numpy as np
-import zmq
 import zstandard
 from mcap.exceptions import McapError, RecordLengthLimitExceeded
 from mcap.reader import SeekingReader
@@ -41,26 +33,24 @@ from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-import msgs
-from msgs.base import Message
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
 from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_view
-from nodes.bus import SLICE_MESSAGES, Bus, Publisher, Subscriber
+from nodes.bag_format import (
+    MESSAGE_ENCODING,
+    SCHEMA_ENCODING,
+    BagError,
+    pack_frames,
+    schema_description,
+    unpack_frames,
+)
 
-MESSAGE_ENCODING = "dtx/msgpack+buffers"
-SCHEMA_ENCODING = "dtx/jsonschema"
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
-_LENGTH = struct.Struct("<Q")
 # No record, and no chunk once decompressed, may be larger than the largest message the bus
 # carries plus its framing: a bag that claims more is refused before anything is allocated.
 MAX_RECORD_BYTES = DEFAULT_MAX_MESSAGE_BYTES + (1 << 20)
 # A chunk is closed at this age, or at chunk_size, whichever comes first: what a killed recorder
 # can lose. Half the ~1 s promised, leaving the rest to a recorder that a busy machine delays.
 CHUNK_PERIOD_S = 0.5
-
-
-class BagError(ValueError):
-    """A bag that cannot be written or read."""
 
 
 class BagWriteError(BagError):
@@ -70,94 +60,6 @@ class BagWriteError(BagError):
     def __init__(self, text: str, errno: int | None) -> None:
         super().__init__(text)
         self.errno = errno
-
-
-def pack_frames(frames: list[Any]) -> bytes:
-    """Header and buffers (everything after the topic frame) as one length-prefixed blob."""
-    parts: list[Any] = []
-    for frame in frames:
-        view = memoryview(getattr(frame, "buffer", frame)).cast("B")
-        parts += [_LENGTH.pack(view.nbytes), view]
-    return b"".join(parts)
-
-
-def unpack_frames(topic: str, data: bytes | memoryview) -> list[Any]:
-    view = memoryview(data).cast("B")
-    frames: list[Any] = [topic.encode()]
-    offset = 0
-    while offset < view.nbytes:
-        if offset + 8 > view.nbytes:
-            raise BagError(f"{topic}: record ends inside a length prefix")
-        (length,) = _LENGTH.unpack_from(view, offset)
-        offset += 8
-        if offset + length > view.nbytes:
-            raise BagError(f"{topic}: record announces {length} bytes, {view.nbytes - offset} left")
-        frames.append(view[offset : offset + length])
-        offset += length
-    return frames
-
-
-def schema_description(msg_type: type[Message]) -> bytes:
-    """The message's fields as a JSON Schema (draft 2020-12) of the header map ``d``, arrays
-    with their dtype and shape: a tool in another language decodes a channel from the bag
-    alone (docs/bag-format.md), without reading this code."""
-    schema = {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "$id": f"dtx:{msg_type.SCHEMA}/{msg_type.VERSION}",
-        "title": msg_type.SCHEMA,
-        "description": (msg_type.__doc__ or "").strip(),
-        "x-dtx-version": msg_type.VERSION,
-        "x-dtx-payload": "length-prefixed frames (uint64 LE): msgpack header {s,v,t,q,f,p,d,a}, then one "
-        "raw little-endian C-order buffer per entry of a ([dtype, shape]); this schema "
-        "describes d. See docs/bag-format.md and docs/wire-protocol.md.",
-        **_object_schema(msg_type, skip_header=True),
-    }
-    return json.dumps(schema).encode()
-
-
-def _object_schema(cls: type, skip_header: bool = False) -> dict[str, Any]:
-    hints = typing.get_type_hints(cls)
-    defaults = cls()  # the defaults give each array's dtype and rank
-    names = [f.name for f in dataclasses.fields(cls) if not (skip_header and f.name == "header")]
-    return {
-        "type": "object",
-        "additionalProperties": False,
-        "required": names,
-        "properties": {name: _field_schema(hints[name], getattr(defaults, name)) for name in names},
-    }
-
-
-def _field_schema(annotation: Any, default: Any) -> dict[str, Any]:
-    if annotation is np.ndarray:
-        return {
-            "type": "object",
-            "additionalProperties": False,
-            "required": ["__array__"],
-            "properties": {
-                "__array__": {
-                    "type": "integer",
-                    "minimum": 0,
-                    "description": "index of this array's buffer (and of its entry in a)",
-                }
-            },
-            "x-dtx-array": {
-                "dtype": default.dtype.str,
-                "shape": [d or None for d in default.shape],
-                "description": "dtype as this field is usually sent, shape with null for "
-                "a dimension of any length; the record's a is authoritative",
-            },
-        }
-    if dataclasses.is_dataclass(annotation):
-        return _object_schema(annotation)
-    simple = {int: "integer", float: "number", str: "string", bool: "boolean"}
-    if annotation in simple:
-        return {"type": simple[annotation]}
-    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
-    if origin is list:
-        return {"type": "array", "items": _field_schema(args[0], None)}
-    if origin is dict:
-        return {"type": "object", "additionalProperties": _field_schema(args[1], None)}
-    raise BagError(f"field type {annotation} has no JSON Schema")
 
 
 class BagWriter:
@@ -472,119 +374,3 @@ def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
                     f"bag {path}: message {number} ({record.topic}) is not a valid dtx message: {exc}"
                 ) from exc
             yield record.log_time_ns, envelope
-
-
-def record(
-    path: str | Path,
-    bus: Bus,
-    stop: Callable[[], bool],
-    topics: list[str] | None = None,
-    compression: str = "lz4",
-    foxglove: bool = True,
-    on_message: Callable[[str], None] | None = None,
-    on_subscriber: Callable[[Subscriber[Any]], None] | None = None,
-) -> dict[str, int]:
-    """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
-    Returns messages written per topic; the bag is closed properly when this returns. When the
-    disk refuses the data, BagWriteError: recording stops, the bag keeps what it had.
-    ``on_subscriber`` is told of each subscriber made (a node counts its drops)."""
-    writer = BagWriter(path, compression, foxglove)
-    subscribers: dict[zmq.Socket, Subscriber[Any]] = {}
-    poller = zmq.Poller()
-    next_scan = 0.0
-    try:
-        while not stop():
-            if time.monotonic() >= next_scan:
-                next_scan = time.monotonic() + 0.5
-                for topic in topics or list(bus.registry.names("topic")):
-                    if topic not in {s.topic for s in subscribers.values()}:
-                        subscriber = bus.subscriber(topic, None)
-                        subscribers[subscriber.sock] = subscriber
-                        poller.register(subscriber.sock, zmq.POLLIN)
-                        if on_subscriber is not None:
-                            on_subscriber(subscriber)
-                for subscriber in subscribers.values():
-                    subscriber.discover()
-            for sock, _ in poller.poll(50):  # a slice from each ready topic, then the others
-                _drain(subscribers[sock], writer, on_message, SLICE_MESSAGES)
-            writer.flush_if_due()
-        for subscriber in subscribers.values():  # what arrived before the stop is kept
-            _drain(subscriber, writer, on_message, None)
-    finally:
-        for subscriber in subscribers.values():
-            subscriber.close()
-        writer.close()  # after a BagWriteError, a no-op: the file is already closed as it stood
-    return dict(writer.counts)
-
-
-def _drain(
-    subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None, limit: int | None
-) -> None:
-    """Write what is waiting on one subscriber: ``limit`` messages at most (None: all)."""
-    count = 0
-    while limit is None or count < limit:
-        count += 1
-        try:
-            frames = subscriber.sock.recv_multipart(zmq.NOBLOCK, copy=False)
-        except zmq.Again:
-            return
-        envelope = subscriber.handle(frames)
-        if envelope is not None:
-            writer.write(envelope, frames)
-            if on_message is not None:
-                on_message(envelope.topic)
-
-
-def play(
-    path: str | Path,
-    bus: Bus,
-    rate: float | None = 1.0,
-    clock: bool = False,
-    topics: list[str] | None = None,
-    wait_for_subscribers_s: float = 0.0,
-    stop: Callable[[], bool] = lambda: False,
-) -> dict[str, int]:
-    """Publish a bag's dtx messages with their recorded timing scaled by ``rate`` (None: as
-    fast as possible). With ``clock``, ``/clock`` carries the bag's time, like ROS's /clock.
-    Returns messages published per topic."""
-    if rate is not None and not rate > 0:
-        raise BagError(f"rate must be positive (or None for as fast as possible), got {rate}")
-    publishers: dict[str, Publisher[Any]] = {}
-    for topic, (schema, encoding) in bag_channels(path).items():
-        if encoding == MESSAGE_ENCODING and (topics is None or topic in topics):
-            if schema not in msgs.MESSAGE_TYPES:
-                raise BagError(f"{path}: topic {topic} holds {schema!r}, unknown to this build")
-            publishers[topic] = bus.publisher(topic, msgs.MESSAGE_TYPES[schema])
-    clock_publisher = bus.publisher("/clock", msgs.Clock) if clock else None
-    deadline = time.monotonic() + wait_for_subscribers_s
-    # Slow joiners: let subscribers connect first, /clock's too (a clock that starts late
-    # would leave a listener without the bag's time for the messages it already got).
-    for publisher in [*publishers.values(), *([clock_publisher] if clock_publisher else [])]:
-        publisher.wait_for_subscribers(1, max(0.0, deadline - time.monotonic()))
-    counts: dict[str, int] = {}
-    start_wall = time.monotonic()
-    start_bag: int | None = None
-    try:
-        for log_time_ns, envelope in iter_envelopes(path):
-            if stop():
-                break
-            if envelope.topic not in publishers:
-                continue
-            if start_bag is None:
-                start_bag = log_time_ns
-            if rate is not None:
-                due = start_wall + (log_time_ns - start_bag) / 1e9 / rate
-                while (delay := due - time.monotonic()) > 0:
-                    time.sleep(min(delay, 0.05))
-                    if stop():
-                        return counts
-            if clock_publisher is not None:
-                clock_publisher.publish(msgs.Clock(sim_time_ns=log_time_ns))
-            publishers[envelope.topic].publish(envelope.message)
-            counts[envelope.topic] = counts.get(envelope.topic, 0) + 1
-    finally:
-        for publisher in publishers.values():
-            publisher.close()
-        if clock_publisher is not None:
-            clock_publisher.close()
-    return counts

@@ -11,7 +11,8 @@ import json
 from typing import Any
 
 import msgs
-from nodes.bag import BagError, play
+from nodes.bag_format import BagError
+from nodes.bag_record_play import play
 from nodes.node import Node, run_node
 
 

@@ -39,8 +39,8 @@ from dataset.announced import write_samples
 from dataset.check import check_dataset
 from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
 from msgs.system import ErrorCode
-from nodes.bus import ServiceCallError
 from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
+from nodes.services import ServiceCallError
 from perception.pointcloud import transform_points
 from perception.registration import sample_model_cloud
 from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose

@@ -17,7 +17,8 @@ from types import TracebackType
 import numpy as np
 
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.bus import Bus, ServiceCallError
+from nodes.bus import Bus
+from nodes.services import ServiceCallError
 
 SERVICE = "/inference/estimate"
 

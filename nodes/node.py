@@ -28,9 +28,11 @@ from msgs.base import Message
 from msgs.codec import Envelope
 from msgs.config import ConfigError, config_from_dict
 from msgs.system import Heartbeat, Log
-from nodes.bus import Bus, Counters, PeerConfig, Publisher, ServiceClient, ServiceServer, Subscriber, TransportConfig
+from nodes.bus import Bus, Publisher, Subscriber
+from nodes.bus_context import Counters, PeerConfig, TransportConfig
 from nodes.registry import Registry
 from nodes.security import CurveConfig
+from nodes.services import ServiceClient, ServiceServer
 
 M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)

@@ -8,7 +8,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from nodes.bag import BagWriteError, record
+from nodes.bag import BagWriteError
+from nodes.bag_record_play import record
 from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 
 

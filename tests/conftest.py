@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from nodes.bus import OPEN_BUSES
+from nodes.bus_context import OPEN_BUSES
 from nodes.registry import Registry
 
 

@@ -21,7 +21,9 @@ from mcap.reader import make_reader
 
 import msgs
 from msgs.codec import decode, encode
-from nodes.bag import BagError, BagWriter, bag_info, iter_envelopes, play, record
+from nodes.bag import BagWriter, bag_info, iter_envelopes
+from nodes.bag_format import BagError
+from nodes.bag_record_play import play, record
 from nodes.bus import Bus
 from nodes.registry import Registry
 

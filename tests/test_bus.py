@@ -19,9 +19,11 @@ import zmq.auth
 
 import msgs
 from msgs.codec import decode, encode
-from nodes.bus import Bus, PeerConfig, ServiceCallError, TransportConfig
+from nodes.bus import Bus
+from nodes.bus_context import PeerConfig, TransportConfig
 from nodes.registry import Endpoint, Registry
 from nodes.security import CurveConfig, SecurityError
+from nodes.services import ServiceCallError
 
 
 @pytest.fixture
@@ -382,7 +384,7 @@ def test_a_bus_directory_another_user_made_first_is_refused(
 
 
 def test_a_flood_is_served_in_slices_and_logged_sparingly(registry: Registry, caplog: pytest.LogCaptureFixture) -> None:
-    from nodes.bus import SLICE_MESSAGES
+    from nodes.bus_context import SLICE_MESSAGES
 
     bus = Bus("server", registry)
     server = bus.service("/echo", msgs.GripperCommand, msgs.GripperState, lambda r: msgs.GripperState())

@@ -10,9 +10,10 @@ import pytest
 
 import msgs
 from drivers.gripper.firmware import GripperFirmware
-from nodes.bus import Bus, ServiceCallError
+from nodes.bus import Bus
 from nodes.gripper import GripperNode
 from nodes.registry import Registry
+from nodes.services import ServiceCallError
 
 
 @pytest.fixture

@@ -20,10 +20,11 @@ from models.data import network_input
 from models.ssim import to_uint8_rgb
 from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.bus import Bus, ServiceCallError
+from nodes.bus import Bus
 from nodes.inference import InferenceNode, cloud_id
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.registry import Registry
+from nodes.services import ServiceCallError
 from perception.depthmap import DepthMapParams, contact_depth_map
 from workcell.scene import load_scene
 

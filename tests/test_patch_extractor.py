@@ -9,9 +9,10 @@ import pytest
 
 import msgs
 from msgs.system import ErrorCode
-from nodes.bus import Bus, ServiceCallError
+from nodes.bus import Bus
 from nodes.patch_extractor import GelOutOfReach, PatchExtractorNode, Registered
 from nodes.registry import Registry
+from nodes.services import ServiceCallError
 from perception.pointcloud import VoxelIndex
 
 

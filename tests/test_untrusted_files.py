@@ -25,7 +25,7 @@ from mcap.writer import CompressionType, Writer
 import msgs
 from dataset.format import DatasetInfo, DatasetWriter, subtract_background
 from msgs.codec import encode
-from nodes.bag import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
+from nodes.bag_format import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 
 MAGIC = b"\x89MCAP0\r\n"
 INFO = DatasetInfo(
@@ -46,7 +46,8 @@ def run_capped(body: str, timeout_s: float = 120.0) -> dict:
         textwrap.dedent("""
         import json, resource
         from dataset.check import check_dataset
-        from nodes.bag import BagError, bag_info, iter_envelopes
+        from nodes.bag import bag_info, iter_envelopes
+        from nodes.bag_format import BagError
         vm = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
         resource.setrlimit(resource.RLIMIT_AS, (vm + (1 << 30), vm + (1 << 30)))
         result = {}

@@ -9,8 +9,8 @@ import time
 from concurrent.futures import Future
 
 import msgs
-from nodes.bus import ServiceCallError
 from nodes.node import Node, run_node
+from nodes.services import ServiceCallError
 
 
 class CounterNode(Node):
