@@ -84,6 +84,58 @@ def _receiver(impl: str, transport: str, address: str, bus_dir: str, expected: i
     out.put({"latencies_us": latencies, "span_s": (last - first) / 1e9, "received": received, "bytes": nbytes})
 
 
+def _send_dtx(
+    context_mp: mp.context.BaseContext, message: Message, transport: str, bus_dir: str, count: int, pause_s: float
+) -> dict:
+    """One phase through dtx: publish ``count`` stamped messages to a receiver process, ``pause_s``
+    apart; the receiver's report."""
+    out = context_mp.Queue()
+    bus = Bus("bench_pub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
+    publisher = bus.publisher(TOPIC, type(message))
+    child = context_mp.Process(target=_receiver, args=("dtx", transport, "", bus_dir, count, out))
+    child.start()
+    out.get(timeout=60)
+    publisher.wait_for_subscribers(1, 30)
+    time.sleep(0.2)
+    for _ in range(count):
+        message.header = Header(stamp_ns=time.monotonic_ns())
+        publisher.publish(message)
+        if pause_s:
+            time.sleep(pause_s)
+    result = out.get(timeout=120)
+    publisher.close()
+    bus.close()
+    child.join(timeout=30)
+    return result
+
+
+def _send_raw(
+    context_mp: mp.context.BaseContext, payload_bytes: int, transport: str, bus_dir: str, count: int, pause_s: float
+) -> dict:
+    """The same phase through raw pyzmq: topic, stamp and payload frames, sent zero-copy."""
+    out = context_mp.Queue()
+    context = zmq.Context()
+    sock = context.socket(zmq.XPUB)
+    sock.setsockopt(zmq.SNDHWM, 100_000)
+    address = f"ipc://{bus_dir}/raw.sock" if transport == "ipc" else "tcp://127.0.0.1:*"
+    sock.bind(address)
+    address = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+    child = context_mp.Process(target=_receiver, args=("raw_pyzmq", transport, address, bus_dir, count, out))
+    child.start()
+    out.get(timeout=60)
+    sock.recv()  # the subscription arrives: the subscriber is connected
+    time.sleep(0.2)
+    payload = memoryview(np.ones(payload_bytes, np.uint8))
+    for _ in range(count):
+        sock.send_multipart([TOPIC.encode(), time.monotonic_ns().to_bytes(8, "little"), payload], copy=False)
+        if pause_s:
+            time.sleep(pause_s)
+    result = out.get(timeout=120)
+    context.destroy(linger=1000)
+    child.join(timeout=30)
+    return result
+
+
 def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Namespace, bus_dir: str) -> dict:
     message = make_message(payload_bytes)
     n_latency = args.latency_messages
@@ -95,44 +147,10 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
         ("latency", n_latency, 0.002 + payload_bytes / 2e9),
         ("throughput", n_throughput, 0.0),
     ):
-        out = context_mp.Queue()
         if impl == "dtx":
-            bus = Bus("bench_pub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
-            publisher = bus.publisher(TOPIC, type(message))
-            child = context_mp.Process(target=_receiver, args=(impl, transport, "", bus_dir, count, out))
-            child.start()
-            out.get(timeout=60)
-            publisher.wait_for_subscribers(1, 30)
-            time.sleep(0.2)
-            for _ in range(count):
-                message.header = Header(stamp_ns=time.monotonic_ns())
-                publisher.publish(message)
-                if pause_s:
-                    time.sleep(pause_s)
-            result = out.get(timeout=120)
-            publisher.close()
-            bus.close()
+            results.append(_send_dtx(context_mp, message, transport, bus_dir, count, pause_s))
         else:
-            context = zmq.Context()
-            sock = context.socket(zmq.XPUB)
-            sock.setsockopt(zmq.SNDHWM, 100_000)
-            address = f"ipc://{bus_dir}/raw.sock" if transport == "ipc" else "tcp://127.0.0.1:*"
-            sock.bind(address)
-            address = sock.getsockopt_string(zmq.LAST_ENDPOINT)
-            child = context_mp.Process(target=_receiver, args=(impl, transport, address, bus_dir, count, out))
-            child.start()
-            out.get(timeout=60)
-            sock.recv()  # the subscription arrives: the subscriber is connected
-            time.sleep(0.2)
-            payload = memoryview(np.ones(payload_bytes, np.uint8))
-            for _ in range(count):
-                sock.send_multipart([TOPIC.encode(), time.monotonic_ns().to_bytes(8, "little"), payload], copy=False)
-                if pause_s:
-                    time.sleep(pause_s)
-            result = out.get(timeout=120)
-            context.destroy(linger=1000)
-        child.join(timeout=30)
-        results.append(result)
+            results.append(_send_raw(context_mp, payload_bytes, transport, bus_dir, count, pause_s))
     latency, throughput = results
     lat = np.array(latency["latencies_us"])
     mb_per_s = throughput["bytes"] / throughput["span_s"] / 1e6 if throughput["span_s"] > 0 else float("nan")

@@ -34,45 +34,33 @@ def foxglove_schema(dtx_schema: str) -> Any | None:
     return view().get_schema() if view is not None else None
 
 
+def _raw_image(stamp_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> fox.RawImage:
+    """A RawImage of C-contiguous ``pixels`` (rows first), in Foxglove's ``encoding``."""
+    return fox.RawImage(
+        timestamp=_foxglove_time(stamp_ns),
+        frame_id=frame_id,
+        width=pixels.shape[1],
+        height=pixels.shape[0],
+        encoding=encoding,
+        step=pixels.strides[0],
+        data=pixels.tobytes(),
+    )
+
+
 def foxglove_view(message: Message) -> Any | None:
     """The Foxglove well-known message showing ``message``, or None if it has none."""
     header = message.header
     if isinstance(message, msgs.DepthImage):
         depth = np.ascontiguousarray(message.depth)
         encoding = "16UC1" if depth.dtype == np.uint16 else "32FC1"
-        return fox.RawImage(
-            timestamp=_foxglove_time(header.stamp_ns),
-            frame_id=header.frame_id,
-            width=depth.shape[1],
-            height=depth.shape[0],
-            encoding=encoding,
-            step=depth.strides[0],
-            data=depth.tobytes(),
-        )
+        return _raw_image(header.stamp_ns, header.frame_id, depth, encoding)
     if isinstance(message, msgs.TactileImage):
-        image = np.ascontiguousarray(message.image)
-        return fox.RawImage(
-            timestamp=_foxglove_time(header.stamp_ns),
-            frame_id=header.frame_id,
-            width=image.shape[1],
-            height=image.shape[0],
-            encoding="rgb8",
-            step=image.strides[0],
-            data=image.tobytes(),
-        )
+        return _raw_image(header.stamp_ns, header.frame_id, np.ascontiguousarray(message.image), "rgb8")
     if isinstance(message, msgs.DatasetSample):
         # The sample's contact depth-map: 32FC1, metres along the gel's outward normal (bins with
         # no surface hold the far end of the depth range), in the gel frame of its finger.
         depth_map = np.ascontiguousarray(message.depth_map_m, dtype=np.float32)
-        return fox.RawImage(
-            timestamp=_foxglove_time(header.stamp_ns),
-            frame_id=f"gel_{message.finger}",
-            width=depth_map.shape[1],
-            height=depth_map.shape[0],
-            encoding="32FC1",
-            step=depth_map.strides[0],
-            data=depth_map.tobytes(),
-        )
+        return _raw_image(header.stamp_ns, f"gel_{message.finger}", depth_map, "32FC1")
     if isinstance(message, msgs.PointCloud):
         points = np.ascontiguousarray(message.points, dtype=np.float32)
         fields = [
