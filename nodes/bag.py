@@ -20,6 +20,7 @@ import os
 import stat
 import struct
 import time
+import typing
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -290,7 +291,10 @@ def read_records(path: str | Path) -> tuple[Iterator[BagRecord], BagReading]:
             try:
                 stream = _BoundedFile(raw, path)
                 for record in StreamReader(
-                    stream, skip_magic=False, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES
+                    typing.cast(BinaryIO, stream),
+                    skip_magic=False,
+                    emit_chunks=True,
+                    record_size_limit=MAX_RECORD_BYTES,
                 ).records:
                     if isinstance(record, Chunk):
                         if reading.compression == "unknown":
@@ -349,7 +353,9 @@ def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:
     (instant), else by reading the whole stream."""
     with _open_bag(path) as raw:
         try:
-            summary = SeekingReader(_BoundedFile(raw, path), record_size_limit=MAX_RECORD_BYTES).get_summary()
+            summary = SeekingReader(
+                typing.cast(BinaryIO, _BoundedFile(raw, path)), record_size_limit=MAX_RECORD_BYTES
+            ).get_summary()
         except (McapError, EOFError, struct.error, ValueError):
             summary = None
         except OSError as exc:

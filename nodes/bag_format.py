@@ -103,7 +103,7 @@ def _field_schema(annotation: Any, default: Any) -> dict[str, Any]:
                 "a dimension of any length; the record's a is authoritative",
             },
         }
-    if dataclasses.is_dataclass(annotation):
+    if isinstance(annotation, type) and dataclasses.is_dataclass(annotation):
         return _object_schema(annotation)
     simple = {int: "integer", float: "number", str: "string", bool: "boolean"}
     if annotation in simple:

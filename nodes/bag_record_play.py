@@ -45,7 +45,7 @@ def record(
                 next_scan = time.monotonic() + 0.5
                 for topic in topics or list(bus.registry.names("topic")):
                     if topic not in {s.topic for s in subscribers.values()}:
-                        subscriber = bus.subscriber(topic, None)
+                        subscriber: Subscriber[Any] = bus.subscriber(topic, None)
                         subscribers[subscriber.sock] = subscriber
                         poller.register(subscriber.sock, zmq.POLLIN)
                         if on_subscriber is not None:

@@ -19,6 +19,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from typing import Any, Generic, TypeVar
 
 import zmq
@@ -56,7 +57,7 @@ class Bus(BusContext):
         return Subscriber(self, topic, msg_type, self.peer_endpoints("topic", topic, schema))
 
     def service(
-        self, name: str, request_type: type[M], reply_type: type[R], handler: Callable[[M], R]
+        self, name: str, request_type: type[M], reply_type: type[R], handler: Callable[[M], R | Future[R]]
     ) -> "ServiceServer[M, R]":
         return ServiceServer(self, self.resolve(name), request_type, reply_type, handler)
 
@@ -115,7 +116,7 @@ class Publisher(Generic[M]):
         """Count joins and leaves (at most a slice of them per call); a join on a latched
         topic gets the last message again."""
         for _ in range(SLICE_MESSAGES):
-            if not self.sock.getsockopt(zmq.EVENTS) & POLLIN:  # cheaper than a failing recv
+            if not self.sock.getsockopt(zmq.EVENTS) & POLLIN:  # type: ignore[operator]  # an int; cheaper than a failing recv
                 return
             event = self.sock.recv()
             if event[:1] == b"\x01":
@@ -134,7 +135,7 @@ class Publisher(Generic[M]):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return False
-            self.sock.poll(min(remaining, 0.05) * 1000, zmq.POLLIN)
+            self.sock.poll(min(remaining, 0.05) * 1000, zmq.POLLIN)  # type: ignore[arg-type]  # pyzmq polls float ms; its stub says int
 
     def close(self) -> None:
         self._entry.unlink(missing_ok=True)
@@ -223,13 +224,13 @@ class Subscriber(Generic[M]):
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             self.discover()
-            if self.sock.getsockopt(zmq.EVENTS) & POLLIN:
+            if self.sock.getsockopt(zmq.EVENTS) & POLLIN:  # type: ignore[operator]  # EVENTS is an int
                 envelope = self.handle(self.sock.recv_multipart(copy=False))
                 if envelope is not None:
                     return envelope
                 continue
             wait = DISCOVERY_PERIOD_S if deadline is None else min(DISCOVERY_PERIOD_S, deadline - time.monotonic())
-            if wait > 0 and self.sock.poll(wait * 1000, zmq.POLLIN):
+            if wait > 0 and self.sock.poll(wait * 1000, zmq.POLLIN):  # type: ignore[arg-type]  # pyzmq polls float ms; its stub says int
                 envelope = self.handle(self.sock.recv_multipart(copy=False))
                 if envelope is not None:
                     return envelope

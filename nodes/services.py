@@ -66,7 +66,12 @@ class ServiceServer(Generic[M, R]):
     REPLY_CACHE_BYTES = 64 * 1024 * 1024
 
     def __init__(
-        self, bus: BusContext, name: str, request_type: type[M], reply_type: type[R], handler: Callable[[M], R]
+        self,
+        bus: BusContext,
+        name: str,
+        request_type: type[M],
+        reply_type: type[R],
+        handler: Callable[[M], R | Future[R]],
     ) -> None:
         self.bus, self.name = bus, name
         self.request_type, self.reply_type, self.handler = request_type, reply_type, handler
@@ -351,7 +356,7 @@ class ServiceClient(Generic[M, R]):
         """The reply to request ``self.seq``; the servers that died meanwhile; None at the
         deadline. A ServiceError reply is raised."""
         while (remaining := deadline - time.monotonic()) > 0:
-            if not self.sock.poll(min(remaining, LIVENESS_PERIOD_S) * 1000, zmq.POLLIN):
+            if not self.sock.poll(min(remaining, LIVENESS_PERIOD_S) * 1000, zmq.POLLIN):  # type: ignore[arg-type]  # pyzmq polls float ms; its stub says int
                 self._check_cancelled()
                 dead = self._forget_dead_servers()
                 if dead:
