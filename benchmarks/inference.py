@@ -40,10 +40,10 @@ import numpy as np
 import torch
 
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
-from models.data import network_input
+from models.data import network_input, to_uint8_rgb
 from models.networks import GeneratorConfig, UNetGenerator
 from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
-from models.ssim import ssim_rgb, to_uint8_rgb
+from perception.ssim import ssim_rgb
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)
 OFFERED = {"eager": ("fp32", "bf16"), "compile": ("fp32", "bf16"), "onnxrt": ("fp32", "int8")}
@@ -135,7 +135,7 @@ def gflop_per_region(generator: UNetGenerator, inputs: np.ndarray) -> float:
 
 def _generator(width: int, checkpoint: str | None, seed: int) -> tuple[UNetGenerator, tuple[float, float]]:
     if checkpoint:
-        from models.train import load_generator
+        from models.checkpoint import load_generator
 
         return load_generator(checkpoint)
     torch.manual_seed(seed)

@@ -43,9 +43,9 @@ import numpy as np
 import torch
 
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
+from models.checkpoint import TrainConfig, load_generator
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
-from models.train import TrainConfig, load_generator
 from nodes.bus import Bus
 from nodes.inference import InferenceNode
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient

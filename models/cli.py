@@ -15,7 +15,8 @@ from models.errors import ModelConfigError
 
 @exit_1_on(ModelConfigError, DatasetError, OSError)
 def _train(args: argparse.Namespace) -> int:
-    from models.train import TrainConfig, train
+    from models.checkpoint import TrainConfig
+    from models.train import train
 
     config = TrainConfig.load(args.config)
     if args.hold_out_object:
@@ -28,8 +29,9 @@ def _train(args: argparse.Namespace) -> int:
 
 @exit_1_on(ModelConfigError, DatasetError, OSError)
 def _evaluate(args: argparse.Namespace) -> int:
-    from models.evaluate import evaluate, parse_density, summary_table, write_figures
-    from models.train import load_generator
+    from models.checkpoint import load_generator
+    from models.evaluate import evaluate, parse_density, summary_table
+    from models.figures import write_figures
 
     if args.dataset is None and args.real_presses is None:
         print("error: give a DATASET, --real-presses FILE.npz, or both", file=sys.stderr)

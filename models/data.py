@@ -11,7 +11,7 @@ import torch
 from dataset.format import DatasetReader, SampleRecord
 from dataset.splits import leave_one_object_out, split_records
 from models.networks import GeneratorConfig, ModelConfigError
-from models.prior import PhysicsPrior
+from models.prior import PhysicsPrior, PriorSpec
 from perception.normalisation import normalise_depth_map
 
 
@@ -66,6 +66,12 @@ def image_target(images_rgb: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(images).permute(0, 3, 1, 2).float() / 127.5 - 1.0
 
 
+def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:
+    """Network output N x 3 x H x W in [-1, 1] -> N x H x W x 3 uint8 (rounded, clipped)."""
+    scaled = ((images.detach().float().cpu() + 1.0) * 127.5).round().clamp(0, 255)
+    return scaled.to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
 def select_records(reader: DatasetReader, split: str, hold_out_object: str = "") -> list[SampleRecord]:
     """Records of one split: the dataset's 70/15/15 split, or with ``hold_out_object`` the
     leave-one-object-out split (its "test" is every sample of that object)."""
@@ -108,3 +114,37 @@ def load_pairs(
         np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior, pose_sigma_mm
     )
     return depth, image_target(np.stack([s.tactile_rgb for s in samples]))
+
+
+def load_library(
+    libraries: Sequence[str | os.PathLike[str]],
+    session: DatasetReader,
+    config: GeneratorConfig,
+    prior: PhysicsPrior | None,
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Every sample of each library dataset (dataset.contact_library), as network input and
+    target; refused unless its depth-maps are the session's (range and crop)."""
+    parts = []
+    for library in libraries:
+        reader = DatasetReader(library)
+        for name in ("depth_range_m", "depth_crop_m"):
+            mine, theirs = getattr(reader.info, name), getattr(session.info, name)
+            if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
+                raise ModelConfigError(
+                    f"library {library} has {name} {mine}, the dataset {theirs}: make it "
+                    "with the session's settings (dtx dataset library --depth-range-m)"
+                )
+        parts.append(load_pairs(reader, None, config, prior, pose_sigma_mm=0.0))  # exact geometry
+    if not parts:
+        return None
+    return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+
+
+def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm: float = 0.0) -> PhysicsPrior | None:
+    """The physics prior for a generator of ``config`` trained on ``reader``'s dataset: its
+    scene's GelSight, its depth-maps' crop and their pose error (None when the config has no prior)."""
+    if not config.prior:
+        return None
+    if reader.info.depth_crop_m is None or not reader.info.scene:
+        raise ModelConfigError(f"{reader.root} does not record its scene and depth crop, which a physics prior needs")
+    return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m), pose_sigma_mm), config.image_size)

@@ -1,36 +1,37 @@
 """Evaluate a trained generator like the paper (``dtx evaluate CHECKPOINT DATASET``).
 
-* SSIM (models.ssim) of every estimate against its ground truth, and the baseline: the
+* SSIM (perception.ssim) of every estimate against its ground truth, and the baseline: the
   same estimate against ``baseline_draws`` (15) random other ground-truth images of the
   evaluated set, averaged per estimate. Mean +- standard error of both, paired Wilcoxon
   signed-rank and paired t-test p-values (two-sided), and the dissimilarity ratio
   (1 - SSIM_model) / (1 - SSIM_baseline) (paper: 0.16 / 0.20 = 0.80).
-* Template matching (OpenCV TM_CCOEFF_NORMED): the template is the ground truth's most
-  deformed ``template_px`` square (largest summed |change| of the background-subtracted
-  copy), searched for in the estimate; score and distance (px) from the template's place.
+* Template matching (OpenCV TM_CCOEFF_NORMED; models.template_match): the template is the
+  ground truth's most deformed ``template_px`` square (largest summed |change| of the
+  background-subtracted copy), searched for in the estimate; score and distance (px) from the
+  template's place.
 * Density table: the same SSIM on datasets whose depth-maps were made from clouds
   downsampled to given densities (points/cm^3) - inputs from the collection session.
+
+The figures (``--figures``) are models.figures'.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from scipy import stats
 
 from dataset.format import deformation_map
-from models.data import network_input, reader_for_model, select_records
+from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
-from models.ssim import WINDOW, psnr_rgb, ssim_rgb, to_uint8_rgb
-from workcell.scene import SceneError, load_scene
+from models.template_match import template_match
+from perception.errors import ImageComparisonError
+from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
 
 PAPER = {
     "ssim_model_mean": 0.84,
@@ -128,26 +129,20 @@ def ssim_statistics(
 ) -> dict[str, Any]:
     """Model vs baseline SSIM statistics (see module docstring) for N >= 2 image pairs.
     ``windows`` (N x H x W bool) restricts each SSIM to the windows centred on a truth's True
-    pixels (models.ssim.ssim_rgb); the baseline then uses each random truth's own windows.
+    pixels (perception.ssim.ssim_rgb); the baseline then uses each random truth's own windows.
 
-    Contract: ``truth`` and ``estimate`` N x H x W x 3 uint8 (models.ssim.ssim_rgb), N >= 2;
+    Contract: ``truth`` and ``estimate`` N x H x W x 3 uint8 (perception.ssim.ssim_rgb), N >= 2;
     ``baseline_draws`` an integer in [1, MAX_BASELINE_DRAWS]; every truth's ``windows`` must hold
     a window inside the 5-pixel border. Otherwise ModelConfigError. Every statistic is then
     finite except ``dissimilarity_ratio``, which is NaN when the baseline's mean dissimilarity
     1 - SSIM is 0 (every truth the same frame, and the estimates too): the ratio is undefined, and
     ``dissimilarity_ratio_undefined`` says why (the key is present only then)."""
     n = len(truth)
-    if n < 2 or truth.shape != estimate.shape:
-        raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
-    if not (
-        isinstance(baseline_draws, (int, np.integer))
-        and not isinstance(baseline_draws, bool)
-        and 1 <= baseline_draws <= MAX_BASELINE_DRAWS
-    ):
-        raise ModelConfigError(
-            f"baseline_draws must be an integer in [1, {MAX_BASELINE_DRAWS}], got {baseline_draws!r}"
-        )
-    model = ssim_rgb(truth, estimate, windows)
+    _check_statistics_input(truth, estimate, baseline_draws)
+    try:
+        model = ssim_rgb(truth, estimate, windows)
+    except ImageComparisonError as err:  # the contract above names the models' error
+        raise ModelConfigError(str(err)) from err
     if not np.all(np.isfinite(model)):
         raise ModelConfigError(
             f"pairs {np.flatnonzero(~np.isfinite(model)).tolist()} have no SSIM window inside "
@@ -163,6 +158,32 @@ def ssim_statistics(
             None if windows is None else windows[draws],
         ),
     )
+    return {
+        "n": n,
+        **_model_against_baseline(model, baseline),
+        "ssim_model": model.tolist(),
+        "ssim_baseline": baseline.tolist(),
+    }
+
+
+def _check_statistics_input(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int) -> None:
+    """ModelConfigError unless there are 2 pairs of one shape and ``baseline_draws`` is an
+    integer in [1, MAX_BASELINE_DRAWS]."""
+    if len(truth) < 2 or truth.shape != estimate.shape:
+        raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
+    if not (
+        isinstance(baseline_draws, (int, np.integer))
+        and not isinstance(baseline_draws, bool)
+        and 1 <= baseline_draws <= MAX_BASELINE_DRAWS
+    ):
+        raise ModelConfigError(
+            f"baseline_draws must be an integer in [1, {MAX_BASELINE_DRAWS}], got {baseline_draws!r}"
+        )
+
+
+def _model_against_baseline(model: np.ndarray, baseline: np.ndarray) -> dict[str, Any]:
+    """Means and standard errors of the model's and the baseline's SSIM, paired Wilcoxon and
+    t-test p-values and the dissimilarity ratio (with why it is undefined, when it is)."""
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)
     diff = model - baseline
@@ -183,7 +204,6 @@ def ssim_statistics(
         }
     )
     return {
-        "n": n,
         "ssim_model_mean": model_mean,
         "ssim_model_se": model_se,
         "ssim_baseline_mean": base_mean,
@@ -192,13 +212,11 @@ def ssim_statistics(
         "p_value_t": p_t,
         "dissimilarity_ratio": (1.0 - model_mean) / base_dissimilarity if not undefined else float("nan"),
         **undefined,
-        "ssim_model": model.tolist(),
-        "ssim_baseline": baseline.tolist(),
     }
 
 
 def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int = 15, seed: int = 0) -> dict[str, Any]:
-    """PSNR (dB, models.ssim.psnr_rgb) of every estimate against its truth and against the same
+    """PSNR (dB, perception.ssim.psnr_rgb) of every estimate against its truth and against the same
     random other truths as the SSIM baseline (same draws for the same seed): mean and standard
     error of each. Cross-modal benchmarks report PSNR beside SSIM; PSNR weighs every pixel's
     error, SSIM the local structure."""
@@ -289,76 +307,6 @@ def contact_ssim_statistics(
     }
 
 
-def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
-    """Top-left (x, y) of the size_px square with the largest summed deformation."""
-    h, w = deformation.shape
-    if not 0 < size_px <= min(h, w):
-        raise ModelConfigError(f"template size {size_px} px does not fit a {h} x {w} image")
-    sums = cv2.boxFilter(
-        deformation.astype(np.float32),
-        -1,
-        (size_px, size_px),
-        normalize=False,
-        anchor=(0, 0),
-        borderType=cv2.BORDER_CONSTANT,
-    )[: h - size_px + 1, : w - size_px + 1]
-    y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
-    return int(x), int(y)
-
-
-def template_match(
-    truth: np.ndarray, truth_deformation: np.ndarray, estimate: np.ndarray, size_px: int = 32
-) -> list[dict[str, Any]]:
-    """Per pair: the template box in the truth, the best match in the estimate, its score
-    (TM_CCOEFF_NORMED, -1..1) and the distance between the two boxes in pixels.
-
-    ``truth`` and ``estimate``: N x H x W x 3 uint8 of one shape, ``truth_deformation``
-    N x H x W; otherwise ModelConfigError. A flat template (every channel one value) or a flat
-    estimate window has no correlation coefficient (OpenCV 5 scores a flat template 1.0, older
-    versions NaN): it scores 0. A pair with a flat template has no match: ``match_xy`` and
-    ``distance_px`` are None."""
-    truth, estimate = np.asarray(truth), np.asarray(estimate)
-    if (
-        truth.dtype != np.uint8
-        or truth.shape != estimate.shape
-        or estimate.dtype != np.uint8
-        or truth.ndim != 4
-        or truth.shape[-1] != 3
-        or np.shape(truth_deformation) != truth.shape[:-1]
-    ):
-        raise ModelConfigError(
-            f"template matching needs uint8 N x H x W x 3 truth and estimate and an N x H x W "
-            f"deformation, got {truth.dtype} {truth.shape}, {estimate.dtype} {estimate.shape}, "
-            f"{np.shape(truth_deformation)}"
-        )
-    results = []
-    for gt, deform, est in zip(truth, truth_deformation, estimate):
-        x, y = most_deformed_box(deform, size_px)
-        template = np.ascontiguousarray(gt[y : y + size_px, x : x + size_px])
-        if np.all(template == template[:1, :1]):
-            results.append({"template_xy": [x, y], "match_xy": None, "score": 0.0, "distance_px": None})
-            continue
-        est = np.ascontiguousarray(est)
-        scores = cv2.matchTemplate(est, template, cv2.TM_CCOEFF_NORMED)
-        # Summed per-channel variance of each estimate window; zero (to rounding) where it is flat.
-        levels = est.astype(np.float64)
-        window = (size_px, size_px)
-        mean = cv2.boxFilter(levels, -1, window, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
-        mean_sq = cv2.boxFilter(levels * levels, -1, window, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT)
-        variance = (mean_sq - mean * mean).sum(axis=-1)[: scores.shape[0], : scores.shape[1]]
-        scores = np.where((variance > 1e-6) & np.isfinite(scores), scores, 0.0).astype(np.float32)
-        _, score, _, (mx, my) = cv2.minMaxLoc(scores)
-        results.append(
-            {
-                "template_xy": [x, y],
-                "match_xy": [int(mx), int(my)],
-                "score": float(score),
-                "distance_px": float(np.hypot(mx - x, my - y)),
-            }
-        )
-    return results
-
-
 def evaluate(
     generator: UNetGenerator,
     depth_range_m: tuple[float, float],
@@ -418,128 +366,6 @@ def evaluate(
         result["density"].append(row)
     result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
     return result, predictions
-
-
-def write_figures(
-    result: dict[str, Any],
-    predictions: Predictions,
-    depth_range_m: tuple[float, float],
-    out: str | os.PathLike[str],
-    rows: int = 8,
-) -> list[Path]:
-    """qualitative.png (object, depth-map, truth with template box in blue, estimate with
-    matched box in red), ssim_bars.png (model vs baseline, standard-error bars) and, when
-    the result has a density table, density.png. Returns the written paths."""
-    import matplotlib  # noqa: PLC0415 (only evaluation with --figures needs it)
-
-    matplotlib.use("Agg")
-    from matplotlib import patches  # noqa: PLC0415 - matplotlib loads only to draw a figure
-    from matplotlib import pyplot as plt  # noqa: PLC0415 - matplotlib loads only to draw a figure
-
-    out_dir = Path(out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-    size = result["template_match"]["template_px"]
-    count = min(rows, len(predictions.sample_ids))
-    fig, axes = plt.subplots(count, 4, figsize=(8, 2 * count), squeeze=False)
-    for row, ax in enumerate(axes):
-        match = result["template_match"]["per_sample"][row]
-        _draw_object(ax[0], predictions, row)
-        ax[1].imshow(
-            np.nan_to_num(predictions.depth_maps_m[row], nan=depth_range_m[1]) * 1e3,
-            cmap="viridis",
-            vmin=depth_range_m[0] * 1e3,
-            vmax=depth_range_m[1] * 1e3,
-        )
-        ax[2].imshow(predictions.truth[row])
-        ax[2].add_patch(patches.Rectangle(match["template_xy"], size, size, fill=False, color="blue"))
-        ax[3].imshow(predictions.estimate[row])
-        if match["match_xy"] is not None:  # a flat template has no match
-            ax[3].add_patch(patches.Rectangle(match["match_xy"], size, size, fill=False, color="red"))
-        ax[3].set_xlabel(f"SSIM {result['ssim_model'][row]:.3f}, match {match['score']:.2f}", fontsize=7)
-        for a in ax:
-            a.set_xticks([])
-            a.set_yticks([])
-    for a, title in zip(axes[0], ("object", "depth-map (mm)", "ground truth", "estimate")):
-        a.set_title(title, fontsize=9)
-    fig.tight_layout()
-    written.append(out_dir / "qualitative.png")
-    fig.savefig(written[-1], dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(figsize=(3, 3.5))
-    ax.bar(
-        ["baseline", "model"],
-        [result["ssim_baseline_mean"], result["ssim_model_mean"]],
-        yerr=[result["ssim_baseline_se"], result["ssim_model_se"]],
-        capsize=6,
-        color=["grey", "tab:blue"],
-    )
-    ax.set_ylabel("SSIM (mean ± s.e.)")
-    ax.set_ylim(0, 1)
-    ax.set_title(f"ratio {result['dissimilarity_ratio']:.2f}, p {result['p_value_wilcoxon']:.1e}", fontsize=9)
-    fig.tight_layout()
-    written.append(out_dir / "ssim_bars.png")
-    fig.savefig(written[-1], dpi=100)
-    plt.close(fig)
-
-    if result["density"]:
-        rows_d = result["density"]
-        fig, ax = plt.subplots(figsize=(4, 3))
-        ax.errorbar(
-            [r["points_per_cm3"] for r in rows_d],
-            [r["ssim_mean"] for r in rows_d],
-            yerr=[r["ssim_se"] for r in rows_d],
-            marker="o",
-            capsize=4,
-            label="this model",
-        )
-        paper = sorted(PAPER["density"].items())
-        ax.plot([d for d, _ in paper], [v for _, v in paper], "s--", color="grey", label="paper")
-        ax.set_xscale("log")
-        ax.set_xlabel("point-cloud density (points/cm³)")
-        ax.set_ylabel("SSIM")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        written.append(out_dir / "density.png")
-        fig.savefig(written[-1], dpi=100)
-        plt.close(fig)
-    return written
-
-
-def _draw_object(ax: Any, predictions: Predictions, row: int) -> None:
-    """The object as the gel saw it: its model's points in the gel frame (x right, z down, as
-    the depth-map), the near side only, shaded by distance, and the depth-map's crop; or the
-    sample's name where the dataset does not say where the gel was."""
-    from matplotlib import patches  # noqa: PLC0415 - matplotlib loads only to draw a figure
-
-    label = f"{predictions.objects[row]}\n{predictions.sample_ids[row]}"
-    model_to_gel = predictions.model_to_gel[row] if predictions.model_to_gel else None
-    cloud = _model_cloud(predictions.scene, predictions.objects[row]) if model_to_gel is not None else None
-    if cloud is None or predictions.depth_crop_m is None:
-        ax.text(0.5, 0.5, label, ha="center", va="center", fontsize=7)
-        return
-    points_mm = (cloud @ model_to_gel[:3, :3].T + model_to_gel[:3, 3]) * 1e3
-    near = points_mm[points_mm[:, 1] < np.median(points_mm[:, 1])]
-    near = near[np.argsort(-near[:, 1])]  # nearest drawn last, on top
-    ax.scatter(near[:, 0], near[:, 2], c=near[:, 1], s=0.5, cmap="Greys")
-    crop_x, _, crop_z = (v * 1e3 for v in predictions.depth_crop_m)
-    ax.add_patch(patches.Rectangle((-crop_x / 2, -crop_z / 2), crop_x, crop_z, fill=False, color="tab:orange"))
-    ax.set_aspect("equal")
-    ax.invert_yaxis()
-    ax.set_xlabel(label.replace("\n", " "), fontsize=6)
-
-
-@functools.lru_cache(maxsize=16)
-def _model_cloud(scene: str, object_name: str) -> np.ndarray | None:
-    """The 2 mm model cloud of ``object_name`` in ``scene`` (None: not a mesh of that scene)."""
-    from perception.registration import sample_model_cloud  # noqa: PLC0415 - Open3D loads only to sample a mesh
-
-    try:
-        mesh = load_scene(scene).mesh(object_name)
-    except (SceneError, OSError):
-        return None
-    return sample_model_cloud(mesh).points_m
 
 
 def summary_table(result: dict[str, Any]) -> str:

@@ -148,7 +148,7 @@ class UNetGenerator(nn.Module):
         if config.background:
             self.background = nn.Parameter(torch.zeros(config.out_channels, config.image_size, config.image_size))
         # The models.prior.PhysicsPrior whose images this generator's input carries
-        # (config.prior): set by models.train.load_generator from the checkpoint, never learned.
+        # (config.prior): set by models.checkpoint.load_generator from the checkpoint, never learned.
         self.prior: Any = None
 
     @torch.no_grad()

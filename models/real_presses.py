@@ -14,7 +14,7 @@ contact radius (px). For each press the system sees what it would see at a grasp
   frame (``dataset.format.resize_rgb``).
 
 Estimates scored against the truth, each by SSIM (Gaussian sigma 1.5, data range 255, per
-channel; models.ssim) and PSNR, over the whole image and over the press window — the box of
+channel; perception.ssim) and PSNR, over the whole image and over the press window — the box of
 side ``WINDOW_RADII`` contact radii around the press, cut from both images:
 
 * ``model`` — the model fed the press's depth-map; ``model_empty`` — fed an empty map;
@@ -42,9 +42,9 @@ from dataset.format import resize_rgb
 from models.errors import ModelConfigError
 from models.evaluate import predict
 from models.networks import UNetGenerator
-from models.ssim import WINDOW, psnr_rgb, ssim_rgb
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
-from sim.gelsight import GelSightError, scene_renderer
+from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
+from sim.gelsight import GelSightError, GelSightRenderer, scene_renderer
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, load_scene
@@ -147,18 +147,8 @@ def evaluate_real_presses(
         raise ModelConfigError(f"--ball-radius-mm must be a positive number, got {ball_radius_mm}")
     if not (np.isfinite(mm_per_px) and mm_per_px > 0):
         raise ModelConfigError(f"--mm-per-px must be a positive number, got {mm_per_px}")
-    try:
-        presses = load_ball_presses(path)
-        scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
-        renderer = scene_renderer(scene, effects=False)
-    except GelSightError as err:
-        raise ModelConfigError(str(err)) from err
-    height, width = presses.background.shape[:2]
-    if renderer.config.shape != (height, width):
-        raise ModelConfigError(f"{path}: frames are {height} x {width}, the scene's GelSight {renderer.config.shape}")
+    presses, scene, renderer = _load_presses(path, scene)
     grid = (generator.config.image_size, generator.config.image_size)
-    geometry = scene.gripper_geometry()
-    params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m)
     n = len(presses.frames)
     geometries = [press_geometry(presses, i, mm_per_px, ball_radius_mm, grid) for i in range(n)]
     small = [i for i, g in enumerate(geometries) if min(g.window[1] - g.window[0], g.window[3] - g.window[2]) < WINDOW]
@@ -167,6 +157,8 @@ def evaluate_real_presses(
             f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
             "(contact radius too small for SSIM)"
         )
+    geometry = scene.gripper_geometry()
+    params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m)
     cloud = ball_cloud_m(ball_radius_mm)
     depth_maps = np.stack([press_depth_map(g, ball_radius_mm, geometry, params, cloud) for g in geometries])
     empty = np.full((1, *grid), depth_range_m[1], dtype=np.float32)
@@ -177,34 +169,71 @@ def evaluate_real_presses(
         "model": predict(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0),
         "model_empty": np.repeat(predict(generator, empty, depth_range_m, pose_sigma_mm=0.0), n, axis=0),
         "background": np.repeat(resize_rgb(presses.background, *grid)[None], n, axis=0),
-        "renderer": np.stack(
-            [
-                resize_rgb(
-                    renderer.render(
-                        ball_gap_map((height, width), presses.centers_xy_px[i], g.depth_mm, mm_per_px, ball_radius_mm)
-                    ),
-                    *grid,
-                )
-                for i, g in enumerate(geometries)
-            ]
-        ),
+        "renderer": _renderer_images(renderer, presses, geometries, grid, mm_per_px, ball_radius_mm),
     }
     rng = np.random.default_rng(seed)
     others = [rng.choice(np.delete(np.arange(n), i), size=min(RANDOM_FRAMES, n - 1), replace=False) for i in range(n)]
-    field_mm = (height * mm_per_px, width * mm_per_px)
+    height, width = presses.background.shape[:2]
+    scores = _score_presses(images, geometries, others, (height * mm_per_px, width * mm_per_px))
+    settings = {"ball_radius_mm": ball_radius_mm, "mm_per_px": mm_per_px, "window_radii": WINDOW_RADII, "seed": seed}
+    return {"n": n, "file": str(path), **settings, **_summary(scores, geometries)}, images
+
+
+def _load_presses(path: str | os.PathLike[str], scene: Scene | str) -> tuple[BallPresses, Scene, GelSightRenderer]:
+    """The presses file, the scene and its GelSight renderer (effects off), which must draw
+    frames of the file's size; ModelConfigError otherwise."""
+    try:
+        presses = load_ball_presses(path)
+        scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
+        renderer = scene_renderer(scene, effects=False)
+    except GelSightError as err:
+        raise ModelConfigError(str(err)) from err
+    height, width = presses.background.shape[:2]
+    if renderer.config.shape != (height, width):
+        raise ModelConfigError(f"{path}: frames are {height} x {width}, the scene's GelSight {renderer.config.shape}")
+    return presses, scene, renderer
+
+
+def _renderer_images(
+    renderer: GelSightRenderer,
+    presses: BallPresses,
+    geometries: list[PressGeometry],
+    grid: tuple[int, int],
+    mm_per_px: float,
+    ball_radius_mm: float,
+) -> np.ndarray:
+    """The simulated GelSight's image of every press, rendered at the file's size and brought
+    to the model's grid."""
+    shape = presses.background.shape[:2]
+    return np.stack(
+        [
+            resize_rgb(
+                renderer.render(ball_gap_map(shape, presses.centers_xy_px[i], g.depth_mm, mm_per_px, ball_radius_mm)),
+                *grid,
+            )
+            for i, g in enumerate(geometries)
+        ]
+    )
+
+
+def _score_presses(
+    images: dict[str, np.ndarray],
+    geometries: list[PressGeometry],
+    others: list[np.ndarray],
+    field_mm: tuple[float, float],
+) -> dict[str, dict[str, list[float]]]:
+    """Per score and estimate, the value on every press: SSIM and PSNR over the whole image
+    and over the press window, and the location error; ``random`` averages over ``others``."""
     scores: dict[str, dict[str, list[float]]] = {
         key: {e: [] for e in ESTIMATES}
         for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db", "location_error_mm")
     }
     truth = images["truth"]
-    for i in range(n):
+    for i, geometry in enumerate(geometries):
         for name in ESTIMATES:
-            if name == "random":
-                candidates = truth[others[i]]
-            else:
-                candidates = images[name][i : i + 1]
+            candidates = truth[others[i]] if name == "random" else images[name][i : i + 1]
             reference = np.repeat(truth[i : i + 1], len(candidates), axis=0)
-            r0, r1, c0, c1 = geometries[i].window
+            r0, r1, c0, c1 = geometry.window
             reference_window = np.ascontiguousarray(reference[:, r0:r1, c0:c1])
             candidates_window = np.ascontiguousarray(candidates[:, r0:r1, c0:c1])
             scores["full_ssim"][name].append(float(ssim_rgb(reference, candidates).mean()))
@@ -212,32 +241,32 @@ def evaluate_real_presses(
             scores["full_psnr_db"][name].append(float(psnr_rgb(reference, candidates).mean()))
             scores["window_psnr_db"][name].append(float(psnr_rgb(reference_window, candidates_window).mean()))
             scores["location_error_mm"][name].append(
-                _finite_mean([location_error_mm(truth[i], c, geometries[i], field_mm) for c in candidates])
+                _finite_mean([location_error_mm(truth[i], c, geometry, field_mm) for c in candidates])
             )
+    return scores
+
+
+def _summary(scores: dict[str, dict[str, list[float]]], geometries: list[PressGeometry]) -> dict[str, Any]:
+    """The result's scores: each estimate's mean (location: median) over the presses, and the
+    model's and the renderer's scores on every press."""
     result: dict[str, Any] = {
-        "n": n,
-        "file": str(path),
-        "ball_radius_mm": ball_radius_mm,
-        "mm_per_px": mm_per_px,
-        "window_radii": WINDOW_RADII,
-        "seed": seed,
+        key: {name: float(np.mean(values)) for name, values in scores[key].items()}
+        for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db")
     }
-    for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db"):
-        result[key] = {name: float(np.mean(values)) for name, values in scores[key].items()}
     location = scores["location_error_mm"]
     result["location_error_mm_median"] = _nan_median(location["model"])
     result["location_error_mm_median_of"] = {name: _nan_median(values) for name, values in location.items()}
     result["per_press"] = [
         {
             "index": i,
-            "depth_mm": geometries[i].depth_mm,
-            "contact_radius_mm": geometries[i].contact_radius_mm,
-            "window": list(geometries[i].window),
+            "depth_mm": g.depth_mm,
+            "contact_radius_mm": g.contact_radius_mm,
+            "window": list(g.window),
             **{f"{key}_{name}": scores[key][name][i] for key in scores for name in ("model", "renderer")},
         }
-        for i in range(n)
+        for i, g in enumerate(geometries)
     ]
-    return result, images
+    return result
 
 
 def _finite_mean(values: list[float]) -> float:

@@ -51,11 +51,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from models.data import network_input
+from models.checkpoint import load_generator
+from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
 from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, sampling_copy
-from models.ssim import to_uint8_rgb
-from models.train import load_generator
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from msgs.system import ErrorCode
 from nodes.node import Node, run_node

@@ -25,3 +25,7 @@ class DepthMapError(PerceptionError):
 
 class OutOfReachError(DepthMapError):
     """No model point in a gel's contact volume: the gel does not reach the object."""
+
+
+class ImageComparisonError(PerceptionError):
+    """Images that SSIM or PSNR cannot compare: dtype, shape, size or levels outside 0..255."""

@@ -69,7 +69,8 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     if args.reuse and not cache.is_dir():
         print(f"dtx report: error: --reuse: nothing cached in {cache}", file=sys.stderr)
         return 2
-    from report.sweeps import SWEEPS, Workspace, training_config
+    from report.sweeps import SWEEPS
+    from report.workspace import Workspace, training_config
 
     workspace = Workspace(args.out / "work" / plan.name, plan)
     made_by = json.loads(json.dumps({"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}))

@@ -3,10 +3,10 @@
 The file holds real frames of a 4 mm-diameter ball pressed into the gel (layout of
 assets/gelsight/ball_presses.npz: ``background``, ``frames``, ``touch_center`` (x, y px),
 ``touch_radius`` (px); 0.1245 mm per pixel). Each press is rendered from its annotated centre
-and radius against the file's own background, and compared by SSIM (Gaussian window
-sigma 1.5, data range 255, per channel) on the full frame and on a 48x48 crop centred on the
-touch, next to two baselines computed the same way: the background alone, and the mean over
-15 random other real frames (seeded), as in the paper's evaluation.
+and radius against the file's own background, and compared by SSIM (perception.ssim:
+Gaussian window sigma 1.5, data range 255, per channel) on the full frame and on a 48x48 crop
+centred on the touch, next to two baselines computed the same way: the background alone, and
+the mean over 15 random other real frames (seeded), as in the paper's evaluation.
 
 ``--holdout`` refits the renderer's physical parameters on the even frames and reports the
 odd frames, with the fitted and with the default parameters: the defaults should hold there.
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
-from skimage.metrics import structural_similarity
 
+from perception.ssim import ssim_rgb
 from sim.gelsight import GelSightConfig, GelSightError, GelSightRenderer
 
 BALL_RADIUS_MM = 2.0
@@ -119,15 +119,6 @@ def ball_gap_map(
     return gap.astype(np.float32)
 
 
-def ssim_rgb(a: np.ndarray, b: np.ndarray) -> float:
-    """SSIM of two RGB uint8 images, Gaussian window sigma 1.5, mean over channels."""
-    return float(
-        structural_similarity(
-            a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255, channel_axis=-1
-        )
-    )
-
-
 def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int = CROP_PX) -> np.ndarray:
     """The size x size window centred on the touch, shifted inside the frame at its edges."""
     h, w = image.shape[:2]
@@ -156,8 +147,8 @@ def _mean_ssim(presses: BallPresses, indices: Sequence[int], config: GelSightCon
     crops, fulls = [], []
     for i, image in zip(indices, render_presses(presses, indices, config)):
         real, center = presses.frames[i], presses.centers_xy_px[i]
-        fulls.append(ssim_rgb(image, real))
-        crops.append(ssim_rgb(touch_crop(image, center), touch_crop(real, center)))
+        fulls.append(float(ssim_rgb(image, real)))
+        crops.append(float(ssim_rgb(touch_crop(image, center), touch_crop(real, center))))
     return {"crop": float(np.mean(crops)), "full": float(np.mean(fulls))}
 
 
@@ -196,7 +187,7 @@ def run_check(npz_path: str | Path, seed: int = 0, holdout: bool = False) -> dic
         others = rng.choice(np.delete(np.arange(n), i), size=min(N_RANDOM_FRAMES, n - 1), replace=False)
 
         def full_and_crop(image: np.ndarray) -> tuple[float, float]:
-            return ssim_rgb(image, real), ssim_rgb(touch_crop(image, center), touch_crop(real, center))
+            return float(ssim_rgb(image, real)), float(ssim_rgb(touch_crop(image, center), touch_crop(real, center)))
 
         full, crop = full_and_crop(renders[i])
         bg_full, bg_crop = full_and_crop(presses.background)

@@ -16,9 +16,8 @@ import torch
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
-from models.data import network_input
-from models.ssim import to_uint8_rgb
-from models.train import load_generator
+from models.checkpoint import load_generator
+from models.data import network_input, to_uint8_rgb
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.bus import Bus
 from nodes.inference import InferenceNode, cloud_id

@@ -11,11 +11,12 @@ import pytest
 from benchmarks.inference import DEPTH_RANGE_M, add_arguments, gflop_per_region, run, synthetic_inputs
 from dataset.format import DatasetReader
 from dataset.synth import write_synthetic_dataset
+from models.checkpoint import TrainConfig, load_generator
 from models.data import select_records
 from models.evaluate import predict
 from models.networks import GeneratorConfig, UNetGenerator
-from models.ssim import ssim_rgb
-from models.train import TrainConfig, load_generator, train
+from models.train import train
+from perception.ssim import ssim_rgb
 
 
 def test_benchmark_rows_have_the_required_fields_and_fp32_eager_is_the_reference() -> None:

@@ -14,12 +14,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import models.checkpoint
 import models.evaluate as evaluate_module
-import models.train
 from models.cli import add_commands
 from models.errors import ModelConfigError
-from models.evaluate import Predictions, ssim_statistics, summary_table, template_match
-from models.ssim import PSNR_MAX_DB, psnr_rgb, ssim_rgb, ssim_torch
+from models.evaluate import Predictions, ssim_statistics, summary_table
+from models.template_match import template_match
+from perception.errors import ImageComparisonError
+from perception.ssim import PSNR_MAX_DB, psnr_rgb, ssim_rgb, ssim_torch
 
 FAST = settings(max_examples=25, deadline=None)
 
@@ -85,16 +87,16 @@ def test_float16_ssim_is_not_nan() -> None:
 def test_ssim_refuses_values_outside_the_8_bit_range(value: float) -> None:
     a = torch.zeros(1, 3, 16, 16, dtype=torch.float64)
     a[0, 1, 3, 4] = value
-    with pytest.raises(ModelConfigError, match=r"\[0, 255\]"):
+    with pytest.raises(ImageComparisonError, match=r"\[0, 255\]"):
         ssim_torch(a, torch.zeros_like(a))
 
 
 def test_ssim_refuses_bad_shapes_and_complex() -> None:
-    with pytest.raises(ModelConfigError, match="C >= 1"):
+    with pytest.raises(ImageComparisonError, match="C >= 1"):
         ssim_torch(torch.zeros(1, 0, 16, 16), torch.zeros(1, 0, 16, 16))
-    with pytest.raises(ModelConfigError, match="at least 11"):
+    with pytest.raises(ImageComparisonError, match="at least 11"):
         ssim_torch(torch.zeros(1, 3, 10, 16), torch.zeros(1, 3, 10, 16))
-    with pytest.raises(ModelConfigError, match="real images"):
+    with pytest.raises(ImageComparisonError, match="real images"):
         ssim_torch(torch.zeros(1, 3, 16, 16, dtype=torch.complex64), torch.zeros(1, 3, 16, 16, dtype=torch.complex64))
     assert ssim_torch(torch.zeros(0, 3, 16, 16), torch.zeros(0, 3, 16, 16)).shape == (0,)
 
@@ -121,9 +123,9 @@ def test_property_ssim_rgb_of_a_view_is_the_ssim_of_its_copy(seed: int, view: st
 
 def test_ssim_rgb_refuses_windows_of_another_shape_or_dtype() -> None:
     a = images(2, 0)
-    with pytest.raises(ModelConfigError, match="windows"):
+    with pytest.raises(ImageComparisonError, match="windows"):
         ssim_rgb(a, a, np.ones((2, 23, 24), bool))
-    with pytest.raises(ModelConfigError, match="windows"):
+    with pytest.raises(ImageComparisonError, match="windows"):
         ssim_rgb(a, a, np.ones((2, 24, 24), np.float32))
 
 
@@ -141,9 +143,9 @@ def test_property_psnr_is_the_8_bit_formula_and_capped(seed: int, level: int) ->
 
 def test_psnr_refuses_what_ssim_refuses() -> None:
     a = images(2, 0)
-    with pytest.raises(ModelConfigError, match="psnr_rgb"):
+    with pytest.raises(ImageComparisonError, match="psnr_rgb"):
         psnr_rgb(a, a[:1])
-    with pytest.raises(ModelConfigError, match="psnr_rgb"):
+    with pytest.raises(ImageComparisonError, match="psnr_rgb"):
         psnr_rgb(a.astype(np.float32), a.astype(np.float32))
 
 
@@ -269,7 +271,7 @@ def test_dtx_evaluate_reports_degenerate_data_without_a_traceback(
         return predictions
 
     monkeypatch.setattr(evaluate_module, "predict_dataset", predict_dataset)
-    monkeypatch.setattr(models.train, "load_generator", lambda path: (None, (-0.002, 0.002)))
+    monkeypatch.setattr(models.checkpoint, "load_generator", lambda path: (None, (-0.002, 0.002)))
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers())
     for extra in ([], ["--json"]):

@@ -13,17 +13,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dataset.synth import write_synthetic_dataset
+from models.checkpoint import TrainConfig
 from models.cli import add_commands
-from models.evaluate import (
-    CONTACT_LEVELS,
-    contact_ssim_statistics,
-    most_deformed_box,
-    parse_density,
-    ssim_statistics,
-    template_match,
-)
+from models.evaluate import CONTACT_LEVELS, contact_ssim_statistics, parse_density, ssim_statistics
 from models.networks import GeneratorConfig, ModelConfigError
-from models.train import TrainConfig, train
+from models.template_match import most_deformed_box, template_match
+from models.train import train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_dataset_format import ShadingRenderer

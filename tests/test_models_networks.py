@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from skimage.metrics import structural_similarity
 
-from models.data import depth_input, image_target
+from models.data import depth_input, image_target, to_uint8_rgb
 from models.networks import (
     DiscriminatorConfig,
     GeneratorConfig,
@@ -19,8 +19,8 @@ from models.networks import (
     UNetGenerator,
     init_weights,
 )
-from models.ssim import ssim_rgb, ssim_torch, to_uint8_rgb
 from perception.normalisation import normalise_depth_map
+from perception.ssim import ssim_rgb, ssim_torch
 
 torch.set_num_threads(1)
 

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from models.checkpoint import TrainConfig
 from models.errors import ModelConfigError
 from models.prior import PhysicsPrior, PriorSpec
-from models.train import TrainConfig
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = str(REPO / "scenes" / "ycb_three.yaml")

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dataset.contact_library import write_contact_library
+from models.checkpoint import TrainConfig, load_generator
 from models.cli import add_commands
 from models.evaluate import predict
 from models.networks import GeneratorConfig
@@ -20,7 +21,7 @@ from models.real_presses import (
     press_geometry,
     write_real_press_figure,
 )
-from models.train import TrainConfig, load_generator, train
+from models.train import train
 from perception.depthmap import DepthMapParams
 from sim.gelsight import scene_renderer
 from sim.gelsight_check import ball_gap_map, load_ball_presses

@@ -16,8 +16,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from dataset.format import DatasetReader
 from dataset.synth import write_synthetic_dataset
+from models.checkpoint import TrainConfig, load_checkpoint, load_generator
 from models.networks import GeneratorConfig, ModelConfigError
-from models.train import TrainConfig, load_checkpoint, load_generator, lr_factor, train
+from models.train import lr_factor, train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_dataset_format import ShadingRenderer
@@ -154,7 +155,8 @@ def test_runs_under_torchrun_with_two_gloo_processes(dataset: Path, tmp_path: Pa
         textwrap.dedent(f"""
         import torch
         from models.networks import GeneratorConfig
-        from models.train import TrainConfig, train
+        from models.checkpoint import TrainConfig
+        from models.train import train
         config = TrainConfig(epochs=1, epochs_decay=0, batch_size=4, ndf=8, threads=1, max_steps=2,
                              generator=GeneratorConfig(ngf=8))
         train({str(dataset)!r}, config, {str(tmp_path / "out")!r}, progress=False)

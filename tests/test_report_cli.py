@@ -11,7 +11,7 @@ import pytest
 
 from report.cli import _cached, add_commands
 from report.plan import FULL, QUICK, SWEEP_NAMES
-from report.sweeps import Workspace, training_config
+from report.workspace import Workspace, training_config
 
 
 def _parser() -> argparse.ArgumentParser:

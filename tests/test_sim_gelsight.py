@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from perception.ssim import ssim_rgb
 from sim.gelsight import (
     EFFECTS,
     GelSightConfig,
@@ -23,7 +24,7 @@ from sim.gelsight import (
     indentation_mm,
     make_effect,
 )
-from sim.gelsight_check import ball_gap_map, ssim_rgb
+from sim.gelsight_check import ball_gap_map
 
 RENDERER = GelSightRenderer()
 H, W = RENDERER.config.shape

@@ -5,6 +5,9 @@ Gaussian window 11 x 11 with sigma 1.5, K1 = 0.01, K2 = 0.03, data range 255, po
 fully inside the image count. This equals ``skimage.metrics.structural_similarity(a, b,
 gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=255,
 channel_axis=-1)``, which also discards the 5-pixel border.
+
+One SSIM for the whole system: the models' evaluation and validation and the renderer's check
+against real frames (``sim.gelsight_check``) all score with it.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from models.errors import ModelConfigError
+from perception.errors import ImageComparisonError
 
 WINDOW = 11
 SIGMA = 1.5
@@ -37,7 +40,7 @@ def compute_dtype(dtype: torch.dtype) -> torch.dtype:
     if dtype in (torch.float16, torch.bfloat16):
         return torch.float32
     if dtype.is_complex:
-        raise ModelConfigError(f"SSIM compares real images, got {dtype}")
+        raise ImageComparisonError(f"SSIM compares real images, got {dtype}")
     return torch.float64
 
 
@@ -55,7 +58,7 @@ def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
     N >= 0, C >= 1, H and W at least 11; every value finite in [0, 255] (the data range the
     constants assume); any real dtype, the two may differ. Computed in ``compute_dtype(a.dtype)``
-    (float64 inputs match skimage to 1e-6). Anything else raises ModelConfigError."""
+    (float64 inputs match skimage to 1e-6). Anything else raises ImageComparisonError."""
     return ssim_map_torch(a, b).mean(dim=(2, 3)).mean(dim=1)
 
 
@@ -63,18 +66,18 @@ def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The SSIM of every 11 x 11 window: N x C x (H - 10) x (W - 10); window (i, j) is centred
     on pixel (i + 5, j + 5). Inputs as :func:`ssim_torch`."""
     if a.shape != b.shape or a.ndim != 4 or a.shape[1] < 1:
-        raise ModelConfigError(
+        raise ImageComparisonError(
             f"SSIM needs two N x C x H x W batches of one shape (C >= 1), got {tuple(a.shape)} and {tuple(b.shape)}"
         )
     if min(a.shape[2:]) < WINDOW:
-        raise ModelConfigError(f"SSIM needs images of at least {WINDOW} x {WINDOW}, got {tuple(a.shape[2:])}")
+        raise ImageComparisonError(f"SSIM needs images of at least {WINDOW} x {WINDOW}, got {tuple(a.shape[2:])}")
     dtype = compute_dtype(a.dtype)
     a, b = a.to(dtype), b.to(dtype=dtype, device=a.device)
     if a.numel():
         for name, x in (("a", a), ("b", b)):
             low, high = torch.aminmax(x)  # NaN propagates and fails both comparisons
             if not (low >= 0 and high <= DATA_RANGE):
-                raise ModelConfigError(
+                raise ImageComparisonError(
                     f"SSIM input {name} must be finite levels in [0, {DATA_RANGE:g}], "
                     f"got values in [{low.item()}, {high.item()}] (NaN or inf?)"
                 )
@@ -96,12 +99,12 @@ def ssim_map_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def _rgb_pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
     """``a`` and ``b`` as arrays: two uint8 (N x) H x W x 3 images of one shape, or
-    ModelConfigError (a ValueError) naming the function ``what``."""
+    ImageComparisonError (a ValueError) naming the function ``what``."""
     a, b = np.asarray(a), np.asarray(b)
     if a.dtype != np.uint8 or b.dtype != np.uint8:
-        raise ModelConfigError(f"{what} compares uint8 images, got {a.dtype} and {b.dtype}")
+        raise ImageComparisonError(f"{what} compares uint8 images, got {a.dtype} and {b.dtype}")
     if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-1] != 3:
-        raise ModelConfigError(f"{what} needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
+        raise ImageComparisonError(f"{what} needs two (N x) H x W x 3 arrays of one shape, got {a.shape}, {b.shape}")
     return a, b
 
 
@@ -110,7 +113,7 @@ def ssim_rgb(a: np.ndarray, b: np.ndarray, windows: np.ndarray | None = None) ->
 
     ``windows`` ((N x) H x W bool) restricts the mean to the windows centred on True pixels
     (an image with none gets NaN); the 5-pixel border has no windows. Views of any strides
-    (flipped, sliced) are accepted; other dtypes or shapes raise ModelConfigError."""
+    (flipped, sliced) are accepted; other dtypes or shapes raise ImageComparisonError."""
     a, b = _rgb_pair(a, b, "ssim_rgb")
     # torch.from_numpy refuses negative strides; ascontiguousarray copies only such views.
     batch_a = torch.from_numpy(np.ascontiguousarray(a).reshape((-1,) + a.shape[-3:])).permute(0, 3, 1, 2).double()
@@ -119,7 +122,7 @@ def ssim_rgb(a: np.ndarray, b: np.ndarray, windows: np.ndarray | None = None) ->
         return ssim_torch(batch_a, batch_b).numpy().reshape(a.shape[:-3])
     windows = np.asarray(windows)
     if windows.dtype != bool or windows.shape != a.shape[:-1]:
-        raise ModelConfigError(f"windows must be bool of shape {a.shape[:-1]}, got {windows.dtype} {windows.shape}")
+        raise ImageComparisonError(f"windows must be bool of shape {a.shape[:-1]}, got {windows.dtype} {windows.shape}")
     half = WINDOW // 2
     mask = torch.from_numpy(np.ascontiguousarray(windows).reshape((-1,) + a.shape[-3:-1]))[:, half:-half, half:-half]
     per_window = ssim_map_torch(batch_a, batch_b).mean(dim=1)
@@ -127,12 +130,6 @@ def ssim_rgb(a: np.ndarray, b: np.ndarray, windows: np.ndarray | None = None) ->
     sums = (per_window * mask).sum(dim=(1, 2))
     values = torch.where(counts > 0, sums / counts.clamp(min=1), torch.tensor(float("nan"), dtype=sums.dtype))
     return values.numpy().reshape(a.shape[:-3])
-
-
-def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:
-    """Network output N x 3 x H x W in [-1, 1] -> N x H x W x 3 uint8 (rounded, clipped)."""
-    scaled = ((images.detach().float().cpu() + 1.0) * 127.5).round().clamp(0, 255)
-    return scaled.to(torch.uint8).permute(0, 2, 3, 1).numpy()
 
 
 # PSNR of identical images is infinite; the cap keeps means and JSON finite (an 8-bit image one

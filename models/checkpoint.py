@@ -1,0 +1,153 @@
+"""The training run's config and its checkpoint file (``OUT/checkpoint.pt``).
+
+:class:`TrainConfig` is what a run is trained with, and what its checkpoint records;
+:func:`load_checkpoint` reads a checkpoint back (tensors and plain values only) and
+:func:`load_generator` the generator that it serves. models.train writes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from models.networks import (
+    DiscriminatorConfig,
+    GeneratorConfig,
+    ModelConfigError,
+    UNetGenerator,
+    config_from_dict,
+)
+from models.prior import PhysicsPrior, PriorSpec
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training settings; ``configs/paper.yaml`` and ``configs/quick.yaml`` are examples."""
+
+    seed: int = 0
+    epochs: int = 100
+    epochs_decay: int = 100
+    batch_size: int = 1
+    lr: float = 2e-4
+    beta1: float = 0.5
+    beta2: float = 0.999
+    lambda_l1: float = 100.0
+    ndf: int = 64
+    hold_out_object: str = ""
+    max_steps: int = 0
+    log_every: int = 10
+    threads: int = 0
+    # Exponential moving average of the generator's weights (0: off, as the paper). A GAN's
+    # generator wanders from step to step; the average is what is validated, saved as
+    # ``generator`` and served, while training continues on the raw weights.
+    ema_decay: float = 0.0
+    # Weight of the contact in the L1 term: a pixel counts 1 + contact_weight * c, where c in
+    # [0, 1] is how far its target departs from the mean training image (saturating at
+    # CONTACT_SCALE). 0: the paper's plain L1, in which the ~90 % of pixels that show the
+    # sensor's own background outweigh the contact.
+    contact_weight: float = 0.0
+    # In-plane pose error (mm, per axis) of the session's depth-maps, which come from registered
+    # model clouds: the physics prior of a session pair is the image expected over it
+    # (models.prior), a library pair's the sharp image of its exact geometry. Stored in the
+    # checkpoint as the prior's default for what it is asked; 0: every prior image sharp.
+    session_pose_sigma_mm: float = 0.0
+    generator: GeneratorConfig = GeneratorConfig()
+
+    def validate(self) -> "TrainConfig":
+        if self.epochs < 0 or self.epochs_decay < 0 or self.epochs + self.epochs_decay == 0:
+            raise ModelConfigError(
+                f"epochs and epochs_decay must be >= 0 with a positive sum, got {self.epochs}, {self.epochs_decay}"
+            )
+        for name in ("batch_size", "ndf", "log_every"):
+            if getattr(self, name) < 1:
+                raise ModelConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_steps < 0 or self.threads < 0:
+            raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
+        if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
+            raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
+        if not (np.isfinite(self.session_pose_sigma_mm) and self.session_pose_sigma_mm >= 0):
+            raise ModelConfigError(
+                f"session_pose_sigma_mm must be a finite number >= 0, got {self.session_pose_sigma_mm}"
+            )
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
+            raise ModelConfigError(
+                f"need lr > 0, betas in [0, 1), lambda_l1 >= 0; got lr={self.lr}, "
+                f"betas=({self.beta1}, {self.beta2}), lambda_l1={self.lambda_l1}"
+            )
+        self.generator.validate()
+        return self
+
+    @property
+    def discriminator(self) -> DiscriminatorConfig:
+        return DiscriminatorConfig(
+            in_channels=self.generator.input_channels + self.generator.out_channels, ndf=self.ndf
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> "TrainConfig":
+        if not isinstance(data, dict):
+            raise ModelConfigError(f"a training config is a mapping, got {type(data).__name__}")
+        data = dict(data)
+        generator = GeneratorConfig.from_dict(data.pop("generator", {}) or {})
+        return dataclasses.replace(
+            config_from_dict(TrainConfig, data, "training config"), generator=generator
+        ).validate()
+
+    @staticmethod
+    def load(path: str | os.PathLike[str]) -> "TrainConfig":
+        try:
+            data = yaml.safe_load(Path(path).read_text())
+        except OSError as err:
+            raise ModelConfigError(f"cannot read training config {path}: {err}") from err
+        except yaml.YAMLError as err:
+            raise ModelConfigError(f"training config {path} is not valid YAML: {err}") from err
+        return TrainConfig.from_dict(data or {})
+
+
+def save_atomic(state: dict[str, Any], path: Path) -> None:
+    """Write ``state`` to ``path`` through a temporary file: a crash never leaves half a checkpoint."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The checkpoint dictionary (tensors and plain values only: ``weights_only=True``)."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError as err:
+        raise ModelConfigError(f"checkpoint {path} does not exist") from err
+    except Exception as err:  # torch raises several types for a corrupt or foreign file
+        raise ModelConfigError(f"{path} is not a readable dtx checkpoint: {err}") from err
+    missing = {"generator", "train_config", "depth_range_m"} - set(state)
+    if missing:
+        raise ModelConfigError(f"{path} is not a dtx checkpoint: missing {sorted(missing)}")
+    return state
+
+
+def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[float, float]]:
+    """The trained generator (eval mode, CPU) and the depth_range_m it was trained with."""
+    state = load_checkpoint(path)
+    config = TrainConfig.from_dict(state["train_config"])
+    generator = UNetGenerator(config.generator)
+    generator.load_state_dict(state["generator"])
+    generator.eval()
+    if config.generator.prior:
+        if "prior" not in state:
+            raise ModelConfigError(f"{path} corrects a physics prior but does not say which (no 'prior' entry)")
+        generator.prior = PhysicsPrior(PriorSpec.from_dict(state["prior"]), config.generator.image_size)
+    low, high = state["depth_range_m"]
+    return generator, (float(low), float(high))

@@ -1,0 +1,205 @@
+"""The datasets and trained models the accuracy-time report measures (report.sweeps): the
+analytic contacts at each size, a collection session on the simulated scene, its depth-maps
+made again at other resolutions, a contact library, and the models trained on them, each made
+on first use under the workspace's root and kept."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dataset.contact_library import write_contact_library
+from dataset.format import DatasetReader, SampleRecord, deformation_map
+from dataset.redepth import depth_map_params, redepth_dataset
+from models.checkpoint import TrainConfig, load_checkpoint
+from models.data import select_records
+from models.train import train
+from report.contacts import Contact, contacts, write_dataset
+from report.plan import Plan
+
+REPO = Path(__file__).resolve().parent.parent
+REFERENCE_SIZE = 100  # the paper's depth-map and image size: every SSIM is taken at it
+
+
+@dataclasses.dataclass(frozen=True)
+class SessionTest:
+    """The collected session's test split: records and 100 x 100 ground truth."""
+
+    records: list[SampleRecord]
+    truth: np.ndarray  # N x 100 x 100 x 3 uint8
+    deformation: np.ndarray  # N x 100 x 100, summed |change| from the no-contact image (levels)
+
+
+def training_config() -> TrainConfig:
+    """The config every model of the report is trained with, before a sweep changes its size,
+    width or epochs: configs/quick.yaml."""
+    return TrainConfig.load(REPO / "configs" / "quick.yaml")
+
+
+class Workspace:
+    """Datasets and trained models under ``root``, made on first use and kept, so a rerun or
+    a sweep that needs a model another sweep trained does not train it again."""
+
+    def __init__(self, root: Path, plan: Plan) -> None:
+        self.root = root
+        self.plan = plan
+        self.reused_models: set[str] = set()  # trained by an earlier run: not in this run's time
+
+    @functools.cached_property
+    def contacts(self) -> list[Contact]:
+        return contacts(self.plan.samples, self.plan.seed)
+
+    def dataset(self, size: int) -> Path:
+        return write_dataset(self.root / f"data_{size}", self.contacts, size, self.plan.seed)
+
+    @functools.cached_property
+    def session(self) -> Path:
+        """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
+        operator runs (Algorithm 1), ``plan.session_grasps`` grasps; resumed if interrupted."""
+        out = (self.root / "session").resolve()
+        command = [
+            sys.executable,
+            "-m",
+            "dtx.cli",
+            "launch",
+            "launch/collect_sim.yaml",
+            f"out:={out}",
+            f"grasps:={self.plan.session_grasps}",
+            f"seed:={self.plan.seed}",
+            "record:=false",
+        ]
+        if (out / "manifest.jsonl").exists():
+            command.append("resume:=true")
+        # A bus of its own, so that a graph the lab is running meanwhile is never touched; the
+        # graph's progress goes to stderr with the report's own.
+        bus = tempfile.mkdtemp(prefix="dtxr")  # ipc socket paths must stay short
+        try:
+            result = subprocess.run(command, cwd=REPO, stdout=sys.stderr, env={**os.environ, "DTX_BUS_DIR": bus})
+        finally:
+            shutil.rmtree(bus, ignore_errors=True)
+        if result.returncode != 0:
+            raise RuntimeError(
+                f"the collection session for the report failed (exit {result.returncode}): dtx {' '.join(command[3:])}"
+            )
+        return out
+
+    def session_at(self, bins: int) -> Path:
+        """The session with its depth-maps made again over ``bins`` x ``bins`` bins."""
+        if bins == REFERENCE_SIZE:
+            return self.session  # collected at 100 x 100
+        return redepth_dataset(self.session, self.root / f"session_{bins}", bins=bins, progress=False).root
+
+    @functools.cached_property
+    def session_test(self) -> SessionTest:
+        reader = DatasetReader(self.session)
+        records = select_records(reader, "test")
+        samples = [reader.load(r) for r in records]
+        return SessionTest(
+            records,
+            np.stack([s.tactile_rgb for s in samples]),
+            np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
+        )
+
+    def config(self, size: int, width: int, registered: bool) -> TrainConfig:
+        """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``;
+        the physics prior blurred by the registration's pose error only for a ``registered``
+        (collected) dataset: the analytic contacts' geometry is exact."""
+        base = training_config()
+        pad = -(-size // 128) * 128  # the U-Net's 7 halvings need a multiple of 128
+        generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
+        # One thread: on a shared machine extra OpenMP threads mostly wait for a core, and
+        # the CPU seconds a sweep reports are then comparable from run to run.
+        return dataclasses.replace(
+            base,
+            seed=self.plan.seed,
+            epochs=self.plan.epochs,
+            epochs_decay=self.plan.epochs,
+            generator=generator,
+            threads=1,
+            session_pose_sigma_mm=base.session_pose_sigma_mm if registered else 0.0,
+        )
+
+    def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:
+        """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""
+        return self._trained(
+            self.dataset(size), self.config(size, width, registered=False), self.root / f"train_{size}_w{width}"
+        )
+
+    def library_at(self, bins: int) -> Path:
+        """``plan.library_samples`` contact-library pairs (dataset.contact_library) in the
+        session's scene, depth range and crop, at ``bins`` x ``bins``: what the default model
+        trains on beside a session (make demo, docs/generalisation.md)."""
+        out = self.root / f"library_{bins}"
+        if (out / "manifest.jsonl").exists() and len(DatasetReader(out).records) >= self.plan.library_samples:
+            return out  # made by an earlier run, whose code version its dataset.json keeps
+        session = DatasetReader(self.session)
+        params, _ = depth_map_params(session)
+        return write_contact_library(
+            out,
+            self.plan.library_samples,
+            self.plan.seed,
+            session.info.scene,
+            params.y_range_m,
+            params.margin_m,
+            size=bins,
+        ).root
+
+    def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
+        """The width-16 model trained as the default is (the session with a contact library)
+        at ``bins`` x ``bins``: see :meth:`_trained`."""
+        return self._trained(
+            self.session_at(bins),
+            self.config(bins, 16, registered=True),
+            self.root / f"train_session_{bins}",
+            libraries=(self.library_at(bins),),
+        )
+
+    def _trained(self, dataset: Path, config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
+        """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
+        seconds of each epoch, data loading included). Trained one epoch per call so that each
+        epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
+        cpu_log = out / "cpu_s.json"
+        checkpoint = out / "checkpoint.pt"
+        if checkpoint.exists() and TrainConfig.from_dict(load_checkpoint(checkpoint)["train_config"]) != config:
+            print(f"report: {out.name} was trained with another config; training it again", file=sys.stderr)
+            shutil.rmtree(out)
+        if len(epoch_cpu_s(out)) >= 2 * self.plan.epochs:
+            self.reused_models.add(out.name)
+        threads = torch.get_num_threads()
+        try:
+            while len(epoch_cpu_s(out)) < 2 * self.plan.epochs:
+                fresh = not checkpoint.exists()
+                started = time.process_time()
+                train(dataset, config, out, resume=True, progress=False, stop_after_epochs=1, libraries=libraries)
+                cpu = [] if fresh else epoch_cpu_s(out)
+                cpu_log.write_text(json.dumps(cpu + [round(time.process_time() - started, 2)]))
+        finally:
+            torch.set_num_threads(threads)  # train() set one thread for the whole process
+        return out
+
+    @functools.cached_property
+    def test(self) -> tuple[list[Contact], np.ndarray]:
+        """The analytic test split's contacts and their 100 x 100 ground-truth images."""
+        reader = DatasetReader(self.dataset(REFERENCE_SIZE))
+        records = select_records(reader, "test")
+        by_id = {c.sample_id: c for c in self.contacts}
+        return [by_id[r.sample_id] for r in records], np.stack([reader.load(r).tactile_rgb for r in records])
+
+
+def epoch_cpu_s(model: Path) -> list[float]:
+    """The CPU seconds of each epoch ``model`` has trained (its cpu_s.json; none before the first)."""
+    try:
+        return json.loads((model / "cpu_s.json").read_text())
+    except FileNotFoundError:
+        return []
