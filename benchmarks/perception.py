@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from perception.binning import min_y_per_bin
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
-from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps, min_y_per_bin
+from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps
 from perception.errors import PerceptionError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world

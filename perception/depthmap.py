@@ -31,18 +31,19 @@ Precision: model points are moved to the gel frame with one float64 transform co
 model_to_world and gel_to_world, so a scene far from the world origin loses nothing; float32
 points are read as they are (half the memory traffic) and computed with in float64.
 
-Speed: one compiled pass (numba) transforms, crops and bins (~130 M points/s against ~27 for the
-same steps in NumPy, ``dtx bench perception --only binning``); :func:`contact_depth_maps` cuts
-many gels' maps from one indexed cloud, reading only the cells within each crop's reach.
+Speed: one compiled pass (numba, :mod:`perception.binning`) transforms, crops and bins (~130 M
+points/s against ~27 for the same steps in NumPy, ``dtx bench perception --only binning``);
+:func:`contact_depth_maps` cuts many gels' maps from one indexed cloud, reading only the cells
+within each crop's reach.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-import numba
 import numpy as np
 
+from perception.binning import bin_edges, cut_kernel
 from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform
@@ -143,150 +144,6 @@ def _reach_m(geometry: GripperGeometry, bounds: tuple[float, float, float, float
     )
 
 
-# Points are binned in chunks of this many: the bin indices of a chunk are computed without a
-# branch, and the rare chunk holding a value within rounding of a bin edge is binned again by
-# comparing with the edges (a branch per point, even never taken, made the loop 4x slower).
-_CHUNK = 256
-
-
-@numba.njit(cache=True, nogil=True)
-def _exact_bin(value: float, index: int, edges: np.ndarray) -> int:
-    """The bin [edge_i, edge_i+1) of ``value`` in [-half, half] from a scaled-floor ``index`` at
-    most one bin off (edges = linspace(-half, half, count + 1)); the far edge belongs to the last
-    bin. Always a valid bin, even for a value outside (clamped: no read or write out of bounds)."""
-    count = edges.shape[0] - 1
-    index = min(max(index, 0), count - 1)
-    if value < edges[index]:
-        index -= 1
-    if index < count - 1 and value >= edges[index + 1]:
-        index += 1
-    return max(index, 0)
-
-
-@numba.njit(cache=True, nogil=True)
-def _bin_chunk(
-    x: np.ndarray,
-    z: np.ndarray,
-    y: np.ndarray,
-    count: int,
-    half_x: float,
-    half_z: float,
-    x_edges: np.ndarray,
-    z_edges: np.ndarray,
-    flat: np.ndarray,
-    min_y: np.ndarray,
-) -> None:
-    """min_y[bin] = min(min_y[bin], y) for the first ``count`` (<= _CHUNK) points, all inside the
-    crop (one outside lands in an edge bin, never out of bounds). The scaled floor is exact
-    unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds keeps
-    bins wide): only chunks holding such a value are compared with the edge arrays, which keeps
-    the rule exact at full speed."""
-    cols, rows = x_edges.shape[0] - 1, z_edges.shape[0] - 1
-    scale_x, scale_z = cols / (2.0 * half_x), rows / (2.0 * half_z)
-    near = False
-    for i in range(count):
-        a = (x[i] + half_x) * scale_x  # >= 0 inside the crop: int() is the floor
-        b = (z[i] + half_z) * scale_z
-        col, row = min(max(int(a), 0), cols - 1), min(max(int(b), 0), rows - 1)
-        in_col, in_row = a - col, b - row
-        near |= (in_col < 1e-6) | (in_col > 1.0 - 1e-6) | (in_row < 1e-6) | (in_row > 1.0 - 1e-6)
-        flat[i] = row * cols + col
-    if near:
-        for i in range(count):
-            flat[i] = _exact_bin(z[i], int((z[i] + half_z) * scale_z), z_edges) * cols + _exact_bin(
-                x[i], int((x[i] + half_x) * scale_x), x_edges
-            )
-    for i in range(count):
-        min_y[flat[i]] = min(min_y[flat[i]], y[i])
-
-
-@numba.njit(cache=True, nogil=True)
-def _min_y_kernel(
-    x: np.ndarray,
-    z: np.ndarray,
-    y: np.ndarray,
-    half_x: float,
-    half_z: float,
-    x_edges: np.ndarray,
-    z_edges: np.ndarray,
-    min_y: np.ndarray,
-) -> None:
-    """min_y[row * cols + col] = min(min_y[...], y) for every point (all inside the crop)."""
-    flat = np.empty(_CHUNK, np.int64)
-    for start in range(0, y.shape[0], _CHUNK):
-        stop = min(start + _CHUNK, y.shape[0])
-        _bin_chunk(
-            x[start:stop], z[start:stop], y[start:stop], stop - start, half_x, half_z, x_edges, z_edges, flat, min_y
-        )
-
-
-@numba.njit(cache=True, nogil=True)
-def _cut_kernel(
-    points: np.ndarray,
-    starts: np.ndarray,
-    ends: np.ndarray,
-    runs: np.ndarray,
-    model_to_gel: np.ndarray,
-    bounds: np.ndarray,
-    x_edges: np.ndarray,
-    z_edges: np.ndarray,
-    min_y: np.ndarray,
-    counts: np.ndarray,
-) -> None:
-    """Transform, crop and bin in one pass, for every region k: the points of runs
-    runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] (3 x 4, float64), kept when
-    inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive), binned into min_y[k]
-    (rows * cols, prefilled +inf); counts[k] = points kept.
-
-    Why a kernel: NumPy needs a dozen passes over the points (three dot products, masks, a
-    gather, two bin indices, np.minimum.at) where one pass reads each point once, and no library
-    function crops and min-reduces by bin (benchmarks/perception.py measures both). Arithmetic
-    is float64 whatever the points' dtype, so far from the origin nothing is lost (the transform
-    is composed in float64 beforehand). Kept points are compacted without a branch."""
-    half_x, half_z, y_near, y_far = bounds[0], bounds[1], bounds[2], bounds[3]
-    kept_x, kept_z, kept_y = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK)
-    flat = np.empty(_CHUNK, np.int64)
-    for k in range(model_to_gel.shape[0]):
-        # In locals: the compiler cannot prove the stores below leave the transform alone.
-        xx, xy, xz, xt = model_to_gel[k, 0, 0], model_to_gel[k, 0, 1], model_to_gel[k, 0, 2], model_to_gel[k, 0, 3]
-        yx, yy, yz, yt = model_to_gel[k, 1, 0], model_to_gel[k, 1, 1], model_to_gel[k, 1, 2], model_to_gel[k, 1, 3]
-        zx, zy, zz, zt = model_to_gel[k, 2, 0], model_to_gel[k, 2, 1], model_to_gel[k, 2, 2], model_to_gel[k, 2, 3]
-        kept = 0
-        for run in range(runs[k], runs[k + 1]):
-            for start in range(starts[run], ends[run], _CHUNK):
-                m = 0
-                for i in range(start, min(start + _CHUNK, ends[run])):
-                    px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-                    y = yx * px + yy * py + yz * pz + yt
-                    x = xx * px + xy * py + xz * pz + xt
-                    z = zx * px + zy * py + zz * pz + zt
-                    kept_x[m], kept_z[m], kept_y[m] = x, z, y
-                    m += (y >= y_near) & (y <= y_far) & (abs(x) <= half_x) & (abs(z) <= half_z)
-                kept += m
-                _bin_chunk(kept_x, kept_z, kept_y, m, half_x, half_z, x_edges, z_edges, flat, min_y[k])
-        counts[k] = kept
-
-
-def _edges(half_m: float, count: int) -> np.ndarray:
-    return np.linspace(-half_m, half_m, count + 1)
-
-
-def min_y_per_bin(
-    x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: float, half_z_m: float, shape: tuple[int, int]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Minimum y per x-z bin of points already inside the crop; returns (min_y, occupied).
-
-    ``min_y`` is float64 (rows, cols) with +inf in empty bins. One compiled pass (the bin rule of
-    the module docstring, exact): NumPy's np.minimum.at needs the bin indices computed first, in
-    several more passes (benchmarks/perception.py, binning, measures both)."""
-    rows, cols = shape
-    min_y = np.full(rows * cols, np.inf)
-    x, z, y = (np.ascontiguousarray(a, dtype=np.float64) for a in (x_m, z_m, y_m))
-    _min_y_kernel(x, z, y, float(half_x_m), float(half_z_m), _edges(half_x_m, cols), _edges(half_z_m, rows), min_y)
-    min_y = min_y.reshape(rows, cols)
-    return min_y, np.isfinite(min_y)
-
-
 @dataclasses.dataclass
 class ContactPatches:
     """N regions' depth-maps, cut from one model cloud in one pass (:func:`contact_depth_maps`)."""
@@ -328,15 +185,15 @@ def _cut(
     regions = model_to_gel.shape[0]
     min_y = np.full((regions, rows * cols), np.inf)
     counts = np.zeros(regions, np.int64)
-    _cut_kernel(
+    cut_kernel(
         points,
         starts,
         ends,
         runs,
         np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64),
         np.array([half_x, half_z, y_near, y_far]),
-        _edges(half_x, cols),
-        _edges(half_z, rows),
+        bin_edges(half_x, cols),
+        bin_edges(half_z, rows),
         min_y,
         counts,
     )

@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import RegistrationError
+from perception.planar_icp import planar_icp, refine_best, sweep_subset, sweep_yaws
 from perception.pointcloud import principal_spread_m, seeded_open3d
 
 _reg = o3d.pipelines.registration
@@ -198,15 +199,9 @@ def prepare_model(model: ModelCloud, params: RegistrationParams = RegistrationPa
     )
 
 
-def register_model(
-    model: PreparedModel, observed_world_m: np.ndarray, params: RegistrationParams | None = None, seed: int = 0
-) -> RegistrationResult:
-    """Pose of the model in world (4x4 model_to_world) that lays it onto the observed cluster.
-
-    ``params`` default to those ``model`` was prepared with; the voxel sizes and feature
-    settings must match them.
-    """
-    params = model.params if params is None else params
+def _check_registration_params(model: PreparedModel, params: RegistrationParams) -> None:
+    """Refuse ``params`` that disagree with those ``model`` was prepared with, or that leave ICP
+    or the upright search nothing to do."""
     shared = ("voxel_size_m", "icp_voxel_size_m", "normal_radius_factor", "feature_radius_factor", "feature_max_nn")
     if any(getattr(model.params, name) != getattr(params, name) for name in shared):
         raise RegistrationError(
@@ -223,29 +218,51 @@ def register_model(
             f"3 sweep points, got {params.resting_yaw_steps}, {params.resting_candidates}, "
             f"{params.resting_sweep_iterations} and {params.resting_sweep_points}"
         )
-    observed = _check_cloud(observed_world_m, "observed cluster", 10)
-    started = time.perf_counter()
-    # Registration runs about the observed centroid: a scene far from the origin would otherwise
-    # lose precision in Open3D's float products and in the RANSAC pose estimate.
-    offset = observed.mean(axis=0)
-    voxel = params.voxel_size_m
-    source = _thin(observed - offset, None, voxel, "observed cluster")
-    source_fine = _thin(observed - offset, None, params.icp_voxel_size_m, "observed cluster")
-    model_fine_points = np.asarray(model.fine.points)
-    rejections = []
-    coarse_s = fine_s = 0.0
 
-    def result(model_to_world: np.ndarray, fitness: float, rmse_m: float, attempt: int) -> RegistrationResult:
+
+@dataclasses.dataclass
+class _StageClock:
+    """Seconds one registration has spent in its coarse and fine stages, over every search it tried."""
+
+    started: float
+    coarse_s: float = 0.0
+    fine_s: float = 0.0
+
+    def result(self, model_to_world: np.ndarray, fitness: float, rmse_m: float, attempt: int) -> RegistrationResult:
         return RegistrationResult(
             model_to_world=model_to_world,
             fitness=fitness,
             inlier_rmse_m=rmse_m,
             attempts=attempt,
-            time_ms={"coarse": coarse_s * 1e3, "fine": fine_s * 1e3, "total": (time.perf_counter() - started) * 1e3},
+            time_ms={
+                "coarse": self.coarse_s * 1e3,
+                "fine": self.fine_s * 1e3,
+                "total": (time.perf_counter() - self.started) * 1e3,
+            },
         )
 
+
+def register_model(
+    model: PreparedModel, observed_world_m: np.ndarray, params: RegistrationParams | None = None, seed: int = 0
+) -> RegistrationResult:
+    """Pose of the model in world (4x4 model_to_world) that lays it onto the observed cluster.
+
+    ``params`` default to those ``model`` was prepared with; the voxel sizes and feature
+    settings must match them.
+    """
+    params = model.params if params is None else params
+    _check_registration_params(model, params)
+    observed = _check_cloud(observed_world_m, "observed cluster", 10)
+    clock = _StageClock(started=time.perf_counter())
+    # Registration runs about the observed centroid: a scene far from the origin would otherwise
+    # lose precision in Open3D's float products and in the RANSAC pose estimate.
+    offset = observed.mean(axis=0)
+    source = _thin(observed - offset, None, params.voxel_size_m, "observed cluster")
+    source_fine = _thin(observed - offset, None, params.icp_voxel_size_m, "observed cluster")
+    rejections: list[str] = []
     if params.table_z_m is not None:
-        model_to_world, fitness, rmse_m, coarse_s, fine_s = _register_resting(
+        model_fine_points = np.asarray(model.fine.points)
+        model_to_world, fitness, rmse_m, clock.coarse_s, clock.fine_s = _register_resting(
             model_fine_points,
             np.asarray(model.coarse.points),
             np.asarray(source.points),
@@ -257,104 +274,123 @@ def register_model(
         model_to_world[:3, 3] += offset
         problem = _quality_problem(fitness, rmse_m, model_to_world, model_fine_points, params)
         if not problem:
-            return result(model_to_world, fitness, rmse_m, 0)
+            return clock.result(model_to_world, fitness, rmse_m, 0)
         rejections.append(f"upright: {problem}")
+    return _register_general(model, source, source_fine, offset, params, seed, clock, rejections)
 
-    _check_not_degenerate(np.asarray(source.points), voxel, "observed cluster", rejections)
-    normal_search = o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * params.normal_radius_factor, max_nn=30)
+
+def _register_general(
+    model: PreparedModel,
+    source: o3d.geometry.PointCloud,
+    source_fine: o3d.geometry.PointCloud,
+    offset: np.ndarray,
+    params: RegistrationParams,
+    seed: int,
+    clock: _StageClock,
+    rejections: list[str],
+) -> RegistrationResult:
+    """The general search on the observed clouds (centred on ``offset``): RANSAC, then ICP,
+    retried with another seed until a pose passes :func:`_quality_problem`; after ``attempts``
+    a RegistrationError lists ``rejections`` and why each attempt was refused."""
+    _check_not_degenerate(np.asarray(source.points), params.voxel_size_m, "observed cluster", rejections)
+    source_features = _observed_features(source, source_fine, params)
+    model_fine_points = np.asarray(model.fine.points)
+    for attempt in range(1, params.attempts + 1):
+        t0 = time.perf_counter()
+        coarse = _coarse_alignment(source, source_features, model, params, seed, attempt)
+        t1 = time.perf_counter()
+        fine = _refine(source_fine, model.fine, coarse.transformation, params)
+        t2 = time.perf_counter()
+        clock.coarse_s += t1 - t0
+        clock.fine_s += t2 - t1
+        model_to_world = _model_to_world(fine.transformation, offset)
+        problem = _quality_problem(fine.fitness, fine.inlier_rmse, model_to_world, model_fine_points, params)
+        if problem:
+            rejections.append(problem)
+            continue
+        return clock.result(model_to_world, float(fine.fitness), float(fine.inlier_rmse), attempt)
+    raise RegistrationError(f"no pose passed after {params.attempts} attempts: " + "; ".join(rejections))
+
+
+def _observed_features(
+    source: o3d.geometry.PointCloud, source_fine: o3d.geometry.PointCloud, params: RegistrationParams
+) -> o3d.pipelines.registration.Feature:
+    """Normals of both observed clouds (point-to-plane ICP and FPFH need them) and the coarse
+    cloud's FPFH features."""
+    normal_search = o3d.geometry.KDTreeSearchParamHybrid(
+        radius=params.voxel_size_m * params.normal_radius_factor, max_nn=30
+    )
     source.estimate_normals(normal_search)
     source_features = _features(source, params)
     source_fine.estimate_normals(normal_search)
+    return source_features
 
-    ransac_distance = voxel * params.ransac_distance_factor
+
+def _coarse_alignment(
+    source: o3d.geometry.PointCloud,
+    source_features: o3d.pipelines.registration.Feature,
+    model: PreparedModel,
+    params: RegistrationParams,
+    seed: int,
+    attempt: int,
+) -> o3d.pipelines.registration.RegistrationResult:
+    """RANSAC on FPFH correspondences, observed to model, seeded by (``seed``, ``attempt``)."""
+    ransac_distance = params.voxel_size_m * params.ransac_distance_factor
     checkers = [
         _reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
         _reg.CorrespondenceCheckerBasedOnDistance(ransac_distance),
     ]
     criteria = _reg.RANSACConvergenceCriteria(params.ransac_max_iterations, params.ransac_confidence)
+    # No mutual filter: on small partial views it leaves too few correspondences.
+    with seeded_open3d(seed, attempt):
+        return _reg.registration_ransac_based_on_feature_matching(
+            source,
+            model.coarse,
+            source_features,
+            model.features,
+            False,
+            ransac_distance,
+            _reg.TransformationEstimationPointToPoint(False),
+            3,
+            checkers,
+            criteria,
+        )
+
+
+def _refine(
+    source_fine: o3d.geometry.PointCloud,
+    model_fine: o3d.geometry.PointCloud,
+    transformation: np.ndarray,
+    params: RegistrationParams,
+) -> o3d.pipelines.registration.RegistrationResult:
+    """Point-to-plane ICP from ``transformation`` (observed to model) through every ICP
+    distance; the last stage's result (its fitness is judged at the last distance)."""
     icp_criteria = _reg.ICPConvergenceCriteria(
         relative_fitness=1e-5, relative_rmse=1e-5, max_iteration=params.icp_max_iterations
     )
-    for attempt in range(1, params.attempts + 1):
-        t0 = time.perf_counter()
-        # No mutual filter: on small partial views it leaves too few correspondences.
-        with seeded_open3d(seed, attempt):
-            coarse = _reg.registration_ransac_based_on_feature_matching(
-                source,
-                model.coarse,
-                source_features,
-                model.features,
-                False,
-                ransac_distance,
-                _reg.TransformationEstimationPointToPoint(False),
-                3,
-                checkers,
-                criteria,
-            )
-        t1 = time.perf_counter()
-        fine = coarse
-        # ICP from a wide capture distance down to the final one: a coarse pose several mm off
-        # would otherwise lock onto the few correspondences inside the final distance.
-        for distance in params.icp_distances_m:
-            fine = _reg.registration_icp(
-                source_fine,
-                model.fine,
-                distance,
-                fine.transformation,
-                _reg.TransformationEstimationPointToPlane(),
-                icp_criteria,
-            )
-        t2 = time.perf_counter()
-        coarse_s += t1 - t0
-        fine_s += t2 - t1
-        model_to_world = np.linalg.inv(np.asarray(fine.transformation, dtype=np.float64))
-        model_to_world[:3, :3] = Rotation.from_matrix(model_to_world[:3, :3]).as_matrix()
-        model_to_world[:3, 3] += offset
-        model_to_world[3] = [0.0, 0.0, 0.0, 1.0]
-        problem = _quality_problem(fine.fitness, fine.inlier_rmse, model_to_world, model_fine_points, params)
-        if problem:
-            rejections.append(problem)
-            continue
-        return result(model_to_world, float(fine.fitness), float(fine.inlier_rmse), attempt)
-    raise RegistrationError(f"no pose passed after {params.attempts} attempts: " + "; ".join(rejections))
+    # ICP from a wide capture distance down to the final one: a coarse pose several mm off
+    # would otherwise lock onto the few correspondences inside the final distance.
+    for distance in params.icp_distances_m:
+        fine = _reg.registration_icp(
+            source_fine,
+            model_fine,
+            distance,
+            transformation,
+            _reg.TransformationEstimationPointToPlane(),
+            icp_criteria,
+        )
+        transformation = fine.transformation
+    return fine
 
 
-def _planar_icp(
-    observed_m: np.ndarray,
-    model_tree: cKDTree,
-    model_points_m: np.ndarray,
-    pose: tuple[float, float, float],
-    model_z_m: float,
-    distances_m: tuple[float, ...],
-    max_iterations: int,
-) -> tuple[tuple[float, float, float], float, float]:
-    """ICP over (yaw, x, y) of a model standing at height ``model_z_m``: the observed points pair
-    with their nearest model points within each distance in turn, and a 2-D Kabsch fit on the
-    pairs' x, y moves the model (a turn about z keeps every z). (pose, fitness, RMSE metres)."""
-    yaw, x_m, y_m = pose
-    fitness = rmse_m = 0.0
-    for distance_m in distances_m:
-        for _ in range(max_iterations):
-            c, s = np.cos(yaw), np.sin(yaw)
-            in_model = (observed_m - [x_m, y_m, model_z_m]) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            gap_m, index = model_tree.query(in_model, distance_upper_bound=distance_m)
-            paired = np.isfinite(gap_m)
-            fitness = float(paired.mean())
-            rmse_m = float(np.sqrt(np.mean(gap_m[paired] ** 2))) if paired.any() else np.inf
-            if paired.sum() < 3:
-                break
-            model_xy, seen_xy = model_points_m[index[paired], :2], observed_m[paired, :2]
-            model_mean, seen_mean = model_xy.mean(axis=0), seen_xy.mean(axis=0)
-            h = (model_xy - model_mean).T @ (seen_xy - seen_mean)
-            new_yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
-            c, s = np.cos(new_yaw), np.sin(new_yaw)
-            new_x_m, new_y_m = seen_mean - np.array([[c, -s], [s, c]]) @ model_mean
-            # Converged when a step moves points less than ~10 um (a turn counted 0.1 m from the centre).
-            step_m = np.hypot(new_x_m - x_m, new_y_m - y_m) + abs(np.angle(np.exp(1j * (new_yaw - yaw)))) * 0.1
-            yaw, x_m, y_m = new_yaw, float(new_x_m), float(new_y_m)
-            if step_m < 1e-5:
-                break
-    return (yaw, x_m, y_m), fitness, rmse_m
+def _model_to_world(observed_to_model: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """The model's pose in world from ICP's transform of the observed points (centred on
+    ``offset``) onto the model, its rotation made exactly orthonormal."""
+    model_to_world = np.linalg.inv(np.asarray(observed_to_model, dtype=np.float64))
+    model_to_world[:3, :3] = Rotation.from_matrix(model_to_world[:3, :3]).as_matrix()
+    model_to_world[:3, 3] += offset
+    model_to_world[3] = [0.0, 0.0, 0.0, 1.0]
+    return model_to_world
 
 
 def _register_resting(
@@ -379,42 +415,28 @@ def _register_resting(
     t0 = time.perf_counter()
     tree, coarse_tree = cKDTree(model_points_m), cKDTree(model_coarse_m)
     model_z_m = table_z_m - float(model_points_m[:, 2].min())
-    centre_xy = model_points_m[:, :2].mean(axis=0)
-    # Ranking the yaws needs only a fitness estimate: a few hundred observed points give it.
-    observed_all_coarse_m = observed_coarse_m
-    if len(observed_coarse_m) > params.resting_sweep_points:
-        observed_coarse_m = observed_coarse_m[
-            np.random.default_rng(seed).choice(len(observed_coarse_m), params.resting_sweep_points, replace=False)
-        ]
-    sweep = []
-    for yaw in np.arange(params.resting_yaw_steps) * 2.0 * np.pi / params.resting_yaw_steps:
-        c, s = np.cos(yaw), np.sin(yaw)
-        start_xy = observed_coarse_m[:, :2].mean(axis=0) - np.array([[c, -s], [s, c]]) @ centre_xy
-        pose, fitness, rmse_m = _planar_icp(
-            observed_coarse_m,
-            coarse_tree,
-            model_coarse_m,
-            (float(yaw), *start_xy),
-            model_z_m,
-            params.icp_distances_m[:1],
-            params.resting_sweep_iterations,
-        )
-        sweep.append((fitness, -rmse_m, pose))
+    sweep = sweep_yaws(
+        sweep_subset(observed_coarse_m, params.resting_sweep_points, seed),
+        coarse_tree,
+        model_coarse_m,
+        model_points_m[:, :2].mean(axis=0),
+        model_z_m,
+        params.resting_yaw_steps,
+        params.icp_distances_m[:1],
+        params.resting_sweep_iterations,
+    )
     t1 = time.perf_counter()
-    refined = []
-    for _, _, pose in sorted(sweep, key=lambda row: row[:2], reverse=True)[: params.resting_candidates]:
-        pose, fitness, rmse_m = _planar_icp(
-            observed_all_coarse_m,
-            coarse_tree,
-            model_coarse_m,
-            pose,
-            model_z_m,
-            params.icp_distances_m,
-            params.icp_max_iterations,
-        )
-        refined.append((fitness, -rmse_m, pose))
-    pose = max(refined, key=lambda row: row[:2])[2]
-    (yaw, x_m, y_m), fitness, rmse_m = _planar_icp(
+    pose = refine_best(
+        sweep,
+        params.resting_candidates,
+        observed_coarse_m,
+        coarse_tree,
+        model_coarse_m,
+        model_z_m,
+        params.icp_distances_m,
+        params.icp_max_iterations,
+    )
+    (yaw, x_m, y_m), fitness, rmse_m = planar_icp(
         observed_fine_m, tree, model_points_m, pose, model_z_m, params.icp_distances_m[-1:], params.icp_max_iterations
     )
     model_to_world = np.eye(4)

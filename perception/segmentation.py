@@ -182,18 +182,9 @@ def segment_object(
     counts = dict.fromkeys(("input", "workspace", "above_table"), 0)
     above_parts, planes = [], []
     for index, cloud_world in enumerate(clouds_world_m):
-        counts["input"] += int(np.asarray(cloud_world).shape[0])
-        points = crop_to_workspace(cloud_world, params)
-        counts["workspace"] += len(points)
-        plane = fit_table_plane(points, params, seed=seed, camera_index=index)
-        planes.append(plane)
-        height_m = points @ plane[:3] + plane[3]
-        above = points[above_table(points[:, :2], height_m, params)]
-        if params.level_to_table:
-            levelling = plane_to_table(plane)
-            above = above @ levelling[:3, :3].T + levelling[:3, 3]
-        counts["above_table"] += len(above)
+        above, plane = _above_own_table(cloud_world, params, seed, index, counts)
         above_parts.append(above)
+        planes.append(plane)
 
     above_full = np.concatenate(above_parts)
     above_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(above_full))
@@ -204,17 +195,8 @@ def segment_object(
         raise SegmentationError(f"only {len(grid_points)} points above the table plane")
 
     labels = np.asarray(above_cloud.cluster_dbscan(params.cluster_eps_m, params.cluster_min_points))
-    cluster_ids = np.unique(labels[labels >= 0])
     counts["clustered"] = int(np.count_nonzero(labels >= 0))
-    if len(cluster_ids) == 0:
-        raise SegmentationError("no cluster above the table")
-    sizes = np.array([np.count_nonzero(labels == c) for c in cluster_ids])
-    if hint_world_m is None:
-        chosen = cluster_ids[np.argmax(sizes)]
-    else:
-        hint = np.asarray(hint_world_m, dtype=np.float64)[:2]
-        centroids = np.array([grid_points[labels == c, :2].mean(axis=0) for c in cluster_ids])
-        chosen = cluster_ids[np.argmin(np.linalg.norm(centroids - hint, axis=1))]
+    chosen = _chosen_cluster(grid_points, labels, hint_world_m)
     # Back to full resolution: every above-table point within one voxel of a cluster point.
     distance, _ = cKDTree(grid_points[labels == chosen]).query(above_full, distance_upper_bound=params.voxel_size_m)
     obj = above_full[np.isfinite(distance)]
@@ -224,6 +206,39 @@ def segment_object(
     return SegmentationResult(
         points_world_m=obj, centroid_world_m=obj.mean(axis=0), table_planes=planes, point_counts=counts
     )
+
+
+def _above_own_table(
+    cloud_world_m: np.ndarray, params: SegmentationParams, seed: int, camera_index: int, counts: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """One camera's points on objects above its own table plane (levelled onto z = 0 with
+    ``level_to_table``) and that plane; adds the camera's points to the "input", "workspace"
+    and "above_table" ``counts``."""
+    counts["input"] += int(np.asarray(cloud_world_m).shape[0])
+    points = crop_to_workspace(cloud_world_m, params)
+    counts["workspace"] += len(points)
+    plane = fit_table_plane(points, params, seed=seed, camera_index=camera_index)
+    height_m = points @ plane[:3] + plane[3]
+    above = points[above_table(points[:, :2], height_m, params)]
+    if params.level_to_table:
+        levelling = plane_to_table(plane)
+        above = above @ levelling[:3, :3].T + levelling[:3, 3]
+    counts["above_table"] += len(above)
+    return above, plane
+
+
+def _chosen_cluster(grid_points: np.ndarray, labels: np.ndarray, hint_world_m: np.ndarray | None) -> int:
+    """Label of the cluster whose x, y centroid is nearest to ``hint_world_m``, or of the
+    largest cluster without a hint; DBSCAN's noise (label -1) is no cluster."""
+    cluster_ids = np.unique(labels[labels >= 0])
+    if len(cluster_ids) == 0:
+        raise SegmentationError("no cluster above the table")
+    if hint_world_m is None:
+        sizes = np.array([np.count_nonzero(labels == c) for c in cluster_ids])
+        return cluster_ids[np.argmax(sizes)]
+    hint = np.asarray(hint_world_m, dtype=np.float64)[:2]
+    centroids = np.array([grid_points[labels == c, :2].mean(axis=0) for c in cluster_ids])
+    return cluster_ids[np.argmin(np.linalg.norm(centroids - hint, axis=1))]
 
 
 # The table plane must be inside the crop even when a camera's calibration error lowers it.

@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds, min_y_per_bin
+from perception.binning import min_y_per_bin
+from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError, PerceptionError
 from perception.normalisation import denormalise_depth_map
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose

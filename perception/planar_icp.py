@@ -1,0 +1,106 @@
+"""Planar ICP of a model standing upright on the table, and the yaw sweep built on it: the
+steps of the upright search of :mod:`perception.registration` (``_register_resting``).
+
+A model resting on the table as its mesh frame stands keeps its height; only a turn about the
+vertical and a shift along the table are free, a pose (yaw rad, x m, y m). The model is given as
+its points and a k-d tree of them; the observed points are in the same frame as the table.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# (yaw rad, x m, y m) of a model standing on the table; a sweep row: (fitness, -RMSE m, pose).
+PlanarPose = tuple[float, float, float]
+SweepRow = tuple[float, float, PlanarPose]
+
+
+def planar_icp(
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    pose: PlanarPose,
+    model_z_m: float,
+    distances_m: tuple[float, ...],
+    max_iterations: int,
+) -> tuple[PlanarPose, float, float]:
+    """ICP over (yaw, x, y) of a model standing at height ``model_z_m``: the observed points pair
+    with their nearest model points within each distance in turn, and a 2-D Kabsch fit on the
+    pairs' x, y moves the model (a turn about z keeps every z). (pose, fitness, RMSE metres)."""
+    yaw, x_m, y_m = pose
+    fitness = rmse_m = 0.0
+    for distance_m in distances_m:
+        for _ in range(max_iterations):
+            c, s = np.cos(yaw), np.sin(yaw)
+            in_model = (observed_m - [x_m, y_m, model_z_m]) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            gap_m, index = model_tree.query(in_model, distance_upper_bound=distance_m)
+            paired = np.isfinite(gap_m)
+            fitness = float(paired.mean())
+            rmse_m = float(np.sqrt(np.mean(gap_m[paired] ** 2))) if paired.any() else np.inf
+            if paired.sum() < 3:
+                break
+            model_xy, seen_xy = model_points_m[index[paired], :2], observed_m[paired, :2]
+            model_mean, seen_mean = model_xy.mean(axis=0), seen_xy.mean(axis=0)
+            h = (model_xy - model_mean).T @ (seen_xy - seen_mean)
+            new_yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
+            c, s = np.cos(new_yaw), np.sin(new_yaw)
+            new_x_m, new_y_m = seen_mean - np.array([[c, -s], [s, c]]) @ model_mean
+            # Converged when a step moves points less than ~10 um (a turn counted 0.1 m from the centre).
+            step_m = np.hypot(new_x_m - x_m, new_y_m - y_m) + abs(np.angle(np.exp(1j * (new_yaw - yaw)))) * 0.1
+            yaw, x_m, y_m = new_yaw, float(new_x_m), float(new_y_m)
+            if step_m < 1e-5:
+                break
+    return (yaw, x_m, y_m), fitness, rmse_m
+
+
+def sweep_subset(observed_m: np.ndarray, max_points: int, seed: int) -> np.ndarray:
+    """At most ``max_points`` of the observed points, a seeded random subset: ranking the yaws
+    needs only a fitness estimate, which a few hundred observed points give."""
+    if len(observed_m) <= max_points:
+        return observed_m
+    return observed_m[np.random.default_rng(seed).choice(len(observed_m), max_points, replace=False)]
+
+
+def sweep_yaws(
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    model_centre_xy: np.ndarray,
+    model_z_m: float,
+    yaw_steps: int,
+    distances_m: tuple[float, ...],
+    iterations: int,
+) -> list[SweepRow]:
+    """(fitness, -RMSE, pose) after ``iterations`` planar ICP steps from each of ``yaw_steps``
+    yaws evenly spread over a turn, the model's centre ``model_centre_xy`` under the observed one."""
+    sweep = []
+    for yaw in np.arange(yaw_steps) * 2.0 * np.pi / yaw_steps:
+        c, s = np.cos(yaw), np.sin(yaw)
+        start_xy = observed_m[:, :2].mean(axis=0) - np.array([[c, -s], [s, c]]) @ model_centre_xy
+        pose, fitness, rmse_m = planar_icp(
+            observed_m, model_tree, model_points_m, (float(yaw), *start_xy), model_z_m, distances_m, iterations
+        )
+        sweep.append((fitness, -rmse_m, pose))
+    return sweep
+
+
+def refine_best(
+    sweep: list[SweepRow],
+    candidates: int,
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    model_z_m: float,
+    distances_m: tuple[float, ...],
+    max_iterations: int,
+) -> PlanarPose:
+    """The best pose after refining the sweep's ``candidates`` best poses by planar ICP through
+    ``distances_m``; best = highest fitness, then lowest RMSE."""
+    refined = []
+    for _, _, pose in sorted(sweep, key=lambda row: row[:2], reverse=True)[:candidates]:
+        pose, fitness, rmse_m = planar_icp(
+            observed_m, model_tree, model_points_m, pose, model_z_m, distances_m, max_iterations
+        )
+        refined.append((fitness, -rmse_m, pose))
+    return max(refined, key=lambda row: row[:2])[2]
