@@ -63,27 +63,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def launch_collection(
+    out: Path, grasps: int, seed: int, record: bool, bus_dir: str, capture: bool = True
+) -> subprocess.Popen[str]:
+    """``dtx launch launch/collect_sim.yaml`` writing to ``out``, as an operator runs it, on the
+    private bus ``bus_dir``; its output (every node's log lines) on a pipe, or discarded without
+    ``capture``."""
+    env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "dtx.cli",
+            "launch",
+            "launch/collect_sim.yaml",
+            f"out:={out}",
+            f"grasps:={grasps}",
+            f"seed:={seed}",
+            f"record:={'true' if record else 'false'}",
+        ],
+        env=env,
+        stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
+        stderr=subprocess.STDOUT if capture else subprocess.DEVNULL,
+        text=True,
+    )
+
+
 def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "") -> dict:
     with tempfile.TemporaryDirectory(prefix="dtxc") as bus_dir:
-        env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
         started = time.monotonic()
-        launcher = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "dtx.cli",
-                "launch",
-                "launch/collect_sim.yaml",
-                f"out:={out}",
-                f"grasps:={grasps}",
-                f"seed:={seed}",
-                f"record:={'true' if record else 'false'}",
-            ],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
+        launcher = launch_collection(out, grasps, seed, record, bus_dir)
         killed = None
         if kill:
             killed = _kill_when_a_third_is_done(Registry(Path(bus_dir)), out, grasps, kill, launcher)
@@ -142,53 +151,12 @@ def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int) -> dict:
     10 % and 90 % of the grasps; each kill waits until the respawned recorder has a message on
     disk, so every kill cuts a file that was being written."""
     moments = sorted(random.Random(seed).sample(range(grasps // 10, 9 * grasps // 10), kills))
-    killed_ns: list[int] = []
     with tempfile.TemporaryDirectory(prefix="dtxk") as bus_dir:
-        env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
-        launcher = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "dtx.cli",
-                "launch",
-                "launch/collect_sim.yaml",
-                f"out:={out}",
-                f"grasps:={grasps}",
-                f"seed:={seed}",
-                "record:=true",
-            ],
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            text=True,
-        )
-        registry, manifest = Registry(Path(bus_dir)), out / "manifest.jsonl"
-        for moment in moments:
-            while launcher.poll() is None:
-                written = len(manifest.read_text().splitlines()) // 2 if manifest.exists() else 0
-                files = _bag_files(out)
-                # The newest file must hold a message: the respawned recorder is writing.
-                if written >= moment and len(files) == len(killed_ns) + 1 and _log_times_ns(files[-1]):
-                    pids = [s["pid"] for s in registry.node_statuses() if s["node"] == "recorder" and s["alive"]]
-                    if pids:
-                        killed_ns.append(time.time_ns())
-                        os.kill(pids[0], signal.SIGKILL)
-                        break
-                time.sleep(0.02)
+        launcher = launch_collection(out, grasps, seed, True, bus_dir, capture=False)
+        killed_ns = _kill_recorder_at(moments, launcher, Registry(Path(bus_dir)), out)
         launcher.wait(timeout=1800)
     files = _bag_files(out)
-    per_kill = []
-    for index, kill_ns in enumerate(killed_ns):
-        cut = _log_times_ns(files[index]) if index < len(files) else []
-        after = _log_times_ns(files[index + 1]) if index + 1 < len(files) else []
-        per_kill.append(
-            {
-                "file": files[index].name if index < len(files) else None,
-                "bytes": files[index].stat().st_size if index < len(files) else 0,
-                "lost_before_kill_s": round((kill_ns - max(cut)) / 1e9, 3) if cut else None,
-                "gap_until_respawned_s": round((min(after) - kill_ns) / 1e9, 3) if after else None,
-            }
-        )
+    per_kill = _kill_losses(files, killed_ns)
     report = check_dataset(out)
     losses = [k["lost_before_kill_s"] for k in per_kill if k["lost_before_kill_s"] is not None]
     return {
@@ -203,6 +171,44 @@ def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int) -> dict:
         "lost_before_kill_s_median": sorted(losses)[len(losses) // 2] if losses else None,
         "per_kill": per_kill,
     }
+
+
+def _kill_recorder_at(moments: list[int], launcher: subprocess.Popen[str], registry: Registry, out: Path) -> list[int]:
+    """SIGKILL the recorder once each of ``moments`` grasps is written and the newest bag file
+    holds a message; the kill times (ns since the epoch)."""
+    killed_ns: list[int] = []
+    manifest = out / "manifest.jsonl"
+    for moment in moments:
+        while launcher.poll() is None:
+            written = len(manifest.read_text().splitlines()) // 2 if manifest.exists() else 0
+            files = _bag_files(out)
+            # The newest file must hold a message: the respawned recorder is writing.
+            if written >= moment and len(files) == len(killed_ns) + 1 and _log_times_ns(files[-1]):
+                pids = [s["pid"] for s in registry.node_statuses() if s["node"] == "recorder" and s["alive"]]
+                if pids:
+                    killed_ns.append(time.time_ns())
+                    os.kill(pids[0], signal.SIGKILL)
+                    break
+            time.sleep(0.02)
+    return killed_ns
+
+
+def _kill_losses(files: list[Path], killed_ns: list[int]) -> list[dict]:
+    """Per kill: the file it cut (name, bytes), the seconds of messages lost before the kill and
+    the gap until the respawned recorder's first message (None where a file is missing or empty)."""
+    per_kill = []
+    for index, kill_ns in enumerate(killed_ns):
+        cut = _log_times_ns(files[index]) if index < len(files) else []
+        after = _log_times_ns(files[index + 1]) if index + 1 < len(files) else []
+        per_kill.append(
+            {
+                "file": files[index].name if index < len(files) else None,
+                "bytes": files[index].stat().st_size if index < len(files) else 0,
+                "lost_before_kill_s": round((kill_ns - max(cut)) / 1e9, 3) if cut else None,
+                "gap_until_respawned_s": round((min(after) - kill_ns) / 1e9, 3) if after else None,
+            }
+        )
+    return per_kill
 
 
 def run(args: argparse.Namespace) -> dict:

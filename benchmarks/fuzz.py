@@ -20,7 +20,6 @@ endpoint.
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
@@ -32,11 +31,12 @@ import msgpack
 import numpy as np
 import zmq
 
+from benchmarks.collect import launch_collection
 from dataset.check import check_dataset
 from msgs import MESSAGE_TYPES
 from msgs.codec import MessageError, decode, encode
 from nodes.bus import Bus
-from nodes.registry import Registry
+from nodes.registry import Endpoint, Registry
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -127,70 +127,18 @@ def _live(registry: Registry) -> dict[str, int]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="dtxf") as bus_dir, tempfile.TemporaryDirectory() as work:
         out = Path(work) / "session"
-        env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
-        launcher = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "dtx.cli",
-                "launch",
-                "launch/collect_sim.yaml",
-                f"out:={out}",
-                f"grasps:={args.grasps}",
-                f"seed:={args.seed}",
-                "record:=true",
-            ],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
+        launcher = launch_collection(out, args.grasps, args.seed, True, bus_dir)
         registry = Registry(Path(bus_dir))
-        manifest = out / "manifest.jsonl"
-        deadline = time.monotonic() + 300
-        while not (manifest.exists() and len(manifest.read_text().splitlines()) >= 4):
-            if launcher.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"the session did not start writing: {launcher.communicate()[0][-2000:]}")
-            time.sleep(0.2)
+        _wait_until_writing(launcher, out / "manifest.jsonl")
         before = _live(registry)
         services = {name: endpoints[0] for name, endpoints in registry.names("service").items()}
         topics = {name: endpoints[0] for name, endpoints in registry.names("topic").items()}
-        rows = []
         context = zmq.Context()
         bus = Bus("fuzzer", registry)
         started = time.monotonic()
         try:
-            for i, (name, endpoint) in enumerate(sorted(services.items())):
-                frames_list = refused_mutants(name, endpoint.schema, args.messages, args.seed + i)
-                rows.append(
-                    {
-                        "endpoint": name,
-                        "kind": "service",
-                        "node": endpoint.node,
-                        "sent": len(frames_list),
-                        "error_replies": _fuzz_service(context, endpoint.address, frames_list),
-                    }
-                )
-                print(
-                    f"fuzz {name}: {rows[-1]['sent']} sent, {rows[-1]['error_replies']} error replies",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            for i, (name, endpoint) in enumerate(sorted(topics.items())):
-                frames_list = refused_mutants(name, endpoint.schema, args.messages, args.seed + 1000 + i)
-                rows.append(
-                    {
-                        "endpoint": name,
-                        "kind": "topic",
-                        "sent": len(frames_list),
-                        "subscribers": _fuzz_topic(bus, name, endpoint.schema, frames_list),
-                    }
-                )
-                print(
-                    f"fuzz {name}: {rows[-1]['sent']} sent to {rows[-1]['subscribers']} subscriber(s)",
-                    file=sys.stderr,
-                    flush=True,
-                )
+            rows = _fuzz_services(context, services, args.messages, args.seed)
+            rows += _fuzz_topics(bus, topics, args.messages, args.seed)
             fuzz_s = time.monotonic() - started
             after = _live(registry)
             session_running = launcher.poll() is None
@@ -216,3 +164,58 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "dataset_check_ok": report.ok,
         "endpoints": rows,
     }
+
+
+def _wait_until_writing(launcher: subprocess.Popen[str], manifest: Path) -> None:
+    """Until the session has written two grasps (four pairs), at most 300 s; RuntimeError with
+    the session's output if it ends or times out first."""
+    deadline = time.monotonic() + 300
+    while not (manifest.exists() and len(manifest.read_text().splitlines()) >= 4):
+        if launcher.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"the session did not start writing: {launcher.communicate()[0][-2000:]}")
+        time.sleep(0.2)
+
+
+def _fuzz_services(context: zmq.Context, services: dict[str, Endpoint], messages: int, seed: int) -> list[dict]:
+    """``messages`` refused mutants to each service (by name); a row per service with the error
+    replies."""
+    rows = []
+    for i, (name, endpoint) in enumerate(sorted(services.items())):
+        frames_list = refused_mutants(name, endpoint.schema, messages, seed + i)
+        rows.append(
+            {
+                "endpoint": name,
+                "kind": "service",
+                "node": endpoint.node,
+                "sent": len(frames_list),
+                "error_replies": _fuzz_service(context, endpoint.address, frames_list),
+            }
+        )
+        print(
+            f"fuzz {name}: {rows[-1]['sent']} sent, {rows[-1]['error_replies']} error replies",
+            file=sys.stderr,
+            flush=True,
+        )
+    return rows
+
+
+def _fuzz_topics(bus: Bus, topics: dict[str, Endpoint], messages: int, seed: int) -> list[dict]:
+    """``messages`` refused mutants published on each topic (by name); a row per topic with its
+    subscribers."""
+    rows = []
+    for i, (name, endpoint) in enumerate(sorted(topics.items())):
+        frames_list = refused_mutants(name, endpoint.schema, messages, seed + 1000 + i)
+        rows.append(
+            {
+                "endpoint": name,
+                "kind": "topic",
+                "sent": len(frames_list),
+                "subscribers": _fuzz_topic(bus, name, endpoint.schema, frames_list),
+            }
+        )
+        print(
+            f"fuzz {name}: {rows[-1]['sent']} sent to {rows[-1]['subscribers']} subscriber(s)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return rows

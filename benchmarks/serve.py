@@ -257,49 +257,15 @@ def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tu
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="dtxb") as tmp:
-        if args.checkpoint:
-            checkpoint, weights = Path(args.checkpoint), f"checkpoint {args.checkpoint}"
-            depth_range = torch.load(checkpoint, map_location="cpu", weights_only=True)["depth_range_m"]
-        else:
-            checkpoint = write_checkpoint(Path(tmp) / "fresh.pt", args.width, args.seed, prior=args.prior)
-            weights = (
-                f"fresh generator, width {args.width}{', physics prior' if args.prior else ''} (seeded, untrained)"
-            )
-            depth_range = DEPTH_RANGE_M
-        depth_range_m = (float(depth_range[0]), float(depth_range[1]))
-        y_far = depth_range_m[1]
+        checkpoint, weights, depth_range_m = _weights(args, Path(tmp))
         bus_dir = Path(tmp) / "bus"
         registry = Registry(bus_dir)
-        params = {
-            "runtime": args.runtime,
-            "precision": args.precision,
-            "threads": args.threads,
-            "max_batch": args.max_batch,
-            "batch_window_ms": args.window_ms,
-        }
         log_path = Path(tmp) / "server.log"
-        with open(log_path, "w") as log:
-            servers = [
-                start_server(
-                    f"inference_bench_{i + 1}", checkpoint, params, {**os.environ, "DTX_BUS_DIR": str(bus_dir)}, log
-                )
-                for i in range(args.workers)
-            ]
+        servers = _start_servers(args, checkpoint, bus_dir, log_path)
         try:
-            maps = depth_maps(max(args.regions, 16), args.seed, y_far)
-            while len(registry.lookup("service", SERVICE)) < args.workers:  # loading the model
-                if any(server.poll() is not None for server in servers):
-                    raise RuntimeError(f"an inference node failed to start: {log_path.read_text()[-2000:]}")
-                time.sleep(0.1)
-            with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, 120.0) as client:
-                for _ in servers:
-                    client.estimate(maps[:1])  # warm-up: lazy allocations in every worker
-                model = client.last_reply.model.rsplit(" on ", 1)[0] if client.last_reply else ""
-                latencies = []
-                for i in range(args.requests):
-                    started = time.perf_counter()
-                    client.estimate(maps[i % len(maps)])
-                    latencies.append((time.perf_counter() - started) * 1e3)
+            maps = depth_maps(max(args.regions, 16), args.seed, depth_range_m[1])
+            _wait_until_serving(registry, servers, args.workers, log_path)
+            model, latencies = _latencies_ms(registry, len(servers), maps, args.requests)
             cpu_before = sum(_cpu_seconds(server.pid) for server in servers)
             throughput, served = _throughput(registry, maps[: args.regions], args.clients, args.seconds)
             # On a shared machine the wall-clock rate depends on the neighbours; the servers'
@@ -308,14 +274,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             points = bench_points(registry, args, depth_range_m) if args.points else None
             prior_ms = _prior_cpu_ms_per_region(checkpoint, maps)
         finally:
-            for server in servers:
-                server.send_signal(signal.SIGINT)
-            for server in servers:
-                try:
-                    server.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    server.kill()
-                    server.wait()
+            _stop_servers(servers)
         failed = [server.returncode for server in servers if server.returncode not in (0, -signal.SIGINT)]
         if failed:
             raise RuntimeError(f"an inference node failed ({failed}): {log_path.read_text()[-2000:]}")
@@ -341,6 +300,76 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "targets": "p50 <= 25 ms, >= 150 regions/s on 2 cores",
         **({"points": points} if points is not None else {}),
     }
+
+
+def _weights(args: argparse.Namespace, tmp: Path) -> tuple[Path, str, tuple[float, float]]:
+    """(checkpoint to serve, its description, its depth range in metres): ``--checkpoint``, or a
+    fresh seeded generator written to ``tmp``."""
+    if args.checkpoint:
+        checkpoint, weights = Path(args.checkpoint), f"checkpoint {args.checkpoint}"
+        depth_range = torch.load(checkpoint, map_location="cpu", weights_only=True)["depth_range_m"]
+    else:
+        checkpoint = write_checkpoint(tmp / "fresh.pt", args.width, args.seed, prior=args.prior)
+        weights = f"fresh generator, width {args.width}{', physics prior' if args.prior else ''} (seeded, untrained)"
+        depth_range = DEPTH_RANGE_M
+    return checkpoint, weights, (float(depth_range[0]), float(depth_range[1]))
+
+
+def _start_servers(
+    args: argparse.Namespace, checkpoint: Path, bus_dir: Path, log_path: Path
+) -> list[subprocess.Popen[bytes]]:
+    """``--workers`` inference nodes on the bus in ``bus_dir``, all logging to ``log_path``."""
+    params = {
+        "runtime": args.runtime,
+        "precision": args.precision,
+        "threads": args.threads,
+        "max_batch": args.max_batch,
+        "batch_window_ms": args.window_ms,
+    }
+    with open(log_path, "w") as log:
+        return [
+            start_server(
+                f"inference_bench_{i + 1}", checkpoint, params, {**os.environ, "DTX_BUS_DIR": str(bus_dir)}, log
+            )
+            for i in range(args.workers)
+        ]
+
+
+def _wait_until_serving(
+    registry: Registry, servers: list[subprocess.Popen[bytes]], workers: int, log_path: Path
+) -> None:
+    """Until ``workers`` nodes offer the service; RuntimeError if one exits first."""
+    while len(registry.lookup("service", SERVICE)) < workers:  # loading the model
+        if any(server.poll() is not None for server in servers):
+            raise RuntimeError(f"an inference node failed to start: {log_path.read_text()[-2000:]}")
+        time.sleep(0.1)
+
+
+def _latencies_ms(registry: Registry, workers: int, maps: np.ndarray, requests: int) -> tuple[str, list[float]]:
+    """(the model the nodes serve, ms from call to decoded reply of ``requests`` one-region
+    requests one after another), after one warm-up request per worker."""
+    with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, 120.0) as client:
+        for _ in range(workers):
+            client.estimate(maps[:1])  # warm-up: lazy allocations in every worker
+        model = client.last_reply.model.rsplit(" on ", 1)[0] if client.last_reply else ""
+        latencies = []
+        for i in range(requests):
+            started = time.perf_counter()
+            client.estimate(maps[i % len(maps)])
+            latencies.append((time.perf_counter() - started) * 1e3)
+    return model, latencies
+
+
+def _stop_servers(servers: list[subprocess.Popen[bytes]]) -> None:
+    """SIGINT to every node, then a kill for any still running after 30 s."""
+    for server in servers:
+        server.send_signal(signal.SIGINT)
+    for server in servers:
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

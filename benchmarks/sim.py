@@ -15,6 +15,10 @@ import argparse
 import dataclasses
 import statistics
 import time
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from workcell.scene import Scene
 
 SCENE = "scenes/ycb_three.yaml"
 DEPTH_EFFECTS = (
@@ -69,41 +73,61 @@ def _row(figure: str, timing: tuple[float, ...], target: float | None = None, un
 def run(args: argparse.Namespace) -> list[dict]:
     from sim.world import SimWorld
 
-    rows: list[dict] = []
     scene = SimWorld.from_file(args.scene).scene
     ideal = dataclasses.replace(scene, effects=[])
+    rows = _depth_rows(scene, ideal, args.camera, args.frames)
+    rows += _gelsight_rows(scene, ideal, args.frames)
+    if not args.skip_check:
+        rows += _check_rows(args.check_file)
+    return rows
 
-    def depth_rows(label: str, sc, target: float | None = None) -> None:
-        world = SimWorld(sc)
-        t0 = time.perf_counter()
-        world.render_depth(args.camera)
-        first = (time.perf_counter() - t0) * 1e3
-        timing = _time(lambda: world.render_depth(args.camera), args.frames)
-        rows.append(_row(f"depth frame 512x424, {label}", timing, target))
-        if label == "no effects":
-            rows.append(_row("depth first frame (full ray cast, cached after)", (first,)))
 
-    depth_rows("no effects", ideal)
+def _depth_rows(scene: Scene, ideal: Scene, camera: str, frames: int) -> list[dict]:
+    """Depth frames with no effects, with each depth effect alone (as the scene sets it, else
+    at its defaults) and with the scene's default effects."""
+    from sim.effects import EFFECTS
+    from workcell.scene import EffectSpec
+
+    rows = _depth_frame_rows("no effects", ideal, camera, frames)
     for name in DEPTH_EFFECTS:
         specs = [e for e in scene.effects if e.name == name]
         if not specs:
-            from sim.effects import EFFECTS
-            from workcell.scene import EffectSpec
-
             specs = [EffectSpec(name, {k: p.default for k, p in EFFECTS[name].params.items()})]
-        depth_rows(f"{name} alone", dataclasses.replace(scene, effects=specs))
-    depth_rows(f"{scene.name} default effects", scene, target=15.0)
+        rows += _depth_frame_rows(f"{name} alone", dataclasses.replace(scene, effects=specs), camera, frames)
+    rows += _depth_frame_rows(f"{scene.name} default effects", scene, camera, frames, target=15.0)
+    return rows
 
-    # --- grasp contact and GelSight frames -------------------------------------------
+
+def _depth_frame_rows(label: str, scene: Scene, camera: str, frames: int, target: float | None = None) -> list[dict]:
+    """The steady time per depth frame of ``camera`` in ``scene``; with no effects also the
+    first frame (the full ray cast, cached after)."""
+    from sim.world import SimWorld
+
+    world = SimWorld(scene)
+    t0 = time.perf_counter()
+    world.render_depth(camera)
+    first = (time.perf_counter() - t0) * 1e3
+    timing = _time(lambda: world.render_depth(camera), frames)
+    rows = [_row(f"depth frame 512x424, {label}", timing, target)]
+    if label == "no effects":
+        rows.append(_row("depth first frame (full ray cast, cached after)", (first,)))
+    return rows
+
+
+def _gelsight_rows(scene: Scene, ideal: Scene, frames: int) -> list[dict]:
+    """The grasp contact of both fingers on the scene's second object (no effects), and the
+    GelSight frames of its left gap map at 120 x 160 and 480 x 640."""
     from sim.gelsight import GelSightConfig, GelSightRenderer
+    from sim.world import SimWorld
     from workcell.kinematics import grasp_to_tcp_pose
 
+    rows = []
     world = SimWorld(ideal)
     verts = world.object_meshes[min(1, len(world.object_meshes) - 1)][0]
     centre = 0.5 * (verts.min(0) + verts.max(0))
     tcp = grasp_to_tcp_pose(centre[0], centre[1], scene.gripper.tcp_to_gel_centre_m + max(0.03, centre[2]), 0.0)
     world.grasp_contact(tcp, 10.0)
-    timing = _time(lambda: world.grasp_contact(tcp, 10.0), max(5, args.frames // 3))
+    timing = _time(lambda: world.grasp_contact(tcp, 10.0), max(5, frames // 3))
     rows.append(_row("grasp contact, both fingers, 120x160 gap maps", timing))
     contact = world.grasp_contact(tcp, 10.0)
     gap = contact.gap_mm["left"]
@@ -111,25 +135,29 @@ def run(args: argparse.Namespace) -> list[dict]:
         renderer = GelSightRenderer(GelSightConfig(image_height=h, image_width=w, mm_per_px=0.1245 * 160 / w))
         g = gap if (h, w) == gap.shape else contact.gap_map("left", (h, w))
         renderer.render(g)
-        timing = _time(lambda: renderer.render(g), args.frames)
+        timing = _time(lambda: renderer.render(g), frames)
         rows.append(_row(f"gelsight frame {h}x{w} (contact of the grasp above)", timing, target))
+    return rows
 
-    if not args.skip_check:
-        from sim.gelsight_check import run_check
 
-        result = run_check(args.check_file)
-        targets = {"crop": 0.87, "full": 0.92}
-        for key, value in result["mean"].items():
-            row = {
-                "figure": f"gelsight-check SSIM {key}",
-                "value": round(float(value), 4),
-                "best": None,
-                "cpu": None,
-                "unit": "SSIM",
-                "target": targets.get(key),
-            }
-            row["meets_target"] = None if key not in targets else bool(value >= targets[key])
-            rows.append(row)
+def _check_rows(check_file: str) -> list[dict]:
+    """The gelsight-check mean SSIMs of ``check_file``, against their targets."""
+    from sim.gelsight_check import run_check
+
+    rows = []
+    result = run_check(check_file)
+    targets = {"crop": 0.87, "full": 0.92}
+    for key, value in result["mean"].items():
+        row = {
+            "figure": f"gelsight-check SSIM {key}",
+            "value": round(float(value), 4),
+            "best": None,
+            "cpu": None,
+            "unit": "SSIM",
+            "target": targets.get(key),
+        }
+        row["meets_target"] = None if key not in targets else bool(value >= targets[key])
+        rows.append(row)
     return rows
 
 

@@ -329,20 +329,21 @@ def _run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dtx", description="Deep Tactile Experience: lab command line")
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_launch(sub: Any) -> None:
     p = sub.add_parser("launch", help="start the nodes of a launch file")
     p.add_argument("file")
     p.add_argument("args", nargs="*", help="launch arguments name:=value")
     p.set_defaults(func=cmd_launch)
 
+
+def _add_node(sub: Any) -> None:
     node = sub.add_parser("node", help="nodes on the bus").add_subparsers(dest="verb", required=True)
     p = node.add_parser("list")
     p.add_argument("--all", action="store_true", help="include nodes that have stopped")
     p.set_defaults(func=cmd_node_list)
 
+
+def _add_topic(sub: Any) -> None:
     topic = sub.add_parser("topic", help="topics on the bus").add_subparsers(dest="verb", required=True)
     p = topic.add_parser("list")
     p.add_argument("-v", "--verbose", action="store_true")
@@ -359,6 +360,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         p.add_argument("--duration", type=float, default=5.0)
         p.set_defaults(func=func)
 
+
+def _add_service(sub: Any) -> None:
     service = sub.add_parser("service", help="services on the bus").add_subparsers(dest="verb", required=True)
     service.add_parser("list").set_defaults(func=cmd_service_list)
     p = service.add_parser("call")
@@ -368,6 +371,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--full", action="store_true")
     p.set_defaults(func=cmd_service_call)
 
+
+def _add_bag(sub: Any) -> None:
     bag = sub.add_parser("bag", help="record, replay and inspect MCAP bags").add_subparsers(dest="verb", required=True)
     p = bag.add_parser("record")
     p.add_argument("-o", "--output", required=True)
@@ -389,13 +394,20 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bag_info)
 
+
+def _add_keys(sub: Any) -> None:
     keys = sub.add_parser("keys", help="CURVE key pairs").add_subparsers(dest="verb", required=True)
     p = keys.add_parser("create")
     p.add_argument("dir")
     p.add_argument("name")
     p.set_defaults(func=cmd_keys_create)
 
-    _add_bench(sub)
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dtx", description="Deep Tactile Experience: lab command line")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_launch, _add_node, _add_topic, _add_service, _add_bag, _add_keys, _add_bench):
+        add(sub)
     demo.add_commands(sub)
     for package in COMMAND_PACKAGES:
         importlib.import_module(f"{package}.cli").add_commands(sub)

@@ -38,8 +38,30 @@ def _run(step: str, command: list[str], capture: bool = False) -> str:
     return result.stdout or ""
 
 
+# The paper's SSIM at each point density it tried (points/cm^3).
+PAPER_DENSITY_SSIM = {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}
+
+# A table row: (figure, this run's value, the paper's value or "").
+Row = tuple[str, str, str]
+
+
 def paper_table(evaluation: dict) -> str:
     """The paper's comparison, with its figures beside ours."""
+    rows = [
+        *_headline_rows(evaluation),
+        *_contact_rows(evaluation.get("contact", {})),
+        *_object_rows(evaluation.get("objects", {})),
+        *_density_rows(evaluation.get("density", [])),
+    ]
+    width = max(len(r[0]) for r in rows)
+    lines = [f"{'':{width}}  {'this run':>18}  {'paper':>14}"]
+    lines += [f"{name:{width}}  {ours:>18}  {paper:>14}" for name, ours, paper in rows]
+    return "\n".join(lines)
+
+
+def _headline_rows(evaluation: dict) -> list[Row]:
+    """SSIM against the baseline, its ratio and p-values (PSNR after the ratio when measured),
+    and the template match."""
     template = evaluation.get("template_match", {})
     rows = [
         (
@@ -67,46 +89,57 @@ def paper_table(evaluation: dict) -> str:
                 "",
             ),
         )
-    contact = evaluation.get("contact", {})
-    if "ssim_model_mean" in contact:
-        rows += [
-            (
-                f"SSIM on contact windows only ({contact['n']} pairs), model / baseline",
-                f"{contact['ssim_model_mean']:.3f} / {contact['ssim_baseline_mean']:.3f}",
-                "",
-            ),
-            (
-                "  its ratio (p Wilcoxon)",
-                f"{contact['dissimilarity_ratio']:.2f} ({contact['p_value_wilcoxon']:.1e})",
-                "",
-            ),
-        ]
-    for name, stats in evaluation.get("objects", {}).items():
-        rows.append(
-            (
-                f"  {name} ({stats['n']} pairs): SSIM model / baseline, ratio",
-                f"{stats['ssim_model_mean']:.3f} / {stats['ssim_baseline_mean']:.3f}, "
-                f"{stats['dissimilarity_ratio']:.2f}",
-                "",
-            )
+    return rows
+
+
+def _contact_rows(contact: dict) -> list[Row]:
+    """SSIM on the contact windows alone, when the evaluation measured it."""
+    if "ssim_model_mean" not in contact:
+        return []
+    return [
+        (
+            f"SSIM on contact windows only ({contact['n']} pairs), model / baseline",
+            f"{contact['ssim_model_mean']:.3f} / {contact['ssim_baseline_mean']:.3f}",
+            "",
+        ),
+        (
+            "  its ratio (p Wilcoxon)",
+            f"{contact['dissimilarity_ratio']:.2f} ({contact['p_value_wilcoxon']:.1e})",
+            "",
+        ),
+    ]
+
+
+def _object_rows(objects: dict) -> list[Row]:
+    """Per object: SSIM of model and baseline, and their dissimilarity ratio."""
+    return [
+        (
+            f"  {name} ({stats['n']} pairs): SSIM model / baseline, ratio",
+            f"{stats['ssim_model_mean']:.3f} / {stats['ssim_baseline_mean']:.3f}, {stats['dissimilarity_ratio']:.2f}",
+            "",
         )
-    for row in evaluation.get("density", []):
+        for name, stats in objects.items()
+    ]
+
+
+def _density_rows(density: list[dict]) -> list[Row]:
+    """SSIM at each point density (beside the paper's where it tried that density), and on the
+    contact windows alone when measured."""
+    rows = []
+    for row in density:
         psnr = f" (PSNR {row['psnr_db_mean']:.1f} dB)" if "psnr_db_mean" in row else ""
         rows.append(
             (
                 f"SSIM at {row['points_per_cm3']:g} points/cm^3{psnr}",
                 f"{row['ssim_mean']:.4f} ± {row['ssim_se']:.4f}",
-                {1: "0.8238", 10: "0.8278", 20: "0.8478", 40: "0.8480", 80: "0.8476"}.get(row["points_per_cm3"], ""),
+                PAPER_DENSITY_SSIM.get(row["points_per_cm3"], ""),
             )
         )
         if "contact_ssim_mean" in row:
             rows.append(
                 ("  on contact windows only", f"{row['contact_ssim_mean']:.4f} ± {row['contact_ssim_se']:.4f}", "")
             )
-    width = max(len(r[0]) for r in rows)
-    lines = [f"{'':{width}}  {'this run':>18}  {'paper':>14}"]
-    lines += [f"{name:{width}}  {ours:>18}  {paper:>14}" for name, ours, paper in rows]
-    return "\n".join(lines)
+    return rows
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

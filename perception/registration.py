@@ -229,6 +229,8 @@ class _StageClock:
     fine_s: float = 0.0
 
     def result(self, model_to_world: np.ndarray, fitness: float, rmse_m: float, attempt: int) -> RegistrationResult:
+        """The accepted pose of RANSAC attempt ``attempt`` (0: the upright search's), with the
+        stage times so far and the total until now."""
         return RegistrationResult(
             model_to_world=model_to_world,
             fitness=fitness,
