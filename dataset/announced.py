@@ -7,7 +7,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import msgs
-from dataset.format import DatasetInfo, DatasetWriter, code_version
+from dataset.records import DatasetInfo, code_version
+from dataset.writer import DatasetWriter
 
 
 def write_samples(writer: DatasetWriter, samples: Sequence[msgs.DatasetSample]) -> None:

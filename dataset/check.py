@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset.format import FILE_KINDS, FINGERS, DatasetError, DatasetReader, SampleRecord
+from dataset.reader import DatasetReader
+from dataset.records import FILE_KINDS, FINGERS, DatasetError, SampleRecord
 from dataset.splits import SPLITS, split_records
 
 

@@ -7,7 +7,7 @@ import sys
 
 from dataset.check import check_dataset, content_checksum
 from dataset.export import export_pix2pix
-from dataset.format import DatasetError
+from dataset.records import DatasetError
 from dtx.errors import exit_1_on
 
 
@@ -85,7 +85,14 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``dataset`` command group to the ``dtx`` parser."""
     parser = subparsers.add_parser("dataset", help="check, export or synthesise tactile datasets")
     commands = parser.add_subparsers(dest="dataset_command", required=True)
+    _add_check_and_export(commands)
+    _add_synth(commands)
+    _add_library(commands)
+    _add_redepth(commands)
 
+
+def _add_check_and_export(commands: argparse._SubParsersAction) -> None:
+    """``check``, ``checksum`` and ``export-pix2pix``: each reads one dataset directory."""
     check = commands.add_parser("check", help="verify every sample; exit 0 only for a sound dataset")
     check.add_argument("dir", help="dataset directory")
     check.set_defaults(func=_check)
@@ -104,12 +111,16 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("out", help="output directory (train/, val/, test/ are created)")
     export.set_defaults(func=_export)
 
+
+def _add_synth(commands: argparse._SubParsersAction) -> None:
     synth = commands.add_parser("synth", help="render a synthetic dataset of analytic contacts")
     synth.add_argument("out", help="dataset directory to create or resume")
     synth.add_argument("--samples", type=int, default=578, help="number of pairs (default: the paper's 578)")
     synth.add_argument("--seed", type=int, default=0)
     synth.set_defaults(func=_synth)
 
+
+def _add_library(commands: argparse._SubParsersAction) -> None:
     library = commands.add_parser(
         "library",
         help="render a contact library in a scene's collection geometry "
@@ -133,6 +144,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     library.set_defaults(func=_library)
 
+
+def _add_redepth(commands: argparse._SubParsersAction) -> None:
     redepth = commands.add_parser(
         "redepth",
         help="make a collected dataset's depth-maps again, e.g. at the "

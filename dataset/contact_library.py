@@ -15,7 +15,7 @@ Each sample is made as a collected pair is made, with the same code:
   gripper geometry, the margin and the depth range of the sessions it joins;
 * **tactile image**: the surface as a gel gap map at the scene's GelSight size, rendered by the
   scene's GelSight with the effects the scene calls for (``sim.gelsight.scene_renderer``), then
-  brought to the dataset's size by ``dataset.format.resize_rgb``, as the collector does.
+  brought to the dataset's size by ``dataset.images.resize_rgb``, as the collector does.
 
 The object name of a sample is its family, so leave-one-object-out can hold a family out. The
 YCB meshes stay out of the library: the ones the default scene does not use are the unseen
@@ -30,8 +30,10 @@ import os
 import numpy as np
 from tqdm import tqdm
 
-from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
+from dataset.images import resize_rgb, subtract_background
+from dataset.records import DatasetError, DatasetInfo, code_version
 from dataset.synth import SurfaceMm, gel_gap_from_surface
+from dataset.writer import DatasetWriter
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
 from sim.effects import effects_of, resolve_effects

@@ -14,7 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dataset.format import DatasetError, DatasetReader
+from dataset.reader import DatasetReader
+from dataset.records import DatasetError
 from dataset.splits import SPLITS, split_records
 from perception.normalisation import normalise_depth_map
 

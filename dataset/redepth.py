@@ -19,7 +19,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from dataset.format import DatasetError, DatasetReader, DatasetWriter, resize_rgb
+from dataset.images import resize_rgb
+from dataset.reader import DatasetReader
+from dataset.records import DatasetError
+from dataset.writer import DatasetWriter
 from perception.density import downsample_to_density
 from perception.depthmap import MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_reach_m
 from perception.errors import DepthMapError

@@ -23,7 +23,9 @@ from typing import Protocol
 import numpy as np
 from tqdm import tqdm
 
-from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, subtract_background
+from dataset.images import subtract_background
+from dataset.records import DatasetError, DatasetInfo, code_version
+from dataset.writer import DatasetWriter
 
 SHAPES = ("sphere", "cylinder", "edge", "box", "ridges")
 SurfaceMm = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -133,27 +135,13 @@ def write_synthetic_dataset(
     if not min(pixel_pitch_mm) > 0:
         raise DatasetError(f"pixel_pitch_mm must be positive, got {pixel_pitch_mm}")
     background = renderer.render(np.full((size, size), np.inf, np.float32))
-    info = DatasetInfo(
-        image_height=size,
-        image_width=size,
-        depth_range_m=depth_range_m,
-        scene=f"synthetic analytic contacts (seed {seed}, crop x{crop_scale})",
-        effects=(),
-        code_version=code_version(),
-        split_seed=seed,
-    )
-    writer = DatasetWriter(out, info)
+    writer = DatasetWriter(out, _synthetic_info(size, seed, crop_scale, depth_range_m))
     n_grasps = (samples + 1) // 2
     for grasp_id in tqdm(range(n_grasps), desc="synth grasps", disable=not progress):
         # One generator per grasp: a resumed run draws exactly the same grasps.
         rng = np.random.default_rng([seed, grasp_id])
         shape = SHAPES[int(rng.integers(len(SHAPES)))]
-        pose = (
-            float(rng.uniform(-0.05, 0.05)),
-            float(rng.uniform(-0.05, 0.05)),
-            float(rng.uniform(0.05, 0.15)),
-            float(rng.uniform(-np.pi, np.pi)),
-        )
+        pose = _random_grasp_pose(rng)
         for finger in ("left", "right")[: min(2, samples - 2 * grasp_id)]:
             surface = random_surface(shape, rng)
             sample_id = f"{shape}-g{grasp_id:05d}-{finger}"
@@ -174,3 +162,26 @@ def write_synthetic_dataset(
                 registration_fitness=1.0,
             )
     return writer
+
+
+def _synthetic_info(size: int, seed: int, crop_scale: float, depth_range_m: tuple[float, float]) -> DatasetInfo:
+    """The synthetic dataset's ``dataset.json``: its scene names the seed and the crop scale."""
+    return DatasetInfo(
+        image_height=size,
+        image_width=size,
+        depth_range_m=depth_range_m,
+        scene=f"synthetic analytic contacts (seed {seed}, crop x{crop_scale})",
+        effects=(),
+        code_version=code_version(),
+        split_seed=seed,
+    )
+
+
+def _random_grasp_pose(rng: np.random.Generator) -> tuple[float, float, float, float]:
+    """A grasp pose (x, y, z [m], theta_z [rad]) over the table, as a sample records it."""
+    return (
+        float(rng.uniform(-0.05, 0.05)),
+        float(rng.uniform(-0.05, 0.05)),
+        float(rng.uniform(0.05, 0.15)),
+        float(rng.uniform(-np.pi, np.pi)),
+    )

@@ -8,7 +8,7 @@ import json
 import sys
 import time
 
-from dataset.format import DatasetError
+from dataset.records import DatasetError
 from dtx.errors import exit_1_on
 from models.errors import ModelConfigError
 

@@ -8,7 +8,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from dataset.format import DatasetReader, SampleRecord
+from dataset.reader import DatasetReader
+from dataset.records import SampleRecord
 from dataset.splits import leave_one_object_out, split_records
 from models.networks import GeneratorConfig, ModelConfigError
 from models.prior import PhysicsPrior, PriorSpec

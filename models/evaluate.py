@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from scipy import stats
 
-from dataset.format import deformation_map
+from dataset.images import deformation_map
 from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
 from models.template_match import template_match

@@ -11,7 +11,7 @@ contact radius (px). For each press the system sees what it would see at a grasp
   model cloud is, and binned by ``perception.depthmap.contact_depth_map`` with the inference
   node's parameters (the scene's gripper geometry, its margin, the checkpoint's depth range);
 * **the truth**: the real frame brought to the model's grid as the collector brings a sensor
-  frame (``dataset.format.resize_rgb``).
+  frame (``dataset.images.resize_rgb``).
 
 Estimates scored against the truth, each by SSIM (Gaussian sigma 1.5, data range 255, per
 channel; perception.ssim) and PSNR, over the whole image and over the press window — the box of
@@ -38,7 +38,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dataset.format import resize_rgb
+from dataset.images import resize_rgb
 from models.errors import ModelConfigError
 from models.evaluate import predict
 from models.networks import UNetGenerator

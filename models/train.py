@@ -47,7 +47,7 @@ from torch.optim.lr_scheduler import LambdaLR
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from dataset.format import DatasetReader
+from dataset.reader import DatasetReader
 from models.checkpoint import CHECKPOINT, TrainConfig, load_checkpoint, save_atomic
 from models.data import load_library, load_pairs, select_records, session_prior
 from models.networks import ModelConfigError, PatchDiscriminator, UNetGenerator, init_weights

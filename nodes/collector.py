@@ -37,7 +37,9 @@ import numpy as np
 import msgs
 from dataset.announced import write_samples
 from dataset.check import check_dataset
-from dataset.format import DatasetError, DatasetInfo, DatasetWriter, code_version, resize_rgb, subtract_background
+from dataset.images import resize_rgb, subtract_background
+from dataset.records import DatasetError, DatasetInfo, code_version
+from dataset.writer import DatasetWriter
 from msgs.system import ErrorCode
 from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 from nodes.services import ServiceCallError

@@ -12,7 +12,7 @@ from typing import Any
 
 import msgs
 from dataset.announced import dataset_info, write_samples
-from dataset.format import DatasetWriter
+from dataset.writer import DatasetWriter
 from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 
 

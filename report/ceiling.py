@@ -28,7 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from dataset.format import DatasetReader, SampleRecord, resize_rgb
+from dataset.images import resize_rgb
+from dataset.reader import DatasetReader
+from dataset.records import SampleRecord
 from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
 from sim.gelsight import GelSightError, render_depth_maps, scene_renderer

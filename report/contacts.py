@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset.format import DatasetInfo, DatasetWriter, code_version, subtract_background
+from dataset.images import subtract_background
+from dataset.records import DatasetInfo, code_version
 from dataset.synth import (
     CAMERA_FIELD_WIDTH_MM,
     SHAPES,
@@ -19,6 +20,7 @@ from dataset.synth import (
     gelsight_renderer,
     random_surface,
 )
+from dataset.writer import DatasetWriter
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)
 CROP_SCALE = 1.2  # dataset.synth's default: the depth-map crop is wider than the camera field

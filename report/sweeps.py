@@ -27,7 +27,8 @@ from scipy import stats
 from benchmarks import inference as inference_bench
 from benchmarks.perception import _sweep_cases, _sweep_row
 from benchmarks.sim import DEPTH_EFFECTS
-from dataset.format import DatasetReader, resize_rgb
+from dataset.images import resize_rgb
+from dataset.reader import DatasetReader
 from dataset.redepth import depth_map_again, depth_map_params, model_cloud
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.checkpoint import load_generator

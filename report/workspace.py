@@ -20,7 +20,9 @@ import numpy as np
 import torch
 
 from dataset.contact_library import write_contact_library
-from dataset.format import DatasetReader, SampleRecord, deformation_map
+from dataset.images import deformation_map
+from dataset.reader import DatasetReader
+from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params, redepth_dataset
 from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import select_records

@@ -72,7 +72,7 @@ def gelsight_check(args: argparse.Namespace) -> int:
 
 
 def information_ceiling(args: argparse.Namespace) -> int:
-    from dataset.format import DatasetError
+    from dataset.records import DatasetError
     from models.errors import ModelConfigError
     from report.ceiling import CeilingError, format_table
     from report.ceiling import information_ceiling as ceiling

@@ -19,7 +19,9 @@ import pytest
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
 from dataset.check import check_dataset, content_checksum
-from dataset.format import DatasetError, DatasetReader, deformation_map
+from dataset.images import deformation_map
+from dataset.reader import DatasetReader
+from dataset.records import DatasetError
 from dataset.redepth import redepth_dataset
 from dataset.synth import write_synthetic_dataset
 from models.errors import ModelConfigError

@@ -13,7 +13,9 @@ from scipy import ndimage
 from dataset.check import check_dataset
 from dataset.cli import add_commands
 from dataset.contact_library import FAMILIES, library_sample, random_surface_mm, write_contact_library
-from dataset.format import DatasetError, DatasetReader, resize_rgb
+from dataset.images import resize_rgb
+from dataset.reader import DatasetReader
+from dataset.records import DatasetError
 from perception.depthmap import DepthMapParams
 from sim.gelsight import scene_renderer
 from workcell.scene import load_scene

@@ -15,13 +15,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dataset import format as fmt
+from dataset import files as dataset_files
+from dataset import writer as dataset_writer
 from dataset.check import check_dataset, content_checksum
 from dataset.cli import add_commands
 from dataset.export import export_pix2pix
-from dataset.format import DatasetError, DatasetInfo, DatasetReader, DatasetWriter, resize_rgb, subtract_background
+from dataset.images import resize_rgb, subtract_background
+from dataset.reader import DatasetReader
+from dataset.records import FILE_KINDS, FINGERS, DatasetError, DatasetInfo, EncodedSample, SampleRecord
 from dataset.splits import leave_one_object_out, split_grasps, split_records
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface, write_synthetic_dataset
+from dataset.writer import DatasetWriter
 
 INFO = DatasetInfo(
     image_height=100,
@@ -63,7 +67,7 @@ def write_sample(
     obj: str = "mug",
     pose: tuple[float, float, float, float] = (0.1, 0.2, 0.05, 0.3),
     stamps_ns: dict[str, int] | None = None,
-) -> fmt.SampleRecord:
+) -> SampleRecord:
     return writer.write(
         sample_id=f"{obj}-g{grasp:03d}-{finger}",
         object_name=obj,
@@ -87,7 +91,7 @@ def test_round_trip_preserves_arrays_and_manifest(tmp_path: Path) -> None:
     np.testing.assert_array_equal(sample.tactile_diff_rgb, expected["tactile_diff_rgb"])
     np.testing.assert_array_equal(sample.depth_map_m, expected["depth_map_m"])  # NaN == NaN here
     line = json.loads((tmp_path / "manifest.jsonl").read_text().splitlines()[0])
-    assert line["grasp_pose"] == [0.1, 0.2, 0.05, 0.3] and set(line["sha256"]) == set(fmt.FILE_KINDS)
+    assert line["grasp_pose"] == [0.1, 0.2, 0.05, 0.3] and set(line["sha256"]) == set(FILE_KINDS)
     assert cv2.imread(str(tmp_path / record.files["tactile"])).shape == (100, 100, 3)
 
 
@@ -197,7 +201,9 @@ def test_permission_denied_is_a_clear_error_even_as_root(tmp_path: Path, monkeyp
             raise PermissionError(errno.EACCES, "Permission denied", str(path))
         return open(path, mode, *args, **kwargs)
 
-    monkeypatch.setattr(fmt, "open", refuse, raising=False)
+    # Every write of the dataset: the files (written atomically) and the manifest (appended).
+    monkeypatch.setattr(dataset_files, "open", refuse, raising=False)
+    monkeypatch.setattr(dataset_writer, "open", refuse, raising=False)
     with pytest.raises(DatasetError, match="Permission denied"):
         write_sample(writer, 1, "right")
     monkeypatch.undo()
@@ -414,7 +420,7 @@ def test_resize_rgb_averages_when_shrinking_and_keeps_a_right_sized_image() -> N
     assert doubled.shape == (8, 12, 3) and doubled.min() >= image.min() and doubled.max() <= image.max()
 
 
-def encoded_grasp(writer: DatasetWriter, grasp: int, attempt: int) -> list[fmt.EncodedSample]:
+def encoded_grasp(writer: DatasetWriter, grasp: int, attempt: int) -> list[EncodedSample]:
     """Both fingers of one attempt at a grasp: the attempt sets the pose and the stamps."""
     return [
         writer.encode(
@@ -427,7 +433,7 @@ def encoded_grasp(writer: DatasetWriter, grasp: int, attempt: int) -> list[fmt.E
             stamps_ns={"tactile": attempt},
             **sample_arrays(10 * attempt + (finger == "right")),
         )
-        for finger in fmt.FINGERS
+        for finger in FINGERS
     ]
 
 
@@ -443,9 +449,7 @@ def assert_every_grasp_whole(root: Path, grasps: int) -> None:
     report = check_dataset(root)
     assert report.ok, report.problems
     records = DatasetReader(root).records
-    assert sorted(r.sample_id for r in records) == sorted(
-        f"mug-g{g:03d}-{f}" for g in range(grasps) for f in fmt.FINGERS
-    )
+    assert sorted(r.sample_id for r in records) == sorted(f"mug-g{g:03d}-{f}" for g in range(grasps) for f in FINGERS)
     for g in range(grasps):
         pair = [r for r in records if r.grasp_id == g]
         assert pair[0].stamps_ns == pair[1].stamps_ns and pair[0].grasp_pose == pair[1].grasp_pose

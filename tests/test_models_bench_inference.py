@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from benchmarks.inference import DEPTH_RANGE_M, add_arguments, gflop_per_region, run, synthetic_inputs
-from dataset.format import DatasetReader
+from dataset.reader import DatasetReader
 from dataset.synth import write_synthetic_dataset
 from models.checkpoint import TrainConfig, load_generator
 from models.data import select_records

@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from dataset.format import DatasetReader
+from dataset.reader import DatasetReader
 from dataset.synth import write_synthetic_dataset
 from models.checkpoint import TrainConfig, load_checkpoint, load_generator
 from models.networks import GeneratorConfig, ModelConfigError
@@ -176,7 +176,7 @@ def test_runs_under_torchrun_with_two_gloo_processes(dataset: Path, tmp_path: Pa
 
 
 def test_leave_one_object_out_trains_without_the_held_out_object(dataset: Path, tmp_path: Path) -> None:
-    from dataset.format import DatasetReader
+    from dataset.reader import DatasetReader
     from models.data import select_records
 
     reader = DatasetReader(dataset)

@@ -23,7 +23,9 @@ from mcap.records import Chunk, Header
 from mcap.writer import CompressionType, Writer
 
 import msgs
-from dataset.format import DatasetInfo, DatasetWriter, subtract_background
+from dataset.images import subtract_background
+from dataset.records import DatasetInfo
+from dataset.writer import DatasetWriter
 from msgs.codec import encode
 from nodes.bag_format import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 
