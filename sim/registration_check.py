@@ -31,7 +31,8 @@ from perception.registration import (
 )
 from perception.segmentation import segment_object, segmentation_params_for
 from sim.world import SimWorld
-from workcell.scene import ObjectSpec, Scene, load_scene
+from workcell.parts import ObjectSpec
+from workcell.scene import Scene, load_scene
 
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
 

@@ -48,7 +48,8 @@ from sim.depth_effects import DepthEffectChain, gaussian
 from sim.effects import DEPTH_EFFECT_ORDER, resolve_effects
 from sim.seeding import state_rng
 from workcell.kinematics import gel_poses_world
-from workcell.scene import ObjectSpec, ReliefSpec, Scene, SceneError, load_scene, resolve_path
+from workcell.parts import ObjectSpec, ReliefSpec
+from workcell.scene import Scene, SceneError, load_scene, resolve_path
 
 # How far behind the gel plane gap-map rays start (mm): surfaces up to this deep in the gel
 # are still measured.

@@ -4,7 +4,8 @@ simulation of it calls for.
 A scene is a YAML file (see ``scenes/README.md`` for the schema). :func:`load_scene` reads
 and validates the workcell completely; every problem raises a :class:`SceneError` whose text
 names the file, the key (a dotted path such as ``objects[1].relief[0].pitch_mm``) and the
-allowed values. The lab nodes read it for the objects' meshes and the gripper geometry.
+allowed values. The lab nodes read it for the objects' meshes and the gripper geometry. The
+parts it describes (table, objects, cameras, gripper, GelSight) are ``workcell.parts``.
 
 Effects are listed here by name, with their parameters as written: which effects exist and
 what their parameters mean is the simulator's (``sim.effects``), which checks them, with the
@@ -24,6 +25,7 @@ import numpy as np
 import yaml
 
 from workcell.kinematics import GripperGeometry
+from workcell.parts import RELIEF_KINDS, CameraSpec, GelSightSpec, GripperSpec, ObjectSpec, ReliefSpec, TableSpec
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -43,79 +45,8 @@ class SceneError(ValueError):
 
 
 # --------------------------------------------------------------------------------------
-# Scene dataclasses
+# Scene dataclasses (the workcell's parts are workcell.parts)
 # --------------------------------------------------------------------------------------
-
-RELIEF_KINDS = ("ridges", "knurling", "bumps")
-
-
-@dataclasses.dataclass
-class ReliefSpec:
-    """Surface micro-relief of an object: a periodic outward displacement of the surface.
-
-    ``ridges``: raised-cosine profile varying along ``axis`` (object frame);
-    ``knurling``: two ridge sets crossed at +-``angle_deg`` about ``axis``;
-    ``bumps``: spherical caps on a cubic lattice of spacing ``pitch_mm``.
-    """
-
-    kind: str
-    pitch_mm: float
-    depth_mm: float
-    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    angle_deg: float = 30.0
-
-
-@dataclasses.dataclass
-class ObjectSpec:
-    name: str
-    mesh: str | None  # path relative to the repository (or absolute)
-    primitive: dict[str, Any] | None  # {"box": [sx, sy, sz]} | {"cylinder": [r, h]} | {"sphere": r}
-    x_m: float
-    y_m: float
-    yaw_rad: float
-    z_m: float | None  # None: rest on the table (lowest point at z = 0)
-    relief: list[ReliefSpec]
-
-
-@dataclasses.dataclass
-class TableSpec:
-    size_m: tuple[float, float] = (1.2, 0.8)
-    center_m: tuple[float, float] = (0.0, 0.0)
-    thickness_m: float = 0.03
-
-
-@dataclasses.dataclass
-class CameraSpec:
-    name: str
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    camera_to_world: np.ndarray  # nominal 4x4, OpenCV optical frame
-
-
-@dataclasses.dataclass
-class GripperSpec:
-    tcp_to_gel_centre_m: float = 0.16
-    max_width_m: float = 0.11
-    gel_size_m: tuple[float, float] = (0.0186, 0.0249)  # along gel x, gel z
-    elastomer_thickness_m: float = 0.002
-    gel_youngs_modulus_mpa: float = 0.25
-
-    @property
-    def foundation_stiffness_n_per_mm3(self) -> float:
-        """Winkler foundation stiffness of the gel layer: pressure (N/mm^2) per mm of local
-        indentation = E / thickness, i.e. N/mm of indentation per mm^2 of contact area."""
-        return self.gel_youngs_modulus_mpa / (self.elastomer_thickness_m * 1e3)
-
-
-@dataclasses.dataclass
-class GelSightSpec:
-    image_height: int = 120
-    image_width: int = 160
-    mm_per_px: float = 0.1245
 
 
 @dataclasses.dataclass
@@ -389,45 +320,52 @@ def _parse_objects(r: SceneReader, value: Any) -> list[ObjectSpec]:
                     "a mesh path relative to the repository, e.g. assets/ycb/MustardBottle.obj",
                 )
         else:
-            p = r.mapping(o["primitive"], f"{key}.primitive", {"box": "", "cylinder": "", "sphere": ""})
-            if len(p) != 1:
-                r.fail(f"{key}.primitive", "give exactly one primitive", ["box", "cylinder", "sphere"])
-            kind = next(iter(p))
-            if kind == "box":
-                primitive = {"box": r.vector(p["box"], f"{key}.primitive.box", 3, 0.002, 1.0, "m").tolist()}
-            elif kind == "cylinder":
-                primitive = {
-                    "cylinder": r.vector(p["cylinder"], f"{key}.primitive.cylinder", 2, 0.001, 1.0, "m").tolist()
-                }
-            else:
-                primitive = {"sphere": r.number(p["sphere"], f"{key}.primitive.sphere", 0.001, 1.0, "m")}
+            primitive = _parse_primitive(r, o["primitive"], f"{key}.primitive")
         pose = r.mapping(o["pose"], f"{key}.pose", _POSE_KEYS, required=("x_m", "y_m"))
         x = r.number(pose["x_m"], f"{key}.pose.x_m", -5.0, 5.0, "m")
         y = r.number(pose["y_m"], f"{key}.pose.y_m", -5.0, 5.0, "m")
         z = r.number(pose["z_m"], f"{key}.pose.z_m", -1.0, 5.0, "m") if "z_m" in pose else None
         yaw = math.radians(r.number(pose.get("yaw_deg", 0.0), f"{key}.pose.yaw_deg", -360.0, 360.0, "deg"))
-        relief = []
-        rel = o.get("relief", []) or []
-        if not isinstance(rel, list):
-            r.fail(f"{key}.relief", "expected a list", "list of {kind, pitch_mm, depth_mm, axis, angle_deg}")
-        for j, ritem in enumerate(rel):
-            rkey = f"{key}.relief[{j}]"
-            rr = r.mapping(ritem, rkey, _RELIEF_KEYS, required=("kind", "pitch_mm", "depth_mm"))
-            kind = r.string(rr["kind"], f"{rkey}.kind", RELIEF_KINDS)
-            pitch = r.number(rr["pitch_mm"], f"{rkey}.pitch_mm", 0.2, 50.0, "mm")
-            depth = r.number(rr["depth_mm"], f"{rkey}.depth_mm", 0.005, 3.0, "mm")
-            if depth > pitch:
-                r.fail(f"{rkey}.depth_mm", f"depth {depth} mm exceeds the pitch {pitch} mm", f"(0.005, {pitch}] mm")
-            axis = (0.0, 0.0, 1.0)
-            if "axis" in rr:
-                a = r.vector(rr["axis"], f"{rkey}.axis", 3, -1.0, 1.0)
-                if np.linalg.norm(a) < 1e-6:
-                    r.fail(f"{rkey}.axis", "zero vector", "a non-zero direction in the object frame")
-                axis = tuple((a / np.linalg.norm(a)).tolist())
-            angle = r.number(rr.get("angle_deg", 30.0), f"{rkey}.angle_deg", 5.0, 85.0, "deg")
-            relief.append(ReliefSpec(kind, pitch, depth, axis, angle))
+        relief = _parse_relief(r, o.get("relief", []) or [], f"{key}.relief")
         objects.append(ObjectSpec(name, mesh, primitive, x, y, yaw, z, relief))
     return objects
+
+
+def _parse_primitive(r: SceneReader, value: Any, key: str) -> dict[str, Any]:
+    """An object's primitive shape: exactly one of box, cylinder or sphere, sizes in metres."""
+    p = r.mapping(value, key, {"box": "", "cylinder": "", "sphere": ""})
+    if len(p) != 1:
+        r.fail(key, "give exactly one primitive", ["box", "cylinder", "sphere"])
+    kind = next(iter(p))
+    if kind == "box":
+        return {"box": r.vector(p["box"], f"{key}.box", 3, 0.002, 1.0, "m").tolist()}
+    if kind == "cylinder":
+        return {"cylinder": r.vector(p["cylinder"], f"{key}.cylinder", 2, 0.001, 1.0, "m").tolist()}
+    return {"sphere": r.number(p["sphere"], f"{key}.sphere", 0.001, 1.0, "m")}
+
+
+def _parse_relief(r: SceneReader, value: Any, key: str) -> list[ReliefSpec]:
+    """An object's micro-relief: a list of ridges, knurling or bumps, each shallower than its pitch."""
+    if not isinstance(value, list):
+        r.fail(key, "expected a list", "list of {kind, pitch_mm, depth_mm, axis, angle_deg}")
+    relief = []
+    for j, ritem in enumerate(value):
+        rkey = f"{key}[{j}]"
+        rr = r.mapping(ritem, rkey, _RELIEF_KEYS, required=("kind", "pitch_mm", "depth_mm"))
+        kind = r.string(rr["kind"], f"{rkey}.kind", RELIEF_KINDS)
+        pitch = r.number(rr["pitch_mm"], f"{rkey}.pitch_mm", 0.2, 50.0, "mm")
+        depth = r.number(rr["depth_mm"], f"{rkey}.depth_mm", 0.005, 3.0, "mm")
+        if depth > pitch:
+            r.fail(f"{rkey}.depth_mm", f"depth {depth} mm exceeds the pitch {pitch} mm", f"(0.005, {pitch}] mm")
+        axis = (0.0, 0.0, 1.0)
+        if "axis" in rr:
+            a = r.vector(rr["axis"], f"{rkey}.axis", 3, -1.0, 1.0)
+            if np.linalg.norm(a) < 1e-6:
+                r.fail(f"{rkey}.axis", "zero vector", "a non-zero direction in the object frame")
+            axis = tuple((a / np.linalg.norm(a)).tolist())
+        angle = r.number(rr.get("angle_deg", 30.0), f"{rkey}.angle_deg", 5.0, 85.0, "deg")
+        relief.append(ReliefSpec(kind, pitch, depth, axis, angle))
+    return relief
 
 
 _CAMERA_KEYS = {"name": "", "intrinsics": "", "pose": ""}
