@@ -2,8 +2,8 @@
 
 Every effect is built only when the scene lists it, works on whole images at once (numpy,
 no per-pixel Python) and draws its randomness from the ``numpy.random.Generator`` it is
-given, so a fixed seed reproduces a frame exactly. The world (``sim/world.py``) runs them in
-the fixed order of ``workcell.scene.DEPTH_EFFECT_ORDER``: the geometric ones first
+given, so a fixed seed reproduces a frame exactly. The world's cameras (``sim/depth_render.py``)
+run them in the fixed order of ``workcell.scene.DEPTH_EFFECT_ORDER``: the geometric ones first
 (:class:`ExtrinsicOffset` moves the camera that casts the rays, :class:`LateralNoise`
 jitters the rays), then the measurement ones on the z-depth image (metres, NaN = no return):
 :class:`FlyingPixels`, :class:`AxialNoise`, :class:`MissingReturns`, :class:`Quantisation`.

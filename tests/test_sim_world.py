@@ -226,9 +226,9 @@ def test_micro_relief_only_on_relief_objects() -> None:
     assert diff.max() > 2e-4
     # pixels not on the relief object are unchanged
     c = w.cameras["side"]
-    ans = w._scene.cast_rays(c.rays)
+    ans = w.depth.raycast_scene.cast_rays(c.rays)
     gid = ans["geometry_ids"].numpy().reshape(ideal.shape)
-    relief_gid = [g for g, oi in w._camera_geom_to_object.items() if oi == 0][0]
+    relief_gid = [g for g, oi in w.depth.geom_to_object.items() if oi == 0][0]
     other = gid != relief_gid
     np.testing.assert_array_equal(ideal[other], relief[other])
 

@@ -29,7 +29,8 @@ from workcell.scene import SceneError
 
 if TYPE_CHECKING:
     from sim.gelsight import GelSightRenderer
-    from sim.world import GraspContact, SimWorld
+    from sim.grasp_contact import GraspContact
+    from sim.world import SimWorld
 
 __all__ = ["SimulatedGelSight", "SimulatedGelSightConfig", "GelSightError"]
 
