@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from models.errors import ModelConfigError
-from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
+from sim.gelsight import GelSightRenderError, render_depth_maps, scene_renderer
 from workcell.scene import SceneError, load_scene
 
 
@@ -82,7 +82,7 @@ class PhysicsPrior:
             images = render_depth_maps(
                 self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
             )
-        except GelSightError as err:
+        except GelSightRenderError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
         if sigma_mm == 0:
             return images

@@ -44,7 +44,7 @@ from models.evaluate import predict
 from models.networks import UNetGenerator
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
-from sim.gelsight import GelSightError, GelSightRenderer, scene_renderer
+from sim.gelsight import GelSightRenderer, GelSightRenderError, scene_renderer
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, load_scene
@@ -186,7 +186,7 @@ def _load_presses(path: str | os.PathLike[str], scene: Scene | str) -> tuple[Bal
         presses = load_ball_presses(path)
         scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
         renderer = scene_renderer(scene, effects=False)
-    except GelSightError as err:
+    except GelSightRenderError as err:
         raise ModelConfigError(str(err)) from err
     height, width = presses.background.shape[:2]
     if renderer.config.shape != (height, width):

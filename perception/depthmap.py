@@ -1,4 +1,4 @@
-"""Contact depth-maps: the registered model cloud seen from one gel (paper §III-B.3, DESIGN §1.2).
+"""Contact depth-maps: the registered model cloud seen from one gel (paper §III-B.3).
 
 Gel frame (see workcell.kinematics): origin at the centre of the gel surface, x-z in the
 surface, y along the outward normal; y > 0 is free space, y < 0 indents the elastomer.

@@ -33,7 +33,7 @@ from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
-from sim.gelsight import GelSightError, render_depth_maps, scene_renderer
+from sim.gelsight import GelSightRenderError, render_depth_maps, scene_renderer
 from sim.world import SimWorld
 from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
 from workcell.scene import Scene, SceneError, load_scene
@@ -78,7 +78,7 @@ def depth_map_images(
         images = render_depth_maps(
             scene_renderer(scene, effects=False), depth_maps_m, (depth_crop_m[0], depth_crop_m[2])
         )
-    except GelSightError as err:
+    except GelSightRenderError as err:
         raise CeilingError(str(err)) from err
     return np.stack([resize_rgb(image, *size) for image in images])
 

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from sim.gelsight_effects import GelSightError
+from sim.gelsight_effects import GelSightRenderError
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
@@ -64,7 +64,7 @@ def gelsight_check(args: argparse.Namespace) -> int:
 
     try:
         result = run_check(args.file, seed=args.seed, holdout=args.holdout)
-    except GelSightError as exc:
+    except GelSightRenderError as exc:
         print(f"dtx sim gelsight-check: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(result, indent=2) if args.json else format_table(result))

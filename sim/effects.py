@@ -171,7 +171,7 @@ def _resolve(r: SceneReader, spec: EffectSpec) -> EffectSpec:
     if info.family == "gelsight":
         try:
             make_effect(name, params)
-        except Exception as exc:  # noqa: BLE001 - GelSightError or a bad type, reported with its key
+        except Exception as exc:  # noqa: BLE001 - GelSightRenderError or a bad type, reported with its key
             bad = next((k for k in params if k in str(exc)), None)
             r.fail(
                 f"{key}.{bad}" if bad else key,

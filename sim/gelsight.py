@@ -1,8 +1,8 @@
 """GelSight renderer: from what touches the gel to the RGB image the sensor's camera sees.
 
-Input is the gel gap map (HxW float mm, gel frame of DESIGN.md §1.2): per pixel, the y of
-the object's surface, negative where the object reaches into the gel, +inf where there is
-nothing. The image is made in four steps, all in mm and pixels:
+Input is the gel gap map (HxW float mm, gel frame of ``workcell.kinematics``): per pixel, the
+y of the object's surface, negative where the object reaches into the gel, +inf where there
+is nothing. The image is made in four steps, all in mm and pixels:
 
 1. Indentation: how far the object reaches past the gel's rest surface, ``max(-gap, 0)``.
 2. Gel deformation: the elastomer does not follow the object only where it touches; it is
@@ -15,7 +15,7 @@ nothing. The image is made in four steps, all in mm and pixels:
 3. Shading with the real calibration (Taxim, assets/gelsight/ATTRIBUTION.md): the surface
    slope is binned by magnitude ``atan|grad h|`` and direction ``atan2``, and each bin's
    polynomial in pixel position gives the colour change (the table is interpolated between
-   bin centres, :func:`_refine_bins`). Two physical corrections, fitted on
+   bin centres, ``sim.gelsight_calibration``). Two physical corrections, fitted on
    real frames: the pressed gel also changes colour where it is flat (the calibration's
    zero-slope colour, applied in proportion to the local compression up to
    ``compression_saturation_mm``), and a global ``shading_gain``.
@@ -30,47 +30,36 @@ map each pixel to its position on the gel and evaluate the calibration there.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Sequence
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from sim.effects import effects_of, resolve_effects
-from sim.gelsight_effects import EFFECTS, GelSightError, LightingDrift, Markers, SensorNoise, make_effect
+from sim.gelsight_calibration import load_calibration
+from sim.gelsight_effects import EFFECTS, GelSightRenderError, LightingDrift, Markers, SensorNoise, make_effect
 from workcell.scene import Scene
 
 __all__ = [
     "EFFECTS",
     "GelSightConfig",
-    "GelSightError",
+    "GelSightRenderError",
     "GelSightRenderer",
     "LightingDrift",
     "Markers",
-    "PolyCalibration",
     "SensorNoise",
     "gel_surface_depth_mm",
     "indentation_mm",
-    "load_calibration",
     "make_effect",
     "render_depth_maps",
     "scene_renderer",
 ]
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-POLYNOMIAL_FILE = "polycalib_small.npz"
-# A real no-contact frame of the calibrated sensor (not real_bg_small.npy: that is Taxim's
-# base image with its gel-dome shading removed, values up to 369, not a camera frame).
-BACKGROUND_FILE = "ball_presses.npz"
 # Coarse-grid points per spreading sigma when the spread is computed on a coarser grid.
 SPREAD_GRID_PER_SIGMA = 3.0
 # Working-grid points per optical blur sigma (see GelSightRenderer).
 SHADING_GRID_PER_SIGMA = 3.0
-# The calibration's slope bins are split in this many, interpolated (a finer split changes
-# the gelsight-check SSIMs by less than 0.001).
-BIN_REFINEMENT = 2
 # Bounds that keep every Gaussian kernel OpenCV builds small (its width is ~8 sigma): lengths on
 # the gel up to 50 mm (a GelSight gel is ~25 mm across), pixel pitches 1 um..10 mm (the real
 # field at 3..4096 px wide is 6.6..0.005 mm/px), and the background's smoothing at most 256
@@ -97,7 +86,7 @@ class GelSightConfig:
     rounded to 0.01; the odd frames, not used in the fit, score within 0.005 of the even ones
     (``dtx sim gelsight-check --holdout``).
 
-    Contract, checked on construction (GelSightError names the field): sizes are integers in
+    Contract, checked on construction (GelSightRenderError names the field): sizes are integers in
     [3, 4096]; every length a finite number in (0, MAX_LENGTH_MM] mm; both pixel pitches in
     PIXEL_PITCH_RANGE_MM; ``background_smoothing_mm / calibration_mm_per_px`` at most
     MAX_BACKGROUND_SIGMA_PX; ``shading_gain`` in [0, 2]. Within these a rendering takes bounded
@@ -121,7 +110,7 @@ class GelSightConfig:
         for name in ("image_height", "image_width"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or not 3 <= value <= 4096:
-                raise GelSightError(f"GelSightConfig.{name} must be an integer in [3, 4096], got {value!r}")
+                raise GelSightRenderError(f"GelSightConfig.{name} must be an integer in [3, 4096], got {value!r}")
         pitches = ("mm_per_px", "calibration_mm_per_px")
         lengths = (
             "elastomer_thickness_mm",
@@ -133,131 +122,45 @@ class GelSightConfig:
         for name in pitches + lengths + ("shading_gain",):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise GelSightError(f"GelSightConfig.{name} must be a finite number, got {value!r}")
+                raise GelSightRenderError(f"GelSightConfig.{name} must be a finite number, got {value!r}")
         for name in lengths:
             if not 0 < getattr(self, name) <= MAX_LENGTH_MM:
-                raise GelSightError(
+                raise GelSightRenderError(
                     f"GelSightConfig.{name} must be in (0, {MAX_LENGTH_MM}] mm, got {getattr(self, name)!r}"
                 )
         for name in pitches:
             low, high = PIXEL_PITCH_RANGE_MM
             if not low <= getattr(self, name) <= high:
-                raise GelSightError(
+                raise GelSightRenderError(
                     f"GelSightConfig.{name} must be in [{low}, {high}] mm per pixel, got {getattr(self, name)!r}"
                 )
         if self.background_smoothing_mm / self.calibration_mm_per_px > MAX_BACKGROUND_SIGMA_PX:
-            raise GelSightError(
+            raise GelSightRenderError(
                 f"GelSightConfig.background_smoothing_mm {self.background_smoothing_mm!r} is "
                 f"{self.background_smoothing_mm / self.calibration_mm_per_px:.3g} calibration "
                 f"pixels, more than {MAX_BACKGROUND_SIGMA_PX:g}"
             )
         if not 0.0 <= self.shading_gain <= 2.0:
-            raise GelSightError(f"GelSightConfig.shading_gain must be in [0, 2], got {self.shading_gain!r}")
+            raise GelSightRenderError(f"GelSightConfig.shading_gain must be in [0, 2], got {self.shading_gain!r}")
 
     @property
     def shape(self) -> tuple[int, int]:
         return int(self.image_height), int(self.image_width)
 
 
-@dataclasses.dataclass(frozen=True)
-class PolyCalibration:
-    """The photometric calibration of one sensor.
-
-    ``coeffs[i_mag, i_dir, channel]`` are the 6 coefficients of the colour change, in 8-bit
-    levels, as a polynomial ``[x^2, y^2, xy, x, y, 1]`` of the pixel position (x column,
-    y row) in the ``native_shape`` image, for ``n_bins`` equal bins of the slope magnitude
-    ``atan|grad h|`` over [0, pi/2) and of its direction over [-pi, pi). ``background`` is
-    that sensor's no-contact frame.
-    """
-
-    coeffs: np.ndarray  # (n_bins, n_bins, 3, 6) float32
-    background: np.ndarray  # native_shape + (3,) uint8
-
-    @property
-    def n_bins(self) -> int:
-        return self.coeffs.shape[0]
-
-    @property
-    def native_shape(self) -> tuple[int, int]:
-        return self.background.shape[0], self.background.shape[1]
-
-
-def _repo_path(path: str | Path) -> Path:
-    path = Path(path)
-    return path if path.is_absolute() else REPO_ROOT / path
-
-
-def load_calibration(calibration_dir: str | Path) -> PolyCalibration:
-    """Read the per-slope-bin polynomials and the no-contact frame from ``calibration_dir``
-    (relative paths are from the repository root). Read once per directory; the arrays are
-    read-only."""
-    return _load_calibration(str(_repo_path(calibration_dir).resolve()))
-
-
-@functools.lru_cache(maxsize=8)
-def _load_calibration(directory_name: str) -> PolyCalibration:
-    directory = Path(directory_name)
-    poly_path, bg_path = directory / POLYNOMIAL_FILE, directory / BACKGROUND_FILE
-    for path in (poly_path, bg_path):
-        if not path.is_file():
-            raise GelSightError(f"GelSight calibration file missing: {path}")
-    with np.load(poly_path) as poly:
-        missing = sorted({"bins", "grad_r", "grad_g", "grad_b"} - set(poly.files))
-        if missing:
-            raise GelSightError(f"{poly_path}: missing keys {missing}")
-        n = int(poly["bins"])
-        tables = [np.asarray(poly[k], np.float64) for k in ("grad_r", "grad_g", "grad_b")]
-    for table in tables:
-        if table.shape != (n, n, 6) or not np.all(np.isfinite(table)):
-            raise GelSightError(
-                f"{poly_path}: each grad_* must be a finite ({n}, {n}, 6) array, got shape {table.shape}"
-            )
-    # Taxim's n bins are n - 1 bins of width range / (n - 1) plus one for the range's end
-    # point alone; keep the n - 1 (the end point falls in the last of them).
-    coeffs = np.stack(tables, axis=2)[: n - 1, : n - 1]  # (n - 1, n - 1, 3, 6)
-    # The calibration saw almost no pixels at zero slope (only each press's centre), so the
-    # direction bins of magnitude 0 disagree by noise; a flat gel has no direction, so use
-    # their mean: the colour is then continuous at zero slope and the same for every flat pixel.
-    coeffs[0] = coeffs[0].mean(axis=0, keepdims=True)
-    coeffs = _refine_bins(coeffs.astype(np.float32), BIN_REFINEMENT)
-    with np.load(bg_path) as data:
-        if "background" not in data.files:
-            raise GelSightError(f"{bg_path}: missing key 'background'")
-        background = np.asarray(data["background"])
-    if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
-        raise GelSightError(f"{bg_path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
-    coeffs.flags.writeable = False
-    background.flags.writeable = False
-    return PolyCalibration(coeffs, background)
-
-
-def _refine_bins(coeffs: np.ndarray, factor: int) -> np.ndarray:
-    """The table on bins ``factor`` times narrower, linearly interpolated between the
-    calibration's bin centres: the colour is a continuous function of the surface normal, and
-    a nearest-bin look-up would print the bins' steps into the image. The direction wraps
-    around; below the first magnitude bin centre the zero-slope bin is kept."""
-    n_mag, n_dir = coeffs.shape[:2]
-    table = coeffs.reshape(n_mag, n_dir, -1)
-    wrapped = np.concatenate([table[:, -1:], table, table[:, :1]], axis=1)
-    # cv2.resize samples at pixel centres, so fine bin centres interpolate coarse bin centres.
-    fine = cv2.resize(wrapped, ((n_dir + 2) * factor, n_mag * factor), interpolation=cv2.INTER_LINEAR)
-    fine = fine[:, factor : (n_dir + 1) * factor]
-    return np.ascontiguousarray(fine.reshape(n_mag * factor, n_dir * factor, *coeffs.shape[2:]))
-
-
 def indentation_mm(gel_gap_mm: np.ndarray, max_mm: float) -> np.ndarray:
     """How far the object reaches past the gel's rest surface (HxW float32 mm, >= 0),
     limited to ``max_mm`` (the elastomer's thickness: the acrylic under it is rigid)."""
     if not isinstance(gel_gap_mm, np.ndarray):
-        raise GelSightError(f"gel gap map must be a numpy array, got {type(gel_gap_mm).__name__}")
+        raise GelSightRenderError(f"gel gap map must be a numpy array, got {type(gel_gap_mm).__name__}")
     if gel_gap_mm.ndim != 2 or min(gel_gap_mm.shape) < 3:
-        raise GelSightError(f"gel gap map must be HxW with H, W >= 3, got shape {gel_gap_mm.shape}")
+        raise GelSightRenderError(f"gel gap map must be HxW with H, W >= 3, got shape {gel_gap_mm.shape}")
     if not np.issubdtype(gel_gap_mm.dtype, np.floating):
-        raise GelSightError(f"gel gap map must be float (mm, +inf = nothing there), got {gel_gap_mm.dtype}")
+        raise GelSightRenderError(f"gel gap map must be float (mm, +inf = nothing there), got {gel_gap_mm.dtype}")
     if np.isnan(gel_gap_mm).any():
-        raise GelSightError("gel gap map contains NaN (use +inf where nothing is there)")
+        raise GelSightRenderError("gel gap map contains NaN (use +inf where nothing is there)")
     if np.isneginf(gel_gap_mm).any():
-        raise GelSightError("gel gap map contains -inf: an object cannot reach infinitely deep")
+        raise GelSightRenderError("gel gap map contains -inf: an object cannot reach infinitely deep")
     # -(+inf) = -inf, so "nothing there" becomes zero indentation without a special case.
     return np.clip(-gel_gap_mm, 0.0, max_mm).astype(np.float32)
 
@@ -317,10 +220,10 @@ class GelSightRenderer:
         background: np.ndarray | None = None,
     ):
         if not isinstance(config, GelSightConfig):
-            raise GelSightError(f"config must be a GelSightConfig, got {type(config).__name__}")
+            raise GelSightRenderError(f"config must be a GelSightConfig, got {type(config).__name__}")
         for effect in effects:
             if not callable(getattr(effect, "apply", None)):
-                raise GelSightError(f"effect {effect!r} has no apply(image, gel_depth_mm, pixel_pitch_mm, rng)")
+                raise GelSightRenderError(f"effect {effect!r} has no apply(image, gel_depth_mm, pixel_pitch_mm, rng)")
         self.config = config
         self.effects = tuple(effects)
         self.rng = np.random.default_rng(0) if rng is None else rng
@@ -331,7 +234,7 @@ class GelSightRenderer:
         if not (
             isinstance(background, np.ndarray) and background.dtype == np.uint8 and background.shape == native + (3,)
         ):
-            raise GelSightError(
+            raise GelSightRenderError(
                 f"background must be a {native[0]}x{native[1]}x3 uint8 frame (the calibration's "
                 f"size), got {getattr(background, 'shape', None)} {getattr(background, 'dtype', None)}"
             )
@@ -475,14 +378,14 @@ def render_depth_maps(
     exactly what a learned model is fed; the crop must cover the renderer's field of view."""
     maps = np.asarray(depth_maps_m)
     if maps.ndim != 3 or not np.issubdtype(maps.dtype, np.floating):
-        raise GelSightError(
+        raise GelSightRenderError(
             f"depth-maps must be an N x rows x cols float array in metres, got {maps.shape} {maps.dtype}"
         )
     h, w = renderer.config.shape
     pitch_rows_mm, pitch_cols_mm = renderer.pixel_pitch_mm
     crop_x_mm, crop_z_mm = crop_xz_m[0] * 1e3, crop_xz_m[1] * 1e3
     if w * pitch_cols_mm > crop_x_mm + 1e-6 or h * pitch_rows_mm > crop_z_mm + 1e-6:
-        raise GelSightError(
+        raise GelSightRenderError(
             f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
             f"GelSight's field of view ({w * pitch_cols_mm:.1f} x {h * pitch_rows_mm:.1f} mm)"
         )

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from perception.ssim import ssim_rgb
-from sim.gelsight import GelSightConfig, GelSightError, GelSightRenderer
+from sim.gelsight import GelSightConfig, GelSightRenderer, GelSightRenderError
 
 BALL_RADIUS_MM = 2.0
 FILE_MM_PER_PX = 0.1245
@@ -51,42 +51,42 @@ class BallPresses:
 
 
 def load_ball_presses(path: str | Path) -> BallPresses:
-    """Read and check a ball-press file; every problem raises :class:`GelSightError`."""
+    """Read and check a ball-press file; every problem raises :class:`GelSightRenderError`."""
     path = Path(path)
     if not path.is_file():
-        raise GelSightError(f"{path}: no such file")
+        raise GelSightRenderError(f"{path}: no such file")
     try:
         with np.load(path, allow_pickle=False) as data:
             contents = {key: np.asarray(data[key]) for key in data.files}
     except (OSError, ValueError) as exc:
-        raise GelSightError(f"{path}: not a readable .npz file ({exc})") from exc
+        raise GelSightRenderError(f"{path}: not a readable .npz file ({exc})") from exc
     missing = sorted({"background", "frames", "touch_center", "touch_radius"} - set(contents))
     if missing:
-        raise GelSightError(f"{path}: missing keys {missing}")
+        raise GelSightRenderError(f"{path}: missing keys {missing}")
     background, frames = contents["background"], contents["frames"]
     centers, radii = contents["touch_center"], contents["touch_radius"]
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
-        raise GelSightError(f"{path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
+        raise GelSightRenderError(f"{path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
     if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
-        raise GelSightError(
+        raise GelSightRenderError(
             f"{path}: frames must be Nx{'x'.join(map(str, background.shape))} uint8, got {frames.shape} {frames.dtype}"
         )
     n = frames.shape[0]
     if n < 2:
-        raise GelSightError(f"{path}: needs at least 2 frames for the random-frame baseline, got {n}")
+        raise GelSightRenderError(f"{path}: needs at least 2 frames for the random-frame baseline, got {n}")
     if centers.shape != (n, 2) or radii.shape != (n,):
-        raise GelSightError(
+        raise GelSightRenderError(
             f"{path}: touch_center must be {n}x2 and touch_radius {n}, got {centers.shape} and {radii.shape}"
         )
     centers, radii = centers.astype(np.float64), radii.astype(np.float64)
     if not (np.all(np.isfinite(centers)) and np.all(np.isfinite(radii))):
-        raise GelSightError(f"{path}: touch_center and touch_radius must be finite")
+        raise GelSightRenderError(f"{path}: touch_center and touch_radius must be finite")
     if np.any(radii <= 0):
-        raise GelSightError(f"{path}: touch_radius must be > 0 px, got {radii[radii <= 0].tolist()}")
+        raise GelSightRenderError(f"{path}: touch_radius must be > 0 px, got {radii[radii <= 0].tolist()}")
     h, w = background.shape[:2]
     outside = (centers[:, 0] < 0) | (centers[:, 0] > w - 1) | (centers[:, 1] < 0) | (centers[:, 1] > h - 1)
     if np.any(outside):
-        raise GelSightError(
+        raise GelSightRenderError(
             f"{path}: touch_center outside the {w}x{h} frame for frames {np.flatnonzero(outside).tolist()}"
         )
     return BallPresses(background, frames, centers, radii)
@@ -98,7 +98,9 @@ def press_depth_mm(contact_radius_mm: float, ball_radius_mm: float = BALL_RADIUS
     the edge of the visible imprint, which the gel's spread widens) means the ball is in up
     to its equator, so ``a`` is capped at ``R``."""
     if not (contact_radius_mm > 0 and ball_radius_mm > 0):
-        raise GelSightError(f"contact and ball radius must be > 0 mm, got {contact_radius_mm!r}, {ball_radius_mm!r}")
+        raise GelSightRenderError(
+            f"contact and ball radius must be > 0 mm, got {contact_radius_mm!r}, {ball_radius_mm!r}"
+        )
     a = min(contact_radius_mm, ball_radius_mm)
     return ball_radius_mm - math.sqrt(ball_radius_mm**2 - a**2)
 
@@ -163,7 +165,7 @@ def fit_parameters(presses: BallPresses, indices: Sequence[int], max_evaluations
     def loss(values: np.ndarray) -> float:
         try:
             config = _file_config(presses, **dict(zip(names, map(float, values))))
-        except GelSightError:
+        except GelSightRenderError:
             return 2.0  # outside the physical range: worse than any SSIM sum
         score = _mean_ssim(presses, indices, config)
         return -(score["crop"] + score["full"])

@@ -9,8 +9,8 @@ that is not passed to the renderer is never called, so it costs nothing.
 ``pixel_pitch_mm`` the image's pixel pitch on the gel (along rows, along columns), so effects
 that follow the gel (markers) can move with it.
 
-This module also defines :class:`GelSightError`, the one exception of the GelSight part, so
-that the renderer (``sim.gelsight``) can import the effects without an import cycle.
+This module also defines :class:`GelSightRenderError`, the one exception of the GelSight
+part, so that the renderer (``sim.gelsight``) can import the effects without an import cycle.
 
 Shadows are not modelled: the calibration carries no shadow data and the renderer must not
 invent lights.
@@ -26,13 +26,14 @@ import numpy as np
 from msgs.config import ConfigError, config_from_dict
 
 
-class GelSightError(ValueError):
-    """Bad input to the GelSight renderer, its effects or the calibration check."""
+class GelSightRenderError(ValueError):
+    """Bad input to the GelSight renderer, its effects or the calibration check (a failing
+    GelSight device is ``drivers.gelsight.GelSightError``)."""
 
 
 def _require(ok: bool, message: str) -> None:
     if not ok:
-        raise GelSightError(message)
+        raise GelSightRenderError(message)
 
 
 def _finite_in(name: str, value: float, lo: float, hi: float, unit: str) -> None:
@@ -145,4 +146,4 @@ def make_effect(name: str, params: dict | None = None) -> SensorNoise | Markers 
     try:
         return config_from_dict(EFFECTS[name], params or {})
     except ConfigError as exc:
-        raise GelSightError(f"GelSight effect {name!r}: {exc}") from None
+        raise GelSightRenderError(f"GelSight effect {name!r}: {exc}") from None

@@ -15,8 +15,8 @@ from perception.ssim import ssim_rgb
 from sim.gelsight import (
     EFFECTS,
     GelSightConfig,
-    GelSightError,
     GelSightRenderer,
+    GelSightRenderError,
     LightingDrift,
     Markers,
     SensorNoise,
@@ -139,7 +139,7 @@ def test_other_sizes_render_the_same_gel(height, width):
     ],
 )
 def test_bad_gap_map_is_rejected(gap):
-    with pytest.raises(GelSightError):
+    with pytest.raises(GelSightRenderError):
         RENDERER.render(gap)
 
 
@@ -156,16 +156,16 @@ def test_bad_gap_map_is_rejected(gap):
     ],
 )
 def test_bad_config_is_rejected(change):
-    with pytest.raises(GelSightError):
+    with pytest.raises(GelSightRenderError):
         GelSightConfig(**change)
 
 
 def test_bad_calibration_dir_and_background_are_rejected(tmp_path):
-    with pytest.raises(GelSightError, match="missing"):
+    with pytest.raises(GelSightRenderError, match="missing"):
         GelSightRenderer(GelSightConfig(calibration_dir=str(tmp_path)))
-    with pytest.raises(GelSightError, match="background"):
+    with pytest.raises(GelSightRenderError, match="background"):
         GelSightRenderer(background=np.zeros((H, W, 3), np.float32))
-    with pytest.raises(GelSightError, match="apply"):
+    with pytest.raises(GelSightRenderError, match="apply"):
         GelSightRenderer(effects=(object(),))
 
 
@@ -210,18 +210,18 @@ def test_effects_are_built_by_name_with_checked_parameters():
     for name, cls in EFFECTS.items():
         assert isinstance(make_effect(name), cls)
         assert dataclasses.is_dataclass(cls)
-    with pytest.raises(GelSightError, match="unknown GelSight effect"):
+    with pytest.raises(GelSightRenderError, match="unknown GelSight effect"):
         make_effect("shadows")
-    with pytest.raises(GelSightError, match=r"unknown parameter\(s\) \['pitch'\]"):
+    with pytest.raises(GelSightRenderError, match=r"unknown parameter\(s\) \['pitch'\]"):
         make_effect("markers", {"pitch": 1.0})
-    with pytest.raises(GelSightError, match="sigma_levels"):
+    with pytest.raises(GelSightRenderError, match="sigma_levels"):
         make_effect("sensor_noise", {"sigma_levels": -1.0})
-    with pytest.raises(GelSightError, match="dot_radius_mm"):
+    with pytest.raises(GelSightRenderError, match="dot_radius_mm"):
         Markers(pitch_mm=1.0, dot_radius_mm=0.6)
 
 
 def test_refined_calibration_interpolates_between_bin_centres_and_wraps_direction():
-    from sim.gelsight import _refine_bins
+    from sim.gelsight_calibration import _refine_bins
 
     n, factor = 32, 2
     mag = (np.arange(n) + 0.5) * (0.5 * np.pi / n)  # bin centres

@@ -12,7 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from sim.cli import add_commands, main
-from sim.gelsight import GelSightError
+from sim.gelsight import GelSightRenderError
 from sim.gelsight_check import (
     KEYS,
     _file_config,
@@ -54,7 +54,7 @@ def test_press_depth_is_the_sphere_cap_depth(a):
 def test_press_depth_caps_the_contact_radius_at_the_ball_radius():
     assert press_depth_mm(2.12, 2.0) == press_depth_mm(2.0, 2.0) == 2.0
     for bad in (0.0, -1.0):
-        with pytest.raises(GelSightError):
+        with pytest.raises(GelSightRenderError):
             press_depth_mm(bad, 2.0)
 
 
@@ -86,12 +86,12 @@ def test_touch_crop_is_always_48x48_inside_the_frame():
 )
 def test_bad_press_files_are_rejected(tmp_path, presses, override, message):
     path = write_presses(tmp_path / "bad.npz", presses, **override)
-    with pytest.raises(GelSightError, match=message):
+    with pytest.raises(GelSightRenderError, match=message):
         run_check(path)
 
 
 def test_missing_file_is_rejected(tmp_path):
-    with pytest.raises(GelSightError, match="no such file"):
+    with pytest.raises(GelSightRenderError, match="no such file"):
         load_ball_presses(tmp_path / "none.npz")
 
 

@@ -1,5 +1,5 @@
 """Numerical contracts of the GelSight renderer and its config (issue 20): a finite uint8 image
-or GelSightError, never cv2.error or an unbounded Gaussian kernel."""
+or GelSightRenderError, never cv2.error or an unbounded Gaussian kernel."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from sim.gelsight import (
     MAX_LENGTH_MM,
     PIXEL_PITCH_RANGE_MM,
     GelSightConfig,
-    GelSightError,
     GelSightRenderer,
+    GelSightRenderError,
 )
 
 LENGTHS = (
@@ -41,7 +41,7 @@ LENGTHS = (
 )
 def test_lengths_opencv_cannot_blur_with_are_refused_at_construction(change: dict) -> None:
     started = time.monotonic()
-    with pytest.raises(GelSightError, match=next(iter(change))):
+    with pytest.raises(GelSightRenderError, match=next(iter(change))):
         GelSightConfig(**change)
     assert time.monotonic() - started < 0.1
 
@@ -50,13 +50,13 @@ def test_lengths_opencv_cannot_blur_with_are_refused_at_construction(change: dic
 def test_length_bound_is_inclusive_to_the_ulp(name: str) -> None:
     if name == "background_smoothing_mm":  # bound by calibration pixels first
         GelSightConfig(**{name: MAX_BACKGROUND_SIGMA_PX * 0.1245})
-        with pytest.raises(GelSightError, match=name):
+        with pytest.raises(GelSightRenderError, match=name):
             GelSightConfig(**{name: np.nextafter(MAX_BACKGROUND_SIGMA_PX * 0.1245, np.inf)})
         return
     GelSightConfig(**{name: MAX_LENGTH_MM})
-    with pytest.raises(GelSightError, match=name):
+    with pytest.raises(GelSightRenderError, match=name):
         GelSightConfig(**{name: np.nextafter(MAX_LENGTH_MM, np.inf)})
-    with pytest.raises(GelSightError, match=name):
+    with pytest.raises(GelSightRenderError, match=name):
         GelSightConfig(**{name: 0.0})
 
 
@@ -65,7 +65,7 @@ def test_pitch_bounds_are_inclusive_to_the_ulp() -> None:
     GelSightConfig(mm_per_px=low)
     GelSightConfig(mm_per_px=high)
     for value in (np.nextafter(low, 0.0), np.nextafter(high, np.inf)):
-        with pytest.raises(GelSightError, match="mm_per_px"):
+        with pytest.raises(GelSightRenderError, match="mm_per_px"):
             GelSightConfig(mm_per_px=value)
 
 
@@ -109,7 +109,7 @@ def test_property_gap_maps_of_any_float_dtype_and_layout_render(dtype: str, layo
         "strided": np.repeat(gap, 2, axis=1)[:, ::2],
     }[layout]
     if np.isneginf(gap).any():  # -1e300 in float16/32: an infinitely deep object, refused
-        with pytest.raises(GelSightError, match="-inf"):
+        with pytest.raises(GelSightRenderError, match="-inf"):
             renderer.render(view)
         return
     image = renderer.render(view)
@@ -128,5 +128,5 @@ def test_property_gap_maps_of_any_float_dtype_and_layout_render(dtype: str, layo
     ],
 )
 def test_gap_maps_without_a_rendering_are_refused(gap: object) -> None:
-    with pytest.raises(GelSightError, match="gel gap map"):
+    with pytest.raises(GelSightRenderError, match="gel gap map"):
         GelSightRenderer(GelSightConfig(image_height=30, image_width=40, mm_per_px=0.1245 * 4)).render(gap)

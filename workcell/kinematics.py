@@ -1,6 +1,6 @@
 """Grasp kinematics: UR tool poses for top-down grasps and the gel poses they imply.
 
-Frames (DESIGN §2): ``world`` has the table top at z = 0, z up. The tool (``tcp``) frame of
+Frames: ``world`` has the table top at z = 0, z up. The tool (``tcp``) frame of
 a top-down grasp has its z axis pointing down at the table; the fingers close along tool y.
 The gel frame ``gel_<finger>`` has its origin at the centre of the gel surface, its x-z plane
 in that surface and +y along the outward normal, i.e. from the gel toward the other finger
