@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml constraints.txt scripts/setup.sh clients/node/package-l
 test: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 	$(PY) -m pytest -q -p no:cacheprovider tests
 
 demo: setup
