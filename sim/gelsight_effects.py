@@ -132,7 +132,7 @@ class LightingDrift:
         return image * self.gain
 
 
-# Name -> effect class, as a scene file names them (sim.scene reads the defaults from it).
+# Name -> effect class, as a scene file names them (sim.effects reads the defaults from it).
 EFFECTS: dict[str, type] = {
     "sensor_noise": SensorNoise,
     "markers": Markers,
