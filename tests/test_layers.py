@@ -1,6 +1,11 @@
-"""The import graph, read from the source: every import (deferred ones inside functions too)
-goes down the layers the README draws, and no two modules import each other, directly or
-round a circle. A new module must be placed in :data:`LAYERS` before this passes."""
+"""The shape of the source tree, read from the source.
+
+The import graph: every import (deferred ones inside functions too) goes down the layers the
+README draws, and no two modules import each other, directly or round a circle. A new module
+must be placed in :data:`LAYERS` before this passes.
+
+Sizes a reader can take in: no module over 500 lines unless its docstring says why it must be
+longer ("longer than 500 lines because ..."), no function over 60 lines (decorators left out)."""
 
 from __future__ import annotations
 
@@ -50,6 +55,8 @@ PACKAGES = (
     "report",
     "benchmarks",
 )
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 60
 
 
 def _module_name(path: Path) -> str:
@@ -162,3 +169,24 @@ def test_the_checks_see_an_upward_import_and_a_circle() -> None:
     assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     graph = _graph()
     assert "workcell.scene" in graph["nodes.collector"] and "msgs.codec" in graph["nodes.bus"]
+
+
+def test_no_module_is_over_500_lines_without_saying_why() -> None:
+    long = []
+    for path in _modules().values():
+        text = path.read_text()
+        docstring = ast.get_docstring(ast.parse(text)) or ""
+        if len(text.splitlines()) > MAX_MODULE_LINES and "longer than 500 lines because" not in docstring:
+            long.append(f"{path.relative_to(REPO)}: {len(text.splitlines())} lines")
+    assert long == []
+
+
+def test_no_function_is_over_60_lines() -> None:
+    long = []
+    for path in [*_modules().values(), *sorted((REPO / "tests").rglob("*.py"))]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1  # type: ignore[operator]
+                if lines > MAX_FUNCTION_LINES:
+                    long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name}: {lines} lines")
+    assert long == []
