@@ -17,19 +17,15 @@ import statistics
 import time
 from typing import TYPE_CHECKING
 
+from sim.effects import DEPTH_EFFECT_ORDER
+
 if TYPE_CHECKING:
     from workcell.scene import Scene
 
 SCENE = "scenes/ycb_three.yaml"
-DEPTH_EFFECTS = (
-    "extrinsic_offset",
-    "lateral_noise",
-    "flying_pixels",
-    "axial_noise",
-    "missing_returns",
-    "quantisation",
-    "micro_relief",
-)
+# Every effect that changes a depth frame: the depth camera's, in the order they run, and the
+# objects' micro-relief.
+DEPTH_EFFECTS = (*DEPTH_EFFECT_ORDER, "micro_relief")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
