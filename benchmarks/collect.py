@@ -63,6 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def collect_sim_command(out: Path, grasps: int, seed: int, record: bool, resume: bool = False) -> list[str]:
+    """``dtx launch launch/collect_sim.yaml`` with the session's arguments, as an operator types it."""
+    command = [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml"]
+    command += [f"out:={out}", f"grasps:={grasps}", f"seed:={seed}", f"record:={'true' if record else 'false'}"]
+    return command + (["resume:=true"] if resume else [])
+
+
 def launch_collection(
     out: Path, grasps: int, seed: int, record: bool, bus_dir: str, capture: bool = True
 ) -> subprocess.Popen[str]:
@@ -71,17 +78,7 @@ def launch_collection(
     ``capture``."""
     env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "dtx.cli",
-            "launch",
-            "launch/collect_sim.yaml",
-            f"out:={out}",
-            f"grasps:={grasps}",
-            f"seed:={seed}",
-            f"record:={'true' if record else 'false'}",
-        ],
+        collect_sim_command(out, grasps, seed, record),
         env=env,
         stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
         stderr=subprocess.STDOUT if capture else subprocess.DEVNULL,

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.collect import collect_sim_command
 from dataset.contact_library import write_contact_library
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
@@ -70,19 +71,8 @@ class Workspace:
         """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
         operator runs (Algorithm 1), ``plan.session_grasps`` grasps; resumed if interrupted."""
         out = (self.root / "session").resolve()
-        command = [
-            sys.executable,
-            "-m",
-            "dtx.cli",
-            "launch",
-            "launch/collect_sim.yaml",
-            f"out:={out}",
-            f"grasps:={self.plan.session_grasps}",
-            f"seed:={self.plan.seed}",
-            "record:=false",
-        ]
-        if (out / "manifest.jsonl").exists():
-            command.append("resume:=true")
+        resume = (out / "manifest.jsonl").exists()
+        command = collect_sim_command(out, self.plan.session_grasps, self.plan.seed, record=False, resume=resume)
         # A bus of its own, so that a graph the lab is running meanwhile is never touched; the
         # graph's progress goes to stderr with the report's own.
         bus = tempfile.mkdtemp(prefix="dtxr")  # ipc socket paths must stay short
