@@ -18,7 +18,7 @@ import msgs
 from nodes.bag import BagWriter, bag_channels, iter_envelopes
 from nodes.bag_format import MESSAGE_ENCODING, BagError
 from nodes.bus import Bus, Publisher, Subscriber
-from nodes.bus_context import SLICE_MESSAGES
+from nodes.bus_context import SLICE_MESSAGES, recv_frames
 
 
 def record(
@@ -72,7 +72,7 @@ def _drain(
     while limit is None or count < limit:
         count += 1
         try:
-            frames = subscriber.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            frames = recv_frames(subscriber.sock, zmq.NOBLOCK)
         except zmq.Again:
             return
         envelope = subscriber.handle(frames)

@@ -31,6 +31,34 @@ log = logging.getLogger("dtx.bus")
 OPEN_BUSES: "weakref.WeakSet[BusContext]" = weakref.WeakSet()
 SLICE_MESSAGES = 100
 DROP_LOG_PERIOD_S = 1.0
+# Frames from this size up are sent without copying; smaller ones are copied, which costs less
+# than handing ZeroMQ a reference it must release later (pyzmq's own threshold).
+ZERO_COPY_BYTES = zmq.COPY_THRESHOLD
+SNDMORE = int(zmq.SNDMORE)  # a plain int: flag arithmetic on the enum costs ~1 us per frame
+
+
+def send_frames(sock: zmq.Socket, frames: list[Any], flags: int = 0) -> None:
+    """Send ``frames`` (buffers whose ``len`` is their byte count) as one multipart message.
+
+    Written out instead of pyzmq's ``send_multipart``, which checks every frame's type in Python
+    first: per 4-frame sensor message that loop measured 59k instructions against 18k here
+    (callgrind), and the bus runs it on every message."""
+    last = len(frames) - 1
+    for i, frame in enumerate(frames):
+        sock.send(frame, flags | SNDMORE if i < last else flags, copy=len(frame) < ZERO_COPY_BYTES)
+
+
+def recv_frames(sock: zmq.Socket, flags: int = 0) -> list[zmq.Frame]:
+    """The next multipart message as frames (views of ZeroMQ's memory, no copy); raises
+    zmq.Again under NOBLOCK when none is waiting. Each frame says whether more follow, so no
+    socket option is read per frame as pyzmq's ``recv_multipart`` does (62k -> 26k
+    instructions per 4-frame message, callgrind)."""
+    frame = sock.recv(flags, copy=False)
+    frames = [frame]
+    while frame.more:
+        frame = sock.recv(copy=False)  # the rest of a message arrives with its first frame
+        frames.append(frame)
+    return frames
 
 
 class DropLog:

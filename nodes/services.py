@@ -23,7 +23,7 @@ import zmq
 from msgs.base import Header, Message
 from msgs.codec import MAX_HEADER_BYTES, Envelope, MessageError, decode, encode
 from msgs.system import ErrorCode, ServiceError
-from nodes.bus_context import SLICE_MESSAGES, BusContext, Counters, DropLog
+from nodes.bus_context import SLICE_MESSAGES, BusContext, Counters, DropLog, recv_frames, send_frames
 from nodes.registry import Endpoint
 
 log = logging.getLogger("dtx.bus")
@@ -107,7 +107,7 @@ class ServiceServer(Generic[M, R]):
         answered = self._finish_pending()
         for _ in range(limit):
             try:
-                frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+                frames = recv_frames(self.sock, zmq.NOBLOCK)
             except zmq.Again:
                 break
             self._answer(frames)
@@ -172,7 +172,7 @@ class ServiceServer(Generic[M, R]):
             return
         if key in self._replies:
             self.counters.duplicates += 1
-            self.sock.send_multipart([identity, *self._replies[key][0]], copy=False)
+            send_frames(self.sock, [identity, *self._replies[key][0]])
             return
         if earlier is not None:
             self.counters.duplicates += 1  # a retry of a request still running: answered when done
@@ -225,7 +225,7 @@ class ServiceServer(Generic[M, R]):
         frames = encode(
             self.name, reply, client, Header(stamp_ns=time.time_ns(), seq=seq, frame_id=reply.header.frame_id)
         )
-        self.sock.send_multipart([identity, *frames], copy=False)
+        send_frames(self.sock, [identity, *frames])
         return frames
 
     def close(self) -> None:
@@ -292,7 +292,7 @@ class ServiceClient(Generic[M, R]):
         while True:
             self._discover()
             try:
-                self.sock.send_multipart(frames, zmq.NOBLOCK, copy=False)
+                send_frames(self.sock, frames, zmq.NOBLOCK)
                 return True
             except zmq.Again:
                 self._check_cancelled()
@@ -363,7 +363,7 @@ class ServiceClient(Generic[M, R]):
                     return dead
                 continue
             try:
-                envelope = decode(self.sock.recv_multipart(copy=False), self.bus.transport.max_message_bytes)
+                envelope = decode(recv_frames(self.sock), self.bus.transport.max_message_bytes)
             except MessageError as exc:
                 log.warning("%s: malformed reply dropped (%s)", self.name, exc)
                 continue
