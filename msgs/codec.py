@@ -113,13 +113,47 @@ _DATACLASS_FIELDS: dict[type, tuple[str, ...]] = {}
 
 
 def _flatten_fields(obj: Any, names: tuple[str, ...], arrays: list[np.ndarray]) -> dict[str, Any]:
-    values = {}
+    flat = {}
     for name in names:
+        value = getattr(obj, name)
+        kind = type(value)
+        # Arrays and plain values, nearly every field, are taken here: a call per field costs
+        # more than the field.
+        if kind is np.ndarray and value.dtype in _WIRE_DTYPES:
+            arrays.append(value)
+            flat[name] = {_ARRAY_REF: len(arrays) - 1}
+        elif kind is int or kind is str or kind is bool or (kind is float and math.isfinite(value)):
+            flat[name] = value
+        else:
+            try:
+                flat[name] = _flatten(value, arrays)
+            except _Refused as exc:
+                raise exc.inside(f".{name}") from None
+    return flat
+
+
+def _flatten_map(values: dict[str, Any], arrays: list[np.ndarray]) -> dict[str, Any]:
+    flat = {}
+    for key, value in values.items():
         try:
-            values[name] = _flatten(getattr(obj, name), arrays)
+            flat[key] = _flatten(value, arrays)
         except _Refused as exc:
-            raise exc.inside(f".{name}") from None
-    return values
+            raise exc.inside(f".{key}") from None
+    return flat
+
+
+def _flatten_list(values: list[Any] | tuple[Any, ...], arrays: list[np.ndarray]) -> list[Any]:
+    flat = []
+    for i, value in enumerate(values):
+        kind = type(value)
+        if kind is int or kind is str or kind is bool or (kind is float and math.isfinite(value)):
+            flat.append(value)  # as in _flatten_fields
+            continue
+        try:
+            flat.append(_flatten(value, arrays))
+        except _Refused as exc:
+            raise exc.inside(f"[{i}]") from None
+    return flat
 
 
 def _flatten(obj: Any, arrays: list[np.ndarray]) -> Any:
@@ -136,6 +170,8 @@ def _flatten(obj: Any, arrays: list[np.ndarray]) -> Any:
     names = _DATACLASS_FIELDS.get(kind)
     if names is not None:
         return _flatten_fields(obj, names, arrays)
+    if kind is list:
+        return _flatten_list(obj, arrays)
     return _flatten_other(obj, arrays)
 
 
@@ -148,24 +184,17 @@ def _flatten_other(obj: Any, arrays: list[np.ndarray]) -> Any:
     if isinstance(obj, (bool, int, str)):
         return obj
     if isinstance(obj, (list, tuple)):
-        return [_flatten_item(v, arrays, f"[{i}]") for i, v in enumerate(obj)]
+        return _flatten_list(obj, arrays)
     if isinstance(obj, dict):
         if not all(isinstance(k, str) for k in obj):
             raise _Refused("map keys must be strings")
-        return {k: _flatten_item(v, arrays, f".{k}") for k, v in obj.items()}
+        return _flatten_map(obj, arrays)
     if isinstance(obj, np.generic):
         return _flatten(obj.item(), arrays)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         names = _DATACLASS_FIELDS[type(obj)] = _field_names(type(obj))
         return _flatten_fields(obj, names, arrays)
     raise _Refused(f"values of type {type(obj).__name__} cannot be sent")
-
-
-def _flatten_item(obj: Any, arrays: list[np.ndarray], step: str) -> Any:
-    try:
-        return _flatten(obj, arrays)
-    except _Refused as exc:
-        raise exc.inside(step) from None
 
 
 def _finite(number: float) -> float:
@@ -287,7 +316,11 @@ def _array_layout(dtype_str: str, shape: tuple[int, ...], index: int) -> tuple[n
 
 
 Converter = typing.Callable[[Any, list[np.ndarray], set[int]], Any]
-Plan = tuple[tuple[tuple[str, Converter], ...], frozenset[str]]
+# Per field: its name, its converter, and the exact type a wire value may have to be taken as it
+# is without the call (a plain field's declared type; None for the others; typed Any so that
+# ``type(value) is plain`` leaves ``value`` a number for the finiteness check).
+Plan = tuple[tuple[tuple[str, Converter, Any], ...], frozenset[str]]
+_PLAIN_TYPES = (int, str, bool, float)
 
 
 @functools.cache
@@ -295,8 +328,16 @@ def _plan(cls: type, with_header: bool) -> Plan:
     """For each field of ``cls``, the function that checks and converts its wire value; the
     names of those fields."""
     hints = typing.get_type_hints(cls)
-    plan = tuple((name, _converter(hints[name])) for name in _field_names(cls) if with_header or name != "header")
-    return plan, frozenset(name for name, _ in plan)
+    plan = tuple(
+        (name, _converter(hints[name]), _plain_type(hints[name]))
+        for name in _field_names(cls)
+        if with_header or name != "header"
+    )
+    return plan, frozenset(name for name, _, _ in plan)
+
+
+def _plain_type(annotation: Any) -> Any:
+    return annotation if annotation in _PLAIN_TYPES else None
 
 
 def _fields_from(cls: type, values: Any, arrays: list[np.ndarray], used: set[int], plan: Plan) -> dict[str, Any]:
@@ -307,9 +348,15 @@ def _fields_from(cls: type, values: Any, arrays: list[np.ndarray], used: set[int
     if values.keys() != names:
         raise _Refused(f"fields {sorted(values)} do not match {cls.__name__}'s {sorted(names)}")
     fields = {}
-    for name, convert in converters:
+    for name, convert, plain in converters:
+        value = values[name]
+        # Plain values of the declared type, most of a header, are taken here: a call per
+        # value costs more than the value.
+        if type(value) is plain and (plain is not float or math.isfinite(value)):
+            fields[name] = value
+            continue
         try:
-            fields[name] = convert(values[name], arrays, used)
+            fields[name] = convert(value, arrays, used)
         except _Refused as exc:
             raise exc.inside(f".{name}") from None
     return fields
@@ -328,9 +375,11 @@ def _converter(annotation: Any) -> Converter:
         return functools.partial(_exact, annotation)
     origin = typing.get_origin(annotation)
     if origin is list:
-        return functools.partial(_sequence, _converter(typing.get_args(annotation)[0]))
+        item = typing.get_args(annotation)[0]
+        return functools.partial(_sequence, _converter(item), _plain_type(item))
     if origin is dict:
-        return functools.partial(_mapping, _converter(typing.get_args(annotation)[1]))
+        item = typing.get_args(annotation)[1]
+        return functools.partial(_mapping, _converter(item), _plain_type(item))
     raise TypeError(f"field type {annotation} is not supported on the wire")
 
 
@@ -359,11 +408,14 @@ def _exact(kind: type, value: Any, arrays: list[np.ndarray], used: set[int]) -> 
     return value
 
 
-def _sequence(item: Converter, value: Any, arrays: list[np.ndarray], used: set[int]) -> list[Any]:
+def _sequence(item: Converter, plain: Any, value: Any, arrays: list[np.ndarray], used: set[int]) -> list[Any]:
     if type(value) is not list:
         raise _Refused("expected a list")
     items = []
     for i, v in enumerate(value):
+        if type(v) is plain and (plain is not float or math.isfinite(v)):
+            items.append(v)  # as in _fields_from
+            continue
         try:
             items.append(item(v, arrays, used))
         except _Refused as exc:
@@ -371,11 +423,14 @@ def _sequence(item: Converter, value: Any, arrays: list[np.ndarray], used: set[i
     return items
 
 
-def _mapping(item: Converter, value: Any, arrays: list[np.ndarray], used: set[int]) -> dict[str, Any]:
+def _mapping(item: Converter, plain: Any, value: Any, arrays: list[np.ndarray], used: set[int]) -> dict[str, Any]:
     if type(value) is not dict:
         raise _Refused("expected a map")
     items = {}
     for k, v in value.items():
+        if type(v) is plain and (plain is not float or math.isfinite(v)):
+            items[k] = v  # as in _fields_from
+            continue
         try:
             items[k] = item(v, arrays, used)
         except _Refused as exc:
