@@ -3,14 +3,22 @@
 Each row: a publisher here, a subscriber in another process, one transport, one payload.
 One-way latency uses CLOCK_MONOTONIC stamps (shared by processes on one machine) on messages
 paced so that no queue builds up; throughput sends back to back and counts what arrives.
+
+``--work``: instead, the Python work per message on each side, warm, in this process (a
+PUSH/PULL pair over ipc; the best of ``--repeats`` batches, so that another process's time
+slices do not count): dtx's encode and send, and receive and decode (the validation included),
+beside raw pyzmq's send and receive of the same payload. This is the part of the latency and
+throughput gap that is ours; the rest is the operating system's and ZeroMQ's.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing as mp
 import tempfile
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -18,8 +26,9 @@ import zmq
 
 import msgs
 from msgs.base import Header, Message
+from msgs.codec import decode, encode
 from nodes.bus import Bus
-from nodes.bus_context import TransportConfig
+from nodes.bus_context import TransportConfig, recv_frames, send_frames
 from nodes.registry import Registry
 
 PAYLOADS = {  # bytes -> the message a real node sends at that size
@@ -45,6 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--throughput-mb", type=float, default=400.0, help="MB sent per throughput run")
     parser.add_argument("--transports", nargs="+", default=["ipc", "tcp"], choices=["ipc", "tcp"])
     parser.add_argument("--repeats", type=int, default=3, help="runs per row; figures are their medians")
+    parser.add_argument("--work", action="store_true", help="the Python work per message only (see above)")
 
 
 def _receiver(impl: str, transport: str, address: str, bus_dir: str, expected: int, out: Any) -> None:
@@ -166,12 +176,62 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
     }
 
 
+def _best_us(step: Callable[[], object], batches: int, per_batch: int = 200) -> float:
+    """Microseconds per call of ``step``, the best of ``batches`` batches."""
+    best = float("inf")
+    for _ in range(batches):
+        started = time.perf_counter_ns()
+        for _ in range(per_batch):
+            step()
+        best = min(best, (time.perf_counter_ns() - started) / per_batch / 1e3)
+    return round(best, 2)
+
+
+def _work_rows(payload_bytes: int, batches: int, bus_dir: str) -> list[dict]:
+    """Send and receive work per message, dtx and raw, warm (see the module docstring)."""
+    context = zmq.Context()
+    push, pull = context.socket(zmq.PUSH), context.socket(zmq.PULL)
+    for sock in (push, pull):
+        sock.setsockopt(zmq.SNDHWM if sock is push else zmq.RCVHWM, 0)  # no limit: a batch is queued whole
+    push.bind(f"ipc://{bus_dir}/work.sock")
+    pull.connect(f"ipc://{bus_dir}/work.sock")
+    message = make_message(payload_bytes)
+    payload = memoryview(np.ones(payload_bytes, np.uint8))
+    sends: dict[str, Callable[[], object]] = {  # the reference first, as in the other rows
+        "raw_pyzmq": lambda: push.send_multipart(
+            [TOPIC.encode(), time.monotonic_ns().to_bytes(8, "little"), payload], copy=False
+        ),
+        "dtx": lambda: send_frames(push, encode(TOPIC, message, "bench", Header(stamp_ns=time.monotonic_ns(), seq=1))),
+    }
+    receives: dict[str, Callable[[], object]] = {
+        "raw_pyzmq": lambda: int.from_bytes(pull.recv_multipart(copy=False)[1].bytes, "little"),
+        "dtx": lambda: decode(recv_frames(pull)).message.header.stamp_ns,
+    }
+    best: dict[str, dict[str, float]] = {impl: {"send_us": math.inf, "receive_us": math.inf} for impl in sends}
+    # Rounds take turns, the first of them a warm-up: whichever goes first at a size pays the
+    # allocator's first page faults for its buffers.
+    for round_index in range(batches + 1):
+        for impl in sends:
+            send_us = _best_us(sends[impl], 1)
+            receive_us = _best_us(receives[impl], 1)  # reads what the sends queued, one per call
+            if round_index:
+                best[impl] = {
+                    "send_us": min(best[impl]["send_us"], send_us),
+                    "receive_us": min(best[impl]["receive_us"], receive_us),
+                }
+    rows = [{"impl": impl, "payload_bytes": payload_bytes, **figures} for impl, figures in best.items()]
+    context.destroy(linger=0)
+    return rows
+
+
 def run(args: argparse.Namespace) -> list[dict]:
     """Each (transport, payload) pair is measured ``--repeats`` times, raw and dtx taking turns,
     and each figure is the median over the repeats: on a shared machine one run's scheduling
     noise can exceed the difference being measured."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="dtxb") as bus_dir:
+        if args.work:
+            return [row for payload_bytes in PAYLOADS for row in _work_rows(payload_bytes, args.repeats * 10, bus_dir)]
         for transport in args.transports:
             for payload_bytes in PAYLOADS:
                 trials: dict[str, list[dict]] = {"raw_pyzmq": [], "dtx": []}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import subprocess
 import sys
@@ -572,3 +573,39 @@ def test_a_node_asked_to_stop_cancels_its_calls(registry: Registry) -> None:
         server.kill()
         server.wait()
         node.close()
+
+
+def test_frames_of_every_size_cross_a_socket_whole_and_in_order(tmp_path: Path) -> None:
+    """send_frames copies small frames and hands large ones over without copying; recv_frames
+    gathers one message's frames by their more-flags. Both ends see the same bytes."""
+    from nodes.bus_context import ZERO_COPY_BYTES, recv_frames, send_frames
+
+    context = zmq.Context()
+    push, pull = context.socket(zmq.PUSH), context.socket(zmq.PULL)
+    try:
+        push.bind(f"ipc://{tmp_path}/frames.sock")
+        pull.connect(f"ipc://{tmp_path}/frames.sock")
+        large = np.arange(ZERO_COPY_BYTES * 2, dtype=np.uint8) % 251
+        first = [b"/topic", b"", large.data.cast("B"), memoryview(b"tail")]
+        second = [b"alone"]
+        send_frames(push, first)
+        send_frames(push, second)
+        assert pull.poll(5000)
+        assert [f.bytes for f in recv_frames(pull)] == [bytes(f) for f in first]
+        assert [f.bytes for f in recv_frames(pull)] == second
+        with pytest.raises(zmq.Again):
+            recv_frames(pull, zmq.NOBLOCK)
+    finally:
+        context.destroy(linger=0)
+
+
+def test_bench_bus_work_puts_dtx_beside_raw_pyzmq_for_each_payload() -> None:
+    import argparse
+
+    from benchmarks.bus import PAYLOADS, run
+
+    rows = run(argparse.Namespace(work=True, repeats=1))
+    assert [(r["impl"], r["payload_bytes"]) for r in rows] == [
+        (impl, size) for size in PAYLOADS for impl in ("raw_pyzmq", "dtx")
+    ]
+    assert all(0 < r["send_us"] < math.inf and 0 < r["receive_us"] < math.inf for r in rows)
