@@ -40,6 +40,7 @@ within each crop's reach.
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -166,6 +167,64 @@ def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
     return points
 
 
+def region_groups(run_lengths: np.ndarray, runs: np.ndarray, groups: int) -> list[tuple[int, int]]:
+    """Up to ``groups`` contiguous, non-empty ranges [first, stop) of the regions, with about
+    equal points to read each: region k reads the runs runs[k]..runs[k+1], run i holds
+    ``run_lengths[i]`` points. Equal counts of regions would not do: a gel on a face reads
+    several times the points of one at an edge."""
+    regions = len(runs) - 1
+    visits = np.concatenate([[0], np.cumsum(run_lengths)])[runs]  # points read before region k
+    cuts = np.searchsorted(visits, visits[-1] * np.arange(1, groups) / groups)
+    edges = np.unique(np.clip(np.concatenate([[0], cuts, [regions]]), 0, regions))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _min_y_per_region(
+    points: np.ndarray,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    runs: np.ndarray,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    shape: tuple[int, int],
+    threads: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's (min_y: regions x bins, +inf where empty; points kept per region), its
+    regions cut on up to ``threads`` threads in groups of about equal work."""
+    rows, cols = shape
+    regions = model_to_gel.shape[0]
+    min_y = np.full((regions, rows * cols), np.inf)
+    counts = np.zeros(regions, np.int64)
+    transforms = np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64)
+    crop = np.array(bounds, np.float64)
+    x_edges, z_edges = bin_edges(bounds[0], cols), bin_edges(bounds[1], rows)
+
+    def cut_regions(first: int, stop: int) -> None:
+        # Region k reads runs runs[k]..runs[k+1] of the whole starts/ends and writes only
+        # min_y[k] and counts[k]: a range of regions is cut on its own, in place.
+        cut_kernel(
+            points,
+            starts,
+            ends,
+            runs[first : stop + 1],
+            transforms[first:stop],
+            crop,
+            x_edges,
+            z_edges,
+            min_y[first:stop],
+            counts[first:stop],
+        )
+
+    groups = region_groups(ends - starts, runs, threads)
+    if len(groups) == 1:
+        cut_regions(*groups[0])
+    else:  # the kernel releases the GIL: each group is cut on its own core
+        with ThreadPoolExecutor(len(groups)) as pool:
+            for future in [pool.submit(cut_regions, first, stop) for first, stop in groups]:
+                future.result()
+    return min_y, counts
+
+
 def _cut(
     points: np.ndarray,
     starts: np.ndarray,
@@ -176,27 +235,16 @@ def _cut(
     params: DepthMapParams,
     batch: bool,
     allow_empty: bool = False,
+    threads: int = 1,
 ) -> ContactPatches:
-    """The kernel over already checked inputs (``bounds``: :func:`crop_bounds`), then the
-    empty-bin policy and gap filling; an error about a region of a ``batch`` names it. With
-    ``allow_empty`` a region with no point is no error: its map is all y_far (point count 0)."""
+    """The kernel over already checked inputs (``bounds``: :func:`crop_bounds`), on up to
+    ``threads`` threads, then the empty-bin policy and gap filling; an error about a region of
+    a ``batch`` names it. With ``allow_empty`` a region with no point is no error: its map is
+    all y_far (point count 0)."""
     half_x, half_z, y_near, y_far = bounds
     rows, cols = int(params.shape[0]), int(params.shape[1])
     regions = model_to_gel.shape[0]
-    min_y = np.full((regions, rows * cols), np.inf)
-    counts = np.zeros(regions, np.int64)
-    cut_kernel(
-        points,
-        starts,
-        ends,
-        runs,
-        np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64),
-        np.array([half_x, half_z, y_near, y_far]),
-        bin_edges(half_x, cols),
-        bin_edges(half_z, rows),
-        min_y,
-        counts,
-    )
+    min_y, counts = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, (rows, cols), threads)
     empty = np.flatnonzero(counts == 0)
     if empty.size and not allow_empty:
         raise OutOfReachError(
@@ -265,6 +313,37 @@ def contact_depth_map(
     )
 
 
+# Added to a cell's half-size when testing it against a crop: a point's cell comes from a
+# rounded floor((p - origin) / cell), so a point may lie a few ulps (~1e-12 m at 1 km) outside it.
+_CELL_MARGIN_M = 1e-6
+
+
+def _runs_meeting_crop(
+    starts: np.ndarray,
+    ends: np.ndarray,
+    corners: np.ndarray,
+    cell_m: float,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """The runs whose cell can hold a point of the gel's crop box. The index hands out the cells
+    of a cube around the crop's reach (~40 mm across for a 24 x 19 x 4 mm crop), several times
+    the points the crop holds; a cell is dropped when one of the gel's axes separates it from the
+    box (the separating-axis test on the box's own axes: conservative, it never drops a cell
+    that meets the box), so the kernel, which crops each point exactly, gives the same maps."""
+    half_x, half_z, y_near, y_far = bounds
+    rotation = model_to_gel[:3, :3]
+    centres = (corners + 0.5 * cell_m) @ rotation.T + model_to_gel[:3, 3]  # in the gel frame
+    reach = (0.5 * cell_m + _CELL_MARGIN_M) * np.abs(rotation).sum(axis=1)  # the cell's half-extent per gel axis
+    keep = (
+        (np.abs(centres[:, 0]) <= half_x + reach[0])
+        & (np.abs(centres[:, 2]) <= half_z + reach[2])
+        & (centres[:, 1] >= y_near - reach[1])
+        & (centres[:, 1] <= y_far + reach[1])
+    )
+    return starts[keep], ends[keep]
+
+
 def contact_depth_maps(
     model: VoxelIndex,
     model_to_world: np.ndarray,
@@ -273,6 +352,7 @@ def contact_depth_maps(
     params: DepthMapParams = DepthMapParams(),
     max_point_visits: int | None = None,
     allow_empty: bool = False,
+    threads: int = 1,
 ) -> ContactPatches:
     """Depth-maps of many gels (``gels_to_world``: (N, 4, 4)) on one indexed model cloud: each
     map equals :func:`contact_depth_map` on the whole cloud.
@@ -283,7 +363,8 @@ def contact_depth_maps(
     ``max_point_visits`` bounds the work (points read over all gels, known after the lookups and
     before any is read): more raises DepthMapError. A gel with no point raises DepthMapError
     naming the region, unless ``allow_empty``: then its map is all y_far and its point count 0
-    (a planner's candidate that touches nothing is an answer, not a failed batch)."""
+    (a planner's candidate that touches nothing is an answer, not a failed batch). ``threads``:
+    the regions are cut on up to that many threads, in groups of about equal work."""
     bounds = crop_bounds(geometry, params)
     reach = _reach_m(geometry, bounds)
     gels = np.asarray(gels_to_world, dtype=np.float64)
@@ -293,7 +374,10 @@ def contact_depth_maps(
     model_to_gel = _model_to_gels(model_pose, gels, [f"gels_to_world[{i}]" for i in range(len(gels))])
     world_to_model = np.linalg.inv(model_pose)
     centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
-    found = [model.slices_within(centre, reach) for centre in centres]
+    found = [
+        _runs_meeting_crop(*model.cells_within(centre, reach), model.cell_m, transform, bounds)
+        for centre, transform in zip(centres, model_to_gel)
+    ]
     starts = np.concatenate([f[0] for f in found]).astype(np.int64)
     ends = np.concatenate([f[1] for f in found]).astype(np.int64)
     runs = np.cumsum([0] + [len(f[0]) for f in found], dtype=np.int64)
@@ -310,6 +394,7 @@ def contact_depth_maps(
         params,
         batch=True,  # float32 or 64
         allow_empty=allow_empty,
+        threads=threads,
     )
 
 

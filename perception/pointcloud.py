@@ -282,6 +282,19 @@ class VoxelIndex:
         """What :meth:`within` returns, as (starts, ends) of runs of ``points_m``, without
         copying a point: a kernel that reads the runs in place (perception.depthmap's batched
         depth-maps) saves the gather. Same contract and bounds as :meth:`within`."""
+        slot = self._slots_within(centre_m, radius_m)
+        return self.starts[slot], self.ends[slot]
+
+    def cells_within(self, centre_m: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`slices_within`'s (starts, ends) and the low corner of each run's cell ((n, 3)
+        float64 m; the cell spans corner .. corner + ``cell_m`` on each axis), so that a caller
+        with a tighter shape than a ball can drop the cells that miss it before reading them."""
+        slot = self._slots_within(centre_m, radius_m)
+        cells = np.stack(np.unravel_index(self.keys[slot], tuple(self.shape)), axis=1)
+        return self.starts[slot], self.ends[slot], self.origin_m + cells * self.cell_m
+
+    def _slots_within(self, centre_m: np.ndarray, radius_m: float) -> np.ndarray:
+        """Indices into keys/starts/ends of the occupied cells :meth:`within` reads."""
         try:
             centre = np.asarray(centre_m, dtype=np.float64)
             radius = float(radius_m)
@@ -298,7 +311,7 @@ class VoxelIndex:
         hi = np.clip(np.floor((centre + radius - self.origin_m) / self.cell_m), -1.0, top + 1).astype(np.int64)
         lo, hi = np.maximum(lo, 0), np.minimum(hi, self.shape - 1)
         if np.any(hi < lo):
-            return self.starts[:0], self.ends[:0]
+            return np.zeros(0, np.int64)
         if np.prod((hi - lo + 1).astype(np.float64)) > len(self.keys):
             # Fewer occupied cells than cells in the box: test each occupied cell (keys ascend,
             # so the order is the one the box enumeration gives).
@@ -311,4 +324,4 @@ class VoxelIndex:
             found = slot < len(self.keys)
             found[found] = self.keys[slot[found]] == wanted[found]
             slot = slot[found]
-        return self.starts[slot], self.ends[slot]
+        return slot

@@ -396,10 +396,14 @@ def _random_pose(rng, offset_m):
     dtype=st.sampled_from([np.float32, np.float64]),
     cell=st.sampled_from([0.001, 0.005, 0.05]),
     shape=st.tuples(st.integers(1, 40), st.integers(1, 40)),
+    threads=st.integers(1, 3),
 )
-def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(seed, regions, offset, dtype, cell, shape):
-    """Gels anywhere around a cloud of a few mm (and a km from the origin): the indexed batch
-    gives each gel exactly contact_depth_map's map, and both the plain NumPy pipeline's."""
+def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(
+    seed, regions, offset, dtype, cell, shape, threads
+):
+    """Gels anywhere around a cloud of a few mm (and a km from the origin): the indexed batch,
+    cut on any number of threads, gives each gel exactly contact_depth_map's map, and both the
+    plain NumPy pipeline's."""
     from perception.depthmap import contact_depth_maps
     from perception.pointcloud import VoxelIndex
 
@@ -412,9 +416,9 @@ def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(see
         singles = [contact_depth_map(points, model_to_world, gel, GEOMETRY, params) for gel in gels]
     except DepthMapError:
         with pytest.raises(DepthMapError, match="region .*no model point"):
-            contact_depth_maps(VoxelIndex(points, cell), model_to_world, gels, GEOMETRY, params)
+            contact_depth_maps(VoxelIndex(points, cell), model_to_world, gels, GEOMETRY, params, threads=threads)
         return
-    batch = contact_depth_maps(VoxelIndex(points, cell), model_to_world, gels, GEOMETRY, params)
+    batch = contact_depth_maps(VoxelIndex(points, cell), model_to_world, gels, GEOMETRY, params, threads=threads)
     for i, single in enumerate(singles):
         np.testing.assert_array_equal(batch.depth_maps_m[i], single.depth_map_m)
         np.testing.assert_array_equal(batch.occupied[i], single.occupied)
@@ -422,6 +426,18 @@ def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(see
         reference = numpy_reference_map(points, model_to_world, gels[i], params)
         np.testing.assert_array_equal(single.occupied, np.isfinite(reference))
         np.testing.assert_allclose(single.depth_map_m[single.occupied], reference[single.occupied], rtol=0, atol=1e-9)
+
+
+def test_region_groups_split_the_points_to_read_evenly_and_cover_every_region_once():
+    from perception.depthmap import region_groups
+
+    runs = np.array([0, 1, 1, 3, 4, 5])  # 5 regions; the second reads no run
+    lengths = np.array([10, 5, 5, 10, 10])
+    assert region_groups(lengths, runs, 1) == [(0, 5)]
+    assert region_groups(lengths, runs, 2) == [(0, 3), (3, 5)]  # 20 and 20 points
+    groups = region_groups(lengths, runs, 8)  # more threads than regions: no empty group
+    assert [k for first, stop in groups for k in range(first, stop)] == list(range(5))
+    assert region_groups(np.zeros(5, np.int64), runs, 2) == [(0, 5)]  # nothing to read
 
 
 def test_float32_points_give_the_map_of_their_float64_values():
