@@ -42,7 +42,7 @@ import torch
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface
 from models.data import network_input, to_uint8_rgb
 from models.networks import GeneratorConfig, UNetGenerator
-from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx
+from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, onnx_runner
 from perception.ssim import ssim_rgb
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)
@@ -62,8 +62,6 @@ def synthetic_inputs(count: int, seed: int, generator: UNetGenerator, depth_rang
 
 
 def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int, workdir: Path) -> Runner:
-    import onnxruntime as ort
-
     path = workdir / "generator.onnx"
     export_onnx(generator, path)
     if int8:
@@ -86,11 +84,7 @@ def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, 
             weight_type=oq.QuantType.QInt8,
         )
         path = quantised
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-    return lambda x: session.run(None, {"depth": x})[0]
+    return onnx_runner(path, threads)  # the node's session options
 
 
 def _measure(run: Runner, inputs: np.ndarray, batch: int, seconds: float) -> tuple[float, float]:

@@ -54,7 +54,7 @@ import torch
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
-from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, sampling_copy
+from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, onnx_runner, sampling_copy
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from msgs.system import ErrorCode
 from nodes.node import Node, run_node
@@ -89,18 +89,9 @@ def _forward(generator: UNetGenerator, runtime: str, precision: str, threads: in
     """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1], on the chosen runtime."""
     if runtime == "eager":
         return eager_runner(UncheckedGenerator(generator).eval(), bf16=precision == "bf16")
-    import onnxruntime as ort  # noqa: PLC0415 - only this runtime needs it
-
     graph = io.BytesIO()
     export_onnx(generator, graph)
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    # Threads that spin between runs burn the cores other workers and clients need: on the
-    # shared 2-core machine, width 16, 2 threads, it measured 48 -> 184 regions/s without.
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    session = ort.InferenceSession(graph.getvalue(), options, providers=["CPUExecutionProvider"])
-    return lambda x: session.run(None, {"depth": x})[0]
+    return onnx_runner(graph.getvalue(), threads)
 
 
 @dataclasses.dataclass
