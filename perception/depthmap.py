@@ -47,7 +47,7 @@ import numpy as np
 from perception.binning import bin_edges, cut_kernel
 from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
-from perception.pointcloud import VoxelIndex, check_transform
+from perception.pointcloud import VoxelIndex, check_transform, check_transforms
 from workcell.kinematics import GripperGeometry
 
 # Spacing of the model cloud depth-maps are made from (``sample_model_cloud``): uniform random
@@ -267,12 +267,10 @@ def _cut(
     )
 
 
-def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray, names: list[str]) -> np.ndarray:
+def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray, name: str) -> np.ndarray:
     """(N, 4, 4) float64 model-to-gel transforms, each composed in float64; ``model_to_world``
-    already checked, each gel checked here (rigid)."""
-    return np.stack(
-        [np.linalg.inv(check_transform(gel, name)) @ model_to_world for gel, name in zip(gels_to_world, names)]
-    )
+    already checked, the gels (N, 4, 4) checked here (rigid; ``name[i]`` in an error)."""
+    return np.linalg.inv(check_transforms(gels_to_world, name)) @ model_to_world
 
 
 def contact_depth_map(
@@ -292,7 +290,9 @@ def contact_depth_map(
     points, bins <= MAX_DEPTH_MAP_BINS."""
     bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
     points = _points_for_kernel(points_model_m)
-    model_to_gel = _model_to_gels(check_transform(model_to_world, "model_to_world"), [gel_to_world], ["gel_to_world"])
+    model_to_gel = _model_to_gels(
+        check_transform(model_to_world, "model_to_world"), check_transform(gel_to_world, "gel_to_world")[None], "gel"
+    )
     patches = _cut(
         points,
         np.array([0], np.int64),
@@ -371,7 +371,7 @@ def contact_depth_maps(
     if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
         raise DepthMapError(f"gel poses must be (N, 4, 4), N >= 1, got shape {gels.shape}")
     model_pose = check_transform(model_to_world, "model_to_world")
-    model_to_gel = _model_to_gels(model_pose, gels, [f"gels_to_world[{i}]" for i in range(len(gels))])
+    model_to_gel = _model_to_gels(model_pose, gels, "gels_to_world")
     world_to_model = np.linalg.inv(model_pose)
     centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
     found = [

@@ -19,7 +19,7 @@ import open3d as o3d
 
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.errors import PointCloudError
-from workcell.kinematics import KinematicsError, rigid_transform
+from workcell.kinematics import ROTATION_TOLERANCE, KinematicsError, rigid_transform
 
 # Kinect v2 working range; returns outside it are unreliable or spurious.
 DEFAULT_RANGE_M = (0.5, 4.5)
@@ -32,6 +32,29 @@ def check_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
         return rigid_transform(a_to_b, name)
     except KinematicsError as err:
         raise PointCloudError(str(err)) from None
+
+
+def check_transforms(stack: np.ndarray, name: str = "transforms") -> np.ndarray:
+    """``stack`` (N, 4, 4) as float64, each a rigid transform by :func:`check_transform`'s rule
+    (named ``name[i]`` in the error), or PointCloudError. A planner's request carries hundreds
+    of poses: one vectorised screen, twice as strict as the rule, passes the usual ones, and only
+    those it does not pass are judged one by one by the rule itself (so the rule stays the one in
+    workcell.kinematics, and rounding near its tolerance cannot let a bad one through)."""
+    matrices = np.asarray(stack, dtype=np.float64)
+    if matrices.ndim != 3 or matrices.shape[1:] != (4, 4):
+        raise PointCloudError(f"{name} must be (N, 4, 4), got shape {matrices.shape}")
+    rotations = matrices[:, :3, :3]
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN or inf entries fail the screen
+        error = np.abs(np.swapaxes(rotations, 1, 2) @ rotations - np.eye(3)).max(axis=(1, 2), initial=0.0)
+        passed = (
+            np.isfinite(matrices).all(axis=(1, 2))
+            & (error <= 0.5 * ROTATION_TOLERANCE)
+            & (np.linalg.det(np.nan_to_num(rotations)) > 0.5)
+            & (matrices[:, 3] == [0.0, 0.0, 0.0, 1.0]).all(axis=1)
+        )
+    for i in np.flatnonzero(~passed):
+        check_transform(matrices[i], f"{name}[{i}]")
+    return matrices
 
 
 def principal_spread_m(points_m: np.ndarray) -> np.ndarray:

@@ -203,3 +203,49 @@ def test_voxel_index_buckets_as_a_stable_sort_of_the_cell_keys(seed, n, cell_m, 
     np.testing.assert_array_equal(index.keys, unique)
     np.testing.assert_array_equal(index.starts, first)
     np.testing.assert_array_equal(index.ends, first + counts)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    count=st.integers(1, 8),
+    flaw=st.sampled_from(["none", "skew", "near_tolerance", "reflection", "last_row", "nan", "inf"]),
+)
+def test_property_check_transforms_judges_each_pose_as_check_transform(seed, count, flaw):
+    """The vectorised screen accepts exactly the stacks whose every pose check_transform
+    accepts, and refuses with check_transform's message for the first bad pose, named name[i]."""
+    from scipy.spatial.transform import Rotation
+
+    from perception.pointcloud import check_transform, check_transforms
+
+    rng = np.random.default_rng(seed)
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    poses[:, :3, :3] = Rotation.random(count, random_state=seed).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(count, 3))
+    bad = int(rng.integers(count))
+    changes = {
+        "skew": (0, 1, 1e-3),
+        "near_tolerance": (0, 0, 9e-7),
+        "reflection": None,
+        "last_row": (3, 0, 1e-12),
+        "nan": (1, 2, np.nan),
+        "inf": (2, 3, np.inf),
+    }
+    if flaw == "reflection":
+        poses[bad, :3, 0] *= -1.0
+    elif flaw != "none":
+        row, col, value = changes[flaw]
+        poses[bad, row, col] = value if flaw in ("nan", "inf") else poses[bad, row, col] + value
+    expected = None
+    for i, pose in enumerate(poses):
+        try:
+            check_transform(pose, f"poses[{i}]")
+        except PointCloudError as err:
+            expected = str(err)
+            break
+    if expected is None:
+        np.testing.assert_array_equal(check_transforms(poses, "poses"), poses)
+    else:
+        with pytest.raises(PointCloudError) as caught:
+            check_transforms(poses, "poses")
+        assert str(caught.value) == expected
