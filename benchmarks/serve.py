@@ -177,15 +177,20 @@ def surface_gel_poses(cloud: ModelCloud, count: int, seed: int, press_m: float =
 
 
 def _cut_rates(
-    points: np.ndarray, poses: np.ndarray, geometry: GripperGeometry, params: DepthMapParams, per_gel: int
+    points: np.ndarray,
+    poses: np.ndarray,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+    per_gel: int,
+    threads: int,
 ) -> dict[str, float]:
-    """Depth-map cutting in this process, regions/s: the batched indexed pass (index built
-    beforehand, as the node caches it) and the way before it (a pass over the whole cloud per gel,
-    ``per_gel`` gels)."""
+    """Depth-map cutting in this process, regions/s: the batched indexed pass on the node's
+    ``threads`` (index built beforehand, as the node caches it) and the way before it (a pass
+    over the whole cloud per gel, ``per_gel`` gels)."""
     index = VoxelIndex(points)
-    contact_depth_maps(index, np.eye(4), poses, geometry, params)  # compiled and warm
+    contact_depth_maps(index, np.eye(4), poses, geometry, params, threads=threads)  # compiled and warm
     started = time.perf_counter()
-    contact_depth_maps(index, np.eye(4), poses, geometry, params)
+    contact_depth_maps(index, np.eye(4), poses, geometry, params, threads=threads)
     batched = len(poses) / (time.perf_counter() - started)
     started = time.perf_counter()
     for pose in poses[:per_gel]:
@@ -236,7 +241,7 @@ def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tu
                     "object": Path(mesh).stem,
                     "cloud_points": len(points),
                     "poses": count,
-                    **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4)),
+                    **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4), threads=args.threads),
                 }
                 handle = Cloud(points)
                 started = time.perf_counter()

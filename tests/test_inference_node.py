@@ -78,8 +78,9 @@ def test_estimates_are_the_generators_and_one_sample_is_deterministic(
 
 def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry, tmp_path: Path) -> None:
     checkpoint = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
-    maps = depth_maps(2, seed=2)
-    with serving(registry, checkpoint), planner(registry) as client:
+    maps = depth_maps(3, seed=2)
+    # Two threads: the prior's images of the three maps are rendered in two chunks.
+    with serving(registry, checkpoint, threads=2), planner(registry) as client:
         images, _ = client.estimate(maps)
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
