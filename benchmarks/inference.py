@@ -15,7 +15,8 @@ choices the issue asks for), else the same as ``ssim_vs_fp32``.
   quantisation in ONNX Runtime, calibrated on the inputs). PyTorch's own int8 path,
   torch.ao FX quantisation, is deprecated in torch 2.13 (its successor, torchao, is not a
   dependency) and measured SSIM 0.07-0.39 against fp32 on this generator: left out;
-* runtimes: eager PyTorch, ``torch.compile`` (inductor), ONNX Runtime (CPU provider).
+* runtimes: eager PyTorch, ``torch.compile`` (inductor), ONNX Runtime (CPU provider, with the
+  inference node's session options: models.runtime.onnx_runner).
 Combinations left out: int8 in PyTorch (above), bf16 in ONNX Runtime (no bf16 CPU kernels).
 Against the machine's limit: ``gflops`` is what a row computes (regions/s x the generator's
 floating-point operations per region, counted by torch.utils.flop_counter: convolutions and
