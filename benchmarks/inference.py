@@ -22,7 +22,10 @@ Against the machine's limit: ``gflops`` is what a row computes (regions/s x the 
 floating-point operations per region, counted by torch.utils.flop_counter: convolutions and
 matrix products, 2 per multiply-add), ``share_of_fp32_peak`` that over ``fp32_peak_gflops``, the
 fp32 matrix-product rate of PyTorch on the same threads measured in the same run (issue 18's
-target: >= 0.75 for the default model in its best runtime).
+target: >= 0.75 for the default model in its best runtime). ``fp32_peak_after_gflops``: the same
+rate measured again right after the row: on a shared machine a neighbour's job starting or
+stopping moves the capacity under a row, and a row whose two peaks differ much has a share that
+says more about the neighbour than about the runtime (the share keeps the run's one reference).
 Inputs are the test split's depth-maps with ``--dataset``, else depth-maps of synthetic
 analytic contacts (dataset.synth).
 """
@@ -187,6 +190,7 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                         runner = _onnx_runner(generator, inputs, precision == "int8", args.threads, Path(tmp))
                     output = to_uint8_rgb(torch.from_numpy(runner(inputs)))
                     throughput, p50 = _measure(runner, inputs, args.batch, args.seconds)
+                    peak_after = fp32_peak_gflops()  # did the machine's capacity change meanwhile?
                     vs_fp32 = round(float(ssim_rgb(reference, output).mean()), 4)
                     rows.append(
                         {
@@ -201,6 +205,7 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                             "gflops": round(throughput * gflop, 1),
                             "fp32_peak_gflops": round(peak, 1),
                             "share_of_fp32_peak": round(throughput * gflop / peak, 3),
+                            "fp32_peak_after_gflops": round(peak_after, 1),
                         }
                     )
                     # Progress on stderr: ``dtx bench`` prints the table (or JSON) on stdout.
@@ -216,7 +221,8 @@ def _format_row(row: dict[str, Any]) -> str:
     return (
         f"width {row['width']:3d}  {row['precision']:5s} {row['runtime']:8s} ssim {row['ssim']:.4f}  "
         f"{row['regions_per_s']:8.1f} regions/s  p50 {row['p50_ms']:7.2f} ms  "
-        f"{row['gflops']:6.1f} GFLOP/s ({row['share_of_fp32_peak']:.0%} of the fp32 peak)"
+        f"{row['gflops']:6.1f} GFLOP/s ({row['share_of_fp32_peak']:.0%} of the fp32 peak; "
+        f"peak {row['fp32_peak_gflops']:.0f} before the rows, {row['fp32_peak_after_gflops']:.0f} after this one)"
     )
 
 

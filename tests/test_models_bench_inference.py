@@ -55,7 +55,9 @@ def test_benchmark_rows_have_the_required_fields_and_fp32_eager_is_the_reference
             "gflops",
             "fp32_peak_gflops",
             "share_of_fp32_peak",
+            "fp32_peak_after_gflops",
         }
+        assert row["fp32_peak_after_gflops"] > 0
         assert row["ssim"] == row["ssim_vs_fp32"]  # no dataset: the fp32 eager output is the reference
         assert row["width"] == 8 and row["regions_per_s"] > 0 and row["p50_ms"] > 0
         assert row["gflops"] == pytest.approx(row["regions_per_s"] * row["gflop_per_region"], rel=0.01, abs=0.1)
