@@ -74,7 +74,7 @@ def press_geometry(
     height, width = presses.background.shape[:2]
     col_px, row_px = presses.centers_xy_px[index]
     contact_mm = float(presses.radii_px[index]) * mm_per_px
-    # Pixel j's centre is at (j - (n - 1) / 2) * pitch from the gel centre (sim.world.gel_grid).
+    # Pixel j's centre is at (j - (n - 1) / 2) * pitch from the gel centre (sim.grasp_contact.gel_grid).
     x_mm = (col_px - (width - 1) / 2) * mm_per_px
     z_mm = (row_px - (height - 1) / 2) * mm_per_px
     rows, cols = grid

@@ -21,7 +21,7 @@ import numpy as np
 
 from sim.depth_render import DepthRenderer
 from sim.effects import resolve_effects
-from sim.grasp_contact import GelContact, GraspContact, gel_grid
+from sim.grasp_contact import GelContact, GraspContact
 from sim.meshes import SceneObjects
 from workcell.scene import Scene, load_scene, resolve_path
 
@@ -77,10 +77,6 @@ class SimWorld:
         return self.depth.point_cloud(camera, depth, nominal)
 
     # ---------------------------------------------------------------- contact (sim.grasp_contact)
-    def gel_grid(self, size: tuple[int, int], extent_mm: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-        """See :func:`sim.grasp_contact.gel_grid`."""
-        return gel_grid(size, extent_mm)
-
     def default_extent_mm(self) -> tuple[float, float]:
         return self.gels.default_extent_mm()
 
@@ -99,10 +95,6 @@ class SimWorld:
     ) -> np.ndarray:
         """See :meth:`sim.grasp_contact.GelContact.gap_map`."""
         return self.gels.gap_map(gel_to_world, size, extent_mm, indentation_mm)
-
-    def solve_indentation(self, gaps_mm: np.ndarray, cell_area_mm2: float, force_n: float) -> tuple[float, float, bool]:
-        """See :meth:`sim.grasp_contact.GelContact.solve_indentation`."""
-        return self.gels.solve_indentation(gaps_mm, cell_area_mm2, force_n)
 
     def grasp_contact(
         self,
