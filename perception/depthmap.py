@@ -267,10 +267,10 @@ def _cut(
     )
 
 
-def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray, name: str) -> np.ndarray:
-    """(N, 4, 4) float64 model-to-gel transforms, each composed in float64; ``model_to_world``
-    already checked, the gels (N, 4, 4) checked here (rigid; ``name[i]`` in an error)."""
-    return np.linalg.inv(check_transforms(gels_to_world, name)) @ model_to_world
+def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) float64 model-to-gel transforms, each composed in float64, of transforms the
+    caller has checked (rigid)."""
+    return np.linalg.inv(gels_to_world) @ model_to_world
 
 
 def contact_depth_map(
@@ -291,7 +291,7 @@ def contact_depth_map(
     bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
     points = _points_for_kernel(points_model_m)
     model_to_gel = _model_to_gels(
-        check_transform(model_to_world, "model_to_world"), check_transform(gel_to_world, "gel_to_world")[None], "gel"
+        check_transform(model_to_world, "model_to_world"), check_transform(gel_to_world, "gel_to_world")[None]
     )
     patches = _cut(
         points,
@@ -371,7 +371,7 @@ def contact_depth_maps(
     if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
         raise DepthMapError(f"gel poses must be (N, 4, 4), N >= 1, got shape {gels.shape}")
     model_pose = check_transform(model_to_world, "model_to_world")
-    model_to_gel = _model_to_gels(model_pose, gels, "gels_to_world")
+    model_to_gel = _model_to_gels(model_pose, check_transforms(gels, "gels_to_world"))
     world_to_model = np.linalg.inv(model_pose)
     centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
     found = [
