@@ -347,19 +347,29 @@ def _fields_from(cls: type, values: Any, arrays: list[np.ndarray], used: set[int
     converters, names = plan
     if values.keys() != names:
         raise _Refused(f"fields {sorted(values)} do not match {cls.__name__}'s {sorted(names)}")
-    fields = {}
+    return _converted(converters, values, arrays, used)
+
+
+def _converted(
+    converters: typing.Iterable[tuple[str, Converter, Any]],
+    values: dict[str, Any],
+    arrays: list[np.ndarray],
+    used: set[int],
+) -> dict[str, Any]:
+    """Each named value of ``values`` converted by its converter (a field's, or a map's one)."""
+    converted = {}
     for name, convert, plain in converters:
         value = values[name]
         # Plain values of the declared type, most of a header, are taken here: a call per
         # value costs more than the value.
         if type(value) is plain and (plain is not float or math.isfinite(value)):
-            fields[name] = value
+            converted[name] = value
             continue
         try:
-            fields[name] = convert(value, arrays, used)
+            converted[name] = convert(value, arrays, used)
         except _Refused as exc:
             raise exc.inside(f".{name}") from None
-    return fields
+    return converted
 
 
 @functools.cache
@@ -414,7 +424,7 @@ def _sequence(item: Converter, plain: Any, value: Any, arrays: list[np.ndarray],
     items = []
     for i, v in enumerate(value):
         if type(v) is plain and (plain is not float or math.isfinite(v)):
-            items.append(v)  # as in _fields_from
+            items.append(v)  # as in _converted
             continue
         try:
             items.append(item(v, arrays, used))
@@ -426,13 +436,4 @@ def _sequence(item: Converter, plain: Any, value: Any, arrays: list[np.ndarray],
 def _mapping(item: Converter, plain: Any, value: Any, arrays: list[np.ndarray], used: set[int]) -> dict[str, Any]:
     if type(value) is not dict:
         raise _Refused("expected a map")
-    items = {}
-    for k, v in value.items():
-        if type(v) is plain and (plain is not float or math.isfinite(v)):
-            items[k] = v  # as in _fields_from
-            continue
-        try:
-            items[k] = item(v, arrays, used)
-        except _Refused as exc:
-            raise exc.inside(f".{k}") from None
-    return items
+    return _converted(((key, item, plain) for key in value), value, arrays, used)
