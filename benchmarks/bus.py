@@ -5,7 +5,7 @@ One-way latency uses CLOCK_MONOTONIC stamps (shared by processes on one machine)
 paced so that no queue builds up; throughput sends back to back and counts what arrives.
 
 ``--work``: instead, the Python work per message on each side, warm, in this process (a
-PUSH/PULL pair over ipc; the best of ``--repeats`` batches, so that another process's time
+PUSH/PULL pair over ipc; the best of 10 x ``--repeats`` batches of 200, so that another process's time
 slices do not count): dtx's encode and send, and receive and decode (the validation included),
 beside raw pyzmq's send and receive of the same payload. This is the part of the latency and
 throughput gap that is ours; the rest is the operating system's and ZeroMQ's.
@@ -176,23 +176,20 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
     }
 
 
-def _best_us(step: Callable[[], object], batches: int, per_batch: int = 200) -> float:
-    """Microseconds per call of ``step``, the best of ``batches`` batches."""
-    best = float("inf")
-    for _ in range(batches):
-        started = time.perf_counter_ns()
-        for _ in range(per_batch):
-            step()
-        best = min(best, (time.perf_counter_ns() - started) / per_batch / 1e3)
-    return round(best, 2)
+def _batch_us(step: Callable[[], object], calls: int = 200) -> float:
+    """Microseconds per call of ``step`` over ``calls`` calls in a row."""
+    started = time.perf_counter_ns()
+    for _ in range(calls):
+        step()
+    return (time.perf_counter_ns() - started) / calls / 1e3
 
 
 def _work_rows(payload_bytes: int, batches: int, bus_dir: str) -> list[dict]:
     """Send and receive work per message, dtx and raw, warm (see the module docstring)."""
     context = zmq.Context()
     push, pull = context.socket(zmq.PUSH), context.socket(zmq.PULL)
-    for sock in (push, pull):
-        sock.setsockopt(zmq.SNDHWM if sock is push else zmq.RCVHWM, 0)  # no limit: a batch is queued whole
+    push.setsockopt(zmq.SNDHWM, 0)  # no limit: a batch is queued whole
+    pull.setsockopt(zmq.RCVHWM, 0)
     push.bind(f"ipc://{bus_dir}/work.sock")
     pull.connect(f"ipc://{bus_dir}/work.sock")
     message = make_message(payload_bytes)
@@ -207,19 +204,20 @@ def _work_rows(payload_bytes: int, batches: int, bus_dir: str) -> list[dict]:
         "raw_pyzmq": lambda: int.from_bytes(pull.recv_multipart(copy=False)[1].bytes, "little"),
         "dtx": lambda: decode(recv_frames(pull)).message.header.stamp_ns,
     }
-    best: dict[str, dict[str, float]] = {impl: {"send_us": math.inf, "receive_us": math.inf} for impl in sends}
+    best = {impl: {"send_us": math.inf, "receive_us": math.inf} for impl in sends}
     # Rounds take turns, the first of them a warm-up: whichever goes first at a size pays the
     # allocator's first page faults for its buffers.
     for round_index in range(batches + 1):
-        for impl in sends:
-            send_us = _best_us(sends[impl], 1)
-            receive_us = _best_us(receives[impl], 1)  # reads what the sends queued, one per call
+        for impl, figures in best.items():
+            send_us = _batch_us(sends[impl])
+            receive_us = _batch_us(receives[impl])  # reads what the sends queued, one per call
             if round_index:
-                best[impl] = {
-                    "send_us": min(best[impl]["send_us"], send_us),
-                    "receive_us": min(best[impl]["receive_us"], receive_us),
-                }
-    rows = [{"impl": impl, "payload_bytes": payload_bytes, **figures} for impl, figures in best.items()]
+                figures["send_us"] = min(figures["send_us"], send_us)
+                figures["receive_us"] = min(figures["receive_us"], receive_us)
+    rows = [
+        {"impl": impl, "payload_bytes": payload_bytes, **{key: round(us, 2) for key, us in figures.items()}}
+        for impl, figures in best.items()
+    ]
     context.destroy(linger=0)
     return rows
 
