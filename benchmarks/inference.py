@@ -11,8 +11,10 @@ choices the issue asks for), else the same as ``ssim_vs_fp32``.
   trained width, repeatable) or seeded random ones with PyTorch's default
   initialisation (pix2pix's N(0, 0.02) would make an untrained output nearly constant and
   every SSIM trivially 1);
-* precisions: fp32; bf16 (autocast, eager and compiled); int8 (static post-training QDQ
-  quantisation in ONNX Runtime, calibrated on the inputs). PyTorch's own int8 path,
+* precisions: fp32; bf16 (autocast, eager and compiled); int8 (the convolutions of the
+  encoder in int8, the decoder in fp32: models.runtime.int8_convolutions, calibrated as the
+  inference node calibrates, on a fixed set of analytic contacts other than the synthetic
+  rows' inputs). PyTorch's own int8 path,
   torch.ao FX quantisation, is deprecated in torch 2.13 (its successor, torchao, is not a
   dependency) and measured SSIM 0.07-0.39 against fp32 on this generator: left out;
 * runtimes: eager PyTorch, ``torch.compile`` (inductor), ONNX Runtime (CPU provider, with the
@@ -35,60 +37,26 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from dataset.synth import SHAPES, depth_map_from_surface, random_surface
-from models.data import network_input, to_uint8_rgb
+from models.data import to_uint8_rgb
 from models.networks import GeneratorConfig, UNetGenerator
-from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, onnx_runner
+from models.runtime import (
+    Runner,
+    UncheckedGenerator,
+    contact_inputs,
+    eager_runner,
+    onnx_graph,
+    onnx_runner,
+)
 from perception.ssim import ssim_rgb
 
 DEPTH_RANGE_M = (-0.0015, 0.0025)
 OFFERED = {"eager": ("fp32", "bf16"), "compile": ("fp32", "bf16"), "onnxrt": ("fp32", "int8")}
-
-
-def synthetic_inputs(count: int, seed: int, generator: UNetGenerator, depth_range_m: tuple[float, float]) -> np.ndarray:
-    """count x C x 100 x 100 float32 network inputs of ``generator`` from random analytic contacts."""
-    rng = np.random.default_rng(seed)
-    maps = [
-        depth_map_from_surface(
-            random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0, y_far_m=depth_range_m[1]
-        )
-        for i in range(count)
-    ]
-    return network_input(np.stack(maps), depth_range_m, generator.config, generator.prior).numpy()
-
-
-def _onnx_runner(generator: UNetGenerator, calibration: np.ndarray, int8: bool, threads: int, workdir: Path) -> Runner:
-    path = workdir / "generator.onnx"
-    export_onnx(generator, path)
-    if int8:
-        from onnxruntime import quantization as oq
-
-        class Calibration(oq.CalibrationDataReader):
-            def __init__(self) -> None:
-                self.batches = iter([{"depth": calibration[i : i + 8]} for i in range(0, len(calibration), 8)])
-
-            def get_next(self) -> dict[str, np.ndarray] | None:
-                return next(self.batches, None)
-
-        quantised = workdir / "generator_int8.onnx"
-        oq.quantize_static(
-            str(path),
-            str(quantised),
-            Calibration(),
-            quant_format=oq.QuantFormat.QDQ,
-            activation_type=oq.QuantType.QUInt8,
-            weight_type=oq.QuantType.QInt8,
-        )
-        path = quantised
-    return onnx_runner(path, threads)  # the node's session options
 
 
 def _measure(run: Runner, inputs: np.ndarray, batch: int, seconds: float) -> tuple[float, float]:
@@ -168,48 +136,48 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
     peak = fp32_peak_gflops()
     print(f"fp32 matrix-product peak on {args.threads} thread(s): {peak:.1f} GFLOP/s", file=sys.stderr, flush=True)
     models = [(None, c) for c in args.checkpoint] if args.checkpoint else [(w, None) for w in args.widths]
-    with tempfile.TemporaryDirectory() as tmp:
-        for width, checkpoint in models:
-            generator, depth_range_m = _generator(width, checkpoint, args.seed)
-            if args.dataset:
-                inputs, truth = test_split_inputs(args.dataset, generator, depth_range_m)
-            else:
-                inputs = synthetic_inputs(max(args.batch, 16), args.seed, generator, depth_range_m)
-                truth = None
-            reference = to_uint8_rgb(torch.from_numpy(eager_runner(generator, bf16=False)(inputs)))
-            gflop = gflop_per_region(generator, inputs)
-            for runtime in args.runtimes:
-                for precision in args.precisions:
-                    if precision not in OFFERED[runtime]:
-                        continue
-                    if runtime == "eager":
-                        runner = eager_runner(generator, bf16=precision == "bf16")
-                    elif runtime == "compile":
-                        runner = eager_runner(torch.compile(UncheckedGenerator(generator)), bf16=precision == "bf16")
-                    else:
-                        runner = _onnx_runner(generator, inputs, precision == "int8", args.threads, Path(tmp))
-                    output = to_uint8_rgb(torch.from_numpy(runner(inputs)))
-                    throughput, p50 = _measure(runner, inputs, args.batch, args.seconds)
-                    peak_after = fp32_peak_gflops()  # did the machine's capacity change meanwhile?
-                    vs_fp32 = round(float(ssim_rgb(reference, output).mean()), 4)
-                    rows.append(
-                        {
-                            "width": generator.config.ngf,
-                            "precision": precision,
-                            "runtime": runtime,
-                            "ssim": vs_fp32 if truth is None else round(float(ssim_rgb(truth, output).mean()), 4),
-                            "ssim_vs_fp32": vs_fp32,
-                            "regions_per_s": round(throughput, 1),
-                            "p50_ms": round(p50, 2),
-                            "gflop_per_region": round(gflop, 4),
-                            "gflops": round(throughput * gflop, 1),
-                            "fp32_peak_gflops": round(peak, 1),
-                            "share_of_fp32_peak": round(throughput * gflop / peak, 3),
-                            "fp32_peak_after_gflops": round(peak_after, 1),
-                        }
-                    )
-                    # Progress on stderr: ``dtx bench`` prints the table (or JSON) on stdout.
-                    print(_format_row(rows[-1]), file=sys.stderr, flush=True)
+    for width, checkpoint in models:
+        generator, depth_range_m = _generator(width, checkpoint, args.seed)
+        if args.dataset:
+            inputs, truth = test_split_inputs(args.dataset, generator, depth_range_m)
+        else:
+            inputs = contact_inputs(generator, depth_range_m, max(args.batch, 16), args.seed)
+            truth = None
+        reference = to_uint8_rgb(torch.from_numpy(eager_runner(generator, bf16=False)(inputs)))
+        gflop = gflop_per_region(generator, inputs)
+        for runtime in args.runtimes:
+            for precision in args.precisions:
+                if precision not in OFFERED[runtime]:
+                    continue
+                if runtime == "eager":
+                    runner = eager_runner(generator, bf16=precision == "bf16")
+                elif runtime == "compile":
+                    runner = eager_runner(torch.compile(UncheckedGenerator(generator)), bf16=precision == "bf16")
+                else:
+                    # the node's graph and session options
+                    runner = onnx_runner(onnx_graph(generator, depth_range_m, precision), args.threads)
+                output = to_uint8_rgb(torch.from_numpy(runner(inputs)))
+                throughput, p50 = _measure(runner, inputs, args.batch, args.seconds)
+                peak_after = fp32_peak_gflops()  # did the machine's capacity change meanwhile?
+                vs_fp32 = round(float(ssim_rgb(reference, output).mean()), 4)
+                rows.append(
+                    {
+                        "width": generator.config.ngf,
+                        "precision": precision,
+                        "runtime": runtime,
+                        "ssim": vs_fp32 if truth is None else round(float(ssim_rgb(truth, output).mean()), 4),
+                        "ssim_vs_fp32": vs_fp32,
+                        "regions_per_s": round(throughput, 1),
+                        "p50_ms": round(p50, 2),
+                        "gflop_per_region": round(gflop, 4),
+                        "gflops": round(throughput * gflop, 1),
+                        "fp32_peak_gflops": round(peak, 1),
+                        "share_of_fp32_peak": round(throughput * gflop / peak, 3),
+                        "fp32_peak_after_gflops": round(peak_after, 1),
+                    }
+                )
+                # Progress on stderr: ``dtx bench`` prints the table (or JSON) on stdout.
+                print(_format_row(rows[-1]), file=sys.stderr, flush=True)
     if args.dataset:
         best = max(row["ssim"] for row in rows)
         for row in rows:

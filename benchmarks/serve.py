@@ -42,7 +42,7 @@ from typing import Any, TextIO
 import numpy as np
 import torch
 
-from dataset.synth import SHAPES, depth_map_from_surface, random_surface
+from dataset.synth import analytic_contact_maps
 from models.checkpoint import TrainConfig, load_generator
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
@@ -92,13 +92,7 @@ def write_checkpoint(
 
 def depth_maps(count: int, seed: int, y_far_m: float = DEPTH_RANGE_M[1]) -> np.ndarray:
     """count x 100 x 100 float32 contact depth-maps (metres) of random analytic contacts."""
-    rng = np.random.default_rng(seed)
-    return np.stack(
-        [
-            depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), 100, crop_mm=24.0, y_far_m=y_far_m)
-            for i in range(count)
-        ]
-    ).astype(np.float32)
+    return analytic_contact_maps(count, seed, y_far_m)
 
 
 def start_server(
@@ -382,7 +376,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", help="serve this trained generator instead of a fresh one")
     parser.add_argument("--width", type=int, default=32, help="ngf of the fresh generator")
     parser.add_argument("--runtime", choices=["onnxrt", "eager"], default="onnxrt")
-    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--precision", choices=["fp32", "bf16", "int8"], default="fp32")
     parser.add_argument("--workers", type=int, default=1, help="inference node processes (round robin)")
     parser.add_argument("--threads", type=int, default=2, help="compute threads per worker")
     parser.add_argument("--max-batch", type=int, default=32)

@@ -86,6 +86,18 @@ def depth_map_from_surface(
     return np.minimum(y_m, y_far_m).astype(np.float32)
 
 
+def analytic_contact_maps(count: int, seed: int, y_far_m: float, size: int = 100, crop_mm: float = 24.0) -> np.ndarray:
+    """count x size x size float32 depth-maps (m) of random analytic contacts, every shape of
+    :data:`SHAPES` in turn."""
+    rng = np.random.default_rng(seed)
+    return np.stack(
+        [
+            depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), size, crop_mm, y_far_m)
+            for i in range(count)
+        ]
+    )
+
+
 def gel_gap_from_surface(
     surface: SurfaceMm, height: int, width: int, pixel_pitch_mm: tuple[float, float]
 ) -> np.ndarray:

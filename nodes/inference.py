@@ -28,7 +28,8 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
   server of the name (launch/serve.yaml).
 
 Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), ``precision``
-(fp32 | bf16, bf16 with eager only), ``threads``, ``max_regions``, ``max_points``,
+(fp32 | bf16 | int8: bf16 with eager only; int8, the encoder's convolutions quantised
+(models.runtime.int8_convolutions), with onnxrt only), ``threads``, ``max_regions``, ``max_points``,
 ``max_batch``, ``batch_window_ms``, ``max_dropout_samples``, ``max_sampled_regions``,
 ``max_point_visits`` (cloud points near the gels, summed over regions: the work of cutting the
 depth-maps), ``index_cache``,
@@ -41,7 +42,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
-import io
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -54,7 +54,7 @@ import torch
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
-from models.runtime import Runner, UncheckedGenerator, eager_runner, export_onnx, onnx_runner, sampling_copy
+from models.runtime import Runner, UncheckedGenerator, eager_runner, onnx_graph, onnx_runner, sampling_copy
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from msgs.system import ErrorCode
 from nodes.node import Node, run_node
@@ -63,7 +63,7 @@ from perception.errors import PerceptionError
 from perception.pointcloud import VoxelIndex, check_transforms
 
 RUNTIMES = ("onnxrt", "eager")
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("fp32", "bf16", "int8")
 
 
 class BadRequest(ValueError):
@@ -85,13 +85,13 @@ def cloud_id(points: np.ndarray) -> str:
     return digest.hexdigest()
 
 
-def _forward(generator: UNetGenerator, runtime: str, precision: str, threads: int) -> Runner:
+def _forward(
+    generator: UNetGenerator, depth_range_m: tuple[float, float], runtime: str, precision: str, threads: int
+) -> Runner:
     """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1], on the chosen runtime."""
     if runtime == "eager":
         return eager_runner(UncheckedGenerator(generator).eval(), bf16=precision == "bf16")
-    graph = io.BytesIO()
-    export_onnx(generator, graph)
-    return onnx_runner(graph.getvalue(), threads)
+    return onnx_runner(onnx_graph(generator, depth_range_m, precision), threads)
 
 
 @dataclasses.dataclass
@@ -132,6 +132,8 @@ class InferenceNode(Node):
             )
         if p.precision == "bf16" and p.runtime != "eager":
             raise ValueError("precision bf16 needs runtime eager")
+        if p.precision == "int8" and p.runtime != "onnxrt":
+            raise ValueError("precision int8 needs runtime onnxrt")
         limits = (
             p.threads,
             p.max_regions,
@@ -155,8 +157,8 @@ class InferenceNode(Node):
         torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
         generator, self.depth_range_m = load_generator(p.checkpoint)
         self.config, self.prior = generator.config, generator.prior
-        self.deterministic = _forward(generator, p.runtime, p.precision, p.threads)
-        self.sampled = _forward(sampling_copy(generator), p.runtime, p.precision, p.threads)
+        self.deterministic = _forward(generator, self.depth_range_m, p.runtime, p.precision, p.threads)
+        self.sampled = _forward(sampling_copy(generator), self.depth_range_m, p.runtime, p.precision, p.threads)
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()

@@ -18,6 +18,7 @@ import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
+from models.runtime import onnx_graph, onnx_runner
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.bus import Bus
 from nodes.inference import InferenceNode, cloud_id
@@ -74,6 +75,38 @@ def test_estimates_are_the_generators_and_one_sample_is_deterministic(
     # ONNX Runtime may round a few pixels the other way.
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
     assert "tiny.pt" in model and runtime in model
+
+
+def test_int8_serves_the_graph_with_the_encoder_quantised(registry: Registry, checkpoint: Path) -> None:
+    """The node answers with models.runtime's int8 graph, calibrated as anyone calibrates it."""
+    maps = depth_maps(3, seed=4)
+    generator, depth_range_m = load_generator(checkpoint)
+    graph = onnx_runner(onnx_graph(generator, depth_range_m, "int8"), threads=1)
+    expected = to_uint8_rgb(
+        torch.from_numpy(graph(network_input(maps, depth_range_m, generator.config, generator.prior).numpy()))
+    )
+    with serving(registry, checkpoint, precision="int8"), planner(registry) as client:
+        images, _ = client.estimate(maps)
+        model = client.last_reply.model if client.last_reply else ""
+    np.testing.assert_array_equal(images, expected)
+    assert "onnxrt int8" in model
+
+
+@pytest.mark.parametrize(
+    ("runtime", "precision", "message"),
+    [
+        ("eager", "int8", "int8 needs runtime onnxrt"),
+        ("onnxrt", "bf16", "bf16 needs runtime eager"),
+        ("onnxrt", "fp16", "precision one of"),
+        ("tensorrt", "fp32", "runtime must be one of"),
+    ],
+)
+def test_a_runtime_and_precision_that_do_not_go_together_are_refused(
+    checkpoint: Path, tmp_path: Path, runtime: str, precision: str, message: str
+) -> None:
+    params = {"checkpoint": str(checkpoint), "runtime": runtime, "precision": precision}
+    with pytest.raises(ValueError, match=message):
+        InferenceNode("refused", params, registry=Registry(tmp_path / "bus"))
 
 
 def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry, tmp_path: Path) -> None:

@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.inference import DEPTH_RANGE_M, add_arguments, gflop_per_region, run, synthetic_inputs
+from benchmarks.inference import DEPTH_RANGE_M, add_arguments, gflop_per_region, run
 from dataset.reader import DatasetReader
 from dataset.synth import write_synthetic_dataset
 from models.checkpoint import TrainConfig, load_generator
 from models.data import select_records
 from models.evaluate import predict
 from models.networks import GeneratorConfig, UNetGenerator
+from models.runtime import contact_inputs
 from models.train import train
 from perception.ssim import ssim_rgb
 
@@ -73,7 +74,7 @@ def test_the_operation_count_grows_with_the_square_of_the_width() -> None:
     counts = {}
     for width in (8, 16):
         generator = UNetGenerator(GeneratorConfig(ngf=width)).eval()
-        inputs = synthetic_inputs(1, 0, generator, DEPTH_RANGE_M)
+        inputs = contact_inputs(generator, DEPTH_RANGE_M, 1, 0)
         counts[width] = gflop_per_region(generator, inputs)
     assert counts[8] > 0.01 and 3.5 < counts[16] / counts[8] <= 4.0
 
