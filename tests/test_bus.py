@@ -608,4 +608,5 @@ def test_bench_bus_work_puts_dtx_beside_raw_pyzmq_for_each_payload() -> None:
     assert [(r["impl"], r["payload_bytes"]) for r in rows] == [
         (impl, size) for size in PAYLOADS for impl in ("raw_pyzmq", "dtx")
     ]
-    assert all(0 < r["send_us"] < math.inf and 0 < r["receive_us"] < math.inf for r in rows)
+    figures = ("send_us", "receive_us", "idle_send_us", "idle_receive_us")
+    assert all(0 < r[key] < math.inf for r in rows for key in figures)
