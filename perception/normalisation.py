@@ -41,7 +41,9 @@ def normalise_depth_map(depth_map_m: np.ndarray, depth_range_m: tuple[float, flo
     A range that is not two finite numbers with y_far > y_near (see ``_check_range``) raises
     NormalisationError."""
     y_near, y_far = _check_range(depth_range_m)
-    scaled = (np.asarray(depth_map_m, dtype=np.float64) - y_near) * (2.0 / (y_far - y_near)) - 1.0
+    # Clipped to the range before scaling: a value near float64's largest would overflow to inf.
+    inside = np.clip(np.asarray(depth_map_m, dtype=np.float64), y_near, y_far)
+    scaled = (inside - y_near) * (2.0 / (y_far - y_near)) - 1.0
     scaled = np.where(np.isnan(scaled), 1.0, scaled)
     return np.clip(scaled, -1.0, 1.0).astype(np.float32)
 
