@@ -48,6 +48,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -151,6 +152,9 @@ class InferenceNode(Node):
         started = time.perf_counter()
         torch.set_num_threads(p.threads)
         torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
+        # The prior's images render in chunks on the node's own threads; OpenCV's pool inside
+        # each chunk only added threads (2.3 -> 2.0 ms CPU per region, same wall time).
+        cv2.setNumThreads(1)
         generator, self.depth_range_m = load_generator(p.checkpoint)
         self.config, self.prior = generator.config, generator.prior
         self.deterministic = _forward(generator, self.depth_range_m, p.runtime, p.precision, p.threads)
