@@ -116,7 +116,7 @@ def int8_convolutions(graph: bytes, calibration: np.ndarray) -> bytes:
     ``calibration``, N x C x H x W network inputs). Only ``Conv``: the encoder. The decoder's
     transposed convolutions stay fp32, because ONNX Runtime has no faster int8 kernel for them
     and quantising them too lost 0.007 SSIM and ran slower than fp32 (dtx bench inference, the
-    default model: encoder-only int8 1.1x fp32's regions/s at the same test-split SSIM)."""
+    default model: encoder-only int8 1.1-1.2x fp32's regions/s at the same test-split SSIM)."""
     from onnxruntime import quantization  # noqa: PLC0415 - only this precision needs it
 
     class Batches(quantization.CalibrationDataReader):

@@ -324,9 +324,9 @@ class InferenceNode(Node):
 
     def _network_input(self, maps: np.ndarray) -> np.ndarray:
         """The network's input for N depth-maps. A model with a physics prior needs its image of
-        every map: per-image NumPy and OpenCV, 2.2-2.8 ms CPU a region for the demo's model (a
-        third of the server's, ``dtx bench serve``), mostly outside the GIL, so chunks render side by side on the
-        cores the network uses next."""
+        every map: per-image NumPy and OpenCV, 1.9-2.0 ms CPU a region for the demo's model (a
+        quarter of the server's, ``dtx bench serve``), mostly outside the GIL, so chunks render
+        side by side on the cores the network uses next."""
 
         def inputs(chunk: np.ndarray) -> np.ndarray:
             return network_input(chunk, self.depth_range_m, self.config, self.prior).numpy()
