@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 
@@ -179,11 +180,18 @@ def region_groups(run_lengths: np.ndarray, runs: np.ndarray, groups: int) -> lis
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
+class _Reads(NamedTuple):
+    """The points each region reads, in place: region k the ranges starts[i]:ends[i] of
+    ``points`` for the runs i in runs[k]..runs[k+1] (the compiled kernel's layout)."""
+
+    points: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+    runs: np.ndarray
+
+
 def _min_y_per_region(
-    points: np.ndarray,
-    starts: np.ndarray,
-    ends: np.ndarray,
-    runs: np.ndarray,
+    reads: _Reads,
     model_to_gel: np.ndarray,
     bounds: tuple[float, float, float, float],
     shape: tuple[int, int],
@@ -203,10 +211,10 @@ def _min_y_per_region(
         # Region k reads runs runs[k]..runs[k+1] of the whole starts/ends and writes only
         # min_y[k] and counts[k]: a range of regions is cut on its own, in place.
         cut_kernel(
-            points,
-            starts,
-            ends,
-            runs[first : stop + 1],
+            reads.points,
+            reads.starts,
+            reads.ends,
+            reads.runs[first : stop + 1],
             transforms[first:stop],
             crop,
             x_edges,
@@ -215,7 +223,7 @@ def _min_y_per_region(
             counts[first:stop],
         )
 
-    groups = region_groups(ends - starts, runs, threads)
+    groups = region_groups(reads.ends - reads.starts, reads.runs, threads)
     if len(groups) == 1:
         cut_regions(*groups[0])
     else:  # the kernel releases the GIL: each group is cut on its own core
@@ -226,10 +234,7 @@ def _min_y_per_region(
 
 
 def _cut(
-    points: np.ndarray,
-    starts: np.ndarray,
-    ends: np.ndarray,
-    runs: np.ndarray,
+    reads: _Reads,
     model_to_gel: np.ndarray,
     bounds: tuple[float, float, float, float],
     params: DepthMapParams,
@@ -244,7 +249,7 @@ def _cut(
     half_x, half_z, y_near, y_far = bounds
     rows, cols = int(params.shape[0]), int(params.shape[1])
     regions = model_to_gel.shape[0]
-    min_y, counts = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, (rows, cols), threads)
+    min_y, counts = _min_y_per_region(reads, model_to_gel, bounds, (rows, cols), threads)
     empty = np.flatnonzero(counts == 0)
     if empty.size and not allow_empty:
         raise OutOfReachError(
@@ -293,11 +298,9 @@ def contact_depth_map(
     model_to_gel = _model_to_gels(
         check_transform(model_to_world, "model_to_world"), check_transform(gel_to_world, "gel_to_world")[None]
     )
+    whole_cloud = _Reads(points, np.array([0], np.int64), np.array([len(points)], np.int64), np.array([0, 1], np.int64))
     patches = _cut(
-        points,
-        np.array([0], np.int64),
-        np.array([len(points)], np.int64),
-        np.array([0, 1], np.int64),
+        whole_cloud,
         model_to_gel,
         bounds,
         params,
@@ -385,10 +388,7 @@ def contact_depth_maps(
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
     return _cut(
-        model.points_m,
-        starts,
-        ends,
-        runs,
+        _Reads(model.points_m, starts, ends, runs),
         model_to_gel,
         bounds,
         params,
