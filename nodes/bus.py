@@ -232,18 +232,15 @@ class Subscriber(Generic[M]):
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             self.discover()
-            if self.sock.getsockopt(zmq.EVENTS) & POLLIN:  # type: ignore[operator]  # EVENTS is an int
+            ready = self.sock.getsockopt(zmq.EVENTS) & POLLIN  # type: ignore[operator]  # EVENTS is an int
+            if not ready:  # wait, at most until the next discovery or the deadline
+                wait = DISCOVERY_PERIOD_S if deadline is None else min(DISCOVERY_PERIOD_S, deadline - time.monotonic())
+                ready = wait > 0 and self.sock.poll(wait * 1000, zmq.POLLIN)  # type: ignore[arg-type]  # pyzmq polls float ms; its stub says int
+            if ready:
                 envelope = self.handle(recv_frames(self.sock))
                 if envelope is not None:
                     return envelope
-                continue
-            wait = DISCOVERY_PERIOD_S if deadline is None else min(DISCOVERY_PERIOD_S, deadline - time.monotonic())
-            if wait > 0 and self.sock.poll(wait * 1000, zmq.POLLIN):  # type: ignore[arg-type]  # pyzmq polls float ms; its stub says int
-                envelope = self.handle(recv_frames(self.sock))
-                if envelope is not None:
-                    return envelope
-                continue
-            if deadline is not None and time.monotonic() >= deadline:
+            elif deadline is not None and time.monotonic() >= deadline:
                 return None
 
     def receive_ready(self, limit: int = SLICE_MESSAGES) -> list[Envelope]:
