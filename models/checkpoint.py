@@ -23,7 +23,7 @@ from models.networks import (
     UNetGenerator,
     config_from_dict,
 )
-from models.prior import PhysicsPrior, PriorSpec
+from models.prior import PhysicsPrior, PriorSpec, checked_pose_sigma_mm
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -73,10 +73,7 @@ class TrainConfig:
             raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
         if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
             raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
-        if not (np.isfinite(self.session_pose_sigma_mm) and self.session_pose_sigma_mm >= 0):
-            raise ModelConfigError(
-                f"session_pose_sigma_mm must be a finite number >= 0, got {self.session_pose_sigma_mm}"
-            )
+        checked_pose_sigma_mm(self.session_pose_sigma_mm, "session_pose_sigma_mm")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):

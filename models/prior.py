@@ -24,6 +24,20 @@ from models.errors import ModelConfigError
 from sim.gelsight import GelSightRenderError, render_depth_maps, scene_renderer
 from workcell.scene import SceneError, load_scene
 
+# Largest in-plane pose uncertainty (mm, one sigma) the prior blurs over: a quarter of the 19.9 mm
+# sensed width; beyond it a contact is spread over the whole field and no longer has a place. The
+# blur's cost grows with it (5 mm: ~65 ms an image at 256 x 256; 1e5 mm took seconds at 32 x 32).
+MAX_POSE_SIGMA_MM = 5.0
+
+
+def checked_pose_sigma_mm(value: float, name: str = "pose_sigma_mm") -> float:
+    """``value`` as a float when it is a real number of mm in [0, MAX_POSE_SIGMA_MM];
+    ModelConfigError naming ``name`` otherwise (NaN, inf, bool, text)."""
+    number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not (number and 0 <= value <= MAX_POSE_SIGMA_MM):
+        raise ModelConfigError(f"{name} must be a finite number of mm in [0, {MAX_POSE_SIGMA_MM:g}], got {value!r}")
+    return float(value)
+
 
 @dataclasses.dataclass(frozen=True)
 class PriorSpec:
@@ -47,7 +61,7 @@ class PriorSpec:
                 depth_crop_m=crop,  # type: ignore[arg-type]
                 pose_sigma_mm=float(data.get("pose_sigma_mm", 0.0)),
             )
-        except (KeyError, TypeError, ValueError) as err:
+        except (KeyError, TypeError, ValueError, OverflowError) as err:
             raise ModelConfigError(f"a physics prior needs a scene and a 3-value depth_crop_m, got {data!r}") from err
 
 
@@ -63,8 +77,7 @@ class PhysicsPrior:
             scene = load_scene(spec.scene)
         except (SceneError, OSError) as err:
             raise ModelConfigError(f"the physics prior's scene {spec.scene}: {err}") from err
-        if not (np.isfinite(spec.pose_sigma_mm) and spec.pose_sigma_mm >= 0):
-            raise ModelConfigError(f"the prior's pose_sigma_mm must be a finite number >= 0, got {spec.pose_sigma_mm}")
+        checked_pose_sigma_mm(spec.pose_sigma_mm, "the prior's pose_sigma_mm")
         self.spec = spec
         self.renderer = scene_renderer(scene, size=(size, size), effects=False)
 
@@ -74,10 +87,12 @@ class PhysicsPrior:
         through a registration a millimetre off is a millimetre off in the image, while the
         sensor's background stays where it is; so the expected image is the background plus the
         contact's change blurred by the offsets' Gaussian (the rendering is shift invariant away
-        from the field's edge): a sharp contact is drawn only where its place is known."""
-        sigma_mm = self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm
-        if not (np.isfinite(sigma_mm) and sigma_mm >= 0):
-            raise ModelConfigError(f"pose_sigma_mm must be a finite number >= 0, got {sigma_mm}")
+        from the field's edge): a sharp contact is drawn only where its place is known.
+
+        Contract: ``depth_maps_m`` as ``sim.gelsight.render_depth_maps`` takes them (N >= 0 real
+        float maps: none give none), ``pose_sigma_mm`` as :func:`checked_pose_sigma_mm`;
+        otherwise ModelConfigError naming the argument, before anything is drawn."""
+        sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
         try:
             images = render_depth_maps(
                 self.renderer, depth_maps_m, (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
@@ -88,17 +103,16 @@ class PhysicsPrior:
             return images
         pitch_rows_mm, pitch_cols_mm = self.renderer.pixel_pitch_mm
         background = self.renderer.background().astype(np.float32)
-        changes = [
-            cv2.GaussianBlur(
+        for image in images:  # in place: one float32 image at a time
+            change = cv2.GaussianBlur(
                 image.astype(np.float32) - background,
                 (0, 0),
                 sigmaX=sigma_mm / pitch_cols_mm,
                 sigmaY=sigma_mm / pitch_rows_mm,
                 borderType=cv2.BORDER_REPLICATE,
             )
-            for image in images
-        ]
-        return np.stack([np.clip(np.rint(background + change), 0, 255).astype(np.uint8) for change in changes])
+            image[...] = np.clip(np.rint(background + change), 0, 255)
+        return images
 
     def channels(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
         """N x 3 x size x size float32 in [-1, 1] (the network's image units)."""

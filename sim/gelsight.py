@@ -368,6 +368,18 @@ def scene_renderer(
     return GelSightRenderer(config, effects=called_for, rng=rng)
 
 
+# Most pixels one call of render_depth_maps draws (maps x image pixels): 192 MiB of RGB. A
+# planner's request is at most a few hundred maps and an evaluation split a few thousand at the
+# GelSight's 120 x 160 (19 200 px each).
+MAX_RENDERED_PIXELS = 2**26
+# Most bins of one depth-map: as many as the largest image the renderer draws (4096 x 4096); a
+# map's float32 gap copy is then at most 64 MiB.
+MAX_MAP_BINS = 4096 * 4096
+# Gaps beyond this (mm, either way) render as this: the gel, at most MAX_LENGTH_MM thick, is
+# untouched by anything farther and fully pressed by anything deeper.
+GAP_LIMIT_MM = 1e3
+
+
 def render_depth_maps(
     renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop_xz_m: tuple[float, float]
 ) -> np.ndarray:
@@ -375,32 +387,49 @@ def render_depth_maps(
     as the gel gap: N x rows x cols maps in the gel frame (m; rows along gel z, columns along gel
     x; perception.depthmap) over a crop of ``crop_xz_m`` (x, z extents) centred on the gel,
     resampled at the renderer's pixel centres (bilinear; edge bins repeat). This is physics fed
-    exactly what a learned model is fed; the crop must cover the renderer's field of view."""
+    exactly what a learned model is fed; the crop must cover the renderer's field of view.
+
+    Contract: ``depth_maps_m`` a real float array, N >= 0 maps (none: no images) of at least
+    one bin and at most MAX_MAP_BINS; values finite, +inf or NaN (both: nothing there),
+    gaps beyond GAP_LIMIT_MM either way read as that limit; N x H x W at most
+    MAX_RENDERED_PIXELS; ``crop_xz_m`` two finite positive extents. Otherwise GelSightRenderError
+    naming the argument, before anything is drawn."""
     maps = np.asarray(depth_maps_m)
-    if maps.ndim != 3 or not np.issubdtype(maps.dtype, np.floating):
+    if maps.ndim != 3 or maps.dtype.kind != "f":
         raise GelSightRenderError(
-            f"depth-maps must be an N x rows x cols float array in metres, got {maps.shape} {maps.dtype}"
+            f"depth_maps_m must be an N x rows x cols float array in metres, got {maps.shape} {maps.dtype}"
         )
+    count, rows, cols = maps.shape
     h, w = renderer.config.shape
+    if not 1 <= rows * cols <= MAX_MAP_BINS:
+        raise GelSightRenderError(f"depth_maps_m must have 1 to {MAX_MAP_BINS} bins a map, got {rows} x {cols}")
+    if count * h * w > MAX_RENDERED_PIXELS:
+        raise GelSightRenderError(
+            f"depth_maps_m: {count} maps of {h} x {w} px are more than {MAX_RENDERED_PIXELS} pixels a call"
+        )
+    if np.isneginf(maps).any():
+        raise GelSightRenderError("depth_maps_m contains -inf: an object cannot reach infinitely deep")
+    crop = np.asarray(crop_xz_m, dtype=np.float64) if np.ndim(crop_xz_m) == 1 else np.array([np.nan])
+    if crop.shape != (2,) or not np.all((crop > 0) & (crop < np.inf)):
+        raise GelSightRenderError(f"crop_xz_m must be two finite positive extents in m, got {crop_xz_m!r}")
     pitch_rows_mm, pitch_cols_mm = renderer.pixel_pitch_mm
-    crop_x_mm, crop_z_mm = crop_xz_m[0] * 1e3, crop_xz_m[1] * 1e3
+    crop_x_mm, crop_z_mm = crop[0] * 1e3, crop[1] * 1e3
     if w * pitch_cols_mm > crop_x_mm + 1e-6 or h * pitch_rows_mm > crop_z_mm + 1e-6:
         raise GelSightRenderError(
             f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
             f"GelSight's field of view ({w * pitch_cols_mm:.1f} x {h * pitch_rows_mm:.1f} mm)"
         )
-    rows, cols = maps.shape[1:]
     # Bin-index coordinates of the camera's pixel centres on the gel (bin centres at integers).
     u = ((np.arange(w) - (w - 1) / 2) * pitch_cols_mm + crop_x_mm / 2) / crop_x_mm * cols - 0.5
     v = ((np.arange(h) - (h - 1) / 2) * pitch_rows_mm + crop_z_mm / 2) / crop_z_mm * rows - 0.5
     map_u, map_v = np.meshgrid(u.astype(np.float32), v.astype(np.float32))
-    gaps_mm = np.nan_to_num(maps.astype(np.float32) * 1e3, nan=np.inf)
-    return np.stack(
-        [
-            renderer.render(cv2.remap(gap, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
-            for gap in gaps_mm
-        ]
-    )
+    images = np.empty((count, h, w, 3), np.uint8)
+    for image, depth_map_m in zip(images, maps):
+        # Clipped in the input's dtype before the mm scale and the float32 cast, which would overflow.
+        gap_mm = np.clip(np.nan_to_num(depth_map_m, nan=np.inf), -GAP_LIMIT_MM * 1e-3, GAP_LIMIT_MM * 1e-3)
+        gap_mm = gap_mm.astype(np.float32) * np.float32(1e3)
+        image[...] = renderer.render(cv2.remap(gap_mm, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    return images
 
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:
