@@ -30,6 +30,7 @@ from dataset.images import deformation_map
 from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
 from models.template_match import template_match
+from msgs.progress import Progress
 from perception.errors import ImageComparisonError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
 
@@ -169,8 +170,12 @@ def ssim_statistics(
 def _check_statistics_input(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int) -> None:
     """ModelConfigError unless there are 2 pairs of one shape and ``baseline_draws`` is an
     integer in [1, MAX_BASELINE_DRAWS]."""
-    if len(truth) < 2 or truth.shape != estimate.shape:
-        raise ModelConfigError(f"need at least 2 pairs of equal shape, got {truth.shape} and {estimate.shape}")
+    shape, other = np.shape(truth), np.shape(estimate)
+    if not shape or shape[0] < 2 or shape != other:
+        raise ModelConfigError(
+            f"need at least 2 pairs of equal shape (the baseline scores each estimate against other "
+            f"truths), got {shape} and {other}"
+        )
     if not (
         isinstance(baseline_draws, (int, np.integer))
         and not isinstance(baseline_draws, bool)

@@ -42,9 +42,10 @@ from dataset.images import resize_rgb
 from models.errors import ModelConfigError
 from models.evaluate import predict
 from models.networks import UNetGenerator
-from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map
+from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
+from perception.errors import DepthMapError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
-from sim.gelsight import GelSightRenderer, GelSightRenderError, scene_renderer
+from sim.gelsight import PIXEL_PITCH_RANGE_MM, GelSightRenderer, GelSightRenderError, scene_renderer
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, load_scene
@@ -53,6 +54,28 @@ WINDOW_RADII = 3.0
 RANDOM_FRAMES = 15
 ESTIMATES = ("model", "model_empty", "background", "renderer", "random")
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
+# Largest ball a press may be of (mm radius): a 100 mm ball already presses a nearly flat cap
+# into a 25 mm gel. Its cloud at the model spacing (0.1 mm) has 3.1 M points (75 MB).
+MAX_BALL_RADIUS_MM = 50.0
+# Most points of a ball's cloud (96 MB of float64 points, twice that while it is drawn).
+MAX_BALL_POINTS = 4_000_000
+# Widest crop margin (m) the evaluation bins with: the calibration offset it absorbs is a few
+# mm, and 10 mm is more than the gel's half-width.
+MAX_MARGIN_M = 0.01
+
+
+def _check_press_settings(ball_radius_mm: float, mm_per_px: float) -> None:
+    """ModelConfigError naming the argument unless the ball radius is in (0, MAX_BALL_RADIUS_MM]
+    and the pixel pitch in sim.gelsight.PIXEL_PITCH_RANGE_MM (NaN and inf fail both)."""
+    if not (_is_real(ball_radius_mm) and 0 < ball_radius_mm <= MAX_BALL_RADIUS_MM):
+        raise ModelConfigError(f"--ball-radius-mm must be in (0, {MAX_BALL_RADIUS_MM:g}] mm, got {ball_radius_mm!r}")
+    low, high = PIXEL_PITCH_RANGE_MM
+    if not (_is_real(mm_per_px) and low <= mm_per_px <= high):
+        raise ModelConfigError(f"--mm-per-px must be in [{low:g}, {high:g}] mm, got {mm_per_px!r}")
+
+
+def _is_real(value: object) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +93,9 @@ def press_geometry(
     presses: BallPresses, index: int, mm_per_px: float, ball_radius_mm: float, grid: tuple[int, int]
 ) -> PressGeometry:
     """Where press ``index`` is: in the gel frame from the file's pixels, and on the model's
-    ``grid`` (rows, columns), which shows the same camera field as the file's frames."""
+    ``grid`` (rows, columns), which shows the same camera field as the file's frames. Ball and
+    pitch as :func:`evaluate_real_presses` takes them; otherwise ModelConfigError."""
+    _check_press_settings(ball_radius_mm, mm_per_px)
     height, width = presses.background.shape[:2]
     col_px, row_px = presses.centers_xy_px[index]
     contact_mm = float(presses.radii_px[index]) * mm_per_px
@@ -93,8 +118,17 @@ def press_geometry(
 
 def ball_cloud_m(ball_radius_mm: float, spacing_m: float = MODEL_POINT_SPACING_M, seed: int = 0) -> np.ndarray:
     """Points uniformly on a sphere of ``ball_radius_mm`` about the origin (N x 3 m), one per
-    ``spacing_m``² of surface, as ``perception.registration.sample_model_cloud`` samples a mesh."""
+    ``spacing_m``² of surface, as ``perception.registration.sample_model_cloud`` samples a mesh.
+    ``ball_radius_mm`` in (0, MAX_BALL_RADIUS_MM], ``spacing_m`` positive and at most
+    MAX_BALL_POINTS points; otherwise ModelConfigError, before any point is drawn."""
+    if not (_is_real(ball_radius_mm) and 0 < ball_radius_mm <= MAX_BALL_RADIUS_MM):
+        raise ModelConfigError(f"ball_radius_mm must be in (0, {MAX_BALL_RADIUS_MM:g}] mm, got {ball_radius_mm!r}")
     radius_m = ball_radius_mm * 1e-3
+    if not (_is_real(spacing_m) and 4 * np.pi * radius_m**2 / MAX_BALL_POINTS <= spacing_m**2 < np.inf):
+        raise ModelConfigError(
+            f"spacing_m {spacing_m!r} must be finite and leave at most {MAX_BALL_POINTS} points on a "
+            f"{ball_radius_mm:g} mm ball"
+        )
     count = max(int(4 * np.pi * radius_m**2 / spacing_m**2), 100)
     directions = np.random.default_rng(seed).standard_normal((count, 3))
     return radius_m * directions / np.linalg.norm(directions, axis=1, keepdims=True)
@@ -142,11 +176,17 @@ def evaluate_real_presses(
     seed: int = 0,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Scores of every estimate on every press (module docstring): the JSON of ``dtx evaluate
-    --real-presses`` and the images behind it (for figures). Bad input raises ModelConfigError."""
-    if not (np.isfinite(ball_radius_mm) and ball_radius_mm > 0):
-        raise ModelConfigError(f"--ball-radius-mm must be a positive number, got {ball_radius_mm}")
-    if not (np.isfinite(mm_per_px) and mm_per_px > 0):
-        raise ModelConfigError(f"--mm-per-px must be a positive number, got {mm_per_px}")
+    --real-presses`` and the images behind it (for figures).
+
+    Contract: ``ball_radius_mm`` in (0, MAX_BALL_RADIUS_MM], ``mm_per_px`` in
+    sim.gelsight.PIXEL_PITCH_RANGE_MM, ``margin_m`` in [0, MAX_MARGIN_M], ``seed`` an integer >= 0,
+    ``depth_range_m`` as perception.depthmap.crop_bounds takes it. Bad input raises
+    ModelConfigError naming it, before any depth-map is cut."""
+    _check_press_settings(ball_radius_mm, mm_per_px)
+    if not (_is_real(margin_m) and 0 <= margin_m <= MAX_MARGIN_M):
+        raise ModelConfigError(f"margin_m must be in [0, {MAX_MARGIN_M:g}] m, got {margin_m!r}")
+    if not (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0):
+        raise ModelConfigError(f"seed must be an integer >= 0, got {seed!r}")
     presses, scene, renderer = _load_presses(path, scene)
     grid = (generator.config.image_size, generator.config.image_size)
     n = len(presses.frames)
@@ -159,6 +199,10 @@ def evaluate_real_presses(
         )
     geometry = scene.gripper_geometry()
     params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m)
+    try:
+        crop_bounds(geometry, params)
+    except DepthMapError as err:
+        raise ModelConfigError(f"depth_range_m {depth_range_m!r}: {err}") from err
     cloud = ball_cloud_m(ball_radius_mm)
     depth_maps = np.stack([press_depth_map(g, ball_radius_mm, geometry, params, cloud) for g in geometries])
     empty = np.full((1, *grid), depth_range_m[1], dtype=np.float32)

@@ -12,17 +12,28 @@ from models.errors import ModelConfigError
 
 
 def most_deformed_box(deformation: np.ndarray, size_px: int) -> tuple[int, int]:
-    """Top-left (x, y) of the size_px square with the largest summed deformation."""
-    h, w = deformation.shape
-    if not 0 < size_px <= min(h, w):
-        raise ModelConfigError(f"template size {size_px} px does not fit a {h} x {w} image")
+    """Top-left (x, y) of the size_px square with the largest summed deformation (ties: the
+    first in row-major order).
+
+    Contract: ``deformation`` an H x W array of finite real numbers (bool, integer or float;
+    the sums are taken in float64 and never overflow), ``size_px`` an integer in [1, min(H, W)].
+    Otherwise ModelConfigError naming the argument: a NaN or an infinite pixel has no sum to rank."""
+    values = np.asarray(deformation)
+    if values.ndim != 2 or values.dtype.kind not in "biuf":
+        raise ModelConfigError(f"deformation must be an H x W real array, got {values.shape} {values.dtype}")
+    h, w = values.shape
+    whole = isinstance(size_px, (int, np.integer)) and not isinstance(size_px, bool)
+    if not (whole and 0 < size_px <= min(h, w)):
+        raise ModelConfigError(f"template size {size_px!r} px does not fit a {h} x {w} image (size_px)")
+    values = values.astype(np.float64)
+    if not np.all(np.isfinite(values)):
+        raise ModelConfigError("deformation contains NaN or inf: no box has a largest sum")
+    # Scaled to at most 1, so that no sum of size_px² values overflows; the ranking is the same.
+    peak = float(np.abs(values).max())
+    if peak > 0:
+        values /= peak
     sums = cv2.boxFilter(
-        deformation.astype(np.float32),
-        -1,
-        (size_px, size_px),
-        normalize=False,
-        anchor=(0, 0),
-        borderType=cv2.BORDER_CONSTANT,
+        values, -1, (size_px, size_px), normalize=False, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT
     )[: h - size_px + 1, : w - size_px + 1]
     y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
     return int(x), int(y)

@@ -139,8 +139,11 @@ PSNR_MAX_DB = 100.0
 
 def psnr_rgb(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """PSNR (dB, peak 255) of uint8 RGB images over all pixels and channels: H x W x 3 pairs ->
-    scalar array, N x H x W x 3 -> N values; capped at :data:`PSNR_MAX_DB`."""
+    scalar array, N x H x W x 3 -> N values; capped at :data:`PSNR_MAX_DB`. Images of no pixel
+    have no mean error: ImageComparisonError, as for other dtypes or shapes."""
     a, b = _rgb_pair(a, b, "psnr_rgb")
+    if a.shape[-3] * a.shape[-2] == 0:
+        raise ImageComparisonError(f"psnr_rgb needs images of at least one pixel, got {a.shape}")
     mse = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).reshape((-1,) + a.shape[-3:]).mean(axis=(1, 2, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         psnr = 10.0 * np.log10(DATA_RANGE**2 / mse)
