@@ -30,7 +30,6 @@ from dataset.images import deformation_map
 from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
 from models.template_match import template_match
-from msgs.progress import Progress
 from perception.errors import ImageComparisonError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
 
@@ -224,9 +223,16 @@ def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
     """PSNR (dB, perception.ssim.psnr_rgb) of every estimate against its truth and against the same
     random other truths as the SSIM baseline (same draws for the same seed): mean and standard
     error of each. Cross-modal benchmarks report PSNR beside SSIM; PSNR weighs every pixel's
-    error, SSIM the local structure."""
+    error, SSIM the local structure.
+
+    Contract as :func:`ssim_statistics` without windows (N >= 2 pairs of uint8 N x H x W x 3
+    images of one shape, at least one pixel); otherwise ModelConfigError."""
     n = len(truth)
-    model = psnr_rgb(truth, estimate)
+    _check_statistics_input(truth, estimate, baseline_draws)
+    try:
+        model = psnr_rgb(truth, estimate)
+    except ImageComparisonError as err:  # the contract above names the models' error
+        raise ModelConfigError(str(err)) from err
     baseline = _baseline(
         n,
         baseline_draws,
