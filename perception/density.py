@@ -49,7 +49,7 @@ def downsample_to_density(points_m: np.ndarray, points_per_cm3: float) -> np.nda
     MAX_VOXELS_PER_AXIS voxels along each axis; the density as :func:`voxel_size_for_density`.
     Otherwise PerceptionError naming the argument, before Open3D is called."""
     raw = np.asarray(points_m)
-    if raw.ndim != 2 or raw.shape[1] != 3 or raw.dtype.kind not in "iuf":
+    if raw.ndim != 2 or raw.shape[1] != 3 or raw.dtype.kind not in "biuf":
         raise PerceptionError(f"points must be (N, 3) real numbers, got {raw.shape} {raw.dtype}")
     points = raw.astype(np.float64)
     if not np.all(np.isfinite(points)):

@@ -158,13 +158,16 @@ class ContactPatches:
 
 
 def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
-    """float32 or float64 C-contiguous (N, 3), finite; other dtypes are used in float64."""
+    """float32 or float64 C-contiguous (N, 3), finite; other bool, integer and float dtypes are used
+    in float64. Complex, text and object arrays are no points: DepthMapError."""
     points = np.asarray(points_model_m)
+    if points.dtype.kind not in "biuf":
+        raise DepthMapError(f"model points must be real numbers (bool, integer or float), got {points.dtype}")
     points = np.ascontiguousarray(points, dtype=points.dtype if points.dtype == np.float32 else np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise DepthMapError(f"model points must be (N, 3), got {points.shape}")
     if not np.all(np.isfinite(points)):
-        raise DepthMapError("model points contain NaN or inf")
+        raise DepthMapError("model points must be finite: they contain NaN or inf")
     return points
 
 
@@ -414,9 +417,7 @@ def centre_between_gels(
     y of the model points over each gel's whole face) and moves nothing across the gels. When
     either gel has no model point in front of its face, the pose is returned unchanged.
     """
-    points = np.asarray(points_model_m, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
-        raise DepthMapError(f"model points must be finite (N, 3), got shape {points.shape}")
+    points = _points_for_kernel(points_model_m).astype(np.float64, copy=False)
     nearest = []
     for gel_to_world in (gel_left_to_world, gel_right_to_world):
         model_to_gel = np.linalg.inv(check_transform(gel_to_world, "gel_to_world")) @ check_transform(

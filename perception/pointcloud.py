@@ -71,9 +71,12 @@ def transform_points(points_a_m: np.ndarray, a_to_b: np.ndarray) -> np.ndarray:
     non-rigid ``a_to_b`` (:func:`check_transform`) raises PointCloudError: an (N, 4)
     homogeneous or (M, 2) array is refused, never reshaped into other points."""
     try:
-        points = np.asarray(points_a_m, dtype=np.float64)
+        raw = np.asarray(points_a_m)
     except (TypeError, ValueError) as err:
         raise PointCloudError(f"points_a_m must be an (N, 3) array of numbers: {err}") from None
+    if raw.dtype.kind not in "biuf":  # complex would be cast, text parsed
+        raise PointCloudError(f"points_a_m must be real numbers (bool, integer or float), got {raw.dtype}")
+    points = raw.astype(np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise PointCloudError(f"points_a_m must be (N, 3), got shape {points.shape}")
     if not np.all(np.isfinite(points)):
@@ -245,6 +248,8 @@ class VoxelIndex:
         # float32 points are kept as they are (exact, and half the memory and memory traffic of a
         # dense model cloud); every other dtype is used in float64.
         points = np.asarray(points_m)
+        if points.dtype.kind not in "biuf":  # complex would be cast, text parsed
+            raise PointCloudError(f"points must be real numbers (bool, integer or float), got {points.dtype}")
         points = np.ascontiguousarray(points, dtype=np.float32 if points.dtype == np.float32 else np.float64)
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         if points.ndim != 2 or points.shape[1] != 3 or not _extent(points, lo, hi):
