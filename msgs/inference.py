@@ -19,17 +19,22 @@ class TactileEstimateRequest(Message):
     float32/float64, metres in ``world``), or ``cloud_id`` alone: the id a reply gave for a
     cloud sent earlier, which the worker keeps (a worker that no longer holds it answers
     ``unknown_cloud``: send the points again). ``dropout_samples`` > 1 asks for a per-pixel
-    uncertainty from that many stochastic passes.
+    uncertainty from that many stochastic passes. ``pose_sigma_mm``: how far off in the gel
+    plane (mm, one standard deviation per axis) the geometry may be — the registration's
+    uncertainty, 0 for exact geometry; negative asks for the checkpoint's default (the
+    uncertainty of the session it was trained on). One value for the request: a planner whose
+    regions differ in it sends them as separate requests, which the server batches together.
     """
 
     SCHEMA = "dtx.inference.TactileEstimateRequest"
-    VERSION = 2
+    VERSION = 3
 
     depth_maps: np.ndarray = empty((0, 100, 100), np.float32)
     points: np.ndarray = empty((0, 3), np.float32)
     cloud_id: str = ""
     gel_poses: np.ndarray = empty((0, 4, 4), np.float64)
     dropout_samples: int = 1
+    pose_sigma_mm: float = -1.0
 
 
 @dataclasses.dataclass
@@ -45,10 +50,13 @@ class TactileEstimateReply(Message):
     (y_near, y_far) in the gel frame: depth-maps are clipped to it and y_far means no surface.
     ``cloud_id`` names the cloud a points request used ("" for depth-maps): the same cloud
     (dtype, shape, values) gets the same id from every worker. ``worker`` is the node that answered.
+    ``pose_sigma_mm`` is the in-plane pose uncertainty (mm) the estimate assumed: the request's,
+    or the checkpoint's default for a negative one; -1 for a model without a physics prior, which
+    takes every depth-map as it is.
     """
 
     SCHEMA = "dtx.inference.TactileEstimateReply"
-    VERSION = 3
+    VERSION = 4
 
     images: np.ndarray = empty((0, 100, 100, 3), np.uint8)
     uncertainty: np.ndarray = empty((0, 100, 100), np.float32)
@@ -59,3 +67,4 @@ class TactileEstimateReply(Message):
     depth_range_m: list[float] = dataclasses.field(default_factory=list)
     cloud_id: str = ""
     worker: str = ""
+    pose_sigma_mm: float = -1.0

@@ -19,8 +19,12 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
 - ``images``: the deterministic estimate (dropout off). ``uncertainty``: with
   ``dropout_samples`` = S > 1, the per-pixel standard deviation (0..255 image units, mean of
   the three channels) of S extra passes with dropout on — pix2pix's noise z; zeros for S = 1.
+- ``pose_sigma_mm``: the in-plane pose uncertainty (mm) of the request's geometry, which a
+  model with a physics prior blurs its prior's image by (models.prior): 0 for exact geometry,
+  up to ``MAX_POSE_SIGMA_MM``; negative for the checkpoint's default. The reply says which it used.
 - A bad request (shape, dtype, NaN/inf, empty, too many regions, points, points x regions
-  or regions x samples, both or neither input, gel poses that are not rigid transforms) gets an
+  or regions x samples, both or neither input, gel poses that are not rigid transforms, a
+  pose_sigma_mm that is not finite or above the bound) gets an
   error reply with code ``bad_request``; a wrong schema is refused by the bus. The node keeps
   serving. A gel that does not reach the cloud is answered per region (``region_status``
   ``out_of_reach``, the empty map's estimate), not by failing the request.
@@ -42,6 +46,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
+import math
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -55,6 +60,7 @@ import torch
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
+from models.prior import MAX_POSE_SIGMA_MM
 from models.runtime import Runner, UncheckedGenerator, eager_runner, onnx_graph, onnx_runner, sampling_copy
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from msgs.system import ErrorCode
@@ -227,6 +233,11 @@ class InferenceNode(Node):
         maps, points, poses = request.depth_maps, request.points, request.gel_poses
         if not 1 <= request.dropout_samples <= p.max_dropout_samples:
             raise BadRequest(f"dropout_samples must be 1..{p.max_dropout_samples}, got {request.dropout_samples}")
+        if not (math.isfinite(request.pose_sigma_mm) and request.pose_sigma_mm <= MAX_POSE_SIGMA_MM):
+            raise BadRequest(
+                f"pose_sigma_mm must be a finite number of mm <= {MAX_POSE_SIGMA_MM:g} (0: exact geometry; "
+                f"negative: the checkpoint's default), got {request.pose_sigma_mm}"
+            )
         if maps.size and (points.size or poses.size or request.cloud_id):
             raise BadRequest("give either depth_maps or a cloud (points or cloud_id) with gel_poses, not both")
         if maps.size:
@@ -293,7 +304,8 @@ class InferenceNode(Node):
             clouds.append(job_cloud)
         if not ready:
             return
-        x = self._network_input(np.concatenate(maps))
+        sigmas = [self._pose_sigma_mm(job.request) for job in ready]
+        x = self._network_input(maps, sigmas)
         images = to_uint8_rgb(torch.from_numpy(self._batched(self.deterministic, x)))
         samples = [job.request.dropout_samples for job in ready]
         offsets = np.cumsum([0] + [m.shape[0] for m in maps])
@@ -319,22 +331,35 @@ class InferenceNode(Node):
                     depth_range_m=[float(y) for y in self.depth_range_m],
                     cloud_id=clouds[i],
                     worker=self.name,
+                    pose_sigma_mm=sigmas[i],
                 )
             )
 
-    def _network_input(self, maps: np.ndarray) -> np.ndarray:
-        """The network's input for N depth-maps. A model with a physics prior needs its image of
-        every map: per-image NumPy and OpenCV, 1.9-2.0 ms CPU a region for the demo's model (a
-        quarter of the server's, ``dtx bench serve``), mostly outside the GIL, so chunks render
-        side by side on the cores the network uses next."""
+    def _pose_sigma_mm(self, request: TactileEstimateRequest) -> float:
+        """The in-plane pose uncertainty (mm) a request's estimate assumes: its own, or the
+        checkpoint's default for a negative one; -1 for a model without a physics prior."""
+        if self.prior is None:
+            return -1.0
+        return self.prior.spec.pose_sigma_mm if request.pose_sigma_mm < 0 else request.pose_sigma_mm
 
-        def inputs(chunk: np.ndarray) -> np.ndarray:
-            return network_input(chunk, self.depth_range_m, self.config, self.prior).numpy()
+    def _network_input(self, maps: list[np.ndarray], sigmas: list[float]) -> np.ndarray:
+        """The network's input for each request's depth-maps, whose geometry is known to
+        ``sigmas`` (mm). A model with a physics prior needs its image of every map: per-image
+        NumPy and OpenCV, 1.9-2.0 ms CPU a region for the demo's model (a quarter of the
+        server's, ``dtx bench serve``), mostly outside the GIL, so chunks render side by side on
+        the cores the network uses next."""
 
-        chunks = min(self.params.threads, len(maps)) if self.prior is not None else 1
-        if chunks == 1:
-            return inputs(maps)
-        return np.concatenate(list(self._prior_pool.map(inputs, np.array_split(maps, chunks))))
+        def inputs(part: tuple[np.ndarray, float | None]) -> np.ndarray:
+            chunk, sigma = part
+            return network_input(chunk, self.depth_range_m, self.config, self.prior, sigma).numpy()
+
+        if self.prior is None:
+            return inputs((np.concatenate(maps), None))
+        threads = self.params.threads
+        parts = [(chunk, s) for m, s in zip(maps, sigmas) for chunk in np.array_split(m, min(threads, len(m)))]
+        if len(parts) == 1:
+            return inputs(parts[0])
+        return np.concatenate(list(self._prior_pool.map(inputs, parts)))
 
     def _depth_maps(
         self, request: TactileEstimateRequest, held: VoxelIndex | None

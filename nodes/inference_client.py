@@ -3,15 +3,20 @@
     with TactileClient() as client:                    # or TactileClient(node.bus) inside a node
         images, uncertainty = client.estimate(depth_maps, dropout_samples=8)
         cloud = Cloud(cloud_world)                     # one object's registered cloud, asked about often
-        images, uncertainty = client.estimate_at(cloud, gel_poses)
+        images, uncertainty = client.estimate_at(cloud, gel_poses, pose_sigma_mm=0.3)
 
 Every server of the name on the bus is used in turn (round robin), local or, with the
 launch file's ``peers:``, remote.
+
+``pose_sigma_mm``: how far off in the gel plane (mm, one sigma) the geometry may be, e.g. the
+registration's uncertainty after a touch calibration; 0 for exact geometry; None for the
+checkpoint's default (its training session's). ``last_reply.pose_sigma_mm`` is the one used.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from types import TracebackType
 
 import numpy as np
@@ -66,18 +71,25 @@ class TactileClient:
         self.client = self.bus.client(service, TactileEstimateRequest, TactileEstimateReply)
         self.last_reply: TactileEstimateReply | None = None
 
-    def estimate(self, depth_maps: np.ndarray, dropout_samples: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def estimate(
+        self, depth_maps: np.ndarray, dropout_samples: int | None = None, pose_sigma_mm: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """From depth-maps: N x 100 x 100 metres in the gel frame (a single 100 x 100 map is one region)."""
         maps = np.asarray(depth_maps, dtype=np.float32)
         return self._call(
             TactileEstimateRequest(
                 depth_maps=maps[None] if maps.ndim == 2 else maps,
                 dropout_samples=dropout_samples or self.dropout_samples,
+                pose_sigma_mm=_wire_sigma(pose_sigma_mm),
             )
         )
 
     def estimate_at(
-        self, cloud: Cloud | np.ndarray, gel_poses: np.ndarray, dropout_samples: int | None = None
+        self,
+        cloud: Cloud | np.ndarray,
+        gel_poses: np.ndarray,
+        dropout_samples: int | None = None,
+        pose_sigma_mm: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """From the object's cloud (a ``Cloud``, or P x 3 points in world, metres, sent whole
         each time) and candidate gel poses (N x 4 x 4, gel to world). A gel that reaches no
@@ -86,20 +98,20 @@ class TactileClient:
         cloud = cloud if isinstance(cloud, Cloud) else Cloud(cloud)
         poses = np.asarray(gel_poses, dtype=np.float64)
         poses = poses[None] if poses.ndim == 2 else poses
-        samples = dropout_samples or self.dropout_samples
+        request = functools.partial(
+            TactileEstimateRequest,
+            gel_poses=poses,
+            dropout_samples=dropout_samples or self.dropout_samples,
+            pose_sigma_mm=_wire_sigma(pose_sigma_mm),
+        )
         if cloud.id and len(cloud.held_by) >= self.client.server_count():
             try:
-                return self._call(
-                    TactileEstimateRequest(cloud_id=cloud.id, gel_poses=poses, dropout_samples=samples), cloud
-                )
+                return self._call(request(cloud_id=cloud.id), cloud)
             except InferenceError as exc:
                 if exc.code != "unknown_cloud":
                     raise
                 cloud.held_by.clear()  # a worker evicted it or was respawned: the points go again
-        return self._call(
-            TactileEstimateRequest(points=cloud.points, cloud_id=cloud.id, gel_poses=poses, dropout_samples=samples),
-            cloud,
-        )
+        return self._call(request(points=cloud.points, cloud_id=cloud.id), cloud)
 
     def _call(self, request: TactileEstimateRequest, cloud: Cloud | None = None) -> tuple[np.ndarray, np.ndarray]:
         try:
@@ -125,3 +137,8 @@ class TactileClient:
         self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
     ) -> None:
         self.close()
+
+
+def _wire_sigma(pose_sigma_mm: float | None) -> float:
+    """The request's field: None (the checkpoint's default) travels as -1."""
+    return -1.0 if pose_sigma_mm is None else float(pose_sigma_mm)
