@@ -34,6 +34,18 @@ def foxglove_schema(dtx_schema: str) -> Any | None:
     return view().get_schema() if view is not None else None
 
 
+def foxglove_frames(message: Message) -> tuple[str, str]:
+    """The frames ``message``'s Foxglove view is drawn in: (frame id, child frame id), the child
+    "" but for a transform. Messages of one topic with other frames show other things (each
+    finger's sample, each transform of the tree), so the live bridge limits each pair apart."""
+    if isinstance(message, msgs.DatasetSample):
+        # A sample's contact depth-map is drawn in the gel frame of its finger.
+        return f"gel_{message.finger}", ""
+    if isinstance(message, msgs.FrameTransform):
+        return message.header.frame_id, message.child_frame_id
+    return message.header.frame_id, ""
+
+
 def _raw_image(stamp_ns: int, frame_id: str, pixels: np.ndarray, encoding: str) -> fox.RawImage:
     """A RawImage of C-contiguous ``pixels`` (rows first), in Foxglove's ``encoding``."""
     return fox.RawImage(
@@ -58,9 +70,9 @@ def foxglove_view(message: Message) -> Any | None:
         return _raw_image(header.stamp_ns, header.frame_id, np.ascontiguousarray(message.image), "rgb8")
     if isinstance(message, msgs.DatasetSample):
         # The sample's contact depth-map: 32FC1, metres along the gel's outward normal (bins with
-        # no surface hold the far end of the depth range), in the gel frame of its finger.
+        # no surface hold the far end of the depth range).
         depth_map = np.ascontiguousarray(message.depth_map_m, dtype=np.float32)
-        return _raw_image(header.stamp_ns, f"gel_{message.finger}", depth_map, "32FC1")
+        return _raw_image(header.stamp_ns, foxglove_frames(message)[0], depth_map, "32FC1")
     if isinstance(message, msgs.PointCloud):
         points = np.ascontiguousarray(message.points, dtype=np.float32)
         fields = [

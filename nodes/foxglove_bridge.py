@@ -6,10 +6,17 @@ Every topic whose messages have a Foxglove well-known form (depth and tactile im
 point clouds, transforms; see ``msgs.foxglove``) is served as the channel ``<topic>/foxglove``,
 the name its bag channel has. A channel is advertised as soon as its topic is discovered, not
 with its first message: a message on a channel nobody could yet subscribe to is lost, and a
-subscription sent right after a late advertise can race it. A latched topic's last message is
-sent again when a client subscribes, so a cloud published once still reaches a viewer that
-connects later. At most ``max_rate_hz`` per topic is forwarded, so a browser never slows the
-session. Off by default; the collection launch files switch it on with ``foxglove:=true``.
+subscription sent right after a late advertise can race it. A latched topic's last message of
+each frame is sent again when a client subscribes, so a cloud published once still reaches a
+viewer that connects later (as Foxglove's ROS bridge keeps a transient-local topic's latest
+messages for new subscribers: foxglove/ros-foxglove-bridge issue #31).
+
+At most ``max_rate_hz`` of each topic *and frame* is forwarded (:class:`FrameThrottle`), so a
+browser never slows the session, yet messages that share a topic but not a frame — the two
+fingers' samples, each transform of ``/tf`` — never thin each other out; a transform goes at
+least once a second whatever ``max_rate_hz``. The heartbeat's counters say how many messages
+were thinned, per topic (``thinned:<topic>``). Off by default; the collection launch files
+switch it on with ``foxglove:=true``.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import re
 import socket
 import threading
@@ -26,23 +34,85 @@ from typing import Any
 import foxglove
 
 import msgs
-from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_schema, foxglove_view
+from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_frames, foxglove_schema, foxglove_view
 from nodes.node import Node, run_node
+
+# What the rate limit tells apart: (dtx topic, frame id, child frame id).
+ThrottleKey = tuple[str, str, str]
+
+# Foxglove's 3D panel places a frame by its newest transform: each one is refreshed at least
+# this often, however low max_rate_hz is set.
+TRANSFORM_MAX_INTERVAL_S = 1.0
+
+
+class FrameThrottle:
+    """At most one message per interval of each (topic, frame id, child frame id), the newest
+    held back rather than lost.
+
+    Foxglove's ROS bridge throttles per topic *and* ``header.frame_id``
+    (foxglove/ros-foxglove-bridge, ``topic_throttle_rates``, src/message_throttler.cpp, pull
+    request #374), so streams that share a topic in other frames keep their own rate; a
+    ``FrameTransform`` names a parent and a child, so each transform is a stream of its own.
+    Where that bridge drops what comes too soon, this one holds the newest such message and
+    sends it once its interval ends (:meth:`release_due`), replacing an older one it held: the
+    foxglove-sdk server's own per-client queue, when full, likewise drops the oldest and keeps
+    the newest (docs.rs foxglove, ``WebSocketServer::message_backlog_size``). So the last
+    message of every frame — a sample, the gripper's final width — always reaches the viewer,
+    and ``thinned`` counts, per topic, the messages a newer one of their frame replaced."""
+
+    def __init__(self, max_rate_hz: float) -> None:
+        if not max_rate_hz > 0:
+            raise ValueError(f"max_rate_hz must be positive, got {max_rate_hz}")
+        self.max_rate_hz = max_rate_hz
+        self.interval_s: dict[str, float] = {}  # topic -> its interval
+        self.next_send: dict[ThrottleKey, float] = {}  # monotonic time the key may send again
+        self.held: dict[ThrottleKey, msgs.Message] = {}
+        self.thinned: dict[str, int] = {}
+
+    def limit(self, topic: str, schema: str) -> None:
+        """Limits ``topic``, whose messages are of ``schema``."""
+        interval_s = 1.0 / self.max_rate_hz
+        if schema == msgs.FrameTransform.SCHEMA:
+            interval_s = min(interval_s, TRANSFORM_MAX_INTERVAL_S)
+        self.interval_s[topic] = interval_s
+        self.thinned[topic] = 0
+
+    def offer(self, topic: str, message: msgs.Message, now: float) -> bool:
+        """Whether to send ``message`` now; if not, it is held for :meth:`release_due`."""
+        key = (topic, *foxglove_frames(message))
+        if key in self.held:
+            # Whether it goes now or waits, the newer message supersedes the one held.
+            del self.held[key]
+            self.thinned[topic] += 1
+        if now >= self.next_send.get(key, -math.inf):
+            self.next_send[key] = now + self.interval_s[topic]
+            return True
+        self.held[key] = message
+        return False
+
+    def release_due(self, now: float) -> list[tuple[str, msgs.Message]]:
+        """The held (topic, message) pairs whose interval has ended, taken from the hold."""
+        due = [key for key in self.held if now >= self.next_send[key]]
+        for key in due:
+            self.next_send[key] = now + self.interval_s[key[0]]
+        return [(key[0], self.held.pop(key)) for key in due]
 
 
 class _Resender(foxglove.ServerListener):
-    """Sends a latched channel's last message again when a client subscribes to it (the SDK
-    has no per-client send, so its other subscribers see it twice; latched topics are rare)."""
+    """Sends a latched channel's last message of each frame again when a client subscribes to
+    it (the SDK has no per-client send, so its other subscribers see it twice; latched topics
+    are rare)."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.last: dict[str, tuple[foxglove.Channel, bytes, int]] = {}  # channel topic -> last message
+        # channel topic -> (frame id, child frame id) -> (channel, last message, log time)
+        self.last: dict[str, dict[tuple[str, str], tuple[foxglove.Channel, bytes, int]]] = {}
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
         with self.lock:
-            latest = self.last.get(channel.topic)
-        if latest is not None:
-            latest[0].log(latest[1], log_time=latest[2])
+            latest = list(self.last.get(channel.topic, {}).values())
+        for sender, data, log_time in latest:
+            sender.log(data, log_time=log_time)
 
 
 SDK_SUBPROTOCOL = b"foxglove.sdk.v1"
@@ -201,14 +271,16 @@ class FoxgloveBridge(Node):
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(name, params, **kwargs)
+        self.throttle = FrameThrottle(self.params.max_rate_hz)
         self.resender = _Resender()
         self.server = foxglove.start_server(name="dtx", host="127.0.0.1", port=0, server_listener=self.resender)
         self.adapter = SubprotocolAdapter(self.params.host, self.params.port, self.server.port)
         self.port = self.adapter.port
         self.channels: dict[str, foxglove.Channel] = {}  # dtx topic -> its Foxglove channel
         self.latched: set[str] = set()
-        self.last_sent: dict[str, float] = {}
         self.create_timer(1.0, self.discover_topics)
+        # A held message goes out within half the shortest interval of its due time.
+        self.create_timer(0.5 * min(1.0 / self.params.max_rate_hz, TRANSFORM_MAX_INTERVAL_S), self.release_held)
         self.discover_topics()
         self.log.info("Foxglove Studio: connect to ws://%s:%d", self.params.host, self.port)
 
@@ -220,7 +292,7 @@ class FoxgloveBridge(Node):
             self.channels[topic] = foxglove.Channel(topic + FOXGLOVE_SUFFIX, schema=schema, message_encoding="protobuf")
             if any(e.latched for e in endpoints):
                 self.latched.add(topic)
-            self.last_sent[topic] = -float("inf")
+            self.throttle.limit(topic, endpoints[0].schema)
             self.create_subscription(
                 topic,
                 msgs.MESSAGE_TYPES[endpoints[0].schema],
@@ -228,10 +300,14 @@ class FoxgloveBridge(Node):
             )
 
     def forward(self, topic: str, message: msgs.Message) -> None:
-        now = time.monotonic()
-        if now - self.last_sent[topic] < 1.0 / self.params.max_rate_hz:
-            return
-        self.last_sent[topic] = now
+        if self.throttle.offer(topic, message, time.monotonic()):
+            self.send(topic, message)
+
+    def release_held(self) -> None:
+        for topic, message in self.throttle.release_due(time.monotonic()):
+            self.send(topic, message)
+
+    def send(self, topic: str, message: msgs.Message) -> None:
         view = foxglove_view(message)
         if view is None:
             return
@@ -240,10 +316,16 @@ class FoxgloveBridge(Node):
         if topic in self.latched:
             with self.resender.lock:
                 # Channel.topic is a method here (the listener's ChannelView has it as a field).
-                self.resender.last[channel.topic()] = (channel, data, log_time)
+                self.resender.last.setdefault(channel.topic(), {})[foxglove_frames(message)] = (channel, data, log_time)
         channel.log(data, log_time=log_time)
 
+    def counters(self) -> dict[str, int]:
+        thinned = {f"thinned:{topic}": count for topic, count in self.throttle.thinned.items()}
+        return {**super().counters(), **thinned}
+
     def close(self) -> None:
+        for topic, message in self.throttle.release_due(math.inf):  # each frame's last message goes too
+            self.send(topic, message)
         self.adapter.close()
         self.server.stop()
         super().close()

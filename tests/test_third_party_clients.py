@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -23,6 +24,7 @@ import pytest
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
+from dataset.reader import DatasetReader
 from msgs.codec import decode, encode
 from nodes.bag import BagWriter, bag_info
 from nodes.bus import Bus
@@ -298,3 +300,54 @@ def test_a_hundred_subscriptions_right_after_advertise_are_never_refused(
         seen = viewer_report(viewer)
     assert {topic + "/foxglove" for topic in topics} <= set(seen["advertised"])
     assert not [topic for topic in topics if seen["messages"].get(topic + "/foxglove", 0) == 0]
+
+
+TRANSFORM_TREE = {"world->camera_left", "world->camera_right", "world->tcp", "tcp->gel_left", "tcp->gel_right"}
+
+
+def free_port() -> int:
+    with socket.create_server(("127.0.0.1", 0)) as sock:
+        return int(sock.getsockname()[1])
+
+
+@pytest.mark.slow
+def test_a_live_session_shows_every_sample_of_both_fingers_and_every_transform(
+    node_modules: Path, tmp_path: Path
+) -> None:
+    """A 25-grasp session with foxglove:=true, watched by the official client from its start:
+    the two fingers' samples share a topic and the tree's transforms share /tf, yet 50 of 50
+    samples and every transform arrive; the bridge's last heartbeat says what it thinned, per topic."""
+    bus_dir, port, out = Path(tempfile.mkdtemp(prefix="dtxf")), free_port(), tmp_path / "session"
+    # Started first, the viewer connects the moment the bridge listens: it misses nothing.
+    viewer = subprocess.Popen(
+        [str(NODE), str(CLIENTS / "foxglove_view.mjs"), f"ws://127.0.0.1:{port}", "foxglove.websocket.v1", "600"],
+        cwd=CLIENTS,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        session = subprocess.run(
+            [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}", "grasps:=25"]
+            + ["seed:=0", "record:=false", "foxglove:=true", f"foxglove_port:={port}"],
+            cwd=ROOT,
+            env={**os.environ, "DTX_BUS_DIR": str(bus_dir)},
+            text=True,
+            capture_output=True,
+            timeout=600,
+        )
+        assert session.returncode == 0, session.stdout[-3000:]
+        seen = viewer_report(viewer)  # it reports when the bridge closes its connection
+        bridge = next(status for status in Registry(bus_dir).node_statuses() if status["node"] == "foxglove")
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
+        shutil.rmtree(bus_dir, ignore_errors=True)
+    assert len(DatasetReader(out).records) == 50
+    assert seen["frames"]["/collector/sample/foxglove"] == {"gel_left": 25, "gel_right": 25}, seen["frames"]
+    assert set(seen["frames"]["/tf/foxglove"]) == TRANSFORM_TREE, seen["frames"]
+    assert set(seen["frames"]["/perception/object_pose/foxglove"]) == {"world->object"}
+    thinned = {key.removeprefix("thinned:"): n for key, n in bridge["counters"].items() if key.startswith("thinned:")}
+    assert {topic.removesuffix("/foxglove") for topic in seen["messages"]} <= set(thinned), bridge["counters"]
+    assert thinned["/collector/sample"] == 0 and thinned["/perception/object_pose"] == 0, thinned
+    print("thinned per topic:", json.dumps(thinned, sort_keys=True))
