@@ -7,7 +7,8 @@ port, an octal-looking serial read as an int), and report an unknown key without
 allowed ones. Rules:
 
 - an unknown key is an error naming it by dotted path, with the allowed keys;
-- an int is widened to a float field (a bool never counts as a number);
+- an int is widened to a float field (a bool never counts as a number; an int too large for a
+  float is an error naming the key);
 - a text field takes only text: an unquoted serial or port in YAML arrives as a number;
 - ``Literal[...]`` fields take one of their values; ``X | None`` takes None too;
 - ``list[T]`` and ``tuple[T, ...]`` take a list (each element checked; tuples are made
@@ -17,11 +18,14 @@ allowed ones. Rules:
 from __future__ import annotations
 
 import dataclasses
+import sys
 import types
 import typing
 from typing import Any, Literal, TypeVar
 
 C = TypeVar("C")
+# An int beyond this has no float (float() raises OverflowError).
+_LARGEST_FLOAT = int(sys.float_info.max)
 
 
 class ConfigError(ValueError):
@@ -73,6 +77,8 @@ def _checked(expected: Any, value: Any, path: str, noun: str) -> Any:
         return _sequence(expected, origin, value, path, noun)
     base = origin or expected
     if base is float and isinstance(value, int) and not isinstance(value, bool):
+        if abs(value) > _LARGEST_FLOAT:
+            raise ConfigError(f"{path} must be a float, got a {value.bit_length()}-bit integer too large for one")
         return float(value)
     if base is str and not isinstance(value, str):
         raise ConfigError(f"{path} must be text, got {value!r} ({type(value).__name__}); quote it in the launch file")
