@@ -86,9 +86,10 @@ class UnknownCloud(ValueError):
 
 
 def cloud_id(points: np.ndarray) -> str:
-    """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes."""
+    """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes; any
+    numeric array, an empty one too (its bytes are none)."""
     digest = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode())
-    digest.update(np.ascontiguousarray(points).data.cast("B"))
+    digest.update(np.ascontiguousarray(points).reshape(-1).view(np.uint8))  # no copy; a view of no bytes is fine
     return digest.hexdigest()
 
 

@@ -49,6 +49,8 @@ class Cloud:
 
     def __post_init__(self) -> None:
         points = np.asarray(self.points)
+        if points.dtype.kind not in "biuf":  # complex would be cast, text parsed
+            raise InferenceError("bad_request", f"points must be real numbers, got {points.dtype}")
         self.points = points if points.dtype == np.float32 else points.astype(np.float64)  # float32 halves the bytes
 
 
