@@ -350,4 +350,7 @@ def test_a_live_session_shows_every_sample_of_both_fingers_and_every_transform(
     thinned = {key.removeprefix("thinned:"): n for key, n in bridge["counters"].items() if key.startswith("thinned:")}
     assert {topic.removesuffix("/foxglove") for topic in seen["messages"]} <= set(thinned), bridge["counters"]
     assert thinned["/collector/sample"] == 0 and thinned["/perception/object_pose"] == 0, thinned
+    shown = ("/collector/sample/foxglove", "/tf/foxglove", "/perception/object_pose/foxglove")
+    print("frames:", json.dumps({topic: seen["frames"][topic] for topic in shown}, sort_keys=True))
+    print("longest gap s:", json.dumps({topic: seen["longest_gap_s"].get(topic) for topic in shown}, sort_keys=True))
     print("thinned per topic:", json.dumps(thinned, sort_keys=True))

@@ -14,8 +14,19 @@ const { FoxgloveClient } = wsProtocol;
 
 const [url, subprotocol, seconds] = process.argv.slice(2);
 // frames: channel topic -> frame key -> messages. A frame key is the message's frame_id, or
-// "parent->child" for a FrameTransform (a transform names two frames).
-const result = { subprotocol, opened: false, advertised: [], messages: {}, frames: {}, errors: [], statuses: [] };
+// "parent->child" for a FrameTransform (a transform names two frames). longest_gap_s: channel
+// topic -> frame key -> the longest wait between two of its messages, in seconds.
+const result = {
+  subprotocol,
+  opened: false,
+  advertised: [],
+  messages: {},
+  frames: {},
+  longest_gap_s: {},
+  errors: [],
+  statuses: [],
+};
+const lastArrival = new Map(); // "topic frame key" -> performance.now() of its last message
 
 function report() {
   process.stdout.write(JSON.stringify(result) + "\n");
@@ -66,6 +77,13 @@ function connect() {
       const key = frameKey(type.decode(new Uint8Array(data.buffer, data.byteOffset, data.byteLength)));
       const frames = (result.frames[topic] ??= {});
       frames[key] = (frames[key] ?? 0) + 1;
+      const now = performance.now();
+      const last = lastArrival.get(`${topic} ${key}`);
+      if (last !== undefined) {
+        const gaps = (result.longest_gap_s[topic] ??= {});
+        gaps[key] = Math.max(gaps[key] ?? 0, (now - last) / 1000);
+      }
+      lastArrival.set(`${topic} ${key}`, now);
     }
   });
 }
