@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from perception.ssim import ssim_rgb
-from sim.gelsight import GelSightConfig, GelSightRenderer, GelSightRenderError
+from sim.gelsight import MAX_LENGTH_MM, GelSightConfig, GelSightRenderer, GelSightRenderError
 
 BALL_RADIUS_MM = 2.0
 FILE_MM_PER_PX = 0.1245
@@ -96,10 +96,12 @@ def press_depth_mm(contact_radius_mm: float, ball_radius_mm: float = BALL_RADIUS
     """Depth of a sphere pressed into a plane until the contact has radius ``a``:
     ``R - sqrt(R^2 - a^2)``. An annotated radius larger than the ball (the annotation traced
     the edge of the visible imprint, which the gel's spread widens) means the ball is in up
-    to its equator, so ``a`` is capped at ``R``."""
-    if not (contact_radius_mm > 0 and ball_radius_mm > 0):
+    to its equator, so ``a`` is capped at ``R``. Both radii finite and > 0 mm, the ball's at most
+    MAX_LENGTH_MM (a length on the gel); otherwise GelSightRenderError (NaN and inf too)."""
+    if not (0 < contact_radius_mm < math.inf and 0 < ball_radius_mm <= MAX_LENGTH_MM):
         raise GelSightRenderError(
-            f"contact and ball radius must be > 0 mm, got {contact_radius_mm!r}, {ball_radius_mm!r}"
+            f"contact radius must be finite > 0 mm and ball radius in (0, {MAX_LENGTH_MM:g}] mm, "
+            f"got {contact_radius_mm!r}, {ball_radius_mm!r}"
         )
     a = min(contact_radius_mm, ball_radius_mm)
     return ball_radius_mm - math.sqrt(ball_radius_mm**2 - a**2)
