@@ -59,6 +59,12 @@ class TrainConfig:
     # (models.prior), a library pair's the sharp image of its exact geometry. Stored in the
     # checkpoint as the prior's default for what it is asked; 0: every prior image sharp.
     session_pose_sigma_mm: float = 0.0
+    # The pose uncertainties (mm, [low, high]) the model learns to answer for, so that one
+    # checkpoint serves any pose_sigma_mm a planner asks in them (the inference protocol): each
+    # library pair, exact geometry, is moved in the gel plane by an offset of a sigma drawn
+    # uniformly in the range (seeded by ``seed``), with its prior rendered at that sigma
+    # (models.data.load_library). []: library pairs exact, their prior sharp.
+    library_pose_sigma_range_mm: tuple[float, ...] = ()
     generator: GeneratorConfig = GeneratorConfig()
 
     def validate(self) -> "TrainConfig":
@@ -74,6 +80,7 @@ class TrainConfig:
         if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
             raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
         checked_pose_sigma_mm(self.session_pose_sigma_mm, "session_pose_sigma_mm")
+        self._check_library_pose_sigma_range()
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
@@ -83,6 +90,20 @@ class TrainConfig:
             )
         self.generator.validate()
         return self
+
+    def _check_library_pose_sigma_range(self) -> None:
+        sigma_range = self.library_pose_sigma_range_mm
+        if not sigma_range:
+            return
+        if len(sigma_range) != 2:
+            raise ModelConfigError(f"library_pose_sigma_range_mm must be [low, high] in mm, got {list(sigma_range)}")
+        low, high = (checked_pose_sigma_mm(v, "library_pose_sigma_range_mm") for v in sigma_range)
+        if low > high:
+            raise ModelConfigError(
+                f"library_pose_sigma_range_mm must be [low, high] with low <= high, got {[low, high]}"
+            )
+        if not self.generator.prior:
+            raise ModelConfigError("library_pose_sigma_range_mm needs a generator with a physics prior (prior: true)")
 
     @property
     def discriminator(self) -> DiscriminatorConfig:

@@ -43,11 +43,12 @@ def network_input(
     depth_range_m: tuple[float, float],
     config: GeneratorConfig,
     prior: PhysicsPrior | None,
-    pose_sigma_mm: float | None = None,
+    pose_sigma_mm: float | np.ndarray | None = None,
 ) -> torch.Tensor:
     """What a generator of ``config`` takes for N x H x W depth-maps (m): :func:`depth_input`,
     then the physics prior's image of each map (models.prior) when the generator has one,
-    expected over the maps' in-plane pose error ``pose_sigma_mm`` (None: the prior's default)."""
+    expected over the maps' in-plane pose error ``pose_sigma_mm`` (mm: one for all maps, or N,
+    one a map; None: the prior's default)."""
     x = depth_input(depth_maps_m, depth_range_m, config.in_channels)
     if not config.prior:
         return x
@@ -56,7 +57,35 @@ def network_input(
             "this generator corrects a physics prior, but none was given (a checkpoint "
             "trained with one stores its scene and crop: load it with load_generator)"
         )
-    return torch.cat([x, torch.from_numpy(prior.channels(np.asarray(depth_maps_m), pose_sigma_mm))], dim=1)
+    maps = np.asarray(depth_maps_m)
+    if isinstance(pose_sigma_mm, np.ndarray):
+        if pose_sigma_mm.shape != (len(maps),):
+            raise ModelConfigError(
+                f"pose_sigma_mm must be one value or one per depth-map ({len(maps)}), got shape {pose_sigma_mm.shape}"
+            )
+        channels = np.concatenate([prior.channels(m[None], float(s)) for m, s in zip(maps, pose_sigma_mm)])
+    else:
+        channels = prior.channels(maps, pose_sigma_mm)
+    return torch.cat([x, torch.from_numpy(channels)], dim=1)
+
+
+def moved_in_gel_plane(
+    depth_maps_m: np.ndarray, offsets_mm: np.ndarray, crop_m: tuple[float, float, float], y_far_m: float
+) -> np.ndarray:
+    """N x H x W depth-maps as a registration ``offsets_mm`` off in the gel plane (N x 2: gel x
+    along columns, gel z along rows) would have cut them: each map's surface moved by its offset,
+    to the nearest bin of the crop (x, y, z extents in m); the bins it leaves hold ``y_far_m``
+    (no surface), and what moves past the crop's edge is lost, as it is to the cutter."""
+    maps = np.asarray(depth_maps_m)
+    rows, cols = maps.shape[1:]
+    bins = np.rint(np.asarray(offsets_mm) / (1e3 * np.array([crop_m[0] / cols, crop_m[2] / rows]))).astype(int)
+    moved = np.full_like(maps, y_far_m)
+    for source, target, (dc, dr) in zip(maps, moved, bins):
+        if abs(dr) < rows and abs(dc) < cols:
+            target[max(dr, 0) : rows + min(dr, 0), max(dc, 0) : cols + min(dc, 0)] = source[
+                max(-dr, 0) : rows - max(dr, 0), max(-dc, 0) : cols - max(dc, 0)
+            ]
+    return moved
 
 
 def image_target(images_rgb: np.ndarray) -> torch.Tensor:
@@ -107,14 +136,17 @@ def load_pairs(
     """Network input (:func:`network_input`) and target (N x C x H x W, N x 3 x H x W) for
     ``records`` (all if None), checksums verified."""
     reader = root if isinstance(root, DatasetReader) else DatasetReader(root)
+    maps, images = _load_samples(reader, records)
+    return network_input(maps, reader.info.depth_range_m, config, prior, pose_sigma_mm), image_target(images)
+
+
+def _load_samples(reader: DatasetReader, records: Sequence[SampleRecord] | None) -> tuple[np.ndarray, np.ndarray]:
+    """Depth-maps (m) and tactile images of ``records`` (all if None), checksums verified."""
     chosen = reader.records if records is None else list(records)
     if not chosen:
         raise ModelConfigError(f"no samples selected from {reader.root}")
     samples = [reader.load(r) for r in chosen]
-    depth = network_input(
-        np.stack([s.depth_map_m for s in samples]), reader.info.depth_range_m, config, prior, pose_sigma_mm
-    )
-    return depth, image_target(np.stack([s.tactile_rgb for s in samples]))
+    return np.stack([s.depth_map_m for s in samples]), np.stack([s.tactile_rgb for s in samples])
 
 
 def load_library(
@@ -122,9 +154,17 @@ def load_library(
     session: DatasetReader,
     config: GeneratorConfig,
     prior: PhysicsPrior | None,
+    pose_sigma_range_mm: tuple[float, ...] = (),
+    seed: int = 0,
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Every sample of each library dataset (dataset.contact_library), as network input and
-    target; refused unless its depth-maps are the session's (range and crop)."""
+    target; refused unless its depth-maps are the session's (range and crop). A library's
+    geometry is exact: its prior is sharp, unless ``pose_sigma_range_mm`` (low, high) asks for
+    the uncertainties a model must answer for; then each pair gets a sigma drawn uniformly in
+    it (seeded by ``seed``), its depth-map is moved by an in-plane offset drawn from that sigma's
+    Gaussian (:func:`moved_in_gel_plane`) and its prior is rendered at that sigma: a
+    registration that far off, saying so, with the tactile image of where the contact really was."""
+    rng = np.random.default_rng(seed)
     parts = []
     for library in libraries:
         reader = DatasetReader(library)
@@ -135,10 +175,27 @@ def load_library(
                     f"library {library} has {name} {mine}, the dataset {theirs}: make it "
                     "with the session's settings (dtx dataset library --depth-range-m)"
                 )
-        parts.append(load_pairs(reader, None, config, prior, pose_sigma_mm=0.0))  # exact geometry
+        maps, images = _load_samples(reader, None)
+        sigmas: float | np.ndarray = 0.0  # exact geometry
+        if pose_sigma_range_mm:
+            maps, sigmas = _as_registered(maps, reader, pose_sigma_range_mm, rng)
+        parts.append((network_input(maps, reader.info.depth_range_m, config, prior, sigmas), image_target(images)))
     if not parts:
         return None
     return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+
+
+def _as_registered(
+    maps: np.ndarray, reader: DatasetReader, sigma_range_mm: tuple[float, ...], rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """A library's exact ``maps``, each as a registration of a sigma drawn uniformly in
+    ``sigma_range_mm`` would have cut it, and those sigmas (mm)."""
+    crop_m = reader.info.depth_crop_m
+    if crop_m is None:
+        raise ModelConfigError(f"{reader.root} does not record its depth crop, which moving its maps needs")
+    sigmas = rng.uniform(sigma_range_mm[0], sigma_range_mm[1], len(maps))
+    offsets_mm = rng.standard_normal((len(maps), 2)) * sigmas[:, None]
+    return moved_in_gel_plane(maps, offsets_mm, crop_m, reader.info.depth_range_m[1]), sigmas
 
 
 def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm: float = 0.0) -> PhysicsPrior | None:
@@ -148,4 +205,4 @@ def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm:
         return None
     if reader.info.depth_crop_m is None or not reader.info.scene:
         raise ModelConfigError(f"{reader.root} does not record its scene and depth crop, which a physics prior needs")
-    return PhysicsPrior(PriorSpec(reader.info.scene, tuple(reader.info.depth_crop_m), pose_sigma_mm), config.image_size)
+    return PhysicsPrior(PriorSpec(reader.info.scene, reader.info.depth_crop_m, pose_sigma_mm), config.image_size)
