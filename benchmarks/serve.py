@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -72,10 +73,16 @@ SESSION_PRIOR = PriorSpec(scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 
 
 
 def write_checkpoint(
-    path: Path, width: int, seed: int = 0, depth_range_m: tuple[float, float] = DEPTH_RANGE_M, prior: bool = False
+    path: Path,
+    width: int,
+    seed: int = 0,
+    depth_range_m: tuple[float, float] = DEPTH_RANGE_M,
+    prior: bool = False,
+    pose_sigma_mm: float = 0.0,
 ) -> Path:
     """A checkpoint in models/train.py's format (what load_generator reads) holding a fresh,
-    seeded generator of width ``width``, correcting the default scene's physics prior if asked."""
+    seeded generator of width ``width``, correcting the default scene's physics prior if asked,
+    whose depth-maps are by default ``pose_sigma_mm`` off in the gel plane."""
     torch.manual_seed(seed)
     config = TrainConfig(generator=GeneratorConfig(ngf=width, prior=prior))
     torch.save(
@@ -83,7 +90,7 @@ def write_checkpoint(
             "generator": UNetGenerator(config.generator).state_dict(),
             "train_config": config.to_dict(),
             "depth_range_m": list(depth_range_m),
-            **({"prior": SESSION_PRIOR.to_dict()} if prior else {}),
+            **({"prior": dataclasses.replace(SESSION_PRIOR, pose_sigma_mm=pose_sigma_mm).to_dict()} if prior else {}),
         },
         path,
     )

@@ -34,11 +34,8 @@ DEFAULT_SIGMA_MM = 1.0
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A prior-correcting checkpoint whose depth-maps were, by default, 1 mm off in the gel plane."""
-    path = write_checkpoint(tmp_path_factory.mktemp("sigma") / "prior.pt", width=8, prior=True)
-    state = torch.load(path, weights_only=True)
-    state["prior"]["pose_sigma_mm"] = DEFAULT_SIGMA_MM
-    torch.save(state, path)
-    return path
+    path = tmp_path_factory.mktemp("sigma") / "prior.pt"
+    return write_checkpoint(path, width=8, prior=True, pose_sigma_mm=DEFAULT_SIGMA_MM)
 
 
 def reference(checkpoint: Path, maps: np.ndarray, pose_sigma_mm: float | None) -> np.ndarray:

@@ -62,10 +62,11 @@ def node(*args: str, bus_dir: Path, timeout_s: float = 300) -> dict:
 
 @pytest.fixture(scope="module")
 def served(node_modules: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Registry]]:
-    """launch/serve.yaml's two workers on a bus of their own."""
+    """launch/serve.yaml's two workers on a bus of their own, serving a model that corrects the
+    physics prior (as the default model does) of depth-maps by default 1 mm off."""
     bus_dir = Path(tempfile.mkdtemp(prefix="dtxn"))  # ipc paths must stay short
     registry = Registry(bus_dir)
-    checkpoint = write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
+    checkpoint = write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8, prior=True, pose_sigma_mm=1.0)
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dtx.cli", "launch", "launch/serve.yaml", f"checkpoint:={checkpoint}"],
         cwd=ROOT,
@@ -98,12 +99,30 @@ def test_the_node_planner_gets_the_python_clients_images_byte_for_byte(
         images, _ = client.estimate(maps)
     assert result["a"][0] == ["|u1", [3, 100, 100, 3]] and result["region_status"] == ["ok"] * 3
     assert (tmp_path / "images.u8").read_bytes() == np.ascontiguousarray(images).tobytes()
+    assert result["pose_sigma_mm"] == 1.0  # the checkpoint's default
+
+
+def test_the_node_planner_says_its_geometry_is_exact_and_gets_the_python_clients_images(
+    served: tuple[Path, Registry], tmp_path: Path
+) -> None:
+    """§3's pose_sigma_mm from the page alone: 0 gives the Python client's exact-geometry images,
+    byte for byte, and the reply says 0 was used; they are not the default's."""
+    bus_dir, registry = served
+    maps = depth_maps(3, seed=6).astype("<f4")
+    (tmp_path / "maps.f32").write_bytes(maps.tobytes())
+    exact = node("images", str(tmp_path / "maps.f32"), "3", str(tmp_path / "exact.u8"), "0", bus_dir=bus_dir)
+    node("images", str(tmp_path / "maps.f32"), "3", str(tmp_path / "default.u8"), bus_dir=bus_dir)
+    with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, timeout_s=60.0) as client:
+        images, _ = client.estimate(maps, pose_sigma_mm=0.0)
+    assert exact["pose_sigma_mm"] == 0.0
+    assert (tmp_path / "exact.u8").read_bytes() == np.ascontiguousarray(images).tobytes()
+    assert (tmp_path / "default.u8").read_bytes() != (tmp_path / "exact.u8").read_bytes()
 
 
 def test_every_malformed_request_of_the_node_planner_gets_an_error_reply(served: tuple[Path, Registry]) -> None:
     result = node("malformed", bus_dir=served[0])
     unanswered = {name: r for name, r in result["results"].items() if r is None or r["code"] != "bad_request"}
-    assert result["variants"] == 25 and result["answered"] == 25, unanswered
+    assert result["variants"] == 28 and result["answered"] == 28, unanswered
     assert result["served_after"]
 
 

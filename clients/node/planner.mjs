@@ -1,8 +1,10 @@
 // A grasp planner in Node that calls /inference/estimate, written from docs/wire-protocol.md
 // alone: it is the test that the page is enough for a client in another language.
 //
-//   node planner.mjs images MAPS.f32 N OUT.u8    depth-maps (N x 100 x 100 <f4) -> images (|u1)
-//   node planner.mjs malformed                   25 broken requests; prints how many got an error reply
+//   node planner.mjs images MAPS.f32 N OUT.u8 [SIGMA_MM]
+//                                                depth-maps (N x 100 x 100 <f4) -> images (|u1), their
+//                                                geometry known to SIGMA_MM (§3; default -1: the checkpoint's)
+//   node planner.mjs malformed                   28 broken requests; prints how many got an error reply
 //   node planner.mjs steady COUNT                COUNT requests one after another, retrying by §4;
 //                                                prints one line per answer, then a JSON summary
 //   node planner.mjs cloud POINTS.f32 P POSES.f64 N COUNT OUT.u8
@@ -153,16 +155,16 @@ function sleep(ms) {
 }
 
 function header(q, p, fields, arrays) {
-  return { s: REQUEST, v: 2, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
+  return { s: REQUEST, v: 3, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
 }
 
-/** A well-formed request for depth-maps: the frames of §2 and §3. */
-function depthRequest(maps, n, dropout = 1) {
+/** A well-formed request for depth-maps: the frames of §2 and §3. sigmaMm: §3's pose uncertainty. */
+function depthRequest(maps, n, dropout = 1, sigmaMm = -1) {
   return (q, p) => [
     Buffer.from(SERVICE),
     pack(header(q, p, {
       depth_maps: { __array__: 0 }, points: { __array__: 1 }, cloud_id: "", gel_poses: { __array__: 2 },
-      dropout_samples: dropout,
+      dropout_samples: dropout, pose_sigma_mm: sigmaMm,
     }, [["<f4", [n, 100, 100]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]])),
     Buffer.from(maps.buffer, maps.byteOffset, maps.byteLength),
     Buffer.alloc(0),
@@ -176,7 +178,7 @@ function cloudRequest(points, p3, poses, n, cloudId, withPoints) {
     Buffer.from(SERVICE),
     pack(header(q, p, {
       depth_maps: { __array__: 0 }, points: { __array__: 1 }, cloud_id: cloudId, gel_poses: { __array__: 2 },
-      dropout_samples: 1,
+      dropout_samples: 1, pose_sigma_mm: -1,
     }, [["<f4", [0, 100, 100]], ["<f4", [withPoints ? p3 : 0, 3]], ["<f8", [n, 4, 4]]])),
     Buffer.alloc(0),
     withPoints ? Buffer.from(points.buffer, points.byteOffset, points.byteLength) : Buffer.alloc(0),
@@ -189,19 +191,20 @@ function replyArray(reply, field) {
   return reply.buffers[index];
 }
 
-async function images(mapsPath, n, outPath) {
+async function images(mapsPath, n, outPath, sigmaMm) {
   const planner = new Planner();
   const raw = readFileSync(mapsPath);
   const maps = new Float32Array(raw.buffer, raw.byteOffset, raw.byteLength / 4);
-  const reply = await planner.call(depthRequest(maps, n));
+  const reply = await planner.call(depthRequest(maps, n, 1, sigmaMm));
   planner.close();
   if (!reply) throw new Error("no reply");
   if (reply.header.s !== "dtx.inference.TactileEstimateReply") throw new Error(JSON.stringify(reply.header.d));
   writeFileSync(outPath, replyArray(reply, "images"));
-  return { schema: reply.header.s, a: reply.header.a, region_status: reply.header.d.region_status };
+  return { schema: reply.header.s, a: reply.header.a, region_status: reply.header.d.region_status,
+           pose_sigma_mm: reply.header.d.pose_sigma_mm };
 }
 
-/** 25 requests, each broken one way (§2, §3); every one must get an error reply. */
+/** 28 requests, each broken one way (§2, §3); every one must get an error reply. */
 function malformedVariants() {
   const maps = new Float32Array(100 * 100).fill(0.001);
   const good = depthRequest(maps, 1);
@@ -241,6 +244,9 @@ function malformedVariants() {
     "depth-maps of the wrong size": (q, p) => depthRequest(new Float32Array(50 * 50), 1)(q, p).map((f, i) =>
       i === 1 ? pack({ ...unpack(f), a: [["<f4", [1, 50, 50]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]] }) : f),
     "depth-maps not finite": depthRequest(new Float32Array(100 * 100).fill(NaN), 1),
+    "pose_sigma_mm above 5 mm": depthRequest(maps, 1, 1, 5.5),
+    "pose_sigma_mm not finite": depthRequest(maps, 1, 1, NaN),
+    "pose_sigma_mm a string": edit((h) => { h.d.pose_sigma_mm = "0"; }),
   };
 }
 
@@ -323,7 +329,7 @@ async function cloud(pointsPath, p3, posesPath, n, count, outPath) {
 
 const [mode, ...args] = process.argv.slice(2);
 let result;
-if (mode === "images") result = await images(args[0], Number(args[1]), args[2]);
+if (mode === "images") result = await images(args[0], Number(args[1]), args[2], Number(args[3] ?? -1));
 else if (mode === "malformed") result = await malformed();
 else if (mode === "steady") result = await steady(Number(args[0]));
 else if (mode === "cloud") result = await cloud(args[0], Number(args[1]), args[2], Number(args[3]), Number(args[4]), args[5]);
