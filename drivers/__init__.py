@@ -60,6 +60,11 @@ class Device(abc.ABC):
     def disconnect(self) -> None:
         """Release the device; safe to call twice or after a failed ``connect()``."""
 
+    def identify(self) -> str:
+        """What the connected device reports about itself (model, software version), for
+        ``dtx hw check``; empty where it reports nothing."""
+        return ""
+
     def __enter__(self) -> Self:
         self.connect()
         return self

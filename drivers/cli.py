@@ -1,6 +1,7 @@
 """``dtx hw check LAUNCHFILE [name:=value ...]``: connect to every device a launch file
-configures, print OK or the reason it failed (and on the next line the fix, where an
-operator can act), exit 0 only if all are OK.
+configures, print OK or the reason it failed (and on the next lines what the device said it
+is, e.g. a UR controller's PolyScope version, and the fix, where an operator can act), exit 0
+only if all are OK.
 
 Each hardware node's ``params`` are its backend's (``backend:`` plus the config fields), so
 the check builds exactly the backend the node would run, connects, runs its ``preflight()``
@@ -40,6 +41,7 @@ class DeviceCheck:
     backend: str
     error: str = ""  # empty when the device connected
     fix: str = ""  # what an operator does about the error, when the driver knows
+    identity: str = ""  # what the device reported about itself once connected (Device.identify)
 
     @property
     def ok(self) -> bool:
@@ -69,6 +71,7 @@ def _with_device(node: NodeLike, action: Callable[[Any], None]) -> DeviceCheck:
     try:
         backend = importlib.import_module(HARDWARE_NODES[node.module]).make_backend(dict(node.params))
         backend.connect()
+        result.identity = backend.identify()
     # A pre-flight must report every failure whatever raised it: the drivers' own errors,
     # a bad parameter (ValueError), or a library that is not installed (ImportError).
     except Exception as exc:  # noqa: BLE001 - see above
@@ -102,6 +105,8 @@ def format_report(checks: list[DeviceCheck]) -> str:
     for check in checks:
         verdict = "OK" if check.ok else f"FAILED  {check.error}"
         lines.append(f"{check.node:<{width}}  {check.backend:<10} {verdict}")
+        if check.identity:
+            lines.append(f"{'':<{width}}  {'':<10} found: {check.identity}")
         if check.fix:
             lines.append(f"{'':<{width}}  {'':<10} fix: {check.fix}")
     failed = sum(not check.ok for check in checks)

@@ -1,7 +1,10 @@
 """The UR backend driving the real ur_rtde client against a fake UR controller.
 
-Each test runs its own fake controller process on its own 127.x.y.z address (the client's
-ports are fixed), and every test has a time-out so a hung client fails instead of blocking.
+Most tests run the fake's default software (PolyScope 5.11); the last ones run it as each kind
+of controller a lab may own: CB3 (3.15), e-Series before remote control could be queried (5.4)
+and after (5.20). Each test runs its own fake controller process on its own 127.x.y.z address
+(the client's ports are fixed), and every test has a time-out so a hung client fails instead
+of blocking.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from drivers.arm.base import (
     WorkspaceError,
 )
 from drivers.arm.ur import URArm
-from drivers.cli import check_device
+from drivers.cli import check_device, format_report
 from dtx.launch import NodeSpec
 from sim.ur_controller import CMD_MOVEL, CMD_SET_WATCHDOG, CMD_STOPJ, CMD_STOPL, HOME_Q, FakeURController
 from workcell.ur_kinematics import tcp_pose
@@ -38,11 +41,11 @@ pytestmark = pytest.mark.timeout(90)
 WORKSPACE = {"x_min_m": -0.8, "x_max_m": 0.8, "y_min_m": -0.8, "y_max_m": 0.8, "z_min_m": 0.1, "z_max_m": 0.8}
 
 
-def start_fake_controller() -> FakeURController:
+def start_fake_controller(software_version: str | None = None) -> FakeURController:
     """Start a fake on a free random loopback address (another run may hold one)."""
     for _ in range(10):
         host = f"127.{random.randint(32, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}"
-        controller = FakeURController(host)
+        controller = FakeURController(host, software_version=software_version)
         try:
             controller.start()
         except OSError:
@@ -351,3 +354,125 @@ def test_hw_check_refuses_an_arm_that_cannot_move(fake: FakeURController, fault:
     assert not check.ok
     assert check.error.endswith(reason) and check.fix.startswith(fix)
     assert not fake.snapshot()["program_running"]
+
+
+# ---- every controller a lab may own ------------------------------------------------------
+VERSIONS = ["3.15", "5.4", "5.20"]
+
+
+@pytest.fixture(params=VERSIONS)
+def versioned_fake(request: pytest.FixtureRequest) -> Iterator[FakeURController]:
+    controller = start_fake_controller(request.param)
+    try:
+        yield controller
+    finally:
+        controller.close()
+
+
+def hw_check(fake: FakeURController, **extra: object):
+    return check_device(NodeSpec(name="arm", module="nodes.arm", params=arm_params(fake, **extra)))
+
+
+def dashboard_commands(fake: FakeURController) -> list[str]:
+    return [event.removeprefix("dashboard: ") for event in fake.snapshot()["events"] if event.startswith("dashboard: ")]
+
+
+def test_every_version_connects_checks_and_moves_at_the_speed_sliders_pace(versioned_fake: FakeURController) -> None:
+    """1 rad at 1 rad/s (1.7 s at full speed) with the slider at 30 %: 5.7 s, no time-out."""
+    fake, version = versioned_fake, versioned_fake.version
+    check = hw_check(fake)
+    assert check.ok, check.error
+    series = "CB3" if version.major == 3 else "e-Series"
+    assert check.identity.startswith(f"UR controller PolyScope {version.major}.{version.minor}.0.0, {series}")
+    assert format_report([check]).splitlines()[1].split() == ["found:", *check.identity.split()]
+    backend = make_backend(arm_params(fake))
+    backend.connect()
+    try:
+        fake.set_speed_slider(0.3)
+        target = np.array(HOME_Q) + np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        backend.move_joints(target, speed_rad_s=1.0, accel_rad_s2=1.4)
+        np.testing.assert_allclose(fake.snapshot()["q"], target, atol=1e-9)
+    finally:
+        backend.disconnect()
+    # Only a controller that can answer is asked whether it is in remote control.
+    assert ("is in remote control" in dashboard_commands(fake)) == (version.numbers >= (5, 6))
+
+
+def test_every_version_refuses_an_arm_that_is_powered_off_or_in_a_protective_stop(
+    versioned_fake: FakeURController,
+) -> None:
+    fake = versioned_fake
+    dashboard = dashboard_client.DashboardClient(fake.host)
+    dashboard.connect()
+    try:
+        dashboard.powerOff()
+        check = hw_check(fake)
+        assert not check.ok and check.error.endswith("is in robot mode POWER_OFF")
+        dashboard.powerOn()
+        dashboard.brakeRelease()
+        fake.set_safety("protective_stop")
+        check = hw_check(fake)
+        assert not check.ok and check.error.endswith("the UR controller is in a protective stop")
+        dashboard.unlockProtectiveStop()
+    finally:
+        dashboard.disconnect()
+    assert hw_check(fake).ok
+    assert not fake.snapshot()["program_running"]
+
+
+def test_local_control_is_refused_where_the_controller_has_that_mode(versioned_fake: FakeURController) -> None:
+    fake, version = versioned_fake, versioned_fake.version
+    if version.major == 3:
+        with pytest.raises(ValueError, match="CB3 controller has no local or remote control mode"):
+            fake.set_remote_control(False)
+        return
+    fake.set_remote_control(False)
+    check = hw_check(fake)
+    assert not check.ok
+    if version.numbers >= (5, 6):
+        # Asked and answered: refused before anything is uploaded.
+        assert check.error.endswith(f"(PolyScope {version.major}.{version.minor}.0.0) is in local control")
+        assert check.fix.startswith("switch the pendant to remote control")
+    else:
+        # It cannot say, and does not run the uploaded script: the failed start names the cause.
+        assert "cannot start ur_rtde's control script" in check.error
+        assert check.fix.startswith(
+            f"check that the pendant is in remote control (PolyScope {version.major}.{version.minor}.0.0 cannot report it)"
+        )
+        assert "program refused: the controller is in local control" in fake.snapshot()["events"]
+    assert not fake.snapshot()["program_running"]
+
+
+def test_dashboard_answers_follow_the_software_version(versioned_fake: FakeURController) -> None:
+    fake, version = versioned_fake, versioned_fake.version
+    dashboard = dashboard_client.DashboardClient(fake.host)
+    dashboard.connect()
+    try:
+        assert dashboard.polyscopeVersion() == f"{version.major}.{version.minor}.0.0"
+        # ur_rtde refuses to ask an older controller; it would not have understood.
+        assert dashboard.isInRemoteControl() == (version.numbers >= (5, 6))
+        assert dashboard.safetystatus() == (
+            "Safetystatus: NORMAL" if version.numbers >= (5, 4) else "could not understand: 'safetystatus'"
+        )
+    finally:
+        dashboard.disconnect()
+
+
+def test_a_cb3_streams_at_125_hz_and_a_faster_rate_is_refused_before_connecting() -> None:
+    fake = start_fake_controller("3.15")
+    try:
+        check = hw_check(fake, rtde_frequency_hz=500.0)
+        assert not check.ok
+        assert check.error.endswith(
+            "rtde_frequency_hz 500 is faster than the 125 Hz a CB3 controller streams (PolyScope 3.15.0.0)"
+        )
+        assert check.fix == "set rtde_frequency_hz to 125 or less, or leave it out"
+        receive = rtde_receive.RTDEReceiveInterface(fake.host, 125.0, ["timestamp"])
+        try:
+            wait_until(lambda: receive.getTimestamp() > 0.0, "states arrive")
+            ticks = receive.getTimestamp() * 125  # the controller's clock runs in 8 ms steps
+            assert ticks == pytest.approx(round(ticks), abs=1e-6)
+        finally:
+            receive.disconnect()
+    finally:
+        fake.close()

@@ -15,6 +15,14 @@ unlock uploads it again (``reuploadScript``); and the script's RTDE watchdog
 (``setWatchdog``), kicked by a thread of this process, stops the robot when this process or
 the link dies.
 
+Every UR controller a lab may own works: connect() first asks the dashboard server the
+controller's PolyScope version (:mod:`drivers.arm.ur_software`), streams RTDE at the fastest
+rate that version serves unless told otherwise (125 Hz CB3, 500 Hz e-Series), and refuses
+local control where the controller has that mode and can say so (e-Series from 5.6.0). A CB3
+has no such mode; an e-Series before 5.6 cannot say, and in local control does not run the
+uploaded script, so that failure's fix names remote control. ``identify()`` reports what was
+found, for ``dtx hw check``.
+
 Known limit of ur_rtde 1.6.5: if the connection drops during the few milliseconds in which
 the client hands a command over (it waits for the script's "done" flag), the client keeps
 waiting on its stale state for up to its 300 s execution time-out, holding the GIL.
@@ -47,6 +55,7 @@ from drivers.arm.base import (
     WorkspaceError,
     as_six_vector,
 )
+from drivers.arm.ur_software import ControllerSoftware
 from msgs.base import Header
 from msgs.robot import ArmState
 from workcell.ur_kinematics import DH_PARAMETERS, tcp_pose
@@ -87,7 +96,8 @@ class URArmConfig:
     """How to reach and drive a UR arm. Units: m, rad, s; speeds m/s or rad/s."""
 
     robot_ip: str = "192.168.1.10"
-    rtde_frequency_hz: float = 500.0  # e-Series controllers stream at up to 500 Hz
+    # None: the fastest the controller streams, 125 Hz on CB3 and 500 Hz on e-Series.
+    rtde_frequency_hz: float | None = None
     model: str = "ur5e"  # DH parameters used to check joint-move targets
     tcp_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # as set on the pendant
     workspace: WorkspaceBox = dataclasses.field(default_factory=WorkspaceBox)
@@ -122,15 +132,18 @@ class URArm(Arm):
         self._move_lock = threading.Lock()
         self._kicking = threading.Event()  # set: the watchdog kicker should end
         self._kicker: threading.Thread | None = None
+        self.software: ControllerSoftware | None = None  # known from connect() on
 
     def connect(self) -> None:
-        """Open the RTDE state stream, check the arm can move, upload the control script and
-        start its watchdog.
+        """Ask the controller its software version, open the RTDE state stream at a rate it
+        serves, check the arm can move, upload the control script and start its watchdog.
 
-        Raises ArmConnectionError (unreachable, not powered, local control),
-        ProtectiveStopError, EmergencyStopError; each with the operator's fix.
+        Raises ArmConnectionError (unreachable, software not CB3 or e-Series, rate too high,
+        not powered, local control), ProtectiveStopError, EmergencyStopError; each with the
+        operator's fix.
         """
-        ip, frequency = self.config.robot_ip, self.config.rtde_frequency_hz
+        self.software = self._ask_software()
+        ip, frequency = self.config.robot_ip, self._rtde_frequency_hz()
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(ip, frequency, STATE_VARIABLES)
         except RuntimeError as error:
@@ -149,8 +162,50 @@ class URArm(Arm):
         except RuntimeError as error:
             self._receive.disconnect()
             self._receive = None
-            raise ArmConnectionError(f"cannot start ur_rtde's control script on {ip}: {error}") from error
+            raise ArmConnectionError(
+                f"cannot start ur_rtde's control script on {ip} ({self.software.name}): {error}",
+                self.software.script_fix,
+            ) from error
         self._start_watchdog()
+
+    def identify(self) -> str:
+        return "" if self.software is None else f"UR controller {self.software.name}, {self.software.control_mode}"
+
+    def _ask_software(self) -> ControllerSoftware:
+        """The controller's software version from the dashboard server, and whether it is in
+        remote control where it has that mode and can say (ArmConnectionError if it is not)."""
+        ip = self.config.robot_ip
+        dashboard = dashboard_client.DashboardClient(ip)
+        try:
+            dashboard.connect()
+            software = ControllerSoftware.parse(dashboard.polyscopeVersion())
+            remote = dashboard.isInRemoteControl() if software.reports_remote_control else True
+        except ArmError:
+            raise  # the version's own error, which says what the controller answered
+        except RuntimeError as error:
+            raise ArmConnectionError(f"cannot reach the UR dashboard server at {ip}: {error}") from error
+        finally:
+            dashboard.disconnect()
+        if not remote:
+            raise ArmConnectionError(
+                f"UR at {ip} ({software.name}) is in local control",
+                "switch the pendant to remote control (top right of PolyScope)",
+            )
+        return software
+
+    def _rtde_frequency_hz(self) -> float:
+        """The configured RTDE rate, or the fastest the controller streams when none is set."""
+        assert self.software is not None
+        fastest = self.software.max_rtde_frequency_hz
+        if self.config.rtde_frequency_hz is None:
+            return fastest
+        if self.config.rtde_frequency_hz > fastest:
+            raise ArmConnectionError(
+                f"rtde_frequency_hz {self.config.rtde_frequency_hz:g} is faster than the {fastest:g} Hz "
+                f"a {self.software.series} controller streams ({self.software.name})",
+                f"set rtde_frequency_hz to {fastest:g} or less, or leave it out",
+            )
+        return self.config.rtde_frequency_hz
 
     def _check_ready_to_move(self) -> None:
         self._raise_if_unsafe(self.read(), "connect")
@@ -160,21 +215,6 @@ class URArm(Arm):
             raise ArmConnectionError(
                 f"UR at {self.config.robot_ip} is in robot mode {name}",
                 "power it on and release the brakes (pendant, or dashboard 'power on' then 'brake release')",
-            )
-        dashboard = dashboard_client.DashboardClient(self.config.robot_ip)
-        try:
-            dashboard.connect()
-            remote = dashboard.isInRemoteControl()
-        except RuntimeError as error:
-            raise ArmConnectionError(
-                f"cannot reach the UR dashboard server at {self.config.robot_ip}: {error}"
-            ) from error
-        finally:
-            dashboard.disconnect()
-        if not remote:
-            raise ArmConnectionError(
-                f"UR at {self.config.robot_ip} is in local control",
-                "switch the pendant to remote control (top right of PolyScope)",
             )
 
     def _start_watchdog(self) -> None:
@@ -208,9 +248,9 @@ class URArm(Arm):
                 uploaded = False
             time.sleep(POLL_PERIOD_S)
         if not uploaded:
+            assert self.software is not None
             raise ArmConnectionError(
-                f"{description}: ur_rtde's control script did not start again",
-                "check that the pendant is in remote control and no popup is open",
+                f"{description}: ur_rtde's control script did not start again", self.software.script_fix
             )
         self._start_watchdog()
 
@@ -355,7 +395,9 @@ class URArm(Arm):
             # The deadline runs in the controller's time: at the speed slider's fraction f a
             # move takes 1/f as long (at 0 the operator has paused it, and it waits).
             allowed_s = expected_s + self.config.move_timeout_margin_s
-            elapsed_s, last = 0.0, time.monotonic()
+            # The controller's own clock (RTDE timestamp), not this computer's: a controller
+            # that falls behind (a loaded simulator) does not run out of time it never had.
+            elapsed_s, last = 0.0, self._receive.getTimestamp()
             while True:
                 self._raise_if_unsafe(self.read(), description)
                 if not self._control.isProgramRunning():
@@ -369,7 +411,7 @@ class URArm(Arm):
                 status = self._control.getAsyncOperationProgressEx()
                 if status.operationId() != operation_before and not status.isAsyncOperationRunning():
                     break
-                now = time.monotonic()
+                now = self._receive.getTimestamp()
                 elapsed_s += (now - last) * self._receive.getTargetSpeedFraction()
                 last = now
                 if elapsed_s > allowed_s:

@@ -1,5 +1,7 @@
-"""A fake Universal Robots e-Series controller that the real ``ur_rtde`` client can drive: the
-strict counterpart of ``drivers.arm.ur`` in its tests and benchmarks.
+"""A fake Universal Robots controller, CB3 or e-Series, that the real ``ur_rtde`` client can
+drive: the strict counterpart of ``drivers.arm.ur`` in its tests and benchmarks. It runs the
+software version it is given (:mod:`sim.ur_controller.versions`: what the dashboard knows, the
+RTDE rate, local and remote control).
 
 It speaks the controller's own protocols on one loopback address:
 
@@ -30,13 +32,13 @@ from sim.ur_controller.controller import (
     CMD_STOP_SCRIPT,
     CMD_STOPJ,
     CMD_STOPL,
-    CONTROLLER_VERSION,
     HOME_Q,
 )
 from sim.ur_controller.dashboard import DASHBOARD_PORT
 from sim.ur_controller.rtde import RTDE_PORT
 from sim.ur_controller.script import SCRIPT_PORT
 from sim.ur_controller.server import FakeURController
+from sim.ur_controller.versions import DEFAULT_VERSION, SoftwareVersion
 
 __all__ = [
     "CMD_MOVEJ",
@@ -46,10 +48,11 @@ __all__ = [
     "CMD_STOPJ",
     "CMD_STOPL",
     "CMD_STOP_SCRIPT",
-    "CONTROLLER_VERSION",
     "DASHBOARD_PORT",
+    "DEFAULT_VERSION",
     "HOME_Q",
     "RTDE_PORT",
     "SCRIPT_PORT",
     "FakeURController",
+    "SoftwareVersion",
 ]

@@ -26,8 +26,10 @@ It is as strict as the controller running what ur_rtde 1.6.5 uploads:
 - the RTDE watchdog (command 35, set_watchdog: ``rtde_set_watchdog`` on the command
   register, ur_rtde's setWatchdog/kickWatchdog): when no input package reaches the watched
   register within 1/min_frequency, the program stops and so does the arm;
-- the dashboard reports local or remote control
-  (:meth:`sim.ur_controller.FakeURController.set_remote_control`).
+- it runs one software version (:mod:`sim.ur_controller.versions`): CB3 (3.x) or e-Series
+  (5.x), which sets what the dashboard knows, the RTDE rate and whether there is a local and a
+  remote control mode; an e-Series controller in local control does not run programs sent over
+  the network (:meth:`sim.ur_controller.FakeURController.set_remote_control`).
 """
 
 from __future__ import annotations
@@ -42,12 +44,10 @@ from typing import Any, Protocol, Sequence
 import numpy as np
 
 from sim.ur_controller.motion import KinematicArm, Motion
+from sim.ur_controller.versions import SoftwareVersion
 
 # A UR5e "home": upper arm up, forearm forward, tool pointing down.
 HOME_Q = (0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0)
-
-CONTROLLER_VERSION = (5, 11, 1, 108318)
-POLYSCOPE_VERSION_LINE = "URSoftware 5.11.1.108318 (Mar 22 2021)"
 
 # Codes the client reads (RTDE guide / ur_rtde enums).
 ROBOT_MODE_POWER_OFF, ROBOT_MODE_IDLE, ROBOT_MODE_RUNNING = 3, 5, 7
@@ -89,8 +89,9 @@ class Controller:
     """The fake controller: arm, safety, registers, the running control script, and the
     sessions that talk to it. One lock guards all of it."""
 
-    def __init__(self, host: str, state_rate_hz: float, initial_q: Sequence[float]) -> None:
+    def __init__(self, host: str, state_rate_hz: float, initial_q: Sequence[float], version: SoftwareVersion) -> None:
         self.host = host
+        self.version = version
         self.dt = 1.0 / state_rate_hz
         self.state_rate_hz = state_rate_hz
         self.lock = threading.RLock()
@@ -108,7 +109,7 @@ class Controller:
         self.listeners: list[socket.socket] = []
         self.running = True
         self.speed_fraction = 1.0  # the pendant's speed slider
-        self.remote_control = True
+        self.remote_control = True  # e-Series only: CB3 has no local or remote control
         self.watchdog_period_s: float | None = None  # set by the script's set_watchdog
         self.watchdog_kicked = time.monotonic()
         self.outputs = self._modelled_outputs()
@@ -293,6 +294,9 @@ class Controller:
 
     def start_program(self, script_text: str) -> None:
         with self.lock:
+            if not self.remote_control:
+                self.events.append("program refused: the controller is in local control")
+                return
             # ur_rtde injects the offset after the comment that marks its place.
             match = re.search(r"global reg_offset_int = (?:#[^\n]*\n)?\s*(\d+)", script_text)
             if "def rtde_control():" not in script_text or match is None:
@@ -330,6 +334,12 @@ class Controller:
                     self.events.append(f"{safety}: program stopped")
                     self.end_program()
                 self.motion = None
+
+    def set_remote_control(self, remote: bool) -> None:
+        with self.lock:
+            if not self.version.e_series:
+                raise ValueError("a CB3 controller has no local or remote control mode")
+            self.remote_control = remote
 
     def set_speed_slider(self, fraction: float) -> None:
         with self.lock:

@@ -1,8 +1,14 @@
 """The fake UR controller's dashboard server on port 29999: the commands ``ur_rtde`` and
 operators send, one command per line and one answer per line. Power, brake release,
 stopping the program and unlocking a protective stop act on the controller core
-(:mod:`sim.ur_controller.controller`); the dashboard reports local or remote control
-(:meth:`sim.ur_controller.FakeURController.set_remote_control`).
+(:mod:`sim.ur_controller.controller`).
+
+Which commands it knows depends on the controller's software version
+(:mod:`sim.ur_controller.versions`, which cites the command table it follows): a command the
+version does not have, like any unknown one, is answered ``could not understand: '<command>'``.
+So a CB3 or an e-Series controller before 5.6.0 cannot say whether it is in remote control,
+which ur_rtde's own ``DashboardClient::isInRemoteControl`` acknowledges (dashboard_client.cpp:
+it sends the query only for PolyScope 5.6 and later and otherwise warns and returns false).
 """
 
 from __future__ import annotations
@@ -10,18 +16,17 @@ from __future__ import annotations
 import socket
 
 from sim.ur_controller.controller import (
-    POLYSCOPE_VERSION_LINE,
     ROBOT_MODE_IDLE,
     ROBOT_MODE_POWER_OFF,
     ROBOT_MODE_RUNNING,
     Controller,
 )
+from sim.ur_controller.versions import DASHBOARD_COMMANDS_SINCE
 
 DASHBOARD_PORT = 29999
 
 # Answers that do not depend on the controller's state.
 _FIXED_ANSWERS = {
-    "PolyscopeVersion": POLYSCOPE_VERSION_LINE,
     "get serial number": "20235500001",
     "get robot model": "UR5",
     "play": "Failed to execute: play",
@@ -57,6 +62,11 @@ def serve_dashboard(controller: Controller, sock: socket.socket) -> None:
 def _dashboard_answer(controller: Controller, command: str) -> str:
     with controller.lock:
         controller.events.append(f"dashboard: {command}")
+        name = "popup" if command.startswith("popup ") else command
+        if name in DASHBOARD_COMMANDS_SINCE and not controller.version.has_dashboard_command(name):
+            return f"could not understand: '{command}'"
+        if command == "PolyscopeVersion":
+            return controller.version.polyscope_version_line
         if command in _FIXED_ANSWERS:
             return _FIXED_ANSWERS[command]
         answer = _status_answer(controller, command)

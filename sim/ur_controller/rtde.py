@@ -5,7 +5,9 @@ version requests, output and input recipe setup, start and pause, data packages 
 the RTDE guide's type table, and text messages. A data package goes out every
 round(state rate / recipe frequency) controller ticks; input packages write the registers
 the controller core (:mod:`sim.ur_controller.controller`) reads, and one that writes the
-control script's command register kicks the RTDE watchdog (ur_rtde's kickWatchdog).
+control script's command register kicks the RTDE watchdog (ur_rtde's kickWatchdog). The
+controller version it reports and the fastest recipe it accepts (125 Hz CB3, 500 Hz
+e-Series) are those of the controller's software version (:mod:`sim.ur_controller.versions`).
 A variable the controller does not model reads as zero of its RTDE type.
 """
 
@@ -18,7 +20,7 @@ import threading
 import time
 from typing import Any, Sequence
 
-from sim.ur_controller.controller import CONTROLLER_VERSION, Controller
+from sim.ur_controller.controller import Controller
 
 RTDE_PORT = 30004
 
@@ -190,7 +192,7 @@ class RTDESession:
             (version,) = struct.unpack(">H", payload[:2])
             self._send(package_type, struct.pack(">B", 1 if version in (1, 2) else 0))
         elif package_type == RTDE_GET_URCONTROL_VERSION:
-            self._send(package_type, struct.pack(">IIII", *CONTROLLER_VERSION))
+            self._send(package_type, struct.pack(">IIII", *self.controller.version.numbers))
         elif package_type == RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS:
             (frequency,) = struct.unpack(">d", payload[:8])
             self._setup_outputs(frequency, _names(payload[8:]))

@@ -22,6 +22,7 @@ from sim.ur_controller.controller import HOME_Q, Controller
 from sim.ur_controller.dashboard import DASHBOARD_PORT, serve_dashboard
 from sim.ur_controller.rtde import RTDE_PORT, serve_rtde
 from sim.ur_controller.script import SCRIPT_PORT, serve_script
+from sim.ur_controller.versions import DEFAULT_VERSION, SoftwareVersion
 
 
 def _accept_loop(controller: Controller, listener: socket.socket, serve: Callable[[socket.socket], None]) -> None:
@@ -48,10 +49,14 @@ def _listen(host: str, port: int) -> socket.socket:
 
 
 def _controller_process(
-    pipe: multiprocessing.connection.Connection, host: str, state_rate_hz: float, initial_q: Sequence[float]
+    pipe: multiprocessing.connection.Connection,
+    host: str,
+    state_rate_hz: float,
+    initial_q: Sequence[float],
+    version: SoftwareVersion,
 ) -> None:
     """Entry point of the fake's process: serve the ports, tick, and obey the test's pipe."""
-    controller = Controller(host, state_rate_hz, initial_q)
+    controller = Controller(host, state_rate_hz, initial_q, version)
     try:
         servers = {RTDE_PORT: serve_rtde, DASHBOARD_PORT: serve_dashboard, SCRIPT_PORT: serve_script}
         for port, serve in servers.items():
@@ -65,27 +70,25 @@ def _controller_process(
         return
     threading.Thread(target=_tick_loop, args=(controller,), daemon=True).start()
     pipe.send(("ready", None))
+    actions: dict[str, Callable[[Any], Any]] = {
+        "snapshot": lambda _: controller.snapshot(),
+        "safety": controller.set_safety,
+        "speed_slider": controller.set_speed_slider,
+        "remote_control": lambda remote: controller.set_remote_control(bool(remote)),
+        "cut": lambda _: controller.cut(),
+        "shutdown": lambda _: _shut_down(controller),
+    }
     while controller.running:
         request, argument = pipe.recv()
-        if request == "snapshot":
-            pipe.send(("ok", controller.snapshot()))
-        elif request == "safety":
-            controller.set_safety(argument)
-            pipe.send(("ok", None))
-        elif request == "speed_slider":
-            controller.set_speed_slider(argument)
-            pipe.send(("ok", None))
-        elif request == "remote_control":
-            with controller.lock:
-                controller.remote_control = bool(argument)
-            pipe.send(("ok", None))
-        elif request == "cut":
-            controller.cut()
-            pipe.send(("ok", None))
-        elif request == "shutdown":
-            controller.running = False
-            controller.cut()
-            pipe.send(("ok", None))
+        try:
+            pipe.send(("ok", actions[request](argument)))
+        except ValueError as error:  # a request this controller cannot carry out
+            pipe.send(("error", str(error)))
+
+
+def _shut_down(controller: Controller) -> None:
+    controller.running = False
+    controller.cut()
 
 
 def _tick_loop(controller: Controller) -> None:
@@ -104,12 +107,22 @@ def _tick_loop(controller: Controller) -> None:
 class FakeURController:
     """Handle on a fake UR controller running in its own process on ``host`` (127.x.y.z).
 
-    Use as a context manager; ``start()`` raises OSError if the address is taken.
+    ``software_version`` is the PolyScope version it runs, e.g. "3.15" (CB3), "5.4" or "5.20"
+    (e-Series; :mod:`sim.ur_controller.versions`); ``state_rate_hz`` defaults to the fastest
+    RTDE rate of that version. Use as a context manager; ``start()`` raises OSError if the
+    address is taken.
     """
 
-    def __init__(self, host: str, state_rate_hz: float = 500.0, initial_q: Sequence[float] = HOME_Q) -> None:
+    def __init__(
+        self,
+        host: str,
+        state_rate_hz: float | None = None,
+        initial_q: Sequence[float] = HOME_Q,
+        software_version: str | None = None,
+    ) -> None:
         self.host = host
-        self.state_rate_hz = state_rate_hz
+        self.version = DEFAULT_VERSION if software_version is None else SoftwareVersion.parse(software_version)
+        self.state_rate_hz = self.version.max_rtde_frequency_hz if state_rate_hz is None else state_rate_hz
         self.initial_q = tuple(float(v) for v in initial_q)
         self._process: multiprocessing.process.BaseProcess | None = None
         self._pipe: multiprocessing.connection.Connection | None = None
@@ -121,7 +134,7 @@ class FakeURController:
             target=_controller_process,
             daemon=True,
             name=f"fake-ur-{self.host}",
-            args=(child_pipe, self.host, self.state_rate_hz, self.initial_q),
+            args=(child_pipe, self.host, self.state_rate_hz, self.initial_q, self.version),
         )
         self._process.start()
         child_pipe.close()
@@ -148,7 +161,8 @@ class FakeURController:
         self._request("speed_slider", fraction)
 
     def set_remote_control(self, remote: bool) -> None:
-        """Remote control (True) or local control (False) on the pendant."""
+        """Remote control (True) or local control (False) on the pendant of an e-Series
+        controller; ValueError on a CB3, which has neither."""
         self._request("remote_control", remote)
 
     def cut_connections(self) -> None:
@@ -177,6 +191,8 @@ class FakeURController:
         if not self._pipe.poll(10.0):
             raise TimeoutError(f"fake UR controller on {self.host} did not answer {request!r}")
         status, value = self._pipe.recv()
+        if status == "error":
+            raise ValueError(value)
         return value
 
     def __enter__(self) -> "FakeURController":
