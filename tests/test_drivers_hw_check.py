@@ -118,7 +118,7 @@ def test_hw_check_on_the_lab_launch_file_here(capsys):
     assert "no OpenNI2 depth camera with serial '011987650947'" in out
     # Quoted in the launch file, so it must stay text (unquoted it would read as octal).
     assert "no OpenNI2 depth camera with serial '003726261447'" in out
-    assert "cannot open RTDE to the UR controller at 127.0.0.1" in out
+    assert "cannot reach the UR dashboard server at 127.0.0.1" in out
     assert "cannot open the gripper's serial port /dev/dtx-no-such-port" in out
     assert out.count("GelSightError") == 2
     assert out.strip().endswith("0 of 6 devices OK")
