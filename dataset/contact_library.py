@@ -28,12 +28,12 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from tqdm import tqdm
 
 from dataset.images import resize_rgb, subtract_background
 from dataset.records import DatasetError, DatasetInfo, code_version
 from dataset.synth import SurfaceMm, gel_gap_from_surface
 from dataset.writer import DatasetWriter
+from msgs.progress import track
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
 from sim.effects import effects_of, resolve_effects
@@ -199,7 +199,7 @@ def write_contact_library(
         depth_crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
     )
     writer = DatasetWriter(out, info)
-    for index in tqdm(range(samples), desc="contact library", disable=not progress):
+    for index in track(range(samples), "contact library", "pairs", enabled=progress):
         family = FAMILIES[index % len(FAMILIES)]
         grasp_id, finger = index // 2, ("left", "right")[index % 2]
         sample_id = f"{family}-g{grasp_id:05d}-{finger}"

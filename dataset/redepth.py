@@ -17,12 +17,12 @@ import os
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from dataset.images import resize_rgb
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError
 from dataset.writer import DatasetWriter
+from msgs.progress import track
 from perception.density import downsample_to_density
 from perception.depthmap import MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_reach_m
 from perception.errors import DepthMapError
@@ -103,7 +103,8 @@ def redepth_dataset(
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
     writer = DatasetWriter(out, info)
     clouds: dict[str, VoxelIndex] = {}
-    for record in tqdm(reader.records, desc=f"depth-maps {points_per_cm3 or 'full'} pts/cm³", disable=not progress):
+    density = f"{points_per_cm3:g} points/cm³" if points_per_cm3 else "full density"
+    for record in track(reader.records, f"depth-maps at {density}", "samples", enabled=progress):
         if record.sample_id in writer:  # resumed
             continue
         if record.object_name not in clouds:

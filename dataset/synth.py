@@ -21,11 +21,11 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-from tqdm import tqdm
 
 from dataset.images import subtract_background
 from dataset.records import DatasetError, DatasetInfo, code_version
 from dataset.writer import DatasetWriter
+from msgs.progress import track
 
 SHAPES = ("sphere", "cylinder", "edge", "box", "ridges")
 SurfaceMm = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -149,7 +149,7 @@ def write_synthetic_dataset(
     background = renderer.render(np.full((size, size), np.inf, np.float32))
     writer = DatasetWriter(out, _synthetic_info(size, seed, crop_scale, depth_range_m))
     n_grasps = (samples + 1) // 2
-    for grasp_id in tqdm(range(n_grasps), desc="synth grasps", disable=not progress):
+    for grasp_id in track(range(n_grasps), "synthetic grasps", "grasps", enabled=progress):
         # One generator per grasp: a resumed run draws exactly the same grasps.
         rng = np.random.default_rng([seed, grasp_id])
         shape = SHAPES[int(rng.integers(len(SHAPES)))]

@@ -26,8 +26,25 @@ LIBRARY_SAMPLES = 1200
 SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/depth_map,/arm/state,/gripper/state]"
 
 
+# The width a shown command wraps at, as a shell continues a line (a log stays readable).
+COMMAND_WIDTH = 100
+
+
+def shown_command(command: list[str]) -> str:
+    """``dtx COMMAND...`` as a shell prompt shows it, wrapped with ``\\`` before
+    ``COMMAND_WIDTH`` characters (an argument longer than that keeps a line of its own)."""
+    prompt, indent = "$ dtx", "   "
+    lines = [prompt]
+    for arg in command:
+        if len(lines[-1]) + 1 + len(arg) > COMMAND_WIDTH - 2 and lines[-1] not in (prompt, indent):
+            lines[-1] += " \\"
+            lines.append(indent)
+        lines[-1] += f" {arg}"
+    return "\n".join(lines)
+
+
 def _run(step: str, command: list[str], capture: bool = False) -> str:
-    print(f"\n== {step}\n$ dtx {' '.join(command)}", flush=True)
+    print(f"\n== {step}\n{shown_command(command)}", flush=True)
     started = time.monotonic()
     result = subprocess.run(
         [sys.executable, "-m", "dtx.cli", *command], text=True, stdout=subprocess.PIPE if capture else None

@@ -42,6 +42,7 @@ from typing import Any, TextIO
 
 import yaml
 
+from msgs.progress import TERMINAL_ENV, on_terminal
 from nodes.node import EXIT_DO_NOT_RESPAWN
 from nodes.registry import Registry
 
@@ -283,14 +284,20 @@ class Launcher:
             print(text, file=self.output, flush=True)
 
     def _start(self, spec: NodeSpec, respawns: int = 0) -> None:
-        # DTX_RESPAWN tells a node it is being restarted (a collector then resumes its dataset).
+        # DTX_RESPAWN tells a node it is being restarted (a collector then resumes its dataset);
+        # DTX_TERMINAL whether the relay ends on a terminal (how the node should show progress).
         process = subprocess.Popen(
             spec.command(),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             preexec_fn=_die_with_parent,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", "DTX_RESPAWN": str(respawns)},
+            env={
+                **os.environ,
+                "PYTHONUNBUFFERED": "1",
+                "DTX_RESPAWN": str(respawns),
+                TERMINAL_ENV: "1" if on_terminal(self.output) else "0",
+            },
         )
         relay = threading.Thread(target=self._relay, args=(spec.name, process), daemon=True)
         self.running[spec.name] = _Running(spec, process, respawns, relay)

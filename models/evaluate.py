@@ -30,6 +30,7 @@ from dataset.images import deformation_map
 from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
 from models.template_match import template_match
+from msgs.progress import Progress
 from perception.errors import ImageComparisonError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
 
@@ -328,9 +329,11 @@ def evaluate(
     baseline_draws: int = 15,
     template_px: int = 32,
     seed: int = 0,
+    progress: bool = True,
 ) -> tuple[dict[str, Any], Predictions]:
     """The paper's analysis on one split, plus the density table for the datasets given
     (points per cm^3 -> dataset made at that density; its ``split`` is evaluated too)."""
+    shown = Progress("evaluate", 1 + len(density or {}), "datasets", enabled=progress)
     predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
     result = ssim_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
     matches = template_match(predictions.truth, predictions.truth_deformation, predictions.estimate, template_px)
@@ -349,34 +352,46 @@ def evaluate(
     result["objects"] = per_object_statistics(
         predictions.truth, predictions.estimate, predictions.objects, baseline_draws, seed
     )
+    shown.note(f"last: the {split} split")
+    shown.update()
     result["density"] = []
     full_contact = (
         contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate) if density else None
     )
     for points_per_cm3, density_root in sorted((density or {}).items()):
         at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
-        mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
-        psnr_mean, psnr_se = _mean_se(psnr_rgb(at_density.truth, at_density.estimate))
-        row = {
-            "points_per_cm3": float(points_per_cm3),
-            "ssim_mean": mean,
-            "ssim_se": se,
-            "psnr_db_mean": psnr_mean,
-            "psnr_db_se": psnr_se,
-            "paper_ssim_mean": PAPER["density"].get(points_per_cm3),
-        }
-        contact = contact_ssim(at_density.truth, at_density.truth_deformation, at_density.estimate)
-        if len(contact) >= 2:
-            row["contact_ssim_mean"], row["contact_ssim_se"] = _mean_se(contact)
-            # What this density costs: the full cloud's estimates better on the same pairs'
-            # contact windows (one-sided Wilcoxon; pairs matched by sample id).
-            if at_density.sample_ids == predictions.sample_ids and np.any(contact != full_contact):
-                row["contact_p_full_better"] = float(
-                    stats.wilcoxon(full_contact, contact, alternative="greater").pvalue
-                )
-        result["density"].append(row)
+        result["density"].append(_density_row(points_per_cm3, at_density, predictions.sample_ids, full_contact))
+        shown.note(f"last: {points_per_cm3:g} points/cm³")
+        shown.update()
+    shown.close()
     result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
     return result, predictions
+
+
+def _density_row(
+    points_per_cm3: float, at_density: Predictions, full_ids: list[str], full_contact: np.ndarray | None
+) -> dict[str, Any]:
+    """The density table's row for the estimates from depth-maps at ``points_per_cm3``; the
+    full cloud's pairs (``full_ids``, their contact-window SSIM ``full_contact``) for the test
+    of what the density costs."""
+    mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
+    psnr_mean, psnr_se = _mean_se(psnr_rgb(at_density.truth, at_density.estimate))
+    row = {
+        "points_per_cm3": float(points_per_cm3),
+        "ssim_mean": mean,
+        "ssim_se": se,
+        "psnr_db_mean": psnr_mean,
+        "psnr_db_se": psnr_se,
+        "paper_ssim_mean": PAPER["density"].get(points_per_cm3),
+    }
+    contact = contact_ssim(at_density.truth, at_density.truth_deformation, at_density.estimate)
+    if len(contact) >= 2:
+        row["contact_ssim_mean"], row["contact_ssim_se"] = _mean_se(contact)
+        # What this density costs: the full cloud's estimates better on the same pairs'
+        # contact windows (one-sided Wilcoxon; pairs matched by sample id).
+        if at_density.sample_ids == full_ids and np.any(contact != full_contact):
+            row["contact_p_full_better"] = float(stats.wilcoxon(full_contact, contact, alternative="greater").pvalue)
+    return row
 
 
 def summary_table(result: dict[str, Any]) -> str:

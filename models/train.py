@@ -45,12 +45,12 @@ import torch
 from torch import nn
 from torch.optim.lr_scheduler import LambdaLR
 from torch.utils.tensorboard import SummaryWriter
-from tqdm import tqdm
 
 from dataset.reader import DatasetReader
 from models.checkpoint import CHECKPOINT, TrainConfig, load_checkpoint, save_atomic
 from models.data import load_library, load_pairs, select_records, session_prior
 from models.networks import ModelConfigError, PatchDiscriminator, UNetGenerator, init_weights
+from msgs.progress import Progress
 from perception.ssim import ssim_torch
 
 # A target pixel this far from the mean training image (tanh units; 0.1 = 12.75 levels of 255)
@@ -343,7 +343,7 @@ def _epoch_batches(state: TrainState, epoch: int) -> Iterator[torch.Tensor]:
 
 
 class TrainLog:
-    """The progress bar, ``train_log.csv`` (window means of the losses every ``log_every``
+    """The progress (``msgs.progress``), ``train_log.csv`` (window means of the losses every ``log_every``
     steps), ``val_log.csv`` and TensorBoard scalars; only rank 0 writes files."""
 
     def __init__(self, out_dir: Path, state: TrainState, resumed: bool, progress: bool = True) -> None:
@@ -356,7 +356,7 @@ class TrainLog:
             shutil.rmtree(out_dir / "tensorboard", ignore_errors=True)
         # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
         self.board = SummaryWriter(out_dir / "tensorboard", purge_step=state.step) if rank0 else None
-        self.bar = tqdm(total=state.total_steps, initial=state.step, desc="train", disable=not progress or not rank0)
+        self.bar = Progress("train", state.total_steps, "steps", initial=state.step, enabled=progress and rank0)
         self.window: list[list[float]] = []
         self.started = time.monotonic()
 
@@ -368,9 +368,7 @@ class TrainLog:
             return
         means = np.mean(self.window, axis=0)
         self.window.clear()
-        self.bar.set_postfix(
-            d_real=f"{means[0]:.3f}", d_fake=f"{means[1]:.3f}", g_gan=f"{means[2]:.3f}", g_l1=f"{means[3]:.4f}"
-        )
+        self.bar.note(f"d_real {means[0]:.3f}, d_fake {means[1]:.3f}, g_gan {means[2]:.3f}, g_l1 {means[3]:.4f}")
         if self.board is not None:
             names = list(losses)
             _append_csv(

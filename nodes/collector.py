@@ -40,6 +40,7 @@ from dataset.check import check_dataset
 from dataset.images import resize_rgb, subtract_background
 from dataset.records import DatasetError, DatasetInfo, code_version
 from dataset.writer import DatasetWriter
+from msgs.progress import Progress
 from msgs.system import ErrorCode
 from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 from nodes.services import ServiceCallError
@@ -161,31 +162,42 @@ class CollectorNode(Node):
         )
         self.wait_for_nodes()
         self.started = time.monotonic()
-        for grasp_id, object_name in todo:
-            if self.shutting_down:
-                self.log.info("stopped by request after %d grasps; resume:=true continues", self.stats.grasps_done)
-                return
-            self.collect_grasp(grasp_id, object_name)
-            self.report_progress(len(plan), len(plan) - len(todo))
+        # A line per grasp on a terminal, as ever; through a file or pipe, a line every tenth or 10 s.
+        with Progress("collect", len(plan), "grasps", initial=len(plan) - len(todo), bar_on_terminal=False) as progress:
+            for grasp_id, object_name in todo:
+                if self.shutting_down:
+                    self.log.info("stopped by request after %d grasps; resume:=true continues", self.stats.grasps_done)
+                    return
+                self.collect_grasp(grasp_id, object_name)
+                progress.note(
+                    f"pairs {self.pairs()}, failed draws {self.stats.failed_draws}, skipped {self.stats.skipped}, "
+                    f"device retries {self.stats.device_retries}"
+                )
+                progress.update()
         summary = {
             "stats": dataclasses.asdict(self.stats),
             "wall_s": round(time.monotonic() - self.started, 2),
             "stage_median_ms": {k: round(1e3 * float(np.median(v)), 2) for k, v in self.stage_s.items()},
         }
-        (Path(self.params.out) / "session.json").write_text(json.dumps(summary, indent=2) + "\n")
+        summary_file = Path(self.params.out) / "session.json"
+        summary_file.write_text(json.dumps(summary, indent=2) + "\n")
         report = check_dataset(self.params.out)
         if not report.ok:
             self.log.error(
-                "session ended: %d pairs in %s, but the dataset check FAILED (%d problem(s): %s) %s",
+                "session ended: %d pairs in %s, but the dataset check FAILED (%d problem(s): %s); counts and stage "
+                "times in %s",
                 self.pairs(),
                 self.params.out,
                 len(report.problems),
                 "; ".join(report.problems[:5]),
-                json.dumps(summary),
+                summary_file,
             )
             raise SystemExit(EXIT_DO_NOT_RESPAWN)
         self.log.info(
-            "session complete: %d pairs in %s, dataset check OK %s", self.pairs(), self.params.out, json.dumps(summary)
+            "session complete: %d pairs in %s, dataset check OK; counts and stage times in %s",
+            self.pairs(),
+            self.params.out,
+            summary_file,
         )
         self.request_shutdown()
 
@@ -200,19 +212,6 @@ class CollectorNode(Node):
 
     def sample_id(self, grasp_id: int, finger: str) -> str:
         return f"g{grasp_id:05d}_{finger}"
-
-    def report_progress(self, total: int, done_before: int) -> None:
-        elapsed = time.monotonic() - self.started
-        rate = (self.stats.grasps_done - done_before + self.stats.skipped) / max(elapsed, 1e-9)
-        remaining = total - self.stats.grasps_done - self.stats.skipped
-        eta = f"{remaining / rate:.0f} s" if rate > 0 else "?"
-        filled = int(30 * (self.stats.grasps_done + self.stats.skipped) / total)
-        print(
-            f"[{'#' * filled}{'.' * (30 - filled)}] grasps {self.stats.grasps_done}/{total} | "
-            f"pairs {self.pairs()} | failed draws {self.stats.failed_draws} | skipped {self.stats.skipped} | "
-            f"device retries {self.stats.device_retries} | {rate * 60:.0f} grasps/min | ETA {eta}",
-            flush=True,
-        )
 
     def collect_grasp(self, grasp_id: int, object_name: str) -> None:
         attempt = 0
