@@ -26,6 +26,7 @@ def test_image_topic_is_served_to_foxglove_studio(registry: Registry) -> None:
             publisher.publish(msgs.TactileImage(image=np.zeros((12, 16, 3), np.uint8), sensor="left"))
             bridge.spin_once(0.05)
         assert "/gelsight_left/image" in bridge.channels
+        assert "thinned:/gelsight_left/image" in bridge.counters()  # the heartbeat reports each topic
         with socket.create_connection(("127.0.0.1", bridge.port), timeout=5) as client:
             key = base64.b64encode(os.urandom(16)).decode()
             client.sendall(
