@@ -196,7 +196,7 @@ def _load_data(
         reader, select_records(reader, "train", config.hold_out_object), config.generator, prior
     )
     x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), config.generator, prior)
-    library = load_library(libraries, reader, config.generator, prior)
+    library = load_library(libraries, reader, config.generator, prior, config.library_pose_sigma_range_mm, config.seed)
     if library is not None:
         x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
     meta = {

@@ -91,6 +91,11 @@ def test_a_checkpoint_records_the_range_it_was_trained_for(library: Path, tmp_pa
     assert TrainConfig.from_dict(load_checkpoint(path)["train_config"]).library_pose_sigma_range_mm == (0.0, 1.5)
     generator, _ = load_generator(path)
     assert generator.prior is not None and generator.prior.spec.pose_sigma_mm == 0.0  # the default stays the session's
+    exact = load_checkpoint(train(library, TINY, tmp_path / "exact", progress=False, libraries=[library]))
+    trained = load_checkpoint(path)
+    assert not all(
+        torch.equal(trained["generator"][k], v) for k, v in exact["generator"].items()
+    )  # it learnt from them
 
 
 @pytest.mark.parametrize(
