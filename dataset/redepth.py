@@ -24,9 +24,16 @@ from dataset.records import DatasetError
 from dataset.writer import DatasetWriter
 from msgs.progress import track
 from perception.density import downsample_to_density
-from perception.depthmap import MODEL_CLOUD_SEED, MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_reach_m
-from perception.errors import DepthMapError
-from perception.pointcloud import VoxelIndex
+from perception.depthmap import (
+    MODEL_CLOUD_SEED,
+    MODEL_POINT_SPACING_M,
+    DepthMapParams,
+    contact_depth_map,
+    crop_bounds,
+    crop_reach_m,
+)
+from perception.errors import OutOfReachError
+from perception.pointcloud import VoxelIndex, check_transform
 from perception.registration import sample_model_cloud
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, SceneError, load_scene
@@ -68,13 +75,15 @@ def depth_map_again(
     posed in the gel frame by ``model_to_gel``, with a dataset's settings
     (:func:`depth_map_params`), from the points within reach of the gel as the patch extractor
     takes them; y_far everywhere when nothing of the cloud falls in the crop ("nothing within
-    reach")."""
-    gel_centre_in_model = np.linalg.inv(model_to_gel)[:3, 3]
+    reach"). ``model_to_gel`` must be rigid (PointCloudError) and ``params`` as
+    perception.depthmap.crop_bounds takes them, its default depth range too (DepthMapError)."""
+    y_far = crop_bounds(geometry, params)[3]
+    gel_centre_in_model = np.linalg.inv(check_transform(model_to_gel, "model_to_gel"))[:3, 3]
     near = model.within(gel_centre_in_model, crop_reach_m(geometry, params))
     try:
         return contact_depth_map(near, model_to_gel, np.eye(4), geometry, params).depth_map_m
-    except DepthMapError:
-        return np.full(params.shape, params.y_range_m[1], np.float32)
+    except OutOfReachError:
+        return np.full(params.shape, y_far, np.float32)
 
 
 def redepth_dataset(

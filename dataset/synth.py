@@ -88,14 +88,34 @@ def depth_map_from_surface(
 
 def analytic_contact_maps(count: int, seed: int, y_far_m: float, size: int = 100, crop_mm: float = 24.0) -> np.ndarray:
     """count x size x size float32 depth-maps (m) of random analytic contacts, every shape of
-    :data:`SHAPES` in turn."""
+    :data:`SHAPES` in turn. ``count`` an integer >= 0 (none: no maps), ``size`` in
+    [1, MAX_CONTACT_MAP_SIZE], count x size² at most MAX_CONTACT_MAP_BINS, ``crop_mm`` in
+    (0, MAX_CROP_MM], ``y_far_m`` finite; otherwise DatasetError naming the argument."""
+    if not (_whole(count) and _whole(size) and count >= 0 and 1 <= size <= MAX_CONTACT_MAP_SIZE):
+        raise DatasetError(
+            f"count must be an integer >= 0 and size one in [1, {MAX_CONTACT_MAP_SIZE}], got {count!r}, {size!r}"
+        )
+    if count * size * size > MAX_CONTACT_MAP_BINS:
+        raise DatasetError(f"count x size² = {count * size * size} bins, more than {MAX_CONTACT_MAP_BINS}")
+    if not (0 < crop_mm <= MAX_CROP_MM and abs(y_far_m) < np.inf):
+        raise DatasetError(f"crop_mm must be in (0, {MAX_CROP_MM:g}] and y_far_m finite, got {crop_mm!r}, {y_far_m!r}")
     rng = np.random.default_rng(seed)
-    return np.stack(
-        [
-            depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), size, crop_mm, y_far_m)
-            for i in range(count)
-        ]
-    )
+    maps = np.empty((count, size, size), np.float32)
+    for i, depth_map in enumerate(maps):
+        depth_map[...] = depth_map_from_surface(random_surface(SHAPES[i % len(SHAPES)], rng), size, crop_mm, y_far_m)
+    return maps
+
+
+# Bounds of analytic_contact_maps: the network's maps are 100 or 256 bins a side, and a map is
+# sampled 3 x 3 per bin in float64 (a 512-bin map: ~20 MB a working array); 2**26 bins are
+# 256 MiB of maps; a crop of 100 mm is four gels across.
+MAX_CONTACT_MAP_SIZE = 512
+MAX_CONTACT_MAP_BINS = 2**26
+MAX_CROP_MM = 100.0
+
+
+def _whole(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
 def gel_gap_from_surface(
