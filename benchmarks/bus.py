@@ -168,7 +168,8 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
             results.append(_send_raw(context_mp, payload_bytes, transport, bus_dir, count, pause_s))
     latency, throughput = results
     lat = np.array(latency["latencies_us"])
-    mb_per_s = throughput["bytes"] / throughput["span_s"] / 1e6 if throughput["span_s"] > 0 else float("nan")
+    spanned = throughput["span_s"] > 0
+    mb_per_s = throughput["bytes"] / throughput["span_s"] / 1e6 if spanned else float("nan")
     return {
         "impl": impl,
         "transport": transport,
@@ -176,6 +177,7 @@ def _run_row(impl: str, transport: str, payload_bytes: int, args: argparse.Names
         "p50_us": round(float(np.percentile(lat, 50)), 1),
         "p99_us": round(float(np.percentile(lat, 99)), 1),
         "mb_per_s": round(mb_per_s, 1),
+        **({} if spanned else {"mb_per_s_undefined": "fewer than two throughput messages arrived: no time span"}),
         "throughput_received": throughput["received"],
         "throughput_sent": n_throughput,
     }

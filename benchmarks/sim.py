@@ -158,11 +158,11 @@ def _check_rows(check_file: str) -> list[dict]:
 
 
 def main() -> None:  # pragma: no cover - convenience when dtx/cli.py is not there
-    import json
+    from msgs import strict_json
 
     parser = argparse.ArgumentParser(description=__doc__)
     add_arguments(parser)
-    print(json.dumps(run(parser.parse_args()), indent=2))
+    print(strict_json.dumps(run(parser.parse_args()), indent=2))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
-import json
 import signal
 import sys
 import time
@@ -17,6 +16,7 @@ import numpy as np
 import yaml
 
 from dtx import demo
+from msgs import strict_json
 
 # Packages that add their own command groups (each has cli.add_commands(subparsers)).
 COMMAND_PACKAGES: list[str] = ["drivers", "sim", "perception", "models", "dataset", "report"]
@@ -223,7 +223,7 @@ def cmd_bag_record(args: argparse.Namespace) -> int:
         foxglove=not args.no_foxglove,
     )
     bus.close()
-    print(json.dumps({"bag": args.output, "recorded": counts}))
+    print(strict_json.dumps({"bag": args.output, "recorded": counts}))
     return 0
 
 
@@ -251,7 +251,7 @@ def cmd_bag_play(args: argparse.Namespace) -> int:
     finally:
         bus.close()
     elapsed = time.monotonic() - started
-    print(json.dumps({"published": counts, "seconds": round(elapsed, 3)}))
+    print(strict_json.dumps({"published": counts, "seconds": round(elapsed, 3)}))
     return 0
 
 
@@ -265,7 +265,7 @@ def cmd_bag_info(args: argparse.Namespace) -> int:
         print(str(exc), file=sys.stderr)
         return 1
     if args.json:
-        print(json.dumps({**dataclasses.asdict(info), "duration_s": info.duration_s}, indent=2))
+        print(strict_json.dumps({**dataclasses.asdict(info), "duration_s": info.duration_s}, indent=2))
         return 0
     print(f"path:        {info.path}")
     print(f"truncated:   {'yes (cut short; everything before the cut was read)' if info.truncated else 'no'}")
@@ -323,7 +323,7 @@ def _run_bench(args: argparse.Namespace) -> int:
     options = parser.parse_args(args.options)
     result = module.run(options)
     if options.json:
-        print(json.dumps(result, indent=2))
+        print(strict_json.dumps(result, indent=2))
     else:
         _print_table(result)
     return 0

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 
 from dataset.records import DatasetError
 from dtx.errors import exit_1_on
 from models.errors import ModelConfigError
+from msgs import strict_json
 
 
 @exit_1_on(ModelConfigError, DatasetError, OSError)
@@ -61,7 +61,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         if args.figures:
             write_real_press_figure(real, images, args.figures)
     if args.dataset is None:
-        print(json.dumps(real, indent=2) if args.json else real_press_table(real))
+        print(strict_json.dumps(real, indent=2) if args.json else real_press_table(real))
         return 0
     result, predictions = evaluate(
         generator,
@@ -77,7 +77,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if real is not None:
         result["real_presses"] = real
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(strict_json.dumps(result, indent=2))
     else:
         print(summary_table(result) + ("" if real is None else "\n\n" + real_press_table(real)))
     return 0

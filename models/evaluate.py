@@ -341,8 +341,9 @@ def evaluate(
     result["template_match"] = {
         "template_px": template_px,
         "score_mean": float(np.mean([m["score"] for m in matches])),
-        # Over the pairs whose template is not flat; NaN when every template is.
+        # Over the pairs whose template is not flat; NaN, with the reason, when every template is.
         "distance_px_median": float(np.median(distances)) if distances else float("nan"),
+        **({} if distances else {"distance_px_median_undefined": "every truth's template is flat: nothing to locate"}),
         "per_sample": matches,
     }
     result["psnr"] = psnr_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)

@@ -149,6 +149,9 @@ def press_depth_map(
     return contact_depth_map(cloud, ball_to_gel, np.eye(4), geometry, params).depth_map_m
 
 
+LOCATION_UNDEFINED = "the estimate has no structure: the press's template matches it nowhere"
+
+
 def location_error_mm(
     truth: np.ndarray, estimate: np.ndarray, press: PressGeometry, field_mm: tuple[float, float]
 ) -> float:
@@ -307,6 +310,11 @@ def _summary(scores: dict[str, dict[str, list[float]]], geometries: list[PressGe
             "contact_radius_mm": g.contact_radius_mm,
             "window": list(g.window),
             **{f"{key}_{name}": scores[key][name][i] for key in scores for name in ("model", "renderer")},
+            **{
+                f"location_error_mm_{name}_undefined": LOCATION_UNDEFINED
+                for name in ("model", "renderer")
+                if not np.isfinite(scores["location_error_mm"][name][i])
+            },
         }
         for i, g in enumerate(geometries)
     ]

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+from msgs import strict_json
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
@@ -57,7 +58,7 @@ def cmd_register_check(args: argparse.Namespace) -> int:
         print(f"dtx perception register-check: {exc}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(strict_json.dumps(report, indent=2))
         return 0
     for stem, row in report.items():
         print(

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
+from msgs import strict_json
 from sim.gelsight_effects import GelSightRenderError
 
 
@@ -67,7 +67,7 @@ def gelsight_check(args: argparse.Namespace) -> int:
     except GelSightRenderError as exc:
         print(f"dtx sim gelsight-check: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(result, indent=2) if args.json else format_table(result))
+    print(strict_json.dumps(result, indent=2) if args.json else format_table(result))
     return 0
 
 
@@ -90,7 +90,7 @@ def information_ceiling(args: argparse.Namespace) -> int:
     except (CeilingError, DatasetError, ModelConfigError) as exc:
         print(f"dtx sim ceiling: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(result, indent=2) if args.json else format_table(result))
+    print(strict_json.dumps(result, indent=2) if args.json else format_table(result))
     return 0
 
 

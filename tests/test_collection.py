@@ -26,6 +26,7 @@ from dataset.redepth import redepth_dataset
 from dataset.synth import write_synthetic_dataset
 from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS
+from msgs import strict_json
 from nodes.bag import bag_info, iter_envelopes
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 from sim.cli import main as sim_cli
@@ -45,6 +46,7 @@ def collected(out: Path, grasps: int, seed: int) -> Path:
     """A clean session's dataset directory."""
     result = run_session(out, grasps=grasps, seed=seed, record=False)
     assert result["exit_code"] == 0, result.get("collector_log")
+    strict_json.dumps(result)  # dtx bench collect --json prints it so: strict JSON, or ValueError
     return out
 
 
@@ -116,6 +118,7 @@ def test_every_pair_whose_depth_map_presses_shows_the_press(small_session: Path)
 
 def test_the_information_ceiling_reproduces_the_session_and_orders_its_rungs(small_session: Path) -> None:
     result = information_ceiling(small_session, split="all")
+    strict_json.dumps(result)  # as dtx sim ceiling --json prints it: strict JSON, or ValueError
     rungs = [result["rungs"][name] for name in RUNGS]
     assert result["reproduces_session"] and rungs[0]["n"] == 16
     # Knowing the true contact reproduces the images up to the sensor noise; knowing less costs.
@@ -250,6 +253,7 @@ def test_malformed_messages_at_every_endpoint_of_a_live_session_crash_nothing() 
     parser = argparse.ArgumentParser()
     fuzz.add_arguments(parser)
     result = fuzz.run(parser.parse_args(["--messages", "200", "--grasps", "150", "--seed", "3"]))
+    strict_json.dumps(result)  # as dtx bench fuzz --json prints it: strict JSON, or ValueError
     assert result["nodes_crashed"] == [] and result["respawns"] == 0 and result["nodes_checked"] >= 10, result
     services = [row for row in result["endpoints"] if row["kind"] == "service"]
     topics = [row for row in result["endpoints"] if row["kind"] == "topic"]

@@ -24,6 +24,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_dataset_format import ShadingRenderer
 
 
+def refuse_non_finite(constant: str) -> None:
+    raise AssertionError(f"dtx evaluate --json printed {constant}, which strict JSON readers refuse")
+
+
 def blob_images(n: int, seed: int) -> np.ndarray:
     """n distinct smooth RGB images: a bright Gaussian blob at a random place."""
     rng = np.random.default_rng(seed)
@@ -104,7 +108,7 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
         ]
     )
     assert args.func(args) == 0
-    result = json.loads(capsys.readouterr().out)
+    result = json.loads(capsys.readouterr().out, parse_constant=refuse_non_finite)  # strict JSON only
     for key in (
         "ssim_model_mean",
         "ssim_model_se",
