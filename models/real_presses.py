@@ -54,9 +54,10 @@ WINDOW_RADII = 3.0
 RANDOM_FRAMES = 15
 ESTIMATES = ("model", "model_empty", "background", "renderer", "random")
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
-# Largest ball a press may be of (mm radius): a 100 mm ball already presses a nearly flat cap
-# into a 25 mm gel. Its cloud at the model spacing (0.1 mm) has 3.1 M points (75 MB).
-MAX_BALL_RADIUS_MM = 50.0
+# Sizes a pressed ball may have (mm radius): from a ball 0.1 mm across, about one pixel of the
+# sensor, to a 100 mm one, which already presses a nearly flat cap into a 25 mm gel. Its cloud at
+# the model spacing (0.1 mm) has 3.1 M points (75 MB).
+BALL_RADIUS_RANGE_MM = (0.05, 50.0)
 # Most points of a ball's cloud (96 MB of float64 points, twice that while it is drawn).
 MAX_BALL_POINTS = 4_000_000
 # Widest crop margin (m) the evaluation bins with: the calibration offset it absorbs is a few
@@ -65,10 +66,11 @@ MAX_MARGIN_M = 0.01
 
 
 def _check_press_settings(ball_radius_mm: float, mm_per_px: float) -> None:
-    """ModelConfigError naming the argument unless the ball radius is in (0, MAX_BALL_RADIUS_MM]
+    """ModelConfigError naming the argument unless the ball radius is in BALL_RADIUS_RANGE_MM
     and the pixel pitch in sim.gelsight.PIXEL_PITCH_RANGE_MM (NaN and inf fail both)."""
-    if not (_is_real(ball_radius_mm) and 0 < ball_radius_mm <= MAX_BALL_RADIUS_MM):
-        raise ModelConfigError(f"--ball-radius-mm must be in (0, {MAX_BALL_RADIUS_MM:g}] mm, got {ball_radius_mm!r}")
+    low, high = BALL_RADIUS_RANGE_MM
+    if not (_is_real(ball_radius_mm) and low <= ball_radius_mm <= high):
+        raise ModelConfigError(f"--ball-radius-mm must be in [{low:g}, {high:g}] mm, got {ball_radius_mm!r}")
     low, high = PIXEL_PITCH_RANGE_MM
     if not (_is_real(mm_per_px) and low <= mm_per_px <= high):
         raise ModelConfigError(f"--mm-per-px must be in [{low:g}, {high:g}] mm, got {mm_per_px!r}")
@@ -119,14 +121,17 @@ def press_geometry(
 def ball_cloud_m(ball_radius_mm: float, spacing_m: float = MODEL_POINT_SPACING_M, seed: int = 0) -> np.ndarray:
     """Points uniformly on a sphere of ``ball_radius_mm`` about the origin (N x 3 m), one per
     ``spacing_m``² of surface, as ``perception.registration.sample_model_cloud`` samples a mesh.
-    ``ball_radius_mm`` in (0, MAX_BALL_RADIUS_MM], ``spacing_m`` positive and at most
+    ``ball_radius_mm`` in BALL_RADIUS_RANGE_MM, ``spacing_m`` positive and at most
     MAX_BALL_POINTS points; otherwise ModelConfigError, before any point is drawn."""
-    if not (_is_real(ball_radius_mm) and 0 < ball_radius_mm <= MAX_BALL_RADIUS_MM):
-        raise ModelConfigError(f"ball_radius_mm must be in (0, {MAX_BALL_RADIUS_MM:g}] mm, got {ball_radius_mm!r}")
+    low, high = BALL_RADIUS_RANGE_MM
+    if not (_is_real(ball_radius_mm) and low <= ball_radius_mm <= high):
+        raise ModelConfigError(f"ball_radius_mm must be in [{low:g}, {high:g}] mm, got {ball_radius_mm!r}")
     radius_m = ball_radius_mm * 1e-3
-    if not (_is_real(spacing_m) and 4 * np.pi * radius_m**2 / MAX_BALL_POINTS <= spacing_m**2 < np.inf):
+    if not (
+        _is_real(spacing_m) and spacing_m > 0 and 4 * np.pi * radius_m**2 / MAX_BALL_POINTS <= spacing_m**2 < np.inf
+    ):
         raise ModelConfigError(
-            f"spacing_m {spacing_m!r} must be finite and leave at most {MAX_BALL_POINTS} points on a "
+            f"spacing_m {spacing_m!r} must be finite, positive and leave at most {MAX_BALL_POINTS} points on a "
             f"{ball_radius_mm:g} mm ball"
         )
     count = max(int(4 * np.pi * radius_m**2 / spacing_m**2), 100)
@@ -181,7 +186,7 @@ def evaluate_real_presses(
     """Scores of every estimate on every press (module docstring): the JSON of ``dtx evaluate
     --real-presses`` and the images behind it (for figures).
 
-    Contract: ``ball_radius_mm`` in (0, MAX_BALL_RADIUS_MM], ``mm_per_px`` in
+    Contract: ``ball_radius_mm`` in BALL_RADIUS_RANGE_MM, ``mm_per_px`` in
     sim.gelsight.PIXEL_PITCH_RANGE_MM, ``margin_m`` in [0, MAX_MARGIN_M], ``seed`` an integer >= 0,
     ``depth_range_m`` as perception.depthmap.crop_bounds takes it. Bad input raises
     ModelConfigError naming it, before any depth-map is cut."""
