@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pty
 import resource
 import shutil
 import signal
@@ -330,3 +331,30 @@ def test_a_loaded_graph_stops_within_the_grace_time_without_a_kill(
     assert output.count("killing it") == 0, output
     assert "[caller] call ended: cancelled" in output, output
     assert launcher.returncode == 0, output
+
+
+def test_nodes_learn_whether_the_launchers_output_is_a_terminal(tmp_path: Path, launch_env: dict[str, str]) -> None:
+    """A node writes into the launcher's pipe; how it shows progress follows the launcher's own
+    output (DTX_TERMINAL): plain paced lines into a file or pipe, a terminal's form on a terminal."""
+    path = write(tmp_path, "launch:\n  - node: {name: probe, module: terminal_probe, required: true}\n")
+    launch_env.pop("DTX_TERMINAL", None)
+    piped = dtx("launch", str(path), env=launch_env)
+    output, _ = piped.communicate(timeout=60)
+    assert piped.returncode == 0 and "[probe] progress on a terminal: False" in output, output
+    controller, terminal = pty.openpty()
+    with open(controller, "rb", buffering=0) as reader:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "dtx.cli", "launch", str(path)], env=launch_env, stdout=terminal, stderr=terminal
+        )
+        os.close(terminal)
+        chunks = []
+        while True:
+            try:
+                chunk = reader.read(4096)
+            except OSError:  # the last writer closed the terminal
+                break
+            if not chunk:
+                break
+            chunks.append(chunk)
+        assert process.wait(timeout=60) == 0
+    assert "[probe] progress on a terminal: True" in b"".join(chunks).decode(errors="replace")
