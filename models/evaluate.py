@@ -61,6 +61,11 @@ class Predictions:
     depth_crop_m: tuple[float, float, float] | None = None
 
 
+# Most regions one forward pass of predict takes: as many as the inference node takes in one
+# request (its max_regions), so that evaluation needs no more memory than serving.
+MAX_PREDICT_BATCH = 256
+
+
 @torch.no_grad()
 def predict(
     generator: UNetGenerator,
@@ -71,7 +76,10 @@ def predict(
 ) -> np.ndarray:
     """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates (generator in eval mode);
     ``pose_sigma_mm``: the maps' in-plane pose error for a physics prior (None: the model's
-    default, its training session's)."""
+    default, its training session's). ``batch``: regions a forward pass, an integer in
+    [1, MAX_PREDICT_BATCH]; otherwise ModelConfigError."""
+    if not (isinstance(batch, (int, np.integer)) and not isinstance(batch, bool) and 1 <= batch <= MAX_PREDICT_BATCH):
+        raise ModelConfigError(f"batch must be an integer in [1, {MAX_PREDICT_BATCH}], got {batch!r}")
     generator.eval()
     x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior, pose_sigma_mm)
     return np.concatenate([to_uint8_rgb(generator(x[i : i + batch])) for i in range(0, len(x), batch)])

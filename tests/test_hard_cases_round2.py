@@ -29,7 +29,7 @@ from dataset.records import DatasetError
 from dataset.redepth import depth_map_again
 from dataset.synth import MAX_CONTACT_MAP_SIZE, analytic_contact_maps
 from models.errors import ModelConfigError
-from models.evaluate import psnr_statistics, ssim_statistics
+from models.evaluate import MAX_PREDICT_BATCH, predict, psnr_statistics, ssim_statistics
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import MAX_POSE_SIGMA_MM, PhysicsPrior, PriorSpec, checked_pose_sigma_mm
 from models.real_presses import BALL_RADIUS_RANGE_MM, MAX_BALL_POINTS, ball_cloud_m, evaluate_real_presses
@@ -291,6 +291,12 @@ def test_absurd_real_press_settings_are_refused_naming_them(generator: UNetGener
     arguments = {"depth_range_m": (-0.005, 0.01), **setting}
     with pytest.raises(ModelConfigError, match=name):
         evaluate_real_presses(generator, path=PRESSES, **arguments)
+
+
+@pytest.mark.parametrize("batch", [0, -1, MAX_PREDICT_BATCH + 1, 2.5, True])
+def test_a_forward_batch_out_of_bounds_is_refused(generator: UNetGenerator, batch: object) -> None:
+    with pytest.raises(ModelConfigError, match="batch"):
+        predict(generator, np.zeros((1, 100, 100), np.float32), (-0.005, 0.01), batch=batch)  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(("contact", "ball"), [(1.0, 1e300), (1.0, math.inf), (math.inf, 2.0), (math.nan, 2.0)])
