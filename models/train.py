@@ -356,19 +356,19 @@ class TrainLog:
             shutil.rmtree(out_dir / "tensorboard", ignore_errors=True)
         # purge_step: a resumed run drops events a crashed run wrote after its last checkpoint.
         self.board = SummaryWriter(out_dir / "tensorboard", purge_step=state.step) if rank0 else None
-        self.bar = Progress("train", state.total_steps, "steps", initial=state.step, enabled=progress and rank0)
+        self.progress = Progress("train", state.total_steps, "steps", initial=state.step, enabled=progress and rank0)
         self.window: list[list[float]] = []
         self.started = time.monotonic()
 
     def losses(self, epoch: int, step: int, lr: float, losses: dict[str, float]) -> None:
         """Step ``step``'s losses; their means since the last entry every ``log_every`` steps."""
-        self.bar.update(1)
+        self.progress.update(1)
         self.window.append(list(losses.values()))
         if step % self.log_every and step != self.total_steps:
             return
         means = np.mean(self.window, axis=0)
         self.window.clear()
-        self.bar.note(f"d_real {means[0]:.3f}, d_fake {means[1]:.3f}, g_gan {means[2]:.3f}, g_l1 {means[3]:.4f}")
+        self.progress.note(f"d_real {means[0]:.3f}, d_fake {means[1]:.3f}, g_gan {means[2]:.3f}, g_l1 {means[3]:.4f}")
         if self.board is not None:
             names = list(losses)
             _append_csv(
@@ -393,7 +393,7 @@ class TrainLog:
         self.board.flush()
 
     def close(self) -> None:
-        self.bar.close()
+        self.progress.close()
         if self.board is not None:
             self.board.close()
 

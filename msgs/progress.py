@@ -23,7 +23,7 @@ from typing import TextIO, TypeVar
 from tqdm import tqdm
 
 TERMINAL_ENV = "DTX_TERMINAL"
-LINES_PER_STEP = 10  # a line at each tenth of the work
+MARKS_PER_TASK = 10  # a line at each tenth of the work
 LINE_EVERY_S = 10.0  # and at least this often while the work goes on
 MAX_LINE = 300
 
@@ -141,8 +141,8 @@ class Progress:
         """The first tenth of the total past ``done`` (the total itself after the last)."""
         if self.total == 0:
             return 1
-        tenth = min(done * LINES_PER_STEP // self.total + 1, LINES_PER_STEP)
-        return -(-self.total * tenth // LINES_PER_STEP)
+        tenth = min(done * MARKS_PER_TASK // self.total + 1, MARKS_PER_TASK)
+        return -(-self.total * tenth // MARKS_PER_TASK)
 
 
 def track(items: Sequence[T], what: str, unit: str, enabled: bool = True) -> Iterator[T]:
