@@ -89,7 +89,7 @@ def cloud_id(points: np.ndarray) -> str:
     """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes; any
     numeric array, an empty one too (its bytes are none)."""
     digest = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode())
-    digest.update(np.ascontiguousarray(points).reshape(-1).view(np.uint8))  # no copy; a view of no bytes is fine
+    digest.update(np.ascontiguousarray(points).reshape(-1).view(np.uint8).data)  # no copy; no bytes is fine
     return digest.hexdigest()
 
 
