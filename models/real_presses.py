@@ -55,11 +55,11 @@ RANDOM_FRAMES = 15
 ESTIMATES = ("model", "model_empty", "background", "renderer", "random")
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
 # Sizes a pressed ball may have (mm radius): from a ball 0.1 mm across, about one pixel of the
-# sensor, to a 100 mm one, which already presses a nearly flat cap into a 25 mm gel. Its cloud at
-# the model spacing (0.1 mm) has 3.1 M points (75 MB).
-BALL_RADIUS_RANGE_MM = (0.05, 50.0)
-# Most points of a ball's cloud (96 MB of float64 points, twice that while it is drawn).
-MAX_BALL_POINTS = 4_000_000
+# sensor, to one 50 mm across, as wide as the 24.9 mm gel (a larger one presses a nearly flat cap
+# into it). Its cloud at the model spacing (0.1 mm) has 0.8 M points (19 MB).
+BALL_RADIUS_RANGE_MM = (0.05, 25.0)
+# Most points of a ball's cloud (24 MB of float64 points, twice that while it is drawn).
+MAX_BALL_POINTS = 1_000_000
 # Widest crop margin (m) the evaluation bins with: the calibration offset it absorbs is a few
 # mm, and 10 mm is more than the gel's half-width.
 MAX_MARGIN_M = 0.01
