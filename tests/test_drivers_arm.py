@@ -80,6 +80,7 @@ def arm_params(fake: FakeURController, **extra: object) -> dict:
     return {
         "backend": "ur_rtde",
         "robot_ip": fake.host,
+        "model": fake.version.arm_model,  # UR5e, or UR5 on CB3
         "workspace": WORKSPACE,
         "stale_state_s": 3.0,
         "watchdog_hz": 2.0,
@@ -458,9 +459,13 @@ def test_dashboard_answers_follow_the_software_version(versioned_fake: FakeURCon
         dashboard.disconnect()
 
 
-def test_a_cb3_streams_at_125_hz_and_a_faster_rate_is_refused_before_connecting() -> None:
+def test_a_cb3_streams_at_125_hz_and_a_faster_rate_or_an_e_series_arm_is_refused() -> None:
     fake = start_fake_controller("3.15")
     try:
+        check = hw_check(fake, model="ur5e")
+        assert not check.ok
+        assert check.error.endswith("model 'ur5e' is not among the arms CB3 controllers drive (PolyScope 3.15.0.0)")
+        assert check.fix == "set the arm's model to the CB3 arm (ur3, ur5, ur10), e.g. ur5"
         check = hw_check(fake, rtde_frequency_hz=500.0)
         assert not check.ok
         assert check.error.endswith(

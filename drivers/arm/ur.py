@@ -138,11 +138,12 @@ class URArm(Arm):
         """Ask the controller its software version, open the RTDE state stream at a rate it
         serves, check the arm can move, upload the control script and start its watchdog.
 
-        Raises ArmConnectionError (unreachable, software not CB3 or e-Series, rate too high,
-        not powered, local control), ProtectiveStopError, EmergencyStopError; each with the
-        operator's fix.
+        Raises ArmConnectionError (unreachable, software not CB3 or e-Series, an arm model of
+        the other series, rate too high, not powered, local control), ProtectiveStopError,
+        EmergencyStopError; each with the operator's fix.
         """
         self.software = self._ask_software()
+        self.software.check_arm_model(self.config.model)
         ip, frequency = self.config.robot_ip, self._rtde_frequency_hz()
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(ip, frequency, STATE_VARIABLES)

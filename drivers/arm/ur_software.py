@@ -21,6 +21,8 @@ from drivers.arm.base import ArmConnectionError
 
 CB3_MAJOR, E_SERIES_MAJOR = 3, 5
 REMOTE_CONTROL_QUERY_SINCE = (5, 6)
+# The arms a CB3 controller drives; every other UR (UR3e to UR16e, UR20, UR30) runs PolyScope 5.
+CB3_ARMS = ("ur3", "ur5", "ur10")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +53,19 @@ class ControllerSoftware:
     @property
     def series(self) -> str:
         return "e-Series" if self.version[0] == E_SERIES_MAJOR else "CB3"
+
+    def check_arm_model(self, model: str) -> None:
+        """ArmConnectionError unless ``model`` (whose DH parameters check joint targets) is an
+        arm this controller's series drives: a UR5 configured as a UR5e is 7 cm off in height."""
+        if (model in CB3_ARMS) == (self.series == "CB3"):
+            return
+        if self.series == "CB3":
+            fix = f"set the arm's model to the CB3 arm ({', '.join(CB3_ARMS)}), e.g. {model.removesuffix('e')}"
+        else:
+            fix = f"set the arm's model to the e-Series arm, e.g. {model}e"
+        raise ArmConnectionError(
+            f"model {model!r} is not among the arms {self.series} controllers drive ({self.name})", fix
+        )
 
     @property
     def max_rtde_frequency_hz(self) -> float:

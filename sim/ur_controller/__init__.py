@@ -13,7 +13,7 @@ It speaks the controller's own protocols on one loopback address:
 - the script server on port 30003, which receives the control script ``ur_rtde`` uploads
   (:mod:`sim.ur_controller.script`).
 
-Around them, :mod:`sim.ur_controller.controller` is the controller itself: a kinematic UR5e
+Around them, :mod:`sim.ur_controller.controller` is the controller itself: a kinematic UR5e (UR5 on CB3)
 (:mod:`sim.ur_controller.motion`), safety, the speed slider, the RTDE watchdog, and an
 emulation of what ur_rtde 1.6.5's control script does with the RTDE registers; its module
 docstring says how strict it is and which documents that follows.

@@ -7,7 +7,7 @@ what that script does with the RTDE registers (ur_rtde 1.6.5, script of 14.02.20
 ``output_int_register_0`` says 1 (ready) or 2 (done with the command), the command number
 arrives in ``input_int_register_0`` and its arguments in ``input_double_register_*`` and
 ``input_int_register_1``, and ``output_int_register_2`` reports asynchronous progress.
-The robot is a kinematic UR5e (:mod:`sim.ur_controller.motion`): moveJ interpolates the
+The robot is a kinematic UR5e, or UR5 on CB3 (:mod:`sim.ur_controller.motion`): moveJ interpolates the
 joints, moveL the TCP (position linearly, orientation by slerp) with the joints following by
 inverse kinematics, both with a trapezoidal speed profile.
 
@@ -46,7 +46,7 @@ import numpy as np
 from sim.ur_controller.motion import KinematicArm, Motion
 from sim.ur_controller.versions import SoftwareVersion
 
-# A UR5e "home": upper arm up, forearm forward, tool pointing down.
+# A UR "home" (UR5e or UR5): upper arm up, forearm forward, tool pointing down.
 HOME_Q = (0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0)
 
 # Codes the client reads (RTDE guide / ur_rtde enums).
@@ -95,7 +95,7 @@ class Controller:
         self.dt = 1.0 / state_rate_hz
         self.state_rate_hz = state_rate_hz
         self.lock = threading.RLock()
-        self.arm = KinematicArm(initial_q)
+        self.arm = KinematicArm(initial_q, version.arm_model)
         self.motion: Motion | None = None
         self.script: _ControlScript | None = None
         self.safety = "normal"

@@ -1,4 +1,4 @@
-"""The fake UR controller's arm: a kinematic UR5e and the moves it makes.
+"""The fake UR controller's arm: a kinematic UR5e (or UR5) and the moves it makes.
 
 moveJ interpolates the joints, moveL the TCP (position linearly, orientation by slerp) with
 the joints following by inverse kinematics (damped least squares), both with a trapezoidal
@@ -128,20 +128,21 @@ class Motion:
 
 
 class KinematicArm:
-    """Joint state of a UR5e and its TCP; linear moves drive the joints by damped least
-    squares inverse kinematics."""
+    """Joint state of a UR arm (``model``, a key of workcell.ur_kinematics.DH_PARAMETERS) and
+    its TCP; linear moves drive the joints by damped least squares inverse kinematics."""
 
-    def __init__(self, q: Sequence[float]) -> None:
+    def __init__(self, q: Sequence[float], model: str = "ur5e") -> None:
+        self.model = model
         self.q = np.asarray(q, dtype=np.float64)
         self.qd = np.zeros(6)
-        self.tcp_transform = joint_frames(self.q)[-1]
+        self.tcp_transform = joint_frames(self.q, model)[-1]
         self.tcp = _pose(self.tcp_transform)
         self.tcp_speed = np.zeros(6)
 
     def update_tcp(self, previous_q: np.ndarray, dt: float) -> None:
         """Recompute the TCP and the joint and TCP velocities after the joints moved."""
         previous = self.tcp_transform
-        self.tcp_transform = joint_frames(self.q)[-1]
+        self.tcp_transform = joint_frames(self.q, self.model)[-1]
         self.tcp = _pose(self.tcp_transform)
         self.qd = (self.q - previous_q) / dt
         self.tcp_speed = np.concatenate(
@@ -156,7 +157,7 @@ class KinematicArm:
         position error (m) before the last step, which is what a failure shows in."""
         position_error = 0.0
         for _ in range(iterations):
-            frames = joint_frames(self.q)
+            frames = joint_frames(self.q, self.model)
             tcp = frames[-1]
             error = np.concatenate(
                 [

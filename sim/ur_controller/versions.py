@@ -86,6 +86,12 @@ class SoftwareVersion:
         return f"URSoftware {'.'.join(map(str, self.numbers))} (fake controller)"
 
     @property
+    def arm_model(self) -> str:
+        """The arm it drives (workcell.ur_kinematics): a UR5 on CB3, a UR5e on e-Series, as
+        ``get robot model`` answers "UR5" on both."""
+        return "ur5e" if self.e_series else "ur5"
+
+    @property
     def max_rtde_frequency_hz(self) -> float:
         return 500.0 if self.e_series else 125.0
 
