@@ -56,7 +56,7 @@ class ControllerSoftware:
 
     def check_arm_model(self, model: str) -> None:
         """ArmConnectionError unless ``model`` (whose DH parameters check joint targets) is an
-        arm this controller's series drives: a UR5 configured as a UR5e is 7 cm off in height."""
+        arm this controller's series drives: taken for a UR5e, a UR5 at its home pose is 5.6 cm lower."""
         if (model in CB3_ARMS) == (self.series == "CB3"):
             return
         if self.series == "CB3":
