@@ -370,7 +370,10 @@ def contact_depth_maps(
     before any is read): more raises DepthMapError. A gel with no point raises DepthMapError
     naming the region, unless ``allow_empty``: then its map is all y_far and its point count 0
     (a planner's candidate that touches nothing is an answer, not a failed batch). ``threads``:
-    the regions are cut on up to that many threads, in groups of about equal work."""
+    the regions are cut on up to that many threads, in groups of about equal work (an integer >= 1;
+    never more threads than regions are started)."""
+    if not (isinstance(threads, (int, np.integer)) and not isinstance(threads, bool) and threads >= 1):
+        raise DepthMapError(f"threads must be an integer >= 1, got {threads!r}")
     bounds = crop_bounds(geometry, params)
     reach = _reach_m(geometry, bounds)
     gels = np.asarray(gels_to_world, dtype=np.float64)

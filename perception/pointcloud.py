@@ -40,7 +40,10 @@ def check_transforms(stack: np.ndarray, name: str = "transforms") -> np.ndarray:
     of poses: one vectorised screen, twice as strict as the rule, passes the usual ones, and only
     those it does not pass are judged one by one by the rule itself (so the rule stays the one in
     workcell.kinematics, and rounding near its tolerance cannot let a bad one through)."""
-    matrices = np.asarray(stack, dtype=np.float64)
+    raw = np.asarray(stack)
+    if raw.dtype.kind not in "biuf":  # complex would be cast, text parsed
+        raise PointCloudError(f"{name} must be real numbers (bool, integer or float), got {raw.dtype}")
+    matrices = raw.astype(np.float64)
     if matrices.ndim != 3 or matrices.shape[1:] != (4, 4):
         raise PointCloudError(f"{name} must be (N, 4, 4), got shape {matrices.shape}")
     rotations = matrices[:, :3, :3]

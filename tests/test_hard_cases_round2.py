@@ -37,12 +37,12 @@ from models.template_match import most_deformed_box, template_match
 from msgs.config import ConfigError, config_from_dict
 from nodes.inference import cloud_id
 from perception.density import MAX_POINTS_PER_CM3, downsample_to_density, voxel_size_for_density
-from perception.depthmap import DepthMapParams, contact_depth_map
+from perception.depthmap import DepthMapParams, contact_depth_map, contact_depth_maps
 from perception.errors import DepthMapError, PerceptionError, PointCloudError
-from perception.pointcloud import VoxelIndex
+from perception.pointcloud import VoxelIndex, check_transforms
 from sim.gelsight import GAP_LIMIT_MM, MAX_RENDERED_PIXELS, GelSightRenderError, render_depth_maps
 from sim.gelsight_check import press_depth_mm
-from workcell.kinematics import GripperGeometry
+from workcell.kinematics import ROTATION_TOLERANCE, GripperGeometry, KinematicsError, rigid_transform
 
 pytestmark = pytest.mark.filterwarnings("error")  # a RuntimeWarning on the way fails the case
 
@@ -391,6 +391,42 @@ def test_point_arrays_that_are_no_numbers_are_refused(dtype: type) -> None:
         contact_depth_map(points, np.eye(4), np.eye(4))
     with pytest.raises(PointCloudError, match="real numbers"):
         VoxelIndex(points)
+
+
+@CASES
+@given(value=ANY_FLOAT, where=st.tuples(st.integers(0, 3), st.integers(0, 3)), count=st.integers(1, 3))
+def test_a_pose_with_any_one_entry_is_rigid_or_refused_the_same_way(
+    value: float, where: tuple[int, int], count: int
+) -> None:
+    """One entry of the identity set to anything (1e308 in the rotation overflowed R^T R): the
+    single and the batched check agree, and what they pass is rigid."""
+    pose = np.eye(4)
+    pose[where] = value
+    try:
+        checked = rigid_transform(pose, "pose")
+    except KinematicsError:
+        with pytest.raises(PointCloudError, match=r"poses\[0\]"):
+            check_transforms(np.repeat(pose[None], count, axis=0), "poses")
+        return
+    rotation = checked[:3, :3]
+    assert np.abs(rotation.T @ rotation - np.eye(3)).max() <= ROTATION_TOLERANCE and np.linalg.det(rotation) > 0
+    np.testing.assert_array_equal(
+        check_transforms(np.repeat(pose[None], count, axis=0)), np.repeat(checked[None], count, 0)
+    )
+
+
+@pytest.mark.parametrize("dtype", UNREAL_DTYPES)
+def test_poses_that_are_no_numbers_are_refused(dtype: type) -> None:
+    with pytest.raises(KinematicsError, match="real numbers"):
+        rigid_transform(np.eye(4).astype(dtype))
+    with pytest.raises(PointCloudError, match="real numbers"):
+        check_transforms(np.eye(4).astype(dtype)[None])
+
+
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True])
+def test_a_thread_count_that_is_no_whole_positive_number_is_refused(slab: VoxelIndex, threads: object) -> None:
+    with pytest.raises(DepthMapError, match="threads"):
+        contact_depth_maps(slab, np.eye(4), np.eye(4)[None], threads=threads)  # type: ignore[arg-type]
 
 
 # --- the cloud handle's id, the config loader, PSNR statistics, analytic contacts -----------

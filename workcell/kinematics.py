@@ -62,17 +62,26 @@ def rigid_transform(a_to_b: np.ndarray, name: str = "transform") -> np.ndarray:
     """Return ``a_to_b`` as a float64 4x4 rigid transform, or raise KinematicsError.
 
     Rigid means: every entry finite, last row exactly [0, 0, 0, 1], and a proper rotation block
-    (|R^T R - I| <= ROTATION_TOLERANCE per element, det R > 0). Any real dtype, any strides."""
+    (|R^T R - I| <= ROTATION_TOLERANCE per element, det R > 0). Any real dtype (bool, integer,
+    float), any strides; complex, text and object arrays are refused, never cast."""
     try:
-        matrix = np.asarray(a_to_b, dtype=np.float64)
+        raw = np.asarray(a_to_b)
     except (TypeError, ValueError) as err:
         raise KinematicsError(f"{name} must be a 4x4 array of numbers: {err}") from None
+    if raw.dtype.kind not in "biuf":
+        raise KinematicsError(f"{name} must be a 4x4 array of real numbers, got {raw.dtype}")
+    matrix = raw.astype(np.float64)
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
         raise KinematicsError(f"{name} must be a finite 4x4 matrix, got shape {matrix.shape}")
     rotation = matrix[:3, :3]
     # The entries are finite, so the tolerance is a plain bound (np.allclose says the same with
-    # rtol=0, at twice the cost: every contact depth-map checks two transforms).
-    if np.abs(rotation.T @ rotation - _IDENTITY_3).max() > ROTATION_TOLERANCE or np.linalg.det(rotation) <= 0:
+    # rtol=0, at twice the cost: every contact depth-map checks two transforms). Columns of norm
+    # over 1 + tolerance fail it anyway; entries that large are refused before R^T R can overflow.
+    if (
+        np.abs(rotation).max() > 1.0 + ROTATION_TOLERANCE
+        or np.abs(rotation.T @ rotation - _IDENTITY_3).max() > ROTATION_TOLERANCE
+        or np.linalg.det(rotation) <= 0
+    ):
         raise KinematicsError(f"{name} rotation block is not a proper rotation")
     if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
         raise KinematicsError(f"{name} last row must be [0, 0, 0, 1], got {matrix[3]}")
