@@ -70,3 +70,10 @@ def test_make_backend_lists_what_is_allowed() -> None:
         make_backend({"backend": "ur_rtde", "robot_port": 30004})
     with pytest.raises(ValueError, match="unknown UR model"):
         make_backend({"backend": "ur_rtde", "model": "ur99"})
+
+
+@pytest.mark.parametrize("rate", [0.0, -125.0, float("nan"), float("inf")])
+def test_an_rtde_rate_that_is_no_rate_is_refused(rate: float) -> None:
+    with pytest.raises(ValueError, match="rtde_frequency_hz must be a positive rate in Hz or left out"):
+        URArmConfig(rtde_frequency_hz=rate)
+    assert URArmConfig().rtde_frequency_hz is None  # left out: the controller's own rate

@@ -116,6 +116,10 @@ class URArmConfig:
         if self.model not in DH_PARAMETERS:
             raise ValueError(f"unknown UR model {self.model!r}; known: {sorted(DH_PARAMETERS)}")
         self.tcp_offset = tuple(as_six_vector(self.tcp_offset, "tcp_offset"))
+        if self.rtde_frequency_hz is not None and not 0 < self.rtde_frequency_hz < float("inf"):
+            raise ValueError(
+                f"rtde_frequency_hz must be a positive rate in Hz or left out, got {self.rtde_frequency_hz}"
+            )
 
 
 class URArm(Arm):
