@@ -69,10 +69,15 @@ class PhysicsPrior:
     """Renders depth-maps into the prior's images at the model's grid (``size`` x ``size``)."""
 
     def __init__(self, spec: PriorSpec, size: int) -> None:
-        if len(spec.depth_crop_m) != 3 or not all(np.isfinite(v) and v > 0 for v in spec.depth_crop_m):
-            raise ModelConfigError(
-                f"the prior's depth crop must be three positive extents in m, got {spec.depth_crop_m}"
-            )
+        """``spec.depth_crop_m`` three finite positive extents (m), ``size`` an image side the
+        renderer draws (an integer in [3, 4096]); otherwise ModelConfigError naming it."""
+        crop = spec.depth_crop_m
+        if len(crop) != 3 or not all(
+            isinstance(v, (int, float, np.integer, np.floating)) and 0 < v < np.inf for v in crop
+        ):
+            raise ModelConfigError(f"the prior's depth crop must be three positive extents in m, got {crop}")
+        if not (isinstance(size, (int, np.integer)) and not isinstance(size, bool) and 3 <= size <= 4096):
+            raise ModelConfigError(f"the prior's image size must be an integer in [3, 4096], got {size!r}")
         try:
             scene = load_scene(spec.scene)
         except (SceneError, OSError) as err:

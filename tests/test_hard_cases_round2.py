@@ -156,6 +156,14 @@ def test_a_prior_spec_with_an_overflowing_number_is_its_own_error() -> None:
         PriorSpec.from_dict({"scene": SCENE, "depth_crop_m": [0.02, 0.01, 10**400]})
 
 
+@pytest.mark.parametrize(
+    ("crop", "size"), [(("a", 1, 1), 8), ((0.02, 0.01), 8), (CROP_M, 0), (CROP_M, 10**6), (CROP_M, 2.5)]
+)
+def test_a_prior_of_no_crop_or_of_an_image_size_the_renderer_cannot_draw_is_refused(crop: tuple, size: object) -> None:
+    with pytest.raises(ModelConfigError, match="depth crop|image size"):
+        PhysicsPrior(PriorSpec(SCENE, crop), size)  # type: ignore[arg-type]
+
+
 def test_too_many_maps_are_refused_before_anything_is_drawn(prior: PhysicsPrior) -> None:
     count = MAX_RENDERED_PIXELS // (BINS * BINS) + 1
     many = np.broadcast_to(np.zeros((1, 1, 1)), (count, 1, 1))  # no memory behind it
