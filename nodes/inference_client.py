@@ -76,8 +76,13 @@ class TactileClient:
     def estimate(
         self, depth_maps: np.ndarray, dropout_samples: int | None = None, pose_sigma_mm: float | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """From depth-maps: N x 100 x 100 metres in the gel frame (a single 100 x 100 map is one region)."""
-        maps = np.asarray(depth_maps, dtype=np.float32)
+        """From depth-maps: N x 100 x 100 metres in the gel frame (a single 100 x 100 map is one region);
+        real numbers within float32's range, as they travel (else InferenceError bad_request, as
+        the server would answer a NaN or inf; a larger value would overflow the cast)."""
+        maps = np.asarray(depth_maps)
+        if maps.dtype.kind not in "biuf" or not np.all(np.abs(maps) <= np.finfo(np.float32).max):  # NaN fails
+            raise InferenceError("bad_request", "depth_maps must be real metres within float32's range (no NaN or inf)")
+        maps = maps.astype(np.float32)
         return self._call(
             TactileEstimateRequest(
                 depth_maps=maps[None] if maps.ndim == 2 else maps,

@@ -36,6 +36,7 @@ from models.real_presses import BALL_RADIUS_RANGE_MM, MAX_BALL_POINTS, ball_clou
 from models.template_match import most_deformed_box, template_match
 from msgs.config import ConfigError, config_from_dict
 from nodes.inference import cloud_id
+from nodes.inference_client import Cloud, InferenceError, TactileClient
 from perception.density import MAX_POINTS_PER_CM3, downsample_to_density, voxel_size_for_density
 from perception.depthmap import DepthMapParams, contact_depth_map, contact_depth_maps
 from perception.errors import DepthMapError, PerceptionError, PointCloudError
@@ -452,6 +453,23 @@ def test_the_cloud_id_is_the_hash_of_dtype_shape_and_bytes(points: np.ndarray) -
     expected = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode() + points.tobytes()).hexdigest()
     assert cloud_id(points) == expected
     assert cloud_id(np.asfortranarray(points)) == expected  # the C-order bytes, whatever the layout
+
+
+@pytest.mark.parametrize("value", [1e300, -1e39, math.nan, math.inf])
+def test_the_client_refuses_maps_that_would_not_survive_float32(value: float) -> None:
+    """A float64 value beyond float32 overflowed the client's cast (RuntimeWarning) into an inf
+    the server then refused; the client now says so before sending."""
+    maps = np.zeros((1, 100, 100))
+    maps[0, 3, 4] = value
+    with TactileClient(timeout_s=1.0) as client, pytest.raises(InferenceError) as refused:
+        client.estimate(maps)
+    assert refused.value.code == "bad_request" and "depth_maps" in refused.value.text
+
+
+@pytest.mark.parametrize("dtype", UNREAL_DTYPES)
+def test_a_cloud_handle_of_points_that_are_no_numbers_is_refused(dtype: type) -> None:
+    with pytest.raises(InferenceError, match="real numbers"):
+        Cloud(np.zeros((4, 3)).astype(dtype))
 
 
 def test_the_id_of_an_empty_cloud_is_the_hash_of_no_points() -> None:
