@@ -78,7 +78,12 @@ def depth_map_from_surface(
     surface: SurfaceMm, size: int, crop_mm: float, y_far_m: float, oversample: int = 3
 ) -> np.ndarray:
     """size x size depth-map (float32 m) of a crop_mm-wide square centred on the gel: the min
-    y over ``oversample`` ** 2 samples per bin, y_far_m where nothing is nearer."""
+    y over ``oversample`` ** 2 samples per bin, y_far_m where nothing is nearer. Settings as
+    :func:`analytic_contact_maps` takes them, ``oversample`` an integer in [1, MAX_OVERSAMPLE];
+    otherwise DatasetError naming the argument."""
+    _check_map_settings(size, crop_mm, y_far_m)
+    if not (_whole(oversample) and 1 <= oversample <= MAX_OVERSAMPLE):
+        raise DatasetError(f"oversample must be an integer in [1, {MAX_OVERSAMPLE}], got {oversample!r}")
     n = size * oversample
     centres = (np.arange(n) + 0.5) * (crop_mm / n) - crop_mm / 2
     z, x = np.meshgrid(centres, centres, indexing="ij")
@@ -91,14 +96,11 @@ def analytic_contact_maps(count: int, seed: int, y_far_m: float, size: int = 100
     :data:`SHAPES` in turn. ``count`` an integer >= 0 (none: no maps), ``size`` in
     [1, MAX_CONTACT_MAP_SIZE], count x size² at most MAX_CONTACT_MAP_BINS, ``crop_mm`` in
     (0, MAX_CROP_MM], ``y_far_m`` finite; otherwise DatasetError naming the argument."""
-    if not (_whole(count) and _whole(size) and count >= 0 and 1 <= size <= MAX_CONTACT_MAP_SIZE):
-        raise DatasetError(
-            f"count must be an integer >= 0 and size one in [1, {MAX_CONTACT_MAP_SIZE}], got {count!r}, {size!r}"
-        )
+    _check_map_settings(size, crop_mm, y_far_m)
+    if not (_whole(count) and count >= 0):
+        raise DatasetError(f"count must be an integer >= 0, got {count!r}")
     if count * size * size > MAX_CONTACT_MAP_BINS:
         raise DatasetError(f"count x size² = {count * size * size} bins, more than {MAX_CONTACT_MAP_BINS}")
-    if not (0 < crop_mm <= MAX_CROP_MM and abs(y_far_m) < np.inf):
-        raise DatasetError(f"crop_mm must be in (0, {MAX_CROP_MM:g}] and y_far_m finite, got {crop_mm!r}, {y_far_m!r}")
     rng = np.random.default_rng(seed)
     maps = np.empty((count, size, size), np.float32)
     for i, depth_map in enumerate(maps):
@@ -106,12 +108,22 @@ def analytic_contact_maps(count: int, seed: int, y_far_m: float, size: int = 100
     return maps
 
 
-# Bounds of analytic_contact_maps: the network's maps are 100 or 256 bins a side, and a map is
-# sampled 3 x 3 per bin in float64 (a 512-bin map: ~20 MB a working array); 2**26 bins are
-# 256 MiB of maps; a crop of 100 mm is four gels across.
+# Bounds of the analytic maps: the network's maps are 100 or 256 bins a side, and a map is sampled
+# up to 4 x 4 per bin in float64 (a 512-bin map: 32 MB a working array); 2**26 bins are 256 MiB
+# of maps; a crop of 100 mm is four gels across.
 MAX_CONTACT_MAP_SIZE = 512
+MAX_OVERSAMPLE = 4
 MAX_CONTACT_MAP_BINS = 2**26
 MAX_CROP_MM = 100.0
+
+
+def _check_map_settings(size: int, crop_mm: float, y_far_m: float) -> None:
+    """DatasetError naming the argument unless ``size`` is an integer in [1, MAX_CONTACT_MAP_SIZE],
+    ``crop_mm`` in (0, MAX_CROP_MM] and ``y_far_m`` finite."""
+    if not (_whole(size) and 1 <= size <= MAX_CONTACT_MAP_SIZE):
+        raise DatasetError(f"size must be an integer in [1, {MAX_CONTACT_MAP_SIZE}], got {size!r}")
+    if not (0 < crop_mm <= MAX_CROP_MM and abs(y_far_m) < np.inf):
+        raise DatasetError(f"crop_mm must be in (0, {MAX_CROP_MM:g}] and y_far_m finite, got {crop_mm!r}, {y_far_m!r}")
 
 
 def _whole(value: object) -> bool:
@@ -166,6 +178,7 @@ def write_synthetic_dataset(
         renderer, pixel_pitch_mm = gelsight_renderer(size)
     if not min(pixel_pitch_mm) > 0:
         raise DatasetError(f"pixel_pitch_mm must be positive, got {pixel_pitch_mm}")
+    _check_map_settings(size, size * pixel_pitch_mm[1] * crop_scale, depth_range_m[1])  # before anything is written
     background = renderer.render(np.full((size, size), np.inf, np.float32))
     writer = DatasetWriter(out, _synthetic_info(size, seed, crop_scale, depth_range_m))
     n_grasps = (samples + 1) // 2

@@ -27,7 +27,7 @@ from hypothesis.extra import numpy as hnp
 
 from dataset.records import DatasetError
 from dataset.redepth import depth_map_again
-from dataset.synth import MAX_CONTACT_MAP_SIZE, analytic_contact_maps
+from dataset.synth import MAX_CONTACT_MAP_SIZE, MAX_OVERSAMPLE, analytic_contact_maps, depth_map_from_surface
 from models.errors import ModelConfigError
 from models.evaluate import MAX_PREDICT_BATCH, predict, psnr_statistics, ssim_statistics
 from models.networks import GeneratorConfig, UNetGenerator
@@ -534,8 +534,11 @@ def test_zero_analytic_contacts_are_zero_maps_and_absurd_sizes_are_refused() -> 
         {"crop_mm": math.inf},
         {"y_far_m": math.nan},
     ):
-        with pytest.raises(DatasetError):
+        with pytest.raises(DatasetError, match=next(iter(arguments)).split("_")[0]):
             analytic_contact_maps(**{"count": 1, "seed": 0, "y_far_m": 0.004, **arguments})
+    for oversample in (0, MAX_OVERSAMPLE + 1, 1.5):
+        with pytest.raises(DatasetError, match="oversample"):
+            depth_map_from_surface(lambda x, z: x + z, 8, 24.0, 0.004, oversample)  # type: ignore[arg-type]
 
 
 # --- the stated bounds under a memory cap ----------------------------------------------------
