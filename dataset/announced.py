@@ -28,6 +28,8 @@ def write_samples(writer: DatasetWriter, samples: Sequence[msgs.DatasetSample]) 
                 registration_fitness=s.registration_fitness,
                 stamps_ns=s.stamps_ns,
                 model_to_gel=s.model_to_gel,
+                gel_to_world=s.gel_to_world,
+                model_to_world=s.model_to_world,
             )
             for s in samples
         ]

@@ -121,6 +121,10 @@ class SampleRecord:
     sha256: dict[str, str]
     # The object's model in the gel frame as the depth-map was made (4x4), None where unknown.
     model_to_gel: tuple[tuple[float, ...], ...] | None = None
+    # The gel's pose in world as the arm measured it, and the object's registered pose before
+    # centring between the gels (4x4 each); None where unknown (older sessions).
+    gel_to_world: tuple[tuple[float, ...], ...] | None = None
+    model_to_world: tuple[tuple[float, ...], ...] | None = None
 
     def to_json(self) -> dict[str, Any]:
         data = {
@@ -136,6 +140,9 @@ class SampleRecord:
         }
         if self.model_to_gel is not None:
             data["model_to_gel"] = [list(row) for row in self.model_to_gel]
+        for name in ("gel_to_world", "model_to_world"):
+            if getattr(self, name) is not None:
+                data[name] = [list(row) for row in getattr(self, name)]
         return data
 
     @staticmethod
@@ -155,6 +162,12 @@ class SampleRecord:
                 files={str(k): str(v) for k, v in data["files"].items()},
                 sha256={str(k): str(v) for k, v in data["sha256"].items()},
                 model_to_gel=None if "model_to_gel" not in data else rigid_transform_tuple(data["model_to_gel"]),
+                gel_to_world=None
+                if "gel_to_world" not in data
+                else rigid_transform_tuple(data["gel_to_world"], "gel_to_world"),
+                model_to_world=None
+                if "model_to_world" not in data
+                else rigid_transform_tuple(data["model_to_world"], "model_to_world"),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise DatasetError(f"manifest line has a missing or malformed field ({err!r})") from err
@@ -183,8 +196,8 @@ def sample_files(sample_id: str) -> dict[str, str]:
     return {kind: f"{kind}/{sample_id}{_FILE_SUFFIX[kind]}" for kind in FILE_KINDS}
 
 
-def rigid_transform_tuple(value: Any) -> tuple[tuple[float, ...], ...]:
-    """A 4x4 rigid transform as nested tuples of floats; DatasetError unless it is one."""
+def rigid_transform_tuple(value: Any, name: str = "model_to_gel") -> tuple[tuple[float, ...], ...]:
+    """A 4x4 rigid transform as nested tuples of floats; DatasetError naming ``name`` unless it is one."""
     matrix = np.asarray(value, dtype=np.float64)
     if (
         matrix.shape != (4, 4)
@@ -192,7 +205,7 @@ def rigid_transform_tuple(value: Any) -> tuple[tuple[float, ...], ...]:
         or not np.allclose(matrix[3], [0, 0, 0, 1])
         or not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-6)
     ):
-        raise DatasetError(f"model_to_gel must be a finite 4x4 rigid transform, got {value!r}")
+        raise DatasetError(f"{name} must be a finite 4x4 rigid transform, got {value!r}")
     return tuple(tuple(float(v) for v in row) for row in matrix)
 
 

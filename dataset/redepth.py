@@ -135,6 +135,8 @@ def redepth_dataset(
             registration_fitness=record.registration_fitness,
             stamps_ns=record.stamps_ns,
             model_to_gel=np.array(record.model_to_gel),
+            gel_to_world=None if record.gel_to_world is None else np.array(record.gel_to_world),
+            model_to_world=None if record.model_to_world is None else np.array(record.model_to_world),
         )
     return writer
 

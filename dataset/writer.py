@@ -100,6 +100,8 @@ class DatasetWriter:
         registration_fitness: float,
         stamps_ns: dict[str, int] | None = None,
         model_to_gel: np.ndarray | None = None,
+        gel_to_world: np.ndarray | None = None,
+        model_to_world: np.ndarray | None = None,
     ) -> EncodedSample:
         """Check one sample and encode its files, touching nothing on disk: ``write_together``
         then lands it (with its grasp's other finger). DatasetError for bad arrays or fields."""
@@ -118,10 +120,9 @@ class DatasetWriter:
         if not np.isfinite(registration_fitness):
             raise DatasetError(f"sample {sample_id}: registration_fitness must be finite, got {registration_fitness}")
         check_sample_arrays(self.info, tactile_rgb, tactile_diff_rgb, depth_map_m, sample_id)
-        try:
-            transform = None if model_to_gel is None else rigid_transform_tuple(model_to_gel)
-        except DatasetError as err:
-            raise DatasetError(f"sample {sample_id}: {err}") from err
+        poses = _checked_poses(
+            sample_id, model_to_gel=model_to_gel, gel_to_world=gel_to_world, model_to_world=model_to_world
+        )
 
         payloads = {
             "tactile": encode_png(np.asarray(tactile_rgb)),
@@ -139,7 +140,7 @@ class DatasetWriter:
             registration_fitness=float(registration_fitness),
             files=files,
             sha256={kind: sha256_hex(data) for kind, data in payloads.items()},
-            model_to_gel=transform,
+            **poses,
         )
         return EncodedSample(record, payloads)
 
@@ -209,3 +210,11 @@ class DatasetWriter:
                 # A partial append would corrupt the manifest or split a grasp: cut it all back.
                 f.truncate(size)
                 raise
+
+
+def _checked_poses(sample_id: str, **poses: np.ndarray | None) -> dict[str, tuple[tuple[float, ...], ...] | None]:
+    """Each named 4x4 pose as a record holds it (None stays None); DatasetError naming the sample."""
+    try:
+        return {name: None if pose is None else rigid_transform_tuple(pose, name) for name, pose in poses.items()}
+    except DatasetError as err:
+        raise DatasetError(f"sample {sample_id}: {err}") from err

@@ -23,7 +23,7 @@ from pathlib import Path
 
 REAL_PRESSES = "assets/gelsight/ball_presses.npz"
 LIBRARY_SAMPLES = 1200
-SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/depth_map,/arm/state,/gripper/state]"
+SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/registration_frames,/perception/depth_map,/arm/state,/gripper/state]"
 
 
 # The width a shown command wraps at, as a shell continues a line (a log stays readable).

@@ -15,7 +15,7 @@ class DatasetSample(Message):
     rebuild the dataset from these alone (``launch/replay.yaml``)."""
 
     SCHEMA = "dtx.dataset.DatasetSample"
-    VERSION = 2
+    VERSION = 3
 
     sample_id: str = ""
     object_name: str = ""
@@ -28,6 +28,8 @@ class DatasetSample(Message):
     depth_range_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0])
     registration_fitness: float = 0.0
     model_to_gel: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    gel_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    model_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     depth_crop_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
     stamps_ns: dict[str, int] = dataclasses.field(default_factory=dict)
     scene: str = ""

@@ -18,11 +18,14 @@ class DepthMap(Message):
     end of ``y_range_m`` (y_near, y_far), which is also the range normalised for learning.
     ``crop_m`` is the crop volume's extent (x, y, z) in metres. ``model_to_gel`` (4x4) places
     the object's model cloud in this gel's frame as the map was made from it: with the model,
-    a map can be made again (other densities, other bins).
+    a map can be made again (other densities, other bins). ``gel_to_world`` (4x4) is the gel's
+    pose the map was cut for, as the arm measured it, and ``model_to_world`` (4x4) the object's
+    registered pose before it was centred between the gels: with the tactile image, a touch
+    that tells where the object really is (``perception.touch_calibration``).
     """
 
     SCHEMA = "dtx.perception.DepthMap"
-    VERSION = 2
+    VERSION = 3
 
     depth_map_m: np.ndarray = empty((0, 0), np.float32)
     finger: str = ""
@@ -30,6 +33,8 @@ class DepthMap(Message):
     y_range_m: list[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0])
     point_count: int = 0
     model_to_gel: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    gel_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    model_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
 
 
 @dataclasses.dataclass

@@ -426,6 +426,8 @@ class CollectorNode(Node):
                     depth_range_m=list(info.depth_range_m),
                     registration_fitness=fitness,
                     model_to_gel=depth_map.model_to_gel,
+                    gel_to_world=depth_map.gel_to_world,
+                    model_to_world=depth_map.model_to_world,
                     depth_crop_m=list(depth_map.crop_m),
                     stamps_ns={"tactile": image.header.stamp_ns, "written": time.time_ns()},
                     scene=info.scene,

@@ -9,7 +9,10 @@
   object that cannot move).
 - Publishes what it extracted (``/perception/object_cloud``, ``/perception/depth_map``, and
   the registered pose as the ``world -> object`` transform on ``/perception/object_pose``) so a
-  session bag holds it.
+  session bag holds it, and the depth frames each registration used
+  (``/perception/registration_frames``, one per camera): from them and the session's touches
+  ``dtx calibrate touches`` corrects the cameras' extrinsics, and ``dtx dataset redepth
+  --calibration`` registers again with the corrected ones.
 
 Params: ``scene`` (which objects exist, their meshes and nominal places, the gripper
 geometry — for the lab, a scene file describing the real table), ``cameras`` (depth topics),
@@ -98,6 +101,7 @@ class PatchExtractorNode(Node):
         self.depth_maps = self.create_publisher("/perception/depth_map", msgs.DepthMap)
         # world -> object of the last registration, for the transform tree (bags, Foxglove)
         self.object_pose = self.create_publisher("/perception/object_pose", msgs.FrameTransform, latched=True)
+        self.registration_frames = self.create_publisher("/perception/registration_frames", msgs.DepthImage)
         self.create_service("/perception/register", msgs.RegisterRequest, msgs.RegisterReply, self.on_register)
         self.create_service("/perception/patch", msgs.PatchRequest, msgs.PatchReply, self.on_patch)
 
@@ -134,6 +138,8 @@ class PatchExtractorNode(Node):
         )
         result = register_model(prepared, segmented.points_world_m, seed=seed)
         self.registered[spec.name] = Registered(dense, result.model_to_world)
+        for frame in frames:
+            self.registration_frames.publish(frame)
         self.cloud.publish(
             msgs.PointCloud(header=msgs.Header(frame_id="world"), points=segmented.points_world_m.astype(np.float32))
         )
@@ -187,6 +193,8 @@ class PatchExtractorNode(Node):
                 y_range_m=list(patch.y_range_m),
                 point_count=patch.point_count,
                 model_to_gel=np.linalg.inv(gel_to_world) @ model_to_world,
+                gel_to_world=gel_to_world,
+                model_to_world=registered.model_to_world,
             )
             self.depth_maps.publish(maps[finger])
         return msgs.PatchReply(left=maps["left"], right=maps["right"])
