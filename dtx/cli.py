@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from dtx import demo
+from dtx import calibrate, demo
 from msgs import strict_json
 
 # Packages that add their own command groups (each has cli.add_commands(subparsers)).
@@ -409,6 +409,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     for add in (_add_launch, _add_node, _add_topic, _add_service, _add_bag, _add_keys, _add_bench):
         add(sub)
     demo.add_commands(sub)
+    calibrate.add_commands(sub)
     for package in COMMAND_PACKAGES:
         importlib.import_module(f"{package}.cli").add_commands(sub)
     return parser

@@ -41,7 +41,7 @@ def mixed_nodes(tmp_path):
             params={
                 "backend": "openni2",
                 "library_dir": str(tmp_path),
-                "calibration_file": str(LAB_LAUNCH.parent / "calibration" / "kinect_left.yaml"),
+                "calibration_file": str(LAB_LAUNCH.parent / "calibration" / "camera_left.yaml"),
             },
         ),
         NodeSpec(name="kinect_right", module="nodes.depth_camera", params={"backend": "kinect_v1"}),

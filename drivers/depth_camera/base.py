@@ -100,6 +100,25 @@ def _check(path: str, intrinsics: CameraIntrinsics, pose: np.ndarray) -> None:
         )
 
 
+def calibration_yaml(calibration: Calibration, comment: str) -> str:
+    """A calibration as the file :func:`load_calibration` reads, with ``comment`` on top."""
+    k = calibration.intrinsics
+    data = {
+        "camera": calibration.camera,
+        "image_size": [int(k.width), int(k.height)],
+        "intrinsics": {
+            "fx": float(k.fx),
+            "fy": float(k.fy),
+            "cx": float(k.cx),
+            "cy": float(k.cy),
+            "distortion": [float(v) for v in k.distortion],
+        },
+        "camera_to_world": [[float(v) for v in row] for row in np.asarray(calibration.camera_to_world)],
+    }
+    lines = "".join(f"# {line}\n" for line in comment.splitlines())
+    return lines + yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120)
+
+
 def depth_image(depth_mm: np.ndarray, calibration: Calibration, camera_name: str, seq: int) -> DepthImage:
     """Wrap an HxW uint16 millimetre frame (0 = no return) with its calibration."""
     expected = (calibration.intrinsics.height, calibration.intrinsics.width)

@@ -32,7 +32,7 @@ class Freenect2DepthCameraConfig:
     """Which Kinect (serial; empty: the only one), the depth decoding pipeline, the calibration."""
 
     name: str = "left"
-    calibration_file: str = "launch/calibration/kinect_left.yaml"
+    calibration_file: str = "launch/calibration/camera_left.yaml"
     serial: str = ""
     pipeline: str = "cpu"  # cpu | opengl | opencl | cuda
     read_timeout_s: float = 1.0

@@ -27,7 +27,7 @@ class OpenNI2DepthCameraConfig:
     """Which device (URI, serial or recording), its depth mode, and its calibration."""
 
     name: str = "left"  # frame id camera_<name>
-    calibration_file: str = "launch/calibration/kinect_left.yaml"
+    calibration_file: str = "launch/calibration/camera_left.yaml"
     uri: str = ""  # exact OpenNI2 URI; empty: pick by serial
     serial: str = ""  # part of the URI; empty: the only device present
     oni_file: str = ""  # play this recording instead of a device

@@ -4,19 +4,22 @@ float32 metres (NaN = no return).
 
 The reported ``camera_to_world`` is the nominal extrinsic of the scene; when the scene calls
 for ``extrinsic_offset`` the rays are cast from the true (offset) pose, as with a camera
-whose calibration is slightly wrong.
+whose calibration is slightly wrong. With ``calibration_dir`` the camera reports the extrinsic
+of ``<calibration_dir>/camera_<camera>.yaml`` instead (e.g. one ``dtx calibrate touches``
+wrote), as a real camera reports its calibration file's; the file must describe this camera.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers import requires_connection
-from drivers.depth_camera.base import DepthCamera, DepthCameraError
+from drivers.depth_camera.base import DepthCamera, DepthCameraError, load_calibration
 from msgs import CameraIntrinsics, DepthImage, Header
 from workcell.scene import SceneError
 
@@ -36,6 +39,7 @@ class SimulatedDepthCameraConfig:
     rate_hz: float = 30.0  # Kinect v2 depth frame rate
     pace: bool = True  # read() waits for the next frame time, like the real camera
     output: str = "uint16_mm"
+    calibration_dir: str = ""  # empty: the scene's nominal extrinsic
 
     def __post_init__(self) -> None:
         if self.output not in OUTPUTS:
@@ -66,9 +70,28 @@ class SimulatedDepthCamera(DepthCamera):
         self.intrinsics = CameraIntrinsics(
             width=spec.width, height=spec.height, fx=spec.fx, fy=spec.fy, cx=spec.cx, cy=spec.cy, distortion=[0.0] * 5
         )
-        self.camera_to_world = world.nominal_camera_to_world(self.config.camera)
+        self.camera_to_world = self._camera_to_world(world)
         self._next_t = time.monotonic()
         self.world = world
+
+    def _camera_to_world(self, world: SimWorld) -> np.ndarray:
+        """The nominal extrinsic, or the calibration file's after checking it is this camera's."""
+        if not self.config.calibration_dir:
+            return world.nominal_camera_to_world(self.config.camera)
+        path = Path(self.config.calibration_dir) / f"camera_{self.config.camera}.yaml"
+        calibration = load_calibration(str(path))
+        given, own = calibration.intrinsics, self.intrinsics
+        mismatched = [
+            name
+            for name in ("width", "height", "fx", "fy", "cx", "cy")
+            if not np.isclose(getattr(given, name), getattr(own, name), rtol=1e-6, atol=1e-6)
+        ]
+        if mismatched or calibration.camera not in (self.config.camera, f"camera_{self.config.camera}"):
+            raise DepthCameraError(
+                f"{path} is for another camera (camera {calibration.camera!r}, intrinsics differ in "
+                f"{mismatched or 'nothing'}) than {self.config.camera!r} of {self.config.scene}"
+            )
+        return calibration.camera_to_world
 
     def disconnect(self) -> None:
         self.world = None

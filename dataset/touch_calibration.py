@@ -1,0 +1,290 @@
+"""``dtx calibrate touches``: the depth cameras' extrinsics corrected from a session's touches.
+
+A collected sample holds a touch: the gel's pose from the arm (``gel_to_world``), the tactile
+image, and the depth-map cut from the object's registered pose (``model_to_world``). The
+GelSight renderer draws what that depth-map predicts; where the tactile image shows the contact
+elsewhere in the gel plane, the registration is off (``perception.touch_calibration``). All
+touches of an object give its true pose; each camera's frames of the session
+(``/perception/registration_frames`` in the session's bag), laid onto the objects at their true
+poses and onto the table, give that camera's true extrinsic.
+
+Only the training split's touches are used, so an evaluation on the session's test split stays
+honest. The result is a calibration directory of ``camera_<name>.yaml`` files in the layout of
+``launch/calibration/`` (``drivers.depth_camera.base``), which the depth camera nodes, the
+transform tree and ``dtx dataset redepth --calibration`` read.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+import msgs
+from dataset.reader import DatasetReader
+from dataset.records import DatasetError, SampleRecord
+from dataset.redepth import depth_map_again, depth_map_params, model_cloud
+from dataset.splits import split_records
+from nodes.bag import BagError, iter_envelopes
+from perception.pointcloud import VoxelIndex, depth_to_points_camera, transform_points
+from perception.registration import sample_model_cloud
+from perception.segmentation import crop_to_workspace, segmentation_params_for
+from perception.touch_calibration import (
+    CellCorrection,
+    TouchCalibrationError,
+    TouchOffset,
+    moved_depth_map,
+    pose_error,
+    profiled_fit,
+    solve_cell,
+    table_levelling,
+)
+from sim.gelsight import render_depth_maps, scene_renderer
+from workcell.scene import Scene, load_scene
+
+REGISTRATION_FRAMES_TOPIC = "/perception/registration_frames"
+# A calibration should rest on many touches: fewer than this in all is refused.
+MIN_TOUCHES = 30
+# The grids (x, z, y in mm, about the fit so far) a touch's place and depth are searched over,
+# coarse to fine: place across the gel, then along it, then both finely with their curvature.
+SEARCH = (
+    (np.arange(-6, 7) * 0.4, np.zeros(1), np.arange(-2, 2) * 0.3 + 0.15),
+    (np.zeros(1), np.arange(-4, 5) * 0.4, np.arange(-1, 2) * 0.1),
+    (np.arange(-1, 2) * 0.1, np.arange(-1, 2) * 0.1, np.arange(-1, 2) * 0.1),
+)
+# A frame whose change from the background stays below this (levels) shows no contact.
+MIN_CONTACT_LEVELS = 8.0
+# Rounds of measuring against depth-maps cut at the corrected pose.
+CORRECTION_ROUNDS = 1
+# Touches an object's correction is measured on (each costs ~100 renderings): past this,
+# more touches barely sharpen a correction the cameras' frames then limit.
+MAX_TOUCHES_PER_OBJECT = 150
+# A camera's points below this height (m) are the table it is levelled on; points within
+# _OBJECT_REACH_M of a registered object (and above the table band) are its view of it.
+_TABLE_BAND_M = 0.006
+_OBJECT_REACH_M = 0.01
+_MESH_SPACING_M = 0.002
+
+
+@dataclasses.dataclass
+class TouchCalibration:
+    """What ``calibrate_touches`` found: the joint fit, each camera's whole correction
+    (``calibrated camera_to_world = corrections[c] @ given``) and its frame with it, and the
+    touches the fit used per object."""
+
+    cell: CellCorrection
+    corrections: dict[str, np.ndarray]  # by frame id
+    calibrated: dict[str, msgs.DepthImage]  # by frame id
+    object_touches: dict[str, int]  # with contact, per object
+    no_contact: int
+
+    def report(self, truth: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+        """The report as plain data (``--json``); with the scene's true extrinsics, each camera's
+        error against them before and after."""
+        cameras: dict[str, Any] = {}
+        for frame_id, correction in self.corrections.items():
+            calibrated = self.calibrated[frame_id].camera_to_world
+            row: dict[str, Any] = {
+                "correction_mm": float(np.linalg.norm(correction[:3, 3]) * 1e3),
+                "point_residual_mm": self.cell.point_residual_mm[frame_id],
+                "unobservable": self.cell.unobservable[frame_id],
+            }
+            if truth is not None and frame_id in truth:
+                row["error_before_mm"], row["error_before_deg"] = pose_error(
+                    np.linalg.inv(correction) @ calibrated, truth[frame_id]
+                )
+                row["error_mm"], row["error_deg"] = pose_error(calibrated, truth[frame_id])
+            cameras[frame_id.removeprefix("camera_")] = row
+        objects = {
+            name: {
+                "touches": self.object_touches[name],
+                "outliers": self.cell.touch_outliers.get(name, 0),
+                "offset_before_mm": self.cell.touch_residual_before_mm.get(name),
+                "offset_after_mm": self.cell.touch_residual_after_mm.get(name),
+            }
+            for name in self.object_touches
+        }
+        return {"cameras": cameras, "objects": objects, "no_contact_touches": self.no_contact}
+
+
+class _TouchRenderer:
+    """Fits every touch of an object: the depth-map cut again at a corrected pose, moved over a
+    grid of places in the gel plane and depths, drawn by the GelSight renderer and compared with
+    the frame (:data:`SEARCH`, coarse to fine, all touches of a stage in one batch)."""
+
+    def __init__(self, reader: DatasetReader, scene: Scene) -> None:
+        self.reader = reader
+        self.params, _ = depth_map_params(reader)
+        self.geometry = scene.gripper_geometry()
+        self.scene = scene
+        self.clouds: dict[str, VoxelIndex] = {}
+        self.renderer = scene_renderer(scene, size=self.params.shape, effects=False)
+        self.background = self.renderer.background().astype(np.float32)
+        crop = reader.info.depth_crop_m
+        assert crop is not None  # depth_map_params refuses a dataset without one
+        self.crop_xz_m = (crop[0], crop[2])
+        rows, cols = self.params.shape
+        self.bin_pitch_mm = (crop[2] * 1e3 / rows, crop[0] * 1e3 / cols)
+        pitch_rows, pitch_cols = self.renderer.pixel_pitch_mm
+        h, w = self.renderer.config.shape
+        self.z_mm = (np.arange(h) - (h - 1) / 2) * pitch_rows
+        self.x_mm = (np.arange(w) - (w - 1) / 2) * pitch_cols
+
+    def _ssd(self, cuts: list[np.ndarray], frames: np.ndarray, centres: np.ndarray, grid: tuple) -> np.ndarray:
+        """N x |x| x |z| x |y|: each touch's frame against its cut moved to centre + grid."""
+        far = self.params.y_range_m[1]
+        offsets = np.stack(np.meshgrid(*grid, indexing="ij"), axis=-1).reshape(-1, 3)
+        out = np.empty((len(cuts), len(offsets)))
+        for i, (cut, frame, centre) in enumerate(zip(cuts, frames, centres)):
+            maps = np.stack([moved_depth_map(cut, self.bin_pitch_mm, centre + o, far) for o in offsets])
+            changes = render_depth_maps(self.renderer, maps, self.crop_xz_m).astype(np.float32) - self.background
+            out[i] = ((changes - frame) ** 2).sum(axis=(1, 2, 3))
+        return out.reshape(len(cuts), *(len(g) for g in grid))
+
+    def touches(self, records: list[SampleRecord], correction_world: np.ndarray) -> list[TouchOffset | None]:
+        """Each record's touch against the prediction at ``correction_world`` @ the registered
+        pose; None where the frame shows no contact."""
+        cuts, frames = [], []
+        for record in records:
+            if record.object_name not in self.clouds:
+                self.clouds[record.object_name] = VoxelIndex(model_cloud(self.scene, record.object_name))
+            gel_to_world = np.array(record.gel_to_world)
+            moved = np.linalg.inv(gel_to_world) @ correction_world @ gel_to_world
+            # The cut is centred between the gels (where the grasp pushed the object): a
+            # correction moves it in the gel plane only, never across the gels.
+            moved[1, 3] = 0.0
+            model_to_gel = moved @ np.array(record.model_to_gel)
+            cuts.append(depth_map_again(self.clouds[record.object_name], model_to_gel, self.geometry, self.params))
+            frames.append(self.reader.load(record).tactile_diff_rgb.astype(np.float32) - 128.0)
+        measured = np.stack(frames)
+        centres = np.zeros((len(records), 3))
+        information = np.zeros((len(records), 2, 2))
+        for grid in SEARCH:
+            ssd = self._ssd(cuts, measured, centres, grid)
+            for i in range(len(records)):
+                fit, information[i] = profiled_fit(ssd[i], grid, measured[i].size)
+                centres[i] += fit
+        out: list[TouchOffset | None] = []
+        for record, cut, centre, info, frame in zip(records, cuts, centres, information, measured):
+            change = self._ssd_free_change(cut)
+            weight = np.abs(change).sum(axis=2)
+            if float(np.abs(frame).max()) < MIN_CONTACT_LEVELS or weight.sum() <= 0 or not info.any():
+                out.append(None)
+                continue
+            gel_to_world = np.array(record.gel_to_world)
+            centre_gel_m = np.array([weight.sum(0) @ self.x_mm, 0.0, weight.sum(1) @ self.z_mm]) / weight.sum() * 1e-3
+            out.append(
+                TouchOffset(centre[:2], info, transform_points(centre_gel_m[None], gel_to_world)[0], gel_to_world)
+            )
+        return out
+
+    def _ssd_free_change(self, cut: np.ndarray) -> np.ndarray:
+        """The change image of a cut as it is (where the predicted contact is, for its place)."""
+        return render_depth_maps(self.renderer, cut[None], self.crop_xz_m)[0].astype(np.float32) - self.background
+
+
+def registration_frames(session: str | os.PathLike[str]) -> dict[str, list[msgs.DepthImage]]:
+    """The depth frames the session's registrations used, per camera frame id, from its bags
+    (``session.mcap`` and the ``session.N.mcap`` of a respawned recorder)."""
+    frames: dict[str, list[msgs.DepthImage]] = {}
+    bags = sorted(Path(session).glob("session*.mcap"))
+    if not bags:
+        raise DatasetError(f"{session} has no session bag (session.mcap): its camera frames are needed")
+    for bag in bags:
+        try:
+            for _, envelope in iter_envelopes(bag):
+                if envelope.topic == REGISTRATION_FRAMES_TOPIC and isinstance(envelope.message, msgs.DepthImage):
+                    frames.setdefault(envelope.message.header.frame_id, []).append(envelope.message)
+        except BagError as err:
+            raise DatasetError(str(err)) from err
+    if not frames:
+        raise DatasetError(
+            f"{session}: its bag holds no {REGISTRATION_FRAMES_TOPIC}; record that topic (dtx demo does) "
+            "to calibrate the cameras"
+        )
+    return frames
+
+
+def measure_session_touches(
+    renderer: _TouchRenderer, records: list[SampleRecord], predicted: dict[str, np.ndarray]
+) -> tuple[dict[str, list[TouchOffset]], int]:
+    """Each object's touches (at most :data:`MAX_TOUCHES_PER_OBJECT`, a seeded draw) against
+    depth-maps cut with the object at ``predicted[object]``, and how many showed no contact."""
+    by_object: dict[str, list[SampleRecord]] = {}
+    for record in records:
+        by_object.setdefault(record.object_name, []).append(record)
+    touches: dict[str, list[TouchOffset]] = {}
+    no_contact = 0
+    for name, chosen in sorted(by_object.items()):
+        if len(chosen) > MAX_TOUCHES_PER_OBJECT:
+            picks = np.random.default_rng(0).choice(len(chosen), MAX_TOUCHES_PER_OBJECT, replace=False)
+            chosen = [chosen[i] for i in sorted(picks)]
+        registered = np.array(chosen[0].model_to_world)
+        found = renderer.touches(chosen, predicted[name] @ np.linalg.inv(registered))
+        touches[name] = [t for t in found if t is not None]
+        no_contact += len(found) - len(touches[name])
+    return touches, no_contact
+
+
+def _camera_views(
+    frames: list[msgs.DepthImage], scene: Scene, registered: dict[str, np.ndarray]
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """One camera's table levelling (world frame) and, levelled, its points of each registered
+    object (within :data:`_OBJECT_REACH_M` of it, above the table)."""
+    points = np.concatenate(
+        [transform_points(depth_to_points_camera(f.depth_m(), f.intrinsics), f.camera_to_world) for f in frames]
+    )
+    points = crop_to_workspace(points, segmentation_params_for(scene))
+    levelling = table_levelling(points[points[:, 2] < _TABLE_BAND_M])
+    points = transform_points(points, levelling)
+    views = {}
+    for name, model_to_world in registered.items():
+        model = sample_model_cloud(scene.mesh(name), _MESH_SPACING_M, seed=0)
+        distance, _ = cKDTree(transform_points(model.points_m, model_to_world)).query(
+            points, distance_upper_bound=_OBJECT_REACH_M
+        )
+        views[name] = points[np.isfinite(distance) & (points[:, 2] > _TABLE_BAND_M)]
+    return levelling, views
+
+
+def calibrate_touches(session: str | os.PathLike[str], rounds: int = CORRECTION_ROUNDS) -> TouchCalibration:
+    """Correct each camera of ``session`` from its training split's touches (module docstring)."""
+    reader = DatasetReader(session)
+    scene = load_scene(reader.info.scene)
+    train = split_records(reader.records, reader.info.split_seed)["train"]
+    missing = [r.sample_id for r in train if r.gel_to_world is None or r.model_to_world is None]
+    if missing:
+        raise DatasetError(
+            f"{session}: {len(missing)} training samples (e.g. {missing[0]}) record no gel_to_world or "
+            "model_to_world; collect the session with this version"
+        )
+    predicted = {r.object_name: np.array(r.model_to_world) for r in train}
+    frames = registration_frames(session)
+    levelling, views = {}, {}
+    for frame_id, camera_frames in sorted(frames.items()):
+        levelling[frame_id], views[frame_id] = _camera_views(camera_frames[-3:], scene, predicted)
+    models = {}
+    for name in predicted:
+        model = sample_model_cloud(scene.mesh(name), _MESH_SPACING_M, seed=0)
+        models[name] = (model.points_m, model.normals)
+    renderer = _TouchRenderer(reader, scene)
+    for _ in range(rounds):
+        touches, no_contact = measure_session_touches(renderer, train, predicted)
+        counted = sum(len(t) for t in touches.values())
+        if counted < MIN_TOUCHES:
+            raise TouchCalibrationError(
+                f"{session}: {counted} of its {len(train)} training touches show a contact the renderer can place "
+                f"({', '.join(f'{n} {len(t)}' for n, t in touches.items())}); a calibration needs >= {MIN_TOUCHES}"
+            )
+        cell = solve_cell(touches, predicted, views, models)
+        predicted = cell.objects  # the next round reads the touches against the objects as fitted
+    corrections = {c: cell.cameras[c] @ levelling[c] for c in frames}
+    calibrated = {
+        c: dataclasses.replace(frames[c][-1], camera_to_world=corrections[c] @ frames[c][-1].camera_to_world)
+        for c in frames
+    }
+    return TouchCalibration(cell, corrections, calibrated, {n: len(t) for n, t in touches.items()}, no_contact)

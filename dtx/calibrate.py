@@ -1,0 +1,111 @@
+"""``dtx calibrate touches SESSION --out DIR``: the depth cameras' extrinsics, corrected from the
+session's own touches (``dataset.touch_calibration``), written as a calibration directory the
+launch files take (``calibration_dir:=DIR``) and ``dtx dataset redepth --calibration`` reads."""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dtx.errors import exit_1_on
+from msgs import strict_json
+
+
+def _scene_truth(scene_path: str) -> dict[str, np.ndarray] | None:
+    """The true camera_to_world of each camera of a simulated scene whose cameras are offset
+    (``extrinsic_offset``), by frame id; None for a scene without offsets."""
+    from sim.world import SimWorld  # noqa: PLC0415 - Open3D scene loading only for a simulated session
+    from workcell.scene import load_scene  # noqa: PLC0415
+
+    scene = load_scene(scene_path)
+    if not any(effect.name == "extrinsic_offset" for effect in scene.effects):
+        return None
+    world = SimWorld(scene)
+    return {f"camera_{name}": world.true_camera_to_world(name) for name in world.camera_names()}
+
+
+def write_calibration_dir(out: Path, files: dict[str, str], force: bool) -> None:
+    """The files into ``out`` as one step: written beside it, then renamed into place, so a
+    failure leaves any existing directory as it was. An existing ``out`` needs ``force``."""
+    if out.exists() and not force:
+        raise FileExistsError(f"{out} exists; give --force to replace it (it is replaced whole, never half-way)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        for name, text in files.items():
+            (staging / name).write_text(text)
+        if out.exists():
+            retired = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
+            out.rename(retired / out.name)
+            staging.rename(out)
+            shutil.rmtree(retired)
+        else:
+            staging.rename(out)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+
+
+def _print_report(report: dict[str, Any], out: Path) -> None:
+    print(f"{'camera':8} {'correction mm':>13} {'point residual mm':>17}  error against the scene's truth")
+    for name, row in report["cameras"].items():
+        error = (
+            f"{row['error_before_mm']:.2f} mm {row['error_before_deg']:.3f} deg -> {row['error_mm']:.2f} mm "
+            f"{row['error_deg']:.3f} deg"
+            if "error_mm" in row
+            else "(none: a real cell)"
+        )
+        print(f"{name:8} {row['correction_mm']:13.2f} {row['point_residual_mm']:17.2f}  {error}")
+        if row["unobservable"]:
+            print(f"warning: camera {name}: the touches and views leave {', '.join(row['unobservable'])} unpinned")
+    print(f"{'object':18} {'touches':>7} {'outliers':>8}  touch offset mm before -> after")
+    for name, row in report["objects"].items():
+        print(
+            f"{name:18} {row['touches']:7d} {row['outliers']:8d}  {row['offset_before_mm']:.2f} -> {row['offset_after_mm']:.2f}"
+        )
+    print(f"touches without contact the renderer can place (left out): {report['no_contact_touches']}")
+    print(f"wrote {out}")
+
+
+def _touches(args: argparse.Namespace) -> int:
+    from dataset.reader import DatasetReader  # noqa: PLC0415 - Open3D and the renderer load with it
+    from dataset.touch_calibration import calibrate_touches  # noqa: PLC0415
+    from drivers.depth_camera.base import Calibration, calibration_yaml  # noqa: PLC0415
+
+    result = calibrate_touches(args.session)
+    report = result.report(_scene_truth(DatasetReader(args.session).info.scene))
+    files = {
+        f"{frame_id}.yaml": calibration_yaml(
+            Calibration(frame_id.removeprefix("camera_"), image.intrinsics, image.camera_to_world),
+            f"{frame_id}, corrected by `dtx calibrate touches {args.session}` from the training split's touches",
+        )
+        for frame_id, image in result.calibrated.items()
+    }
+    write_calibration_dir(Path(args.out), files, args.force)
+    if args.json:
+        print(strict_json.dumps(report))
+    else:
+        _print_report(report, Path(args.out))
+    return 0
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``calibrate`` command group to the ``dtx`` parser."""
+    from dataset.records import DatasetError  # noqa: PLC0415
+    from perception.errors import PerceptionError  # noqa: PLC0415
+
+    parser = subparsers.add_parser("calibrate", help="calibrate the cell's sensors from a session")
+    commands = parser.add_subparsers(dest="calibrate_command", required=True)
+    touches = commands.add_parser(
+        "touches", help="correct the depth cameras' extrinsics from a session's touches (training split)"
+    )
+    touches.add_argument("session", help="a collected session (dataset directory with its session.mcap)")
+    touches.add_argument("--out", required=True, help="calibration directory to write (camera_<name>.yaml)")
+    touches.add_argument("--force", action="store_true", help="replace an existing --out directory")
+    touches.add_argument("--json", action="store_true", help="the report as JSON")
+    touches.set_defaults(func=exit_1_on(DatasetError, PerceptionError, FileExistsError, OSError)(_touches))
