@@ -9,6 +9,7 @@ from dataset.check import check_dataset, content_checksum
 from dataset.export import export_pix2pix
 from dataset.records import DatasetError
 from dtx.errors import exit_1_on
+from perception.errors import PerceptionError
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -56,7 +57,7 @@ def _library(args: argparse.Namespace) -> int:
     return 0
 
 
-@exit_1_on(DatasetError, OSError)
+@exit_1_on(DatasetError, PerceptionError, OSError)
 def _redepth(args: argparse.Namespace) -> int:
     from dataset.redepth import density_dirs, redepth_dataset
 
@@ -72,8 +73,13 @@ def _redepth(args: argparse.Namespace) -> int:
     if args.bins is not None and not args.out:
         print("error: --bins needs --out DIR (the default names say only the density)", file=sys.stderr)
         return 2
+    registered = None
+    if args.calibration:
+        from dataset.touch_calibration import register_again
+
+        registered = register_again(args.dir, args.calibration)
     for density, out in targets.items():
-        writer = redepth_dataset(args.dir, out, density, args.bins)
+        writer = redepth_dataset(args.dir, out, density, args.bins, registered=registered)
         print(
             f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
             + ("" if args.bins is None else f", {args.bins} x {args.bins} bins")
@@ -162,5 +168,10 @@ def _add_redepth(commands: argparse._SubParsersAction) -> None:
     redepth.add_argument("--out", help="output directory for one density (or, without --density, full density)")
     redepth.add_argument(
         "--bins", type=int, help="bins per side (default: the source's); tactile images are resized to match"
+    )
+    redepth.add_argument(
+        "--calibration",
+        help="a calibration directory (dtx calibrate touches): the objects are registered again from the "
+        "session's camera frames with its extrinsics before the maps are cut",
     )
     redepth.set_defaults(func=_redepth)

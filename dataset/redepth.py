@@ -20,7 +20,7 @@ import numpy as np
 
 from dataset.images import resize_rgb
 from dataset.reader import DatasetReader
-from dataset.records import DatasetError
+from dataset.records import FINGERS, DatasetError, SampleRecord
 from dataset.writer import DatasetWriter
 from msgs.progress import track
 from perception.density import downsample_to_density
@@ -28,12 +28,13 @@ from perception.depthmap import (
     MODEL_CLOUD_SEED,
     MODEL_POINT_SPACING_M,
     DepthMapParams,
+    centre_between_gels,
     contact_depth_map,
     crop_bounds,
     crop_reach_m,
 )
 from perception.errors import OutOfReachError
-from perception.pointcloud import VoxelIndex, check_transform
+from perception.pointcloud import VoxelIndex, check_transform, transform_points
 from perception.registration import sample_model_cloud
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, SceneError, load_scene
@@ -92,12 +93,18 @@ def redepth_dataset(
     points_per_cm3: float | None = None,
     bins: int | None = None,
     progress: bool = True,
+    registered: dict[str, np.ndarray] | None = None,
 ) -> DatasetWriter:
     """Write ``out``: ``source`` with every depth-map made again from the model cloud
     (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED), voxel-thinned to
     ``points_per_cm3`` unless None, over ``bins`` x ``bins`` bins of the same crop unless None
     (the source's bins). A map whose thinned cloud leaves the crop empty holds y_far everywhere
-    ("nothing within reach"), as an empty bin does."""
+    ("nothing within reach"), as an empty bin does.
+
+    ``registered`` (object name -> model_to_world, e.g. registered again with a corrected
+    calibration, ``dataset.touch_calibration.register_again``) moves each model there first,
+    centred between its grasp's two gels as the patch extractor centres it; the samples must
+    record their gels' poses."""
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
     info = reader.info
@@ -110,6 +117,7 @@ def redepth_dataset(
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
+    poses = _poses_at(reader.records, registered, scene, params) if registered is not None else {}
     writer = DatasetWriter(out, info)
     clouds: dict[str, VoxelIndex] = {}
     density = f"{points_per_cm3:g} points/cm³" if points_per_cm3 else "full density"
@@ -122,7 +130,8 @@ def redepth_dataset(
             except SceneError as err:
                 raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
         sample = reader.load(record)
-        depth = depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params)
+        model_to_gel, model_to_world = poses.get(record.sample_id, (record.model_to_gel, record.model_to_world))
+        depth = depth_map_again(clouds[record.object_name], np.array(model_to_gel), geometry, params)
         writer.write(
             sample_id=record.sample_id,
             object_name=record.object_name,
@@ -134,11 +143,42 @@ def redepth_dataset(
             depth_map_m=depth,
             registration_fitness=record.registration_fitness,
             stamps_ns=record.stamps_ns,
-            model_to_gel=np.array(record.model_to_gel),
+            model_to_gel=np.array(model_to_gel),
             gel_to_world=None if record.gel_to_world is None else np.array(record.gel_to_world),
-            model_to_world=None if record.model_to_world is None else np.array(record.model_to_world),
+            model_to_world=None if model_to_world is None else np.array(model_to_world),
         )
     return writer
+
+
+def _poses_at(
+    records: list[SampleRecord], registered: dict[str, np.ndarray], scene: Scene, params: DepthMapParams
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each sample's (model_to_gel, model_to_world) with its object at ``registered``, centred
+    between its grasp's gels as the patch extractor centres it (perception.depthmap)."""
+    gels: dict[str, dict[str, np.ndarray]] = {}
+    for record in records:
+        if record.gel_to_world is None:
+            raise DatasetError(f"sample {record.sample_id} records no gel_to_world: its depth-map cannot be cut again")
+        if record.object_name not in registered:
+            raise DatasetError(f"sample {record.sample_id}: no registered pose given for {record.object_name}")
+        gels.setdefault(record.grasp_key, {})[record.finger] = np.array(record.gel_to_world)
+    geometry = scene.gripper_geometry()
+    reach = crop_reach_m(geometry, params)
+    dense = {name: VoxelIndex(model_cloud(scene, name)) for name in registered}
+    poses = {}
+    for record in records:
+        pair, model_to_world = gels[record.grasp_key], registered[record.object_name]
+        if set(pair) != set(FINGERS):
+            raise DatasetError(f"grasp {record.grasp_key} lacks a finger's sample: it cannot be centred again")
+        near = [
+            dense[record.object_name].within(
+                transform_points(gel[:3, 3][None], np.linalg.inv(model_to_world))[0], reach
+            )
+            for gel in pair.values()
+        ]
+        centred = centre_between_gels(np.concatenate(near), model_to_world, pair["left"], pair["right"], geometry)
+        poses[record.sample_id] = (np.linalg.inv(pair[record.finger]) @ centred, model_to_world)
+    return poses
 
 
 def density_dirs(root: str | os.PathLike[str], densities: list[float]) -> dict[float, Path]:

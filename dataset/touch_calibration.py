@@ -29,10 +29,11 @@ from dataset.reader import DatasetReader
 from dataset.records import DatasetError, SampleRecord
 from dataset.redepth import depth_map_again, depth_map_params, model_cloud
 from dataset.splits import split_records
+from drivers.depth_camera.base import DepthCameraError, load_calibration
 from nodes.bag import BagError, iter_envelopes
-from perception.pointcloud import VoxelIndex, depth_to_points_camera, transform_points
-from perception.registration import sample_model_cloud
-from perception.segmentation import crop_to_workspace, segmentation_params_for
+from perception.pointcloud import VoxelIndex, depth_images_to_world, depth_to_points_camera, transform_points
+from perception.registration import prepare_model, register_model, sample_model_cloud
+from perception.segmentation import crop_to_workspace, segment_object, segmentation_params_for
 from perception.touch_calibration import (
     CellCorrection,
     TouchCalibrationError,
@@ -59,7 +60,7 @@ SEARCH = (
 # A frame whose change from the background stays below this (levels) shows no contact.
 MIN_CONTACT_LEVELS = 8.0
 # Rounds of measuring against depth-maps cut at the corrected pose.
-CORRECTION_ROUNDS = 1
+CORRECTION_ROUNDS = 2
 # Touches an object's correction is measured on (each costs ~100 renderings): past this,
 # more touches barely sharpen a correction the cameras' frames then limit.
 MAX_TOUCHES_PER_OBJECT = 150
@@ -288,3 +289,52 @@ def calibrate_touches(session: str | os.PathLike[str], rounds: int = CORRECTION_
         for c in frames
     }
     return TouchCalibration(cell, corrections, calibrated, {n: len(t) for n, t in touches.items()}, no_contact)
+
+
+def calibrated_frames(
+    session: str | os.PathLike[str], calibration_dir: str | os.PathLike[str]
+) -> list[msgs.DepthImage]:
+    """The newest registration frame of each camera of ``session`` with the extrinsic of its
+    file in ``calibration_dir`` (``<frame id>.yaml``); DatasetError when a file is missing or
+    describes another camera (image size or intrinsics differ)."""
+    calibrated = []
+    for frame_id, frames in sorted(registration_frames(session).items()):
+        path = Path(calibration_dir) / f"{frame_id}.yaml"
+        try:
+            calibration = load_calibration(str(path))
+        except DepthCameraError as err:
+            raise DatasetError(str(err)) from err
+        own, given = frames[-1].intrinsics, calibration.intrinsics
+        differ = [
+            k for k in ("width", "height", "fx", "fy", "cx", "cy") if not np.isclose(getattr(own, k), getattr(given, k))
+        ]
+        if differ:
+            raise DatasetError(
+                f"{path} describes another camera than {frame_id} of {session}: {', '.join(differ)} differ"
+            )
+        calibrated.append(dataclasses.replace(frames[-1], camera_to_world=calibration.camera_to_world))
+    return calibrated
+
+
+def register_again(session: str | os.PathLike[str], calibration_dir: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Each object of ``session`` registered again, as its patch extractor did (segmentation,
+    then registration, same seed), from its cameras' frames with the calibration's extrinsics."""
+    reader = DatasetReader(session)
+    scene = load_scene(reader.info.scene)
+    frames = calibrated_frames(session, calibration_dir)
+    clouds = depth_images_to_world(frames)
+    registered = {}
+    for spec in scene.objects:
+        if not spec.mesh or spec.name not in {r.object_name for r in reader.records}:
+            continue
+        segmented = segment_object(
+            clouds,
+            segmentation_params_for(scene),
+            hint_world_m=np.array([spec.x_m, spec.y_m, 0.0]),
+            seed=reader.info.split_seed,
+        )
+        prepared = prepare_model(sample_model_cloud(spec.mesh, seed=reader.info.split_seed))
+        registered[spec.name] = register_model(
+            prepared, segmented.points_world_m, seed=reader.info.split_seed
+        ).model_to_world
+    return registered

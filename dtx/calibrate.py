@@ -77,6 +77,8 @@ def _touches(args: argparse.Namespace) -> int:
     from dataset.touch_calibration import calibrate_touches  # noqa: PLC0415
     from drivers.depth_camera.base import Calibration, calibration_yaml  # noqa: PLC0415
 
+    if Path(args.out).exists() and not args.force:  # said before minutes of work, and again when writing
+        raise FileExistsError(f"{args.out} exists; give --force to replace it (it is replaced whole, never half-way)")
     result = calibrate_touches(args.session)
     report = result.report(_scene_truth(DatasetReader(args.session).info.scene))
     files = {

@@ -21,6 +21,8 @@ def _train(args: argparse.Namespace) -> int:
     config = TrainConfig.load(args.config)
     if args.hold_out_object:
         config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
+    if args.session_pose_sigma_mm is not None:
+        config = dataclasses.replace(config, session_pose_sigma_mm=args.session_pose_sigma_mm)
     started = time.monotonic()
     path = train(args.dataset, config, args.out, resume=args.resume, libraries=args.library)
     print(f"checkpoint {path} ({time.monotonic() - started:.0f} s)")
@@ -95,6 +97,13 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         default="",
         metavar="NAME",
         help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)",
+    )
+    train.add_argument(
+        "--session-pose-sigma-mm",
+        type=float,
+        metavar="MM",
+        help="the session's in-plane pose uncertainty its prior is blurred by (overrides the config's "
+        "session_pose_sigma_mm): smaller for a session redepthed with a touch calibration",
     )
     train.add_argument(
         "--library",

@@ -1,0 +1,263 @@
+"""Touch-calibrated geometry (issue 28): the numerical core on constructed cells whose truth is
+known, and ``dtx calibrate touches`` / ``dtx dataset redepth --calibration`` on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from perception.touch_calibration import (
+    TouchOffset,
+    moved_depth_map,
+    planar_transform,
+    pose_error,
+    profiled_fit,
+    solve_cell,
+    table_levelling,
+)
+
+REPO = Path(__file__).resolve().parent.parent
+FAR_M = 0.003
+
+
+def test_a_map_moved_by_whole_bins_is_the_map_shifted() -> None:
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(-0.001, 0.002, (20, 30)).astype(np.float32)
+    moved = moved_depth_map(depth, (0.5, 0.25), np.array([0.5, 1.0, 0.0]), FAR_M)  # 2 columns, 2 rows
+    np.testing.assert_allclose(moved[2:, 2:], depth[:-2, :-2], atol=1e-7)
+    assert np.all(moved[:2] == np.float32(FAR_M)) and np.all(moved[:, :2] == np.float32(FAR_M))
+
+
+def test_deeper_moves_only_the_surface() -> None:
+    depth = np.full((10, 10), FAR_M, np.float32)
+    depth[3:6, 3:6] = 0.0005
+    moved = moved_depth_map(depth, (0.2, 0.2), np.array([0.0, 0.0, 0.3]), FAR_M)
+    np.testing.assert_allclose(moved[3:6, 3:6], 0.0002, atol=1e-7)
+    assert np.all(moved[depth == np.float32(FAR_M)] == np.float32(FAR_M))
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(
+    st.floats(-0.19, 0.19),
+    st.floats(-0.19, 0.19),
+    st.floats(-0.08, 0.08),
+    st.floats(0.5, 20.0),
+    st.floats(0.5, 20.0),
+)
+def test_the_profiled_fit_finds_a_quadratic_minimum_and_its_curvature(
+    x0: float, z0: float, y0: float, curvature_x: float, curvature_z: float
+) -> None:
+    """Within half a step of the grid's centre (where the coarser stages leave it)."""
+    grid = (np.arange(-1, 2) * 0.4, np.arange(-1, 2) * 0.4, np.arange(-1, 2) * 0.1)
+    x, z, y = np.meshgrid(*grid, indexing="ij")
+    floor = 50.0
+    ssd = floor + curvature_x * (x - x0) ** 2 + curvature_z * (z - z0) ** 2 + 3.0 * (y - y0) ** 2
+    fit, information = profiled_fit(ssd, grid, pixels=100)
+    assert fit[0] == pytest.approx(x0, abs=1e-6) and fit[1] == pytest.approx(z0, abs=1e-6)
+    variance = ssd.min(axis=2)[np.unravel_index(np.argmin(ssd.min(axis=2)), (3, 3))] / 100
+    assert information[0, 0] == pytest.approx(2 * curvature_x / (2 * variance), rel=1e-6)
+
+
+def test_a_minimum_at_the_grid_edge_pins_nothing_there() -> None:
+    grid = (np.arange(-1, 2) * 0.4, np.arange(-1, 2) * 0.4, np.arange(-1, 2) * 0.1)
+    x, z, y = np.meshgrid(*grid, indexing="ij")
+    ssd = 10.0 + (x - 1.0) ** 2 + (z - 0.1) ** 2 + y**2  # x's minimum lies beyond the grid
+    _, information = profiled_fit(ssd, grid, pixels=10)
+    assert information[0, 0] == 0.0 and information[1, 1] > 0.0
+
+
+@settings(max_examples=20, deadline=None, derandomize=True)
+@given(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-0.01, 0.01))
+def test_levelling_lays_a_tilted_noisy_table_on_z_zero(tilt_x_deg: float, tilt_y_deg: float, height_m: float) -> None:
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-0.3, 0.3, (4000, 2))
+    z = height_m + xy[:, 0] * np.tan(np.radians(tilt_x_deg)) + xy[:, 1] * np.tan(np.radians(tilt_y_deg))
+    points = np.column_stack([xy, z + rng.normal(0, 0.001, len(z))])
+    levelled = points @ table_levelling(points)[:3, :3].T + table_levelling(points)[:3, 3]
+    plane = np.linalg.lstsq(np.column_stack([levelled[:, :2], np.ones(len(levelled))]), levelled[:, 2], rcond=None)[0]
+    assert np.degrees(np.abs(plane[:2])).max() < 0.01 and abs(plane[2]) < 1e-4
+
+
+def _box_model(size_m: tuple[float, float, float], spacing_m: float = 0.003) -> tuple[np.ndarray, np.ndarray]:
+    """Points and outward normals on the sides and top of a box standing on z = 0."""
+    points, normals = [], []
+    sx, sy, sz = size_m
+    for axis, sign in ((0, 1), (0, -1), (1, 1), (1, -1)):
+        u = np.arange(-(sy if axis == 0 else sx) / 2, (sy if axis == 0 else sx) / 2, spacing_m)
+        h = np.arange(0.0, sz, spacing_m)
+        uu, hh = np.meshgrid(u, h)
+        face = np.zeros((uu.size, 3))
+        face[:, axis] = sign * (sx if axis == 0 else sy) / 2
+        face[:, 1 - axis] = uu.ravel()
+        face[:, 2] = hh.ravel()
+        points.append(face)
+        normals.append(np.tile(np.eye(3)[axis] * sign, (len(face), 1)))
+    return np.concatenate(points), np.concatenate(normals)
+
+
+def _touches_on(
+    model: tuple[np.ndarray, np.ndarray], truth: np.ndarray, predicted: np.ndarray, rng: np.random.Generator
+) -> list[TouchOffset]:
+    """Touches at the box's side faces: gel y along the face normal, gel z vertical; each
+    offset is the in-plane move from the predicted to the true contact, plus 0.05 mm noise."""
+    touches = []
+    points, normals = model
+    sides = np.flatnonzero(np.abs(normals[:, 2]) < 0.5)
+    for index in rng.choice(sides, 60, replace=False):
+        contact_true = truth[:3, :3] @ points[index] + truth[:3, 3]
+        contact_predicted = predicted[:3, :3] @ points[index] + predicted[:3, 3]
+        normal = truth[:3, :3] @ normals[index]
+        gel = np.eye(4)
+        gel[:3, 1] = -normal
+        gel[:3, 2] = [0.0, 0.0, -1.0]
+        gel[:3, 0] = np.cross(gel[:3, 1], gel[:3, 2])
+        gel[:3, 3] = contact_true
+        offset = gel[:3, [0, 2]].T @ (contact_true - contact_predicted) * 1e3 + rng.normal(0, 0.05, 2)
+        touches.append(TouchOffset(offset, np.eye(2) * 400.0, contact_predicted, gel))
+    return touches
+
+
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(
+    st.lists(st.floats(-2.0, 2.0), min_size=2, max_size=2),
+    st.lists(st.floats(-2.0, 2.0), min_size=2, max_size=2),
+    st.floats(-0.08, 0.08),
+    st.floats(-0.08, 0.08),
+)
+def test_the_cell_fit_recovers_each_cameras_place_and_turn(
+    left_mm: list[float], right_mm: list[float], left_deg: float, right_deg: float
+) -> None:
+    """Two cameras see two boxes, each camera displaced on the table; the boxes were registered
+    from both, so each sits between the two errors. The fit finds every camera's correction."""
+    rng = np.random.default_rng(2)
+    models = {"a": _box_model((0.06, 0.04, 0.1)), "b": _box_model((0.05, 0.08, 0.06))}
+    truth = {"a": planar_transform(0.3, -150.0, 20.0), "b": planar_transform(-0.5, 160.0, -30.0)}
+    camera_error = {
+        "left": planar_transform(np.radians(left_deg), *left_mm),
+        "right": planar_transform(np.radians(right_deg), *right_mm),
+    }
+    # the registration, from both cameras' points, lands between their two errors
+    half = {
+        c: planar_transform(np.radians(d) / 2, *(np.array(m) / 2))
+        for c, d, m in (("l", left_deg, left_mm), ("r", right_deg, right_mm))
+    }
+    predicted = {o: half["l"] @ half["r"] @ truth[o] for o in truth}
+    views = {}
+    for camera, error in camera_error.items():
+        views[camera] = {}
+        for o in truth:
+            model_points = models[o][0]
+            seen = model_points[model_points[:, 1] * (1 if camera == "left" else -1) < 0.01]  # its side
+            world = seen @ truth[o][:3, :3].T + truth[o][:3, 3]
+            views[camera][o] = world @ error[:3, :3].T + error[:3, 3] + rng.normal(0, 0.0005, world.shape)
+    touches = {o: _touches_on(models[o], truth[o], predicted[o], rng) for o in truth}
+    cell = solve_cell(touches, predicted, views, models)
+    for camera, error in camera_error.items():
+        found = cell.cameras[camera] @ error  # the fit undoes the camera's error
+        assert np.linalg.norm(found[:2, 3]) * 1e3 < 0.1, camera
+        assert abs(np.degrees(np.arctan2(found[1, 0], found[0, 0]))) < 0.01, camera
+    for o in truth:  # each box's centre where it stands
+        assert np.linalg.norm(cell.objects[o][:2, 3] - truth[o][:2, 3]) * 1e3 < 0.1, o
+
+
+def test_pose_error_reads_a_camera_offset_as_the_scene_states_it() -> None:
+    offset = planar_transform(np.radians(0.05), 1.5, -1.0)
+    nominal = planar_transform(0.2, 100.0, -750.0)
+    error_mm, error_deg = pose_error(nominal, nominal @ offset)
+    assert error_mm == pytest.approx(np.hypot(1.5, 1.0), rel=1e-9)
+    assert error_deg == pytest.approx(0.05, rel=1e-6)
+
+
+# -- the commands on a short session ---------------------------------------------------------
+
+
+def _dtx(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "dtx.cli", *args], cwd=REPO, capture_output=True, text=True, timeout=900
+    )
+
+
+@pytest.fixture(scope="module")
+def short_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 10-grasp simulated session recording every topic (its registration frames too)."""
+    out = tmp_path_factory.mktemp("touch") / "session"
+    env_domain = f"touch{id(out) % 100000}"
+    result = subprocess.run(
+        [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml", f"out:={out}", "grasps:=10", "seed:=5"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env={**__import__("os").environ, "DTX_DOMAIN": env_domain},
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return out
+
+
+def test_too_few_touches_is_refused_with_the_count_and_nothing_written(short_session: Path, tmp_path: Path) -> None:
+    out = tmp_path / "calibration"
+    out.mkdir()
+    (out / "camera_left.yaml").write_text("the lab's own\n")
+    result = _dtx("calibrate", "touches", str(short_session), "--out", str(out), "--force")
+    assert result.returncode == 1
+    assert "training touches show a contact" in result.stderr and "needs >= 30" in result.stderr
+    assert (out / "camera_left.yaml").read_text() == "the lab's own\n"
+
+
+def test_an_existing_calibration_is_kept_without_force(short_session: Path, tmp_path: Path) -> None:
+    out = tmp_path / "calibration"
+    out.mkdir()
+    result = _dtx("calibrate", "touches", str(short_session), "--out", str(out))
+    assert result.returncode == 1 and "--force" in result.stderr
+
+
+def test_a_session_without_its_camera_frames_is_refused(short_session: Path, tmp_path: Path) -> None:
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("dataset.json", "manifest.jsonl"):
+        (bare / name).write_bytes((short_session / name).read_bytes())
+    result = _dtx("calibrate", "touches", str(bare), "--out", str(tmp_path / "c"))
+    assert result.returncode == 1 and "session bag" in result.stderr
+
+
+def test_redepth_refuses_a_calibration_for_other_cameras(short_session: Path, tmp_path: Path) -> None:
+    calibration = tmp_path / "calibration"
+    calibration.mkdir()
+    for side in ("left", "right"):
+        text = (REPO / "launch" / "calibration" / f"camera_{side}.yaml").read_text()  # a Kinect with distortion
+        (calibration / f"camera_{side}.yaml").write_text(text.replace("fx: 365.5", "fx: 366.0"))
+    result = _dtx(
+        "dataset", "redepth", str(short_session), "--calibration", str(calibration), "--out", str(tmp_path / "o")
+    )
+    assert result.returncode == 1 and "describes another camera" in result.stderr and "fx" in result.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_redepth_with_the_cameras_own_calibration_gives_the_collected_maps(short_session: Path, tmp_path: Path) -> None:
+    """Registered again from the recorded frames with their own extrinsics, every map comes back
+    bit for bit: the calibrated path is the patch extractor's, not an approximation of it."""
+    from dataset.reader import DatasetReader
+    from dataset.touch_calibration import registration_frames
+    from drivers.depth_camera.base import Calibration, calibration_yaml
+
+    calibration = tmp_path / "calibration"
+    calibration.mkdir()
+    for frame_id, frames in registration_frames(short_session).items():
+        image = frames[-1]
+        own = Calibration(frame_id.removeprefix("camera_"), image.intrinsics, image.camera_to_world)
+        (calibration / f"{frame_id}.yaml").write_text(calibration_yaml(own, "as recorded"))
+    result = _dtx(
+        "dataset", "redepth", str(short_session), "--calibration", str(calibration), "--out", str(tmp_path / "o")
+    )
+    assert result.returncode == 0, result.stderr
+    collected, again = DatasetReader(short_session), DatasetReader(tmp_path / "o")
+    for record in collected.records:
+        np.testing.assert_array_equal(again.load(record.sample_id).depth_map_m, collected.load(record).depth_map_m)
+    assert json.loads((tmp_path / "o" / "dataset.json").read_text())["scene"] == collected.info.scene
