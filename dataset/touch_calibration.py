@@ -252,11 +252,17 @@ def _camera_views(
     return levelling, views
 
 
-def calibrate_touches(session: str | os.PathLike[str], rounds: int = CORRECTION_ROUNDS) -> TouchCalibration:
-    """Correct each camera of ``session`` from its training split's touches (module docstring)."""
+def calibrate_touches(
+    session: str | os.PathLike[str], rounds: int = CORRECTION_ROUNDS, grasps: int | None = None
+) -> TouchCalibration:
+    """Correct each camera of ``session`` from its training split's touches (module docstring);
+    with ``grasps``, from those of that many grasps only, the first of each object in turn
+    (what a shorter session of the same objects would have given)."""
     reader = DatasetReader(session)
     scene = load_scene(reader.info.scene)
     train = split_records(reader.records, reader.info.split_seed)["train"]
+    if grasps is not None:
+        train = _first_grasps(train, grasps)
     missing = [r.sample_id for r in train if r.gel_to_world is None or r.model_to_world is None]
     if missing:
         raise DatasetError(
@@ -338,3 +344,20 @@ def register_again(session: str | os.PathLike[str], calibration_dir: str | os.Pa
             prepared, segmented.points_world_m, seed=reader.info.split_seed
         ).model_to_world
     return registered
+
+
+def _first_grasps(records: list[SampleRecord], grasps: int) -> list[SampleRecord]:
+    """The records of ``grasps`` grasps: each object's first ones, taken in turn."""
+    if grasps < 1:
+        raise DatasetError(f"grasps must be a whole number >= 1, got {grasps}")
+    by_object: dict[str, list[int]] = {}
+    for record in records:
+        ids = by_object.setdefault(record.object_name, [])
+        if record.grasp_id not in ids:
+            ids.append(record.grasp_id)
+    chosen: set[tuple[str, int]] = set()
+    for rank in range(max((len(ids) for ids in by_object.values()), default=0)):
+        for name, ids in sorted(by_object.items()):
+            if rank < len(ids) and len(chosen) < grasps:
+                chosen.add((name, sorted(ids)[rank]))
+    return [r for r in records if (r.object_name, r.grasp_id) in chosen]

@@ -79,7 +79,7 @@ def _touches(args: argparse.Namespace) -> int:
 
     if Path(args.out).exists() and not args.force:  # said before minutes of work, and again when writing
         raise FileExistsError(f"{args.out} exists; give --force to replace it (it is replaced whole, never half-way)")
-    result = calibrate_touches(args.session)
+    result = calibrate_touches(args.session, grasps=args.grasps)
     report = result.report(_scene_truth(DatasetReader(args.session).info.scene))
     files = {
         f"{frame_id}.yaml": calibration_yaml(
@@ -109,5 +109,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     touches.add_argument("session", help="a collected session (dataset directory with its session.mcap)")
     touches.add_argument("--out", required=True, help="calibration directory to write (camera_<name>.yaml)")
     touches.add_argument("--force", action="store_true", help="replace an existing --out directory")
+    touches.add_argument(
+        "--grasps", type=int, metavar="N", help="use the touches of the session's first N grasps only (robot time)"
+    )
     touches.add_argument("--json", action="store_true", help="the report as JSON")
     touches.set_defaults(func=exit_1_on(DatasetError, PerceptionError, FileExistsError, OSError)(_touches))

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from msgs import strict_json
 
 
@@ -33,8 +35,40 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME",
         help="switch a scene effect off (repeatable), e.g. extrinsic_offset",
     )
+    check.add_argument(
+        "--calibration",
+        metavar="DIR",
+        help="the cameras report this calibration's extrinsics (camera_<name>.yaml, e.g. dtx calibrate touches)",
+    )
     check.add_argument("--json", action="store_true", help="print one JSON object keyed by mesh stem")
     check.set_defaults(func=cmd_register_check)
+
+
+def scene_calibration(scene_path: str, directory: str) -> dict[str, np.ndarray]:
+    """Each camera of the scene's camera_to_world from ``directory``/camera_<name>.yaml;
+    DepthCameraError when a file is missing or describes another camera."""
+    from drivers.depth_camera.base import DepthCameraError, load_calibration
+    from workcell.scene import load_scene
+
+    extrinsics = {}
+    for camera in load_scene(scene_path).cameras:
+        path = Path(directory) / f"camera_{camera.name}.yaml"
+        calibration = load_calibration(str(path))
+        own = {
+            "width": camera.width,
+            "height": camera.height,
+            "fx": camera.fx,
+            "fy": camera.fy,
+            "cx": camera.cx,
+            "cy": camera.cy,
+        }
+        differ = [k for k, v in own.items() if not np.isclose(getattr(calibration.intrinsics, k), v)]
+        if differ:
+            raise DepthCameraError(
+                f"{path} describes another camera than {camera.name} of {scene_path}: {', '.join(differ)} differ"
+            )
+        extrinsics[camera.name] = calibration.camera_to_world
+    return extrinsics
 
 
 def cmd_register_check(args: argparse.Namespace) -> int:
@@ -45,6 +79,8 @@ def cmd_register_check(args: argparse.Namespace) -> int:
     if missing:
         print(f"dtx perception register-check: mesh not found: {', '.join(missing)}", file=sys.stderr)
         return 2
+    from drivers.depth_camera.base import DepthCameraError
+
     try:
         report = register_check(
             args.meshes,
@@ -53,8 +89,9 @@ def cmd_register_check(args: argparse.Namespace) -> int:
             args.scene,
             success_add_s_mm=args.success_add_s_mm,
             drop_effects=args.drop_effect,
+            calibration=scene_calibration(args.scene, args.calibration) if args.calibration else None,
         )
-    except (PerceptionError, OSError) as exc:
+    except (PerceptionError, DepthCameraError, OSError) as exc:
         print(f"dtx perception register-check: {exc}", file=sys.stderr)
         return 2
     if args.json:

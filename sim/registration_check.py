@@ -51,8 +51,11 @@ class Trial:
     error: str = ""
 
 
-def render_depth_images(world: SimWorld, scene: Scene) -> list[DepthImage]:
-    """Both cameras' depth frames as the drivers publish them (nominal extrinsic)."""
+def render_depth_images(
+    world: SimWorld, scene: Scene, calibration: dict[str, np.ndarray] | None = None
+) -> list[DepthImage]:
+    """Both cameras' depth frames as the drivers publish them: with the nominal extrinsic, or
+    with ``calibration[camera]`` (camera_to_world) where given, as a calibrated driver would."""
     images = []
     for camera in scene.cameras:
         intrinsics = CameraIntrinsics(
@@ -62,7 +65,7 @@ def render_depth_images(world: SimWorld, scene: Scene) -> list[DepthImage]:
             DepthImage(
                 depth=world.render_depth(camera.name),
                 intrinsics=intrinsics,
-                camera_to_world=world.nominal_camera_to_world(camera.name),
+                camera_to_world=(calibration or {}).get(camera.name, world.nominal_camera_to_world(camera.name)),
             )
         )
     return images
@@ -90,9 +93,16 @@ def scene_with_object(
     return dataclasses.replace(scene, objects=[obj])
 
 
-def run_trial(scene: Scene, model: ModelCloud, prepared: PreparedModel, params: RegistrationParams, seed: int) -> Trial:
+def run_trial(
+    scene: Scene,
+    model: ModelCloud,
+    prepared: PreparedModel,
+    params: RegistrationParams,
+    seed: int,
+    calibration: dict[str, np.ndarray] | None = None,
+) -> Trial:
     world = SimWorld(scene, seed=seed)
-    clouds = depth_images_to_world(render_depth_images(world, scene))
+    clouds = depth_images_to_world(render_depth_images(world, scene, calibration))
     truth = world.object_to_world[0]
     started, started_cpu = time.perf_counter(), time.process_time()
     try:
@@ -163,11 +173,14 @@ def register_check(
     params: RegistrationParams = RegistrationParams(),
     success_add_s_mm: float = 10.0,
     drop_effects: Sequence[str] = (),
+    calibration: dict[str, np.ndarray] | None = None,
 ) -> dict[str, dict]:
     """Per mesh stem: success rate, ADD-S/ADD statistics (mm) and median stage times (ms).
 
     ``drop_effects`` names scene effects to switch off (e.g. ``extrinsic_offset`` to see the
-    error left without the camera calibration offset).
+    error left without the camera calibration offset); ``calibration`` (camera name ->
+    camera_to_world) is what the cameras report instead of the nominal extrinsics, e.g. a touch
+    calibration carried over from another session.
     """
     if trials < 1:
         raise PerceptionError(f"trials must be >= 1, got {trials}")
@@ -187,6 +200,7 @@ def register_check(
                 prepared,
                 params,
                 seed=int(rng.integers(2**31)),
+                calibration=calibration,
             )
             for _ in range(trials)
         ]

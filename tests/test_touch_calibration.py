@@ -261,3 +261,29 @@ def test_redepth_with_the_cameras_own_calibration_gives_the_collected_maps(short
     for record in collected.records:
         np.testing.assert_array_equal(again.load(record.sample_id).depth_map_m, collected.load(record).depth_map_m)
     assert json.loads((tmp_path / "o" / "dataset.json").read_text())["scene"] == collected.info.scene
+
+
+def test_a_shorter_session_takes_each_objects_first_grasps_in_turn() -> None:
+    from dataset.records import DatasetError, SampleRecord
+    from dataset.touch_calibration import _first_grasps
+
+    def record(name: str, grasp: int, finger: str) -> SampleRecord:
+        files = {
+            k: f"{k}/g{grasp}_{finger}.{'npy' if k == 'depth' else 'png'}" for k in ("tactile", "tactile_diff", "depth")
+        }
+        return SampleRecord(
+            f"g{grasp}_{finger}", name, grasp, finger, (0, 0, 0, 0), {}, 1.0, files, dict.fromkeys(files, "")
+        )
+
+    records = [
+        record(name, g, f)
+        for name, ids in (("a", range(0, 5)), ("b", range(5, 8)))
+        for g in ids
+        for f in ("left", "right")
+    ]
+    chosen = _first_grasps(records, 3)
+    assert sorted({(r.object_name, r.grasp_id) for r in chosen}) == [("a", 0), ("a", 1), ("b", 5)]
+    assert len(chosen) == 6  # both fingers of each grasp
+    assert len(_first_grasps(records, 100)) == len(records)
+    with pytest.raises(DatasetError, match="grasps"):
+        _first_grasps(records, 0)
