@@ -20,7 +20,7 @@ import numpy as np
 
 from dataset.images import resize_rgb
 from dataset.reader import DatasetReader
-from dataset.records import FINGERS, DatasetError, SampleRecord
+from dataset.records import FINGERS, DatasetError, DatasetInfo, SampleRecord
 from dataset.writer import DatasetWriter
 from msgs.progress import track
 from perception.density import downsample_to_density
@@ -107,12 +107,7 @@ def redepth_dataset(
     record their gels' poses."""
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
-    info = reader.info
-    if bins is not None:
-        if not (isinstance(bins, int) and 8 <= bins <= 1024):
-            raise DatasetError(f"bins must be a whole number from 8 to 1024, got {bins!r}")
-        params = dataclasses.replace(params, shape=(bins, bins))
-        info = dataclasses.replace(info, image_height=bins, image_width=bins)
+    params, info = _with_bins(params, reader.info, bins)
     geometry = scene.gripper_geometry()
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
@@ -148,6 +143,17 @@ def redepth_dataset(
             model_to_world=None if model_to_world is None else np.array(model_to_world),
         )
     return writer
+
+
+def _with_bins(params: DepthMapParams, info: DatasetInfo, bins: int | None) -> tuple[DepthMapParams, DatasetInfo]:
+    """The depth-map settings and dataset facts at ``bins`` x ``bins`` bins (None: as they are)."""
+    if bins is None:
+        return params, info
+    if not (isinstance(bins, int) and 8 <= bins <= 1024):
+        raise DatasetError(f"bins must be a whole number from 8 to 1024, got {bins!r}")
+    return dataclasses.replace(params, shape=(bins, bins)), dataclasses.replace(
+        info, image_height=bins, image_width=bins
+    )
 
 
 def _poses_at(

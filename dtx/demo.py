@@ -165,25 +165,20 @@ def _density_rows(density: list[dict]) -> list[Row]:
     return rows
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    from dataset.redepth import density_dirs
-    from models.real_presses import real_press_table
-    from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
-
-    out = Path(args.out)
-    session, library, train_dir, figures = out / "session", out / "library", out / "train", out / "figures"
-    collect = [
-        "launch",
-        "launch/collect_sim.yaml",
-        f"out:={session}",
-        f"grasps:={args.grasps}",
-        f"seed:={args.seed}",
-        f"record_topics:={SESSION_TOPICS}",
-    ]
+def _collected(session: Path, args: argparse.Namespace) -> Path:
+    """The simulated session, collected (or resumed) and checked."""
+    collect = ["launch", "launch/collect_sim.yaml", f"out:={session}", f"grasps:={args.grasps}"]
+    collect += [f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
     if (session / "manifest.jsonl").exists():
         collect.append("resume:=true")
     _run("1/5 collect (Algorithm 1 on the simulated scene)", collect)
     _run("1/5 check the dataset", ["dataset", "check", str(session)])
+    return session
+
+
+def _calibrated(session: Path, out: Path) -> Path:
+    """The session with its depth-maps cut again by cameras calibrated from its own training
+    touches (a calibration already there is kept)."""
     calibration, calibrated = out / "calibration", out / "session_calibrated"
     if not (calibration / "report.json").exists():
         report = _run(
@@ -193,22 +188,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
         )
         (calibration / "report.json").write_text(report)
         print(report.strip())
-    if not (calibrated / "manifest.jsonl").exists():
-        _run(
-            "1/5 the session's depth-maps cut again with the calibrated cameras",
-            ["dataset", "redepth", str(session), "--calibration", str(calibration), "--out", str(calibrated)],
-        )
-    session = calibrated
-    train = [
-        "train",
-        str(session),
-        "--config",
-        args.config,
-        "--out",
-        str(train_dir),
-        "--session-pose-sigma-mm",
-        f"{CALIBRATED_POSE_SIGMA_MM:g}",
-    ]
+    _run(  # resumes a torn run: the samples already there are kept
+        "1/5 the session's depth-maps cut again with the calibrated cameras",
+        ["dataset", "redepth", str(session), "--calibration", str(calibration), "--out", str(calibrated)],
+    )
+    return calibrated
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from dataset.redepth import density_dirs
+    from models.real_presses import real_press_table
+    from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
+
+    out = Path(args.out)
+    library, train_dir, figures = out / "library", out / "train", out / "figures"
+    session = _calibrated(_collected(out / "session", args), out)
+    train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]
+    train += ["--session-pose-sigma-mm", f"{CALIBRATED_POSE_SIGMA_MM:g}"]
     if args.library_samples:
         _run(
             "2/5 contact library (the simulated world's spheres, cylinders, edges, textures)",

@@ -87,33 +87,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
     """Add ``train`` and ``evaluate`` to the ``dtx`` parser."""
-    train = subparsers.add_parser("train", help="train the cGAN on a dataset's train split")
-    train.add_argument("dataset", help="dataset directory")
-    train.add_argument("--config", required=True, help="training config (YAML), e.g. configs/quick.yaml")
-    train.add_argument("--out", default="out/train", help="checkpoint and log directory (default: out/train)")
-    train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    train.add_argument(
-        "--hold-out-object",
-        default="",
-        metavar="NAME",
-        help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)",
-    )
-    train.add_argument(
-        "--session-pose-sigma-mm",
-        type=float,
-        metavar="MM",
-        help="the session's in-plane pose uncertainty its prior is blurred by (overrides the config's "
-        "session_pose_sigma_mm): smaller for a session redepthed with a touch calibration",
-    )
-    train.add_argument(
-        "--library",
-        action="append",
-        default=[],
-        metavar="DIR",
-        help="a contact library (dtx dataset library) whose every sample joins the training set; repeatable",
-    )
-    train.set_defaults(func=_train)
-
+    _add_train(subparsers)
     evaluate = subparsers.add_parser("evaluate", help="the paper's SSIM, baseline and template-matching analysis")
     evaluate.add_argument("checkpoint", help="checkpoint.pt written by dtx train")
     evaluate.add_argument("dataset", nargs="?", help="dataset directory (optional with --real-presses)")
@@ -151,3 +125,33 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         help="scene whose gripper and GelSight the presses are seen with (default ycb_three)",
     )
     evaluate.set_defaults(func=_evaluate)
+
+
+def _add_train(subparsers: argparse._SubParsersAction) -> None:
+    """``dtx train``."""
+    train = subparsers.add_parser("train", help="train the cGAN on a dataset's train split")
+    train.add_argument("dataset", help="dataset directory")
+    train.add_argument("--config", required=True, help="training config (YAML), e.g. configs/quick.yaml")
+    train.add_argument("--out", default="out/train", help="checkpoint and log directory (default: out/train)")
+    train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    train.add_argument(
+        "--hold-out-object",
+        default="",
+        metavar="NAME",
+        help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)",
+    )
+    train.add_argument(
+        "--session-pose-sigma-mm",
+        type=float,
+        metavar="MM",
+        help="the session's in-plane pose uncertainty its prior is blurred by (overrides the config's "
+        "session_pose_sigma_mm): smaller for a session redepthed with a touch calibration",
+    )
+    train.add_argument(
+        "--library",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a contact library (dtx dataset library) whose every sample joins the training set; repeatable",
+    )
+    train.set_defaults(func=_train)
