@@ -1,6 +1,7 @@
 """``dtx calibrate touches SESSION --out DIR``: the depth cameras' extrinsics, corrected from the
 session's own touches (``dataset.touch_calibration``), written as a calibration directory the
-launch files take (``calibration_dir:=DIR``) and ``dtx dataset redepth --calibration`` reads."""
+launch files take (``calibration_dir:=DIR``) and ``dtx dataset redepth --calibration`` reads,
+with the report beside them (``report.json``, as ``--json`` prints it)."""
 
 from __future__ import annotations
 
@@ -88,6 +89,7 @@ def _touches(args: argparse.Namespace) -> int:
         )
         for frame_id, image in result.calibrated.items()
     }
+    files["report.json"] = strict_json.dumps(report, indent=1) + "\n"
     write_calibration_dir(Path(args.out), files, args.force)
     if args.json:
         print(strict_json.dumps(report))

@@ -181,13 +181,10 @@ def _calibrated(session: Path, out: Path) -> Path:
     touches (a calibration already there is kept)."""
     calibration, calibrated = out / "calibration", out / "session_calibrated"
     if not (calibration / "report.json").exists():
-        report = _run(
+        _run(
             "1/5 calibrate the cameras from the session's training touches",
-            ["calibrate", "touches", str(session), "--out", str(calibration), "--force", "--json"],
-            capture=True,
+            ["calibrate", "touches", str(session), "--out", str(calibration), "--force"],
         )
-        (calibration / "report.json").write_text(report)
-        print(report.strip())
     _run(  # resumes a torn run: the samples already there are kept
         "1/5 the session's depth-maps cut again with the calibrated cameras",
         ["dataset", "redepth", str(session), "--calibration", str(calibration), "--out", str(calibrated)],
