@@ -287,3 +287,28 @@ def test_a_shorter_session_takes_each_objects_first_grasps_in_turn() -> None:
     assert len(_first_grasps(records, 100)) == len(records)
     with pytest.raises(DatasetError, match="grasps"):
         _first_grasps(records, 0)
+
+
+def test_the_report_is_strict_json_with_and_without_the_truth() -> None:
+    """What ``dtx calibrate touches --json`` prints and writes to report.json."""
+    from dataset.touch_calibration import TouchCalibration
+    from msgs import DepthImage, strict_json
+
+    rng = np.random.default_rng(3)
+    models = {"a": _box_model((0.06, 0.04, 0.1))}
+    truth = {"a": planar_transform(0.2, -100.0, 10.0)}
+    error = planar_transform(np.radians(0.04), 1.0, -1.5)
+    seen = models["a"][0] @ truth["a"][:3, :3].T + truth["a"][:3, 3]
+    views = {"camera_left": {"a": seen @ error[:3, :3].T + error[:3, 3]}, "camera_right": {"a": np.zeros((0, 3))}}
+    cell = solve_cell({"a": _touches_on(models["a"], truth["a"], truth["a"], rng)}, truth, views, models)
+    corrections = {c: cell.cameras[c] for c in views}
+    calibrated = {c: DepthImage(camera_to_world=corrections[c]) for c in views}
+    result = TouchCalibration(cell, corrections, calibrated, {"a": 60}, 3)
+    for truth_given in (None, {"camera_left": np.linalg.inv(error), "camera_right": np.eye(4)}):
+        report = json.loads(strict_json.dumps(result.report(truth_given)), parse_constant=_refuse)
+        assert report["cameras"]["right"]["point_residual_mm"] is None  # no point on a model
+        assert ("error_mm" in report["cameras"]["left"]) == (truth_given is not None)
+
+
+def _refuse(constant: str) -> None:
+    raise AssertionError(f"non-strict JSON constant {constant}")
