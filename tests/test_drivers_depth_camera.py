@@ -45,7 +45,7 @@ def calibration_320(tmp_path):
 
 
 def test_example_calibrations_load():
-    for name in ("kinect_left", "kinect_right"):
+    for name in ("camera_left", "camera_right"):
         calibration = load_calibration(str(LAUNCH / "calibration" / f"{name}.yaml"))
         assert (calibration.intrinsics.width, calibration.intrinsics.height) == (512, 424)
         assert calibration.camera_to_world.shape == (4, 4)
