@@ -61,7 +61,8 @@ def _print_report(report: dict[str, Any], out: Path) -> None:
             if "error_mm" in row
             else "(none: a real cell)"
         )
-        print(f"{name:8} {row['correction_mm']:13.2f} {row['point_residual_mm']:17.2f}  {error}")
+        residual = "none on a model" if row["point_residual_mm"] is None else f"{row['point_residual_mm']:.2f}"
+        print(f"{name:8} {row['correction_mm']:13.2f} {residual:>17}  {error}")
         if row["unobservable"]:
             print(f"warning: camera {name}: the touches and views leave {', '.join(row['unobservable'])} unpinned")
     print(f"{'object':18} {'touches':>7} {'outliers':>8}  touch offset mm before -> after")

@@ -159,7 +159,7 @@ class CellCorrection:
     touch_residual_before_mm: dict[str, float]
     touch_residual_after_mm: dict[str, float]
     touch_outliers: dict[str, int]
-    point_residual_mm: dict[str, float]
+    point_residual_mm: dict[str, float | None]  # None: none of the camera's points lies on a model
     unobservable: dict[str, list[str]]
 
 
@@ -265,7 +265,8 @@ class _Cell:
                 _point_rows(points, self.pose(state, c), self.pose(state, o), self.models[o], self.trees[o])[0]
                 for o, points in self.views[c].items()
             ]
-            point_residual[c] = float(np.median(np.abs(np.concatenate(residuals)))) if residuals else float("nan")
+            found = np.concatenate(residuals) if residuals else np.zeros(0)
+            point_residual[c] = float(np.median(np.abs(found))) if len(found) else None
         touched = list(self.touch_residuals)
         return CellCorrection(
             cameras={c: self.pose(state, c) for c in self.cameras},
