@@ -2,11 +2,13 @@
 
 A collected sample holds a touch: the gel's pose from the arm (``gel_to_world``), the tactile
 image, and the depth-map cut from the object's registered pose (``model_to_world``). The
-GelSight renderer draws what that depth-map predicts; where the tactile image shows the contact
-elsewhere in the gel plane, the registration is off (``perception.touch_calibration``). All
-touches of an object give its true pose; each camera's frames of the session
-(``/perception/registration_frames`` in the session's bag), laid onto the objects at their true
-poses and onto the table, give that camera's true extrinsic.
+GelSight renderer draws what that depth-map predicts, moved over a grid of places and depths
+(``_TouchRenderer``); where the frame shows the contact elsewhere in the gel plane, the
+registration is off. Each camera's frames of the session (``/perception/registration_frames``
+in the session's bag) level it on the table, and one fit of every camera's and object's place
+and turn on the table to the touches and the cameras' points (``perception.touch_calibration``)
+gives each camera's true extrinsic; a second round reads the touches again against the fitted
+objects.
 
 Only the training split's touches are used, so an evaluation on the session's test split stays
 honest. The result is a calibration directory of ``camera_<name>.yaml`` files in the layout of
@@ -171,7 +173,7 @@ class _TouchRenderer:
                 centres[i] += fit
         out: list[TouchOffset | None] = []
         for record, cut, centre, info, frame in zip(records, cuts, centres, information, measured):
-            change = self._ssd_free_change(cut)
+            change = self._cut_change(cut)
             weight = np.abs(change).sum(axis=2)
             if float(np.abs(frame).max()) < MIN_CONTACT_LEVELS or weight.sum() <= 0 or not info.any():
                 out.append(None)
@@ -183,7 +185,7 @@ class _TouchRenderer:
             )
         return out
 
-    def _ssd_free_change(self, cut: np.ndarray) -> np.ndarray:
+    def _cut_change(self, cut: np.ndarray) -> np.ndarray:
         """The change image of a cut as it is (where the predicted contact is, for its place)."""
         return render_depth_maps(self.renderer, cut[None], self.crop_xz_m)[0].astype(np.float32) - self.background
 
