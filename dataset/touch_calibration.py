@@ -31,7 +31,7 @@ from dataset.reader import DatasetReader
 from dataset.records import DatasetError, SampleRecord
 from dataset.redepth import depth_map_again, depth_map_params, model_cloud
 from dataset.splits import split_records
-from drivers.depth_camera.base import DepthCameraError, load_calibration
+from drivers.depth_camera.base import DepthCameraError, load_calibration_of
 from nodes.bag import BagError, iter_envelopes
 from perception.pointcloud import VoxelIndex, depth_images_to_world, depth_to_points_camera, transform_points
 from perception.registration import prepare_model, register_model, sample_model_cloud
@@ -309,17 +309,9 @@ def calibrated_frames(
     for frame_id, frames in sorted(registration_frames(session).items()):
         path = Path(calibration_dir) / f"{frame_id}.yaml"
         try:
-            calibration = load_calibration(str(path))
+            calibration = load_calibration_of(str(path), frames[-1].intrinsics, f"{frame_id} of {session}")
         except DepthCameraError as err:
             raise DatasetError(str(err)) from err
-        own, given = frames[-1].intrinsics, calibration.intrinsics
-        differ = [
-            k for k in ("width", "height", "fx", "fy", "cx", "cy") if not np.isclose(getattr(own, k), getattr(given, k))
-        ]
-        if differ:
-            raise DatasetError(
-                f"{path} describes another camera than {frame_id} of {session}: {', '.join(differ)} differ"
-            )
         calibrated.append(dataclasses.replace(frames[-1], camera_to_world=calibration.camera_to_world))
     return calibrated
 

@@ -47,26 +47,17 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 def scene_calibration(scene_path: str, directory: str) -> dict[str, np.ndarray]:
     """Each camera of the scene's camera_to_world from ``directory``/camera_<name>.yaml;
     DepthCameraError when a file is missing or describes another camera."""
-    from drivers.depth_camera.base import DepthCameraError, load_calibration
+    from drivers.depth_camera.base import load_calibration_of
+    from msgs import CameraIntrinsics
     from workcell.scene import load_scene
 
     extrinsics = {}
     for camera in load_scene(scene_path).cameras:
         path = Path(directory) / f"camera_{camera.name}.yaml"
-        calibration = load_calibration(str(path))
-        own = {
-            "width": camera.width,
-            "height": camera.height,
-            "fx": camera.fx,
-            "fy": camera.fy,
-            "cx": camera.cx,
-            "cy": camera.cy,
-        }
-        differ = [k for k, v in own.items() if not np.isclose(getattr(calibration.intrinsics, k), v)]
-        if differ:
-            raise DepthCameraError(
-                f"{path} describes another camera than {camera.name} of {scene_path}: {', '.join(differ)} differ"
-            )
+        own = CameraIntrinsics(
+            width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy
+        )
+        calibration = load_calibration_of(str(path), own, f"{camera.name} of {scene_path}")
         extrinsics[camera.name] = calibration.camera_to_world
     return extrinsics
 

@@ -100,6 +100,20 @@ def _check(path: str, intrinsics: CameraIntrinsics, pose: np.ndarray) -> None:
         )
 
 
+def load_calibration_of(path: str, intrinsics: CameraIntrinsics, camera: str) -> Calibration:
+    """:func:`load_calibration`, refused unless the file describes ``camera``: a camera of the
+    same image size and intrinsics (DepthCameraError naming what differs)."""
+    calibration = load_calibration(path)
+    differ = [
+        name
+        for name in ("width", "height", "fx", "fy", "cx", "cy")
+        if not np.isclose(getattr(calibration.intrinsics, name), getattr(intrinsics, name), rtol=1e-6, atol=1e-6)
+    ]
+    if differ:
+        raise DepthCameraError(f"{path} describes another camera than {camera}: {', '.join(differ)} differ")
+    return calibration
+
+
 def calibration_yaml(calibration: Calibration, comment: str) -> str:
     """A calibration as the file :func:`load_calibration` reads, with ``comment`` on top."""
     k = calibration.intrinsics

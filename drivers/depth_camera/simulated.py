@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from drivers import requires_connection
-from drivers.depth_camera.base import DepthCamera, DepthCameraError, load_calibration
+from drivers.depth_camera.base import DepthCamera, DepthCameraError, load_calibration_of
 from msgs import CameraIntrinsics, DepthImage, Header
 from workcell.scene import SceneError
 
@@ -79,18 +79,9 @@ class SimulatedDepthCamera(DepthCamera):
         if not self.config.calibration_dir:
             return world.nominal_camera_to_world(self.config.camera)
         path = Path(self.config.calibration_dir) / f"camera_{self.config.camera}.yaml"
-        calibration = load_calibration(str(path))
-        given, own = calibration.intrinsics, self.intrinsics
-        mismatched = [
-            name
-            for name in ("width", "height", "fx", "fy", "cx", "cy")
-            if not np.isclose(getattr(given, name), getattr(own, name), rtol=1e-6, atol=1e-6)
-        ]
-        if mismatched or calibration.camera not in (self.config.camera, f"camera_{self.config.camera}"):
-            raise DepthCameraError(
-                f"{path} is for another camera (camera {calibration.camera!r}, intrinsics differ in "
-                f"{mismatched or 'nothing'}) than {self.config.camera!r} of {self.config.scene}"
-            )
+        calibration = load_calibration_of(str(path), self.intrinsics, f"{self.config.camera!r} of {self.config.scene}")
+        if calibration.camera not in (self.config.camera, f"camera_{self.config.camera}"):
+            raise DepthCameraError(f"{path} is for camera {calibration.camera!r}, not {self.config.camera!r}")
         return calibration.camera_to_world
 
     def disconnect(self) -> None:
