@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 
 from perception.binning import min_y_per_bin
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
@@ -23,10 +24,9 @@ from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, 
 from perception.errors import PerceptionError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world
+from perception.pose_scores import add_error_m, add_s_error_m
 from perception.registration import (
     RegistrationParams,
-    add_error_m,
-    add_s_error_m,
     prepare_model,
     register_model,
     sample_model_cloud,
@@ -218,20 +218,21 @@ def _sweep_cases(scene_path: str, poses: int, seed: int, drop_effects: list[str]
     cases = []
     for mesh in YCB:
         model = sample_model_cloud(mesh, seed=seed)
+        surface = o3d.io.read_triangle_mesh(str(mesh))
         footprint = float(np.max(np.linalg.norm(model.points_m[:, :2], axis=1)))
         for _ in range(poses):
             placed = scene_with_object(scene, mesh, rng, footprint)
             world = SimWorld(placed, seed=int(rng.integers(2**31)))
             clouds = depth_images_to_world(render_depth_images(world, placed))
             observed = segment_object(clouds, segmentation_params_for(placed)).points_world_m
-            cases.append((Path(mesh).stem, model, observed, world.object_to_world[0]))
+            cases.append((Path(mesh).stem, model, surface, observed, world.object_to_world[0]))
     return cases
 
 
 def _sweep_row(cases, params: RegistrationParams, label: dict) -> dict:
     prepared = {}
     add_s, add, walls, failures = [], [], [], 0
-    for index, (stem, model, observed, truth) in enumerate(cases):
+    for index, (stem, model, surface, observed, truth) in enumerate(cases):
         if stem not in prepared:
             prepared[stem] = prepare_model(model, params)
         started = time.perf_counter()
@@ -242,7 +243,7 @@ def _sweep_row(cases, params: RegistrationParams, label: dict) -> dict:
             walls.append(time.perf_counter() - started)
             continue
         walls.append(time.perf_counter() - started)
-        add_s.append(add_s_error_m(model.points_m, result.model_to_world, truth) * 1e3)
+        add_s.append(add_s_error_m(surface, model.points_m, result.model_to_world, truth) * 1e3)
         add.append(add_error_m(model.points_m, result.model_to_world, truth) * 1e3)
     return {
         "part": "sweep",

@@ -15,16 +15,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 
 from msgs.sensors import CameraIntrinsics, DepthImage
 from perception.errors import PerceptionError
 from perception.pointcloud import depth_images_to_world
+from perception.pose_scores import add_error_m, add_s_error_m
 from perception.registration import (
     ModelCloud,
     PreparedModel,
     RegistrationParams,
-    add_error_m,
-    add_s_error_m,
     prepare_model,
     register_model,
     sample_model_cloud,
@@ -96,6 +96,7 @@ def scene_with_object(
 def run_trial(
     scene: Scene,
     model: ModelCloud,
+    surface: o3d.geometry.TriangleMesh,
     prepared: PreparedModel,
     params: RegistrationParams,
     seed: int,
@@ -126,7 +127,7 @@ def run_trial(
     total_ms, cpu_ms = (time.perf_counter() - started) * 1e3, (time.process_time() - started_cpu) * 1e3
     return Trial(
         True,
-        add_s_error_m(model.points_m, result.model_to_world, truth) * 1e3,
+        add_s_error_m(surface, model.points_m, result.model_to_world, truth) * 1e3,
         add_error_m(model.points_m, result.model_to_world, truth) * 1e3,
         total_ms,
         cpu_ms,
@@ -190,6 +191,7 @@ def register_check(
     report = {}
     for mesh_path in mesh_paths:
         model = sample_model_cloud(mesh_path, seed=seed)
+        surface = o3d.io.read_triangle_mesh(str(mesh_path))
         prepared = prepare_model(model, params)
         # The simulator turns the mesh about its own origin, so that is where the radius counts from.
         footprint = float(np.max(np.linalg.norm(model.points_m[:, :2], axis=1)))
@@ -197,6 +199,7 @@ def register_check(
             run_trial(
                 scene_with_object(scene, mesh_path, rng, footprint),
                 model,
+                surface,
                 prepared,
                 params,
                 seed=int(rng.integers(2**31)),
