@@ -75,9 +75,9 @@ def _redepth(args: argparse.Namespace) -> int:
         return 2
     registered = None
     if args.calibration:
-        from dataset.touch_calibration import register_again
+        from dataset.touch_calibration import calibrated_frames, register_again
 
-        registered = register_again(args.dir, args.calibration)
+        registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration))
     for density, out in targets.items():
         writer = redepth_dataset(args.dir, out, density, args.bins, registered=registered)
         print(

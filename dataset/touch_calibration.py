@@ -47,6 +47,7 @@ from perception.touch_calibration import (
     table_levelling,
 )
 from sim.gelsight import render_depth_maps, scene_renderer
+from sim.world import SimWorld
 from workcell.scene import Scene, load_scene
 
 REGISTRATION_FRAMES_TOPIC = "/perception/registration_frames"
@@ -316,12 +317,12 @@ def calibrated_frames(
     return calibrated
 
 
-def register_again(session: str | os.PathLike[str], calibration_dir: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+def register_again(session: str | os.PathLike[str], frames: list[msgs.DepthImage]) -> dict[str, np.ndarray]:
     """Each object of ``session`` registered again, as its patch extractor did (segmentation,
-    then registration, same seed), from its cameras' frames with the calibration's extrinsics."""
+    then registration, same seed), from its cameras' ``frames`` (e.g. :func:`calibrated_frames`,
+    or a fresh calibration's ``TouchCalibration.calibrated``)."""
     reader = DatasetReader(session)
     scene = load_scene(reader.info.scene)
-    frames = calibrated_frames(session, calibration_dir)
     clouds = depth_images_to_world(frames)
     registered = {}
     for spec in scene.objects:
@@ -338,6 +339,16 @@ def register_again(session: str | os.PathLike[str], calibration_dir: str | os.Pa
             prepared, segmented.points_world_m, seed=reader.info.split_seed
         ).model_to_world
     return registered
+
+
+def scene_camera_truth(scene_path: str) -> dict[str, np.ndarray] | None:
+    """The true camera_to_world of each camera of a simulated scene whose cameras are offset
+    (``extrinsic_offset``), by frame id; None for a scene without offsets."""
+    scene = load_scene(scene_path)
+    if not any(effect.name == "extrinsic_offset" for effect in scene.effects):
+        return None
+    world = SimWorld(scene)
+    return {f"camera_{name}": world.true_camera_to_world(name) for name in world.camera_names()}
 
 
 def _first_grasps(records: list[SampleRecord], grasps: int) -> list[SampleRecord]:

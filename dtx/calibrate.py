@@ -11,23 +11,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from dtx.errors import exit_1_on
 from msgs import strict_json
-
-
-def _scene_truth(scene_path: str) -> dict[str, np.ndarray] | None:
-    """The true camera_to_world of each camera of a simulated scene whose cameras are offset
-    (``extrinsic_offset``), by frame id; None for a scene without offsets."""
-    from sim.world import SimWorld  # noqa: PLC0415 - Open3D scene loading only for a simulated session
-    from workcell.scene import load_scene  # noqa: PLC0415
-
-    scene = load_scene(scene_path)
-    if not any(effect.name == "extrinsic_offset" for effect in scene.effects):
-        return None
-    world = SimWorld(scene)
-    return {f"camera_{name}": world.true_camera_to_world(name) for name in world.camera_names()}
 
 
 def write_calibration_dir(out: Path, files: dict[str, str], force: bool) -> None:
@@ -76,13 +61,13 @@ def _print_report(report: dict[str, Any], out: Path) -> None:
 
 def _touches(args: argparse.Namespace) -> int:
     from dataset.reader import DatasetReader  # noqa: PLC0415 - Open3D and the renderer load with it
-    from dataset.touch_calibration import calibrate_touches  # noqa: PLC0415
+    from dataset.touch_calibration import calibrate_touches, scene_camera_truth  # noqa: PLC0415
     from drivers.depth_camera.base import Calibration, calibration_yaml  # noqa: PLC0415
 
     if Path(args.out).exists() and not args.force:  # said before minutes of work, and again when writing
         raise FileExistsError(f"{args.out} exists; give --force to replace it (it is replaced whole, never half-way)")
     result = calibrate_touches(args.session, grasps=args.grasps)
-    report = result.report(_scene_truth(DatasetReader(args.session).info.scene))
+    report = result.report(scene_camera_truth(DatasetReader(args.session).info.scene))
     files = {
         f"{frame_id}.yaml": calibration_yaml(
             Calibration(frame_id.removeprefix("camera_"), image.intrinsics, image.camera_to_world),
