@@ -112,7 +112,7 @@ def redepth_dataset(
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
-    poses = _poses_at(reader.records, registered, scene, params) if registered is not None else {}
+    poses = poses_at(reader.records, registered, scene, params) if registered is not None else {}
     writer = DatasetWriter(out, info)
     clouds: dict[str, VoxelIndex] = {}
     density = f"{points_per_cm3:g} points/cm³" if points_per_cm3 else "full density"
@@ -156,7 +156,7 @@ def _with_bins(params: DepthMapParams, info: DatasetInfo, bins: int | None) -> t
     )
 
 
-def _poses_at(
+def poses_at(
     records: list[SampleRecord], registered: dict[str, np.ndarray], scene: Scene, params: DepthMapParams
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Each sample's (model_to_gel, model_to_world) with its object at ``registered``, centred

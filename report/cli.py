@@ -1,5 +1,5 @@
-"""``dtx report accuracy-time --out DIR [--quick] [--reuse]``: what accuracy costs in time,
-across the pipeline, in DIR/report.md with a plot per sweep and DIR/points.json.
+"""``dtx report accuracy-time --out DIR [--quick] [--reuse] [--session DIR]``: what accuracy costs
+in time, across the pipeline, in DIR/report.md with a plot per sweep and DIR/points.json.
 
 Each sweep's points are cached in DIR/cache/<sweep>.json with the plan and the training
 config (configs/quick.yaml) that made them; --reuse takes a cached sweep made by the same plan
@@ -11,15 +11,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import platform
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from report.plan import FULL, QUICK, SWEEP_NAMES
+from report.plan import FULL, QUICK, SWEEP_NAMES, Plan
 from report.write import dumps, loads, write_report
+
+if TYPE_CHECKING:  # torch and Open3D load only when a sweep runs
+    from report.workspace import Workspace
 
 
 def _out_dir(value: str) -> Path:
@@ -51,8 +56,22 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         metavar="SWEEP",
         help=f"measure only these sweeps (repeatable): {', '.join(SWEEP_NAMES)}",
     )
+    p.add_argument(
+        "--session",
+        type=_session_dir,
+        metavar="DIR",
+        help="measure the session sweeps (density, resolution, calibration_grasps) on this collected "
+        "simulated session, e.g. make demo's out/demo/session, instead of collecting the plan's grasps",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=run_accuracy_time)
+
+
+def _session_dir(value: str) -> Path:
+    path = Path(value)
+    if not (path / "manifest.jsonl").is_file():
+        raise argparse.ArgumentTypeError(f"{value} is not a collected session (no manifest.jsonl)")
+    return path.resolve()
 
 
 def _cached(path: Path, made_by: dict) -> dict | None:
@@ -61,6 +80,37 @@ def _cached(path: Path, made_by: dict) -> dict | None:
     except (OSError, ValueError):
         return None
     return entry if all(entry.get(key) == value for key, value in made_by.items()) else None
+
+
+def _header(
+    plan: Plan, elapsed_s: float, measured_s: float, timings: list[str], session: Path | None, workspace: Workspace
+) -> list[str]:
+    """The report's opening lines: the mode, the machine, the times, and what was not measured
+    as the full plan measures it."""
+    header = [
+        f"Mode: **{plan.name}**, seed {plan.seed}; this run took **{elapsed_s / 60:.1f} min** of wall time on "
+        f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}); "
+        f"measuring every sweep shown took **{measured_s / 60:.1f} min**.",
+        "",
+        "Sweep times: " + "; ".join(timings) + ".",
+    ]
+    if session is not None:
+        header += ["", f"The session sweeps ran on the collected session {session}, not on one of the plan's size."]
+    if workspace.reused_models:
+        header += [
+            "",
+            f"Trained models reused from an earlier run in {workspace.root} (their training is not in "
+            f"the times above; its CPU seconds per epoch are in the tables): "
+            f"{', '.join(sorted(workspace.reused_models))}.",
+        ]
+    if plan.name != FULL.name:
+        header += [
+            "",
+            "Reduced from the full report: " + "; ".join(plan.reductions(FULL)) + ". These figures check "
+            "the pipeline end to end; with so few contacts and epochs, SSIM differences within a few standard "
+            "errors are noise, so take the defaults from the full report.",
+        ]
+    return header
 
 
 def run_accuracy_time(args: argparse.Namespace) -> int:
@@ -72,8 +122,13 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     from report.sweeps import SWEEPS
     from report.workspace import Workspace, training_config
 
-    workspace = Workspace(args.out / "work" / plan.name, plan)
-    made_by = json.loads(json.dumps({"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}))
+    # A given session gets a workspace of its own: its re-cut datasets and trained models are its.
+    work = (
+        plan.name if args.session is None else f"{plan.name}-{hashlib.sha1(str(args.session).encode()).hexdigest()[:8]}"
+    )
+    workspace = Workspace(args.out / "work" / work, plan, args.session)
+    made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
+    made_by = json.loads(json.dumps({**made_by, "session": None if args.session is None else str(args.session)}))
     cache.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     points, timings, entries = [], [], []
@@ -98,28 +153,7 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
         points += loads(json.dumps(entry["points"]))
         entries.append(entry)
     elapsed = time.monotonic() - started
-    measured = sum(entry["seconds"] for entry in entries)
-    header = [
-        f"Mode: **{plan.name}**, seed {plan.seed}; this run took **{elapsed / 60:.1f} min** of wall time on "
-        f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}); "
-        f"measuring every sweep shown took **{measured / 60:.1f} min**.",
-        "",
-        "Sweep times: " + "; ".join(timings) + ".",
-    ]
-    if workspace.reused_models:
-        header += [
-            "",
-            f"Trained models reused from an earlier run in {workspace.root} (their training is not in "
-            f"the times above; its CPU seconds per epoch are in the tables): "
-            f"{', '.join(sorted(workspace.reused_models))}.",
-        ]
-    if plan.name != FULL.name:
-        header += [
-            "",
-            "Reduced from the full report: " + "; ".join(plan.reductions(FULL)) + ". These figures check "
-            "the pipeline end to end; with so few contacts and epochs, SSIM differences within a few standard "
-            "errors are noise, so take the defaults from the full report.",
-        ]
+    header = _header(plan, elapsed, sum(entry["seconds"] for entry in entries), timings, args.session, workspace)
     path = write_report(args.out, points, header)
     print(f"report: {path} ({elapsed:.0f} s)")
     return 0

@@ -18,6 +18,7 @@ SWEEP_NAMES = (
     "inference",
     "registration",
     "depth_effects",
+    "calibration_grasps",
 )
 
 
@@ -42,6 +43,7 @@ class Plan:
     runtimes: tuple[str, ...]
     inference_seconds: float  # measuring time per inference figure
     dropout_samples: tuple[int, ...]
+    calibration_grasps: tuple[int, ...]  # session training grasps the cameras are calibrated from
     seed: int = 0
 
     def reductions(self, reference: "Plan") -> list[str]:
@@ -73,6 +75,7 @@ FULL = Plan(
     runtimes=("eager", "onnxrt"),
     inference_seconds=1.5,
     dropout_samples=(2, 4, 8, 16),
+    calibration_grasps=(10, 30, 100, 300),
 )
 
 QUICK = dataclasses.replace(
@@ -91,4 +94,5 @@ QUICK = dataclasses.replace(
     trained_widths=(16, 32),
     inference_seconds=0.3,
     dropout_samples=(2, 4, 8),
+    calibration_grasps=(30,),
 )

@@ -4,6 +4,21 @@ best accuracy a setting must be to be recommended."""
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
+
+# One measured setting of a sweep: {"sweep", "setting", "time", "accuracy", ...extra figures}.
+Point = dict[str, Any]
+
+
+def point(sweep: str, setting: str, time_value: float, accuracy: float | None, **extra: Any) -> Point:
+    """A sweep's point; an accuracy of None (the setting failed) is NaN, never on a front."""
+    return {
+        "sweep": sweep,
+        "setting": setting,
+        "time": float(time_value),
+        "accuracy": float("nan") if accuracy is None else float(accuracy),
+        **extra,
+    }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,6 +163,23 @@ SPECS: dict[str, Spec] = {
         True,
         0.01,
         (("training_s_per_epoch", "training CPU s/epoch"), ("parameters", "parameters"), ("ssim_se", "SSIM s.e.")),
+    ),
+    "calibration_grasps": Spec(
+        "Touch calibration of the depth cameras",
+        "How many grasps must a session spend before its touches calibrate the cameras? (collected "
+        "session, the first N training grasps; error against the scene's true extrinsics; beside it "
+        "the test split's depth-maps cut with that calibration through the GelSight renderer)",
+        "grasps",
+        "robot s + fit CPU s",
+        "worse camera's error (mm)",
+        False,
+        0.1,
+        (
+            ("error_deg", "error deg"),
+            ("touches", "touches"),
+            ("renderer_ratio", "renderer ratio"),
+            ("fit_cpu_s", "fit CPU s"),
+        ),
     ),
     "inference": Spec(
         "Generator width, precision, runtime",

@@ -18,7 +18,6 @@ import dataclasses
 import statistics
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -39,6 +38,8 @@ from perception.density import downsample_to_density
 from perception.pointcloud import VoxelIndex
 from perception.registration import RegistrationParams
 from perception.ssim import ssim_rgb
+from report.calibration_sweep import calibration_grasps
+from report.specs import Point, point
 from report.workspace import REFERENCE_SIZE, SessionTest, Workspace, epoch_cpu_s
 from sim.gelsight import GelSightRenderer
 from sim.gelsight_effects import EFFECTS as GELSIGHT_EFFECTS
@@ -46,18 +47,7 @@ from sim.gelsight_effects import make_effect
 from sim.world import SimWorld
 from workcell.scene import load_scene
 
-Point = dict[str, Any]
 SCENE = "scenes/ycb_three.yaml"
-
-
-def _point(sweep: str, setting: str, time_value: float, accuracy: float | None, **extra: Any) -> Point:
-    return {
-        "sweep": sweep,
-        "setting": setting,
-        "time": float(time_value),
-        "accuracy": float("nan") if accuracy is None else float(accuracy),
-        **extra,
-    }
 
 
 def _median_ms(function, runs: int) -> float:
@@ -118,7 +108,7 @@ def resolution(ws: Workspace) -> list[Point]:
             test, _resize(estimate, REFERENCE_SIZE), _no_contact_estimate(generator, depth_range, size)
         )
         points.append(
-            _point(
+            point(
                 "resolution",
                 f"{size} x {size}",
                 _epoch_s(model),
@@ -148,7 +138,7 @@ def width(ws: Workspace) -> list[Point]:
         ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
         inference_ms = _median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
         points.append(
-            _point(
+            point(
                 "width",
                 f"width {ngf}",
                 inference_ms,
@@ -174,7 +164,7 @@ def training_length(ws: Workspace) -> list[Point]:
     """Validation SSIM after each epoch of the 100 x 100 model against its training CPU time."""
     model = ws.model()
     return [
-        _point("training_length", f"{int(row['epoch']) + 1} epoch(s)", cpu, row["val_ssim"], val_l1=row["val_l1"])
+        point("training_length", f"{int(row['epoch']) + 1} epoch(s)", cpu, row["val_ssim"], val_l1=row["val_l1"])
         for row, cpu in zip(_val_log(model), np.cumsum(epoch_cpu_s(model)))
     ]
 
@@ -205,7 +195,7 @@ def density(ws: Workspace) -> list[Point]:
             walls.append((time.perf_counter() - started) * 1e3)
         scores = _session_scores(test, predict(generator, np.stack(maps), depth_range), no_contact)
         points.append(
-            _point(
+            point(
                 "density",
                 "unfiltered" if value is None else f"{value:g} pts/cm³",
                 statistics.median(walls),
@@ -240,7 +230,7 @@ def gelsight_effects(ws: Workspace) -> list[Point]:
         ideal = ssim.mean() if ideal is None else ideal
         setting = "none" if not names else ("all" if len(names) > 1 else names[0])
         points.append(
-            _point(
+            point(
                 "gelsight_effects",
                 setting,
                 frame_ms,
@@ -273,7 +263,7 @@ def depth_effects(ws: Workspace) -> list[Point]:
         row = _sweep_row(cases, RegistrationParams(), {})
         setting = "none" if not kept else ("all" if len(kept) > 1 else kept[0])
         points.append(
-            _point(
+            point(
                 "depth_effects",
                 setting,
                 frame_ms,
@@ -290,7 +280,7 @@ def _registration_points(sweep: str, cases, settings) -> list[Point]:
     for label, params in settings:
         row = _sweep_row(cases, params, {})
         points.append(
-            _point(
+            point(
                 sweep,
                 label,
                 row["ms_median"],
@@ -347,7 +337,7 @@ def inference(ws: Workspace) -> list[Point]:
     finally:
         torch.set_num_threads(threads)
     return [
-        _point(
+        point(
             "inference",
             f"width {r['width']} {r['precision']} {r['runtime']}",
             1e3 / r["regions_per_s"],
@@ -380,7 +370,7 @@ def dropout(ws: Workspace) -> list[Point]:
         pixel_r = float(np.corrcoef(std.ravel(), error.ravel())[0, 1])
         image_r = float(np.corrcoef(std.mean(axis=(1, 2)), error.mean(axis=(1, 2)))[0, 1])
         points.append(
-            _point(
+            point(
                 "dropout",
                 f"{samples} samples",
                 ms,
@@ -402,4 +392,5 @@ SWEEPS = {
     "inference": inference,
     "registration": registration,
     "depth_effects": depth_effects,
+    "calibration_grasps": calibration_grasps,
 }

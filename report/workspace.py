@@ -25,6 +25,7 @@ from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params, redepth_dataset
+from dataset.touch_calibration import REGISTRATION_FRAMES_TOPIC
 from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import select_records
 from models.train import train
@@ -54,9 +55,12 @@ class Workspace:
     """Datasets and trained models under ``root``, made on first use and kept, so a rerun or
     a sweep that needs a model another sweep trained does not train it again."""
 
-    def __init__(self, root: Path, plan: Plan) -> None:
+    def __init__(self, root: Path, plan: Plan, session: Path | None = None) -> None:
+        """``session``: a collected simulated session the session sweeps use instead of one
+        collected here (make demo's is larger than any plan's, so its p-values mean more)."""
         self.root = root
         self.plan = plan
+        self.given_session = session
         self.reused_models: set[str] = set()  # trained by an earlier run: not in this run's time
 
     @functools.cached_property
@@ -69,10 +73,15 @@ class Workspace:
     @functools.cached_property
     def session(self) -> Path:
         """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
-        operator runs (Algorithm 1), ``plan.session_grasps`` grasps; resumed if interrupted."""
+        operator runs (Algorithm 1), ``plan.session_grasps`` grasps, its registrations' camera
+        frames recorded; resumed if interrupted. The given session, when there is one."""
+        if self.given_session is not None:
+            return self.given_session
         out = (self.root / "session").resolve()
         resume = (out / "manifest.jsonl").exists()
-        command = collect_sim_command(out, self.plan.session_grasps, self.plan.seed, record=False, resume=resume)
+        command = collect_sim_command(out, self.plan.session_grasps, self.plan.seed, record=True, resume=resume)
+        # The registrations' camera frames, which the touch calibration needs (dtx calibrate touches).
+        command.append(f"record_topics:=[{REGISTRATION_FRAMES_TOPIC}]")
         # A bus of its own, so that a graph the lab is running meanwhile is never touched; the
         # graph's progress goes to stderr with the report's own.
         bus = tempfile.mkdtemp(prefix="dtxr")  # ipc socket paths must stay short

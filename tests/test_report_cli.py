@@ -54,7 +54,7 @@ def test_quick_plan_states_its_reductions() -> None:
     reductions = QUICK.reductions(FULL)
     assert any(r.startswith("samples: 120 (full: 578)") for r in reductions)
     assert FULL.reductions(FULL) == []
-    assert len(set(SWEEP_NAMES)) == len(SWEEP_NAMES) == 9
+    assert len(set(SWEEP_NAMES)) == len(SWEEP_NAMES) == 10
 
 
 def test_every_named_sweep_exists() -> None:

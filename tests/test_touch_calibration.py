@@ -3,6 +3,7 @@ known, and ``dtx calibrate touches`` / ``dtx dataset redepth --calibration`` on 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -22,6 +23,9 @@ from perception.touch_calibration import (
     solve_cell,
     table_levelling,
 )
+from report.calibration_sweep import calibration_grasps
+from report.plan import QUICK
+from report.workspace import Workspace
 
 REPO = Path(__file__).resolve().parent.parent
 FAR_M = 0.003
@@ -312,3 +316,20 @@ def test_the_report_is_strict_json_with_and_without_the_truth() -> None:
 
 def _refuse(constant: str) -> None:
     raise AssertionError(f"non-strict JSON constant {constant}")
+
+
+def test_the_report_sweep_states_the_given_extrinsics_and_names_what_it_refused(
+    short_session: Path, tmp_path: Path
+) -> None:
+    """dtx report accuracy-time's calibration_grasps on a collected session: the uncalibrated
+    reference carries the scene's own offset (ycb_three: 1.5, -1.0, 1.2 mm on the left), and a
+    calibration from too few touches is a point without accuracy that says why, not a crash."""
+    plan = dataclasses.replace(QUICK, calibration_grasps=(3, 1000))
+    points = calibration_grasps(Workspace(tmp_path, plan, short_session))
+    reference, *calibrated = points
+    assert reference["setting"].startswith("none")
+    assert reference["accuracy"] == pytest.approx(np.linalg.norm([1.5, -1.0, 1.2]), abs=0.5)
+    assert 0 < reference["renderer_ratio"] < 2
+    assert [p["setting"] for p in calibrated][0] == "3 grasps"
+    for point in calibrated:
+        assert np.isnan(point["accuracy"]) and "touches" in point["refused"]

@@ -1,0 +1,110 @@
+"""The accuracy-time report's camera-calibration sweep: how many grasps a lab must spend on
+touch calibration (``dtx calibrate touches --grasps N``) for the cameras' extrinsics, and what
+the geometry they give lets an estimate reach. Runs on the report's collected session, whose
+scene holds the true extrinsics."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dataset.reader import DatasetReader
+from dataset.records import SampleRecord
+from dataset.redepth import depth_map_again, depth_map_params, model_cloud, poses_at
+from dataset.splits import split_records
+from dataset.touch_calibration import calibrate_touches, register_again, registration_frames, scene_camera_truth
+from models.evaluate import ssim_statistics
+from perception.pointcloud import VoxelIndex
+from perception.touch_calibration import TouchCalibrationError, pose_error
+from report.ceiling import depth_map_images
+from report.specs import Point, point
+from report.workspace import Workspace
+from workcell.scene import load_scene
+
+
+def _seconds_per_grasp(records: list[SampleRecord]) -> float:
+    """The session's own pace: from its first grasp's tactile frame to its last, per grasp."""
+    stamps = sorted({(r.grasp_id, r.stamps_ns["tactile"]) for r in records}, key=lambda row: row[1])
+    return (stamps[-1][1] - stamps[0][1]) * 1e-9 / max(len(stamps) - 1, 1)
+
+
+def calibration_grasps(ws: Workspace) -> list[Point]:
+    """The cameras calibrated from the touches of the session's first N training grasps (``dtx
+    calibrate touches --grasps N``) -> the worse camera's error against the scene's truth (mm);
+    time = the robot's time for those grasps at the session's own pace plus the fit's CPU time.
+    Beside it, what that geometry allows: the test split's depth-maps cut again with the
+    calibration (each object registered again) through the GelSight renderer, scored as ``dtx
+    evaluate`` scores a model (the ceiling rung ``dtx sim ceiling`` calls the model's input)."""
+    reader = DatasetReader(ws.session)
+    truth = scene_camera_truth(reader.info.scene)
+    if truth is None:
+        raise RuntimeError(f"{reader.info.scene} offsets no camera: there is nothing to calibrate")
+    pace_s = _seconds_per_grasp(reader.records)
+    available = len({r.grasp_key for r in split_records(reader.records, reader.info.split_seed)["train"]})
+    recorded = np.stack([reader.load(r).depth_map_m for r in ws.session_test.records])
+    before = [pose_error(np.asarray(world), truth[frame]) for frame, world in _given_extrinsics(ws.session).items()]
+    points = [
+        point(
+            "calibration_grasps",
+            "none (the given extrinsics)",
+            0.0,
+            max(mm for mm, _ in before),
+            error_deg=round(max(deg for _, deg in before), 4),
+            **_renderer_ratio(ws, recorded),
+        )
+    ]
+    for grasps in sorted({min(n, available) for n in ws.plan.calibration_grasps}):
+        started = time.process_time()
+        try:
+            calibration = calibrate_touches(ws.session, grasps=grasps)
+        except TouchCalibrationError as err:
+            points.append(point("calibration_grasps", f"{grasps} grasps", grasps * pace_s, None, refused=str(err)))
+            continue
+        fit_s = time.process_time() - started
+        cameras = calibration.report(truth)["cameras"].values()
+        registered = register_again(ws.session, list(calibration.calibrated.values()))
+        params, scene = depth_map_params(reader)
+        poses = poses_at(ws.session_test.records, registered, scene, params)
+        clouds = {name: VoxelIndex(model_cloud(scene, name)) for name in registered}
+        maps = np.stack(
+            [
+                depth_map_again(clouds[r.object_name], poses[r.sample_id][0], scene.gripper_geometry(), params)
+                for r in ws.session_test.records
+            ]
+        )
+        points.append(
+            point(
+                "calibration_grasps",
+                f"{grasps} grasps",
+                grasps * pace_s + fit_s,
+                max(row["error_mm"] for row in cameras),
+                error_deg=round(max(row["error_deg"] for row in cameras), 4),
+                error_before_mm=round(max(row["error_before_mm"] for row in cameras), 3),
+                fit_cpu_s=round(fit_s, 1),
+                touches=sum(calibration.object_touches.values()),
+                **_renderer_ratio(ws, maps),
+            )
+        )
+    return points
+
+
+def _given_extrinsics(session: Path) -> dict[str, np.ndarray]:
+    """Each camera's camera_to_world as the session's registrations used it, by frame id."""
+    return {frame: images[-1].camera_to_world for frame, images in registration_frames(session).items()}
+
+
+def _renderer_ratio(ws: Workspace, depth_maps_m: np.ndarray) -> dict[str, float]:
+    """The test split's ``depth_maps_m`` through the GelSight renderer, scored against the
+    session's images as a model is (models.evaluate.ssim_statistics)."""
+    reader = DatasetReader(ws.session)
+    scene = load_scene(reader.info.scene)
+    crop = reader.info.depth_crop_m
+    assert crop is not None  # a session records its crop (dataset.json)
+    images = depth_map_images(scene, depth_maps_m, crop, ws.session_test.truth.shape[1:3])
+    scores = ssim_statistics(ws.session_test.truth, images)
+    return {
+        "renderer_ratio": round(float(scores["dissimilarity_ratio"]), 4),
+        "renderer_ssim": round(float(scores["ssim_model_mean"]), 4),
+    }
