@@ -75,7 +75,7 @@ FULL = Plan(
     runtimes=("eager", "onnxrt"),
     inference_seconds=1.5,
     dropout_samples=(2, 4, 8, 16),
-    calibration_grasps=(10, 30, 100, 300),
+    calibration_grasps=(10, 30, 100, 300, 1000),
 )
 
 QUICK = dataclasses.replace(
