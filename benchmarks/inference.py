@@ -1,4 +1,6 @@
-"""``dtx bench inference``: generator width x precision x runtime on this machine's CPU.
+"""``dtx bench inference``: generator width x precision x runtime on this machine's CPU, or
+with ``--device cuda`` (or auto) on its GPU: ONNX Runtime's CUDA provider and eager PyTorch on
+CUDA (int8 stays on the CPU, the only place its kernels are; ``compile`` too).
 
 For each combination: regions per second with batches of ``--batch`` depth-maps, the median
 (p50) latency of one region alone, ``ssim_vs_fp32``: the SSIM of its output against the fp32
@@ -46,12 +48,14 @@ import torch
 from models.data import to_uint8_rgb
 from models.networks import GeneratorConfig, UNetGenerator
 from models.runtime import (
+    DEVICES,
+    CudaUnavailable,
     Runner,
     UncheckedGenerator,
     contact_inputs,
     eager_runner,
-    onnx_graph,
-    onnx_runner,
+    network_runner,
+    resolve_device,
 )
 from perception.ssim import ssim_rgb
 
@@ -149,13 +153,11 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
             for precision in args.precisions:
                 if precision not in OFFERED[runtime]:
                     continue
-                if runtime == "eager":
-                    runner = eager_runner(generator, bf16=precision == "bf16")
-                elif runtime == "compile":
+                device = _device(args.device, runtime, precision)
+                if runtime == "compile":
                     runner = eager_runner(torch.compile(UncheckedGenerator(generator)), bf16=precision == "bf16")
-                else:
-                    # the node's graph and session options
-                    runner = onnx_runner(onnx_graph(generator, depth_range_m, precision), args.threads)
+                else:  # the node's runners, graphs and session options
+                    runner = network_runner(generator, depth_range_m, runtime, precision, args.threads, device)
                 output = to_uint8_rgb(torch.from_numpy(runner(inputs)))
                 throughput, p50 = _measure(runner, inputs, args.batch, args.seconds)
                 peak_after = fp32_peak_gflops()  # did the machine's capacity change meanwhile?
@@ -165,6 +167,7 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                         "width": generator.config.ngf,
                         "precision": precision,
                         "runtime": runtime,
+                        "device": device,
                         "ssim": vs_fp32 if truth is None else round(float(ssim_rgb(truth, output).mean()), 4),
                         "ssim_vs_fp32": vs_fp32,
                         "regions_per_s": round(throughput, 1),
@@ -183,6 +186,17 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
         for row in rows:
             row["near_best"] = row["ssim"] >= best - 0.01
     return rows
+
+
+def _device(asked: str, runtime: str, precision: str) -> str:
+    """Where a row computes (models.runtime.resolve_device; torch.compile and int8 rows on the CPU);
+    a clear exit when cuda is asked for and absent."""
+    if runtime == "compile" or precision == "int8":
+        return "cpu"
+    try:
+        return resolve_device(asked, runtime, precision)
+    except CudaUnavailable as exc:
+        raise SystemExit(f"dtx bench inference: {exc.code}: {exc}") from exc
 
 
 def _format_row(row: dict[str, Any]) -> str:
@@ -211,4 +225,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch", type=int, default=32, help="regions per batch for the throughput")
     parser.add_argument("--seconds", type=float, default=1.5, help="measuring time per figure")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", choices=list(DEVICES), default="cpu", help="where the rows compute")
     parser.add_argument("--seed", type=int, default=0)

@@ -30,6 +30,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import re
 import signal
 import statistics
 import subprocess
@@ -40,13 +41,16 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+import cv2
 import numpy as np
 import torch
 
+from benchmarks._serve_stages import stage_costs
 from dataset.synth import analytic_contact_maps
 from models.checkpoint import TrainConfig, load_generator
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
+from models.runtime import DEVICES, CudaUnavailable, network_runner, resolve_device
 from nodes.bus import Bus
 from nodes.inference import InferenceNode
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
@@ -226,8 +230,22 @@ def _request_rate(call: Any, regions: int, requests: int) -> tuple[float, float]
     return round(statistics.median(latencies) * 1e3, 1), round(regions * requests / sum(latencies), 1)
 
 
-def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tuple[float, float]) -> list[dict]:
-    """The planner's cloud form beside the depth-map form, per YCB object and pose count."""
+def bench_points(
+    registry: Registry,
+    args: argparse.Namespace,
+    checkpoint: Path,
+    model: str,
+    servers: list[subprocess.Popen[bytes]],
+) -> list[dict]:
+    """The planner's cloud form beside the depth-map form and the network alone, per YCB
+    object and pose count, with the stages' costs (benchmarks._serve_stages)."""
+    generator, depth_range_m = load_generator(checkpoint)
+    # The graph the node serves (int8 refused falls back to fp32, which its model line says).
+    runtime, precision, device = re.search(r"(\w+) (\w+), (\w+)\)$", model).groups()  # type: ignore[union-attr]
+    network = network_runner(generator, depth_range_m, runtime, precision, args.threads, device)
+    # The node's process settings, so the network computes here as it does there.
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(1)
     geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     params = DepthMapParams(y_range_m=depth_range_m)
     rows = []
@@ -235,10 +253,11 @@ def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tu
         for mesh in YCB[: args.objects]:
             cloud = sample_model_cloud(mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED)
             points = cloud.points_m.astype(np.float32)  # what a planner sends: half the bytes
+            index = VoxelIndex(points)
             for count in args.poses:
                 poses = surface_gel_poses(cloud, count, args.seed)
-                maps = contact_depth_maps(VoxelIndex(points), np.eye(4), poses, geometry, params).depth_maps_m
-                row = {
+                maps = contact_depth_maps(index, np.eye(4), poses, geometry, params).depth_maps_m
+                row: dict[str, Any] = {
                     "object": Path(mesh).stem,
                     "cloud_points": len(points),
                     "poses": count,
@@ -248,20 +267,43 @@ def bench_points(registry: Registry, args: argparse.Namespace, depth_range_m: tu
                 started = time.perf_counter()
                 client.estimate_at(handle, poses)
                 row["first_request_ms"] = round((time.perf_counter() - started) * 1e3, 1)
+                cpu_before = sum(_cpu_seconds(server.pid) for server in servers)
                 row["handle_p50_ms"], row["handle_regions_per_s"] = _request_rate(
                     lambda: client.estimate_at(handle, poses), count, args.point_requests
                 )
+                server_cpu = sum(_cpu_seconds(server.pid) for server in servers) - cpu_before
+                row["handle_server_cpu_ms_per_region"] = round(server_cpu / (count * args.point_requests) * 1e3, 2)
                 row["points_p50_ms"], row["points_regions_per_s"] = _request_rate(
                     lambda: client.estimate_at(points, poses), count, args.point_requests
                 )
                 row["maps_p50_ms"], row["maps_regions_per_s"] = _request_rate(
                     lambda: client.estimate(maps), count, args.point_requests
                 )
-                rows.append(row)
+                stages = stage_costs(
+                    index, poses, geometry, params, generator, depth_range_m, network,
+                    args.threads, args.max_batch, args.point_requests,
+                )  # fmt: skip
+                rows.append({**row, "stage_cpu_ms_per_region": stages, **_ratios(row, stages)})
     return rows
 
 
+def _ratios(row: dict[str, Any], stages: dict[str, float]) -> dict[str, float]:
+    """The issue's targets as ratios of this row's side-by-side figures: the cloud handle
+    against the network alone (>= 0.95) and the depth-map form (>= 0.95); the server's CPU per
+    region against the network's own (<= 1.3)."""
+    return {
+        "network_regions_per_s": stages["network_regions_per_s"],
+        "handle_over_network": round(row["handle_regions_per_s"] / stages["network_regions_per_s"], 3),
+        "handle_over_maps": round(row["handle_regions_per_s"] / row["maps_regions_per_s"], 3),
+        "server_cpu_over_network": round(row["handle_server_cpu_ms_per_region"] / stages["network_cpu_ms"], 3),
+    }
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    try:
+        resolve_device(args.device, args.runtime, args.precision)  # the node's own check, before it starts
+    except CudaUnavailable as exc:
+        raise SystemExit(f"dtx bench serve: {exc.code}: {exc}") from exc
     with tempfile.TemporaryDirectory(prefix="dtxb") as tmp:
         checkpoint, weights, depth_range_m = _weights(args, Path(tmp))
         bus_dir = Path(tmp) / "bus"
@@ -277,7 +319,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             # On a shared machine the wall-clock rate depends on the neighbours; the servers'
             # own CPU time per region much less (2 free cores serve at most 2 / that).
             cpu_per_region = (sum(_cpu_seconds(server.pid) for server in servers) - cpu_before) / served
-            points = bench_points(registry, args, depth_range_m) if args.points else None
+            points = bench_points(registry, args, checkpoint, model, servers) if args.points else None
             prior_ms = _prior_cpu_ms_per_region(checkpoint, maps)
         finally:
             _stop_servers(servers)
@@ -328,6 +370,7 @@ def _start_servers(
     params = {
         "runtime": args.runtime,
         "precision": args.precision,
+        "device": args.device,
         "threads": args.threads,
         "max_batch": args.max_batch,
         "batch_window_ms": args.window_ms,
@@ -384,6 +427,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=32, help="ngf of the fresh generator")
     parser.add_argument("--runtime", choices=["onnxrt", "eager"], default="onnxrt")
     parser.add_argument("--precision", choices=["fp32", "bf16", "int8"], default="fp32")
+    parser.add_argument("--device", choices=list(DEVICES), default="cpu", help="where the node computes")
     parser.add_argument("--workers", type=int, default=1, help="inference node processes (round robin)")
     parser.add_argument("--threads", type=int, default=2, help="compute threads per worker")
     parser.add_argument("--max-batch", type=int, default=32)

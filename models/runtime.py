@@ -1,6 +1,7 @@
 """Running a trained generator outside training: eager PyTorch (fp32 or bf16 autocast) and
-the ONNX graph ONNX Runtime loads, in fp32 or with its convolutions in int8. The inference node
-and the inference benchmark share these, so the benchmark measures the graphs the node serves."""
+the ONNX graph ONNX Runtime loads, in fp32 or with its convolutions in int8, on the CPU or on a
+CUDA GPU. The inference node and the inference benchmark share these, so the benchmark measures
+the graphs the node serves."""
 
 from __future__ import annotations
 
@@ -22,6 +23,49 @@ from models.networks import UNetGenerator
 
 Runner = Callable[[np.ndarray], np.ndarray]
 
+# Where a runner computes: "auto" is CUDA when this machine and the runtime have it, else the CPU.
+DEVICES = ("cpu", "cuda", "auto")
+
+
+class CudaUnavailable(ValueError):
+    """CUDA was asked for and this machine or runtime cannot give it; ``code`` names it for
+    programs (the inference node's status), the text says why, for people."""
+
+    code = "cuda_unavailable"
+
+
+def cuda_missing(runtime: str) -> str:
+    """Why ``runtime`` (onnxrt | eager) cannot compute on a CUDA GPU here; "" when it can."""
+    if runtime == "onnxrt":
+        import onnxruntime as ort  # noqa: PLC0415 - only this runtime needs it
+
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            return (
+                f"this ONNX Runtime ({ort.__version__}) has no CUDA provider (its providers: "
+                f"{', '.join(ort.get_available_providers())}); install onnxruntime-gpu, or serve with device cpu"
+            )
+        return ""
+    if not torch.cuda.is_available():
+        build = f"CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+        return f"PyTorch {torch.__version__} ({build}) sees no CUDA GPU; serve with device cpu"
+    return ""
+
+
+def resolve_device(device: str, runtime: str, precision: str) -> str:
+    """ "cpu" or "cuda" for a ``device`` of DEVICES: "auto" is CUDA where ``runtime`` has it
+    and ``precision`` runs there (int8's kernels are ONNX Runtime's CPU ones), else the CPU.
+    CudaUnavailable for "cuda" without it; ValueError for an unknown device or int8 on cuda."""
+    if device not in DEVICES:
+        raise ValueError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    if device == "cpu" or (device == "auto" and precision == "int8"):
+        return "cpu"
+    if precision == "int8":
+        raise ValueError("int8 runs on the CPU only (ONNX Runtime's int8 convolutions): serve fp32 on cuda")
+    missing = cuda_missing(runtime)
+    if missing and device == "cuda":
+        raise CudaUnavailable(f"device 'cuda' was asked for, but {missing}")
+    return "cpu" if missing else "cuda"
+
 
 class UncheckedGenerator(nn.Module):
     """The generator without its input check, which graph tracers (FX, ONNX, inductor) cannot follow."""
@@ -34,12 +78,15 @@ class UncheckedGenerator(nn.Module):
         return self.generator.forward_unchecked(depth)
 
 
-def eager_runner(module: nn.Module, bf16: bool) -> Runner:
-    """N x C x H x W float32 -> the module's float32 output, under bf16 autocast if asked."""
+def eager_runner(module: nn.Module, bf16: bool, device: str = "cpu") -> Runner:
+    """N x C x H x W float32 -> the module's float32 output, under bf16 autocast if asked, the
+    module copied to ``device`` (cpu | cuda; resolve_device) and computing there."""
+    if device != "cpu":
+        module = copy.deepcopy(module).to(device)  # the caller's module stays where it is
 
     def run(x: np.ndarray) -> np.ndarray:
-        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            return module(torch.from_numpy(x)).float().numpy()
+        with torch.inference_mode(), torch.autocast(device, dtype=torch.bfloat16, enabled=bf16):
+            return module(torch.from_numpy(x).to(device)).float().cpu().numpy()
 
     return run
 
@@ -65,9 +112,11 @@ def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.By
         )
 
 
-def onnx_runner(graph: str | os.PathLike[str] | bytes, threads: int) -> Runner:
-    """An ONNX Runtime (CPU) session of ``graph`` (a path or the serialised model) as a runner,
-    with the options the inference node serves with, so the benchmark measures what it serves."""
+def onnx_runner(graph: str | os.PathLike[str] | bytes, threads: int, device: str = "cpu") -> Runner:
+    """An ONNX Runtime session of ``graph`` (a path or the serialised model) as a runner, with
+    the options the inference node serves with, so the benchmark measures what it serves: on
+    the CPU provider, or with ``device`` cuda on the CUDA provider (CudaUnavailable when ONNX
+    Runtime cannot start it: it would otherwise fall back to the CPU with only a warning)."""
     import onnxruntime as ort  # noqa: PLC0415 - only this runtime needs it
 
     options = ort.SessionOptions()
@@ -76,9 +125,13 @@ def onnx_runner(graph: str | os.PathLike[str] | bytes, threads: int) -> Runner:
     # Threads that spin between runs burn the cores other workers and clients need: on the
     # shared 2-core machine, width 16, 2 threads, it measured 48 -> 184 regions/s without.
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    session = ort.InferenceSession(
-        graph if isinstance(graph, bytes) else str(graph), options, providers=["CPUExecutionProvider"]
-    )
+    providers = (["CUDAExecutionProvider"] if device == "cuda" else []) + ["CPUExecutionProvider"]
+    session = ort.InferenceSession(graph if isinstance(graph, bytes) else str(graph), options, providers=providers)
+    if device == "cuda" and "CUDAExecutionProvider" not in session.get_providers():
+        raise CudaUnavailable(
+            "device 'cuda' was asked for, but ONNX Runtime could not start its CUDA provider "
+            "(no GPU, or its CUDA and cuDNN libraries are missing: see its warning above)"
+        )
     return lambda x: session.run(None, {"depth": x})[0]
 
 
@@ -108,6 +161,27 @@ def onnx_graph(generator: UNetGenerator, depth_range_m: tuple[float, float], pre
         calibration = contact_inputs(generator, depth_range_m, CALIBRATION_CONTACTS, CALIBRATION_SEED)
         return int8_convolutions(graph.getvalue(), calibration)
     raise ValueError(f"ONNX graphs are fp32 or int8, not {precision!r}")
+
+
+# The contacts int8 is judged on: drawn as the calibration's are, but others (a graph is not
+# judged on what it was calibrated on).
+JUDGING_CONTACTS = 64
+JUDGING_SEED = 2021
+
+
+def int8_ssim_loss(generator: UNetGenerator, depth_range_m: tuple[float, float], fp32: Runner, int8: Runner) -> float:
+    """What serving ``int8`` instead of ``fp32`` (runners of ``generator``'s two graphs) costs:
+    1 - the mean SSIM of int8's images against fp32's on the checkpoint's own kind of
+    calibration contacts (:func:`contact_inputs`, JUDGING_CONTACTS of them, JUDGING_SEED)."""
+    from perception.ssim import ssim_rgb  # noqa: PLC0415 - torch-heavy, only this check needs it
+
+    inputs = contact_inputs(generator, depth_range_m, JUDGING_CONTACTS, JUDGING_SEED)
+
+    def images(run: Runner) -> np.ndarray:
+        out = np.concatenate([run(inputs[i : i + 16]) for i in range(0, len(inputs), 16)])
+        return ((out + 1.0) * 127.5).round().clip(0, 255).astype(np.uint8).transpose(0, 2, 3, 1)
+
+    return 1.0 - float(ssim_rgb(images(fp32), images(int8)).mean())
 
 
 def int8_convolutions(graph: bytes, calibration: np.ndarray) -> bytes:
@@ -141,6 +215,21 @@ def int8_convolutions(graph: bytes, calibration: np.ndarray) -> bytes:
             weight_type=quantization.QuantType.QInt8,
         )
         return int8.read_bytes()
+
+
+def network_runner(
+    generator: UNetGenerator,
+    depth_range_m: tuple[float, float],
+    runtime: str,
+    precision: str,
+    threads: int,
+    device: str,
+) -> Runner:
+    """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1]: ``generator`` on ``runtime``
+    (onnxrt | eager) in ``precision`` on ``device`` (cpu | cuda), as the inference node serves it."""
+    if runtime == "eager":
+        return eager_runner(UncheckedGenerator(generator).eval(), bf16=precision == "bf16", device=device)
+    return onnx_runner(onnx_graph(generator, depth_range_m, precision), threads, device)
 
 
 class SampledDropout(nn.Module):

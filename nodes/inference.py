@@ -33,7 +33,12 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
 
 Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), ``precision``
 (fp32 | bf16 | int8: bf16 with eager only; int8, the encoder's convolutions quantised
-(models.runtime.int8_convolutions), with onnxrt only), ``threads``, ``max_regions``, ``max_points``,
+(models.runtime.int8_convolutions), with onnxrt on the CPU only), ``device`` (cpu | cuda | auto:
+ONNX Runtime's CUDA provider or eager PyTorch on the GPU; auto takes CUDA where the runtime has
+it; cuda without it: the node does not start, its status the code ``cuda_unavailable`` and the
+reason on /log), ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts
+drawn as its calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
+``max_regions``, ``max_points``,
 ``max_batch``, ``batch_window_ms``, ``max_dropout_samples``, ``max_sampled_regions``,
 ``max_point_visits`` (cloud points near the gels, summed over regions: the work of cutting the
 depth-maps), ``index_cache``,
@@ -45,13 +50,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
-import math
+import os
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import cv2
 import numpy as np
@@ -60,46 +64,23 @@ import torch
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
-from models.prior import MAX_POSE_SIGMA_MM
-from models.runtime import Runner, UncheckedGenerator, eager_runner, onnx_graph, onnx_runner, sampling_copy
+from models.runtime import (
+    CudaUnavailable,
+    Runner,
+    int8_ssim_loss,
+    network_runner,
+    resolve_device,
+    sampling_copy,
+)
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from msgs.system import ErrorCode
+from nodes.inference_requests import BadRequest, UnknownCloud, checked_regions, cloud_id
 from nodes.node import Node, run_node
 from perception.depthmap import DepthMapParams, contact_depth_maps
 from perception.errors import PerceptionError
-from perception.pointcloud import VoxelIndex, check_transforms
+from perception.pointcloud import VoxelIndex
 
 # The precisions each runtime runs (dtx bench inference measures each pair).
 PRECISIONS = {"onnxrt": ("fp32", "int8"), "eager": ("fp32", "bf16")}
-
-
-class BadRequest(ValueError):
-    """A request the server cannot answer; the bus sends it back as ServiceError(code, text)."""
-
-    code = ErrorCode.BAD_REQUEST
-
-
-class UnknownCloud(ValueError):
-    """A ``cloud_id`` this worker does not hold: the client sends the points again."""
-
-    code = ErrorCode.UNKNOWN_CLOUD
-
-
-def cloud_id(points: np.ndarray) -> str:
-    """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes; any
-    numeric array, an empty one too (its bytes are none)."""
-    digest = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode())
-    digest.update(np.ascontiguousarray(points).reshape(-1).view(np.uint8).data)  # no copy; no bytes is fine
-    return digest.hexdigest()
-
-
-def _forward(
-    generator: UNetGenerator, depth_range_m: tuple[float, float], runtime: str, precision: str, threads: int
-) -> Runner:
-    """N x C x H x W float32 -> N x 3 x H x W float32 in [-1, 1], on the chosen runtime."""
-    if runtime == "eager":
-        return eager_runner(UncheckedGenerator(generator).eval(), bf16=precision == "bf16")
-    return onnx_runner(onnx_graph(generator, depth_range_m, precision), threads)
 
 
 @dataclasses.dataclass
@@ -117,6 +98,10 @@ class InferenceNode(Node):
         checkpoint: str = ""
         runtime: str = "onnxrt"  # measured faster than eager on 2 busy cores (dtx bench inference)
         precision: str = "fp32"
+        device: str = "auto"
+        # The demo's model loses 0.00001 in int8, an untrained width-8 one 0.33; 0.01 is a third
+        # of what the demo's model adds to the renderer's SSIM on the contact windows.
+        int8_max_ssim_loss: float = 0.01
         threads: int = 2
         max_regions: int = 256
         max_points: int = 12_000_000  # every YCB model cloud at the 0.1 mm training spacing
@@ -133,29 +118,11 @@ class InferenceNode(Node):
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(name, params, **kwargs)
         p = self.params
-        if p.precision not in PRECISIONS.get(p.runtime, ()):
-            raise ValueError(
-                f"runtime {p.runtime!r} with precision {p.precision!r} is not offered: "
-                f"the runtimes and their precisions are {PRECISIONS}"
-            )
-        limits = (
-            p.threads,
-            p.max_regions,
-            p.max_points,
-            p.max_batch,
-            p.max_dropout_samples,
-            p.max_sampled_regions,
-            p.max_point_visits,
-            p.index_cache,
-        )
-        if min(limits) < 1 or p.batch_window_ms < 0:
-            raise ValueError(
-                "threads, max_regions, max_points, max_batch, max_dropout_samples, "
-                "max_sampled_regions, max_point_visits and index_cache must be >= 1, "
-                "batch_window_ms >= 0"
-            )
-        if not p.checkpoint:
-            raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")
+        _check_params(p)
+        try:
+            self.device = resolve_device(p.device, p.runtime, p.precision)
+        except CudaUnavailable as exc:
+            self._refuse_to_start(exc)
         started = time.perf_counter()
         torch.set_num_threads(p.threads)
         torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
@@ -164,14 +131,17 @@ class InferenceNode(Node):
         cv2.setNumThreads(1)
         generator, self.depth_range_m = load_generator(p.checkpoint)
         self.config, self.prior = generator.config, generator.prior
-        self.deterministic = _forward(generator, self.depth_range_m, p.runtime, p.precision, p.threads)
-        self.sampled = _forward(sampling_copy(generator), self.depth_range_m, p.runtime, p.precision, p.threads)
+        try:
+            self.precision, self.deterministic, self.sampled = self._runners(generator)
+        except CudaUnavailable as exc:
+            self._refuse_to_start(exc)
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()
         size = self.config.image_size
         self.depth_map_params = DepthMapParams(shape=(size, size), margin_m=p.margin_m, y_range_m=self.depth_range_m)
-        self.model = f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {p.runtime} {p.precision}) on {self.name}"
+        served = f"{p.runtime} {self.precision}, {self.device}"
+        self.model = f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {served}) on {self.name}"
         self.forward_passes = 0
         self._clouds: dict[str, VoxelIndex] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
@@ -191,6 +161,43 @@ class InferenceNode(Node):
             p.batch_window_ms,
         )
 
+    def _runners(self, generator: UNetGenerator) -> tuple[str, Runner, Runner]:
+        """(the precision served, the deterministic and the sampling runner). int8 is served
+        only where it holds: measured against fp32 first (models.runtime.int8_ssim_loss)."""
+        p = self.params
+
+        def forward(network: UNetGenerator, precision: str) -> Runner:
+            return network_runner(network, self.depth_range_m, p.runtime, precision, p.threads, self.device)
+
+        precision, deterministic = p.precision, forward(generator, p.precision)
+        if precision == "int8":
+            fp32 = forward(generator, "fp32")
+            loss = int8_ssim_loss(generator, self.depth_range_m, fp32, deterministic)
+            if loss > p.int8_max_ssim_loss:
+                self.log.warning(
+                    "int8 refused: it loses %.4f SSIM against fp32 on contacts like its calibration's, more "
+                    "than int8_max_ssim_loss %g; serving fp32",
+                    loss,
+                    p.int8_max_ssim_loss,
+                )
+                precision, deterministic = "fp32", fp32
+            else:
+                self.log.info("int8 holds: %.5f SSIM lost against fp32 (at most %g)", loss, p.int8_max_ssim_loss)
+        return precision, deterministic, forward(sampling_copy(generator), precision)
+
+    def _refuse_to_start(self, error: CudaUnavailable) -> NoReturn:
+        """Stop before serving: the reason on /log, its code this node's last status (its
+        heartbeat, and ``dtx node list --all`` after it exits); run_node then exits without a
+        respawn, as for any bad parameter."""
+        self.log.error("%s: %s", error.code, error)
+        self.status = error.code
+        self._beat()
+        Node.close(self)
+        torch.set_flush_denormal(False)  # as close() leaves the process
+        status = {"node": self.name, "pid": os.getpid(), "status": error.code, "text": str(error), "stamp": time.time()}
+        self.bus.registry.write_node_status(self.name, status)
+        raise error
+
     # -- requests ---------------------------------------------------------------------------
     def close(self) -> None:
         super().close()
@@ -200,7 +207,7 @@ class InferenceNode(Node):
         torch.set_flush_denormal(False)
 
     def on_estimate(self, request: TactileEstimateRequest) -> Future[TactileEstimateReply]:
-        regions = self._check(request)
+        regions = checked_regions(request, self.params, self.config.image_size)
         held = None
         if request.cloud_id and not request.points.size:
             held = self._held(request.cloud_id)
@@ -218,59 +225,6 @@ class InferenceNode(Node):
         if start:
             self.background.submit(self._flush)
         return job.future
-
-    def _check(self, request: TactileEstimateRequest) -> int:
-        """Number of regions of a well-formed request; BadRequest otherwise."""
-        regions = self._check_inputs(request)
-        if request.dropout_samples > 1 and regions * request.dropout_samples > self.params.max_sampled_regions:
-            raise BadRequest(
-                f"too many sampled regions: {regions} regions x {request.dropout_samples} "
-                f"dropout_samples > {self.params.max_sampled_regions} per request"
-            )
-        return regions
-
-    def _check_inputs(self, request: TactileEstimateRequest) -> int:
-        p, size = self.params, self.config.image_size
-        maps, points, poses = request.depth_maps, request.points, request.gel_poses
-        if not 1 <= request.dropout_samples <= p.max_dropout_samples:
-            raise BadRequest(f"dropout_samples must be 1..{p.max_dropout_samples}, got {request.dropout_samples}")
-        if not (math.isfinite(request.pose_sigma_mm) and request.pose_sigma_mm <= MAX_POSE_SIGMA_MM):
-            raise BadRequest(
-                f"pose_sigma_mm must be a finite number of mm <= {MAX_POSE_SIGMA_MM:g} (0: exact geometry; "
-                f"negative: the checkpoint's default), got {request.pose_sigma_mm}"
-            )
-        if maps.size and (points.size or poses.size or request.cloud_id):
-            raise BadRequest("give either depth_maps or a cloud (points or cloud_id) with gel_poses, not both")
-        if maps.size:
-            if maps.ndim != 3 or maps.shape[1:] != (size, size):
-                raise BadRequest(f"depth_maps must be N x {size} x {size}, got shape {maps.shape}")
-            _check_count(maps.shape[0], p.max_regions, "regions")
-            if maps.dtype != np.float32:
-                raise BadRequest(f"depth_maps must be float32 metres, got {maps.dtype}")
-            _check_finite(maps, "depth_maps")
-            return int(maps.shape[0])
-        if not (points.size or request.cloud_id) or not poses.size:
-            raise BadRequest(
-                "empty request: give depth_maps (N x 100 x 100), or points (P x 3) or a cloud_id "
-                "with gel_poses (N x 4 x 4)"
-            )
-        if request.cloud_id and not _is_cloud_id(request.cloud_id):
-            raise BadRequest(f"cloud_id must be the 64 hex digits a reply gave, got {request.cloud_id[:80]!r}")
-        if points.size and (points.ndim != 2 or points.shape[1] != 3):
-            raise BadRequest(f"points must be P x 3, got shape {points.shape}")
-        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-            raise BadRequest(f"gel_poses must be N x 4 x 4, got shape {poses.shape}")
-        _check_count(points.shape[0], p.max_points, "points")
-        _check_count(poses.shape[0], p.max_regions, "regions")
-        for array, what in ((points, "points"), (poses, "gel_poses")):
-            if array.dtype not in (np.float32, np.float64):
-                raise BadRequest(f"{what} must be float32 or float64, got {array.dtype}")
-            _check_finite(array, what)
-        try:
-            check_transforms(poses, "gel_poses")  # each rigid; the error names gel_poses[i]
-        except PerceptionError as exc:
-            raise BadRequest(str(exc)) from exc
-        return int(poses.shape[0])
 
     # -- batches (in the background thread) -------------------------------------------------
     def _flush(self) -> None:
@@ -435,19 +389,31 @@ class InferenceNode(Node):
         return np.concatenate(outputs)
 
 
-def _is_cloud_id(text: str) -> bool:
-    return len(text) == 64 and all(c in "0123456789abcdef" for c in text)
-
-
-def _check_count(count: int, limit: int, what: str) -> None:
-    if count > limit:
-        raise BadRequest(f"too many {what}: {count} > {limit} per request")
-
-
-def _check_finite(array: np.ndarray, what: str) -> None:
-    if not np.isfinite(array).all():  # one pass over a cloud of millions; where, only when it fails
-        first = np.argwhere(~np.isfinite(array))[0]
-        raise BadRequest(f"{what} contain NaN or inf (first at index {tuple(int(i) for i in first)})")
+def _check_params(p: InferenceNode.Params) -> None:
+    """ValueError naming what is wrong with the node's parameters."""
+    if p.precision not in PRECISIONS.get(p.runtime, ()):
+        raise ValueError(
+            f"runtime {p.runtime!r} with precision {p.precision!r} is not offered: "
+            f"the runtimes and their precisions are {PRECISIONS}"
+        )
+    limits = (
+        p.threads,
+        p.max_regions,
+        p.max_points,
+        p.max_batch,
+        p.max_dropout_samples,
+        p.max_sampled_regions,
+        p.max_point_visits,
+        p.index_cache,
+    )
+    if min(limits) < 1 or p.batch_window_ms < 0 or not 0 <= p.int8_max_ssim_loss <= 1:
+        raise ValueError(
+            "threads, max_regions, max_points, max_batch, max_dropout_samples, "
+            "max_sampled_regions, max_point_visits and index_cache must be >= 1, "
+            "batch_window_ms >= 0, int8_max_ssim_loss in [0, 1]"
+        )
+    if not p.checkpoint:
+        raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")
 
 
 if __name__ == "__main__":

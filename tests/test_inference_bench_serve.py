@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+import pytest
 
 from benchmarks.serve import add_arguments, run
+from models.runtime import cuda_missing
 
 
 def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -> None:
@@ -16,7 +18,7 @@ def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -
         parser.parse_args(["--width", "8", "--threads", "1", "--requests", "5", "--regions", "4", "--seconds", "0.3"])
     )
     assert result["weights"] == "fresh generator, width 8 (seeded, untrained)"
-    assert result["model"].startswith("fresh.pt (ngf 8, onnxrt fp32)")
+    assert result["model"] == "fresh.pt (ngf 8, onnxrt fp32, cpu)"
     assert 0 < result["p50_ms"] <= result["p99_ms"]
     assert result["regions_per_s"] > 0 and result["server_cpu_ms_per_region"] > 0
 
@@ -60,8 +62,31 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
         "handle_regions_per_s",
         "points_regions_per_s",
         "maps_regions_per_s",
+        "network_regions_per_s",
     ):
         assert row[key] > 0
+    assert row["handle_server_cpu_ms_per_region"] >= 0  # counted in clock ticks: 4 tiny regions may take none
+    # The stages measured alone on the row's regions, and the targets as ratios of the same run.
+    assert set(row["stage_cpu_ms_per_region"]) == {
+        "cut_cpu_ms",
+        "prior_cpu_ms",
+        "network_cpu_ms",
+        "encode_cpu_ms",
+        "network_regions_per_s",
+    }
+    assert all(value > 0 for value in row["stage_cpu_ms_per_region"].values())
+    assert row["handle_over_network"] == round(row["handle_regions_per_s"] / row["network_regions_per_s"], 3)
+    assert row["handle_over_maps"] == round(row["handle_regions_per_s"] / row["maps_regions_per_s"], 3)
+    network_cpu = row["stage_cpu_ms_per_region"]["network_cpu_ms"]
+    assert row["server_cpu_over_network"] == round(row["handle_server_cpu_ms_per_region"] / network_cpu, 3)
+
+
+@pytest.mark.skipif(not cuda_missing("onnxrt"), reason="this machine's ONNX Runtime has CUDA")
+def test_serve_benchmark_on_cuda_without_it_stops_with_the_code_before_starting_a_node() -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    with pytest.raises(SystemExit, match="dtx bench serve: cuda_unavailable: device 'cuda' was asked for"):
+        run(parser.parse_args(["--width", "8", "--device", "cuda"]))
 
 
 def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:

@@ -47,4 +47,4 @@ def test_two_workers_from_the_launch_file_both_serve(registry: Registry, bus_dir
     # the first requests leave misses those, so both must serve but not necessarily equally.
     assert set(served_by) == {"inference_1", "inference_2"}, (served_by, output)
     assert launcher.returncode == 0, output
-    assert "[inference_1] INFO loaded tiny.pt (ngf 8, onnxrt fp32)" in output
+    assert "[inference_1] INFO loaded tiny.pt (ngf 8, onnxrt fp32, cpu)" in output

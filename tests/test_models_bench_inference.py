@@ -48,6 +48,7 @@ def test_benchmark_rows_have_the_required_fields_and_fp32_eager_is_the_reference
             "width",
             "precision",
             "runtime",
+            "device",
             "ssim",
             "ssim_vs_fp32",
             "regions_per_s",

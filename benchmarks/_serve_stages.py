@@ -1,0 +1,85 @@
+"""The stages of a cloud request in the inference node, each measured alone in the benchmark's
+process on the very regions the node is asked about (``dtx bench serve --points``): the cut
+(perception.depthmap.contact_depth_maps on the kept index, the node's threads), the prior (the
+network's input with the physics prior's images, models.data.network_input), the network (the
+graph the node serves, in its batches, same runtime, precision, threads and device) and the
+encoding of the reply (msgs.codec). The network's own rate here is what the planner's path is
+measured against: the work around it is what separates the two."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from models.data import network_input, to_uint8_rgb
+from models.networks import UNetGenerator
+from models.runtime import Runner
+from msgs.codec import encode
+from msgs.inference import TactileEstimateReply
+from perception.depthmap import DepthMapParams, contact_depth_maps
+from perception.pointcloud import VoxelIndex
+from workcell.kinematics import GripperGeometry
+
+
+def _cpu_ms_per_region(work: Callable[[], object], regions: int, repeats: int) -> float:
+    """This process's CPU ms per region of ``work``, best of ``repeats`` (the least disturbed)."""
+    best = float("inf")
+    for _ in range(repeats):
+        started = time.process_time()
+        work()
+        best = min(best, time.process_time() - started)
+    return best / regions * 1e3
+
+
+def network_rate(run: Runner, x: np.ndarray, max_batch: int, repeats: int) -> tuple[float, float]:
+    """(regions/s, CPU ms per region) of ``run`` over ``x`` in batches of ``max_batch``, as the
+    node passes them, ``repeats`` times back to back."""
+    run(np.ascontiguousarray(x[:max_batch]))  # warm
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(repeats):
+        for start in range(0, len(x), max_batch):
+            run(np.ascontiguousarray(x[start : start + max_batch]))
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3
+
+
+def stage_costs(
+    index: VoxelIndex,
+    poses: np.ndarray,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+    generator: UNetGenerator,
+    depth_range_m: tuple[float, float],
+    run: Runner,
+    threads: int,
+    max_batch: int,
+    repeats: int,
+) -> dict[str, float]:
+    """CPU ms per region of each stage of a request of ``poses`` on the cloud ``index``, and the
+    network's own rate on these regions (``network_regions_per_s``)."""
+
+    def cut() -> np.ndarray:
+        maps = contact_depth_maps(index, np.eye(4), poses, geometry, params, allow_empty=True, threads=threads)
+        return maps.depth_maps_m
+
+    maps = cut()
+    x = network_input(maps, depth_range_m, generator.config, generator.prior).numpy()
+    n = len(poses)
+    images = to_uint8_rgb(torch.from_numpy(np.concatenate([run(x[i : i + max_batch]) for i in range(0, n, max_batch)])))
+    reply = TactileEstimateReply(images=images, uncertainty=np.zeros(images.shape[:3], np.float32))
+    rate, network_cpu = network_rate(run, x, max_batch, repeats)
+    return {
+        "cut_cpu_ms": round(_cpu_ms_per_region(cut, n, repeats), 3),
+        "prior_cpu_ms": round(
+            _cpu_ms_per_region(
+                lambda: network_input(maps, depth_range_m, generator.config, generator.prior), n, repeats
+            ),
+            3,
+        ),
+        "network_cpu_ms": round(network_cpu, 3),
+        "encode_cpu_ms": round(_cpu_ms_per_region(lambda: encode("/inference/estimate", reply), n, repeats), 3),
+        "network_regions_per_s": round(rate, 1),
+    }

@@ -1,0 +1,105 @@
+"""What the inference node (nodes.inference) accepts: a request's checks, the errors it sends
+back with their codes, and the id a cloud is known by."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from typing import Any
+
+import numpy as np
+
+from models.prior import MAX_POSE_SIGMA_MM
+from msgs.inference import TactileEstimateRequest
+from msgs.system import ErrorCode
+from perception.errors import PerceptionError
+from perception.pointcloud import check_transforms
+
+
+class BadRequest(ValueError):
+    """A request the server cannot answer; the bus sends it back as ServiceError(code, text)."""
+
+    code = ErrorCode.BAD_REQUEST
+
+
+class UnknownCloud(ValueError):
+    """A ``cloud_id`` this worker does not hold: the client sends the points again."""
+
+    code = ErrorCode.UNKNOWN_CLOUD
+
+
+def cloud_id(points: np.ndarray) -> str:
+    """The id of a cloud as sent: SHA-256 (hex) of its dtype, shape and C-order bytes; any
+    numeric array, an empty one too (its bytes are none)."""
+    digest = hashlib.sha256(f"{points.dtype.str} {points.shape}".encode())
+    digest.update(np.ascontiguousarray(points).reshape(-1).view(np.uint8).data)  # no copy; no bytes is fine
+    return digest.hexdigest()
+
+
+def checked_regions(request: TactileEstimateRequest, p: Any, size: int) -> int:
+    """Number of regions of a well-formed request to a node of parameters ``p``
+    (InferenceNode.Params) serving ``size`` x ``size`` maps; BadRequest otherwise."""
+    regions = _checked_inputs(request, p, size)
+    if request.dropout_samples > 1 and regions * request.dropout_samples > p.max_sampled_regions:
+        raise BadRequest(
+            f"too many sampled regions: {regions} regions x {request.dropout_samples} "
+            f"dropout_samples > {p.max_sampled_regions} per request"
+        )
+    return regions
+
+
+def _checked_inputs(request: TactileEstimateRequest, p: Any, size: int) -> int:
+    maps, points, poses = request.depth_maps, request.points, request.gel_poses
+    if not 1 <= request.dropout_samples <= p.max_dropout_samples:
+        raise BadRequest(f"dropout_samples must be 1..{p.max_dropout_samples}, got {request.dropout_samples}")
+    if not (math.isfinite(request.pose_sigma_mm) and request.pose_sigma_mm <= MAX_POSE_SIGMA_MM):
+        raise BadRequest(
+            f"pose_sigma_mm must be a finite number of mm <= {MAX_POSE_SIGMA_MM:g} (0: exact geometry; "
+            f"negative: the checkpoint's default), got {request.pose_sigma_mm}"
+        )
+    if maps.size and (points.size or poses.size or request.cloud_id):
+        raise BadRequest("give either depth_maps or a cloud (points or cloud_id) with gel_poses, not both")
+    if maps.size:
+        if maps.ndim != 3 or maps.shape[1:] != (size, size):
+            raise BadRequest(f"depth_maps must be N x {size} x {size}, got shape {maps.shape}")
+        _check_count(maps.shape[0], p.max_regions, "regions")
+        if maps.dtype != np.float32:
+            raise BadRequest(f"depth_maps must be float32 metres, got {maps.dtype}")
+        _check_finite(maps, "depth_maps")
+        return int(maps.shape[0])
+    if not (points.size or request.cloud_id) or not poses.size:
+        raise BadRequest(
+            "empty request: give depth_maps (N x 100 x 100), or points (P x 3) or a cloud_id with gel_poses (N x 4 x 4)"
+        )
+    if request.cloud_id and not _is_cloud_id(request.cloud_id):
+        raise BadRequest(f"cloud_id must be the 64 hex digits a reply gave, got {request.cloud_id[:80]!r}")
+    if points.size and (points.ndim != 2 or points.shape[1] != 3):
+        raise BadRequest(f"points must be P x 3, got shape {points.shape}")
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise BadRequest(f"gel_poses must be N x 4 x 4, got shape {poses.shape}")
+    _check_count(points.shape[0], p.max_points, "points")
+    _check_count(poses.shape[0], p.max_regions, "regions")
+    for array, what in ((points, "points"), (poses, "gel_poses")):
+        if array.dtype not in (np.float32, np.float64):
+            raise BadRequest(f"{what} must be float32 or float64, got {array.dtype}")
+        _check_finite(array, what)
+    try:
+        check_transforms(poses, "gel_poses")  # each rigid; the error names gel_poses[i]
+    except PerceptionError as exc:
+        raise BadRequest(str(exc)) from exc
+    return int(poses.shape[0])
+
+
+def _is_cloud_id(text: str) -> bool:
+    return len(text) == 64 and all(c in "0123456789abcdef" for c in text)
+
+
+def _check_count(count: int, limit: int, what: str) -> None:
+    if count > limit:
+        raise BadRequest(f"too many {what}: {count} > {limit} per request")
+
+
+def _check_finite(array: np.ndarray, what: str) -> None:
+    if not np.isfinite(array).all():  # one pass over a cloud of millions; where, only when it fails
+        first = np.argwhere(~np.isfinite(array))[0]
+        raise BadRequest(f"{what} contain NaN or inf (first at index {tuple(int(i) for i in first)})")
