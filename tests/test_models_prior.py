@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from models.checkpoint import TrainConfig
 from models.errors import ModelConfigError
 from models.prior import PhysicsPrior, PriorSpec
+from sim.gelsight import render_depth_maps
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = str(REPO / "scenes" / "ycb_three.yaml")
@@ -49,6 +50,31 @@ def test_zero_uncertainty_is_the_renderers_image(prior: PhysicsPrior) -> None:
 def test_nothing_in_reach_is_the_background_at_any_uncertainty(prior: PhysicsPrior, sigma_mm: float) -> None:
     empty = np.full((1, BINS, BINS), FAR_M, np.float32)
     np.testing.assert_array_equal(prior.images(empty, sigma_mm)[0], prior.renderer.background())
+
+
+@pytest.mark.parametrize("sigma_mm", [0.0, 1.0])
+def test_maps_nothing_presses_into_are_what_the_renderer_draws_for_them_beside_pressed_ones(
+    prior: PhysicsPrior, sigma_mm: float
+) -> None:
+    """The prior skips the renderer for a map with no bin below 0 (its background); each map of
+    a mixed batch is what the renderer's public function draws for it alone, so a renderer that
+    one day draws something for an object near the gel but not in it fails here."""
+    rng = np.random.default_rng(3)
+    untouched = np.stack(
+        [
+            np.zeros((BINS, BINS)),  # touching everywhere, pressing nowhere
+            np.full((BINS, BINS), FAR_M),
+            np.where(rng.random((BINS, BINS)) < 0.3, np.nan, rng.uniform(0.0, 0.002, (BINS, BINS))),
+            np.full((BINS, BINS), np.inf),
+        ]
+    ).astype(np.float32)
+    batch = np.concatenate([ball_press((1.0, 0.5)), untouched, ball_press((-3.0, 1.0))])
+    images = prior.images(batch, sigma_mm)
+    crop_xz = (CROP_M[0], CROP_M[2])
+    np.testing.assert_array_equal(images[1:5], render_depth_maps(prior.renderer, untouched, crop_xz))
+    for i in (0, 5):
+        np.testing.assert_array_equal(images[i], prior.images(batch[i : i + 1], sigma_mm)[0])
+    assert np.abs(images[0].astype(int) - images[1]).max() > 10  # the presses are drawn
 
 
 def test_the_prior_is_the_sharp_image_averaged_over_gaussian_offsets(prior: PhysicsPrior) -> None:
