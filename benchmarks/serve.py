@@ -15,7 +15,14 @@ in its own process on a private bus directory; this process is the grasp planner
   ``handle_p50_ms`` (a ``Cloud``: its points travel in the first request, ``first_request_ms``,
   which also builds the index; then only its id), ``points_regions_per_s`` and
   ``points_p50_ms`` (the whole cloud in every request, the index kept), and
-  ``maps_regions_per_s`` and ``maps_p50_ms``: the same regions sent as depth-maps, same run.
+  ``maps_regions_per_s`` and ``maps_p50_ms``: the same regions sent as depth-maps, same run;
+  ``handle_server_cpu_ms_per_region``: the node's CPU while it answered the handle requests;
+  ``stage_cpu_ms_per_region``: each stage of such a request alone in this process on the same
+  regions (cut, prior, network, encode; benchmarks._serve_stages), with ``network_regions_per_s``,
+  the network's own rate on them (the graph the node serves, its batches and threads); and the
+  issue-33 targets as ratios of this run: ``handle_over_network`` (>= 0.95), ``handle_over_maps``
+  (>= 0.95), ``server_cpu_over_network`` (<= 1.3).
+``--device``: where the node computes (cpu | cuda | auto, launch/serve.yaml's ``device``).
 Weights: a trained ``--checkpoint``, or a fresh seeded generator of ``--width`` (untrained,
 PyTorch's default initialisation; same cost as a trained one of that width); ``--prior``: a
 fresh generator that corrects the default scene's physics prior.
