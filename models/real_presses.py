@@ -20,7 +20,14 @@ side ``WINDOW_RADII`` contact radii around the press, cut from both images:
 * ``model`` — the model fed the press's depth-map; ``model_empty`` — fed an empty map;
 * ``background`` — the file's no-contact frame; ``random`` — ``RANDOM_FRAMES`` random other
   presses of the file (seeded), averaged;
-* ``renderer`` — the simulated GelSight (the scene's, effects off) fed the same contact.
+* ``renderer`` — the simulated GelSight (the scene's, effects off) fed the same contact, exact
+  (the ball's gap at every pixel of the file's frame), then brought to the grid as the truth is;
+* ``renderer_depth_map`` — the renderer fed what the model is fed, the press's depth-map: the
+  model's own physics prior (sharp: the press's geometry is exact), the image its correction
+  starts from; for a model without a prior the scene's renderer at the grid, as a prior draws it.
+  The model scoring below this row is a correction making physics worse; the gap between this
+  row and ``renderer`` is what the depth-map (0.24 x 0.19 mm bins, each its nearest point) and
+  the grid-size rendering cost before any learning.
 
 Location: the truth's press window is searched for in each estimate (OpenCV TM_CCOEFF_NORMED)
 and the distance from the match to the annotated place is given in mm.
@@ -45,14 +52,20 @@ from models.networks import UNetGenerator
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
-from sim.gelsight import PIXEL_PITCH_RANGE_MM, GelSightRenderer, GelSightRenderError, scene_renderer
+from sim.gelsight import (
+    PIXEL_PITCH_RANGE_MM,
+    GelSightRenderer,
+    GelSightRenderError,
+    render_depth_maps,
+    scene_renderer,
+)
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, load_scene
 
 WINDOW_RADII = 3.0
 RANDOM_FRAMES = 15
-ESTIMATES = ("model", "model_empty", "background", "renderer", "random")
+ESTIMATES = ("model", "model_empty", "background", "renderer", "renderer_depth_map", "random")
 DEFAULT_SCENE = "scenes/ycb_three.yaml"
 # Sizes a pressed ball may have (mm radius): from a ball 0.1 mm across, about one pixel of the
 # sensor, to one 50 mm across, as wide as the 24.9 mm gel (a larger one presses a nearly flat cap
@@ -222,6 +235,7 @@ def evaluate_real_presses(
         "model_empty": np.repeat(predict(generator, empty, depth_range_m, pose_sigma_mm=0.0), n, axis=0),
         "background": np.repeat(resize_rgb(presses.background, *grid)[None], n, axis=0),
         "renderer": _renderer_images(renderer, presses, geometries, grid, mm_per_px, ball_radius_mm),
+        "renderer_depth_map": _renderer_of_depth_maps(generator, scene, depth_maps, geometry, params),
     }
     rng = np.random.default_rng(seed)
     others = [rng.choice(np.delete(np.arange(n), i), size=min(RANDOM_FRAMES, n - 1), replace=False) for i in range(n)]
@@ -268,6 +282,19 @@ def _renderer_images(
     )
 
 
+def _renderer_of_depth_maps(
+    generator: UNetGenerator, scene: Scene, depth_maps_m: np.ndarray, geometry: GripperGeometry, params: DepthMapParams
+) -> np.ndarray:
+    """The GelSight renderer fed the depth-maps the model is fed (module docstring,
+    ``renderer_depth_map``): the model's own prior at pose sigma 0, or without one the scene's
+    renderer at the grid reading the maps over their crop."""
+    if generator.prior is not None:
+        return generator.prior.images(depth_maps_m, 0.0)
+    half_x, half_z, _, _ = crop_bounds(geometry, params)
+    grid_renderer = scene_renderer(scene, size=params.shape, effects=False)
+    return render_depth_maps(grid_renderer, depth_maps_m, (2 * half_x, 2 * half_z))
+
+
 def _score_presses(
     images: dict[str, np.ndarray],
     geometries: list[PressGeometry],
@@ -298,9 +325,13 @@ def _score_presses(
     return scores
 
 
+# The estimates every press's own scores are given for.
+PER_PRESS = ("model", "renderer", "renderer_depth_map")
+
+
 def _summary(scores: dict[str, dict[str, list[float]]], geometries: list[PressGeometry]) -> dict[str, Any]:
     """The result's scores: each estimate's mean (location: median) over the presses, and the
-    model's and the renderer's scores on every press."""
+    model's and the renderers' scores on every press."""
     result: dict[str, Any] = {
         key: {name: float(np.mean(values)) for name, values in scores[key].items()}
         for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db")
@@ -314,10 +345,10 @@ def _summary(scores: dict[str, dict[str, list[float]]], geometries: list[PressGe
             "depth_mm": g.depth_mm,
             "contact_radius_mm": g.contact_radius_mm,
             "window": list(g.window),
-            **{f"{key}_{name}": scores[key][name][i] for key in scores for name in ("model", "renderer")},
+            **{f"{key}_{name}": scores[key][name][i] for key in scores for name in PER_PRESS},
             **{
                 f"location_error_mm_{name}_undefined": LOCATION_UNDEFINED
-                for name in ("model", "renderer")
+                for name in PER_PRESS
                 if not np.isfinite(scores["location_error_mm"][name][i])
             },
         }
@@ -343,7 +374,8 @@ def real_press_table(result: dict[str, Any]) -> str:
         "model": "the model, fed the press's depth-map",
         "model_empty": "the model, fed an empty depth-map",
         "background": "the real no-contact frame",
-        "renderer": "the GelSight renderer, fed the same contact",
+        "renderer": "the GelSight renderer, fed the exact contact",
+        "renderer_depth_map": "the GelSight renderer, fed the same depth-map (the model's prior)",
         "random": f"{RANDOM_FRAMES} random other real frames",
     }
     width = max(len(v) for v in names.values())

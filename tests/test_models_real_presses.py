@@ -8,12 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from dataset.contact_library import write_contact_library
 from models.checkpoint import TrainConfig, load_generator
 from models.cli import add_commands
 from models.evaluate import predict
-from models.networks import GeneratorConfig
+from models.networks import GeneratorConfig, UNetGenerator
+from models.prior import PhysicsPrior, PriorSpec
 from models.real_presses import (
     ESTIMATES,
     evaluate_real_presses,
@@ -22,7 +24,7 @@ from models.real_presses import (
     write_real_press_figure,
 )
 from models.train import train
-from perception.depthmap import DepthMapParams
+from perception.depthmap import DepthMapParams, crop_bounds
 from sim.gelsight import scene_renderer
 from sim.gelsight_check import ball_gap_map, load_ball_presses
 from workcell.scene import load_scene
@@ -97,7 +99,36 @@ def test_every_estimate_is_scored_on_window_and_full_image(checkpoint: Path, tmp
     assert result["window_ssim"]["renderer"] > 0.85 > result["window_ssim"]["background"]
     assert result["window_ssim"]["renderer"] > result["window_ssim"]["random"]
     assert result["location_error_mm_median_of"]["renderer"] < 0.5
-    assert images["truth"].shape == images["model"].shape == (30, 100, 100, 3)
+    assert images["truth"].shape == images["model"].shape == images["renderer_depth_map"].shape == (30, 100, 100, 3)
+
+
+def test_a_correction_that_adds_nothing_scores_as_the_renderer_fed_the_same_depth_map(tmp_path: Path) -> None:
+    """The model is judged against the physics it starts from: its prior fed the press's
+    depth-map. A generator whose correction is zero draws that prior, so the two rows agree;
+    and the depth-map itself (0.24 x 0.19 mm bins, each its nearest point) costs the renderer
+    against the exact contact, before any learning (docs/measurements.md, issue 30 part 3)."""
+    scene = load_scene(SCENE)
+    half_x, half_z, y_near, y_far = crop_bounds(
+        scene.gripper_geometry(), DepthMapParams(shape=(100, 100), margin_m=0.002, y_range_m=DEPTH_RANGE_M)
+    )
+    generator = UNetGenerator(GeneratorConfig(ngf=4, dropout=0.0, prior=True))
+    last = generator.output[1]
+    assert isinstance(last, torch.nn.ConvTranspose2d) and last.bias is not None
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    generator.prior = PhysicsPrior(PriorSpec(str(SCENE), (2 * half_x, y_far - y_near, 2 * half_z)), 100)
+    with np.load(PRESSES) as data:  # eight presses, of both depths the file holds
+        np.savez(
+            tmp_path / "eight.npz",
+            background=data["background"],
+            **{key: data[key][:8] for key in ("frames", "touch_center", "touch_radius")},
+        )
+    result, images = evaluate_real_presses(generator, DEPTH_RANGE_M, tmp_path / "eight.npz", scene)
+    assert np.abs(images["model"].astype(int) - images["renderer_depth_map"].astype(int)).max() <= 1
+    assert np.array_equal(images["renderer_depth_map"], generator.prior.images(images["depth_maps_m"], 0.0))
+    window = result["window_ssim"]
+    assert window["model"] == pytest.approx(window["renderer_depth_map"], abs=2e-3)
+    assert window["renderer_depth_map"] < window["renderer"]
 
 
 def _bad_file(tmp_path: Path, **changes: object) -> Path:
