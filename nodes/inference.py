@@ -133,8 +133,12 @@ class InferenceNode(Node):
         self.config, self.prior = generator.config, generator.prior
         try:
             self.precision, self.deterministic, self.sampled = self._runners(generator)
-        except CudaUnavailable as exc:
-            self._refuse_to_start(exc)
+        except CudaUnavailable as exc:  # a CUDA provider that could not start (no GPU, no cuDNN)
+            if p.device != "auto":
+                self._refuse_to_start(exc)
+            self.log.warning("device auto could not use CUDA (%s); serving on the CPU", exc)
+            self.device = "cpu"
+            self.precision, self.deterministic, self.sampled = self._runners(generator)
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()
