@@ -140,7 +140,7 @@ class PhysicsPrior:
         h, w = self.renderer.config.shape
         if maps.ndim != 3 or maps.dtype.kind != "f" or len(maps) * h * w > MAX_RENDERED_PIXELS:
             return slice(None)
-        return (maps < 0).any(axis=(1, 2))
+        return np.asarray((maps < 0).any(axis=(1, 2)))
 
     def channels(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
         """N x 3 x size x size float32 in [-1, 1] (the network's image units)."""
