@@ -33,7 +33,8 @@ def _seconds_per_grasp(records: list[SampleRecord]) -> float:
 def calibration_grasps(ws: Workspace) -> list[Point]:
     """The cameras calibrated from the touches of the session's first N training grasps (``dtx
     calibrate touches --grasps N``) -> the worse camera's error against the scene's truth (mm);
-    time = the robot's time for those grasps at the session's own pace plus the fit's CPU time.
+    time = those grasps at the session's own pace (a simulated arm's is faster than a real one's)
+    plus the fit's CPU time.
     Beside it, what that geometry allows: the test split's depth-maps cut again with the
     calibration (each object registered again) through the GelSight renderer, scored as ``dtx
     evaluate`` scores a model (the ceiling rung ``dtx sim ceiling`` calls the model's input)."""

@@ -71,7 +71,7 @@ def _session_dir(value: str) -> Path:
     path = Path(value)
     if not (path / "manifest.jsonl").is_file():
         raise argparse.ArgumentTypeError(f"{value} is not a collected session (no manifest.jsonl)")
-    return path.resolve()
+    return path
 
 
 def _cached(path: Path, made_by: dict) -> dict | None:
@@ -124,11 +124,15 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
 
     # A given session gets a workspace of its own: its re-cut datasets and trained models are its.
     work = (
-        plan.name if args.session is None else f"{plan.name}-{hashlib.sha1(str(args.session).encode()).hexdigest()[:8]}"
+        plan.name
+        if args.session is None
+        else f"{plan.name}-{hashlib.sha1(str(args.session.resolve()).encode()).hexdigest()[:8]}"
     )
     workspace = Workspace(args.out / "work" / work, plan, args.session)
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
-    made_by = json.loads(json.dumps({**made_by, "session": None if args.session is None else str(args.session)}))
+    made_by = json.loads(
+        json.dumps({**made_by, "session": None if args.session is None else str(args.session.resolve())})
+    )
     cache.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     points, timings, entries = [], [], []

@@ -168,9 +168,10 @@ SPECS: dict[str, Spec] = {
         "Touch calibration of the depth cameras",
         "How many grasps must a session spend before its touches calibrate the cameras? (collected "
         "session, the first N training grasps; error against the scene's true extrinsics; beside it "
-        "the test split's depth-maps cut with that calibration through the GelSight renderer)",
+        "the test split's depth-maps cut with that calibration through the GelSight renderer; time at "
+        "the session's own pace, and a simulated arm does not wait out its moves as a real one does)",
         "grasps",
-        "robot s + fit CPU s",
+        "session s + fit CPU s",
         "worse camera's error (mm)",
         False,
         0.1,
