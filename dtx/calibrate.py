@@ -15,7 +15,7 @@ from dtx.errors import exit_1_on
 from msgs import strict_json
 
 
-def write_calibration_dir(out: Path, files: dict[str, str], force: bool) -> None:
+def write_calibration_dir(out: Path, files: dict[str, str] | dict[str, bytes], force: bool) -> None:
     """The files into ``out`` as one step: written beside it, then renamed into place, so a
     failure leaves any existing directory as it was. An existing ``out`` needs ``force``."""
     if out.exists() and not force:
@@ -23,8 +23,11 @@ def write_calibration_dir(out: Path, files: dict[str, str], force: bool) -> None
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
-        for name, text in files.items():
-            (staging / name).write_text(text)
+        for name, content in files.items():
+            if isinstance(content, bytes):
+                (staging / name).write_bytes(content)
+            else:
+                (staging / name).write_text(content)
         if out.exists():
             retired = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
             out.rename(retired / out.name)
@@ -89,7 +92,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     from dataset.records import DatasetError  # noqa: PLC0415
     from perception.errors import PerceptionError  # noqa: PLC0415
 
-    parser = subparsers.add_parser("calibrate", help="calibrate the cell's sensors from a session")
+    parser = subparsers.add_parser("calibrate", help="calibrate the cell's sensors from a session or from ball presses")
     commands = parser.add_subparsers(dest="calibrate_command", required=True)
     touches = commands.add_parser(
         "touches", help="correct the depth cameras' extrinsics from a session's touches (training split)"
@@ -102,3 +105,39 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     touches.add_argument("--json", action="store_true", help="the report as JSON")
     touches.set_defaults(func=exit_1_on(DatasetError, PerceptionError, FileExistsError, OSError)(_touches))
+    _add_gelsight(commands)
+
+
+def _gelsight(args: argparse.Namespace) -> int:
+    from sim.gelsight_calibrate import calibrate_presses, calibration_files, format_report  # noqa: PLC0415
+
+    if Path(args.out).exists() and not args.force:  # said before minutes of work, and again when writing
+        raise FileExistsError(f"{args.out} exists; give --force to replace it (it is replaced whole, never half-way)")
+    fit, presses, report = calibrate_presses(args.presses, args.folds, args.mm_per_px, args.ball_radius_mm)
+    files = calibration_files(fit, presses)
+    files["report.json"] = (strict_json.dumps(report, indent=1) + "\n").encode()
+    write_calibration_dir(Path(args.out), files, args.force)
+    print(strict_json.dumps(report) if args.json else format_report(report) + f"\nwrote {args.out}")
+    return 0
+
+
+def _add_gelsight(commands: argparse._SubParsersAction) -> None:
+    from sim.gelsight_effects import GelSightRenderError  # noqa: PLC0415
+
+    gelsight = commands.add_parser(
+        "gelsight",
+        help="fit the GelSight renderer's photometric model from ball presses of the lab's sensor",
+        description="Find each press's centre and radius, fit the colour of each surface slope, the background "
+        "and the renderer's physical parameters, report k-fold scores on presses each fit never saw, and write "
+        "a calibration directory (gelsight: calibration_dir: DIR in a scene file).",
+    )
+    gelsight.add_argument(
+        "presses", metavar="PRESSES.npz", help="background, frames (layout of assets/gelsight/ball_presses.npz)"
+    )
+    gelsight.add_argument("--out", required=True, help="calibration directory to write")
+    gelsight.add_argument("--folds", type=int, default=3, metavar="K", help="k-fold split of the presses (default 3)")
+    gelsight.add_argument("--mm-per-px", type=float, help="the frames' scale (default: the file's mm_per_px)")
+    gelsight.add_argument("--ball-radius-mm", type=float, help="the ball's radius (default: the file's ball_radius_mm)")
+    gelsight.add_argument("--force", action="store_true", help="replace an existing --out directory")
+    gelsight.add_argument("--json", action="store_true", help="the report as JSON")
+    gelsight.set_defaults(func=exit_1_on(GelSightRenderError, FileExistsError, OSError)(_gelsight))

@@ -28,6 +28,12 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also refit the renderer's parameters on the even frames and score the odd ones (a minute or two)",
     )
+    check.add_argument(
+        "--calibration",
+        metavar="DIR",
+        help="score this calibration directory (dtx calibrate gelsight --out), its background included "
+        "(default: the shipped one, against the file's background)",
+    )
     check.set_defaults(func=gelsight_check)
     ceiling = commands.add_parser(
         "ceiling",
@@ -63,7 +69,7 @@ def gelsight_check(args: argparse.Namespace) -> int:
     from sim.gelsight_check import format_table, run_check
 
     try:
-        result = run_check(args.file, seed=args.seed, holdout=args.holdout)
+        result = run_check(args.file, seed=args.seed, holdout=args.holdout, calibration_dir=args.calibration)
     except GelSightRenderError as exc:
         print(f"dtx sim gelsight-check: {exc}", file=sys.stderr)
         return 2

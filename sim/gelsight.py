@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from sim.effects import effects_of, resolve_effects
-from sim.gelsight_calibration import load_calibration
+from sim.gelsight_calibration import PolyCalibration, load_calibration, renderer_parameters
 from sim.gelsight_effects import EFFECTS, GelSightRenderError, LightingDrift, Markers, SensorNoise, make_effect
 from workcell.scene import Scene
 
@@ -204,7 +204,8 @@ class GelSightRenderer:
     is the noise-free rendering, deterministic. ``rng`` drives the effects (default: seeded
     with 0, so a run is reproducible). ``background`` is the sensor's no-contact frame at the
     calibration's size (default: the calibration's own); render against the background
-    captured at start.
+    captured at start. ``calibration`` shades instead of ``config.calibration_dir``'s (a fit's
+    calibration before it is written, ``sim.gelsight_fit``).
 
     The camera does not resolve the gel finer than ``optical_blur_mm``, so on large images
     (480x640) the deformation and the colour change are computed on a coarser working grid
@@ -218,6 +219,7 @@ class GelSightRenderer:
         effects: Sequence = (),
         rng: np.random.Generator | None = None,
         background: np.ndarray | None = None,
+        calibration: PolyCalibration | None = None,
     ):
         if not isinstance(config, GelSightConfig):
             raise GelSightRenderError(f"config must be a GelSightConfig, got {type(config).__name__}")
@@ -227,10 +229,9 @@ class GelSightRenderer:
         self.config = config
         self.effects = tuple(effects)
         self.rng = np.random.default_rng(0) if rng is None else rng
-        self.calibration = load_calibration(config.calibration_dir)
+        self.calibration = load_calibration(config.calibration_dir) if calibration is None else calibration
         native = self.calibration.native_shape
-        if background is None:
-            background = self.calibration.background
+        background = self.calibration.background if background is None else background
         if not (
             isinstance(background, np.ndarray) and background.dtype == np.uint8 and background.shape == native + (3,)
         ):
@@ -352,15 +353,18 @@ def scene_renderer(
     scene: Scene, size: tuple[int, int] | None = None, effects: bool = True, rng: np.random.Generator | None = None
 ) -> GelSightRenderer:
     """The GelSight a scene describes: its gel and field of view, at its image size or at
-    ``size`` (rows, columns; the same field in more or fewer pixels), with the GelSight effects
-    the scene calls for unless ``effects`` is False."""
+    ``size`` (rows, columns; the same field in more or fewer pixels), its calibration directory
+    with the physical parameters fitted there (``dtx calibrate gelsight``), with the GelSight
+    effects the scene calls for unless ``effects`` is False."""
     gs = scene.gelsight
     h, w = size or (gs.image_height, gs.image_width)
     config = GelSightConfig(
         image_height=h,
         image_width=w,
         mm_per_px=gs.mm_per_px * gs.image_width / w,
+        calibration_dir=gs.calibration_dir,
         elastomer_thickness_mm=scene.gripper.elastomer_thickness_m * 1e3,
+        **renderer_parameters(gs.calibration_dir),
     )
     called_for = (
         [make_effect(e.name, e.params) for e in effects_of(resolve_effects(scene), "gelsight")] if effects else []

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
+import math
 from pathlib import Path
 
 import cv2
@@ -20,6 +22,17 @@ POLYNOMIAL_FILE = "polycalib_small.npz"
 # A real no-contact frame of the calibrated sensor (not real_bg_small.npy: that is Taxim's
 # base image with its gel-dome shading removed, values up to 369, not a camera frame).
 BACKGROUND_FILE = "ball_presses.npz"
+# The renderer's physical parameters fitted with the tables (``dtx calibrate gelsight``); a
+# directory without it (the shipped one) renders with GelSightConfig's defaults.
+PARAMETERS_FILE = "renderer.json"
+PARAMETER_NAMES = (
+    "calibration_mm_per_px",
+    "spreading_length_mm",
+    "optical_blur_mm",
+    "compression_saturation_mm",
+    "shading_gain",
+    "background_smoothing_mm",
+)
 # The calibration's slope bins are split in this many, interpolated (a finer split changes
 # the gelsight-check SSIMs by less than 0.001).
 BIN_REFINEMENT = 2
@@ -60,6 +73,25 @@ def load_calibration(calibration_dir: str | Path) -> PolyCalibration:
     return _load_calibration(str(_repo_path(calibration_dir).resolve()))
 
 
+def renderer_parameters(calibration_dir: str | Path) -> dict[str, float]:
+    """The renderer's physical parameters a calibration directory holds (PARAMETERS_FILE, names
+    of PARAMETER_NAMES, each a finite number; GelSightConfig checks their ranges); none for a
+    directory without the file."""
+    path = _repo_path(calibration_dir) / PARAMETERS_FILE
+    if not path.is_file():
+        return {}
+    try:
+        values = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise GelSightRenderError(f"{path}: not readable JSON ({exc})") from exc
+    if not isinstance(values, dict) or set(values) - set(PARAMETER_NAMES):
+        raise GelSightRenderError(f"{path}: must map some of {list(PARAMETER_NAMES)} to numbers, got {values!r}")
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise GelSightRenderError(f"{path}: {name} must be a finite number, got {value!r}")
+    return {name: float(value) for name, value in values.items()}
+
+
 @functools.lru_cache(maxsize=8)
 def _load_calibration(directory_name: str) -> PolyCalibration:
     directory = Path(directory_name)
@@ -78,14 +110,6 @@ def _load_calibration(directory_name: str) -> PolyCalibration:
             raise GelSightRenderError(
                 f"{poly_path}: each grad_* must be a finite ({n}, {n}, 6) array, got shape {table.shape}"
             )
-    # Taxim's n bins are n - 1 bins of width range / (n - 1) plus one for the range's end
-    # point alone; keep the n - 1 (the end point falls in the last of them).
-    coeffs = np.stack(tables, axis=2)[: n - 1, : n - 1]  # (n - 1, n - 1, 3, 6)
-    # The calibration saw almost no pixels at zero slope (only each press's centre), so the
-    # direction bins of magnitude 0 disagree by noise; a flat gel has no direction, so use
-    # their mean: the colour is then continuous at zero slope and the same for every flat pixel.
-    coeffs[0] = coeffs[0].mean(axis=0, keepdims=True)
-    coeffs = _refine_bins(coeffs.astype(np.float32), BIN_REFINEMENT)
     with np.load(bg_path) as data:
         if "background" not in data.files:
             raise GelSightRenderError(f"{bg_path}: missing key 'background'")
@@ -94,6 +118,22 @@ def _load_calibration(directory_name: str) -> PolyCalibration:
         raise GelSightRenderError(
             f"{bg_path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}"
         )
+    return calibration_from_tables(np.stack(tables, axis=2), background)
+
+
+def calibration_from_tables(tables: np.ndarray, background: np.ndarray) -> PolyCalibration:
+    """The calibration the renderer shades with, from the tables as the file stores them
+    ((n, n, 3, 6): magnitude bin, direction bin, channel, coefficient) and the no-contact frame."""
+    n = tables.shape[0]
+    # Taxim's n bins are n - 1 bins of width range / (n - 1) plus one for the range's end
+    # point alone; keep the n - 1 (the end point falls in the last of them).
+    coeffs = np.array(tables[: n - 1, : n - 1], np.float64)  # (n - 1, n - 1, 3, 6)
+    # The calibration saw almost no pixels at zero slope (only each press's centre), so the
+    # direction bins of magnitude 0 disagree by noise; a flat gel has no direction, so use
+    # their mean: the colour is then continuous at zero slope and the same for every flat pixel.
+    coeffs[0] = coeffs[0].mean(axis=0, keepdims=True)
+    coeffs = _refine_bins(coeffs.astype(np.float32), BIN_REFINEMENT)
+    background = np.array(background)
     coeffs.flags.writeable = False
     background.flags.writeable = False
     return PolyCalibration(coeffs, background)

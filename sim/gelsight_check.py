@@ -24,6 +24,7 @@ from scipy.optimize import minimize
 
 from perception.ssim import ssim_rgb
 from sim.gelsight import MAX_LENGTH_MM, GelSightConfig, GelSightRenderer, GelSightRenderError
+from sim.gelsight_calibration import renderer_parameters
 
 BALL_RADIUS_MM = 2.0
 FILE_MM_PER_PX = 0.1245
@@ -131,20 +132,42 @@ def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int = CRO
     return image[y0 : y0 + size, x0 : x0 + size]
 
 
-def render_presses(presses: BallPresses, indices: Sequence[int], config: GelSightConfig) -> list[np.ndarray]:
-    """Render the presses ``indices`` with ``config`` against the file's background."""
-    renderer = GelSightRenderer(config, background=presses.background)
+def render_presses(
+    presses: BallPresses, indices: Sequence[int], config: GelSightConfig, file_background: bool = True
+) -> list[np.ndarray]:
+    """Render the presses ``indices`` with ``config`` against the file's background (or, without
+    ``file_background``, the calibration's: a fitted calibration's is the sensor's mean no-contact frame)."""
+    renderer = GelSightRenderer(config, background=presses.background if file_background else None)
     images = []
     for i in indices:
-        depth = press_depth_mm(presses.radii_px[i] * FILE_MM_PER_PX)
-        gap = ball_gap_map(config.shape, presses.centers_xy_px[i], depth, FILE_MM_PER_PX)
+        depth = press_depth_mm(presses.radii_px[i] * config.mm_per_px)
+        gap = ball_gap_map(config.shape, presses.centers_xy_px[i], depth, config.mm_per_px)
         images.append(renderer.render(gap))
     return images
 
 
-def _file_config(presses: BallPresses, **params: float) -> GelSightConfig:
+def file_mm_per_px(path: str | Path) -> float:
+    """The press file's scale: its ``mm_per_px`` if it holds one (``dtx calibrate gelsight``'s
+    files do), else the shipped file's FILE_MM_PER_PX."""
+    with np.load(path, allow_pickle=False) as data:
+        if "mm_per_px" not in data.files:
+            return FILE_MM_PER_PX
+        value = float(np.asarray(data["mm_per_px"]))
+    if not 0 < value < math.inf:
+        raise GelSightRenderError(f"{path}: mm_per_px must be a finite number > 0, got {value!r}")
+    return value
+
+
+def _file_config(presses: BallPresses, mm_per_px: float = FILE_MM_PER_PX, **params: float | str) -> GelSightConfig:
     h, w = presses.background.shape[:2]
-    return GelSightConfig(image_height=h, image_width=w, mm_per_px=FILE_MM_PER_PX, **params)
+    return GelSightConfig(image_height=h, image_width=w, mm_per_px=mm_per_px, **params)  # type: ignore[arg-type]
+
+
+def calibration_config(presses: BallPresses, mm_per_px: float, calibration_dir: str | Path) -> GelSightConfig:
+    """The renderer of ``calibration_dir`` (its tables and physical parameters) at the file's size and scale."""
+    return _file_config(
+        presses, mm_per_px, calibration_dir=str(calibration_dir), **renderer_parameters(calibration_dir)
+    )
 
 
 def _mean_ssim(presses: BallPresses, indices: Sequence[int], config: GelSightConfig) -> dict[str, float]:
@@ -178,12 +201,19 @@ def fit_parameters(presses: BallPresses, indices: Sequence[int], max_evaluations
     return dict(zip(names, map(float, result.x)))
 
 
-def run_check(npz_path: str | Path, seed: int = 0, holdout: bool = False) -> dict:
+def run_check(
+    npz_path: str | Path, seed: int = 0, holdout: bool = False, calibration_dir: str | Path | None = None
+) -> dict:
     """SSIM of the renderings and of the two baselines, per frame and on average (the JSON of
-    ``dtx sim gelsight-check``); with ``holdout`` also the even/odd refit figures."""
+    ``dtx sim gelsight-check``); with ``holdout`` also the even/odd refit figures. With
+    ``calibration_dir`` the renderer is that calibration's, its background included."""
     presses = load_ball_presses(npz_path)
     n = presses.frames.shape[0]
-    renders = render_presses(presses, range(n), _file_config(presses))
+    if calibration_dir is None:
+        renders = render_presses(presses, range(n), _file_config(presses, file_mm_per_px(npz_path)))
+    else:
+        config = calibration_config(presses, file_mm_per_px(npz_path), calibration_dir)
+        renders = render_presses(presses, range(n), config, file_background=False)
     rng = np.random.default_rng(seed)
     frames = []
     for i in range(n):
@@ -209,6 +239,7 @@ def run_check(npz_path: str | Path, seed: int = 0, holdout: bool = False) -> dic
         )
     result = {
         "file": str(npz_path),
+        "calibration": str(calibration_dir or GelSightConfig().calibration_dir),
         "seed": seed,
         "n_frames": n,
         "mean": {key: float(np.mean([f[key] for f in frames])) for key in KEYS},

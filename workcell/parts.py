@@ -81,3 +81,5 @@ class GelSightSpec:
     image_height: int = 120
     image_width: int = 160
     mm_per_px: float = 0.1245
+    # The renderer's photometric calibration (assets/gelsight, or `dtx calibrate gelsight --out`).
+    calibration_dir: str = "assets/gelsight"

@@ -412,7 +412,7 @@ _GRIPPER_KEYS = {
     "elastomer_thickness_mm": "",
     "gel_youngs_modulus_mpa": "",
 }
-_GELSIGHT_KEYS = {"image_height": "", "image_width": "", "mm_per_px": ""}
+_GELSIGHT_KEYS = {"image_height": "", "image_width": "", "mm_per_px": "", "calibration_dir": ""}
 
 
 def _parse_gripper(r: SceneReader, g: Any, s: Any) -> tuple[GripperSpec, GelSightSpec]:
@@ -442,6 +442,10 @@ def _parse_gripper(r: SceneReader, g: Any, s: Any) -> tuple[GripperSpec, GelSigh
         gs.image_width = r.integer(s["image_width"], "gelsight.image_width", 8, 2048)
     if "mm_per_px" in s:
         gs.mm_per_px = r.number(s["mm_per_px"], "gelsight.mm_per_px", 0.005, 1.0, "mm/px")
+    if "calibration_dir" in s:
+        if not isinstance(s["calibration_dir"], str) or not s["calibration_dir"]:
+            r.fail("gelsight.calibration_dir", f"expected a directory, got {s['calibration_dir']!r}", "a path")
+        gs.calibration_dir = s["calibration_dir"]
     return spec, gs
 
 

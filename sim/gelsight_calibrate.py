@@ -1,0 +1,304 @@
+"""``dtx calibrate gelsight PRESSES.npz --out DIR``: the renderer calibrated from the lab's own
+ball presses, checked on presses the fit never saw.
+
+The press file has the layout of assets/gelsight/ball_presses.npz (``background``, ``frames``)
+plus the frame's ``mm_per_px`` and the ball's ``ball_radius_mm`` (keys, or given on the command
+line); ``touch_center`` and ``touch_radius``, when the file has them, are only compared with
+what the finder (``sim.press_annotation``) sees. Presses the finder cannot trust are left out
+and named; the rest are fitted (``sim.gelsight_fit``) in ``folds`` ways (fit on all folds but
+one, score the one), with the shipped calibration and the background alone scored on the same
+presses beside, and on the two halves (fit on the even presses, score the odd ones, next to the
+fit of all scored there), then once on all. Bad input is a GelSightRenderError naming the cause
+and the presses involved, raised before anything is written.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.gelsight import GelSightConfig
+from sim.gelsight_calibration import BACKGROUND_FILE, PARAMETERS_FILE, POLYNOMIAL_FILE
+from sim.gelsight_check import ball_gap_map, press_depth_mm
+from sim.gelsight_effects import GelSightRenderError
+from sim.gelsight_fit import Presses, PressFit, fit_presses, press_scores, render_fit
+from sim.press_annotation import FoundPresses, find_presses
+
+# Usable presses needed: the half-against-all check fits a half, and below about a dozen presses a
+# fit leaves too many slope bins to too few positions on the gel (on rendered presses: six score a
+# crop SSIM of 0.47 on presses they never saw, twelve 0.95).
+MIN_PRESSES = 24
+# The median, over a frame's pixels, of |frame - background| averaged over channels: the shipped
+# frames' fringes and drift give 4-9 levels; a frame of another sensor or light is far beyond.
+MAX_BACKGROUND_MISMATCH_LEVELS = 30.0
+# A ring wider than this many ball radii cannot be a press of that ball (the gel's spread adds a
+# fraction of a millimetre at most); one narrower than half of it is a press too shallow (an eighth of
+# the radius deep) to calibrate from.
+RING_RADIUS_RANGE = (0.5, 1.5)
+
+
+def load_press_file(
+    path: str | Path, mm_per_px: float | None = None, ball_radius_mm: float | None = None
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], float, float]:
+    """Frames, background, the file's own annotations (may be empty), scale and ball radius;
+    the arguments override the file's keys."""
+    path = Path(path)
+    if not path.is_file():
+        raise GelSightRenderError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            contents = {key: np.asarray(data[key]) for key in data.files}
+    except (OSError, ValueError) as exc:
+        raise GelSightRenderError(f"{path}: not a readable .npz file ({exc})") from exc
+    missing = sorted({"background", "frames"} - set(contents))
+    if missing:
+        raise GelSightRenderError(f"{path}: missing keys {missing}")
+    background, frames = contents["background"], contents["frames"]
+    if (
+        background.ndim != 3
+        or background.shape[2] != 3
+        or background.dtype != np.uint8
+        or min(background.shape[:2]) < 16
+    ):
+        raise GelSightRenderError(
+            f"{path}: background must be HxWx3 uint8 (H, W >= 16), got {background.shape} {background.dtype}"
+        )
+    if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
+        raise GelSightRenderError(
+            f"{path}: frames must be N x {' x '.join(map(str, background.shape))} uint8 like the background, "
+            f"got {frames.shape} {frames.dtype}"
+        )
+    scale = _number(path, "mm_per_px", mm_per_px, contents, (1e-3, 10.0))
+    ball = _number(path, "ball_radius_mm", ball_radius_mm, contents, (0.1, 50.0))
+    annotations = {k: contents[k].astype(np.float64) for k in ("touch_center", "touch_radius") if k in contents}
+    return frames, background, annotations, scale, ball
+
+
+def _number(path: Path, key: str, given: float | None, contents: dict, limits: tuple[float, float]) -> float:
+    if given is None:
+        if key not in contents:
+            raise GelSightRenderError(f"{path}: no {key}: store it in the file or give --{key.replace('_', '-')}")
+        given = float(contents[key])
+    if not limits[0] <= given <= limits[1]:  # NaN fails too
+        raise GelSightRenderError(f"{key} must be in [{limits[0]}, {limits[1]}], got {given!r}")
+    return float(given)
+
+
+def check_background(frames: np.ndarray, background: np.ndarray) -> None:
+    """Refuses a background that is not the frames' sensor at rest, naming the frames it does not match."""
+    mismatch = np.array([np.median(np.abs(f.astype(np.float32) - background).mean(axis=2)) for f in frames])
+    bad = np.flatnonzero(mismatch > MAX_BACKGROUND_MISMATCH_LEVELS)
+    if bad.size > len(frames) // 2:
+        raise GelSightRenderError(
+            f"the background does not match the frames: presses {bad.tolist()} differ from it by a median "
+            f"{np.median(mismatch[bad]):.0f} levels away from any press (at most {MAX_BACKGROUND_MISMATCH_LEVELS:g}): "
+            "capture the no-contact frame with the same sensor, lights and exposure"
+        )
+
+
+def annotate(frames: np.ndarray, background: np.ndarray, mm_per_px: float, ball_radius_mm: float) -> FoundPresses:
+    """The finder's presses; refuses a ball radius or scale that cannot explain the rings, and too few trusted presses."""
+    ball_px = ball_radius_mm / mm_per_px
+    if not 4.0 <= ball_px <= 0.5 * min(background.shape[:2]):
+        raise GelSightRenderError(
+            f"a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px is {ball_px:.1f} px: a press of it "
+            f"cannot be seen in a {background.shape[1]} x {background.shape[0]} frame (4 px to half the frame's height)"
+        )
+    found = find_presses(frames, background, ball_px)
+    ratio = found.radii_px / ball_px
+    trusted = found.trusted
+    low, high = RING_RADIUS_RANGE
+    unexplained = np.flatnonzero(trusted & ~((ratio >= low) & (ratio <= high)))
+    if unexplained.size > trusted.sum() // 2:
+        rings_mm = np.nanmedian(found.radii_px[unexplained]) * mm_per_px
+        raise GelSightRenderError(
+            f"a ball of {ball_radius_mm:g} mm radius at {mm_per_px:g} mm/px cannot explain the rings of presses "
+            f"{unexplained.tolist()} ({rings_mm:.2f} mm median radius, {low:g} to {high:g} ball radii expected): "
+            "check --ball-radius-mm and --mm-per-px"
+        )
+    if trusted.sum() < MIN_PRESSES:
+        left_out = "; ".join(f"press {i}: {r}" for i, r in enumerate(found.reasons) if r)
+        raise GelSightRenderError(
+            f"too few presses to calibrate: {int(trusted.sum())} usable of {len(frames)}, at least {MIN_PRESSES} "
+            f"needed ({left_out or 'none left out'})"
+        )
+    return found
+
+
+def _references(presses: Presses) -> dict[str, list[float]]:
+    """The shipped calibration (against the file's background) and the background alone, on ``presses``."""
+    from sim.gelsight import GelSightRenderer  # noqa: PLC0415
+
+    h, w = presses.shape
+    renderer = GelSightRenderer(
+        GelSightConfig(image_height=h, image_width=w, mm_per_px=presses.mm_per_px), background=presses.background
+    )
+    shipped = [
+        renderer.render(
+            ball_gap_map(
+                (h, w),
+                c,
+                press_depth_mm(r * presses.mm_per_px, presses.ball_radius_mm),
+                presses.mm_per_px,
+                presses.ball_radius_mm,
+            )
+        )
+        for c, r in zip(presses.centers_xy_px, presses.radii_px)
+    ]
+    scores = press_scores(shipped, presses)
+    alone = press_scores([presses.background] * len(presses.frames), presses)
+    return {
+        "shipped_crop": scores["crop"],
+        "shipped_full": scores["full"],
+        "background_crop": alone["crop"],
+        "background_full": alone["full"],
+    }
+
+
+def _means(scores: dict[str, list[float]]) -> dict[str, float]:
+    return {key: float(np.mean(values)) for key, values in scores.items()}
+
+
+def _held_out(
+    presses: Presses, train: list[int], test: list[int], **budget: int
+) -> tuple[PressFit, dict[str, list[float]]]:
+    fit = fit_presses(presses.subset(train), **budget)
+    return fit, press_scores(render_fit(fit, presses.subset(test)), presses.subset(test))
+
+
+def annotation_agreement(found: FoundPresses, annotations: dict[str, np.ndarray]) -> dict[str, Any] | None:
+    """How far the finder's centres and radii are from the file's own annotations (px), per press and in sum."""
+    if (
+        set(annotations) != {"touch_center", "touch_radius"}
+        or annotations["touch_radius"].shape != found.radii_px.shape
+    ):
+        return None
+    center_px = np.hypot(*(found.centers_xy_px - annotations["touch_center"]).T)
+    radius_px = found.radii_px - annotations["touch_radius"]
+    both = (center_px <= 1.0) & (np.abs(radius_px) <= 1.0)
+    return {
+        "center_px": center_px.tolist(),
+        "radius_px": radius_px.tolist(),
+        "mean_center_offset_xy_px": (found.centers_xy_px - annotations["touch_center"]).mean(axis=0).tolist(),
+        "median_center_px": float(np.median(center_px)),
+        "center_within_1px": float(np.mean(center_px <= 1.0)),
+        "radius_within_1px": float(np.mean(np.abs(radius_px) <= 1.0)),
+        "both_within_1px": float(np.mean(both)),
+    }
+
+
+def calibrate_presses(
+    path: str | Path,
+    folds: int = 3,
+    mm_per_px: float | None = None,
+    ball_radius_mm: float | None = None,
+    evaluations: int | None = None,
+) -> tuple[PressFit, Presses, dict[str, Any]]:
+    """The fit of all usable presses, those presses (found centres and radii) and the report."""
+    frames, background, annotations, scale, ball = load_press_file(path, mm_per_px, ball_radius_mm)
+    check_background(frames, background)
+    found = annotate(frames, background, scale, ball)
+    used = np.flatnonzero(found.trusted)
+    if not 2 <= folds <= len(used) // 2:
+        raise GelSightRenderError(
+            f"--folds must be in [2, {len(used) // 2}] for {len(used)} usable presses, got {folds}"
+        )
+    presses = Presses(frames[used], background, found.centers_xy_px[used], found.radii_px[used], scale, ball)
+    budget = {} if evaluations is None else {"evaluations": evaluations}
+    n = len(used)
+    held = {key: [math.nan] * n for key in ("crop", "full")}
+    fold_parameters = []
+    for k in range(folds):
+        test = list(range(k, n, folds))
+        fit, scores = _held_out(presses, [i for i in range(n) if i % folds != k], test, **budget)
+        fold_parameters.append(fit.parameters)
+        for key in held:
+            for i, value in zip(test, scores[key]):
+                held[key][i] = value
+    even, odd = list(range(0, n, 2)), list(range(1, n, 2))
+    _, half = _held_out(presses, even, odd, **budget)
+    full = fit_presses(presses, **budget)
+    full_on_odd = press_scores(render_fit(full, presses.subset(odd)), presses.subset(odd))
+    references = _references(presses)
+    report = {
+        "file": str(path),
+        "mm_per_px": scale,
+        "ball_radius_mm": ball,
+        "presses": int(len(frames)),
+        "used": used.tolist(),
+        "left_out": {int(i): reason for i, reason in enumerate(found.reasons) if reason},
+        "found": {"touch_center": found.centers_xy_px.tolist(), "touch_radius": found.radii_px.tolist()},
+        "annotation_agreement": annotation_agreement(found, annotations),
+        "folds": folds,
+        "k_fold": {**_means({"crop": held["crop"], "full": held["full"]}), **_means(references)},
+        "k_fold_per_press": {**held, **references},
+        "fold_parameters": fold_parameters,
+        "half": {"fit_even_score_odd": _means(half), "fit_all_score_odd": _means(full_on_odd)},
+        "parameters": full.parameters,
+    }
+    return full, presses, report
+
+
+def _npz_bytes(**arrays: Any) -> bytes:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def calibration_files(fit: PressFit, presses: Presses) -> dict[str, bytes]:
+    """The calibration directory's files: the tables and the background in the layout of
+    assets/gelsight (the background beside the presses fitted, with their found centres and radii
+    and the scale), and the renderer's physical parameters (sim.gelsight_calibration)."""
+    tables = {f"grad_{c}": fit.tables[:, :, i] for i, c in enumerate("rgb")}
+    parameters = {"calibration_mm_per_px": presses.mm_per_px, "shading_gain": 1.0, **fit.parameters}
+    return {
+        POLYNOMIAL_FILE: _npz_bytes(bins=np.int64(fit.tables.shape[0]), **tables),
+        BACKGROUND_FILE: _npz_bytes(
+            background=fit.background,
+            frames=presses.frames,
+            touch_center=presses.centers_xy_px,
+            touch_radius=presses.radii_px,
+            mm_per_px=presses.mm_per_px,
+            ball_radius_mm=presses.ball_radius_mm,
+        ),
+        PARAMETERS_FILE: (json.dumps(parameters, indent=1) + "\n").encode(),
+    }
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The report for a person."""
+    k, half = report["k_fold"], report["half"]
+    lines = [
+        f"{report['file']}: {len(report['used'])} of {report['presses']} presses used "
+        f"({report['mm_per_px']:g} mm/px, ball radius {report['ball_radius_mm']:g} mm)",
+        *(f"  left out: press {i}: {reason}" for i, reason in report["left_out"].items()),
+        f"{report['folds']}-fold, on presses each fit never saw (SSIM crop / full):",
+        f"  fitted calibration  {k['crop']:.4f} / {k['full']:.4f}",
+        f"  shipped calibration {k['shipped_crop']:.4f} / {k['shipped_full']:.4f}",
+        f"  background alone    {k['background_crop']:.4f} / {k['background_full']:.4f}",
+        "odd presses: fitted on the even half {:.4f} / {:.4f}, fitted on all {:.4f} / {:.4f}".format(
+            half["fit_even_score_odd"]["crop"],
+            half["fit_even_score_odd"]["full"],
+            half["fit_all_score_odd"]["crop"],
+            half["fit_all_score_odd"]["full"],
+        ),
+        "parameters: " + ", ".join(f"{name} {value:.3f}" for name, value in report["parameters"].items()),
+    ]
+    agreement = report["annotation_agreement"]
+    if agreement is not None:
+        lines.append(
+            "found vs the file's annotations: centre within 1 px {:.0%} (median {:.2f} px, mean offset x {:+.2f} "
+            "y {:+.2f} px), radius within 1 px {:.0%}, both {:.0%}".format(
+                agreement["center_within_1px"],
+                agreement["median_center_px"],
+                *agreement["mean_center_offset_xy_px"],
+                agreement["radius_within_1px"],
+                agreement["both_within_1px"],
+            )
+        )
+    return "\n".join(lines)

@@ -1,0 +1,219 @@
+"""Each ball press's centre and radius found from the frame and the no-contact frame.
+
+A ball pressed into a GelSight leaves a coloured ring: where the gel tilts, the colour changes,
+most at the contact's edge, and the change fades outside it as the gel's spread flattens. The
+change's magnitude (sum over channels of ``|frame - background|``) is the finder's signal:
+
+1. Rough centre: every pixel on a strong edge of the change votes along its gradient (towards
+   the brighter side, where a ring's inside lies) at the distances a ring may have (a circle
+   Hough transform); the most voted point.
+2. Precise centres: the presses' colour-change patches, averaged about their current centres,
+   make a template of this sensor's press; each press is moved to where it matches the template
+   best (normalised correlation, sub-pixel), and the template is made again (three rounds). The
+   centres then agree with each other to a fraction of a pixel, and the template's own centre
+   fixes where they all are: the centre of the circle fitted to its ring's outer edge.
+3. Radius: around the centre, the change's mean over each circle of radius r; past its peak it
+   falls towards the level far away. The radius is where it has fallen :data:`RING_EDGE_FRACTION`
+   of the way, the outer edge of the bright ring as a person traces it.
+
+A press is left out, with its reason, when its best match with the template is poor (something
+else changed the frame: two touches, a slip, a smear), when its ring is not whole inside the frame,
+or when the ring saturates the camera. All positions are pixels (x column, y row).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+
+RING_EDGE_FRACTION = 0.3  # how far (0: at the peak, 1: the far level) the ring's edge has fallen
+MIN_MATCH = 0.8  # normalised correlation with the template below which a press is not trusted
+SATURATED_FRACTION = 0.10  # share of a ring's pixel values clipped at 0 or 255 that makes it saturated
+SEARCH_PX = 6  # how far the template search moves a centre in each round
+ROUNDS = 3
+MAX_RING_RADII = 2.5  # the widest ring looked for, in ball radii
+
+
+@dataclasses.dataclass(frozen=True)
+class FoundPresses:
+    """Per press: centre (N x 2 px), radius (N px; NaN where not found), the template match and
+    why it is not trusted (empty when it is)."""
+
+    centers_xy_px: np.ndarray
+    radii_px: np.ndarray
+    match: np.ndarray
+    reasons: list[str]
+
+    @property
+    def trusted(self) -> np.ndarray:
+        return np.array([not reason for reason in self.reasons], bool)
+
+
+def change_magnitude(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """|frame - background| summed over the channels (HxW float32 levels)."""
+    return np.abs(frame.astype(np.float32) - background.astype(np.float32)).sum(axis=2)
+
+
+def hough_center(magnitude: np.ndarray, radius_range_px: tuple[float, float]) -> tuple[float, float]:
+    """The point the change's strongest edges point at from ``radius_range_px`` away (x, y)."""
+    smooth = cv2.GaussianBlur(magnitude, (0, 0), 1.5)
+    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
+    strength = np.hypot(gx, gy)
+    rows, cols = np.nonzero(strength > np.percentile(strength, 80))
+    weight = strength[rows, cols]
+    ux, uy = gx[rows, cols] / weight, gy[rows, cols] / weight
+    h, w = magnitude.shape
+    votes = np.zeros(h * w)
+    for rho in np.arange(radius_range_px[0], radius_range_px[1], 0.5):
+        vx, vy = np.rint(cols + ux * rho).astype(int), np.rint(rows + uy * rho).astype(int)
+        inside = (vx >= 0) & (vx < w) & (vy >= 0) & (vy < h)
+        votes += np.bincount(vy[inside] * w + vx[inside], weight[inside], h * w)
+    votes = cv2.GaussianBlur(votes.reshape(h, w).astype(np.float32), (0, 0), 1.5)
+    y, x = np.unravel_index(int(np.argmax(votes)), votes.shape)
+    return float(x), float(y)
+
+
+def _peak_offset(left: float, centre: float, right: float) -> float:
+    """Sub-sample offset of a peak from three samples (a parabola through them)."""
+    curvature = left - 2.0 * centre + right
+    return 0.0 if curvature >= 0 else 0.5 * (left - right) / curvature
+
+
+def _patch(image: np.ndarray, center_xy_px: np.ndarray, size: int) -> np.ndarray:
+    return cv2.getRectSubPix(image, (size, size), (float(center_xy_px[0]), float(center_xy_px[1])))
+
+
+def align_to_template(change: np.ndarray, template: np.ndarray, center_xy_px: np.ndarray) -> tuple[np.ndarray, float]:
+    """The centre near ``center_xy_px`` where ``change`` matches ``template`` best, and the match."""
+    size = template.shape[0]
+    search = _patch(change, center_xy_px, size + 2 * SEARCH_PX)
+    scores = cv2.matchTemplate(search, template, cv2.TM_CCORR_NORMED)
+    y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    dx = _peak_offset(scores[y, x - 1], scores[y, x], scores[y, x + 1]) if 0 < x < scores.shape[1] - 1 else 0.0
+    dy = _peak_offset(scores[y - 1, x], scores[y, x], scores[y + 1, x]) if 0 < y < scores.shape[0] - 1 else 0.0
+    return center_xy_px + np.array([x + dx - SEARCH_PX, y + dy - SEARCH_PX]), float(scores[y, x])
+
+
+def radial_profile(magnitude: np.ndarray, center_xy_px, step_px: float, max_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Radii (bin centres) and the mean of ``magnitude`` over each ring of width ``step_px``
+    (NaN where the ring holds no pixel of the frame)."""
+    h, w = magnitude.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    k = (np.hypot(cols - center_xy_px[0], rows - center_xy_px[1]) / step_px).astype(np.intp).ravel()
+    n = int(max_px / step_px)
+    inside = k < n
+    sums = np.bincount(k[inside], magnitude.ravel()[inside], n)
+    counts = np.bincount(k[inside], minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (np.arange(n) + 0.5) * step_px, sums / counts
+
+
+def ring_edge_px(radii_px: np.ndarray, profile: np.ndarray, max_ring_px: float) -> float:
+    """Where ``profile`` (a ring's mean change by radius), past its peak within ``max_ring_px``,
+    has fallen RING_EDGE_FRACTION of the way to the level beyond twice the peak's radius; NaN if it never does."""
+    valid = np.isfinite(profile)
+    candidates = np.where(valid & (radii_px > 2.0) & (radii_px < max_ring_px), profile, -np.inf)
+    peak = int(np.argmax(candidates))
+    far = profile[valid & (radii_px > 2.0 * radii_px[peak])]
+    if far.size == 0 or not np.isfinite(candidates[peak]):
+        return math.nan
+    level = candidates[peak] - RING_EDGE_FRACTION * (candidates[peak] - float(np.median(far)))
+    below = np.flatnonzero(~(profile[peak:] >= level))  # NaN counts as fallen: the frame ends there
+    if below.size == 0:
+        return math.nan
+    k = peak + int(below[0])
+    if not np.isfinite(profile[k]):
+        return float(radii_px[k - 1])
+    return float(
+        radii_px[k - 1] + (profile[k - 1] - level) / (profile[k - 1] - profile[k]) * (radii_px[k] - radii_px[k - 1])
+    )
+
+
+def template_center_offset(template: np.ndarray) -> np.ndarray:
+    """Offset (x, y px) from the template's middle of the centre of the circle fitted to its ring's outer edge."""
+    magnitude = cv2.GaussianBlur(np.abs(template).sum(axis=2), (0, 0), 1.0)
+    half = (template.shape[0] - 1) / 2.0
+    angles = np.linspace(0.0, 2.0 * math.pi, 90, endpoint=False)
+    radii = np.arange(0.0, half, 0.1)
+    xs = (half + np.cos(angles)[:, None] * radii).astype(np.float32)
+    ys = (half + np.sin(angles)[:, None] * radii).astype(np.float32)
+    rays = cv2.remap(magnitude, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    edges = []
+    for angle, ray in zip(angles, rays):
+        # Along one ray the far level is the ray's end.
+        peak = int(np.argmax(ray))
+        level = ray[peak] - RING_EDGE_FRACTION * (ray[peak] - ray[-1])
+        below = np.flatnonzero(ray[peak:] < level)
+        if below.size:
+            r = radii[peak + below[0]]
+            edges.append((half + math.cos(angle) * r, half + math.sin(angle) * r))
+    points = np.array(edges)
+    # Kasa's circle fit: x^2 + y^2 = 2 a x + 2 b y + c, linear in a, b, c.
+    design = np.column_stack([2.0 * points, np.ones(len(points))])
+    (a, b, _), *_ = np.linalg.lstsq(design, (points**2).sum(axis=1), rcond=None)
+    return np.array([a - half, b - half])
+
+
+def find_presses(frames: np.ndarray, background: np.ndarray, ball_radius_px: float) -> FoundPresses:
+    """Centre and radius of each press of ``frames`` (N x H x W x 3 uint8) against ``background``
+    for a ball of ``ball_radius_px``; presses the finder cannot trust carry their reason."""
+    changes = [frame.astype(np.float32) - background.astype(np.float32) for frame in frames]
+    magnitudes = [np.abs(change).sum(axis=2) for change in changes]
+    centers = np.array([hough_center(m, (0.4 * ball_radius_px, 1.6 * ball_radius_px)) for m in magnitudes])
+    size = 2 * round(1.3 * ball_radius_px) + 1
+    # Saturated presses would make the mean press unlike every press: it is made without them.
+    unclipped = [
+        _clipped_share(f, background, c, ball_radius_px) <= SATURATED_FRACTION for f, c in zip(frames, centers)
+    ]
+    use = np.array(unclipped) if any(unclipped) else np.ones(len(frames), bool)
+    match = np.zeros(len(frames))
+    for _ in range(ROUNDS):
+        template = np.mean([_patch(c, x, size) for c, x, u in zip(changes, centers, use) if u], axis=0)
+        moved = [align_to_template(change, template, center) for change, center in zip(changes, centers)]
+        centers = np.array([center for center, _ in moved])
+        match = np.array([score for _, score in moved])
+        use = match >= MIN_MATCH if np.any(match >= MIN_MATCH) else use
+    centers = centers + template_center_offset(template)
+    # The ring is looked for out to MAX_RING_RADII ball radii, wider than any press of the ball
+    # makes, so that a wrong ball radius or scale shows as rings too wide for it.
+    radii = np.array(
+        [
+            ring_edge_px(
+                *radial_profile(m, c, 0.25, 2 * MAX_RING_RADII * ball_radius_px), MAX_RING_RADII * ball_radius_px
+            )
+            for m, c in zip(magnitudes, centers)
+        ]
+    )
+    reasons = [
+        _distrust(frame, background, center, radius, score)
+        for frame, center, radius, score in zip(frames, centers, radii, match)
+    ]
+    return FoundPresses(centers, radii, match, reasons)
+
+
+def _distrust(frame: np.ndarray, background: np.ndarray, center: np.ndarray, radius: float, match: float) -> str:
+    """Why a found press cannot be trusted ('' when it can)."""
+    h, w = frame.shape[:2]
+    if not math.isfinite(radius):
+        return "no ring edge found"
+    clipped = _clipped_share(frame, background, center, radius)
+    if clipped > SATURATED_FRACTION:
+        return f"saturated ({100 * clipped:.0f} % of the ring's values at 0 or 255)"
+    if center[0] - radius < 0 or center[1] - radius < 0 or center[0] + radius > w - 1 or center[1] + radius > h - 1:
+        return "the ring leaves the frame"
+    if match < MIN_MATCH:
+        return f"unlike the other presses (template match {match:.2f} < {MIN_MATCH})"
+    return ""
+
+
+def _clipped_share(frame: np.ndarray, background: np.ndarray, center: np.ndarray, radius: float) -> float:
+    """The share of the values within ``radius`` of ``center`` clipped at 0 or 255 (and not so at rest)."""
+    h, w = frame.shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w]
+    ring = np.hypot(cols - center[0], rows - center[1]) <= radius
+    clipped = ((frame == 0) | (frame == 255)) & ~((background == 0) | (background == 255))
+    return float(clipped[ring].mean())
