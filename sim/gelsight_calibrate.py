@@ -24,7 +24,7 @@ import numpy as np
 
 from sim.gelsight import GelSightConfig
 from sim.gelsight_calibration import BACKGROUND_FILE, PARAMETERS_FILE, POLYNOMIAL_FILE
-from sim.gelsight_check import ball_gap_map, press_depth_mm
+from sim.gelsight_check import ball_gap_map, press_depth_mm, read_press_arrays
 from sim.gelsight_effects import GelSightRenderError
 from sim.gelsight_fit import Presses, PressFit, fit_presses, press_scores, render_fit
 from sim.press_annotation import FoundPresses, find_presses
@@ -48,16 +48,7 @@ def load_press_file(
     """Frames, background, the file's own annotations (may be empty), scale and ball radius;
     the arguments override the file's keys."""
     path = Path(path)
-    if not path.is_file():
-        raise GelSightRenderError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            contents = {key: np.asarray(data[key]) for key in data.files}
-    except (OSError, ValueError) as exc:
-        raise GelSightRenderError(f"{path}: not a readable .npz file ({exc})") from exc
-    missing = sorted({"background", "frames"} - set(contents))
-    if missing:
-        raise GelSightRenderError(f"{path}: missing keys {missing}")
+    contents = read_press_arrays(path, {"background", "frames"})
     background, frames = contents["background"], contents["frames"]
     if (
         background.ndim != 3

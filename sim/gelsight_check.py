@@ -51,8 +51,9 @@ class BallPresses:
     radii_px: np.ndarray  # N
 
 
-def load_ball_presses(path: str | Path) -> BallPresses:
-    """Read and check a ball-press file; every problem raises :class:`GelSightRenderError`."""
+def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndarray]:
+    """Every array of a press file (.npz, no pickles), by key; GelSightRenderError when the file
+    is missing or unreadable or lacks a ``required`` key."""
     path = Path(path)
     if not path.is_file():
         raise GelSightRenderError(f"{path}: no such file")
@@ -61,9 +62,16 @@ def load_ball_presses(path: str | Path) -> BallPresses:
             contents = {key: np.asarray(data[key]) for key in data.files}
     except (OSError, ValueError) as exc:
         raise GelSightRenderError(f"{path}: not a readable .npz file ({exc})") from exc
-    missing = sorted({"background", "frames", "touch_center", "touch_radius"} - set(contents))
+    missing = sorted(required - set(contents))
     if missing:
         raise GelSightRenderError(f"{path}: missing keys {missing}")
+    return contents
+
+
+def load_ball_presses(path: str | Path) -> BallPresses:
+    """Read and check a ball-press file; every problem raises :class:`GelSightRenderError`."""
+    path = Path(path)
+    contents = read_press_arrays(path, {"background", "frames", "touch_center", "touch_radius"})
     background, frames = contents["background"], contents["frames"]
     centers, radii = contents["touch_center"], contents["touch_radius"]
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:

@@ -11,14 +11,12 @@ import logging
 import os
 import subprocess
 import sys
-import threading
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 import torch
+from test_inference_node import serving
 
 from benchmarks.serve import depth_maps, write_checkpoint
 from models.checkpoint import load_generator
@@ -37,19 +35,6 @@ REPO = Path(__file__).resolve().parent.parent
 def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Untrained, width 8, no prior: its int8 graph loses about 0.3 SSIM against fp32."""
     return write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
-
-
-@contextlib.contextmanager
-def serving(registry: Registry, checkpoint: Path, **params: Any) -> Iterator[InferenceNode]:
-    node = InferenceNode("inference", {"checkpoint": str(checkpoint), "threads": 1, **params}, registry=registry)
-    thread = threading.Thread(target=node.spin)
-    thread.start()
-    try:
-        yield node
-    finally:
-        node.request_shutdown()
-        thread.join()
-        node.close()
 
 
 def estimate(registry: Registry, maps: np.ndarray) -> tuple[np.ndarray, str]:
