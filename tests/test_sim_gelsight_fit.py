@@ -80,13 +80,14 @@ def test_fit_of_rendered_presses_renders_presses_it_never_saw():
     assert np.mean(scores["crop"]) > 0.93 and np.mean(scores["full"]) > 0.95, scores
 
 
-def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path, synthetic, monkeypatch):
+def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path, synthetic, monkeypatch, capsys):
     frames, background, _ = synthetic
     path = write_press_file(tmp_path / "presses.npz", frames, background)
     monkeypatch.setattr("sim.gelsight_fit.FIT_EVALUATIONS", 1)  # the search's first simplex only
     out = tmp_path / "calibration"
     assert _calibrate(path, out, "--folds", "2", "--json") == 0
-    report = json.loads((out / "report.json").read_text())
+    report = json.loads((out / "report.json").read_text(), parse_constant=_not_json)
+    assert json.loads(capsys.readouterr().out, parse_constant=_not_json) == report  # --json: strict, the file's
     assert report["used"] == list(range(24)) and report["left_out"] == {}
     assert report["k_fold"]["crop"] > report["k_fold"]["background_crop"]
     parameters = renderer_parameters(out)
@@ -105,6 +106,10 @@ def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path
 def _scene_with_calibration(directory) -> str:
     text = open("scenes/ideal.yaml").read()
     return text.replace("gelsight:\n", f"gelsight:\n  calibration_dir: {directory}\n", 1)
+
+
+def _not_json(constant: str) -> None:
+    raise ValueError(f"{constant} is not JSON")
 
 
 def _calibrate(path, out, *options: str) -> int:
