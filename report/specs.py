@@ -180,6 +180,7 @@ SPECS: dict[str, Spec] = {
             ("touches", "touches"),
             ("renderer_ratio", "renderer ratio"),
             ("fit_cpu_s", "fit CPU s"),
+            ("refused", "refused because"),
         ),
     ),
     "inference": Spec(
