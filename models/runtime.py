@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from dataset.synth import analytic_contact_maps
-from models.data import network_input
+from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
 
 Runner = Callable[[np.ndarray], np.ndarray]
@@ -178,8 +178,9 @@ def int8_ssim_loss(generator: UNetGenerator, depth_range_m: tuple[float, float],
     inputs = contact_inputs(generator, depth_range_m, JUDGING_CONTACTS, JUDGING_SEED)
 
     def images(run: Runner) -> np.ndarray:
-        out = np.concatenate([run(inputs[i : i + 16]) for i in range(0, len(inputs), 16)])
-        return ((out + 1.0) * 127.5).round().clip(0, 255).astype(np.uint8).transpose(0, 2, 3, 1)
+        return to_uint8_rgb(
+            torch.from_numpy(np.concatenate([run(inputs[i : i + 16]) for i in range(0, len(inputs), 16)]))
+        )
 
     return 1.0 - float(ssim_rgb(images(fp32), images(int8)).mean())
 
