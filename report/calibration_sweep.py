@@ -6,6 +6,7 @@ scene holds the true extrinsics."""
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,8 @@ from perception.pointcloud import VoxelIndex
 from perception.touch_calibration import TouchCalibrationError, pose_error
 from report.ceiling import depth_map_images
 from report.specs import Point, point
-from report.workspace import Workspace
-from workcell.scene import load_scene
+from report.workspace import SessionTest, Workspace
+from workcell.scene import Scene
 
 
 def _seconds_per_grasp(records: list[SampleRecord]) -> float:
@@ -44,7 +45,10 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
         raise RuntimeError(f"{reader.info.scene} offsets no camera: there is nothing to calibrate")
     pace_s = _seconds_per_grasp(reader.records)
     available = len({r.grasp_key for r in split_records(reader.records, reader.info.split_seed)["train"]})
-    recorded = np.stack([reader.load(r).depth_map_m for r in ws.session_test.records])
+    test = ws.session_test
+    params, scene = depth_map_params(reader)
+    clouds = {name: VoxelIndex(model_cloud(scene, name)) for name in sorted({r.object_name for r in test.records})}
+    recorded = np.stack([reader.load(r).depth_map_m for r in test.records])
     before = [pose_error(np.asarray(world), truth[frame]) for frame, world in _given_extrinsics(ws.session).items()]
     points = [
         point(
@@ -53,7 +57,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             0.0,
             max(mm for mm, _ in before),
             error_deg=round(max(deg for _, deg in before), 4),
-            **_renderer_ratio(ws, recorded),
+            **_renderer_ratio(test, scene, reader.info.depth_crop_m, recorded),
         )
     ]
     for grasps in sorted({min(n, available) for n in ws.plan.calibration_grasps}):
@@ -65,14 +69,11 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             continue
         fit_s = time.process_time() - started
         cameras = calibration.report(truth)["cameras"].values()
-        registered = register_again(ws.session, list(calibration.calibrated.values()))
-        params, scene = depth_map_params(reader)
-        poses = poses_at(ws.session_test.records, registered, scene, params)
-        clouds = {name: VoxelIndex(model_cloud(scene, name)) for name in registered}
+        poses = poses_at(test.records, register_again(ws.session, list(calibration.calibrated.values())), scene, params)
         maps = np.stack(
             [
                 depth_map_again(clouds[r.object_name], poses[r.sample_id][0], scene.gripper_geometry(), params)
-                for r in ws.session_test.records
+                for r in test.records
             ]
         )
         points.append(
@@ -82,10 +83,9 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
                 grasps * pace_s + fit_s,
                 max(row["error_mm"] for row in cameras),
                 error_deg=round(max(row["error_deg"] for row in cameras), 4),
-                error_before_mm=round(max(row["error_before_mm"] for row in cameras), 3),
                 fit_cpu_s=round(fit_s, 1),
                 touches=sum(calibration.object_touches.values()),
-                **_renderer_ratio(ws, maps),
+                **_renderer_ratio(test, scene, reader.info.depth_crop_m, maps),
             )
         )
     return points
@@ -96,15 +96,14 @@ def _given_extrinsics(session: Path) -> dict[str, np.ndarray]:
     return {frame: images[-1].camera_to_world for frame, images in registration_frames(session).items()}
 
 
-def _renderer_ratio(ws: Workspace, depth_maps_m: np.ndarray) -> dict[str, float]:
+def _renderer_ratio(
+    test: SessionTest, scene: Scene, depth_crop_m: Sequence[float] | None, depth_maps_m: np.ndarray
+) -> dict[str, float]:
     """The test split's ``depth_maps_m`` through the GelSight renderer, scored against the
     session's images as a model is (models.evaluate.ssim_statistics)."""
-    reader = DatasetReader(ws.session)
-    scene = load_scene(reader.info.scene)
-    crop = reader.info.depth_crop_m
-    assert crop is not None  # a session records its crop (dataset.json)
-    images = depth_map_images(scene, depth_maps_m, crop, ws.session_test.truth.shape[1:3])
-    scores = ssim_statistics(ws.session_test.truth, images)
+    assert depth_crop_m is not None  # a session records its crop (dataset.json)
+    images = depth_map_images(scene, depth_maps_m, depth_crop_m, test.truth.shape[1:3])
+    scores = ssim_statistics(test.truth, images)
     return {
         "renderer_ratio": round(float(scores["dissimilarity_ratio"]), 4),
         "renderer_ssim": round(float(scores["ssim_model_mean"]), 4),
