@@ -15,11 +15,16 @@ from dtx.errors import exit_1_on
 from msgs import strict_json
 
 
+def refuse_existing(out: Path, force: bool) -> None:
+    """FileExistsError for an existing calibration directory ``out`` unless ``force``."""
+    if out.exists() and not force:
+        raise FileExistsError(f"{out} exists; give --force to replace it (it is replaced whole, never half-way)")
+
+
 def write_calibration_dir(out: Path, files: dict[str, str] | dict[str, bytes], force: bool) -> None:
     """The files into ``out`` as one step: written beside it, then renamed into place, so a
     failure leaves any existing directory as it was. An existing ``out`` needs ``force``."""
-    if out.exists() and not force:
-        raise FileExistsError(f"{out} exists; give --force to replace it (it is replaced whole, never half-way)")
+    refuse_existing(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
@@ -67,8 +72,7 @@ def _touches(args: argparse.Namespace) -> int:
     from dataset.touch_calibration import calibrate_touches, scene_camera_truth  # noqa: PLC0415
     from drivers.depth_camera.base import Calibration, calibration_yaml  # noqa: PLC0415
 
-    if Path(args.out).exists() and not args.force:  # said before minutes of work, and again when writing
-        raise FileExistsError(f"{args.out} exists; give --force to replace it (it is replaced whole, never half-way)")
+    refuse_existing(Path(args.out), args.force)  # before minutes of work, and again when writing
     result = calibrate_touches(args.session, grasps=args.grasps)
     report = result.report(scene_camera_truth(DatasetReader(args.session).info.scene))
     files = {
@@ -111,8 +115,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 def _gelsight(args: argparse.Namespace) -> int:
     from sim.gelsight_calibrate import calibrate_presses, calibration_files, format_report  # noqa: PLC0415
 
-    if Path(args.out).exists() and not args.force:  # said before minutes of work, and again when writing
-        raise FileExistsError(f"{args.out} exists; give --force to replace it (it is replaced whole, never half-way)")
+    refuse_existing(Path(args.out), args.force)  # before minutes of work, and again when writing
     fit, presses, report = calibrate_presses(args.presses, args.folds, args.mm_per_px, args.ball_radius_mm)
     files = calibration_files(fit, presses)
     files["report.json"] = (strict_json.dumps(report, indent=1) + "\n").encode()
