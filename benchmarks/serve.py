@@ -250,6 +250,8 @@ def bench_points(
     # The graph the node serves (int8 refused falls back to fp32, which its model line says).
     runtime, precision, device = re.search(r"(\w+) (\w+), (\w+)\)$", model).groups()  # type: ignore[union-attr]
     network = network_runner(generator, depth_range_m, runtime, precision, args.threads, device)
+    if generator.prior is not None and device != "cpu":  # the prior draws where the node's does
+        generator.prior = generator.prior.on(device)
     # The node's process settings, so the network computes here as it does there.
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)

@@ -14,14 +14,23 @@ a checkpoint stores both (``PriorSpec``), so serving renders exactly what traini
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Any
 
 import cv2
 import numpy as np
+import torch
 
 from models.errors import ModelConfigError
-from sim.gelsight import MAX_RENDERED_PIXELS, GelSightRenderError, render_depth_maps, scene_renderer
+from models.prior_tensor import TensorPrior
+from sim.gelsight import (
+    MAX_RENDERED_PIXELS,
+    GelSightRenderError,
+    checked_depth_maps,
+    render_depth_maps,
+    scene_renderer,
+)
 from workcell.scene import SceneError, load_scene
 
 # Largest in-plane pose uncertainty (mm, one sigma) the prior blurs over: a quarter of the 19.9 mm
@@ -86,6 +95,19 @@ class PhysicsPrior:
         checked_pose_sigma_mm(spec.pose_sigma_mm, "the prior's pose_sigma_mm")
         self.spec = spec
         self.renderer = scene_renderer(scene, size=(size, size), effects=False)
+        self.device = "cpu"
+        self._tensor: TensorPrior | None = None
+
+    def on(self, device: str) -> "PhysicsPrior":
+        """This prior drawing on ``device``: "cpu" with the renderer's own NumPy and OpenCV
+        (the images training and ``dtx evaluate`` see), "cuda" as batched tensor operations
+        (models.prior_tensor, within its stated tolerance of those). ModelConfigError for a
+        renderer the tensor form does not cover."""
+        moved = copy.copy(self)
+        moved.device = device
+        crop_xz_m = (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
+        moved._tensor = None if device == "cpu" else TensorPrior(self.renderer, crop_xz_m, device)
+        return moved
 
     def images(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
         """N x size x size x 3 uint8: the renderer's image of each depth-map (m), expected over
@@ -99,6 +121,8 @@ class PhysicsPrior:
         float maps: none give none), ``pose_sigma_mm`` as :func:`checked_pose_sigma_mm`;
         otherwise ModelConfigError naming the argument, before anything is drawn."""
         sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
+        if self._tensor is not None:
+            return self._tensor_images(depth_maps_m, sigma_mm)
         maps = np.asarray(depth_maps_m)
         pressed = self._pressed(maps)
         try:
@@ -130,6 +154,18 @@ class PhysicsPrior:
             )
             image[...] = np.clip(np.rint(background + change), 0, 255)
         return images
+
+    def _tensor_images(self, depth_maps_m: np.ndarray, sigma_mm: float) -> np.ndarray:
+        assert self._tensor is not None
+        crop_xz_m = (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
+        try:
+            maps = checked_depth_maps(self.renderer, depth_maps_m, crop_xz_m)
+        except GelSightRenderError as err:
+            raise ModelConfigError(f"physics prior: {err}") from err
+        if not len(maps):
+            return np.empty((0, *self.renderer.config.shape, 3), np.uint8)
+        drawn = self._tensor.images(torch.as_tensor(maps).to(self.device), sigma_mm)
+        return drawn.to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
 
     def _pressed(self, maps: np.ndarray) -> np.ndarray | slice:
         """Which ``maps`` reach into the gel (a bin below 0, the renderer's indentation), a mask;

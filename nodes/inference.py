@@ -63,7 +63,9 @@ import torch
 
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
+from models.errors import ModelConfigError
 from models.networks import UNetGenerator
+from models.prior import PhysicsPrior
 from models.runtime import (
     CudaUnavailable,
     Runner,
@@ -130,7 +132,7 @@ class InferenceNode(Node):
         # each chunk only added threads (2.3 -> 2.0 ms CPU per region, same wall time).
         cv2.setNumThreads(1)
         generator, self.depth_range_m = load_generator(p.checkpoint)
-        self.config, self.prior = generator.config, generator.prior
+        self.config = generator.config
         try:
             self.precision, self.deterministic, self.sampled = self._runners(generator)
         except CudaUnavailable as exc:  # a CUDA provider that could not start (no GPU, no cuDNN)
@@ -139,6 +141,7 @@ class InferenceNode(Node):
             self.log.warning("device auto could not use CUDA (%s); serving on the CPU", exc)
             self.device = "cpu"
             self.precision, self.deterministic, self.sampled = self._runners(generator)
+        self.prior = self._prior_on_device(generator.prior)
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()
@@ -294,6 +297,18 @@ class InferenceNode(Node):
                 )
             )
 
+    def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
+        """The physics prior drawing where the network computes: on CUDA as batched tensor
+        operations (models.prior_tensor), on the CPU in chunks on the node's threads; a renderer
+        the tensor form does not cover stays on the CPU, with a log line saying why."""
+        if prior is None or self.device == "cpu":
+            return prior
+        try:
+            return prior.on(self.device)
+        except ModelConfigError as exc:
+            self.log.warning("the physics prior draws on the CPU: %s", exc)
+            return prior
+
     def _pose_sigma_mm(self, request: TactileEstimateRequest) -> float:
         """The in-plane pose uncertainty (mm) a request's estimate assumes: its own, or the
         checkpoint's default for a negative one; -1 for a model without a physics prior."""
@@ -314,6 +329,8 @@ class InferenceNode(Node):
 
         if self.prior is None:
             return inputs((np.concatenate(maps), None))
+        if self.prior.device != "cpu":  # one batched call a request on the device
+            return np.concatenate([inputs(part) for part in zip(maps, sigmas)])
         threads = self.params.threads
         parts = [(chunk, s) for m, s in zip(maps, sigmas) for chunk in np.array_split(m, min(threads, len(m)))]
         if len(parts) == 1:

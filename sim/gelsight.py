@@ -384,20 +384,11 @@ MAX_MAP_BINS = 4096 * 4096
 GAP_LIMIT_MM = 1e3
 
 
-def render_depth_maps(
+def checked_depth_maps(
     renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop_xz_m: tuple[float, float]
 ) -> np.ndarray:
-    """The renderer's image (N x H x W x 3 uint8, its own size) of each contact depth-map, read
-    as the gel gap: N x rows x cols maps in the gel frame (m; rows along gel z, columns along gel
-    x; perception.depthmap) over a crop of ``crop_xz_m`` (x, z extents) centred on the gel,
-    resampled at the renderer's pixel centres (bilinear; edge bins repeat). This is physics fed
-    exactly what a learned model is fed; the crop must cover the renderer's field of view.
-
-    Contract: ``depth_maps_m`` a real float array, N >= 0 maps (none: no images) of at least
-    one bin and at most MAX_MAP_BINS; values finite, +inf or NaN (both: nothing there),
-    gaps beyond GAP_LIMIT_MM either way read as that limit; N x H x W at most
-    MAX_RENDERED_PIXELS; ``crop_xz_m`` two finite positive extents. Otherwise GelSightRenderError
-    naming the argument, before anything is drawn."""
+    """``depth_maps_m`` as an array when render_depth_maps can draw them with ``renderer`` over
+    ``crop_xz_m`` (its contract); GelSightRenderError naming the argument otherwise."""
     maps = np.asarray(depth_maps_m)
     if maps.ndim != 3 or maps.dtype.kind != "f":
         raise GelSightRenderError(
@@ -423,11 +414,43 @@ def render_depth_maps(
             f"the depth-maps' crop ({crop_x_mm:.1f} x {crop_z_mm:.1f} mm) is smaller than the "
             f"GelSight's field of view ({w * pitch_cols_mm:.1f} x {h * pitch_rows_mm:.1f} mm)"
         )
-    # Bin-index coordinates of the camera's pixel centres on the gel (bin centres at integers).
+    return maps
+
+
+def camera_pixels_on_map(
+    renderer: GelSightRenderer, map_shape: tuple[int, int], crop_xz_m: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the camera's pixel centres fall on a depth-map of ``map_shape`` (rows, cols) over a
+    crop of ``crop_xz_m`` centred on the gel: H x W float32 column and row coordinates in bins
+    (bin centres at integers), as cv2.remap takes them."""
+    rows, cols = map_shape
+    h, w = renderer.config.shape
+    pitch_rows_mm, pitch_cols_mm = renderer.pixel_pitch_mm
+    crop_x_mm, crop_z_mm = np.asarray(crop_xz_m, dtype=np.float64) * 1e3
     u = ((np.arange(w) - (w - 1) / 2) * pitch_cols_mm + crop_x_mm / 2) / crop_x_mm * cols - 0.5
     v = ((np.arange(h) - (h - 1) / 2) * pitch_rows_mm + crop_z_mm / 2) / crop_z_mm * rows - 0.5
     map_u, map_v = np.meshgrid(u.astype(np.float32), v.astype(np.float32))
-    images = np.empty((count, h, w, 3), np.uint8)
+    return map_u, map_v
+
+
+def render_depth_maps(
+    renderer: GelSightRenderer, depth_maps_m: np.ndarray, crop_xz_m: tuple[float, float]
+) -> np.ndarray:
+    """The renderer's image (N x H x W x 3 uint8, its own size) of each contact depth-map, read
+    as the gel gap: N x rows x cols maps in the gel frame (m; rows along gel z, columns along gel
+    x; perception.depthmap) over a crop of ``crop_xz_m`` (x, z extents) centred on the gel,
+    resampled at the renderer's pixel centres (bilinear; edge bins repeat). This is physics fed
+    exactly what a learned model is fed; the crop must cover the renderer's field of view.
+
+    Contract: ``depth_maps_m`` a real float array, N >= 0 maps (none: no images) of at least
+    one bin and at most MAX_MAP_BINS; values finite, +inf or NaN (both: nothing there),
+    gaps beyond GAP_LIMIT_MM either way read as that limit; N x H x W at most
+    MAX_RENDERED_PIXELS; ``crop_xz_m`` two finite positive extents. Otherwise GelSightRenderError
+    naming the argument, before anything is drawn."""
+    maps = checked_depth_maps(renderer, depth_maps_m, crop_xz_m)
+    count, rows, cols = maps.shape
+    map_u, map_v = camera_pixels_on_map(renderer, (rows, cols), crop_xz_m)
+    images = np.empty((count, *renderer.config.shape, 3), np.uint8)
     for image, depth_map_m in zip(images, maps):
         # Clipped in the input's dtype before the mm scale and the float32 cast, which would overflow.
         gap_mm = np.clip(np.nan_to_num(depth_map_m, nan=np.inf), -GAP_LIMIT_MM * 1e-3, GAP_LIMIT_MM * 1e-3)
