@@ -32,12 +32,7 @@ def planar_icp(
     fitness = rmse_m = 0.0
     for distance_m in distances_m:
         for _ in range(max_iterations):
-            c, s = np.cos(yaw), np.sin(yaw)
-            in_model = (observed_m - [x_m, y_m, model_z_m]) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            gap_m, index = model_tree.query(in_model, distance_upper_bound=distance_m)
-            paired = np.isfinite(gap_m)
-            fitness = float(paired.mean())
-            rmse_m = float(np.sqrt(np.mean(gap_m[paired] ** 2))) if paired.any() else np.inf
+            _, index, paired, fitness, rmse_m = _pairs(observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m)
             if paired.sum() < 3:
                 break
             model_xy, seen_xy = model_points_m[index[paired], :2], observed_m[paired, :2]
@@ -104,3 +99,55 @@ def refine_best(
         )
         refined.append((fitness, -rmse_m, pose))
     return max(refined, key=lambda row: row[:2])[2]
+
+
+def planar_icp_to_plane(
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    model_normals: np.ndarray,
+    pose: PlanarPose,
+    model_z_m: float,
+    distance_m: float,
+    max_iterations: int,
+) -> tuple[PlanarPose, float, float]:
+    """:func:`planar_icp` minimising each pair's distance along the model's surface normal
+    (Gauss-Newton on yaw, x, y) instead of to the model point: a point may slide along the face
+    it lies on, so the model's sampling does not pull a flat face sideways or turn it.
+    (pose, fitness, RMSE metres of the point-to-point gaps, as planar_icp reports them)."""
+    yaw, x_m, y_m = pose
+    fitness = rmse_m = 0.0
+    for _ in range(max_iterations):
+        rotation, index, paired, fitness, rmse_m = _pairs(
+            observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m
+        )
+        if paired.sum() < 3:
+            break
+        model_world = model_points_m[index[paired]] @ rotation.T + [x_m, y_m, model_z_m]
+        normal_world = model_normals[index[paired]] @ rotation.T
+        residual = np.einsum("ij,ij->i", normal_world, model_world - observed_m[paired])
+        # d(model point)/d(yaw) = z x (point - centre of turn); the turn is about the model's origin.
+        arm = model_world - [x_m, y_m, model_z_m]
+        jacobian = np.stack(
+            [normal_world[:, 1] * arm[:, 0] - normal_world[:, 0] * arm[:, 1], normal_world[:, 0], normal_world[:, 1]],
+            axis=1,
+        )
+        step, *_ = np.linalg.lstsq(jacobian, -residual, rcond=None)
+        yaw, x_m, y_m = yaw + float(step[0]), x_m + float(step[1]), y_m + float(step[2])
+        if abs(step[0]) * 0.1 + np.hypot(step[1], step[2]) < 1e-6:
+            break
+    return (yaw, x_m, y_m), fitness, rmse_m
+
+
+def _pairs(
+    observed_m: np.ndarray, model_tree: cKDTree, pose: PlanarPose, model_z_m: float, distance_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Each observed point's nearest model point within ``distance_m`` with the model at ``pose``:
+    (the pose's rotation, model index per point, which are paired, fitness, RMSE m of the pairs)."""
+    yaw, x_m, y_m = pose
+    c, s = np.cos(yaw), np.sin(yaw)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    gap_m, index = model_tree.query((observed_m - [x_m, y_m, model_z_m]) @ rotation, distance_upper_bound=distance_m)
+    paired = np.isfinite(gap_m)
+    rmse_m = float(np.sqrt(np.mean(gap_m[paired] ** 2))) if paired.any() else np.inf
+    return rotation, index, paired, float(paired.mean()), rmse_m

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import RegistrationError
-from perception.planar_icp import planar_icp, refine_best, sweep_subset, sweep_yaws
+from perception.planar_icp import planar_icp, planar_icp_to_plane, refine_best, sweep_subset, sweep_yaws
 from perception.pointcloud import principal_spread_m, seeded_open3d
 
 _reg = o3d.pipelines.registration
@@ -280,6 +280,7 @@ def register_model(
         model_fine_points = np.asarray(model.fine.points)
         model_to_world, fitness, rmse_m, clock.coarse_s, clock.fine_s = _register_resting(
             model_fine_points,
+            np.asarray(model.fine.normals),
             np.asarray(model.coarse.points),
             np.asarray(source.points),
             np.asarray(source_fine.points),
@@ -411,6 +412,7 @@ def _model_to_world(observed_to_model: np.ndarray, offset: np.ndarray) -> np.nda
 
 def _register_resting(
     model_points_m: np.ndarray,
+    model_normals: np.ndarray,
     model_coarse_m: np.ndarray,
     observed_coarse_m: np.ndarray,
     observed_fine_m: np.ndarray,
@@ -451,8 +453,18 @@ def _register_resting(
         params.icp_distances_m,
         params.icp_max_iterations,
     )
-    (yaw, x_m, y_m), fitness, rmse_m = planar_icp(
+    pose, _, _ = planar_icp(
         observed_fine_m, tree, model_points_m, pose, model_z_m, params.icp_distances_m[-1:], params.icp_max_iterations
+    )
+    (yaw, x_m, y_m), fitness, rmse_m = planar_icp_to_plane(
+        observed_fine_m,
+        tree,
+        model_points_m,
+        model_normals,
+        pose,
+        model_z_m,
+        params.icp_distances_m[-1],
+        params.icp_max_iterations,
     )
     model_to_world = np.eye(4)
     model_to_world[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
