@@ -14,6 +14,7 @@ from dataset.splits import leave_one_object_out, split_records
 from models.networks import GeneratorConfig, ModelConfigError
 from models.prior import PhysicsPrior, PriorSpec
 from perception.normalisation import normalise_depth_map
+from sim.gelsight import MAX_RENDERED_PIXELS
 
 
 def depth_input(depth_maps_m: np.ndarray, depth_range_m: tuple[float, float], in_channels: int) -> torch.Tensor:
@@ -65,7 +66,13 @@ def network_input(
             )
         channels = np.concatenate([prior.channels(m[None], float(s)) for m, s in zip(maps, pose_sigma_mm)])
     else:
-        channels = prior.channels(maps, pose_sigma_mm)
+        # A dataset's maps in calls the renderer takes (MAX_RENDERED_PIXELS): 1,680 maps at
+        # 200 x 200 are one pixel too many for one.
+        h, w = prior.renderer.config.shape
+        per_call = max(1, MAX_RENDERED_PIXELS // (h * w))
+        channels = np.concatenate(
+            [prior.channels(maps[i : i + per_call], pose_sigma_mm) for i in range(0, max(len(maps), 1), per_call)]
+        )
     return torch.cat([x, torch.from_numpy(channels)], dim=1)
 
 

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from models.checkpoint import TrainConfig
 from models.errors import ModelConfigError
+from models.networks import GeneratorConfig
 from models.prior import PhysicsPrior, PriorSpec
 from sim.gelsight import render_depth_maps
 
@@ -111,3 +112,19 @@ def test_the_spec_round_trips_and_an_older_checkpoints_prior_is_sharp() -> None:
     spec = PriorSpec(SCENE, CROP_M, pose_sigma_mm=1.25)
     assert PriorSpec.from_dict(spec.to_dict()) == spec
     assert PriorSpec.from_dict({"scene": SCENE, "depth_crop_m": list(CROP_M)}).pose_sigma_mm == 0.0
+
+
+def test_a_dataset_larger_than_one_rendering_call_is_drawn_in_calls(
+    prior: PhysicsPrior, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Training loads a whole split through network_input; past the renderer's pixel limit a call
+    (1,680 maps at 200 x 200) the prior is drawn in several calls, the same images."""
+    import models.data
+
+    maps = np.concatenate([ball_press((x, 0.0)) for x in (-2.0, -1.0, 0.0, 1.0, 2.0, 3.0, -3.0)])
+    config = GeneratorConfig(prior=True, image_size=BINS)
+    whole = models.data.network_input(maps, (-0.0015, FAR_M), config, prior)
+    monkeypatch.setattr(models.data, "MAX_RENDERED_PIXELS", 3 * BINS * BINS)  # 3 maps a call
+    with pytest.raises(ModelConfigError, match="pixels a call"):
+        prior.channels(np.broadcast_to(maps[:1], (7000, BINS, BINS)))  # one call still refuses past the limit
+    np.testing.assert_array_equal(models.data.network_input(maps, (-0.0015, FAR_M), config, prior), whole)
