@@ -105,9 +105,12 @@ class PhysicsPrior:
         renderer the tensor form does not cover."""
         moved = copy.copy(self)
         moved.device = device
-        crop_xz_m = (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
-        moved._tensor = None if device == "cpu" else TensorPrior(self.renderer, crop_xz_m, device)
+        moved._tensor = None if device == "cpu" else TensorPrior(self.renderer, self._crop_xz_m, device)
         return moved
+
+    @property
+    def _crop_xz_m(self) -> tuple[float, float]:
+        return (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
 
     def images(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
         """N x size x size x 3 uint8: the renderer's image of each depth-map (m), expected over
@@ -122,14 +125,14 @@ class PhysicsPrior:
         otherwise ModelConfigError naming the argument, before anything is drawn."""
         sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
         if self._tensor is not None:
-            return self._tensor_images(depth_maps_m, sigma_mm)
+            return self._tensor_images(self._tensor, depth_maps_m, sigma_mm)
         maps = np.asarray(depth_maps_m)
         pressed = self._pressed(maps)
         try:
             drawn = render_depth_maps(
                 self.renderer,
                 maps if isinstance(pressed, slice) else maps[pressed],
-                (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2]),
+                self._crop_xz_m,
             )
         except GelSightRenderError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
@@ -155,16 +158,15 @@ class PhysicsPrior:
             image[...] = np.clip(np.rint(background + change), 0, 255)
         return images
 
-    def _tensor_images(self, depth_maps_m: np.ndarray, sigma_mm: float) -> np.ndarray:
-        assert self._tensor is not None
-        crop_xz_m = (self.spec.depth_crop_m[0], self.spec.depth_crop_m[2])
+    def _tensor_images(self, tensor: TensorPrior, depth_maps_m: np.ndarray, sigma_mm: float) -> np.ndarray:
+        """:meth:`images` drawn by ``tensor`` on this prior's device, the same contract."""
         try:
-            maps = checked_depth_maps(self.renderer, depth_maps_m, crop_xz_m)
+            maps = checked_depth_maps(self.renderer, depth_maps_m, self._crop_xz_m)
         except GelSightRenderError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
         if not len(maps):
             return np.empty((0, *self.renderer.config.shape, 3), np.uint8)
-        drawn = self._tensor.images(torch.as_tensor(maps).to(self.device), sigma_mm)
+        drawn = tensor.images(torch.as_tensor(maps).to(self.device), sigma_mm)
         return drawn.to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
 
     def _pressed(self, maps: np.ndarray) -> np.ndarray | slice:
