@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from models.errors import ModelConfigError
-from sim.gelsight import GAP_LIMIT_MM, SPREAD_GRID_PER_SIGMA, GelSightRenderer, camera_pixels_on_map
+from sim.gelsight import GAP_LIMIT_MM, GelSightRenderer, camera_pixels_on_map, spread_coarsening
 
 
 def _gaussian_kernel(sigma_px: float) -> np.ndarray:
@@ -47,10 +47,11 @@ class TensorPrior:
 
     def __init__(self, renderer: GelSightRenderer, crop_xz_m: tuple[float, float], device: str = "cpu") -> None:
         h, w = renderer.config.shape
-        if renderer._work_shape != (h, w) or min(renderer._spread_px) // SPREAD_GRID_PER_SIGMA > 1:
+        grid = renderer.grid
+        if grid.shape != (h, w) or spread_coarsening(grid.spread_px) > 1:
             raise ModelConfigError(
                 f"the tensor prior draws on the image's own grid; this renderer ({h} x {w}) shades "
-                f"on {renderer._work_shape} or spreads on a coarser grid"
+                f"on {grid.shape} or spreads on a coarser grid"
             )
         self.renderer = renderer
         self.device = torch.device(device)
@@ -60,17 +61,15 @@ class TensorPrior:
         def as_tensor(array: np.ndarray) -> torch.Tensor:
             return torch.tensor(np.asarray(array, np.float32), device=self.device)
 
-        self._spread_kernels = [as_tensor(_gaussian_kernel(s)) for s in renderer._spread_px]
-        self._blur_kernels = [as_tensor(_gaussian_kernel(s)) for s in renderer._blur_px]
-        calibration = renderer.calibration
-        n = calibration.n_bins
-        self._n_bins = n
-        self._coeffs = as_tensor(calibration.coeffs.reshape(n * n, 3, 6))
-        self._terms = as_tensor(renderer._terms)  # (pixels, 6)
-        self._flat_colour = as_tensor(renderer._flat_colour)  # (pixels, 3)
-        self._flat_change = as_tensor(renderer._flat_change.reshape(-1, 3))
-        self._background = as_tensor(renderer._background.reshape(-1, 3))
-        self._background_levels = as_tensor(renderer.background().reshape(-1, 3))
+        self._spread_kernels = [as_tensor(_gaussian_kernel(s)) for s in grid.spread_px]
+        self._blur_kernels = [as_tensor(_gaussian_kernel(s)) for s in grid.blur_px]
+        self._n_bins = grid.n_bins
+        self._coeffs = as_tensor(grid.coeffs)
+        self._terms = as_tensor(grid.terms)  # (pixels, 6)
+        self._flat_colour = as_tensor(grid.flat_colour)  # (pixels, 3)
+        self._flat_change = as_tensor(grid.flat_change.reshape(-1, 3))
+        self._background = as_tensor(renderer.background_levels.reshape(-1, 3))
+        self._background_rounded = as_tensor(renderer.background().reshape(-1, 3))
         self._sample_at: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
         self._pose_kernels: dict[float, list[torch.Tensor]] = {}
 
@@ -128,18 +127,18 @@ class TensorPrior:
 
         compression = torch.clamp(depth * float(np.float32(1.0 / config.compression_saturation_mm)), max=1.0)
         change = self._flat_change.view(1, h * w, 3) * compression.view(count, h * w, 1)
-        row_mm, col_mm = self.renderer._work_pitch_mm
+        row_mm, col_mm = self.renderer.grid.pitch_mm
         padded = F.pad(depth, (1, 1, 1, 1), mode="replicate")
         slope_x = (padded[:, :, 1:-1, 2:] - padded[:, :, 1:-1, :-2]) * float(np.float32(0.5 / col_mm))
         slope_y = (padded[:, :, 2:, 1:-1] - padded[:, :, :-2, 1:-1]) * float(np.float32(0.5 / row_mm))
         slope_x, slope_y = slope_x.reshape(count, -1), slope_y.reshape(count, -1)
         magnitude = torch.hypot(slope_x, slope_y)
-        tilted = torch.nonzero(magnitude >= float(self.renderer._tilted_tan), as_tuple=True)
+        tilted = torch.nonzero(magnitude >= float(self.renderer.grid.tilted_tan), as_tuple=True)
         if tilted[0].numel():
             n = self._n_bins
             sx, sy = slope_x[tilted], slope_y[tilted]
-            i_mag = torch.clamp((torch.atan(magnitude[tilted]) / self.renderer._mag_step).long(), max=n - 1)
-            i_dir = torch.clamp(((torch.atan2(sy, sx) + math.pi) / self.renderer._dir_step).long(), max=n - 1)
+            i_mag = torch.clamp((torch.atan(magnitude[tilted]) / self.renderer.grid.mag_step).long(), max=n - 1)
+            i_dir = torch.clamp(((torch.atan2(sy, sx) + math.pi) / self.renderer.grid.dir_step).long(), max=n - 1)
             pixel = tilted[1]
             tilt = torch.einsum("pck,pk->pc", self._coeffs[i_mag * n + i_dir], self._terms[pixel])
             change[tilted] += float(np.float32(config.shading_gain)) * (tilt - self._flat_colour[pixel])
@@ -152,8 +151,8 @@ class TensorPrior:
                     for p in self.renderer.pixel_pitch_mm
                 ]
             kernels = self._pose_kernels[pose_sigma_mm]
-            planes = (image - self._background_levels).view(count, h, w, 3).permute(0, 3, 1, 2)
+            planes = (image - self._background_rounded).view(count, h, w, 3).permute(0, 3, 1, 2)
             change_blurred = self._gaussian(planes.contiguous(), kernels)
-            background = self._background_levels.view(h, w, 3).permute(2, 0, 1)
+            background = self._background_rounded.view(h, w, 3).permute(2, 0, 1)
             return torch.round(background + change_blurred).clamp(0.0, 255.0)
         return image.view(count, h, w, 3).permute(0, 3, 1, 2)

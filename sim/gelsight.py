@@ -165,6 +165,13 @@ def indentation_mm(gel_gap_mm: np.ndarray, max_mm: float) -> np.ndarray:
     return np.clip(-gel_gap_mm, 0.0, max_mm).astype(np.float32)
 
 
+def spread_coarsening(spreading_sigma_px: tuple[float, float]) -> int:
+    """How many times coarser than the image the elastic spread is computed (1: on the image).
+    The spread is smooth on its own length, so on large images it is computed on a grid a few
+    times coarser than that length and interpolated back: the same field, far cheaper."""
+    return max(1, int(min(spreading_sigma_px) // SPREAD_GRID_PER_SIGMA))
+
+
 def gel_surface_depth_mm(
     indentation: np.ndarray, spreading_sigma_px: tuple[float, float], blur_sigma_px: tuple[float, float]
 ) -> np.ndarray:
@@ -175,9 +182,7 @@ def gel_surface_depth_mm(
     Sigmas are in pixels, (along rows, along columns).
     """
     h, w = indentation.shape
-    # The spread is smooth on its own length, so on large images it is computed on a grid a
-    # few times coarser than that length and interpolated back: the same field, far cheaper.
-    coarsening = max(1, int(min(spreading_sigma_px) // SPREAD_GRID_PER_SIGMA))
+    coarsening = spread_coarsening(spreading_sigma_px)
     if coarsening > 1:
         coarse = cv2.resize(
             indentation, (max(1, w // coarsening), max(1, h // coarsening)), interpolation=cv2.INTER_AREA
@@ -195,6 +200,38 @@ def _gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarr
     """Gaussian blur with sigma (along rows, along columns) in pixels; the gel continues
     beyond the image edge as it is at the edge."""
     return cv2.GaussianBlur(image, (0, 0), sigmaX=sigma_px[1], sigmaY=sigma_px[0], borderType=cv2.BORDER_REPLICATE)
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+@dataclasses.dataclass(frozen=True)
+class ShadingGrid:
+    """The working grid a renderer shades on and what it computed once for it, read-only (the
+    arrays too): other drawings of the same images (models.prior_tensor) read it from here.
+
+    ``shape`` (rows, cols) and ``pitch_mm`` (along rows, along columns) of the grid; the elastic
+    spread's and the optical blur's sigmas on it (``spread_px``, ``blur_px``, working pixels);
+    the calibration polynomial's position ``terms`` per pixel (pixels x 6) and its ``coeffs``
+    per slope bin (n_bins² x 3 x 6, magnitude-major); the flat pressed gel's colour
+    (``flat_colour``, pixels x 3) and its full change (``flat_change``, rows x cols x 3, times
+    the shading gain); the slope bins' widths (``mag_step`` rad of atan(slope), ``dir_step`` rad)
+    and ``tilted_tan``, the slope below which a pixel takes the zero-slope bin."""
+
+    shape: tuple[int, int]
+    pitch_mm: tuple[float, float]
+    spread_px: tuple[float, float]
+    blur_px: tuple[float, float]
+    terms: np.ndarray
+    coeffs: np.ndarray
+    n_bins: int
+    flat_colour: np.ndarray
+    flat_change: np.ndarray
+    mag_step: float
+    dir_step: float
+    tilted_tan: np.float32
 
 
 class GelSightRenderer:
@@ -244,26 +281,31 @@ class GelSightRenderer:
         row_mm = config.mm_per_px * (w / h) * (native[0] / native[1])
         self.pixel_pitch_mm = (row_mm, config.mm_per_px)  # along rows, along columns
         coarsening = max(1, int(config.optical_blur_mm / max(self.pixel_pitch_mm) // SHADING_GRID_PER_SIGMA))
-        self._work_shape = (max(3, round(h / coarsening)), max(3, round(w / coarsening)))
-        work_pitch_mm = (row_mm * h / self._work_shape[0], config.mm_per_px * w / self._work_shape[1])
-
-        xx, yy = self._calibration_positions(self._work_shape, work_pitch_mm)
+        work_shape = (max(3, round(h / coarsening)), max(3, round(w / coarsening)))
+        work_pitch_mm = (row_mm * h / work_shape[0], config.mm_per_px * w / work_shape[1])
+        xx, yy = self._calibration_positions(work_shape, work_pitch_mm)
         # The polynomial terms depend only on pixel position: computed once per size.
-        self._terms = np.stack([xx * xx, yy * yy, xx * yy, xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 6)
+        terms = np.stack([xx * xx, yy * yy, xx * yy, xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 6)
         n = self.calibration.n_bins
-        self._coeffs = self.calibration.coeffs.reshape(n * n, 3, 6)
         # Colour change of the flat pressed gel (the zero-slope bin) at each working pixel,
         # (pixels, 3); fully pressed it adds shading_gain times this.
-        self._flat_colour = self._terms @ self.calibration.coeffs[0, 0].T
-        self._flat_change = np.float32(config.shading_gain) * self._flat_colour.reshape(*self._work_shape, 3)
-        self._mag_step = 0.5 * math.pi / n
-        self._dir_step = 2.0 * math.pi / n
-        # Slopes below the first magnitude bin edge use the zero-slope bin: no tilt colour.
-        self._tilted_tan = np.float32(math.tan(self._mag_step))
-        self._work_pitch_mm = work_pitch_mm
-        # Gaussian sigmas in working pixels, (along rows, along columns).
-        self._spread_px = tuple(config.spreading_length_mm / p for p in work_pitch_mm)
-        self._blur_px = tuple(config.optical_blur_mm / p for p in work_pitch_mm)
+        flat_colour = terms @ self.calibration.coeffs[0, 0].T
+        mag_step = 0.5 * math.pi / n
+        self.grid = ShadingGrid(
+            shape=work_shape,
+            pitch_mm=work_pitch_mm,
+            spread_px=(config.spreading_length_mm / work_pitch_mm[0], config.spreading_length_mm / work_pitch_mm[1]),
+            blur_px=(config.optical_blur_mm / work_pitch_mm[0], config.optical_blur_mm / work_pitch_mm[1]),
+            terms=_read_only(terms),
+            coeffs=_read_only(self.calibration.coeffs.reshape(n * n, 3, 6).copy()),
+            n_bins=n,
+            flat_colour=_read_only(flat_colour),
+            flat_change=_read_only(np.float32(config.shading_gain) * flat_colour.reshape(*work_shape, 3)),
+            mag_step=mag_step,
+            dir_step=2.0 * math.pi / n,
+            # Slopes below the first magnitude bin edge use the zero-slope bin: no tilt colour.
+            tilted_tan=np.float32(math.tan(mag_step)),
+        )
 
         smoothed = cv2.GaussianBlur(
             background.astype(np.float32),
@@ -272,7 +314,10 @@ class GelSightRenderer:
             borderType=cv2.BORDER_REPLICATE,
         )
         xx, yy = self._calibration_positions((h, w), self.pixel_pitch_mm)
-        self._background = cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # The no-contact frame at the image's size, float32 levels (``background`` rounds it).
+        self.background_levels = _read_only(
+            cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        )
 
     def _calibration_positions(self, shape: tuple[int, int], pitch_mm: tuple[float, float]):
         """Positions (x column, y row; float32 grids) in the calibration image of the pixel
@@ -286,7 +331,7 @@ class GelSightRenderer:
 
     def background(self) -> np.ndarray:
         """The image of the untouched gel (HxWx3 uint8): what ``render`` gives for nothing there."""
-        return _to_uint8(self._background.copy())
+        return _to_uint8(self.background_levels.copy())
 
     def gel_depth_mm(self, gel_gap_mm: np.ndarray) -> np.ndarray:
         """The deformed gel surface (HxW float32 mm below rest, image size) for a gap map.
@@ -301,7 +346,7 @@ class GelSightRenderer:
         the effects draw from ``rng`` (default: the renderer's own stream)."""
         rng = self.rng if rng is None else rng
         depth = self._work_depth(gel_gap_mm)
-        image = self._background + self._to_image_size(self._colour_change(depth))
+        image = self.background_levels + self._to_image_size(self._colour_change(depth))
         gel_depth = self._to_image_size(depth) if self.effects else None
         for effect in self.effects:
             image = effect.apply(image, gel_depth, self.pixel_pitch_mm, rng)
@@ -310,11 +355,11 @@ class GelSightRenderer:
     def _work_depth(self, gel_gap_mm: np.ndarray) -> np.ndarray:
         """The deformed gel surface on the working grid."""
         indentation = indentation_mm(gel_gap_mm, self.config.elastomer_thickness_mm)
-        h, w = self._work_shape
+        h, w = self.grid.shape
         if indentation.shape != (h, w):
             shrink = indentation.shape[0] > h or indentation.shape[1] > w
             indentation = cv2.resize(indentation, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        return gel_surface_depth_mm(indentation, self._spread_px, self._blur_px)
+        return gel_surface_depth_mm(indentation, self.grid.spread_px, self.grid.blur_px)
 
     def _to_image_size(self, grid: np.ndarray) -> np.ndarray:
         h, w = self.config.shape
@@ -324,26 +369,27 @@ class GelSightRenderer:
 
     def _colour_change(self, depth: np.ndarray) -> np.ndarray:
         """Colour change (float32 levels, working grid x 3) of the gel surface ``depth``."""
+        grid = self.grid
         compression = np.minimum(depth * np.float32(1.0 / self.config.compression_saturation_mm), 1.0)
-        change = self._flat_change * compression[:, :, None]
+        change = grid.flat_change * compression[:, :, None]
         # Slopes are dimensionless (mm per mm), as the calibration's (pixels per pixel);
         # Sobel with ksize 1 is the central difference times 2.
-        row_mm, col_mm = self._work_pitch_mm
+        row_mm, col_mm = grid.pitch_mm
         slope_x = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=1, scale=0.5 / col_mm, borderType=cv2.BORDER_REPLICATE)
         slope_y = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=1, scale=0.5 / row_mm, borderType=cv2.BORDER_REPLICATE)
         # Only tilted pixels need their polynomial; usually the contact is a small part of the gel.
-        tilted = np.flatnonzero(cv2.magnitude(slope_x, slope_y) >= self._tilted_tan)
+        tilted = np.flatnonzero(cv2.magnitude(slope_x, slope_y) >= grid.tilted_tan)
         if tilted.size:
-            n = self.calibration.n_bins
+            n = grid.n_bins
             slope_x, slope_y = slope_x.ravel()[tilted], slope_y.ravel()[tilted]
             magnitude = np.arctan(np.hypot(slope_x, slope_y))
             direction = np.arctan2(slope_y, slope_x)
-            i_mag = np.minimum((magnitude / self._mag_step).astype(np.intp), n - 1)
-            i_dir = np.minimum(((direction + math.pi) / self._dir_step).astype(np.intp), n - 1)
+            i_mag = np.minimum((magnitude / grid.mag_step).astype(np.intp), n - 1)
+            i_dir = np.minimum(((direction + math.pi) / grid.dir_step).astype(np.intp), n - 1)
             # np.take on rows and 1-D element indices: several times faster than 2-D fancy indexing.
-            coeffs = np.take(self._coeffs, i_mag * n + i_dir, axis=0)  # (tilted, 3, 6)
-            tilt_colour = np.einsum("pck,pk->pc", coeffs, np.take(self._terms, tilted, axis=0))
-            tilt_change = tilt_colour - np.take(self._flat_colour, tilted, axis=0)
+            coeffs = np.take(grid.coeffs, i_mag * n + i_dir, axis=0)  # (tilted, 3, 6)
+            tilt_colour = np.einsum("pck,pk->pc", coeffs, np.take(grid.terms, tilted, axis=0))
+            tilt_change = tilt_colour - np.take(grid.flat_colour, tilted, axis=0)
             elements = (tilted[:, None] * 3 + np.arange(3)).ravel()
             change.reshape(-1)[elements] += np.float32(self.config.shading_gain) * tilt_change.ravel()
         return change

@@ -53,17 +53,17 @@ def near_a_bin_edge(prior: PhysicsPrior, depth_map_m: np.ndarray) -> np.ndarray:
     map_u, map_v = camera_pixels_on_map(renderer, depth_map_m.shape, (CROP_M[0], CROP_M[2]))
     gap_mm = np.clip(np.nan_to_num(depth_map_m, nan=np.inf), -1.0, 1.0).astype(np.float32) * np.float32(1e3)
     depth = renderer._work_depth(cv2.remap(gap_mm, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
-    row_mm, col_mm = renderer._work_pitch_mm
+    row_mm, col_mm = renderer.grid.pitch_mm
     slope_x = cv2.Sobel(depth, cv2.CV_64F, 1, 0, ksize=1, scale=0.5 / col_mm, borderType=cv2.BORDER_REPLICATE)
     slope_y = cv2.Sobel(depth, cv2.CV_64F, 0, 1, ksize=1, scale=0.5 / row_mm, borderType=cv2.BORDER_REPLICATE)
     magnitude = np.hypot(slope_x, slope_y)
-    near = np.abs(magnitude - renderer._tilted_tan) < SLOPE_ROUNDING
+    near = np.abs(magnitude - renderer.grid.tilted_tan) < SLOPE_ROUNDING
     # Each bin position with how far the slope's rounding can move it, in bins.
     for position, rounding in (
-        (np.arctan(magnitude) / renderer._mag_step, SLOPE_ROUNDING / (1 + magnitude**2) / renderer._mag_step),
+        (np.arctan(magnitude) / renderer.grid.mag_step, SLOPE_ROUNDING / (1 + magnitude**2) / renderer.grid.mag_step),
         (
-            (np.arctan2(slope_y, slope_x) + np.pi) / renderer._dir_step,
-            SLOPE_ROUNDING / np.maximum(magnitude, 1e-12) / renderer._dir_step,
+            (np.arctan2(slope_y, slope_x) + np.pi) / renderer.grid.dir_step,
+            SLOPE_ROUNDING / np.maximum(magnitude, 1e-12) / renderer.grid.dir_step,
         ),
     ):
         near |= np.abs(position - np.rint(position)) < rounding
