@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 from scipy.spatial import cKDTree
 
 import msgs
@@ -277,10 +278,7 @@ def calibrate_touches(
     levelling, views = {}, {}
     for frame_id, camera_frames in sorted(frames.items()):
         levelling[frame_id], views[frame_id] = _camera_views(camera_frames[-3:], scene, predicted)
-    models = {}
-    for name in predicted:
-        model = sample_model_cloud(scene.mesh(name), _MESH_SPACING_M, seed=0)
-        models[name] = (model.points_m, model.normals)
+    models = {name: o3d.io.read_triangle_mesh(scene.mesh(name)) for name in predicted}
     renderer = _TouchRenderer(reader, scene)
     for _ in range(rounds):
         touches, no_contact = measure_session_touches(renderer, train, predicted)

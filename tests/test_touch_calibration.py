@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -106,6 +107,12 @@ def _box_model(size_m: tuple[float, float, float], spacing_m: float = 0.003) -> 
     return np.concatenate(points), np.concatenate(normals)
 
 
+def _box_mesh(size_m: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
+    """The box of :func:`_box_model` as a mesh, what ``solve_cell`` measures camera points against."""
+    sx, sy, sz = size_m
+    return o3d.geometry.TriangleMesh.create_box(sx, sy, sz).translate((-sx / 2, -sy / 2, 0.0))
+
+
 def _touches_on(
     model: tuple[np.ndarray, np.ndarray], truth: np.ndarray, predicted: np.ndarray, rng: np.random.Generator
 ) -> list[TouchOffset]:
@@ -141,7 +148,8 @@ def test_the_cell_fit_recovers_each_cameras_place_and_turn(
     """Two cameras see two boxes, each camera displaced on the table; the boxes were registered
     from both, so each sits between the two errors. The fit finds every camera's correction."""
     rng = np.random.default_rng(2)
-    models = {"a": _box_model((0.06, 0.04, 0.1)), "b": _box_model((0.05, 0.08, 0.06))}
+    sizes = {"a": (0.06, 0.04, 0.1), "b": (0.05, 0.08, 0.06)}
+    models = {o: _box_model(size) for o, size in sizes.items()}
     truth = {"a": planar_transform(0.3, -150.0, 20.0), "b": planar_transform(-0.5, 160.0, -30.0)}
     camera_error = {
         "left": planar_transform(np.radians(left_deg), *left_mm),
@@ -162,7 +170,7 @@ def test_the_cell_fit_recovers_each_cameras_place_and_turn(
             world = seen @ truth[o][:3, :3].T + truth[o][:3, 3]
             views[camera][o] = world @ error[:3, :3].T + error[:3, 3] + rng.normal(0, 0.0005, world.shape)
     touches = {o: _touches_on(models[o], truth[o], predicted[o], rng) for o in truth}
-    cell = solve_cell(touches, predicted, views, models)
+    cell = solve_cell(touches, predicted, views, {o: _box_mesh(size) for o, size in sizes.items()})
     for camera, error in camera_error.items():
         found = cell.cameras[camera] @ error  # the fit undoes the camera's error
         assert np.linalg.norm(found[:2, 3]) * 1e3 < 0.1, camera
@@ -304,7 +312,8 @@ def test_the_report_is_strict_json_with_and_without_the_truth() -> None:
     error = planar_transform(np.radians(0.04), 1.0, -1.5)
     seen = models["a"][0] @ truth["a"][:3, :3].T + truth["a"][:3, 3]
     views = {"camera_left": {"a": seen @ error[:3, :3].T + error[:3, 3]}, "camera_right": {"a": np.zeros((0, 3))}}
-    cell = solve_cell({"a": _touches_on(models["a"], truth["a"], truth["a"], rng)}, truth, views, models)
+    touches = {"a": _touches_on(models["a"], truth["a"], truth["a"], rng)}
+    cell = solve_cell(touches, truth, views, {"a": _box_mesh((0.06, 0.04, 0.1))})
     corrections = {c: cell.cameras[c] for c in views}
     calibrated = {c: DepthImage(camera_to_world=corrections[c]) for c in views}
     result = TouchCalibration(cell, corrections, calibrated, {"a": 60}, 3)
