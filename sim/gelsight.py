@@ -202,36 +202,23 @@ def _gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarr
     return cv2.GaussianBlur(image, (0, 0), sigmaX=sigma_px[1], sigmaY=sigma_px[0], borderType=cv2.BORDER_REPLICATE)
 
 
-def _read_only(array: np.ndarray) -> np.ndarray:
-    array.flags.writeable = False
-    return array
-
-
 @dataclasses.dataclass(frozen=True)
 class ShadingGrid:
     """The working grid a renderer shades on and what it computed once for it, read-only (the
-    arrays too): other drawings of the same images (models.prior_tensor) read it from here.
+    arrays too): other drawings of the same images (models.prior_tensor) read it from here."""
 
-    ``shape`` (rows, cols) and ``pitch_mm`` (along rows, along columns) of the grid; the elastic
-    spread's and the optical blur's sigmas on it (``spread_px``, ``blur_px``, working pixels);
-    the calibration polynomial's position ``terms`` per pixel (pixels x 6) and its ``coeffs``
-    per slope bin (n_bins² x 3 x 6, magnitude-major); the flat pressed gel's colour
-    (``flat_colour``, pixels x 3) and its full change (``flat_change``, rows x cols x 3, times
-    the shading gain); the slope bins' widths (``mag_step`` rad of atan(slope), ``dir_step`` rad)
-    and ``tilted_tan``, the slope below which a pixel takes the zero-slope bin."""
-
-    shape: tuple[int, int]
-    pitch_mm: tuple[float, float]
-    spread_px: tuple[float, float]
-    blur_px: tuple[float, float]
-    terms: np.ndarray
-    coeffs: np.ndarray
+    shape: tuple[int, int]  # rows, cols
+    pitch_mm: tuple[float, float]  # along rows, along columns
+    spread_px: tuple[float, float]  # the elastic spread's sigma, working pixels
+    blur_px: tuple[float, float]  # the optical blur's sigma, working pixels
+    terms: np.ndarray  # the calibration polynomial's position terms, pixels x 6
+    coeffs: np.ndarray  # its coefficients per slope bin, n_bins² x 3 x 6, magnitude-major
     n_bins: int
-    flat_colour: np.ndarray
-    flat_change: np.ndarray
-    mag_step: float
-    dir_step: float
-    tilted_tan: np.float32
+    flat_colour: np.ndarray  # the flat pressed gel's colour (the zero-slope bin), pixels x 3
+    flat_change: np.ndarray  # its full colour change, times the shading gain: rows x cols x 3
+    mag_step: float  # a magnitude bin's width, rad of atan(slope)
+    dir_step: float  # a direction bin's width, rad
+    tilted_tan: np.float32  # below this slope a pixel takes the zero-slope bin: no tilt colour
 
 
 class GelSightRenderer:
@@ -282,30 +269,7 @@ class GelSightRenderer:
         self.pixel_pitch_mm = (row_mm, config.mm_per_px)  # along rows, along columns
         coarsening = max(1, int(config.optical_blur_mm / max(self.pixel_pitch_mm) // SHADING_GRID_PER_SIGMA))
         work_shape = (max(3, round(h / coarsening)), max(3, round(w / coarsening)))
-        work_pitch_mm = (row_mm * h / work_shape[0], config.mm_per_px * w / work_shape[1])
-        xx, yy = self._calibration_positions(work_shape, work_pitch_mm)
-        # The polynomial terms depend only on pixel position: computed once per size.
-        terms = np.stack([xx * xx, yy * yy, xx * yy, xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 6)
-        n = self.calibration.n_bins
-        # Colour change of the flat pressed gel (the zero-slope bin) at each working pixel,
-        # (pixels, 3); fully pressed it adds shading_gain times this.
-        flat_colour = terms @ self.calibration.coeffs[0, 0].T
-        mag_step = 0.5 * math.pi / n
-        self.grid = ShadingGrid(
-            shape=work_shape,
-            pitch_mm=work_pitch_mm,
-            spread_px=(config.spreading_length_mm / work_pitch_mm[0], config.spreading_length_mm / work_pitch_mm[1]),
-            blur_px=(config.optical_blur_mm / work_pitch_mm[0], config.optical_blur_mm / work_pitch_mm[1]),
-            terms=_read_only(terms),
-            coeffs=_read_only(self.calibration.coeffs.reshape(n * n, 3, 6).copy()),
-            n_bins=n,
-            flat_colour=_read_only(flat_colour),
-            flat_change=_read_only(np.float32(config.shading_gain) * flat_colour.reshape(*work_shape, 3)),
-            mag_step=mag_step,
-            dir_step=2.0 * math.pi / n,
-            # Slopes below the first magnitude bin edge use the zero-slope bin: no tilt colour.
-            tilted_tan=np.float32(math.tan(mag_step)),
-        )
+        self.grid = self._shading_grid(work_shape, (row_mm * h / work_shape[0], config.mm_per_px * w / work_shape[1]))
 
         smoothed = cv2.GaussianBlur(
             background.astype(np.float32),
@@ -315,9 +279,34 @@ class GelSightRenderer:
         )
         xx, yy = self._calibration_positions((h, w), self.pixel_pitch_mm)
         # The no-contact frame at the image's size, float32 levels (``background`` rounds it).
-        self.background_levels = _read_only(
-            cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        self.background_levels = cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        self.background_levels.flags.writeable = False
+
+    def _shading_grid(self, shape: tuple[int, int], pitch_mm: tuple[float, float]) -> ShadingGrid:
+        config, n = self.config, self.calibration.n_bins
+        xx, yy = self._calibration_positions(shape, pitch_mm)
+        # The polynomial terms depend only on pixel position: computed once per size.
+        terms = np.stack([xx * xx, yy * yy, xx * yy, xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 6)
+        # The flat pressed gel's colour at each working pixel: fully pressed it adds shading_gain times this.
+        flat_colour = terms @ self.calibration.coeffs[0, 0].T
+        mag_step = 0.5 * math.pi / n
+        grid = ShadingGrid(
+            shape=shape,
+            pitch_mm=pitch_mm,
+            spread_px=(config.spreading_length_mm / pitch_mm[0], config.spreading_length_mm / pitch_mm[1]),
+            blur_px=(config.optical_blur_mm / pitch_mm[0], config.optical_blur_mm / pitch_mm[1]),
+            terms=terms,
+            coeffs=self.calibration.coeffs.reshape(n * n, 3, 6).copy(),
+            n_bins=n,
+            flat_colour=flat_colour,
+            flat_change=np.float32(config.shading_gain) * flat_colour.reshape(*shape, 3),
+            mag_step=mag_step,
+            dir_step=2.0 * math.pi / n,
+            tilted_tan=np.float32(math.tan(mag_step)),
         )
+        for array in (grid.terms, grid.coeffs, grid.flat_colour, grid.flat_change):
+            array.flags.writeable = False
+        return grid
 
     def _calibration_positions(self, shape: tuple[int, int], pitch_mm: tuple[float, float]):
         """Positions (x column, y row; float32 grids) in the calibration image of the pixel
