@@ -173,13 +173,13 @@ def solve_cell(
 
     ``touches[o]`` are object o's offsets measured against ``predicted[o]`` (its pose, 4 x 4);
     ``views[c][o]`` camera c's (table-levelled) points of object o (N x 3 m); ``models[o]`` its
-    mesh (model frame, m). Unknowns: a planar correction (yaw, x, y)
-    per camera and per object. Residuals: each touch's offset against the object's move in the
-    gel plane, and each camera point's distance along the surface normal to the closest point of
-    the model's mesh, both robustly weighted (Cauchy for touches, Tukey for points, each scaled by its own
-    median). A camera alone sees an object from one side (a box's face pins one direction); the
-    touches see it from every side they touched; together they pin every camera and object,
-    and the touches tie them to the arm's frame."""
+    mesh (model frame, m). Unknowns: a planar correction (yaw, x, y) per camera and per object.
+    Residuals: each touch's offset against the object's move in the gel plane, and each camera
+    point's distance to the closest point of the object's mesh along that point's normal, both
+    robustly weighted (Cauchy for touches, Tukey for points, each scaled by its own median). A
+    camera alone sees an object from one side (a box's face pins one direction); the touches see
+    it from every side they touched; together they pin every camera and object, and the touches
+    tie them to the arm's frame."""
     cell = _Cell(touches, predicted, views, models)
     state = np.zeros(cell.unknowns)
     # A weak prior (the registration's few millimetres and a degree) holds what nothing pins:
