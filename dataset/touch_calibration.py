@@ -72,6 +72,7 @@ MAX_TOUCHES_PER_OBJECT = 150
 # _OBJECT_REACH_M of a registered object (and above the table band) are its view of it.
 _TABLE_BAND_M = 0.006
 _OBJECT_REACH_M = 0.01
+# The model cloud that reach is measured to (the joint fit measures to the mesh itself).
 _MESH_SPACING_M = 0.002
 
 

@@ -36,11 +36,11 @@ Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), `
 (models.runtime.int8_convolutions), with onnxrt on the CPU only), ``device`` (cpu | cuda | auto:
 ONNX Runtime's CUDA provider or eager PyTorch on the GPU, the physics prior drawn there too
 (models.prior_tensor); auto takes CUDA where the runtime has it; cuda without it: the node does
-not start, its status the code ``cuda_unavailable`` and the reason on /log), ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts
-drawn as its calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
-``max_regions``, ``max_points``,
-``max_batch``, ``batch_window_ms``, ``max_dropout_samples``, ``max_sampled_regions``,
-``max_point_visits`` (cloud points near the gels, summed over regions: the work of cutting the
+not start, its status the code ``cuda_unavailable`` and the reason on /log),
+``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts drawn as its
+calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
+``max_regions``, ``max_points``, ``max_batch``, ``batch_window_ms``, ``max_dropout_samples``,
+``max_sampled_regions``, ``max_point_visits`` (cloud points near the gels, summed over regions: the work of cutting the
 depth-maps), ``index_cache``,
 ``scene`` (gripper geometry for the points path), ``margin_m`` (crop margin, as the patch
 extractor's).
