@@ -59,9 +59,11 @@ def _library(args: argparse.Namespace) -> int:
 
 @exit_1_on(DatasetError, PerceptionError, OSError)
 def _redepth(args: argparse.Namespace) -> int:
-    from dataset.redepth import density_dirs, redepth_dataset
+    from pathlib import Path
 
-    targets: dict[float | None, object] = dict(density_dirs(args.dir, args.density)) if args.density else {}
+    from dataset.redepth import density_dirs, redepth_datasets
+
+    targets: dict[float | None, str | Path] = dict(density_dirs(args.dir, args.density)) if args.density else {}
     if args.out:
         if len(args.density) > 1:
             print("error: --out takes one density; leave it out to get DIR_density_D for each", file=sys.stderr)
@@ -78,10 +80,11 @@ def _redepth(args: argparse.Namespace) -> int:
         from dataset.touch_calibration import calibrated_frames, register_again
 
         registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration))
-    for density, out in targets.items():
-        writer = redepth_dataset(args.dir, out, density, args.bins, registered=registered)
+    for density, writer in redepth_datasets(
+        args.dir, targets, args.bins, registered=registered, jobs=args.jobs
+    ).items():
         print(
-            f"{out}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
+            f"{writer.root}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
             + ("" if args.bins is None else f", {args.bins} x {args.bins} bins")
         )
     return 0
@@ -173,5 +176,11 @@ def _add_redepth(commands: argparse._SubParsersAction) -> None:
         "--calibration",
         help="a calibration directory (dtx calibrate touches): the objects are registered again from the "
         "session's camera frames with its extrinsics before the maps are cut",
+    )
+    redepth.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="processes to share the densities out among (default 1; one per core is fastest)",
     )
     redepth.set_defaults(func=_redepth)

@@ -13,14 +13,18 @@ ids are kept, so the splits are the same and one checkpoint evaluates every vari
 from __future__ import annotations
 
 import dataclasses
+import functools
+import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from dataset.images import resize_rgb
 from dataset.reader import DatasetReader
-from dataset.records import FINGERS, DatasetError, DatasetInfo, SampleRecord
+from dataset.records import FINGERS, DatasetError, DatasetInfo, Sample, SampleRecord
 from dataset.writer import DatasetWriter
 from msgs.progress import track
 from perception.density import downsample_to_density
@@ -62,11 +66,32 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
 
 
 def model_cloud(scene: Scene, object_name: str, points_per_cm3: float | None = None) -> np.ndarray:
-    """The patch extractor's model cloud of one object (N x 3, model frame, m):
+    """The patch extractor's model cloud of one object (N x 3, model frame, m, read-only):
     MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED, voxel-thinned to ``points_per_cm3``
     unless None. Raises SceneError for an object the scene does not have."""
-    cloud = sample_model_cloud(scene.mesh(object_name), MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
-    return cloud if points_per_cm3 is None else downsample_to_density(cloud, points_per_cm3)
+    return _model_cloud(scene.mesh(object_name), points_per_cm3)
+
+
+def model_index(scene: Scene, object_name: str, points_per_cm3: float | None = None) -> VoxelIndex:
+    """:func:`model_cloud` indexed as the patch extractor indexes it."""
+    return _model_index(scene.mesh(object_name), points_per_cm3)
+
+
+# Sampling a mesh and indexing the cloud take seconds: once per process, for the centring, the
+# full-density maps and every density thinned from the same cloud.
+@functools.lru_cache(maxsize=32)
+def _model_cloud(mesh_path: str, points_per_cm3: float | None) -> np.ndarray:
+    if points_per_cm3 is None:
+        cloud = sample_model_cloud(mesh_path, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED).points_m
+    else:
+        cloud = downsample_to_density(_model_cloud(mesh_path, None), points_per_cm3)
+    cloud.setflags(write=False)
+    return cloud
+
+
+@functools.lru_cache(maxsize=32)
+def _model_index(mesh_path: str, points_per_cm3: float | None) -> VoxelIndex:
+    return VoxelIndex(_model_cloud(mesh_path, points_per_cm3))
 
 
 def depth_map_again(
@@ -95,54 +120,97 @@ def redepth_dataset(
     progress: bool = True,
     registered: dict[str, np.ndarray] | None = None,
 ) -> DatasetWriter:
-    """Write ``out``: ``source`` with every depth-map made again from the model cloud
-    (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED), voxel-thinned to
-    ``points_per_cm3`` unless None, over ``bins`` x ``bins`` bins of the same crop unless None
-    (the source's bins). A map whose thinned cloud leaves the crop empty holds y_far everywhere
-    ("nothing within reach"), as an empty bin does.
+    """:func:`redepth_datasets` with one target: ``out`` at ``points_per_cm3``."""
+    return redepth_datasets(source, {points_per_cm3: out}, bins, progress, registered)[points_per_cm3]
+
+
+def redepth_datasets(
+    source: str | os.PathLike[str],
+    targets: dict[float | None, str | os.PathLike[str]],
+    bins: int | None = None,
+    progress: bool = True,
+    registered: dict[str, np.ndarray] | None = None,
+    jobs: int = 1,
+) -> dict[float | None, DatasetWriter]:
+    """Write each target directory: ``source`` with every depth-map made again from the model
+    cloud (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED),
+    voxel-thinned to the target's points/cm³ unless None, over ``bins`` x ``bins`` bins of the
+    same crop unless None (the source's bins). One pass over ``source``: each sample is read
+    once for every target. A map whose thinned cloud leaves the crop empty holds y_far
+    everywhere ("nothing within reach"), as an empty bin does. A target that already holds
+    samples is resumed.
 
     ``registered`` (object name -> model_to_world, e.g. registered again with a corrected
     calibration, ``dataset.touch_calibration.register_again``) moves each model there first,
     centred between its grasp's two gels as the patch extractor centres it; the samples must
-    record their gels' poses."""
+    record their gels' poses.
+
+    ``jobs`` > 1 shares the targets out among that many processes, each making one pass."""
+    if not (isinstance(jobs, int) and jobs >= 1):
+        raise DatasetError(f"jobs must be a whole number >= 1, got {jobs!r}")
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
     params, info = _with_bins(params, reader.info, bins)
+    if jobs > 1 and len(targets) > 1:
+        _share_out(source, targets, bins, progress, registered, jobs)
+        return {density: DatasetWriter(out, info) for density, out in targets.items()}
     geometry = scene.gripper_geometry()
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
     poses = poses_at(reader.records, registered, scene, params) if registered is not None else {}
-    writer = DatasetWriter(out, info)
-    clouds: dict[str, VoxelIndex] = {}
-    density = f"{points_per_cm3:g} points/cm³" if points_per_cm3 else "full density"
-    for record in track(reader.records, f"depth-maps at {density}", "samples", enabled=progress):
-        if record.sample_id in writer:  # resumed
+    writers = {density: DatasetWriter(out, info) for density, out in targets.items()}
+    densities = ", ".join("full density" if d is None else f"{d:g} points/cm³" for d in writers)
+    for record in track(reader.records, f"depth-maps at {densities}", "samples", enabled=progress):
+        pending = {d: w for d, w in writers.items() if record.sample_id not in w}  # resumed
+        if not pending:
             continue
-        if record.object_name not in clouds:
-            try:
-                clouds[record.object_name] = VoxelIndex(model_cloud(scene, record.object_name, points_per_cm3))
-            except SceneError as err:
-                raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
         sample = reader.load(record)
         model_to_gel, model_to_world = poses.get(record.sample_id, (record.model_to_gel, record.model_to_world))
-        depth = depth_map_again(clouds[record.object_name], np.array(model_to_gel), geometry, params)
-        writer.write(
-            sample_id=record.sample_id,
-            object_name=record.object_name,
-            grasp_id=record.grasp_id,
-            finger=record.finger,
-            grasp_pose=record.grasp_pose,
-            tactile_rgb=resize_rgb(sample.tactile_rgb, *params.shape),
-            tactile_diff_rgb=resize_rgb(sample.tactile_diff_rgb, *params.shape),
-            depth_map_m=depth,
-            registration_fitness=record.registration_fitness,
-            stamps_ns=record.stamps_ns,
-            model_to_gel=np.array(model_to_gel),
-            gel_to_world=None if record.gel_to_world is None else np.array(record.gel_to_world),
-            model_to_world=None if model_to_world is None else np.array(model_to_world),
-        )
-    return writer
+        fields = _kept_fields(sample, params.shape, model_to_gel, model_to_world)
+        for density, writer in pending.items():
+            try:
+                model = model_index(scene, record.object_name, density)
+            except SceneError as err:
+                raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
+            writer.write(depth_map_m=depth_map_again(model, np.array(model_to_gel), geometry, params), **fields)
+    return writers
+
+
+def _share_out(
+    source: str | os.PathLike[str],
+    targets: dict[float | None, str | os.PathLike[str]],
+    bins: int | None,
+    progress: bool,
+    registered: dict[str, np.ndarray] | None,
+    jobs: int,
+) -> None:
+    """:func:`redepth_datasets` of every ``jobs``-th target in each of ``jobs`` processes."""
+    workers = min(jobs, len(targets))
+    shares = [dict(list(targets.items())[i::workers]) for i in range(workers)]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for done in [pool.submit(redepth_datasets, source, share, bins, progress, registered) for share in shares]:
+            done.result()
+
+
+def _kept_fields(sample: Sample, shape: tuple[int, int], model_to_gel: Any, model_to_world: Any) -> dict[str, Any]:
+    """A sample's fields as a redepth writes them, all but its depth-map: its tactile images
+    resized to ``shape`` (rows, cols) when that differs, its model at the poses given."""
+    record = sample.record
+    return dict(
+        sample_id=record.sample_id,
+        object_name=record.object_name,
+        grasp_id=record.grasp_id,
+        finger=record.finger,
+        grasp_pose=record.grasp_pose,
+        tactile_rgb=resize_rgb(sample.tactile_rgb, *shape),
+        tactile_diff_rgb=resize_rgb(sample.tactile_diff_rgb, *shape),
+        registration_fitness=record.registration_fitness,
+        stamps_ns=record.stamps_ns,
+        model_to_gel=np.array(model_to_gel),
+        gel_to_world=None if record.gel_to_world is None else np.array(record.gel_to_world),
+        model_to_world=None if model_to_world is None else np.array(model_to_world),
+    )
 
 
 def _with_bins(params: DepthMapParams, info: DatasetInfo, bins: int | None) -> tuple[DepthMapParams, DatasetInfo]:
@@ -170,20 +238,20 @@ def poses_at(
         gels.setdefault(record.grasp_key, {})[record.finger] = np.array(record.gel_to_world)
     geometry = scene.gripper_geometry()
     reach = crop_reach_m(geometry, params)
-    dense = {name: VoxelIndex(model_cloud(scene, name)) for name in registered}
+    centred: dict[str, np.ndarray] = {}  # by grasp: its two fingers share one centring
     poses = {}
     for record in records:
         pair, model_to_world = gels[record.grasp_key], registered[record.object_name]
         if set(pair) != set(FINGERS):
             raise DatasetError(f"grasp {record.grasp_key} lacks a finger's sample: it cannot be centred again")
-        near = [
-            dense[record.object_name].within(
-                transform_points(gel[:3, 3][None], np.linalg.inv(model_to_world))[0], reach
+        if record.grasp_key not in centred:
+            dense = model_index(scene, record.object_name)
+            world_to_model = np.linalg.inv(model_to_world)
+            near = [dense.within(transform_points(gel[:3, 3][None], world_to_model)[0], reach) for gel in pair.values()]
+            centred[record.grasp_key] = centre_between_gels(
+                np.concatenate(near), model_to_world, pair["left"], pair["right"], geometry
             )
-            for gel in pair.values()
-        ]
-        centred = centre_between_gels(np.concatenate(near), model_to_world, pair["left"], pair["right"], geometry)
-        poses[record.sample_id] = (np.linalg.inv(pair[record.finger]) @ centred, model_to_world)
+        poses[record.sample_id] = (np.linalg.inv(pair[record.finger]) @ centred[record.grasp_key], model_to_world)
     return poses
 
 

@@ -30,11 +30,11 @@ from scipy.spatial import cKDTree
 import msgs
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError, SampleRecord
-from dataset.redepth import depth_map_again, depth_map_params, model_cloud
+from dataset.redepth import depth_map_again, depth_map_params, model_index
 from dataset.splits import split_records
 from drivers.depth_camera.base import DepthCameraError, load_calibration_of
 from nodes.bag import BagError, iter_envelopes
-from perception.pointcloud import VoxelIndex, depth_images_to_world, depth_to_points_camera, transform_points
+from perception.pointcloud import depth_images_to_world, depth_to_points_camera, transform_points
 from perception.registration import prepare_model, register_model, sample_model_cloud
 from perception.segmentation import crop_to_workspace, segment_object, segmentation_params_for
 from perception.touch_calibration import (
@@ -127,7 +127,6 @@ class _TouchRenderer:
         self.params, _ = depth_map_params(reader)
         self.geometry = scene.gripper_geometry()
         self.scene = scene
-        self.clouds: dict[str, VoxelIndex] = {}
         self.renderer = scene_renderer(scene, size=self.params.shape, effects=False)
         self.background = self.renderer.background().astype(np.float32)
         crop = reader.info.depth_crop_m
@@ -156,15 +155,15 @@ class _TouchRenderer:
         pose; None where the frame shows no contact."""
         cuts, frames = [], []
         for record in records:
-            if record.object_name not in self.clouds:
-                self.clouds[record.object_name] = VoxelIndex(model_cloud(self.scene, record.object_name))
             gel_to_world = np.array(record.gel_to_world)
             moved = np.linalg.inv(gel_to_world) @ correction_world @ gel_to_world
             # The cut is centred between the gels (where the grasp pushed the object): a
             # correction moves it in the gel plane only, never across the gels.
             moved[1, 3] = 0.0
             model_to_gel = moved @ np.array(record.model_to_gel)
-            cuts.append(depth_map_again(self.clouds[record.object_name], model_to_gel, self.geometry, self.params))
+            cuts.append(
+                depth_map_again(model_index(self.scene, record.object_name), model_to_gel, self.geometry, self.params)
+            )
             frames.append(self.reader.load(record).tactile_diff_rgb.astype(np.float32) - 128.0)
         measured = np.stack(frames)
         centres = np.zeros((len(records), 3))

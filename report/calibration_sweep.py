@@ -13,11 +13,10 @@ import numpy as np
 
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
-from dataset.redepth import depth_map_again, depth_map_params, model_cloud, poses_at
+from dataset.redepth import depth_map_again, depth_map_params, model_index, poses_at
 from dataset.splits import split_records
 from dataset.touch_calibration import calibrate_touches, register_again, registration_frames, scene_camera_truth
 from models.evaluate import ssim_statistics
-from perception.pointcloud import VoxelIndex
 from perception.touch_calibration import TouchCalibrationError, pose_error
 from report.ceiling import depth_map_images
 from report.specs import Point, point
@@ -47,7 +46,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
     available = len({r.grasp_key for r in split_records(reader.records, reader.info.split_seed)["train"]})
     test = ws.session_test
     params, scene = depth_map_params(reader)
-    clouds = {name: VoxelIndex(model_cloud(scene, name)) for name in sorted({r.object_name for r in test.records})}
+    clouds = {name: model_index(scene, name) for name in sorted({r.object_name for r in test.records})}
     recorded = np.stack([reader.load(r).depth_map_m for r in test.records])
     before = [pose_error(np.asarray(world), truth[frame]) for frame, world in _given_extrinsics(ws.session).items()]
     points = [

@@ -22,7 +22,7 @@ from dataset.check import check_dataset, content_checksum
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError
-from dataset.redepth import redepth_dataset
+from dataset.redepth import redepth_dataset, redepth_datasets
 from dataset.synth import write_synthetic_dataset
 from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS
@@ -200,6 +200,14 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> 
     assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [
         r.sample_id for r in collected.records
     ]
+    # Both densities in one pass each, shared out between two processes: the same files.
+    shared = redepth_datasets(
+        tmp_path / "collected", {None: tmp_path / "shared_full", 10.0: tmp_path / "shared_10"}, progress=False, jobs=2
+    )
+    for density, alone in ((None, again), (10.0, sparse)):
+        assert tree_digest(shared[density].root) == tree_digest(alone.root), density
+    with pytest.raises(DatasetError, match="jobs must be"):
+        redepth_datasets(tmp_path / "collected", {10.0: tmp_path / "nojobs"}, progress=False, jobs=0)
     coarse = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "coarse", bins=50, progress=False).root)
     assert (coarse.info.image_height, coarse.info.image_width) == (50, 50)
     for record in collected.records:
