@@ -3,7 +3,9 @@
 Each effect is a small dataclass with physical parameters and one method,
 ``apply(image, gel_depth_mm, pixel_pitch_mm, rng) -> image``, called by the renderer on the
 noise-free float32 RGB image (0..255 scale, before rounding) in the order given. An effect
-that is not passed to the renderer is never called, so it costs nothing.
+that is not passed to the renderer is never called, so it costs nothing. ``carries_state``
+says whether an effect's image depends on the frames before it (lighting drift), not only on
+its arguments: a simulated sensor may show the same gap's frame again only without one.
 
 ``gel_depth_mm`` is the deformed gel surface (HxW, mm pushed in from rest, >= 0) and
 ``pixel_pitch_mm`` the image's pixel pitch on the gel (along rows, along columns), so effects
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import numpy as np
 
@@ -48,6 +51,7 @@ class SensorNoise:
     """Camera read noise: independent Gaussian noise per pixel and channel."""
 
     sigma_levels: float = 1.5  # standard deviation in 8-bit levels
+    carries_state: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         _finite_in("sensor_noise.sigma_levels", self.sigma_levels, 0.0, 50.0, "levels")
@@ -73,6 +77,7 @@ class Markers:
     dot_radius_mm: float = 0.2
     darkness: float = 0.7  # fraction of light a dot absorbs
     lateral_shift_per_slope_mm: float = 0.3
+    carries_state: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         _finite_in("markers.pitch_mm", self.pitch_mm, 0.1, 20.0, "mm")
@@ -115,6 +120,7 @@ class LightingDrift:
 
     step_fraction: float = 0.002
     max_fraction: float = 0.05
+    carries_state: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         _finite_in("lighting_drift.step_fraction", self.step_fraction, 0.0, 0.1, "")

@@ -115,6 +115,22 @@ def test_gelsight_native_and_large_size() -> None:
     assert msg.mm_per_px == pytest.approx(0.1245 / 4)
 
 
+def test_a_still_gel_shows_the_frame_its_gap_draws() -> None:
+    """The demo scene's GelSight effects carry no state: every frame of a still gel is the one
+    the renderer draws for its gap with the gap's own generator, shown again, not re-drawn."""
+    from sim.seeding import state_rng
+
+    gs = SimulatedGelSight(SimulatedGelSightConfig(scene="scenes/ycb_three.yaml", sensor="left", pace=False))
+    gs.connect()
+    assert gs.renderer is not None and gs.world is not None
+    untouched = np.full(gs.size, np.inf, np.float32)
+    first, second = gs.read().image, gs.read().image
+    np.testing.assert_array_equal(first, second)
+    np.testing.assert_array_equal(first, gs.renderer.render(untouched, state_rng(untouched, gs.world.seed, 11, 0)))
+    first[...] = 0  # a consumer's copy: the next frame is untouched by it
+    np.testing.assert_array_equal(gs.read().image, second)
+
+
 def test_gelsight_effects_from_scene_are_seeded() -> None:
     def frames(seed: int) -> list[np.ndarray]:
         gs = SimulatedGelSight(SimulatedGelSightConfig(scene="scenes/effects_gelsight.yaml", seed=seed, pace=False))

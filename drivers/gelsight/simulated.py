@@ -70,6 +70,10 @@ class SimulatedGelSight(GelSight):
         self._seq = 0
         self._next_t = 0.0
         self._known_until_ns: int | None = None  # the sensor knows the robot up to this time
+        # The last frame drawn and the gap it shows: without an effect that carries state from
+        # frame to frame, a frame is a function of its gap (its noise is keyed on it), and
+        # between two robot states every frame shows the same gap.
+        self._drawn: tuple[np.ndarray, np.ndarray] | None = None
         self.last_contact: GraspContact | None = None  # the last contact used (ground truth)
 
     def connect(self) -> None:
@@ -87,7 +91,9 @@ class SimulatedGelSight(GelSight):
         # the image covers the same field of view on the gel whatever its pixel count
         self.mm_per_px = renderer.pixel_pitch_mm[1]
         self._background = renderer.background()
-        self._gap = None
+        self._untouched = np.full(self.size, np.inf, dtype=np.float32)
+        self._gap, self._drawn = None, None
+        self._frames_carry_state = any(getattr(effect, "carries_state", True) for effect in renderer.effects)
         self._next_t = time.monotonic()
         self.world, self.renderer = world, renderer
 
@@ -150,15 +156,15 @@ class SimulatedGelSight(GelSight):
         stamp_ns = time.time_ns()
         if self._known_until_ns is not None:
             stamp_ns = min(stamp_ns, self._known_until_ns)
-        if self._gap is None or not np.any(self._gap < 0):
-            # nothing presses: the untouched gel (through the renderer so its effects apply)
-            gap = np.full(self.size, np.inf, dtype=np.float32)
-        else:
-            gap = self._gap
-        # The frame's noise is keyed on the gap it shows (sim.seeding): whichever frame of a
-        # grasp the collector takes, the same grasp gives the same image.
-        assert self.world is not None and self.renderer is not None  # requires_connection
-        image = self.renderer.render(gap, state_rng(gap, self.world.seed, 11, SENSORS.index(self.config.sensor)))
+        # nothing presses: the untouched gel (through the renderer so its effects apply)
+        gap = self._untouched if self._gap is None or not np.any(self._gap < 0) else self._gap
+        if self._drawn is None or self._drawn[0] is not gap or self._frames_carry_state:
+            # The frame's noise is keyed on the gap it shows (sim.seeding): whichever frame of a
+            # grasp the collector takes, the same grasp gives the same image.
+            assert self.world is not None and self.renderer is not None  # requires_connection
+            rng = state_rng(gap, self.world.seed, 11, SENSORS.index(self.config.sensor))
+            self._drawn = (gap, self.renderer.render(gap, rng))
+        image = self._drawn[1].copy()
         self._seq += 1
         header = Header(stamp_ns=stamp_ns, seq=self._seq, frame_id=f"gel_{self.config.sensor}")
         return TactileImage(
