@@ -19,7 +19,10 @@ transform tree and ``dtx dataset redepth --calibration`` read.
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
 import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -65,9 +68,10 @@ SEARCH = (
 MIN_CONTACT_LEVELS = 8.0
 # Rounds of measuring against depth-maps cut at the corrected pose.
 CORRECTION_ROUNDS = 2
-# Touches an object's correction is measured on (each costs ~100 renderings): past this,
-# more touches barely sharpen a correction the cameras' frames then limit.
-MAX_TOUCHES_PER_OBJECT = 150
+# Touches an object's correction is measured on (each costs ~100 renderings per round). The
+# touches' noise limits the cameras' turn: on the demo session's training split, 150 left the
+# right camera at 0.38 mm 0.031 deg, 400 at 0.20 mm 0.013 deg (docs/measurements.md).
+MAX_TOUCHES_PER_OBJECT = 400
 # A camera's points below this height (m) are the table it is levelled on; points within
 # _OBJECT_REACH_M of a registered object (and above the table band) are its view of it.
 _TABLE_BAND_M = 0.006
@@ -152,39 +156,40 @@ class _TouchRenderer:
 
     def touches(self, records: list[SampleRecord], correction_world: np.ndarray) -> list[TouchOffset | None]:
         """Each record's touch against the prediction at ``correction_world`` @ the registered
-        pose; None where the frame shows no contact."""
-        cuts, frames = [], []
-        for record in records:
+        pose; None where the frame shows no contact, or the cut none the renderer can place."""
+        out: list[TouchOffset | None] = [None] * len(records)
+        cuts, frames, weights, placed = [], [], [], []
+        for i, record in enumerate(records):
             gel_to_world = np.array(record.gel_to_world)
             moved = np.linalg.inv(gel_to_world) @ correction_world @ gel_to_world
             # The cut is centred between the gels (where the grasp pushed the object): a
             # correction moves it in the gel plane only, never across the gels.
             moved[1, 3] = 0.0
             model_to_gel = moved @ np.array(record.model_to_gel)
-            cuts.append(
-                depth_map_again(model_index(self.scene, record.object_name), model_to_gel, self.geometry, self.params)
-            )
-            frames.append(self.reader.load(record).tactile_diff_rgb.astype(np.float32) - 128.0)
+            cut = depth_map_again(model_index(self.scene, record.object_name), model_to_gel, self.geometry, self.params)
+            frame = self.reader.load(record).tactile_diff_rgb.astype(np.float32) - 128.0
+            weight = np.abs(self._cut_change(cut)).sum(axis=2)
+            if float(np.abs(frame).max()) >= MIN_CONTACT_LEVELS and weight.sum() > 0:
+                placed.append(i)
+                cuts.append(cut)
+                frames.append(frame)
+                weights.append(weight)
+        if not placed:
+            return out
         measured = np.stack(frames)
-        centres = np.zeros((len(records), 3))
-        information = np.zeros((len(records), 2, 2))
+        centres = np.zeros((len(placed), 3))
+        information = np.zeros((len(placed), 2, 2))
         for grid in SEARCH:
             ssd = self._ssd(cuts, measured, centres, grid)
-            for i in range(len(records)):
-                fit, information[i] = profiled_fit(ssd[i], grid, measured[i].size)
-                centres[i] += fit
-        out: list[TouchOffset | None] = []
-        for record, cut, centre, info, frame in zip(records, cuts, centres, information, measured):
-            change = self._cut_change(cut)
-            weight = np.abs(change).sum(axis=2)
-            if float(np.abs(frame).max()) < MIN_CONTACT_LEVELS or weight.sum() <= 0 or not info.any():
-                out.append(None)
+            for j in range(len(placed)):
+                fit, information[j] = profiled_fit(ssd[j], grid, measured[j].size)
+                centres[j] += fit
+        for i, weight, centre, info in zip(placed, weights, centres, information):
+            if not info.any():
                 continue
-            gel_to_world = np.array(record.gel_to_world)
+            gel_to_world = np.array(records[i].gel_to_world)
             centre_gel_m = np.array([weight.sum(0) @ self.x_mm, 0.0, weight.sum(1) @ self.z_mm]) / weight.sum() * 1e-3
-            out.append(
-                TouchOffset(centre[:2], info, transform_points(centre_gel_m[None], gel_to_world)[0], gel_to_world)
-            )
+            out[i] = TouchOffset(centre[:2], info, transform_points(centre_gel_m[None], gel_to_world)[0], gel_to_world)
         return out
 
     def _cut_change(self, cut: np.ndarray) -> np.ndarray:
@@ -215,10 +220,13 @@ def registration_frames(session: str | os.PathLike[str]) -> dict[str, list[msgs.
 
 
 def measure_session_touches(
-    renderer: _TouchRenderer, records: list[SampleRecord], predicted: dict[str, np.ndarray]
+    measure: Callable[[list[SampleRecord], np.ndarray], list[TouchOffset | None]],
+    records: list[SampleRecord],
+    predicted: dict[str, np.ndarray],
 ) -> tuple[dict[str, list[TouchOffset]], int]:
     """Each object's touches (at most :data:`MAX_TOUCHES_PER_OBJECT`, a seeded draw) against
-    depth-maps cut with the object at ``predicted[object]``, and how many showed no contact."""
+    depth-maps cut with the object at ``predicted[object]`` (``measure``: a
+    ``_TouchRenderer.touches`` or a ``_TouchPool.touches``), and how many showed no contact."""
     by_object: dict[str, list[SampleRecord]] = {}
     for record in records:
         by_object.setdefault(record.object_name, []).append(record)
@@ -229,10 +237,42 @@ def measure_session_touches(
             picks = np.random.default_rng(0).choice(len(chosen), MAX_TOUCHES_PER_OBJECT, replace=False)
             chosen = [chosen[i] for i in sorted(picks)]
         registered = np.array(chosen[0].model_to_world)
-        found = renderer.touches(chosen, predicted[name] @ np.linalg.inv(registered))
+        found = measure(chosen, predicted[name] @ np.linalg.inv(registered))
         touches[name] = [t for t in found if t is not None]
         no_contact += len(found) - len(touches[name])
     return touches, no_contact
+
+
+class _TouchPool:
+    """``_TouchRenderer.touches`` shared out among ``jobs`` processes, each with a renderer of
+    its own: every touch is fitted alone, so the result is the same as in one process."""
+
+    def __init__(self, session: str | os.PathLike[str], jobs: int) -> None:
+        self.jobs = jobs
+        self.pool = ProcessPoolExecutor(
+            jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_start_renderer, initargs=(session,)
+        )
+
+    def touches(self, records: list[SampleRecord], correction_world: np.ndarray) -> list[TouchOffset | None]:
+        shares = [self.pool.submit(_touches_here, records[i :: self.jobs], correction_world) for i in range(self.jobs)]
+        found: list[TouchOffset | None] = [None] * len(records)
+        for i, share in enumerate(shares):
+            found[i :: self.jobs] = share.result()
+        return found
+
+
+_RENDERER: _TouchRenderer | None = None  # a _TouchPool process's own
+
+
+def _start_renderer(session: str | os.PathLike[str]) -> None:
+    global _RENDERER
+    reader = DatasetReader(session)
+    _RENDERER = _TouchRenderer(reader, load_scene(reader.info.scene))
+
+
+def _touches_here(records: list[SampleRecord], correction_world: np.ndarray) -> list[TouchOffset | None]:
+    assert _RENDERER is not None  # set by the pool's initializer
+    return _RENDERER.touches(records, correction_world)
 
 
 def _camera_views(
@@ -257,11 +297,14 @@ def _camera_views(
 
 
 def calibrate_touches(
-    session: str | os.PathLike[str], rounds: int = CORRECTION_ROUNDS, grasps: int | None = None
+    session: str | os.PathLike[str], rounds: int = CORRECTION_ROUNDS, grasps: int | None = None, jobs: int = 1
 ) -> TouchCalibration:
     """Correct each camera of ``session`` from its training split's touches (module docstring);
     with ``grasps``, from those of that many grasps only, the first of each object in turn
-    (what a shorter session of the same objects would have given)."""
+    (what a shorter session of the same objects would have given). ``jobs`` > 1 fits the
+    touches in that many processes (the same result)."""
+    if not (isinstance(jobs, int) and jobs >= 1):
+        raise DatasetError(f"jobs must be a whole number >= 1, got {jobs!r}")
     reader = DatasetReader(session)
     scene = load_scene(reader.info.scene)
     train = split_records(reader.records, reader.info.split_seed)["train"]
@@ -279,9 +322,34 @@ def calibrate_touches(
     for frame_id, camera_frames in sorted(frames.items()):
         levelling[frame_id], views[frame_id] = _camera_views(camera_frames[-3:], scene, predicted)
     models = {name: o3d.io.read_triangle_mesh(scene.mesh(name)) for name in predicted}
-    renderer = _TouchRenderer(reader, scene)
+    pool = _TouchPool(session, jobs) if jobs > 1 else None
+    measure = pool.touches if pool is not None else _TouchRenderer(reader, scene).touches
+    try:
+        cell, touches, no_contact = _rounds(session, rounds, measure, train, predicted, views, models)
+    finally:
+        if pool is not None:
+            pool.pool.shutdown()
+    corrections = {c: cell.cameras[c] @ levelling[c] for c in frames}
+    calibrated = {
+        c: dataclasses.replace(frames[c][-1], camera_to_world=corrections[c] @ frames[c][-1].camera_to_world)
+        for c in frames
+    }
+    return TouchCalibration(cell, corrections, calibrated, {n: len(t) for n, t in touches.items()}, no_contact)
+
+
+def _rounds(
+    session: str | os.PathLike[str],
+    rounds: int,
+    measure: Callable[[list[SampleRecord], np.ndarray], list[TouchOffset | None]],
+    train: list[SampleRecord],
+    predicted: dict[str, np.ndarray],
+    views: dict[str, dict[str, np.ndarray]],
+    models: dict[str, o3d.geometry.TriangleMesh],
+) -> tuple[CellCorrection, dict[str, list[TouchOffset]], int]:
+    """The joint fit after ``rounds`` of measuring the touches against the objects as fitted
+    (the registered poses ``predicted`` first), with the last round's touches and no-contacts."""
     for _ in range(rounds):
-        touches, no_contact = measure_session_touches(renderer, train, predicted)
+        touches, no_contact = measure_session_touches(measure, train, predicted)
         counted = sum(len(t) for t in touches.values())
         if counted < MIN_TOUCHES:
             raise TouchCalibrationError(
@@ -289,13 +357,8 @@ def calibrate_touches(
                 f"({', '.join(f'{n} {len(t)}' for n, t in touches.items())}); a calibration needs >= {MIN_TOUCHES}"
             )
         cell = solve_cell(touches, predicted, views, models)
-        predicted = cell.objects  # the next round reads the touches against the objects as fitted
-    corrections = {c: cell.cameras[c] @ levelling[c] for c in frames}
-    calibrated = {
-        c: dataclasses.replace(frames[c][-1], camera_to_world=corrections[c] @ frames[c][-1].camera_to_world)
-        for c in frames
-    }
-    return TouchCalibration(cell, corrections, calibrated, {n: len(t) for n, t in touches.items()}, no_contact)
+        predicted = cell.objects
+    return cell, touches, no_contact
 
 
 def calibrated_frames(

@@ -73,7 +73,7 @@ def _touches(args: argparse.Namespace) -> int:
     from drivers.depth_camera.base import Calibration, calibration_yaml  # noqa: PLC0415
 
     refuse_existing(Path(args.out), args.force)  # before minutes of work, and again when writing
-    result = calibrate_touches(args.session, grasps=args.grasps)
+    result = calibrate_touches(args.session, grasps=args.grasps, jobs=args.jobs)
     report = result.report(scene_camera_truth(DatasetReader(args.session).info.scene))
     files = {
         f"{frame_id}.yaml": calibration_yaml(
@@ -106,6 +106,9 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     touches.add_argument("--force", action="store_true", help="replace an existing --out directory")
     touches.add_argument(
         "--grasps", type=int, metavar="N", help="use the touches of the session's first N grasps only (robot time)"
+    )
+    touches.add_argument(
+        "--jobs", type=int, default=1, help="processes to fit the touches in (default 1; one per core is fastest)"
     )
     touches.add_argument("--json", action="store_true", help="the report as JSON")
     touches.set_defaults(func=exit_1_on(DatasetError, PerceptionError, FileExistsError, OSError)(_touches))

@@ -275,6 +275,29 @@ def test_redepth_with_the_cameras_own_calibration_gives_the_collected_maps(short
     assert json.loads((tmp_path / "o" / "dataset.json").read_text())["scene"] == collected.info.scene
 
 
+def test_touches_fitted_in_two_processes_are_those_fitted_in_one(short_session: Path) -> None:
+    """``--jobs``: every touch is fitted alone, so sharing them out changes nothing."""
+    from dataset.reader import DatasetReader
+    from dataset.touch_calibration import _TouchPool, _TouchRenderer
+    from workcell.scene import load_scene
+
+    reader = DatasetReader(short_session)
+    records = [r for r in reader.records if r.object_name == reader.records[0].object_name]
+    correction = planar_transform(0.002, 0.4, -0.3)
+    alone = _TouchRenderer(reader, load_scene(reader.info.scene)).touches(records, correction)
+    pool = _TouchPool(short_session, 2)
+    try:
+        shared = pool.touches(records, correction)
+    finally:
+        pool.pool.shutdown()
+    assert any(t is not None for t in alone)
+    assert [t is None for t in shared] == [t is None for t in alone]
+    for a, b in zip(alone, shared):
+        if a is not None and b is not None:
+            np.testing.assert_array_equal(a.offset_gel_mm, b.offset_gel_mm)
+            np.testing.assert_array_equal(a.information_gel, b.information_gel)
+
+
 def test_a_shorter_session_takes_each_objects_first_grasps_in_turn() -> None:
     from dataset.records import DatasetError, SampleRecord
     from dataset.touch_calibration import _first_grasps
