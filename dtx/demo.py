@@ -31,9 +31,9 @@ REAL_PRESSES = "assets/gelsight/ball_presses.npz"
 # ratio 0.574 vs 0.601, contact windows 0.546 vs 0.583, unseen objects 0.481 vs 0.512.
 CALIBRATED_POSE_SIGMA_MM = 0.2
 LIBRARY_SAMPLES = 1200
-# The densities' redepth shares them out among this many processes: one per core of the
-# 2-core machine the demo is sized for (119 s against 164 s in one).
-REDEPTH_JOBS = 2
+# The touch calibration and the densities' redepth share their work out among this many
+# processes: one per core of the 2-core machine the demo is sized for.
+JOBS = 2
 SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/registration_frames,/perception/depth_map,/arm/state,/gripper/state]"
 
 
@@ -188,7 +188,7 @@ def _calibrated(session: Path, out: Path) -> Path:
     if not (calibration / "report.json").exists():
         _run(
             "1/5 calibrate the cameras from the session's training touches",
-            ["calibrate", "touches", str(session), "--out", str(calibration), "--force"],
+            ["calibrate", "touches", str(session), "--out", str(calibration), "--force", "--jobs", str(JOBS)],
         )
     _run(  # resumes a torn run: the samples already there are kept
         "1/5 the session's depth-maps cut again with the calibrated cameras",
@@ -219,7 +219,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     densities = density_dirs(session, [*PAPER_DENSITIES_PER_CM3, *DENSER_PER_CM3])
     _run(
         "4/5 depth-maps at the paper's point densities and denser",
-        ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities], "--jobs", str(REDEPTH_JOBS)],
+        ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities], "--jobs", str(JOBS)],
     )
     report = _run(
         "5/5 evaluate like the paper, and on real GelSight presses it never saw",
