@@ -53,7 +53,7 @@ class TensorPrior:
                 f"the tensor prior draws on the image's own grid; this renderer ({h} x {w}) shades "
                 f"on {grid.shape} or spreads on a coarser grid"
             )
-        self.renderer, self._grid = renderer, grid
+        self.renderer = renderer
         self.device = torch.device(device)
         self.shape = (h, w)
         self.crop_xz_m = crop_xz_m
@@ -109,7 +109,7 @@ class TensorPrior:
         """N x 3 x H x W float32 levels (integers in [0, 255]) of N x rows x cols depth-maps (m,
         on this prior's device; NaN or +inf: nothing there), blurred over an in-plane pose error
         of ``pose_sigma_mm`` as models.prior.PhysicsPrior.images does."""
-        config = self.renderer.config
+        config, grid = self.renderer.config, self.renderer.grid
         count, rows, cols = depth_maps_m.shape
         h, w = self.shape
         if not count:
@@ -127,18 +127,18 @@ class TensorPrior:
 
         compression = torch.clamp(depth * float(np.float32(1.0 / config.compression_saturation_mm)), max=1.0)
         change = self._flat_change.view(1, h * w, 3) * compression.view(count, h * w, 1)
-        row_mm, col_mm = self._grid.pitch_mm
+        row_mm, col_mm = grid.pitch_mm
         padded = F.pad(depth, (1, 1, 1, 1), mode="replicate")
         slope_x = (padded[:, :, 1:-1, 2:] - padded[:, :, 1:-1, :-2]) * float(np.float32(0.5 / col_mm))
         slope_y = (padded[:, :, 2:, 1:-1] - padded[:, :, :-2, 1:-1]) * float(np.float32(0.5 / row_mm))
         slope_x, slope_y = slope_x.reshape(count, -1), slope_y.reshape(count, -1)
         magnitude = torch.hypot(slope_x, slope_y)
-        tilted = torch.nonzero(magnitude >= float(self._grid.tilted_tan), as_tuple=True)
+        tilted = torch.nonzero(magnitude >= float(grid.tilted_tan), as_tuple=True)
         if tilted[0].numel():
             n = self._n_bins
             sx, sy = slope_x[tilted], slope_y[tilted]
-            i_mag = torch.clamp((torch.atan(magnitude[tilted]) / self._grid.mag_step).long(), max=n - 1)
-            i_dir = torch.clamp(((torch.atan2(sy, sx) + math.pi) / self._grid.dir_step).long(), max=n - 1)
+            i_mag = torch.clamp((torch.atan(magnitude[tilted]) / grid.mag_step).long(), max=n - 1)
+            i_dir = torch.clamp(((torch.atan2(sy, sx) + math.pi) / grid.dir_step).long(), max=n - 1)
             pixel = tilted[1]
             tilt = torch.einsum("pck,pk->pc", self._coeffs[i_mag * n + i_dir], self._terms[pixel])
             change[tilted] += float(np.float32(config.shading_gain)) * (tilt - self._flat_colour[pixel])

@@ -40,10 +40,9 @@ not start, its status the code ``cuda_unavailable`` and the reason on /log),
 ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts drawn as its
 calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
 ``max_regions``, ``max_points``, ``max_batch``, ``batch_window_ms``, ``max_dropout_samples``,
-``max_sampled_regions``, ``max_point_visits`` (cloud points near the gels, summed over regions: the work of cutting the
-depth-maps), ``index_cache``,
-``scene`` (gripper geometry for the points path), ``margin_m`` (crop margin, as the patch
-extractor's).
+``max_sampled_regions``, ``max_point_visits`` (cloud points near the gels, summed over regions:
+the work of cutting the depth-maps), ``index_cache``, ``scene`` (gripper geometry for the points
+path), ``margin_m`` (crop margin, as the patch extractor's).
 """
 
 from __future__ import annotations
