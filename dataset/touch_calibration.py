@@ -18,6 +18,7 @@ transform tree and ``dtx dataset redepth --calibration`` read.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing
 import os
@@ -255,6 +256,12 @@ class _TouchPool:
             jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_start_renderer, initargs=(session,)
         )
 
+    def __enter__(self) -> _TouchPool:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.pool.shutdown()
+
     def touches(self, records: list[SampleRecord], correction_world: np.ndarray) -> list[TouchOffset | None]:
         shares = [self.pool.submit(_touches_here, records[i :: self.jobs], correction_world) for i in range(self.jobs)]
         found: list[TouchOffset | None] = [None] * len(records)
@@ -324,13 +331,12 @@ def calibrate_touches(
     for frame_id, camera_frames in sorted(frames.items()):
         levelling[frame_id], views[frame_id] = _camera_views(camera_frames[-3:], scene, predicted)
     models = {name: o3d.io.read_triangle_mesh(scene.mesh(name)) for name in predicted}
-    pool = _TouchPool(session, jobs) if jobs > 1 else None
-    measure = pool.touches if pool is not None else _TouchRenderer(reader, scene).touches
-    try:
+    with contextlib.ExitStack() as processes:
+        if jobs > 1:
+            measure = processes.enter_context(_TouchPool(session, jobs)).touches
+        else:
+            measure = _TouchRenderer(reader, scene).touches
         cell, touches, no_contact = _rounds(session, rounds, measure, train, predicted, views, models)
-    finally:
-        if pool is not None:
-            pool.pool.shutdown()
     corrections = {c: cell.cameras[c] @ levelling[c] for c in frames}
     calibrated = {
         c: dataclasses.replace(frames[c][-1], camera_to_world=corrections[c] @ frames[c][-1].camera_to_world)

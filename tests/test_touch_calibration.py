@@ -285,11 +285,8 @@ def test_touches_fitted_in_two_processes_are_those_fitted_in_one(short_session: 
     records = [r for r in reader.records if r.object_name == reader.records[0].object_name]
     correction = planar_transform(0.002, 0.4, -0.3)
     alone = _TouchRenderer(reader, load_scene(reader.info.scene)).touches(records, correction)
-    pool = _TouchPool(short_session, 2)
-    try:
+    with _TouchPool(short_session, 2) as pool:
         shared = pool.touches(records, correction)
-    finally:
-        pool.pool.shutdown()
     assert any(t is not None for t in alone)
     assert [t is None for t in shared] == [t is None for t in alone]
     for a, b in zip(alone, shared):
