@@ -43,6 +43,8 @@ from perception.registration import sample_model_cloud
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, SceneError, load_scene
 
+PosesBySample = dict[str, tuple[np.ndarray, np.ndarray]]  # sample id -> (model_to_gel, model_to_world)
+
 
 def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
     """The depth-map settings the dataset's maps were made with, and its scene."""
@@ -151,14 +153,32 @@ def redepth_datasets(
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
     params, info = _with_bins(params, reader.info, bins)
-    if jobs > 1 and len(targets) > 1:
-        _share_out(source, targets, bins, progress, registered, jobs)
-        return {density: DatasetWriter(out, info) for density, out in targets.items()}
-    geometry = scene.gripper_geometry()
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
     poses = poses_at(reader.records, registered, scene, params) if registered is not None else {}
+    if jobs == 1 or len(targets) == 1:
+        return _one_pass(reader, scene, params, info, targets, progress, poses)
+    workers = min(jobs, len(targets))
+    shares = [dict(list(targets.items())[i::workers]) for i in range(workers)]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for done in [pool.submit(_one_pass_in_process, source, bins, share, progress, poses) for share in shares]:
+            done.result()
+    return {density: DatasetWriter(out, info) for density, out in targets.items()}
+
+
+def _one_pass(
+    reader: DatasetReader,
+    scene: Scene,
+    params: DepthMapParams,
+    info: DatasetInfo,
+    targets: dict[float | None, str | os.PathLike[str]],
+    progress: bool,
+    poses: PosesBySample,
+) -> dict[float | None, DatasetWriter]:
+    """The targets written in one pass over ``reader``'s samples, each model at its pose in
+    ``poses`` (a sample without one: as recorded)."""
+    geometry = scene.gripper_geometry()
     writers = {density: DatasetWriter(out, info) for density, out in targets.items()}
     densities = ", ".join("full density" if d is None else f"{d:g} points/cm³" for d in writers)
     for record in track(reader.records, f"depth-maps at {densities}", "samples", enabled=progress):
@@ -177,20 +197,18 @@ def redepth_datasets(
     return writers
 
 
-def _share_out(
+def _one_pass_in_process(
     source: str | os.PathLike[str],
-    targets: dict[float | None, str | os.PathLike[str]],
     bins: int | None,
+    targets: dict[float | None, str | os.PathLike[str]],
     progress: bool,
-    registered: dict[str, np.ndarray] | None,
-    jobs: int,
+    poses: PosesBySample,
 ) -> None:
-    """:func:`redepth_datasets` of every ``jobs``-th target in each of ``jobs`` processes."""
-    workers = min(jobs, len(targets))
-    shares = [dict(list(targets.items())[i::workers]) for i in range(workers)]
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        for done in [pool.submit(redepth_datasets, source, share, bins, progress, registered) for share in shares]:
-            done.result()
+    """:func:`_one_pass` in a process of its own: the poses are the parent's, centred once."""
+    reader = DatasetReader(source)
+    params, scene = depth_map_params(reader)
+    params, info = _with_bins(params, reader.info, bins)
+    _one_pass(reader, scene, params, info, targets, progress, poses)
 
 
 def _kept_fields(sample: Sample, shape: tuple[int, int], model_to_gel: Any, model_to_world: Any) -> dict[str, Any]:
@@ -226,7 +244,7 @@ def _with_bins(params: DepthMapParams, info: DatasetInfo, bins: int | None) -> t
 
 def poses_at(
     records: list[SampleRecord], registered: dict[str, np.ndarray], scene: Scene, params: DepthMapParams
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+) -> PosesBySample:
     """Each sample's (model_to_gel, model_to_world) with its object at ``registered``, centred
     between its grasp's gels as the patch extractor centres it (perception.depthmap)."""
     gels: dict[str, dict[str, np.ndarray]] = {}
