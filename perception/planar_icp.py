@@ -151,3 +151,37 @@ def _pairs(
     paired = np.isfinite(gap_m)
     rmse_m = float(np.sqrt(np.mean(gap_m[paired] ** 2))) if paired.any() else np.inf
     return rotation, index, paired, float(paired.mean()), rmse_m
+
+
+def turned_about_centre(
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    model_normals: np.ndarray,
+    model_to_world: np.ndarray,
+    turn_rad: float,
+    distance_m: float,
+    max_iterations: int,
+) -> tuple[np.ndarray, float, float]:
+    """An upright ``model_to_world`` turned by ``turn_rad`` about the vertical through the
+    model's centre (its points' mean), then refined on the observed points as the upright search
+    ends (:func:`planar_icp`, then :func:`planar_icp_to_plane`, at ``distance_m``): the pose a
+    near-symmetric object would have the other way round. (model_to_world, fitness, RMSE m)."""
+    if not np.allclose(model_to_world[2, :3], [0.0, 0.0, 1.0], atol=1e-6):
+        raise ValueError("model_to_world must stand the model upright (a turn about the vertical only)")
+    yaw = float(np.arctan2(model_to_world[1, 0], model_to_world[0, 0])) + turn_rad
+    centre_xy = model_points_m[:, :2].mean(axis=0)
+    c, s = np.cos(yaw), np.sin(yaw)
+    centre_world_xy = model_to_world[:2, :2] @ centre_xy + model_to_world[:2, 3]
+    start_xy = centre_world_xy - np.array([[c, -s], [s, c]]) @ centre_xy
+    model_z_m = float(model_to_world[2, 3])
+    pose, _, _ = planar_icp(
+        observed_m, model_tree, model_points_m, (yaw, *start_xy), model_z_m, (distance_m,), max_iterations
+    )
+    (yaw, x_m, y_m), fitness, rmse_m = planar_icp_to_plane(
+        observed_m, model_tree, model_points_m, model_normals, pose, model_z_m, distance_m, max_iterations
+    )
+    turned = np.eye(4)
+    turned[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    turned[:3, 3] = [x_m, y_m, model_z_m]
+    return turned, fitness, rmse_m

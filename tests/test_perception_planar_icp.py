@@ -1,6 +1,7 @@
 """Planar ICP of an upright model (perception.planar_icp): the point-to-plane refinement that ends
 the upright search finds a box's turn and shift from noisy views of two of its faces, where
-pairing points with points leaves it turned, and stays finite on views that fix nothing."""
+pairing points with points leaves it turned, and stays finite on views that fix nothing; a box
+turned half round about its centre fits its view as well, a quarter round does not."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from perception.planar_icp import planar_icp, planar_icp_to_plane
+from perception.planar_icp import planar_icp, planar_icp_to_plane, turned_about_centre
 
 BOX_M = (0.16, 0.06, 0.21)  # a cracker box's x, y, z extents
 SPACING_M = 0.004
@@ -78,3 +79,41 @@ def test_any_start_and_pairing_distance_give_a_finite_pose(yaw: float, shift: tu
         pose, fitness, _ = planar_icp_to_plane(observed, tree, model, normals, (yaw, *shift), 0.0, distance_m, 20)
         assert np.all(np.isfinite(pose))
         assert 0.0 <= fitness <= 1.0
+
+
+def _upright(pose: tuple[float, float, float]) -> np.ndarray:
+    yaw, x, y = pose
+    transform = np.eye(4)
+    transform[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    transform[:2, 3] = [x, y]
+    return transform
+
+
+@settings(max_examples=10, deadline=None)
+@given(yaw=st.floats(-np.pi, np.pi), x=st.floats(-0.3, 0.3), y=st.floats(-0.3, 0.3))
+def test_a_box_turned_half_round_about_its_centre_fits_its_view_as_well(yaw: float, x: float, y: float) -> None:
+    """The box is symmetric under a half turn about its vertical axis: that turn lands on the
+    same faces (fitness as high), half a turn from the truth and centred where it was; a quarter
+    turn cannot (its long faces are not its short ones)."""
+    model, normals = box_surface()
+    tree = cKDTree(model)
+    truth = _upright((yaw, x, y))
+    observed = seen((yaw, x, y), noise_m=0.001, seed=0)
+    kept, kept_fitness, _ = turned_about_centre(observed, tree, model, normals, truth, 0.0, 0.008, 50)
+    half, half_fitness, _ = turned_about_centre(observed, tree, model, normals, truth, np.pi, 0.008, 50)
+    quarter, quarter_fitness, _ = turned_about_centre(observed, tree, model, normals, truth, np.pi / 2, 0.008, 50)
+    assert np.linalg.norm(kept[:2, 3] - truth[:2, 3]) < 0.5e-3
+    assert half_fitness > kept_fitness - 0.01
+    np.testing.assert_allclose(half[:2, :2], -truth[:2, :2], atol=2e-3)
+    assert np.linalg.norm(half[:2, 3] - truth[:2, 3]) < 0.5e-3  # the box's origin is its centre
+    assert quarter_fitness < kept_fitness - 0.1
+    for pose in (kept, half, quarter):
+        assert pose[2, 3] == truth[2, 3] and np.allclose(pose[2, :3], [0.0, 0.0, 1.0])
+
+
+def test_a_pose_that_is_not_upright_is_refused() -> None:
+    model, normals = box_surface(0.01)
+    lying = np.eye(4)
+    lying[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+    with pytest.raises(ValueError, match="upright"):
+        turned_about_centre(model, cKDTree(model), model, normals, lying, np.pi, 0.008, 10)
