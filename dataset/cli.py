@@ -77,9 +77,9 @@ def _redepth(args: argparse.Namespace) -> int:
         return 2
     registered = None
     if args.calibration:
-        from dataset.touch_calibration import calibrated_frames, register_again
+        from dataset.registered_again import calibrated_frames, register_again
 
-        registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration))
+        registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration), jobs=args.jobs)
     for density, writer in redepth_datasets(
         args.dir, targets, args.bins, registered=registered, jobs=args.jobs
     ).items():
@@ -175,12 +175,14 @@ def _add_redepth(commands: argparse._SubParsersAction) -> None:
     redepth.add_argument(
         "--calibration",
         help="a calibration directory (dtx calibrate touches): the objects are registered again from the "
-        "session's camera frames with its extrinsics before the maps are cut",
+        "session's camera frames with its extrinsics before the maps are cut, and a near-symmetric object's "
+        "turn the cameras cannot tell is chosen by the session's training touches",
     )
     redepth.add_argument(
         "--jobs",
         type=int,
         default=1,
-        help="processes to share the densities out among (default 1; one per core is fastest)",
+        help="processes to share the densities, and the touches that choose a turn, out among "
+        "(default 1; one per core is fastest)",
     )
     redepth.set_defaults(func=_redepth)

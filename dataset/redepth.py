@@ -143,7 +143,7 @@ def redepth_datasets(
     samples is resumed.
 
     ``registered`` (object name -> model_to_world, e.g. registered again with a corrected
-    calibration, ``dataset.touch_calibration.register_again``) moves each model there first,
+    calibration, ``dataset.registered_again.register_again``) moves each model there first,
     centred between its grasp's two gels as the patch extractor centres it; the samples must
     record their gels' poses.
 

@@ -14,8 +14,9 @@ import numpy as np
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_again, depth_map_params, model_index, poses_at
+from dataset.registered_again import register_again
 from dataset.splits import split_records
-from dataset.touch_calibration import calibrate_touches, register_again, registration_frames, scene_camera_truth
+from dataset.touch_calibration import calibrate_touches, registration_frames, scene_camera_truth
 from models.evaluate import ssim_statistics
 from perception.touch_calibration import TouchCalibrationError, pose_error
 from report.ceiling import depth_map_images
@@ -68,7 +69,9 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             continue
         fit_s = time.process_time() - started
         cameras = calibration.report(truth)["cameras"].values()
-        poses = poses_at(test.records, register_again(ws.session, list(calibration.calibrated.values())), scene, params)
+        # The cameras' own share: placed by all the session's touches, the objects hide it.
+        registered = register_again(ws.session, list(calibration.calibrated.values()), by_touches=False)
+        poses = poses_at(test.records, registered, scene, params)
         maps = np.stack(
             [
                 depth_map_again(clouds[r.object_name], poses[r.sample_id][0], scene.gripper_geometry(), params)

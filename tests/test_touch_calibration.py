@@ -252,41 +252,94 @@ def test_redepth_refuses_a_calibration_for_other_cameras(short_session: Path, tm
     assert not (tmp_path / "o").exists()
 
 
-def test_redepth_with_the_cameras_own_calibration_gives_the_collected_maps(short_session: Path, tmp_path: Path) -> None:
-    """Registered again from the recorded frames with their own extrinsics, every map comes back
-    bit for bit: the calibrated path is the patch extractor's, not an approximation of it."""
-    from dataset.reader import DatasetReader
+def _own_calibration(session: Path, out: Path) -> Path:
+    """A calibration directory holding the extrinsics ``session``'s registrations used."""
     from dataset.touch_calibration import registration_frames
     from drivers.depth_camera.base import Calibration, calibration_yaml
 
-    calibration = tmp_path / "calibration"
-    calibration.mkdir()
-    for frame_id, frames in registration_frames(short_session).items():
+    out.mkdir()
+    for frame_id, frames in registration_frames(session).items():
         image = frames[-1]
         own = Calibration(frame_id.removeprefix("camera_"), image.intrinsics, image.camera_to_world)
-        (calibration / f"{frame_id}.yaml").write_text(calibration_yaml(own, "as recorded"))
+        (out / f"{frame_id}.yaml").write_text(calibration_yaml(own, "as recorded"))
+    return out
+
+
+def test_a_session_too_short_to_place_its_objects_keeps_their_registered_places(
+    short_session: Path, tmp_path: Path
+) -> None:
+    """Ten grasps leave fewer touches than placing the objects needs: the maps are cut at the
+    registered places and the command says why."""
+    calibration = _own_calibration(short_session, tmp_path / "calibration")
     result = _dtx(
         "dataset", "redepth", str(short_session), "--calibration", str(calibration), "--out", str(tmp_path / "o")
     )
     assert result.returncode == 0, result.stderr
+    assert "keep their registered places" in result.stderr and "needs >= 30" in result.stderr
+    assert (tmp_path / "o" / "manifest.jsonl").exists()
+
+
+def test_registered_again_with_the_cameras_own_calibration_gives_the_collected_maps(
+    short_session: Path, tmp_path: Path
+) -> None:
+    """Registered again from the recorded frames with their own extrinsics (and no turn offered to
+    the touches), every map comes back bit for bit: the calibrated path is the patch
+    extractor's, not an approximation of it."""
+    from dataset.reader import DatasetReader
+    from dataset.redepth import redepth_dataset
+    from dataset.registered_again import calibrated_frames, register_again
+
+    frames = calibrated_frames(short_session, _own_calibration(short_session, tmp_path / "calibration"))
+    registered = register_again(short_session, frames, by_touches=False)
+    redepth_dataset(short_session, tmp_path / "o", registered=registered, progress=False)
     collected, again = DatasetReader(short_session), DatasetReader(tmp_path / "o")
     for record in collected.records:
         np.testing.assert_array_equal(again.load(record.sample_id).depth_map_m, collected.load(record).depth_map_m)
     assert json.loads((tmp_path / "o" / "dataset.json").read_text())["scene"] == collected.info.scene
 
 
-def test_touches_fitted_in_two_processes_are_those_fitted_in_one(short_session: Path) -> None:
-    """``--jobs``: every touch is fitted alone, so sharing them out changes nothing."""
+def test_the_touches_choose_an_objects_true_turn_over_its_half_turn(short_session: Path) -> None:
+    """The mustard bottle half a turn round about its centre is what the cameras see of it too;
+    its touches tell the two apart, whichever is offered as the registered one."""
     from dataset.reader import DatasetReader
-    from dataset.touch_calibration import _TouchPool, _TouchRenderer
+    from dataset.splits import split_records
+    from dataset.touches import TouchRenderer
+    from dataset.turns import TurnJudge
+    from perception.registration import sample_model_cloud
+    from sim.world import SimWorld
     from workcell.scene import load_scene
 
     reader = DatasetReader(short_session)
-    records = [r for r in reader.records if r.object_name == reader.records[0].object_name]
-    correction = planar_transform(0.002, 0.4, -0.3)
-    alone = _TouchRenderer(reader, load_scene(reader.info.scene)).touches(records, correction)
-    with _TouchPool(short_session, 2) as pool:
-        shared = pool.touches(records, correction)
+    scene = load_scene(reader.info.scene)
+    world = SimWorld(scene)
+    name = "mustard_bottle"
+    truth = world.object_to_world[[o.name for o in scene.objects].index(name)]
+    centre = sample_model_cloud(scene.mesh(name), seed=0).points_m.mean(axis=0)
+    centre_world = truth[:3, :3] @ centre + truth[:3, 3]
+    half_turn = planar_transform(np.pi, *(1e3 * (centre_world[:2] - [[-1, 0], [0, -1]] @ centre_world[:2])))
+    turned = half_turn @ truth
+    train = split_records(reader.records, reader.info.split_seed)["train"]
+    judge = TurnJudge(reader, train, TouchRenderer(reader, scene).touches)
+    np.testing.assert_array_equal(judge.choose(name, [turned, truth]), truth)
+    np.testing.assert_array_equal(judge.choose(name, [truth, turned]), truth)
+    np.testing.assert_array_equal(judge.choose(name, [truth]), truth)
+
+
+def test_touches_fitted_in_two_processes_are_those_fitted_in_one(short_session: Path) -> None:
+    """``--jobs``: every touch is fitted alone, so sharing them out changes nothing."""
+    from dataset.reader import DatasetReader
+    from dataset.redepth import depth_map_params
+    from dataset.touches import TouchPool, TouchRenderer, records_cut_at
+
+    reader = DatasetReader(short_session)
+    params, scene = depth_map_params(reader)
+    name = reader.records[0].object_name
+    records = [r for r in reader.records if r.object_name == name]
+    moved = planar_transform(0.002, 0.4, -0.3) @ np.array(records[0].model_to_world)
+    records = records_cut_at(records, {name: moved}, scene, params)
+    alone = TouchRenderer(reader, scene).touches(records)
+    with TouchPool(short_session, 2) as pool:
+        shared = pool.touches(records)
     assert any(t is not None for t in alone)
     assert [t is None for t in shared] == [t is None for t in alone]
     for a, b in zip(alone, shared):
