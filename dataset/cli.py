@@ -77,9 +77,13 @@ def _redepth(args: argparse.Namespace) -> int:
         return 2
     registered = None
     if args.calibration:
-        from dataset.registered_again import calibrated_frames, register_again
+        from dataset.registered_again import calibrated_frames, placement_report, register_again
 
         registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration), jobs=args.jobs)
+        for name, row in placement_report(args.dir, registered).items():
+            truth = f"; ADD-S {row['add_s_mm']:.3f} mm against the scene's truth" if "add_s_mm" in row else ""
+            moved = f"moved {row['moved_mm']:.2f} mm {row['moved_deg']:.2f} deg from its recorded pose" if row else ""
+            print(f"{name}: {moved}{truth}")
     for density, writer in redepth_datasets(
         args.dir, targets, args.bins, registered=registered, jobs=args.jobs
     ).items():

@@ -269,13 +269,15 @@ def test_a_session_too_short_to_place_its_objects_keeps_their_registered_places(
     short_session: Path, tmp_path: Path
 ) -> None:
     """Ten grasps leave fewer touches than placing the objects needs: the maps are cut at the
-    registered places and the command says why."""
+    registered places and the command says why, and where each object went."""
     calibration = _own_calibration(short_session, tmp_path / "calibration")
     result = _dtx(
         "dataset", "redepth", str(short_session), "--calibration", str(calibration), "--out", str(tmp_path / "o")
     )
     assert result.returncode == 0, result.stderr
     assert "keep their registered places" in result.stderr and "needs >= 30" in result.stderr
+    # each object: where the registration moved it, and (the scene's truth known) how far it is
+    assert result.stdout.count("from its recorded pose; ADD-S") == 3, result.stdout
     assert (tmp_path / "o" / "manifest.jsonl").exists()
 
 
