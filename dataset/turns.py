@@ -15,7 +15,7 @@ from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params
 from dataset.touches import records_cut_at, touches_of_grasps
-from perception.planar_icp import turned_about_centre
+from perception.planar_icp import is_upright, turned_about_centre
 from perception.registration import PreparedModel, prepare_model, sample_model_cloud
 from perception.segmentation import segment_object, segmentation_params_for
 from perception.touch_calibration import TouchOffset, pose_error
@@ -31,7 +31,7 @@ TURN_FITNESS_MARGIN = 0.01
 TURN_RMSE_MARGIN_M = 0.0002
 # Grasps whose touches (both fingers) choose between such turns, and how much nearer their
 # median offset must be at another turn to take it over the registered one. On the demo session
-# the true turn's touches lie 0.4-0.7 mm from their prediction, the other turn's 1.0-1.6 mm.
+# the true turn's touches lie 0.15-0.64 mm from their prediction, the other turn's 0.93-1.79 mm.
 TURN_GRASPS = 8
 TURN_MARGIN = 0.8
 
@@ -62,7 +62,7 @@ def turns_alike(prepared: PreparedModel, observed_world_m: np.ndarray, model_to_
     """The registered upright pose turned by each of :data:`CHECKED_TURNS_RAD` and refined, where
     the cameras' points fit it as well (:data:`TURN_FITNESS_MARGIN`, :data:`TURN_RMSE_MARGIN_M`);
     none for a pose that is not upright, and each pose once (within 1 mm and 1 deg)."""
-    if not np.allclose(model_to_world[2, :3], [0.0, 0.0, 1.0], atol=1e-6):
+    if not is_upright(model_to_world):
         return []
     fine = np.asarray(prepared.fine.points)
     normals = np.asarray(prepared.fine.normals)
@@ -84,11 +84,11 @@ def turns_alike(prepared: PreparedModel, observed_world_m: np.ndarray, model_to_
 
 class TurnJudge:
     """Chooses between poses of an object the cameras cannot tell apart by its touches among
-    ``train`` (the training split's, so that the test split stays honest): at each pose, the depth-maps as ``dtx dataset redepth`` would cut them against the
-    frames (``measure``: a ``TouchRenderer.touches`` or a ``TouchPool.touches``). The pose whose
-    touches lie nearest their prediction (median offset, a touch the renderer cannot place
-    counting as farthest) wins; the registered one (first) unless another is nearer by
-    :data:`TURN_MARGIN`."""
+    ``train`` (the training split's, so that the test split stays honest): at each pose, the
+    depth-maps as ``dtx dataset redepth`` would cut them against the frames (``measure``: a
+    ``TouchRenderer.touches`` or a ``TouchPool.touches``). The pose whose touches lie nearest
+    their prediction (median offset, a touch the renderer cannot place counting as farthest)
+    wins; the registered one (first) unless another is nearer by :data:`TURN_MARGIN`."""
 
     def __init__(
         self,

@@ -153,6 +153,12 @@ def _pairs(
     return rotation, index, paired, float(paired.mean()), rmse_m
 
 
+def is_upright(model_to_world: np.ndarray) -> bool:
+    """Whether a pose stands its model as its mesh frame stands, turned about the vertical only
+    (the poses the upright search and :func:`turned_about_centre` work with)."""
+    return bool(np.allclose(model_to_world[2, :3], [0.0, 0.0, 1.0], atol=1e-6))
+
+
 def turned_about_centre(
     observed_m: np.ndarray,
     model_tree: cKDTree,
@@ -167,7 +173,7 @@ def turned_about_centre(
     model's centre (its points' mean), then refined on the observed points as the upright search
     ends (:func:`planar_icp`, then :func:`planar_icp_to_plane`, at ``distance_m``): the pose a
     near-symmetric object would have the other way round. (model_to_world, fitness, RMSE m)."""
-    if not np.allclose(model_to_world[2, :3], [0.0, 0.0, 1.0], atol=1e-6):
+    if not is_upright(model_to_world):
         raise ValueError("model_to_world must stand the model upright (a turn about the vertical only)")
     yaw = float(np.arctan2(model_to_world[1, 0], model_to_world[0, 0])) + turn_rad
     centre_xy = model_points_m[:, :2].mean(axis=0)
