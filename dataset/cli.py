@@ -81,9 +81,12 @@ def _redepth(args: argparse.Namespace) -> int:
 
         registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration), jobs=args.jobs)
         for name, row in placement_report(args.dir, registered).items():
-            truth = f"; ADD-S {row['add_s_mm']:.3f} mm against the scene's truth" if "add_s_mm" in row else ""
-            moved = f"moved {row['moved_mm']:.2f} mm {row['moved_deg']:.2f} deg from its recorded pose" if row else ""
-            print(f"{name}: {moved}{truth}")
+            parts = []
+            if "moved_mm" in row:
+                parts.append(f"moved {row['moved_mm']:.2f} mm {row['moved_deg']:.2f} deg from its recorded pose")
+            if "add_s_mm" in row:
+                parts.append(f"ADD-S {row['add_s_mm']:.3f} mm against the scene's truth")
+            print(f"{name}: {'; '.join(parts)}")
     for density, writer in redepth_datasets(
         args.dir, targets, args.bins, registered=registered, jobs=args.jobs
     ).items():

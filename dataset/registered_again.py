@@ -35,8 +35,8 @@ from dataset.touch_calibration import (
     PLACING_TOUCHES_PER_OBJECT,
     camera_views,
     fit_cell,
+    offsets_cameras,
     registration_frames,
-    scene_camera_truth,
 )
 from dataset.touches import touch_measure
 from dataset.turns import TurnJudge, segmented_objects, turns_alike
@@ -98,19 +98,21 @@ def register_again(
 
 def placement_report(session: str | os.PathLike[str], registered: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     """Per object: how far ``registered`` moved it from the pose its samples record (mm, deg) and,
-    on a simulated scene whose cameras are offset (``scene_camera_truth``: its truth is known),
+    on a simulated scene whose cameras are offset (``offsets_cameras``: its truth is known),
     its ADD-S against the scene's placement (mm, the mean distance to the true mesh surface)."""
     reader = DatasetReader(session)
     scene = load_scene(reader.info.scene)
     recorded = {r.object_name: np.array(r.model_to_world) for r in reader.records if r.model_to_world is not None}
-    world = SimWorld(scene) if scene_camera_truth(reader.info.scene) is not None else None
+    truth = {}
+    if offsets_cameras(scene):
+        world = SimWorld(scene)
+        truth = {spec.name: pose for spec, pose in zip(world.scene.objects, world.object_to_world)}
     report = {}
     for name, pose in sorted(registered.items()):
         row = dict(zip(("moved_mm", "moved_deg"), pose_error(pose, recorded[name]))) if name in recorded else {}
-        if world is not None:
-            truth = world.object_to_world[[o.name for o in scene.objects].index(name)]
+        if name in truth:
             mesh = o3d.io.read_triangle_mesh(scene.mesh(name))
             points = sample_model_cloud(scene.mesh(name), seed=0).points_m
-            row["add_s_mm"] = add_s_error_m(mesh, points, pose, truth) * 1e3
+            row["add_s_mm"] = add_s_error_m(mesh, points, pose, truth[name]) * 1e3
         report[name] = row
     return report

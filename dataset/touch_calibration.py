@@ -178,7 +178,8 @@ def calibrate_touches(
     frames = registration_frames(session)
     with contextlib.ExitStack() as processes:
         measure = touch_measure(processes, reader, jobs)
-        predicted = _turns_chosen(reader, train, [f[-1] for f in frames.values()], TurnJudge(reader, train, measure))
+        newest = [f[-1] for f in frames.values()]
+        predicted = _turns_chosen(reader, scene, train, newest, TurnJudge(reader, train, measure))
         levelling, views = {}, {}
         for frame_id, camera_frames in sorted(frames.items()):
             levelling[frame_id], views[frame_id] = camera_views(camera_frames[-3:], scene, predicted)
@@ -194,14 +195,17 @@ def calibrate_touches(
 
 
 def _turns_chosen(
-    reader: DatasetReader, train: list[SampleRecord], newest: list[msgs.DepthImage], judge: TurnJudge
+    reader: DatasetReader,
+    scene: Scene,
+    train: list[SampleRecord],
+    newest: list[msgs.DepthImage],
+    judge: TurnJudge,
 ) -> dict[str, np.ndarray]:
     """Each touched object's pose as the session registered it (recorded with its samples), or
     the turn of it that the cameras cannot tell apart (from their ``newest`` frames, as
     recorded) and the touches prefer: a fit started half a turn off would read every touch
     against the wrong face."""
     recorded = {r.object_name: np.array(r.model_to_world) for r in train}
-    scene = load_scene(reader.info.scene)
     chosen = {}
     for name, prepared, points in segmented_objects(reader, scene, depth_images_to_world(newest)):
         if name in recorded:
@@ -237,11 +241,17 @@ def fit_cell(
     return cell, touches, no_contact
 
 
+def offsets_cameras(scene: Scene) -> bool:
+    """Whether a simulated scene offsets its cameras from their nominal extrinsics
+    (``extrinsic_offset``): the scenes whose truth a calibration is scored against."""
+    return any(effect.name == "extrinsic_offset" for effect in scene.effects)
+
+
 def scene_camera_truth(scene_path: str) -> dict[str, np.ndarray] | None:
     """The true camera_to_world of each camera of a simulated scene whose cameras are offset
     (``extrinsic_offset``), by frame id; None for a scene without offsets."""
     scene = load_scene(scene_path)
-    if not any(effect.name == "extrinsic_offset" for effect in scene.effects):
+    if not offsets_cameras(scene):
         return None
     world = SimWorld(scene)
     return {f"camera_{name}": world.true_camera_to_world(name) for name in world.camera_names()}
