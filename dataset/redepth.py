@@ -211,6 +211,24 @@ def _one_pass_in_process(
     _one_pass(reader, scene, params, info, targets, progress, poses)
 
 
+def depth_maps_at_density(reader: DatasetReader, records: list[SampleRecord], points_per_cm3: float) -> np.ndarray:
+    """The depth-maps (N x H x W, m, float32) of ``records`` of ``reader``'s dataset made again
+    from the model cloud voxel-thinned to ``points_per_cm3``, at the poses they record: what
+    ``dtx dataset redepth --density`` writes for them, without writing a dataset."""
+    params, scene = depth_map_params(reader)
+    geometry = scene.gripper_geometry()
+    maps = np.empty((len(records), *params.shape), np.float32)
+    for i, record in enumerate(records):
+        if record.model_to_gel is None:
+            raise DatasetError(f"{reader.root}: sample {record.sample_id} records no model_to_gel")
+        try:
+            model = model_index(scene, record.object_name, points_per_cm3)
+        except SceneError as err:
+            raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
+        maps[i] = depth_map_again(model, np.array(record.model_to_gel), geometry, params)
+    return maps
+
+
 def _kept_fields(sample: Sample, shape: tuple[int, int], model_to_gel: Any, model_to_world: Any) -> dict[str, Any]:
     """A sample's fields as a redepth writes them, all but its depth-map: its tactile images
     resized to ``shape`` (rows, cols) when that differs, its model at the poses given."""

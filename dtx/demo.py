@@ -8,8 +8,8 @@
    and placed by the same touches (``dtx dataset redepth --calibration``);
    train the cGAN on those with ``configs/quick.yaml``, its prior as sure of the geometry as
    the calibration allows (CALIBRATED_POSE_SIGMA_MM);
-3. make the depth-maps again at the paper's densities (``dtx dataset redepth``);
-4. evaluate it like the paper and print the table; figures go to ``OUT/figures``.
+3. evaluate it like the paper, at the paper's point densities too (the test split's depth-maps
+   made again from thinned model clouds), and print the table; figures go to ``OUT/figures``.
 
 Each step is the real command, run as a process; a step whose result is already there
 (a complete dataset, a finished checkpoint) is continued or skipped, so running the demo
@@ -32,8 +32,8 @@ REAL_PRESSES = "assets/gelsight/ball_presses.npz"
 # the cameras alone and no placing, 0.2 had beaten 0.5: 0.574 vs 0.601).
 CALIBRATED_POSE_SIGMA_MM = 0.1
 LIBRARY_SAMPLES = 1200
-# The touch calibration, the choice of turns by touches and the densities' redepth share their
-# work out among this many processes: one per core of the 2-core machine the demo is sized for.
+# The touch calibration, the choice of turns by touches and the redepth share their work out
+# among this many processes: one per core of the 2-core machine the demo is sized for.
 JOBS = 2
 SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/registration_frames,/perception/depth_map,/arm/state,/gripper/state]"
 
@@ -177,8 +177,8 @@ def _collected(session: Path, args: argparse.Namespace) -> Path:
     collect += [f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
     if (session / "manifest.jsonl").exists():
         collect.append("resume:=true")
-    _run("1/5 collect (Algorithm 1 on the simulated scene)", collect)
-    _run("1/5 check the dataset", ["dataset", "check", str(session)])
+    _run("1/4 collect (Algorithm 1 on the simulated scene)", collect)
+    _run("1/4 check the dataset", ["dataset", "check", str(session)])
     return session
 
 
@@ -188,11 +188,11 @@ def _calibrated(session: Path, out: Path) -> Path:
     calibration, calibrated = out / "calibration", out / "session_calibrated"
     if not (calibration / "report.json").exists():
         _run(
-            "1/5 calibrate the cameras from the session's training touches",
+            "1/4 calibrate the cameras from the session's training touches",
             ["calibrate", "touches", str(session), "--out", str(calibration), "--force", "--jobs", str(JOBS)],
         )
     _run(  # resumes a torn run: the samples already there are kept
-        "1/5 the session's depth-maps cut again with the calibrated cameras",
+        "1/4 the session's depth-maps cut again with the calibrated cameras",
         ["dataset", "redepth", str(session), "--calibration", str(calibration), "--out", str(calibrated)]
         + ["--jobs", str(JOBS)],
     )
@@ -200,7 +200,6 @@ def _calibrated(session: Path, out: Path) -> Path:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from dataset.redepth import density_dirs
     from models.real_presses import real_press_table
     from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
 
@@ -211,20 +210,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     train += ["--session-pose-sigma-mm", f"{CALIBRATED_POSE_SIGMA_MM:g}"]
     if args.library_samples:
         _run(
-            "2/5 contact library (the simulated world's spheres, cylinders, edges, textures)",
+            "2/4 contact library (the simulated world's spheres, cylinders, edges, textures)",
             ["dataset", "library", str(library), "--samples", str(args.library_samples), "--seed", str(args.seed)],
         )
         train += ["--library", str(library)]
     if (train_dir / "checkpoint.pt").exists():
         train.append("--resume")
-    _run("3/5 train the cGAN", train)
-    densities = density_dirs(session, [*PAPER_DENSITIES_PER_CM3, *DENSER_PER_CM3])
-    _run(
-        "4/5 depth-maps at the paper's point densities and denser",
-        ["dataset", "redepth", str(session), "--density", *[f"{d:g}" for d in densities], "--jobs", str(JOBS)],
-    )
+    _run("3/4 train the cGAN", train)
     report = _run(
-        "5/5 evaluate like the paper, and on real GelSight presses it never saw",
+        "4/4 evaluate like the paper, at its point densities and denser, and on real GelSight presses it never saw",
         [
             "evaluate",
             str(train_dir / "checkpoint.pt"),
@@ -234,7 +228,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             str(figures),
             "--real-presses",
             REAL_PRESSES,
-            *[f"--density={d:g}={path}" for d, path in densities.items()],
+            "--density",
+            *[f"{d:g}" for d in [*PAPER_DENSITIES_PER_CM3, *DENSER_PER_CM3]],
         ],
         capture=True,
     )

@@ -32,7 +32,7 @@ def _train(args: argparse.Namespace) -> int:
 @exit_1_on(ModelConfigError, DatasetError, OSError)
 def _evaluate(args: argparse.Namespace) -> int:
     from models.checkpoint import load_generator
-    from models.evaluate import evaluate, parse_density, summary_table
+    from models.evaluate import evaluate, summary_table
     from models.figures import write_figures
 
     if args.dataset is None and args.real_presses is None:
@@ -71,7 +71,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         args.dataset,
         split=args.split,
         hold_out_object=args.hold_out_object,
-        density=parse_density(args.density),
+        density=args.density,
         seed=args.seed,
     )
     if args.figures:
@@ -103,10 +103,12 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     )
     evaluate.add_argument(
         "--density",
-        action="append",
+        type=float,
+        nargs="+",
         default=[],
-        metavar="PTS_PER_CM3=DIR",
-        help="a dataset made from clouds downsampled to that density; repeat for the paper's table (1, 10, 20, 40, 80)",
+        metavar="PTS_PER_CM3",
+        help="also evaluate the same pairs with their depth-maps made again from the model cloud "
+        "thinned to each density, as dtx dataset redepth --density makes them (the paper's table: 1 10 20 40 80)",
     )
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws")
     evaluate.add_argument(

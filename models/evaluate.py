@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -27,11 +27,14 @@ import torch
 from scipy import stats
 
 from dataset.images import deformation_map
+from dataset.reader import DatasetReader
+from dataset.redepth import depth_map_params, depth_maps_at_density
 from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
 from models.template_match import template_match
 from msgs.progress import Progress
-from perception.errors import ImageComparisonError
+from perception.density import voxel_size_for_density
+from perception.errors import ImageComparisonError, PerceptionError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
 
 PAPER = {
@@ -333,15 +336,17 @@ def evaluate(
     root: str | os.PathLike[str],
     split: str = "test",
     hold_out_object: str = "",
-    density: Mapping[float, str | os.PathLike[str]] | None = None,
+    density: Sequence[float] = (),
     baseline_draws: int = 15,
     template_px: int = 32,
     seed: int = 0,
     progress: bool = True,
 ) -> tuple[dict[str, Any], Predictions]:
-    """The paper's analysis on one split, plus the density table for the datasets given
-    (points per cm^3 -> dataset made at that density; its ``split`` is evaluated too)."""
-    shown = Progress("evaluate", 1 + len(density or {}), "datasets", enabled=progress)
+    """The paper's analysis on one split, plus the density table: the same pairs with their
+    depth-maps made again from the model cloud thinned to each of ``density`` (points/cm^3,
+    ``dataset.redepth.depth_maps_at_density``; the dataset must record its models' poses)."""
+    density_reader = _density_reader(root, depth_range_m, density) if density else None
+    shown = Progress("evaluate", 1 + len(density), "depth-map sets", enabled=progress)
     predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
     result = ssim_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
     matches = template_match(predictions.truth, predictions.truth_deformation, predictions.estimate, template_px)
@@ -364,12 +369,14 @@ def evaluate(
     shown.note(f"last: the {split} split")
     shown.update()
     result["density"] = []
-    full_contact = (
-        contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate) if density else None
-    )
-    for points_per_cm3, density_root in sorted((density or {}).items()):
-        at_density = predict_dataset(generator, depth_range_m, density_root, split, hold_out_object)
-        result["density"].append(_density_row(points_per_cm3, at_density, predictions.sample_ids, full_contact))
+    if density_reader is not None:
+        full_contact = contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
+        by_id = {r.sample_id: r for r in density_reader.records}
+        records = [by_id[sample_id] for sample_id in predictions.sample_ids]
+    for points_per_cm3 in sorted(density):
+        depth = depth_maps_at_density(density_reader, records, points_per_cm3)
+        estimate = predict(generator, depth, depth_range_m)
+        result["density"].append(_density_row(points_per_cm3, predictions, estimate, full_contact))
         shown.note(f"last: {points_per_cm3:g} points/cm³")
         shown.update()
     shown.close()
@@ -377,14 +384,30 @@ def evaluate(
     return result, predictions
 
 
+def _density_reader(
+    root: str | os.PathLike[str], depth_range_m: tuple[float, float], density: Sequence[float]
+) -> DatasetReader:
+    """The dataset the density table's depth-maps are made again from, checked before the
+    evaluation starts: ModelConfigError for a density no voxel grid gives, DatasetError for a
+    dataset that records no crop to make them in."""
+    for points_per_cm3 in density:
+        try:
+            voxel_size_for_density(points_per_cm3)
+        except PerceptionError as err:
+            raise ModelConfigError(f"--density: {err}") from err
+    reader = reader_for_model(root, depth_range_m)
+    depth_map_params(reader)
+    return reader
+
+
 def _density_row(
-    points_per_cm3: float, at_density: Predictions, full_ids: list[str], full_contact: np.ndarray | None
+    points_per_cm3: float, full: Predictions, estimate: np.ndarray, full_contact: np.ndarray
 ) -> dict[str, Any]:
-    """The density table's row for the estimates from depth-maps at ``points_per_cm3``; the
-    full cloud's pairs (``full_ids``, their contact-window SSIM ``full_contact``) for the test
-    of what the density costs."""
-    mean, se = _mean_se(ssim_rgb(at_density.truth, at_density.estimate))
-    psnr_mean, psnr_se = _mean_se(psnr_rgb(at_density.truth, at_density.estimate))
+    """The density table's row for ``estimate``, the estimates of ``full``'s pairs from their
+    depth-maps at ``points_per_cm3``; the full cloud's contact-window SSIM (``full_contact``) for
+    the test of what the density costs."""
+    mean, se = _mean_se(ssim_rgb(full.truth, estimate))
+    psnr_mean, psnr_se = _mean_se(psnr_rgb(full.truth, estimate))
     row = {
         "points_per_cm3": float(points_per_cm3),
         "ssim_mean": mean,
@@ -393,12 +416,12 @@ def _density_row(
         "psnr_db_se": psnr_se,
         "paper_ssim_mean": PAPER["density"].get(points_per_cm3),
     }
-    contact = contact_ssim(at_density.truth, at_density.truth_deformation, at_density.estimate)
+    contact = contact_ssim(full.truth, full.truth_deformation, estimate)
     if len(contact) >= 2:
         row["contact_ssim_mean"], row["contact_ssim_se"] = _mean_se(contact)
         # What this density costs: the full cloud's estimates better on the same pairs'
-        # contact windows (one-sided Wilcoxon; pairs matched by sample id).
-        if at_density.sample_ids == full_ids and np.any(contact != full_contact):
+        # contact windows (one-sided Wilcoxon).
+        if np.any(contact != full_contact):
             row["contact_p_full_better"] = float(stats.wilcoxon(full_contact, contact, alternative="greater").pvalue)
     return row
 
@@ -462,18 +485,3 @@ def summary_table(result: dict[str, Any]) -> str:
             + (f" (full cloud better: p {row['contact_p_full_better']:.1e})" if "contact_p_full_better" in row else "")
         )
     return "\n".join(lines)
-
-
-def parse_density(items: Sequence[str]) -> dict[float, str]:
-    """``["1=DIR1", "10=DIR10"]`` -> {1.0: "DIR1", 10.0: "DIR10"}."""
-    out = {}
-    for item in items:
-        density, sep, path = item.partition("=")
-        try:
-            value = float(density)
-        except ValueError:
-            value = float("nan")
-        if not sep or not path or not value > 0:
-            raise ModelConfigError(f"--density takes POINTS_PER_CM3=DATASET_DIR, got {item!r}")
-        out[value] = path
-    return out

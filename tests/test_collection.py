@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
@@ -22,12 +23,14 @@ from dataset.check import check_dataset, content_checksum
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError
-from dataset.redepth import redepth_dataset, redepth_datasets
+from dataset.redepth import depth_maps_at_density, redepth_dataset, redepth_datasets
 from dataset.synth import write_synthetic_dataset
 from models.errors import ModelConfigError
-from models.evaluate import CONTACT_LEVELS
+from models.evaluate import CONTACT_LEVELS, evaluate, predict_dataset
+from models.networks import GeneratorConfig, UNetGenerator
 from msgs import strict_json
 from nodes.bag import bag_info, iter_envelopes
+from perception.ssim import ssim_rgb
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 from sim.cli import main as sim_cli
 
@@ -200,6 +203,18 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> 
     assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [
         r.sample_id for r in collected.records
     ]
+    # The evaluator's density table makes the same maps in memory, and scores what the density
+    # dataset scores.
+    np.testing.assert_array_equal(
+        depth_maps_at_density(collected, collected.records, 10.0),
+        np.stack([sparse.load(r.sample_id).depth_map_m for r in collected.records]),
+    )
+    torch.manual_seed(0)
+    generator = UNetGenerator(GeneratorConfig(ngf=8)).eval()
+    depth_range_m = collected.info.depth_range_m
+    result, _ = evaluate(generator, depth_range_m, collected.root, split="all", density=[10.0], progress=False)
+    on_dataset = predict_dataset(generator, depth_range_m, sparse.root, split="all")
+    assert result["density"][0]["ssim_mean"] == pytest.approx(ssim_rgb(on_dataset.truth, on_dataset.estimate).mean())
     # Both densities in one pass each, shared out between two processes: the same files.
     shared = redepth_datasets(
         tmp_path / "collected", {None: tmp_path / "shared_full", 10.0: tmp_path / "shared_10"}, progress=False, jobs=2
