@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -55,14 +55,15 @@ from workcell.scene import Scene, load_scene
 REGISTRATION_FRAMES_TOPIC = "/perception/registration_frames"
 # A calibration should rest on many touches: fewer than this in all is refused.
 MIN_TOUCHES = 30
-# Rounds of measuring against depth-maps cut at the corrected pose.
-CORRECTION_ROUNDS = 2
-# Touches an object's correction is measured on (each costs ~100 renderings per round): the
-# cameras' fit needs many (on the demo session 150 left the right camera at 0.38 mm 0.031 deg,
-# 400 at 0.22 mm 0.007 deg); placing the objects, the cameras calibrated, fewer (150 placed the
-# demo's bottle and box to 0.02-0.03 mm).
-CALIBRATION_TOUCHES_PER_OBJECT = 400
-PLACING_TOUCHES_PER_OBJECT = 150
+# Touches an object's correction is measured on in each round (each costs ~100 renderings), the
+# next round measuring against depth-maps cut at the last round's fit. The cameras' fit needs
+# many in its last round (on the demo session 150 left the right camera at 0.38 mm 0.031 deg,
+# 400 at 0.22 mm 0.007 deg); its first round only brings the objects near, and 150 there gave
+# the same cameras as 400 (0.12 / 0.23 mm against 0.13 / 0.22) in 40 % less time. Placing the
+# objects, the cameras calibrated, needs fewer (150 placed the demo's bottle and box to
+# 0.02-0.03 mm).
+CALIBRATION_TOUCHES_PER_OBJECT = (150, 400)
+PLACING_TOUCHES_PER_OBJECT = (150, 150)
 # A camera's points below this height (m) are the table it is levelled on; points within
 # _OBJECT_REACH_M of a registered object (and above the table band) are its view of it.
 _TABLE_BAND_M = 0.006
@@ -155,9 +156,7 @@ def camera_views(
     return levelling, views
 
 
-def calibrate_touches(
-    session: str | os.PathLike[str], rounds: int = CORRECTION_ROUNDS, grasps: int | None = None, jobs: int = 1
-) -> TouchCalibration:
+def calibrate_touches(session: str | os.PathLike[str], grasps: int | None = None, jobs: int = 1) -> TouchCalibration:
     """Correct each camera of ``session`` from its training split's touches (module docstring);
     with ``grasps``, from those of that many grasps only, the first of each object in turn
     (what a shorter session of the same objects would have given). ``jobs`` > 1 fits the
@@ -183,9 +182,7 @@ def calibrate_touches(
         levelling, views = {}, {}
         for frame_id, camera_frames in sorted(frames.items()):
             levelling[frame_id], views[frame_id] = camera_views(camera_frames[-3:], scene, predicted)
-        cell, touches, no_contact = fit_cell(
-            reader, measure, train, predicted, views, CALIBRATION_TOUCHES_PER_OBJECT, rounds
-        )
+        cell, touches, no_contact = fit_cell(reader, measure, train, predicted, views, CALIBRATION_TOUCHES_PER_OBJECT)
     corrections = {c: cell.cameras[c] @ levelling[c] for c in frames}
     calibrated = {
         c: dataclasses.replace(frames[c][-1], camera_to_world=corrections[c] @ frames[c][-1].camera_to_world)
@@ -219,17 +216,17 @@ def fit_cell(
     train: list[SampleRecord],
     predicted: dict[str, np.ndarray],
     views: dict[str, dict[str, np.ndarray]],
-    per_object: int,
-    rounds: int = CORRECTION_ROUNDS,
+    per_object: Sequence[int],
 ) -> tuple[CellCorrection, dict[str, list[TouchOffset]], int]:
     """The joint fit of cameras and objects (``perception.touch_calibration.solve_cell``) after
-    ``rounds`` of measuring ``train``'s touches (``per_object`` an object) against the objects as fitted (at ``predicted``
-    first), with the last round's touches and no-contacts; TouchCalibrationError when fewer
-    than :data:`MIN_TOUCHES` show a contact the renderer can place."""
+    a round of measuring ``train``'s touches against the objects as fitted (at ``predicted``
+    first) for each of ``per_object`` (touches an object that round), with the last round's
+    touches and no-contacts; TouchCalibrationError when fewer than :data:`MIN_TOUCHES` show a
+    contact the renderer can place."""
     params, scene = depth_map_params(reader)
     models = {name: o3d.io.read_triangle_mesh(scene.mesh(name)) for name in predicted}
-    for _ in range(rounds):
-        touches, no_contact = measure_session_touches(measure, train, predicted, scene, params, per_object)
+    for touches_per_object in per_object:
+        touches, no_contact = measure_session_touches(measure, train, predicted, scene, params, touches_per_object)
         counted = sum(len(t) for t in touches.values())
         if counted < MIN_TOUCHES:
             raise TouchCalibrationError(
