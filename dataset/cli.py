@@ -77,9 +77,10 @@ def _redepth(args: argparse.Namespace) -> int:
         return 2
     registered = None
     if args.calibration:
-        from dataset.registered_again import calibrated_frames, placement_report, register_again
+        from dataset.registered_again import objects_placed, placement_report
 
-        registered = register_again(args.dir, calibrated_frames(args.dir, args.calibration), jobs=args.jobs)
+        registered, how = objects_placed(args.dir, args.calibration, jobs=args.jobs)
+        print(f"objects {how}")
         for name, row in placement_report(args.dir, registered).items():
             parts = []
             if "moved_mm" in row:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import os
 import warnings
 from pathlib import Path
@@ -28,6 +29,7 @@ import numpy as np
 import open3d as o3d
 
 import msgs
+from dataset.check import records_checksum
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError
 from dataset.splits import split_records
@@ -41,7 +43,9 @@ from dataset.touch_calibration import (
 from dataset.touches import touch_measure
 from dataset.turns import TurnJudge, segmented_objects, turns_alike
 from drivers.depth_camera.base import DepthCameraError, load_calibration_of
-from perception.pointcloud import depth_images_to_world
+from msgs import strict_json
+from perception.errors import PointCloudError
+from perception.pointcloud import check_transform, depth_images_to_world
 from perception.pose_scores import add_s_error_m
 from perception.registration import register_model, sample_model_cloud
 from perception.touch_calibration import TouchCalibrationError, pose_error
@@ -94,6 +98,56 @@ def register_again(
             warnings.warn(f"the objects keep their registered places: {err}", stacklevel=2)
             return registered
     return cell.objects
+
+
+# What ``dtx calibrate touches`` writes beside the cameras: the objects of the session it was
+# calibrated from, as its joint fit placed them.
+PLACEMENTS_FILE = "placements.json"
+
+
+def placements_file(session: str | os.PathLike[str], objects: dict[str, np.ndarray]) -> str:
+    """The text of :data:`PLACEMENTS_FILE`: ``objects`` (name -> model_to_world) as a calibration
+    of ``session`` placed them, with the checksum of the session's records, so that only that
+    session takes them."""
+    return (
+        strict_json.dumps(
+            {
+                "session_records_sha256": records_checksum(DatasetReader(session)),
+                "objects": {name: np.asarray(pose).tolist() for name, pose in sorted(objects.items())},
+            },
+            indent=1,
+        )
+        + "\n"
+    )
+
+
+def objects_placed(
+    session: str | os.PathLike[str], calibration_dir: str | os.PathLike[str], jobs: int = 1
+) -> tuple[dict[str, np.ndarray], str]:
+    """Each object of ``session`` where its depth-maps are to be cut with the cameras of
+    ``calibration_dir``, and how it was found: the calibration's own fit when it was calibrated
+    from this very session (:data:`PLACEMENTS_FILE`; the fit placed the objects with the cameras
+    and 400 touches an object: on the demo session ADD-S 0.003-0.20 mm), else registered again
+    from the calibrated cameras and placed by the session's touches (:func:`register_again`)."""
+    path = Path(calibration_dir) / PLACEMENTS_FILE
+    if path.exists():
+        session_sha256, objects = _read_placements(path)
+        if session_sha256 == records_checksum(DatasetReader(session)):
+            return objects, f"placed by the calibration's own fit of this session ({path})"
+    frames = calibrated_frames(session, calibration_dir)
+    return register_again(session, frames, jobs=jobs), "registered again from the calibrated cameras, placed by touches"
+
+
+def _read_placements(path: Path) -> tuple[str, dict[str, np.ndarray]]:
+    """A :data:`PLACEMENTS_FILE`'s session checksum and objects; DatasetError naming what is wrong."""
+    try:
+        record = json.loads(path.read_text())
+        session_sha256 = record["session_records_sha256"]
+        if not isinstance(session_sha256, str):
+            raise TypeError(f"session_records_sha256 is {session_sha256!r}, not a checksum")
+        return session_sha256, {name: check_transform(pose, name) for name, pose in record["objects"].items()}
+    except (ValueError, KeyError, TypeError, AttributeError, PointCloudError) as err:
+        raise DatasetError(f"{path} is not a placements file of dtx calibrate touches: {err!r}") from err
 
 
 def placement_report(session: str | os.PathLike[str], registered: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:

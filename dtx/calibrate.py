@@ -1,7 +1,9 @@
 """``dtx calibrate touches SESSION --out DIR``: the depth cameras' extrinsics, corrected from the
 session's own touches (``dataset.touch_calibration``), written as a calibration directory the
 launch files take (``calibration_dir:=DIR``) and ``dtx dataset redepth --calibration`` reads,
-with the report beside them (``report.json``, as ``--json`` prints it)."""
+with the report beside them (``report.json``, as ``--json`` prints it) and the session's objects as
+the fit placed them (``placements.json``: ``dtx dataset redepth --calibration`` of that session
+cuts its depth-maps there)."""
 
 from __future__ import annotations
 
@@ -69,6 +71,7 @@ def _print_report(report: dict[str, Any], out: Path) -> None:
 
 def _touches(args: argparse.Namespace) -> int:
     from dataset.reader import DatasetReader  # noqa: PLC0415 - Open3D and the renderer load with it
+    from dataset.registered_again import PLACEMENTS_FILE, placements_file  # noqa: PLC0415
     from dataset.touch_calibration import calibrate_touches, scene_camera_truth  # noqa: PLC0415
     from drivers.depth_camera.base import Calibration, calibration_yaml  # noqa: PLC0415
 
@@ -83,6 +86,7 @@ def _touches(args: argparse.Namespace) -> int:
         for frame_id, image in result.calibrated.items()
     }
     files["report.json"] = strict_json.dumps(report, indent=1) + "\n"
+    files[PLACEMENTS_FILE] = placements_file(args.session, result.cell.objects)
     write_calibration_dir(Path(args.out), files, args.force)
     if args.json:
         print(strict_json.dumps(report))

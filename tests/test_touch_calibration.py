@@ -281,6 +281,43 @@ def test_a_session_too_short_to_place_its_objects_keeps_their_registered_places(
     assert (tmp_path / "o" / "manifest.jsonl").exists()
 
 
+def test_a_calibration_places_the_objects_of_its_own_session_only(short_session: Path, tmp_path: Path) -> None:
+    """``placements.json`` (the calibration's fit of its session's objects) is taken by that
+    session's redepth, and not by another session's; a damaged one is refused by name."""
+    import shutil
+
+    from dataset.reader import DatasetReader
+    from dataset.records import DatasetError
+    from dataset.registered_again import PLACEMENTS_FILE, objects_placed, placements_file
+
+    calibration = _own_calibration(short_session, tmp_path / "calibration")
+    shift = np.eye(4)
+    shift[0, 3] = 0.001
+    moved = {r.object_name: np.array(r.model_to_world) @ shift for r in DatasetReader(short_session).records}
+    (calibration / PLACEMENTS_FILE).write_text(placements_file(short_session, moved))
+    placed, how = objects_placed(short_session, calibration)
+    assert "own fit of this session" in how and placed.keys() == moved.keys()
+    assert all(np.array_equal(placed[name], moved[name]) for name in moved)
+    result = _dtx(
+        "dataset", "redepth", str(short_session), "--calibration", str(calibration), "--out", str(tmp_path / "o")
+    )
+    assert result.returncode == 0, result.stderr
+    assert "placed by the calibration's own fit" in result.stdout
+    assert result.stdout.count("moved 1.00 mm 0.00 deg from its recorded pose") == 3, result.stdout
+    # Another session (one grasp fewer) registers its objects again.
+    other = tmp_path / "other"
+    shutil.copytree(short_session, other)
+    manifest = (other / "manifest.jsonl").read_text().splitlines(keepends=True)
+    (other / "manifest.jsonl").write_text("".join(manifest[:-2]))
+    with pytest.warns(UserWarning, match="keep their registered places"):
+        _, how = objects_placed(other, calibration)
+    assert "registered again" in how
+    for damaged in ("not json", "{}", '{"session_records_sha256": 1, "objects": []}'):
+        (calibration / PLACEMENTS_FILE).write_text(damaged)
+        with pytest.raises(DatasetError, match="not a placements file"):
+            objects_placed(short_session, calibration)
+
+
 def test_registered_again_with_the_cameras_own_calibration_gives_the_collected_maps(
     short_session: Path, tmp_path: Path
 ) -> None:
