@@ -35,7 +35,7 @@ from models.template_match import template_match
 from msgs.progress import Progress
 from perception.density import voxel_size_for_density
 from perception.errors import ImageComparisonError, PerceptionError
-from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
+from perception.ssim import WINDOW, psnr_rgb, ssim_pairs_rgb, ssim_rgb
 
 PAPER = {
     "ssim_model_mean": 0.84,
@@ -119,17 +119,18 @@ def predict_dataset(
 MAX_BASELINE_DRAWS = 1000
 
 
-def _baseline(n: int, baseline_draws: int, seed: int, score: Callable[[int, np.ndarray], np.ndarray]) -> np.ndarray:
-    """Per estimate i, the mean of ``score(i, draws)``: its scores against ``baseline_draws``
-    random other truths ``draws`` (indices), drawn the same way for every metric and seed."""
+def _baseline(n: int, baseline_draws: int, seed: int, score: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """Per estimate i, the mean of its scores against ``baseline_draws`` random other truths,
+    drawn the same way for every metric and seed; ``score`` scores every (truth, estimate) row
+    of a K x 2 index array at once."""
     rng = np.random.default_rng(seed)
-    baseline = np.empty(n)
+    draws = np.empty((n, baseline_draws), np.int64)
     for i in range(n):
         # Random *other* ground truths: the estimate's own would favour the baseline.
         others = np.delete(np.arange(n), i)
-        draws = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
-        baseline[i] = score(i, draws).mean()
-    return baseline
+        draws[i] = rng.choice(others, size=baseline_draws, replace=len(others) < baseline_draws)
+    pairs = np.stack([draws.ravel(), np.repeat(np.arange(n), baseline_draws)], axis=1)
+    return score(pairs).reshape(n, baseline_draws).mean(axis=1)
 
 
 def _mean_se(values: np.ndarray) -> tuple[float, float]:
@@ -160,16 +161,7 @@ def ssim_statistics(
             f"pairs {np.flatnonzero(~np.isfinite(model)).tolist()} have no SSIM window inside "
             f"the {WINDOW // 2}-pixel border (empty windows mask)"
         )
-    baseline = _baseline(
-        n,
-        baseline_draws,
-        seed,
-        lambda i, draws: ssim_rgb(
-            truth[draws],
-            np.repeat(estimate[i : i + 1], len(draws), axis=0),
-            None if windows is None else windows[draws],
-        ),
-    )
+    baseline = _baseline(n, baseline_draws, seed, lambda pairs: ssim_pairs_rgb(truth, estimate, pairs, windows))
     return {
         "n": n,
         **_model_against_baseline(model, baseline),
@@ -249,7 +241,12 @@ def psnr_statistics(truth: np.ndarray, estimate: np.ndarray, baseline_draws: int
         n,
         baseline_draws,
         seed,
-        lambda i, draws: psnr_rgb(truth[draws], np.repeat(estimate[i : i + 1], len(draws), axis=0)),
+        lambda pairs: np.concatenate(
+            [
+                psnr_rgb(truth[chunk[:, 0]], estimate[chunk[:, 1]])
+                for chunk in np.array_split(pairs, -(-len(pairs) // 256))
+            ]
+        ),
     )
     model_mean, model_se = _mean_se(model)
     base_mean, base_se = _mean_se(baseline)

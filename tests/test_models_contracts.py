@@ -21,7 +21,7 @@ from models.errors import ModelConfigError
 from models.evaluate import Predictions, ssim_statistics, summary_table
 from models.template_match import template_match
 from perception.errors import ImageComparisonError
-from perception.ssim import PSNR_MAX_DB, psnr_rgb, ssim_rgb, ssim_torch
+from perception.ssim import PSNR_MAX_DB, psnr_rgb, ssim_pairs_rgb, ssim_rgb, ssim_torch
 
 FAST = settings(max_examples=25, deadline=None)
 
@@ -119,6 +119,40 @@ def test_property_ssim_rgb_of_a_view_is_the_ssim_of_its_copy(seed: int, view: st
     np.testing.assert_array_equal(ssim_rgb(va, vb), ssim_rgb(va.copy(), vb.copy()))
     windows = np.ones(va.shape[:-1], bool)[:, ::-1]
     np.testing.assert_allclose(ssim_rgb(va, vb, windows), ssim_rgb(va.copy(), vb.copy()), atol=1e-12)
+
+
+@FAST
+@given(
+    seed=st.integers(0, 2**16),
+    counts=st.tuples(st.integers(1, 4), st.integers(1, 4), st.integers(0, 9)),
+    masked=st.booleans(),
+)
+def test_property_ssim_of_pairs_is_ssim_rgb_of_each_pair(seed: int, counts: tuple[int, int, int], masked: bool) -> None:
+    """The baseline's pairwise SSIM (each image blurred once) is ssim_rgb's, pair by pair."""
+    n, m, k = counts
+    rng = np.random.default_rng(seed)
+    a, b = images(n, seed, 17), images(m, seed + 1, 17)
+    pairs = np.stack([rng.integers(0, n, k), rng.integers(0, m, k)], axis=1)
+    windows = rng.random((n, 17, 17)) < 0.3 if masked else None
+    expected = [ssim_rgb(a[i], b[j], None if windows is None else windows[i]) for i, j in pairs]
+    np.testing.assert_allclose(ssim_pairs_rgb(a, b, pairs, windows), expected, atol=1e-12, equal_nan=True)
+
+
+def test_ssim_of_pairs_refuses_what_it_cannot_pair() -> None:
+    a = images(2, 0)
+    good = np.array([[0, 1]])
+    for bad_a, bad_b, pairs, match in (
+        (a.astype(np.float32), a, good, "uint8"),
+        (a, a[:, :20], good, "one image size"),
+        (a[:, :8, :8], a[:, :8, :8], good, "at least 11"),
+        (a, a, good.astype(float), "integer indices"),
+        (a, a, np.array([0, 1]), "integer indices"),
+        (a, a, np.array([[0, 2]]), "not there"),
+        (a, a, np.array([[-1, 0]]), "not there"),
+    ):
+        with pytest.raises(ImageComparisonError, match=match):
+            ssim_pairs_rgb(bad_a, bad_b, pairs)
+    assert ssim_pairs_rgb(a, a, np.empty((0, 2), int)).shape == (0,)
 
 
 def test_ssim_rgb_refuses_windows_of_another_shape_or_dtype() -> None:
