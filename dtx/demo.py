@@ -23,6 +23,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 REAL_PRESSES = "assets/gelsight/ball_presses.npz"
@@ -65,6 +66,21 @@ def _run(step: str, command: list[str], capture: bool = False) -> str:
         raise SystemExit(f"demo: step '{step}' failed (exit {result.returncode})")
     print(f"== {step}: done in {time.monotonic() - started:.0f} s", flush=True)
     return result.stdout or ""
+
+
+def _start(step: str, command: list[str]) -> Callable[[], None]:
+    """``command`` started as a process beside the steps that follow; returns the wait for it,
+    which fails the demo as :func:`_run` does."""
+    print(f"\n== {step} (beside the next step)\n{shown_command(command)}", flush=True)
+    started = time.monotonic()
+    process = subprocess.Popen([sys.executable, "-m", "dtx.cli", *command])
+
+    def wait() -> None:
+        if process.wait() != 0:
+            raise SystemExit(f"demo: step '{step}' failed (exit {process.returncode})")
+        print(f"== {step}: done in {time.monotonic() - started:.0f} s", flush=True)
+
+    return wait
 
 
 # The paper's SSIM at each point density it tried (points/cm^3).
@@ -182,21 +198,34 @@ def _collected(session: Path, args: argparse.Namespace) -> Path:
     return session
 
 
-def _calibrated(session: Path, out: Path) -> Path:
+def _calibrated(session: Path, out: Path, library_samples: int, seed: int) -> tuple[Path, Path | None]:
     """The session with its depth-maps cut again by cameras calibrated from its own training
-    touches (a calibration already there is kept)."""
-    calibration, calibrated = out / "calibration", out / "session_calibrated"
+    touches (a calibration already there is kept), and the contact library of
+    ``library_samples`` pairs (None for none), made beside the cut: each is one process, and the
+    demo's machine has two cores."""
+    calibration, calibrated, library = out / "calibration", out / "session_calibrated", out / "library"
     if not (calibration / "report.json").exists():
         _run(
             "1/4 calibrate the cameras from the session's training touches",
             ["calibrate", "touches", str(session), "--out", str(calibration), "--force", "--jobs", str(JOBS)],
         )
+    library_made = (
+        _start(
+            "2/4 contact library (the simulated world's spheres, cylinders, edges, textures)",
+            ["dataset", "library", str(library), "--samples", str(library_samples), "--seed", str(seed)],
+        )
+        if library_samples
+        else None
+    )
     _run(  # resumes a torn run: the samples already there are kept
         "1/4 the session's depth-maps cut again with the calibrated cameras",
         ["dataset", "redepth", str(session), "--calibration", str(calibration), "--out", str(calibrated)]
         + ["--jobs", str(JOBS)],
     )
-    return calibrated
+    if library_made is None:
+        return calibrated, None
+    library_made()
+    return calibrated, library
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -204,15 +233,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
 
     out = Path(args.out)
-    library, train_dir, figures = out / "library", out / "train", out / "figures"
-    session = _calibrated(_collected(out / "session", args), out)
+    train_dir, figures = out / "train", out / "figures"
+    session, library = _calibrated(_collected(out / "session", args), out, args.library_samples, args.seed)
     train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]
     train += ["--session-pose-sigma-mm", f"{CALIBRATED_POSE_SIGMA_MM:g}"]
-    if args.library_samples:
-        _run(
-            "2/4 contact library (the simulated world's spheres, cylinders, edges, textures)",
-            ["dataset", "library", str(library), "--samples", str(args.library_samples), "--seed", str(args.seed)],
-        )
+    if library is not None:
         train += ["--library", str(library)]
     if (train_dir / "checkpoint.pt").exists():
         train.append("--resume")
