@@ -94,10 +94,12 @@ class GripperNode(Node):
             raise ValueError(f"action {command.action!r} unknown; allowed: {sorted([*actions, 'stop'])}")
         if command.action == "grasp":
             self.force_n = command.force_n
-        return self.background.submit(self._run, actions[command.action], command.header.stamp_ns)
+        # Fingers that only open meet nothing: the simulated world need not know where the arm is.
+        opens = command.action == "release" or (command.action == "move" and command.width_m >= self.last_state.width_m)
+        return self.background.submit(self._run, actions[command.action], command.header.stamp_ns, not opens)
 
-    def _run(self, action: Any, requested_ns: int) -> msgs.GripperState:
-        if self.simulated:
+    def _run(self, action: Any, requested_ns: int, may_touch: bool) -> msgs.GripperState:
+        if self.simulated and may_touch:
             self.wait_for_arm_state_after(requested_ns)
         with self.line:
             action()

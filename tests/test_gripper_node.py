@@ -88,3 +88,26 @@ def test_acknowledge_through_the_node_clears_a_fast_stop(registry, node, firmwar
         assert moved.width_m == pytest.approx(0.05, abs=1e-6)
     finally:
         bus.close()
+
+
+def test_the_simulated_gripper_waits_for_the_arms_place_only_when_its_fingers_may_close(registry):
+    """The simulated world needs the arm's pose where the closing fingers may meet the object;
+    fingers that open (release, a move to a wider opening) meet nothing and do not wait for it."""
+    gripper = GripperNode("gripper", {"backend": "simulated", "state_rate_hz": 20.0}, registry=registry)
+    waited: list[int] = []
+    gripper.wait_for_arm_state_after = waited.append  # type: ignore[method-assign]
+    try:
+        gripper.on_command(msgs.GripperCommand(action="home")).result(timeout=30.0)
+        for action, width_m, waits in (
+            ("move", 0.05, True),
+            ("move", 0.08, False),
+            ("grasp", 0.03, True),
+            ("release", 0.11, False),
+        ):
+            command = msgs.GripperCommand(action=action, width_m=width_m, speed_m_s=0.4, force_n=10.0)
+            command.header.stamp_ns = len(waited) + 1000
+            before = list(waited)
+            gripper.on_command(command).result(timeout=30.0)
+            assert (waited != before) == waits, action
+    finally:
+        gripper.close()
