@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 # (yaw rad, x m, y m) of a model standing on the table; a sweep row: (fitness, -RMSE m, pose).
 PlanarPose = tuple[float, float, float]
@@ -171,8 +172,8 @@ def turned_about_centre(
 ) -> tuple[np.ndarray, float, float]:
     """An upright ``model_to_world`` turned by ``turn_rad`` about the vertical through the
     model's centre (its points' mean), then refined on the observed points as the upright search
-    ends (:func:`planar_icp`, then :func:`planar_icp_to_plane`, at ``distance_m``): the pose a
-    near-symmetric object would have the other way round. (model_to_world, fitness, RMSE m)."""
+    ends (:func:`upright_refined`): the pose a near-symmetric object would have the other way
+    round. (model_to_world, fitness, RMSE m)."""
     if not is_upright(model_to_world):
         raise ValueError("model_to_world must stand the model upright (a turn about the vertical only)")
     yaw = float(np.arctan2(model_to_world[1, 0], model_to_world[0, 0])) + turn_rad
@@ -180,14 +181,35 @@ def turned_about_centre(
     c, s = np.cos(yaw), np.sin(yaw)
     centre_world_xy = model_to_world[:2, :2] @ centre_xy + model_to_world[:2, 3]
     start_xy = centre_world_xy - np.array([[c, -s], [s, c]]) @ centre_xy
-    model_z_m = float(model_to_world[2, 3])
-    pose, _, _ = planar_icp(
-        observed_m, model_tree, model_points_m, (yaw, *start_xy), model_z_m, (distance_m,), max_iterations
+    return upright_refined(
+        observed_m,
+        model_tree,
+        model_points_m,
+        model_normals,
+        (yaw, *start_xy),
+        float(model_to_world[2, 3]),
+        distance_m,
+        max_iterations,
     )
+
+
+def upright_refined(
+    observed_m: np.ndarray,
+    model_tree: cKDTree,
+    model_points_m: np.ndarray,
+    model_normals: np.ndarray,
+    pose: PlanarPose,
+    model_z_m: float,
+    distance_m: float,
+    max_iterations: int,
+) -> tuple[np.ndarray, float, float]:
+    """The upright search's last step from ``pose``: :func:`planar_icp`, then
+    :func:`planar_icp_to_plane`, both at ``distance_m``. (model_to_world, fitness, RMSE m)."""
+    pose, _, _ = planar_icp(observed_m, model_tree, model_points_m, pose, model_z_m, (distance_m,), max_iterations)
     (yaw, x_m, y_m), fitness, rmse_m = planar_icp_to_plane(
         observed_m, model_tree, model_points_m, model_normals, pose, model_z_m, distance_m, max_iterations
     )
-    turned = np.eye(4)
-    turned[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-    turned[:3, 3] = [x_m, y_m, model_z_m]
-    return turned, fitness, rmse_m
+    model_to_world = np.eye(4)
+    model_to_world[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
+    model_to_world[:3, 3] = [x_m, y_m, model_z_m]
+    return model_to_world, fitness, rmse_m

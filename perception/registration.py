@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from perception.errors import RegistrationError
-from perception.planar_icp import planar_icp, planar_icp_to_plane, refine_best, sweep_subset, sweep_yaws
+from perception.planar_icp import refine_best, sweep_subset, sweep_yaws, upright_refined
 from perception.pointcloud import principal_spread_m, seeded_open3d
 
 _reg = o3d.pipelines.registration
@@ -453,10 +453,7 @@ def _register_resting(
         params.icp_distances_m,
         params.icp_max_iterations,
     )
-    pose, _, _ = planar_icp(
-        observed_fine_m, tree, model_points_m, pose, model_z_m, params.icp_distances_m[-1:], params.icp_max_iterations
-    )
-    (yaw, x_m, y_m), fitness, rmse_m = planar_icp_to_plane(
+    model_to_world, fitness, rmse_m = upright_refined(
         observed_fine_m,
         tree,
         model_points_m,
@@ -466,9 +463,6 @@ def _register_resting(
         params.icp_distances_m[-1],
         params.icp_max_iterations,
     )
-    model_to_world = np.eye(4)
-    model_to_world[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
-    model_to_world[:3, 3] = [x_m, y_m, model_z_m]
     return model_to_world, fitness, rmse_m, t1 - t0, time.perf_counter() - t1
 
 
