@@ -189,12 +189,27 @@ def _one_pass(
         model_to_gel, model_to_world = poses.get(record.sample_id, (record.model_to_gel, record.model_to_world))
         fields = _kept_fields(sample, params.shape, model_to_gel, model_to_world)
         for density, writer in pending.items():
-            try:
-                model = model_index(scene, record.object_name, density)
-            except SceneError as err:
-                raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
-            writer.write(depth_map_m=depth_map_again(model, np.array(model_to_gel), geometry, params), **fields)
+            depth_map = _record_map_again(reader, scene, record, density, model_to_gel, geometry, params)
+            writer.write(depth_map_m=depth_map, **fields)
     return writers
+
+
+def _record_map_again(
+    reader: DatasetReader,
+    scene: Scene,
+    record: SampleRecord,
+    points_per_cm3: float | None,
+    model_to_gel: Any,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+) -> np.ndarray:
+    """:func:`depth_map_again` of ``record``'s object at ``points_per_cm3`` posed by
+    ``model_to_gel``; DatasetError naming the sample for an object the scene lacks."""
+    try:
+        model = model_index(scene, record.object_name, points_per_cm3)
+    except SceneError as err:
+        raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
+    return depth_map_again(model, np.array(model_to_gel), geometry, params)
 
 
 def _one_pass_in_process(
@@ -221,11 +236,7 @@ def depth_maps_at_density(reader: DatasetReader, records: list[SampleRecord], po
     for i, record in enumerate(records):
         if record.model_to_gel is None:
             raise DatasetError(f"{reader.root}: sample {record.sample_id} records no model_to_gel")
-        try:
-            model = model_index(scene, record.object_name, points_per_cm3)
-        except SceneError as err:
-            raise DatasetError(f"{reader.root}: sample {record.sample_id}: {err}") from err
-        maps[i] = depth_map_again(model, np.array(record.model_to_gel), geometry, params)
+        maps[i] = _record_map_again(reader, scene, record, points_per_cm3, record.model_to_gel, geometry, params)
     return maps
 
 
