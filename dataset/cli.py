@@ -182,9 +182,10 @@ def _add_redepth(commands: argparse._SubParsersAction) -> None:
     )
     redepth.add_argument(
         "--calibration",
-        help="a calibration directory (dtx calibrate touches): the objects are registered again from the "
-        "session's camera frames with its extrinsics before the maps are cut, and a near-symmetric object's "
-        "turn the cameras cannot tell is chosen by the session's training touches",
+        help="a calibration directory (dtx calibrate touches): the maps are cut with the objects where its fit "
+        "placed them when it was calibrated from this session (placements.json); any other session's objects "
+        "are registered again from its camera frames with its extrinsics, turned and placed by its training "
+        "touches",
     )
     redepth.add_argument(
         "--jobs",

@@ -3,9 +3,9 @@
 1. collect 1,200 grasps (2,400 pairs) with ``launch/collect_sim.yaml`` — the paper had 289
    (``--grasps 289``); simulated grasps are cheap, 4x the data gives the model more to
    learn from, and a 360-pair test split tells it from the baseline with room to spare;
-2. calibrate the depth cameras from the session's own training touches (``dtx calibrate
-   touches``) and cut its depth-maps again with them, each object registered again, turned
-   and placed by the same touches (``dtx dataset redepth --calibration``);
+2. calibrate the depth cameras and place the objects from the session's own training touches
+   (``dtx calibrate touches``), and cut its depth-maps again at those places (``dtx dataset
+   redepth --calibration``), the contact library made beside the cut;
    train the cGAN on those with ``configs/quick.yaml``, its prior as sure of the geometry as
    the calibration allows (CALIBRATED_POSE_SIGMA_MM);
 3. evaluate it like the paper, at the paper's point densities too (the test split's depth-maps
@@ -33,7 +33,7 @@ REAL_PRESSES = "assets/gelsight/ball_presses.npz"
 # the cameras alone and no placing, 0.2 had beaten 0.5: 0.574 vs 0.601).
 CALIBRATED_POSE_SIGMA_MM = 0.1
 LIBRARY_SAMPLES = 1200
-# The touch calibration, the choice of turns by touches and the redepth share their work out
+# The touch calibration (and a redepth that must place the objects again) shares its touches out
 # among this many processes: one per core of the 2-core machine the demo is sized for.
 JOBS = 2
 SESSION_TOPICS = "[/collector/sample,/perception/object_cloud,/perception/registration_frames,/perception/depth_map,/arm/state,/gripper/state]"
