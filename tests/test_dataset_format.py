@@ -22,7 +22,15 @@ from dataset.cli import add_commands
 from dataset.export import export_pix2pix
 from dataset.images import resize_rgb, subtract_background
 from dataset.reader import DatasetReader
-from dataset.records import FILE_KINDS, FINGERS, DatasetError, DatasetInfo, EncodedSample, SampleRecord
+from dataset.records import (
+    FILE_KINDS,
+    FINGERS,
+    DatasetError,
+    DatasetInfo,
+    EncodedSample,
+    SampleRecord,
+    rigid_transform_tuple,
+)
 from dataset.splits import leave_one_object_out, split_grasps, split_records
 from dataset.synth import SHAPES, depth_map_from_surface, random_surface, write_synthetic_dataset
 from dataset.writer import DatasetWriter
@@ -388,6 +396,37 @@ def test_model_pose_and_crop_round_trip_and_bad_ones_are_refused(tmp_path: Path)
     (tmp_path / "dataset.json").write_text(json.dumps({**meta, "depth_crop_m": [0.02, -1.0, 0.02]}))
     with pytest.raises(DatasetError, match="depth_crop_m must be 3 positive extents"):
         DatasetReader(tmp_path)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    angles=st.tuples(*[st.floats(-np.pi, np.pi)] * 3),
+    offset=st.tuples(*[st.floats(-1.0, 1.0)] * 3),
+    where=st.tuples(st.integers(0, 3), st.integers(0, 3)),
+    error_exponent=st.floats(-12.0, -3.0),
+)
+def test_a_rigid_transform_is_told_within_np_allclose_tolerances(
+    angles: tuple[float, float, float],
+    offset: tuple[float, float, float],
+    where: tuple[int, int],
+    error_exponent: float,
+) -> None:
+    """The reader's check of each pose, written out for speed, takes what ``np.allclose`` took
+    (rtol 1e-5; atol 1e-8 on the last row, 1e-6 on R Rᵀ = I) and refuses the rest."""
+    from scipy.spatial.transform import Rotation
+
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_euler("xyz", angles).as_matrix()
+    matrix[:3, 3] = offset
+    matrix[where] += 10.0**error_exponent
+    rigid = np.allclose(matrix[3], [0, 0, 0, 1]) and np.allclose(
+        matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-6
+    )
+    if rigid:
+        assert rigid_transform_tuple(matrix) == tuple(tuple(float(v) for v in row) for row in matrix)
+    else:
+        with pytest.raises(DatasetError, match="model_to_gel must be a finite 4x4 rigid transform"):
+            rigid_transform_tuple(matrix)
 
 
 def test_redepth_cli_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
