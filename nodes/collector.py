@@ -29,6 +29,7 @@ import json
 import os
 import time
 from collections.abc import Iterator
+from concurrent.futures import Future, wait
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -135,6 +136,7 @@ class CollectorNode(Node):
         self.stage_s: dict[str, list[float]] = {}
         self.registered: dict[str, msgs.RegisterReply] = {}
         self.last_arm: msgs.ArmState | None = None
+        self.releasing: Future[None] | None = None  # the release under way while a grasp is written
         self.model_points: dict[str, np.ndarray] = {}  # model frame, m; for the nominal width
 
     # -- the session ---------------------------------------------------------------------
@@ -230,8 +232,9 @@ class CollectorNode(Node):
                 if error.code == ErrorCode.NOT_REGISTERED:
                     self.registered.pop(object_name, None)
                 self.wait_for_nodes()
-            finally:
-                self.release_and_retreat()
+            finally:  # the release begun while the grasp was written, or one now
+                releasing, self.releasing = self.releasing, None
+                releasing.result() if releasing is not None else self.release_and_retreat()
         if not self.shutting_down:
             self.stats.skipped += 1
             self.log.warning("grasp %d on %s skipped after %d draws", grasp_id, object_name, attempt)
@@ -330,26 +333,34 @@ class CollectorNode(Node):
             )
         if held.state != "holding":
             raise GraspFailed(f"fingers found nothing ({held.state})")
-        with self.stage("capture"):
-            images = self.capture_at_contact(self.grip_seen())
+        # The depth-maps need only where the gels are: asked for now, they are cut while the
+        # gels settle (the "depth_maps" stage is what is left to wait for after the capture).
         gels = gel_poses_world(arrived.tcp_pose, held.width_m, self.geometry)
+        request = msgs.PatchRequest(
+            object_name=object_name, gel_left_to_world=gels["left"], gel_right_to_world=gels["right"]
+        )
+        cut = self.background.submit(self.patch.call, request, timeout_s=p.call_timeout_s)
+        try:
+            with self.stage("capture"):
+                images = self.capture_at_contact(self.grip_seen())
+        finally:
+            wait([cut])  # the client's socket is this thread's again
         with self.stage("depth_maps"):
             try:
-                patches = self.patch.call(
-                    msgs.PatchRequest(
-                        object_name=object_name, gel_left_to_world=gels["left"], gel_right_to_world=gels["right"]
-                    ),
-                    timeout_s=p.call_timeout_s,
-                )
+                patches = cut.result()
             except ServiceCallError as error:
                 if error.code == ErrorCode.OUT_OF_REACH:
                     raise GraspFailed("the registered model is out of the gel's reach") from error
                 raise
+        # Everything is in hand: the fingers open and the arm lifts while the pairs are written.
+        self.releasing = self.background.submit(self.release_and_retreat)
         pose = [float(x), float(y), float(z), float(theta)]
-        with self.stage("write"):
-            self.write_grasp(
-                grasp_id, object_name, pose, images, {"left": patches.left, "right": patches.right}, registered.fitness
-            )
+        depth_maps = {"left": patches.left, "right": patches.right}
+        try:
+            with self.stage("write"):
+                self.write_grasp(grasp_id, object_name, pose, images, depth_maps, registered.fitness)
+        finally:
+            wait([self.releasing])  # the clients' sockets are this thread's again
 
     def arm_to(self, tcp_pose: np.ndarray) -> msgs.ArmState:
         self.last_arm = self.move.call(
