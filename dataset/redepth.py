@@ -12,11 +12,13 @@ ids are kept, so the splits are the same and one checkpoint evaluates every vari
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -238,6 +240,35 @@ def depth_maps_at_density(reader: DatasetReader, records: list[SampleRecord], po
             raise DatasetError(f"{reader.root}: sample {record.sample_id} records no model_to_gel")
         maps[i] = _record_map_again(reader, scene, record, points_per_cm3, record.model_to_gel, geometry, params)
     return maps
+
+
+@contextlib.contextmanager
+def depth_maps_made_beside(
+    root: str | os.PathLike[str], sample_ids: list[str], densities: Sequence[float]
+) -> Iterator[dict[float, Future[np.ndarray]]]:
+    """:func:`depth_maps_at_density` of the samples ``sample_ids`` of the dataset at ``root``, at
+    each of ``densities`` in turn, made in a process of their own while the caller goes on (the
+    evaluator scores its full-density estimates meanwhile): density -> its maps, to come. Maps
+    not yet made when the block ends are not made."""
+    # At the lowest priority: the caller's threads (the network's OpenMP pool) keep their cores,
+    # and the maps take what they leave; sharing as equals made both slower than in turn.
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=os.nice, initargs=(19,))
+    try:
+        yield {d: pool.submit(_maps_at_density_in_process, str(root), sample_ids, d) for d in densities}
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _maps_at_density_in_process(root: str, sample_ids: list[str], points_per_cm3: float) -> np.ndarray:
+    reader = _dataset_in_process(root)
+    by_id = {r.sample_id: r for r in reader.records}
+    return depth_maps_at_density(reader, [by_id[sample_id] for sample_id in sample_ids], points_per_cm3)
+
+
+@functools.lru_cache(maxsize=1)
+def _dataset_in_process(root: str) -> DatasetReader:
+    """The dataset the process's every density is made from, opened once."""
+    return DatasetReader(root)
 
 
 def _kept_fields(sample: Sample, shape: tuple[int, int], model_to_gel: Any, model_to_world: Any) -> dict[str, Any]:

@@ -28,7 +28,8 @@ from scipy import stats
 
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
-from dataset.redepth import depth_map_params, depth_maps_at_density
+from dataset.records import SampleRecord
+from dataset.redepth import depth_map_params, depth_maps_made_beside
 from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
 from models.networks import ModelConfigError, UNetGenerator
 from models.template_match import template_match
@@ -97,7 +98,7 @@ def predict_dataset(
 ) -> Predictions:
     """Estimates for one split of a dataset (``split="all"``: every sample)."""
     reader = reader_for_model(root, depth_range_m)
-    records = reader.records if split == "all" else select_records(reader, split, hold_out_object)
+    records = evaluated_records(reader, split, hold_out_object)
     if len(records) < 2:
         raise ModelConfigError(f"the {split} set of {root} has {len(records)} sample(s); need at least 2")
     samples = [reader.load(r) for r in records]
@@ -113,6 +114,11 @@ def predict_dataset(
         scene=reader.info.scene,
         depth_crop_m=reader.info.depth_crop_m,
     )
+
+
+def evaluated_records(reader: DatasetReader, split: str, hold_out_object: str = "") -> list[SampleRecord]:
+    """The samples an evaluation of ``split`` scores (``"all"``: every sample)."""
+    return reader.records if split == "all" else select_records(reader, split, hold_out_object)
 
 
 # Most random truths per estimate in the baseline (the paper draws 15); each draw costs one SSIM.
@@ -341,10 +347,33 @@ def evaluate(
 ) -> tuple[dict[str, Any], Predictions]:
     """The paper's analysis on one split, plus the density table: the same pairs with their
     depth-maps made again from the model cloud thinned to each of ``density`` (points/cm^3,
-    ``dataset.redepth.depth_maps_at_density``; the dataset must record its models' poses)."""
-    density_reader = _density_reader(root, depth_range_m, density) if density else None
+    ``dataset.redepth.depth_maps_at_density``, in a process beside the analysis; the dataset
+    must record its models' poses)."""
+    density_ids = []
+    if density:
+        density_reader = _density_reader(root, depth_range_m, density)
+        density_ids = [r.sample_id for r in evaluated_records(density_reader, split, hold_out_object)]
     shown = Progress("evaluate", 1 + len(density), "depth-map sets", enabled=progress)
-    predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
+    with depth_maps_made_beside(root, density_ids, sorted(density)) as density_maps:
+        predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
+        result = _full_density_result(predictions, baseline_draws, template_px, seed)
+        shown.note(f"last: the {split} split")
+        shown.update()
+        result["density"] = []
+        full_contact = contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
+        for points_per_cm3, depth in density_maps.items():
+            estimate = predict(generator, depth.result(), depth_range_m)
+            result["density"].append(_density_row(points_per_cm3, predictions, estimate, full_contact))
+            shown.note(f"last: {points_per_cm3:g} points/cm³")
+            shown.update()
+    shown.close()
+    result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
+    return result, predictions
+
+
+def _full_density_result(predictions: Predictions, baseline_draws: int, template_px: int, seed: int) -> dict[str, Any]:
+    """The paper's analysis of ``predictions``: SSIM against the baseline, template match, PSNR,
+    and the contact windows' and each object's SSIM."""
     result = ssim_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)
     matches = template_match(predictions.truth, predictions.truth_deformation, predictions.estimate, template_px)
     distances = [m["distance_px"] for m in matches if m["distance_px"] is not None]
@@ -363,22 +392,7 @@ def evaluate(
     result["objects"] = per_object_statistics(
         predictions.truth, predictions.estimate, predictions.objects, baseline_draws, seed
     )
-    shown.note(f"last: the {split} split")
-    shown.update()
-    result["density"] = []
-    if density_reader is not None:
-        full_contact = contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
-        by_id = {r.sample_id: r for r in density_reader.records}
-        records = [by_id[sample_id] for sample_id in predictions.sample_ids]
-    for points_per_cm3 in sorted(density):
-        depth = depth_maps_at_density(density_reader, records, points_per_cm3)
-        estimate = predict(generator, depth, depth_range_m)
-        result["density"].append(_density_row(points_per_cm3, predictions, estimate, full_contact))
-        shown.note(f"last: {points_per_cm3:g} points/cm³")
-        shown.update()
-    shown.close()
-    result.update({"split": split, "hold_out_object": hold_out_object, "sample_ids": predictions.sample_ids})
-    return result, predictions
+    return result
 
 
 def _density_reader(
