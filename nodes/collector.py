@@ -1,12 +1,12 @@
 """Collector node: Algorithm 1 of the paper, end to end, through the other nodes' services.
 
-For each object: register it (``/perception/register``). For each grasp: draw
-(x, y, z, theta_z) = registered centroid + a seeded random offset (palm parallel to the
-table, only theta_z free), approach from above, close the gripper on the object's nominal width (the registered
-model's extent across the fingers at the drawn grasp: a WSG looks for the part only within
-its clamping travel around that width) to the constant contact force, wait for both GelSight frames at contact, get both fingers' depth-maps
-(``/perception/patch``), write one (tactile image, depth-map) pair per finger, release and
-retreat.
+For each object: register it (``/perception/register``). For each grasp: draw (x, y, z,
+theta_z) = registered centroid + a seeded random offset (palm parallel to the table, only theta_z
+free), approach from above (the fingers opening on the way), close the gripper on the object's
+nominal width (the registered model's extent across the fingers at the drawn grasp: a WSG looks
+for the part only within its clamping travel around that width) to the constant contact force,
+wait for both GelSight frames at contact while both fingers' depth-maps are cut (``/perception/patch``),
+write one (tactile image, depth-map) pair per finger while the fingers release and the arm retreats.
 
 Policy for what goes wrong (counted, never a half sample): a grasp whose fingers find
 nothing, or whose gel does not reach the registered model, is retried with a fresh draw,
@@ -28,10 +28,10 @@ import functools
 import json
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, wait
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeVar
 
 import numpy as np
 
@@ -51,6 +51,7 @@ from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pos
 from workcell.scene import load_scene
 
 FINGERS = ("left", "right")
+R = TypeVar("R")
 
 
 class GraspFailed(Exception):
@@ -136,7 +137,7 @@ class CollectorNode(Node):
         self.stage_s: dict[str, list[float]] = {}
         self.registered: dict[str, msgs.RegisterReply] = {}
         self.last_arm: msgs.ArmState | None = None
-        self.releasing: Future[None] | None = None  # the release under way while a grasp is written
+        self.releasing: Future[None] | None = None  # the release begun while a grasp was written
         self.model_points: dict[str, np.ndarray] = {}  # model frame, m; for the nominal width
 
     # -- the session ---------------------------------------------------------------------
@@ -316,12 +317,11 @@ class CollectorNode(Node):
         tcp = grasp_to_tcp_pose(x, y, z + self.geometry.tcp_to_gel_centre_m, theta)
         above = tcp.copy()
         above[2] += p.approach_height_m
-        with self.stage("approach"):
-            self.arm_to(above)
-            self.gripper.call(
-                msgs.GripperCommand(action="move", width_m=self.geometry.max_width_m, speed_m_s=p.gripper_speed_m_s),
-                timeout_s=p.call_timeout_s,
-            )
+        with self.stage("approach"):  # the fingers open on the way to the approach pose
+            wide = msgs.GripperCommand(action="move", width_m=self.geometry.max_width_m, speed_m_s=p.gripper_speed_m_s)
+            with self.beside(self.gripper.call, wide, timeout_s=p.call_timeout_s) as opening:
+                self.arm_to(above)
+            opening.result()
             arrived = self.arm_to(tcp)
         with self.stage("close"):
             self.grip_seen_ns = 0
@@ -339,12 +339,8 @@ class CollectorNode(Node):
         request = msgs.PatchRequest(
             object_name=object_name, gel_left_to_world=gels["left"], gel_right_to_world=gels["right"]
         )
-        cut = self.background.submit(self.patch.call, request, timeout_s=p.call_timeout_s)
-        try:
-            with self.stage("capture"):
-                images = self.capture_at_contact(self.grip_seen())
-        finally:
-            wait([cut])  # the client's socket is this thread's again
+        with self.beside(self.patch.call, request, timeout_s=p.call_timeout_s) as cut, self.stage("capture"):
+            images = self.capture_at_contact(self.grip_seen())
         with self.stage("depth_maps"):
             try:
                 patches = cut.result()
@@ -353,14 +349,20 @@ class CollectorNode(Node):
                     raise GraspFailed("the registered model is out of the gel's reach") from error
                 raise
         # Everything is in hand: the fingers open and the arm lifts while the pairs are written.
-        self.releasing = self.background.submit(self.release_and_retreat)
         pose = [float(x), float(y), float(z), float(theta)]
         depth_maps = {"left": patches.left, "right": patches.right}
+        with self.beside(self.release_and_retreat) as self.releasing, self.stage("write"):
+            self.write_grasp(grasp_id, object_name, pose, images, depth_maps, registered.fitness)
+
+    @contextlib.contextmanager
+    def beside(self, call: Callable[..., R], *args: Any, **kwargs: Any) -> Iterator[Future[R]]:
+        """``call`` in the node's background thread while the block runs, finished when the
+        block is left: the service clients' sockets are then this thread's again."""
+        running = self.background.submit(call, *args, **kwargs)
         try:
-            with self.stage("write"):
-                self.write_grasp(grasp_id, object_name, pose, images, depth_maps, registered.fitness)
+            yield running
         finally:
-            wait([self.releasing])  # the clients' sockets are this thread's again
+            wait([running])
 
     def arm_to(self, tcp_pose: np.ndarray) -> msgs.ArmState:
         self.last_arm = self.move.call(
