@@ -193,8 +193,7 @@ def _collected(session: Path, args: argparse.Namespace) -> Path:
     collect += [f"seed:={args.seed}", f"record_topics:={SESSION_TOPICS}"]
     if (session / "manifest.jsonl").exists():
         collect.append("resume:=true")
-    _run("1/4 collect (Algorithm 1 on the simulated scene)", collect)
-    _run("1/4 check the dataset", ["dataset", "check", str(session)])
+    _run("1/4 collect (Algorithm 1 on the simulated scene; the session ends with its dataset's check)", collect)
     return session
 
 
