@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, wait
 from pathlib import Path
-from typing import Any, NoReturn, TypeVar
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -51,7 +51,6 @@ from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pos
 from workcell.scene import load_scene
 
 FINGERS = ("left", "right")
-R = TypeVar("R")
 
 
 class GraspFailed(Exception):
@@ -234,8 +233,11 @@ class CollectorNode(Node):
                     self.registered.pop(object_name, None)
                 self.wait_for_nodes()
             finally:  # the release begun while the grasp was written, or one now
-                releasing, self.releasing = self.releasing, None
-                releasing.result() if releasing is not None else self.release_and_retreat()
+                if self.releasing is None:
+                    self.release_and_retreat()
+                else:
+                    self.releasing.result()
+                    self.releasing = None
         if not self.shutting_down:
             self.stats.skipped += 1
             self.log.warning("grasp %d on %s skipped after %d draws", grasp_id, object_name, attempt)
@@ -333,8 +335,7 @@ class CollectorNode(Node):
             )
         if held.state != "holding":
             raise GraspFailed(f"fingers found nothing ({held.state})")
-        # The depth-maps need only where the gels are: asked for now, they are cut while the
-        # gels settle (the "depth_maps" stage is what is left to wait for after the capture).
+        # Asked for as the fingers hold, the depth-maps are cut while the gels settle.
         gels = gel_poses_world(arrived.tcp_pose, held.width_m, self.geometry)
         request = msgs.PatchRequest(
             object_name=object_name, gel_left_to_world=gels["left"], gel_right_to_world=gels["right"]
@@ -355,9 +356,8 @@ class CollectorNode(Node):
             self.write_grasp(grasp_id, object_name, pose, images, depth_maps, registered.fitness)
 
     @contextlib.contextmanager
-    def beside(self, call: Callable[..., R], *args: Any, **kwargs: Any) -> Iterator[Future[R]]:
-        """``call`` in the node's background thread while the block runs, finished when the
-        block is left: the service clients' sockets are then this thread's again."""
+    def beside(self, call: Callable[..., Any], *args: Any, **kwargs: Any) -> Iterator[Future[Any]]:
+        """``call`` in the background thread while the block runs, done when it is left (its socket ours again)."""
         running = self.background.submit(call, *args, **kwargs)
         try:
             yield running
