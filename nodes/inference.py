@@ -100,8 +100,9 @@ class InferenceNode(Node):
         runtime: str = "onnxrt"  # measured faster than eager on 2 busy cores (dtx bench inference)
         precision: str = "fp32"
         device: str = "auto"
-        # The demo's model loses 0.00001 in int8, an untrained width-8 one 0.33; 0.01 is a third
-        # of what the demo's model adds to the renderer's SSIM on the contact windows.
+        # The demo's model loses 0.00001 in int8; an untrained width-8 one 0.33 on an AMD Zen 3 and
+        # 0.0004 on an Intel Xeon with AVX-512 VNNI (the CPU's int8 kernels decide). 0.01 is a
+        # third of what the demo's model adds to the renderer's SSIM on the contact windows.
         int8_max_ssim_loss: float = 0.01
         threads: int = 2
         max_regions: int = 256

@@ -21,7 +21,15 @@ from test_inference_node import serving
 from benchmarks.serve import depth_maps, write_checkpoint
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
-from models.runtime import CudaUnavailable, cuda_missing, int8_ssim_loss, onnx_graph, onnx_runner, resolve_device
+from models.runtime import (
+    CudaUnavailable,
+    cuda_missing,
+    int8_ssim_loss,
+    network_runner,
+    onnx_graph,
+    onnx_runner,
+    resolve_device,
+)
 from nodes.bus import Bus
 from nodes.inference import InferenceNode
 from nodes.inference_client import TactileClient
@@ -33,8 +41,19 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Untrained, width 8, no prior: its int8 graph loses about 0.3 SSIM against fp32."""
+    """Untrained, width 8, no prior. What its int8 graph loses against fp32 depends on the CPU's
+    int8 kernels: 0.33 SSIM on an AMD Zen 3 (no VNNI), 0.0004 on an Intel Xeon with AVX-512 VNNI."""
     return write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
+
+
+@pytest.fixture(scope="module")
+def int8_loss(checkpoint: Path) -> float:
+    """The SSIM this machine's int8 graph of ``checkpoint`` loses, measured as the node measures it."""
+    generator, depth_range_m = load_generator(checkpoint)
+    fp32, int8 = (network_runner(generator, depth_range_m, "onnxrt", p, 2, "cpu") for p in ("fp32", "int8"))
+    loss = int8_ssim_loss(generator, depth_range_m, fp32, int8)
+    assert loss > 0  # quantising an untrained network's weights changes its images somewhere
+    return loss
 
 
 def estimate(registry: Registry, maps: np.ndarray) -> tuple[np.ndarray, str]:
@@ -115,27 +134,36 @@ def test_on_cuda_the_estimates_are_the_generators(registry: Registry, checkpoint
 
 
 def test_int8_that_loses_more_than_allowed_is_served_in_fp32_with_a_log_line_saying_why(
-    registry: Registry, checkpoint: Path, caplog: pytest.LogCaptureFixture
+    registry: Registry, checkpoint: Path, int8_loss: float, caplog: pytest.LogCaptureFixture
 ) -> None:
     maps = depth_maps(3, seed=7)
-    with caplog.at_level(logging.WARNING), serving(registry, checkpoint, precision="int8"):
+    allowed = round(0.5 * int8_loss, 8)
+    with (
+        caplog.at_level(logging.WARNING),
+        serving(registry, checkpoint, precision="int8", int8_max_ssim_loss=allowed),
+    ):
         images, model = estimate(registry, maps)
     assert "onnxrt fp32, cpu" in model
     np.testing.assert_array_equal(images, graph_images(checkpoint, "fp32", maps))
     [refusal] = [r.getMessage() for r in caplog.records if "int8 refused" in r.getMessage()]
-    assert "more than int8_max_ssim_loss 0.01; serving fp32" in refusal
+    assert f"it loses {int8_loss:.4f} SSIM" in refusal
+    assert f"more than int8_max_ssim_loss {allowed:g}; serving fp32" in refusal
 
 
 def test_int8_within_the_allowed_loss_is_served_in_int8_and_its_loss_logged(
-    registry: Registry, checkpoint: Path, caplog: pytest.LogCaptureFixture
+    registry: Registry, checkpoint: Path, int8_loss: float, caplog: pytest.LogCaptureFixture
 ) -> None:
     maps = depth_maps(3, seed=8)
-    with caplog.at_level(logging.INFO), serving(registry, checkpoint, precision="int8", int8_max_ssim_loss=1.0):
+    allowed = round(2 * int8_loss, 8)
+    with (
+        caplog.at_level(logging.INFO),
+        serving(registry, checkpoint, precision="int8", int8_max_ssim_loss=allowed),
+    ):
         images, model = estimate(registry, maps)
     assert "onnxrt int8, cpu" in model
     np.testing.assert_array_equal(images, graph_images(checkpoint, "int8", maps))
     [held] = [r.getMessage() for r in caplog.records if r.getMessage().startswith("int8 holds: ")]
-    assert 0.1 < float(held.split()[2]) < 1.0  # what this untrained generator loses: above the default
+    assert held == f"int8 holds: {int8_loss:.5f} SSIM lost against fp32 (at most {allowed:g})"
 
 
 def test_the_ssim_loss_of_a_graph_against_itself_is_none(checkpoint: Path) -> None:
