@@ -1,6 +1,6 @@
 """The stages of a cloud request in the inference node, each measured alone in the benchmark's
 process on the very regions the node is asked about (``dtx bench serve --points``): the cut
-(perception.depthmap.contact_depth_maps on the kept index, the node's threads), the prior (the
+(perception.depthmap.contact_depth_maps on the kept index, the node's threads or its GPU), the prior (the
 network's input with the physics prior's images, models.data.network_input), the network (the
 graph the node serves, in its batches, same runtime, precision, threads and device) and the
 encoding of the reply (msgs.codec). The network's own rate here is what the planner's path is
@@ -48,6 +48,7 @@ def network_rate(run: Runner, x: np.ndarray, max_batch: int, repeats: int) -> tu
 
 def stage_costs(
     index: VoxelIndex,
+    device_points: torch.Tensor | None,
     poses: np.ndarray,
     geometry: GripperGeometry,
     params: DepthMapParams,
@@ -58,11 +59,14 @@ def stage_costs(
     max_batch: int,
     repeats: int,
 ) -> dict[str, float]:
-    """CPU ms per region of each stage of a request of ``poses`` on the cloud ``index``, and the
-    network's own rate on these regions (``network_regions_per_s``)."""
+    """CPU ms per region of each stage of a request of ``poses`` on the cloud ``index`` (cut on
+    the device of ``device_points``, its points there, as the node cuts them; None: the CPU), and
+    the network's own rate on these regions (``network_regions_per_s``)."""
 
     def cut() -> np.ndarray:
-        maps = contact_depth_maps(index, np.eye(4), poses, geometry, params, allow_empty=True, threads=threads)
+        maps = contact_depth_maps(
+            index, np.eye(4), poses, geometry, params, allow_empty=True, threads=threads, device_points=device_points
+        )
         return maps.depth_maps_m
 
     maps = cut()

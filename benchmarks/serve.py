@@ -10,7 +10,7 @@ in its own process on a private bus directory; this process is the grasp planner
   each YCB object at the depth-maps' training spacing (0.1 mm, float32) with ``--poses`` candidate
   gel poses on its surface per request, back to back; per object and pose count: the
   depth-map cutting step in this process (``cut_regions_per_s``: the node's batched, indexed
-  pass; ``cut_per_gel_regions_per_s``: one contact_depth_map over the whole cloud per gel, the
+  pass, and ``cut_device_regions_per_s`` the same on ``--device`` where not the CPU; ``cut_per_gel_regions_per_s``: one contact_depth_map over the whole cloud per gel, the
   way before the index), then through the node, request to reply: ``handle_regions_per_s`` and
   ``handle_p50_ms`` (a ``Cloud``: its points travel in the first request, ``first_request_ms``,
   which also builds the index; then only its id), ``points_regions_per_s`` and
@@ -69,6 +69,7 @@ from perception.depthmap import (
     contact_depth_map,
     contact_depth_maps,
 )
+from perception.depthmap_tensor import points_on_device
 from perception.pointcloud import VoxelIndex
 from perception.registration import ModelCloud, sample_model_cloud
 from workcell.kinematics import GripperGeometry
@@ -195,22 +196,28 @@ def _cut_rates(
     params: DepthMapParams,
     per_gel: int,
     threads: int,
+    device: str,
 ) -> dict[str, float]:
     """Depth-map cutting in this process, regions/s: the batched indexed pass on the node's
-    ``threads`` (index built beforehand, as the node caches it) and the way before it (a pass
-    over the whole cloud per gel, ``per_gel`` gels)."""
+    ``threads`` (index built beforehand, as the node caches it), on ``device`` too where that is
+    not the CPU (``cut_device_regions_per_s``), and the way before it (a pass over the whole cloud
+    per gel, ``per_gel`` gels)."""
     index = VoxelIndex(points)
-    contact_depth_maps(index, np.eye(4), poses, geometry, params, threads=threads)  # compiled and warm
-    started = time.perf_counter()
-    contact_depth_maps(index, np.eye(4), poses, geometry, params, threads=threads)
-    batched = len(poses) / (time.perf_counter() - started)
+
+    def batched(device_points: torch.Tensor | None) -> float:
+        cut = [index, np.eye(4), poses, geometry, params]
+        contact_depth_maps(*cut, threads=threads, device_points=device_points)  # compiled and warm
+        started = time.perf_counter()
+        contact_depth_maps(*cut, threads=threads, device_points=device_points)
+        return round(len(poses) / (time.perf_counter() - started), 1)
+
+    rates = {"cut_regions_per_s": batched(None)}
+    if device != "cpu":
+        rates["cut_device_regions_per_s"] = batched(points_on_device(index.points_m, device))
     started = time.perf_counter()
     for pose in poses[:per_gel]:
         contact_depth_map(points, np.eye(4), pose, geometry, params)
-    return {
-        "cut_regions_per_s": round(batched, 1),
-        "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1),
-    }
+    return {**rates, "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1)}
 
 
 def _prior_cpu_ms_per_region(checkpoint: Path, maps: np.ndarray) -> float | None:
@@ -263,6 +270,7 @@ def bench_points(
             cloud = sample_model_cloud(mesh, MODEL_POINT_SPACING_M, seed=MODEL_CLOUD_SEED)
             points = cloud.points_m.astype(np.float32)  # what a planner sends: half the bytes
             index = VoxelIndex(points)
+            on_device = points_on_device(index.points_m, device) if device != "cpu" else None  # as the node's
             for count in args.poses:
                 poses = surface_gel_poses(cloud, count, args.seed)
                 maps = contact_depth_maps(index, np.eye(4), poses, geometry, params).depth_maps_m
@@ -270,7 +278,7 @@ def bench_points(
                     "object": Path(mesh).stem,
                     "cloud_points": len(points),
                     "poses": count,
-                    **_cut_rates(points, poses, geometry, params, per_gel=min(count, 4), threads=args.threads),
+                    **_cut_rates(points, poses, geometry, params, min(count, 4), args.threads, device),
                 }
                 handle = Cloud(points)
                 started = time.perf_counter()
@@ -289,7 +297,7 @@ def bench_points(
                     lambda: client.estimate(maps), count, args.point_requests
                 )
                 stages = stage_costs(
-                    index, poses, geometry, params, generator, depth_range_m, network,
+                    index, on_device, poses, geometry, params, generator, depth_range_m, network,
                     args.threads, args.max_batch, args.point_requests,
                 )  # fmt: skip
                 rows.append({**row, "stage_cpu_ms_per_region": stages, **_ratios(row, stages)})

@@ -35,7 +35,7 @@ Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), `
 (fp32 | bf16 | int8: bf16 with eager only; int8, the encoder's convolutions quantised
 (models.runtime.int8_convolutions), with onnxrt on the CPU only), ``device`` (cpu | cuda | auto:
 ONNX Runtime's CUDA provider or eager PyTorch on the GPU, the physics prior drawn there too
-(models.prior_tensor); auto takes CUDA where the runtime has it; cuda without it: the node does
+(models.prior_tensor) and a cloud's depth-maps cut there (perception.depthmap_tensor); auto takes CUDA where the runtime has it; cuda without it: the node does
 not start, its status the code ``cuda_unavailable`` and the reason on /log),
 ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts drawn as its
 calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
@@ -77,11 +77,18 @@ from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.inference_requests import BadRequest, UnknownCloud, checked_regions, cloud_id
 from nodes.node import Node, run_node
 from perception.depthmap import DepthMapParams, contact_depth_maps
+from perception.depthmap_tensor import points_on_device
 from perception.errors import PerceptionError
 from perception.pointcloud import VoxelIndex
 
 # The precisions each runtime runs (dtx bench inference measures each pair).
 PRECISIONS = {"onnxrt": ("fp32", "int8"), "eager": ("fp32", "bf16")}
+
+
+@dataclasses.dataclass(frozen=True)
+class _KeptCloud:
+    index: VoxelIndex
+    device_points: torch.Tensor | None  # the index's points on the node's GPU, where it serves on one
 
 
 @dataclasses.dataclass
@@ -90,7 +97,7 @@ class _Job:
     regions: int
     arrived: float  # time.monotonic()
     future: Future[TactileEstimateReply]
-    held: VoxelIndex | None  # the kept cloud a request named by its id alone
+    held: _KeptCloud | None  # the kept cloud a request named by its id alone
 
 
 class InferenceNode(Node):
@@ -150,7 +157,7 @@ class InferenceNode(Node):
         served = f"{p.runtime} {self.precision}, {self.device}"
         self.model = f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {served}) on {self.name}"
         self.forward_passes = 0
-        self._clouds: dict[str, VoxelIndex] = {}  # cloud id -> its index, least recently used first
+        self._clouds: dict[str, _KeptCloud] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
         # Renders the physics prior's images of a batch in chunks, one per network thread (below).
         self._prior_pool = ThreadPoolExecutor(p.threads, thread_name_prefix=f"{name}-prior")
@@ -338,7 +345,7 @@ class InferenceNode(Node):
         return np.concatenate(list(self._prior_pool.map(inputs, parts)))
 
     def _depth_maps(
-        self, request: TactileEstimateRequest, held: VoxelIndex | None
+        self, request: TactileEstimateRequest, held: _KeptCloud | None
     ) -> tuple[np.ndarray, list[str], str]:
         """The request's depth-maps; per region, why its gel reaches no surface ("" when it
         does: such a region gets the empty map, every bin y_far, what the gel feels there); the
@@ -346,10 +353,10 @@ class InferenceNode(Node):
         request named by its id alone."""
         if request.depth_maps.size:
             return request.depth_maps, [""] * len(request.depth_maps), ""
-        cloud, index = (request.cloud_id, held) if held is not None else self._keep(request.points, request.cloud_id)
+        cloud, kept = (request.cloud_id, held) if held is not None else self._keep(request.points, request.cloud_id)
         try:
             patches = contact_depth_maps(
-                index,
+                kept.index,
                 np.eye(4),
                 request.gel_poses,
                 self.geometry,
@@ -357,6 +364,7 @@ class InferenceNode(Node):
                 self.params.max_point_visits,
                 allow_empty=True,
                 threads=self.params.threads,  # the network's cores, idle while the maps are cut
+                device_points=kept.device_points,
             )
         except PerceptionError as exc:
             raise BadRequest(
@@ -375,31 +383,43 @@ class InferenceNode(Node):
         for dtype in (np.float32, np.float64):
             cloud = np.zeros((1, 3), dtype)
             cloud.flags.writeable = False
+            index = VoxelIndex(cloud)
+            on_device = points_on_device(index.points_m, self.device) if self.device != "cpu" else None
             with contextlib.suppress(PerceptionError):  # one point at the gel's centre may miss its crop
-                contact_depth_maps(VoxelIndex(cloud), np.eye(4), np.eye(4)[None], self.geometry, self.depth_map_params)
+                contact_depth_maps(
+                    index,
+                    np.eye(4),
+                    np.eye(4)[None],
+                    self.geometry,
+                    self.depth_map_params,
+                    device_points=on_device,
+                )
 
-    def _held(self, cloud: str) -> VoxelIndex | None:
+    def _held(self, cloud: str) -> _KeptCloud | None:
         """The kept index of the cloud of that id, now the most recently used; None when not kept."""
         with self._clouds_lock:
-            index = self._clouds.pop(cloud, None)
-            if index is not None:
-                self._clouds[cloud] = index
-            return index
+            kept = self._clouds.pop(cloud, None)
+            if kept is not None:
+                self._clouds[cloud] = kept
+            return kept
 
-    def _keep(self, points: np.ndarray, claimed: str) -> tuple[str, VoxelIndex]:
-        """The id and spatial index of a request's points: indexed once, kept among the last
-        ``index_cache`` clouds. ``claimed``: the id the request gave with them ("" none)."""
+    def _keep(self, points: np.ndarray, claimed: str) -> tuple[str, _KeptCloud]:
+        """The id and spatial index of a request's points: indexed once (and copied to the GPU
+        the node serves on, where the maps are then cut), kept among the last ``index_cache``
+        clouds. ``claimed``: the id the request gave with them ("" none)."""
         cloud = cloud_id(points)
         if claimed and claimed != cloud:
             raise BadRequest(f"cloud_id {claimed} is not the id of the points sent ({cloud})")
-        index = self._held(cloud)
-        if index is None:
+        kept = self._held(cloud)
+        if kept is None:
             index = VoxelIndex(points)
+            on_device = points_on_device(index.points_m, self.device) if self.device != "cpu" else None
+            kept = _KeptCloud(index, on_device)
             with self._clouds_lock:
-                self._clouds[cloud] = index
+                self._clouds[cloud] = kept
                 while len(self._clouds) > self.params.index_cache:
                     del self._clouds[next(iter(self._clouds))]
-        return cloud, index
+        return cloud, kept
 
     def _batched(self, forward: Runner, x: np.ndarray) -> np.ndarray:
         step = self.params.max_batch

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -50,6 +50,9 @@ from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, check_transforms
 from workcell.kinematics import GripperGeometry
+
+if TYPE_CHECKING:
+    import torch
 
 # Spacing of the model cloud depth-maps are made from (``sample_model_cloud``): uniform random
 # points at 0.1 mm put ~4.5 in each 0.24 x 0.19 mm bin of a 100 x 100 map of the sensed area,
@@ -185,12 +188,14 @@ def region_groups(run_lengths: np.ndarray, runs: np.ndarray, groups: int) -> lis
 
 class _Reads(NamedTuple):
     """The points each region reads, in place: region k the ranges starts[i]:ends[i] of
-    ``points`` for the runs i in runs[k]..runs[k+1] (the compiled kernel's layout)."""
+    ``points`` for the runs i in runs[k]..runs[k+1] (the compiled kernel's layout);
+    ``device_points``: the same points on a torch device, to cut there."""
 
     points: np.ndarray
     starts: np.ndarray
     ends: np.ndarray
     runs: np.ndarray
+    device_points: torch.Tensor | None = None
 
 
 def _min_y_per_region(
@@ -201,7 +206,12 @@ def _min_y_per_region(
     threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's (min_y: regions x bins, +inf where empty; points kept per region), its
-    regions cut on up to ``threads`` threads in groups of about equal work."""
+    regions cut on up to ``threads`` threads in groups of about equal work, or on the device
+    of ``reads.device_points`` (the same arrays)."""
+    if reads.device_points is not None:
+        from perception.depthmap_tensor import min_y_per_region  # noqa: PLC0415 - torch only when asked for
+
+        return min_y_per_region(reads.device_points, reads.starts, reads.ends, reads.runs, model_to_gel, bounds, shape)
     rows, cols = shape
     regions = model_to_gel.shape[0]
     min_y = np.full((regions, rows * cols), np.inf)
@@ -359,6 +369,7 @@ def contact_depth_maps(
     max_point_visits: int | None = None,
     allow_empty: bool = False,
     threads: int = 1,
+    device_points: torch.Tensor | None = None,
 ) -> ContactPatches:
     """Depth-maps of many gels (``gels_to_world``: (N, 4, 4)) on one indexed model cloud: each
     map equals :func:`contact_depth_map` on the whole cloud.
@@ -371,7 +382,8 @@ def contact_depth_maps(
     naming the region, unless ``allow_empty``: then its map is all y_far and its point count 0
     (a planner's candidate that touches nothing is an answer, not a failed batch). ``threads``:
     the regions are cut on up to that many threads, in groups of about equal work (an integer >= 1;
-    never more threads than regions are started)."""
+    never more threads than regions are started). ``device_points``: ``model.points_m`` on a torch
+    device (perception.depthmap_tensor.points_on_device): the maps are cut there, the same maps."""
     if not (isinstance(threads, (int, np.integer)) and not isinstance(threads, bool) and threads >= 1):
         raise DepthMapError(f"threads must be an integer >= 1, got {threads!r}")
     bounds = crop_bounds(geometry, params)
@@ -379,6 +391,8 @@ def contact_depth_maps(
     gels = np.asarray(gels_to_world, dtype=np.float64)
     if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
         raise DepthMapError(f"gel poses must be (N, 4, 4), N >= 1, got shape {gels.shape}")
+    if device_points is not None and tuple(device_points.shape) != model.points_m.shape:
+        raise DepthMapError(f"device_points {tuple(device_points.shape)} are not the index's {model.points_m.shape}")
     model_pose = check_transform(model_to_world, "model_to_world")
     model_to_gel = _model_to_gels(model_pose, check_transforms(gels, "gels_to_world"))
     world_to_model = np.linalg.inv(model_pose)
@@ -394,7 +408,7 @@ def contact_depth_maps(
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
     return _cut(
-        _Reads(model.points_m, starts, ends, runs),
+        _Reads(model.points_m, starts, ends, runs, device_points),
         model_to_gel,
         bounds,
         params,

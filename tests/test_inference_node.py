@@ -18,7 +18,7 @@ import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
-from models.runtime import onnx_graph, onnx_runner
+from models.runtime import cuda_missing, onnx_graph, onnx_runner
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.bus import Bus
 from nodes.inference import InferenceNode, cloud_id
@@ -124,7 +124,14 @@ def test_dropout_samples_give_an_uncertainty_and_leave_the_image(registry: Regis
     assert (uncertainty > 0).mean() > 0.5  # dropout in the decoder moves most pixels (a little: untrained)
 
 
-def test_points_and_gel_poses_give_the_patch_extractors_depth_maps(registry: Registry, checkpoint: Path) -> None:
+# On a GPU the node cuts a cloud's depth-maps there (perception.depthmap_tensor): the same maps.
+SERVING_DEVICES = [{}] + ([{"device": "cuda", "runtime": "eager"}] if not cuda_missing("eager") else [])
+
+
+@pytest.mark.parametrize("on", SERVING_DEVICES, ids=lambda on: on.get("device", "cpu"))
+def test_points_and_gel_poses_give_the_patch_extractors_depth_maps(
+    registry: Registry, checkpoint: Path, on: dict[str, str]
+) -> None:
     _, depth_range_m = load_generator(checkpoint)
     # A bumpy surface 0.5 mm into the gel, seen by two gels placed somewhere in the world.
     x, z = np.meshgrid(np.linspace(-0.012, 0.012, 150), np.linspace(-0.015, 0.015, 150))
@@ -141,7 +148,7 @@ def test_points_and_gel_poses_give_the_patch_extractors_depth_maps(registry: Reg
     params = DepthMapParams(y_range_m=depth_range_m)
     geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     expected = np.stack([contact_depth_map(cloud, np.eye(4), pose, geometry, params).depth_map_m for pose in poses])
-    with serving(registry, checkpoint), planner(registry) as client:
+    with serving(registry, checkpoint, **on), planner(registry) as client:
         images, _ = client.estimate_at(cloud, np.stack(poses))
         from_maps, _ = client.estimate(expected)
     np.testing.assert_array_equal(images, from_maps)

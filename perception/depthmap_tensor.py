@@ -1,0 +1,99 @@
+"""The batched depth-map cut of :func:`perception.depthmap.contact_depth_maps` as tensor
+operations on a torch device: transform, crop and minimum y per bin for many gels at once.
+
+Why: on a GPU host the network answers a region in ~0.08 ms and the compiled CPU pass
+(perception.binning) costs 1.0-1.3 ms of CPU a region, so it, not the network, sets a grasp
+planner's pace (docs/measurements.md, issue 33). Here every point a gel reads is one element of
+a flat batch: its region, its run and its place in the sorted cloud come from ``repeat_interleave``
+over the runs, and the per-bin minimum is one ``scatter_reduce``.
+
+The same maps, bit for bit (tests/test_depthmap_tensor.py): the transform is float64 with each
+product rounded and summed in the compiled kernel's order (separate tensor operations, no fused
+multiply-add), the crop is the same inclusive comparisons, a bin is found by the edge rule itself
+(``searchsorted`` on the same float64 edges, where the kernel takes a scaled floor and checks
+the edges near one), and a minimum does not depend on the order its values arrive in.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from perception.binning import bin_edges
+
+# Points handled at once: each costs ~150 bytes of temporaries (its index, region, float64
+# coordinates and the gathered transform), so 2^21 keep a chunk near 300 MB.
+CHUNK_POINTS = 2**21
+
+
+def points_on_device(points_m: np.ndarray, device: str | torch.device) -> torch.Tensor:
+    """A cloud's points (a VoxelIndex's ``points_m``, float32 or float64, in its sorted order:
+    the runs index it) copied once to ``device``, in their own dtype."""
+    host = np.ascontiguousarray(points_m)
+    if not host.flags.writeable:  # torch shares a NumPy array's memory and may not share a read-only one
+        host = host.copy()
+    return torch.from_numpy(host).to(device)
+
+
+def _run_chunks(lengths: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Contiguous ranges [a, b) of runs holding about ``limit`` points each (a run longer than
+    that alone), covering every run."""
+    if lengths.size == 0:
+        return []
+    ends = np.cumsum(lengths)
+    cuts = np.searchsorted(ends, np.arange(limit, int(ends[-1]), limit), side="right")
+    edges = np.unique(np.concatenate([[0], cuts, [len(lengths)]]))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def min_y_per_region(
+    points: torch.Tensor,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    runs: np.ndarray,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    shape: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """perception.binning.cut_kernel on ``points``' device: for region k, the points of runs
+    runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] ((regions, 4, 4) float64, model
+    to gel), kept inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive, metres), and
+    their minimum gel y per bin of ``shape`` = (rows, cols). Returns (min_y: (regions, rows *
+    cols) float64, +inf where empty; points kept per region, int64), as the kernel's."""
+    rows, cols = shape
+    regions = model_to_gel.shape[0]
+    device = points.device
+    half_x, half_z, y_near, y_far = bounds
+    lengths = np.asarray(ends, np.int64) - np.asarray(starts, np.int64)
+    run_region = torch.from_numpy(np.repeat(np.arange(regions, dtype=np.int64), np.diff(runs))).to(device)
+    run_start = torch.from_numpy(np.asarray(starts, np.int64)).to(device)
+    run_length = torch.from_numpy(lengths).to(device)
+    transforms = torch.from_numpy(np.ascontiguousarray(model_to_gel[:, :3, :], np.float64).reshape(regions, 12))
+    transforms = transforms.to(device)
+    x_edges = torch.from_numpy(bin_edges(half_x, cols)).to(device)
+    z_edges = torch.from_numpy(bin_edges(half_z, rows)).to(device)
+    min_y = torch.full((regions * rows * cols,), torch.inf, dtype=torch.float64, device=device)
+    counts = torch.zeros(regions, dtype=torch.int64, device=device)
+    for first, stop in _run_chunks(lengths, CHUNK_POINTS):
+        total = int(lengths[first:stop].sum())
+        if total == 0:
+            continue
+        chunk_lengths = run_length[first:stop]
+        run = torch.repeat_interleave(torch.arange(first, stop, device=device), chunk_lengths, output_size=total)
+        offsets = torch.cumsum(chunk_lengths, 0) - chunk_lengths  # first point of each run in the chunk
+        index = run_start[run] + torch.arange(total, device=device) - offsets[run - first]
+        region = run_region[run]
+        px, py, pz = points[index].to(torch.float64).unbind(1)
+        t = transforms[region]
+        # The kernel's order: ((a * px + b * py) + c * pz) + d, each product rounded on its own.
+        x = t[:, 0] * px + t[:, 1] * py + t[:, 2] * pz + t[:, 3]
+        y = t[:, 4] * px + t[:, 5] * py + t[:, 6] * pz + t[:, 7]
+        z = t[:, 8] * px + t[:, 9] * py + t[:, 10] * pz + t[:, 11]
+        keep = (y >= y_near) & (y <= y_far) & (x.abs() <= half_x) & (z.abs() <= half_z)
+        x, y, z, region = x[keep], y[keep], z[keep], region[keep]
+        # Bin i holds [edge_i, edge_i+1); the far edge belongs to the last bin.
+        col = (torch.searchsorted(x_edges, x, right=True) - 1).clamp_(0, cols - 1)
+        row = (torch.searchsorted(z_edges, z, right=True) - 1).clamp_(0, rows - 1)
+        min_y.scatter_reduce_(0, region * (rows * cols) + row * cols + col, y, reduce="amin")
+        counts += torch.bincount(region, minlength=regions)
+    return min_y.view(regions, rows * cols).cpu().numpy(), counts.cpu().numpy()
