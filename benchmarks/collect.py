@@ -143,11 +143,12 @@ def _log_times_ns(path: Path) -> list[int]:
         return []
 
 
-def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int) -> dict:
+def run_recorder_kills(out: Path, grasps: int, seed: int, kills: int, last_share: float = 0.9) -> dict:
     """A recorded session whose recorder is killed at ``kills`` moments drawn (seeded) between
-    10 % and 90 % of the grasps; each kill waits until the respawned recorder has a message on
-    disk, so every kill cuts a file that was being written."""
-    moments = sorted(random.Random(seed).sample(range(grasps // 10, 9 * grasps // 10), kills))
+    10 % and ``last_share`` of the grasps; each kill waits until the respawned recorder has a
+    message on disk, so every kill cuts a file that was being written. A kill near the end may
+    leave the session no time to respawn the recorder (``respawn_delay_s`` and its start)."""
+    moments = sorted(random.Random(seed).sample(range(grasps // 10, int(last_share * grasps)), kills))
     with tempfile.TemporaryDirectory(prefix="dtxk") as bus_dir:
         launcher = launch_collection(out, grasps, seed, True, bus_dir, capture=False)
         killed_ns = _kill_recorder_at(moments, launcher, Registry(Path(bus_dir)), out)

@@ -78,8 +78,10 @@ def test_a_killed_node_is_respawned_and_the_dataset_is_exact(
 @pytest.mark.slow
 def test_a_recorder_killed_mid_session_leaves_no_empty_file_and_the_dataset_whole(tmp_path: Path) -> None:
     """The recorder of a collection session killed twice: each respawn writes a file of its own,
-    every file holds messages up to near its kill, and the dataset does not notice."""
-    result = run_recorder_kills(tmp_path / "session", grasps=30, seed=0, kills=2)
+    every file holds messages up to near its kill, and the dataset does not notice. The kills
+    fall in the session's first half, so that the last respawn has ~30 grasps of time to start
+    on any machine (on a fast one, 30 grasps took 5 s and a kill at the 27th left too little)."""
+    result = run_recorder_kills(tmp_path / "session", grasps=60, seed=0, kills=2, last_share=0.5)
     assert result["kills"] == 2 and result["exit_code"] == 0 and result["dataset_check_ok"], result
     assert result["files"] == 3 and result["empty_files"] == 0, result
     assert all(
