@@ -334,30 +334,25 @@ def contact_depth_map(
 _CELL_MARGIN_M = 1e-6
 
 
-def _runs_meeting_crop(
-    starts: np.ndarray,
-    ends: np.ndarray,
-    corners: np.ndarray,
-    cell_m: float,
-    model_to_gel: np.ndarray,
-    bounds: tuple[float, float, float, float],
-) -> tuple[np.ndarray, np.ndarray]:
-    """The runs whose cell can hold a point of the gel's crop box. The index hands out the cells
-    of a cube around the crop's reach (~40 mm across for a 24 x 19 x 4 mm crop), several times
-    the points the crop holds; a cell is dropped when one of the gel's axes separates it from the
-    box (the separating-axis test on the box's own axes: conservative, it never drops a cell
-    that meets the box), so the kernel, which crops each point exactly, gives the same maps."""
+def _cells_meeting_crops(
+    corners: np.ndarray, cell_m: float, model_to_gel: np.ndarray, bounds: tuple[float, float, float, float]
+) -> np.ndarray:
+    """Which cells (low ``corners`` (n, 3), m) can hold a point of their gel's crop box
+    (``model_to_gel`` (n, 4, 4): each cell's gel). The index hands out the cells of a cube
+    around the crop's reach (~40 mm across for a 24 x 19 x 4 mm crop), several times the points
+    the crop holds; a cell is dropped when one of the gel's axes separates it from the box (the
+    separating-axis test on the box's own axes: conservative, it never drops a cell that meets
+    the box), so the kernel, which crops each point exactly, gives the same maps."""
     half_x, half_z, y_near, y_far = bounds
-    rotation = model_to_gel[:3, :3]
-    centres = (corners + 0.5 * cell_m) @ rotation.T + model_to_gel[:3, 3]  # in the gel frame
-    reach = (0.5 * cell_m + _CELL_MARGIN_M) * np.abs(rotation).sum(axis=1)  # the cell's half-extent per gel axis
-    keep = (
-        (np.abs(centres[:, 0]) <= half_x + reach[0])
-        & (np.abs(centres[:, 2]) <= half_z + reach[2])
-        & (centres[:, 1] >= y_near - reach[1])
-        & (centres[:, 1] <= y_far + reach[1])
+    rotation = model_to_gel[:, :3, :3]
+    centres = np.einsum("nij,nj->ni", rotation, corners + 0.5 * cell_m) + model_to_gel[:, :3, 3]  # gel frame
+    reach = (0.5 * cell_m + _CELL_MARGIN_M) * np.abs(rotation).sum(axis=2)  # the cell's half-extent per gel axis
+    return (
+        (np.abs(centres[:, 0]) <= half_x + reach[:, 0])
+        & (np.abs(centres[:, 2]) <= half_z + reach[:, 2])
+        & (centres[:, 1] >= y_near - reach[:, 1])
+        & (centres[:, 1] <= y_far + reach[:, 1])
     )
-    return starts[keep], ends[keep]
 
 
 def contact_depth_maps(
@@ -397,13 +392,10 @@ def contact_depth_maps(
     model_to_gel = _model_to_gels(model_pose, check_transforms(gels, "gels_to_world"))
     world_to_model = np.linalg.inv(model_pose)
     centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
-    found = [
-        _runs_meeting_crop(*model.cells_within(centre, reach), model.cell_m, transform, bounds)
-        for centre, transform in zip(centres, model_to_gel)
-    ]
-    starts = np.concatenate([f[0] for f in found]).astype(np.int64)
-    ends = np.concatenate([f[1] for f in found]).astype(np.int64)
-    runs = np.cumsum([0] + [len(f[0]) for f in found], dtype=np.int64)
+    owner, starts, ends, corners = model.cells_within_many(centres, reach)
+    meets = _cells_meeting_crops(corners, model.cell_m, model_to_gel[owner], bounds)
+    owner, starts, ends = owner[meets], starts[meets].astype(np.int64), ends[meets].astype(np.int64)
+    runs = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=len(gels)))]).astype(np.int64)
     visits = int(np.sum(ends - starts))
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")

@@ -167,6 +167,47 @@ def test_voxel_index_hands_out_every_point_of_the_ball(seed, radius_m, cell_m, o
     assert np.array_equal(index.within(centre, radius_m), near)
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    balls=st.integers(0, 12),
+    points=st.sampled_from([0, 5, 2000]),
+    radius_m=st.sampled_from([0.0, 0.004, 0.02, 0.3, np.inf]),
+    cell_m=st.sampled_from([0.001, 0.005, 0.05]),
+    offset_m=st.sampled_from([0.0, 1e3]),
+)
+def test_voxel_index_answers_many_balls_as_it_answers_each(seed, balls, points, radius_m, cell_m, offset_m):
+    """The batched look-up gives each ball exactly the runs, in the order, one query gives: the
+    boxes enumerated together, or ball by ball when they outgrow the occupied cells (few points,
+    a huge radius); centres inside, outside and far from the cloud."""
+    rng = np.random.default_rng(seed)
+    index = VoxelIndex(rng.uniform(-0.05, 0.05, size=(points, 3)) + offset_m, cell_m)
+    centres = offset_m + rng.uniform(-0.08, 0.08, size=(balls, 3))
+    owner, starts, ends, corners = index.cells_within_many(centres, radius_m)
+    assert np.all(np.diff(owner) >= 0)
+    for ball, centre in enumerate(centres):
+        mine = owner == ball
+        expected = index.slices_within(centre, radius_m)
+        np.testing.assert_array_equal(starts[mine], expected[0])
+        np.testing.assert_array_equal(ends[mine], expected[1])
+        cells = np.floor((corners[mine] - index.origin_m) / cell_m + 0.5).astype(np.int64)
+        np.testing.assert_array_equal(
+            np.ravel_multi_index(cells.T, index.shape), index.keys[np.searchsorted(index.starts, expected[0])]
+        )
+
+
+def test_voxel_index_refuses_balls_that_are_not_balls():
+    index = VoxelIndex(np.zeros((3, 3)))
+    with pytest.raises(PointCloudError, match=r"centres_m must be finite \(x, y, z\)"):
+        index.cells_within_many(np.array([[0.0, np.nan, 0.0]]), 0.01)
+    with pytest.raises(PointCloudError, match=r"centres_m must be finite \(x, y, z\)"):
+        index.cells_within_many(np.zeros((2, 2)), 0.01)
+    with pytest.raises(PointCloudError, match="radius_m must be >= 0"):
+        index.cells_within_many(np.zeros((2, 3)), float("nan"))
+    with pytest.raises(PointCloudError, match="centre_m must be finite"):
+        index.within([0.0, 0.0], 0.01)
+
+
 def test_voxel_index_edge_cases():
     index = VoxelIndex(np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]))
     assert len(index.within([5.0, 5.0, 5.0], 0.01)) == 0
