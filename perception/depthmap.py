@@ -206,12 +206,7 @@ def _min_y_per_region(
     threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's (min_y: regions x bins, +inf where empty; points kept per region), its
-    regions cut on up to ``threads`` threads in groups of about equal work, or on the device
-    of ``reads.device_points`` (the same arrays)."""
-    if reads.device_points is not None:
-        from perception.depthmap_tensor import min_y_per_region  # noqa: PLC0415 - torch only when asked for
-
-        return min_y_per_region(reads.device_points, reads.starts, reads.ends, reads.runs, model_to_gel, bounds, shape)
+    regions cut on up to ``threads`` threads in groups of about equal work."""
     rows, cols = shape
     regions = model_to_gel.shape[0]
     min_y = np.full((regions, rows * cols), np.inf)
@@ -246,6 +241,35 @@ def _min_y_per_region(
     return min_y, counts
 
 
+def _maps(
+    reads: _Reads,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    params: DepthMapParams,
+    threads: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(depth-maps float32 m with the empty-bin policy and gap filling, occupied, points kept
+    per region) of every region: the compiled kernel on ``threads`` threads, or all of it on
+    the device of ``reads.device_points`` (the same arrays)."""
+    shape = (int(params.shape[0]), int(params.shape[1]))
+    fill = max(params.fill_gaps_min_neighbours, 0)  # 0 or less: no gap filling
+    if fill > 8:
+        raise DepthMapError(f"min_neighbours must be in 1..8, got {fill}")
+    if reads.device_points is not None:
+        from perception.depthmap_tensor import depth_maps_on_device  # noqa: PLC0415 - torch only when asked for
+
+        return depth_maps_on_device(
+            reads.device_points, reads.starts, reads.ends, reads.runs, model_to_gel, bounds, shape, fill
+        )
+    min_y, counts = _min_y_per_region(reads, model_to_gel, bounds, shape, threads)
+    min_y = min_y.reshape(-1, *shape)
+    occupied = np.isfinite(min_y)
+    depth_maps_m = np.where(occupied, min_y, bounds[3]).astype(np.float32)
+    if fill:
+        depth_maps_m = fill_sampling_gaps(depth_maps_m, occupied, fill)
+    return depth_maps_m, occupied, counts
+
+
 def _cut(
     reads: _Reads,
     model_to_gel: np.ndarray,
@@ -260,9 +284,7 @@ def _cut(
     a ``batch`` names it. With ``allow_empty`` a region with no point is no error: its map is
     all y_far (point count 0)."""
     half_x, half_z, y_near, y_far = bounds
-    rows, cols = int(params.shape[0]), int(params.shape[1])
-    regions = model_to_gel.shape[0]
-    min_y, counts = _min_y_per_region(reads, model_to_gel, bounds, (rows, cols), threads)
+    depth_maps_m, occupied, counts = _maps(reads, model_to_gel, bounds, params, threads)
     empty = np.flatnonzero(counts == 0)
     if empty.size and not allow_empty:
         raise OutOfReachError(
@@ -271,11 +293,6 @@ def _cut(
             f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
             "the gel does not reach the object"
         )
-    min_y = min_y.reshape(regions, rows, cols)
-    occupied = np.isfinite(min_y)
-    depth_maps_m = np.where(occupied, min_y, y_far).astype(np.float32)
-    if params.fill_gaps_min_neighbours > 0:
-        depth_maps_m = fill_sampling_gaps(depth_maps_m, occupied, params.fill_gaps_min_neighbours)
     return ContactPatches(
         depth_maps_m=depth_maps_m,
         occupied=occupied,

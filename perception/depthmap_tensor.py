@@ -5,7 +5,8 @@ Why: on a GPU host the network answers a region in ~0.08 ms and the compiled CPU
 (perception.binning) costs 1.0-1.3 ms of CPU a region, so it, not the network, sets a grasp
 planner's pace (docs/measurements.md, issue 33). Here every point a gel reads is one element of
 a flat batch: its region, its run and its place in the sorted cloud come from ``repeat_interleave``
-over the runs, and the per-bin minimum is one ``scatter_reduce``.
+over the runs, and the per-bin minimum is one ``scatter_reduce``; the empty bins and the sampling
+gaps are filled there too, so only the float32 maps come back.
 
 The same maps, bit for bit (tests/test_depthmap_tensor.py): the transform is float64 with each
 product rounded and summed in the compiled kernel's order (separate tensor operations, no fused
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from perception.binning import bin_edges
 
@@ -46,7 +48,7 @@ def _run_chunks(lengths: np.ndarray, limit: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
-def min_y_per_region(
+def depth_maps_on_device(
     points: torch.Tensor,
     starts: np.ndarray,
     ends: np.ndarray,
@@ -54,12 +56,51 @@ def min_y_per_region(
     model_to_gel: np.ndarray,
     bounds: tuple[float, float, float, float],
     shape: tuple[int, int],
-) -> tuple[np.ndarray, np.ndarray]:
-    """perception.binning.cut_kernel on ``points``' device: for region k, the points of runs
-    runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] ((regions, 4, 4) float64, model
-    to gel), kept inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive, metres), and
-    their minimum gel y per bin of ``shape`` = (rows, cols). Returns (min_y: (regions, rows *
-    cols) float64, +inf where empty; points kept per region, int64), as the kernel's."""
+    fill_min_neighbours: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The depth-maps of perception.depthmap's cut, all on ``points``' device: for region k, the
+    points of runs runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] ((regions, 4, 4)
+    float64, model to gel), kept inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive,
+    metres), their minimum gel y per bin of ``shape`` = (rows, cols), empty bins y_far and
+    sampling gaps filled (``fill_min_neighbours`` 1..8; 0: none) as
+    perception.depthmap.fill_sampling_gaps fills them. Returns (depth-maps (regions, rows, cols)
+    float32 m, occupied bool, points kept per region int64)."""
+    min_y, counts = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, shape)
+    occupied = torch.isfinite(min_y)
+    depth_maps = torch.where(occupied, min_y, bounds[3]).to(torch.float32)
+    if fill_min_neighbours:
+        depth_maps = _filled(depth_maps, occupied, fill_min_neighbours)
+    return depth_maps.cpu().numpy(), occupied.cpu().numpy(), counts.cpu().numpy()
+
+
+def _filled(depth_maps: torch.Tensor, occupied: torch.Tensor, min_neighbours: int) -> torch.Tensor:
+    """perception.depthmap.fill_sampling_gaps on (regions, rows, cols) tensors: an empty bin with
+    at least ``min_neighbours`` of its 8 neighbours occupied takes their minimum. Counts and
+    minima are exact in any order, so the maps are the NumPy function's."""
+    rows, cols = depth_maps.shape[-2:]
+    flags = F.pad(occupied.to(torch.uint8), (1, 1, 1, 1))
+    surface = F.pad(torch.where(occupied, depth_maps, torch.inf), (1, 1, 1, 1), value=torch.inf)
+    neighbours = torch.zeros_like(flags[:, 1:-1, 1:-1])
+    nearest = torch.full_like(depth_maps, torch.inf)
+    for dr in range(3):
+        for dc in range(3):
+            if (dr, dc) != (1, 1):
+                neighbours += flags[:, dr : dr + rows, dc : dc + cols]
+                nearest = torch.minimum(nearest, surface[:, dr : dr + rows, dc : dc + cols])
+    return torch.where(~occupied & (neighbours >= min_neighbours), nearest, depth_maps)
+
+
+def _min_y_per_region(
+    points: torch.Tensor,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    runs: np.ndarray,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    shape: tuple[int, int],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """perception.binning.cut_kernel on ``points``' device: (min_y (regions, rows, cols)
+    float64, +inf where empty; points kept per region, int64), as the kernel's."""
     rows, cols = shape
     regions = model_to_gel.shape[0]
     device = points.device
@@ -96,4 +137,4 @@ def min_y_per_region(
         row = (torch.searchsorted(z_edges, z, right=True) - 1).clamp_(0, rows - 1)
         min_y.scatter_reduce_(0, region * (rows * cols) + row * cols + col, y, reduce="amin")
         counts += torch.bincount(region, minlength=regions)
-    return min_y.view(regions, rows * cols).cpu().numpy(), counts.cpu().numpy()
+    return min_y.view(regions, rows, cols), counts

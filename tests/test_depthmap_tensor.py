@@ -62,7 +62,7 @@ def _assert_same(a, b) -> None:
     dtype=st.sampled_from([np.float32, np.float64]),
     cell=st.sampled_from([0.001, 0.005, 0.05]),
     shape=st.tuples(st.integers(1, 40), st.integers(1, 40)),
-    fill=st.sampled_from([0, 3]),
+    fill=st.sampled_from([0, 1, 3, 5, 8]),
 )
 def test_property_device_cut_equals_the_compiled_pass(device, seed, regions, offset, dtype, cell, shape, fill):
     """Gels anywhere around a cloud of a few mm, a km from the origin or at it, any bins, float32
