@@ -34,14 +34,14 @@ def _cpu_ms_per_region(work: Callable[[], object], regions: int, repeats: int) -
     return best / regions * 1e3
 
 
-def network_rate(run: Runner, x: np.ndarray, max_batch: int, repeats: int) -> tuple[float, float]:
+def network_rate(run: Runner, x: np.ndarray | torch.Tensor, max_batch: int, repeats: int) -> tuple[float, float]:
     """(regions/s, CPU ms per region) of ``run`` over ``x`` in batches of ``max_batch``, as the
     node passes them, ``repeats`` times back to back."""
-    run(np.ascontiguousarray(x[:max_batch]))  # warm
+    run(x[:max_batch])  # warm
     wall, cpu = time.perf_counter(), time.process_time()
     for _ in range(repeats):
         for start in range(0, len(x), max_batch):
-            run(np.ascontiguousarray(x[start : start + max_batch]))
+            run(x[start : start + max_batch])
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3
 
@@ -70,7 +70,7 @@ def stage_costs(
         return maps.depth_maps_m
 
     maps = cut()
-    x = network_input(maps, depth_range_m, generator.config, generator.prior).numpy()
+    x = network_input(maps, depth_range_m, generator.config, generator.prior)  # where the prior draws, as the node's
     n = len(poses)
     images = to_uint8_rgb(torch.from_numpy(np.concatenate([run(x[i : i + max_batch]) for i in range(0, n, max_batch)])))
     reply = TactileEstimateReply(images=images, uncertainty=np.zeros(images.shape[:3], np.float32))

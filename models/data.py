@@ -49,7 +49,7 @@ def network_input(
     """What a generator of ``config`` takes for N x H x W depth-maps (m): :func:`depth_input`,
     then the physics prior's image of each map (models.prior) when the generator has one,
     expected over the maps' in-plane pose error ``pose_sigma_mm`` (mm: one for all maps, or N,
-    one a map; None: the prior's default)."""
+    one a map; None: the prior's default). On the prior's device: a GPU's never leaves it."""
     x = depth_input(depth_maps_m, depth_range_m, config.in_channels)
     if not config.prior:
         return x
@@ -64,16 +64,16 @@ def network_input(
             raise ModelConfigError(
                 f"pose_sigma_mm must be one value or one per depth-map ({len(maps)}), got shape {pose_sigma_mm.shape}"
             )
-        channels = np.concatenate([prior.channels(m[None], float(s)) for m, s in zip(maps, pose_sigma_mm)])
+        channels = torch.cat([prior.channels(m[None], float(s)) for m, s in zip(maps, pose_sigma_mm)])
     else:
         # A dataset's maps in calls the renderer takes (MAX_RENDERED_PIXELS): 1,680 maps at
         # 200 x 200 are one pixel too many for one.
         h, w = prior.renderer.config.shape
         per_call = max(1, MAX_RENDERED_PIXELS // (h * w))
-        channels = np.concatenate(
+        channels = torch.cat(
             [prior.channels(maps[i : i + per_call], pose_sigma_mm) for i in range(0, max(len(maps), 1), per_call)]
         )
-    return torch.cat([x, torch.from_numpy(channels)], dim=1)
+    return torch.cat([x.to(channels.device), channels], dim=1)
 
 
 def moved_in_gel_plane(

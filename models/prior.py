@@ -75,6 +75,10 @@ class PriorSpec:
             raise ModelConfigError(f"a physics prior needs a scene and a 3-value depth_crop_m, got {data!r}") from err
 
 
+# An 8-bit level in the network's image units, as the CPU computes it from the uint8 image.
+IMAGE_UNITS = torch.from_numpy(np.arange(256, dtype=np.uint8).astype(np.float32) / 127.5 - 1.0)
+
+
 class PhysicsPrior:
     """Renders depth-maps into the prior's images at the model's grid (``size`` x ``size``)."""
 
@@ -125,7 +129,8 @@ class PhysicsPrior:
         otherwise ModelConfigError naming the argument, before anything is drawn."""
         sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
         if self._tensor is not None:
-            return self._tensor_images(self._tensor, depth_maps_m, sigma_mm)
+            levels = self._levels_on_device(self._tensor, depth_maps_m, sigma_mm)
+            return levels.to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
         maps = np.asarray(depth_maps_m)
         pressed = self._pressed(maps)
         try:
@@ -158,16 +163,14 @@ class PhysicsPrior:
             image[...] = np.clip(np.rint(background + change), 0, 255)
         return images
 
-    def _tensor_images(self, tensor: TensorPrior, depth_maps_m: np.ndarray, sigma_mm: float) -> np.ndarray:
-        """:meth:`images` drawn by ``tensor`` on this prior's device, the same contract."""
+    def _levels_on_device(self, tensor: TensorPrior, depth_maps_m: np.ndarray, sigma_mm: float) -> torch.Tensor:
+        """:meth:`images` drawn by ``tensor`` on this prior's device, the same contract, as
+        N x 3 x H x W float32 levels there."""
         try:
             maps = checked_depth_maps(self.renderer, depth_maps_m, self._crop_xz_m)
         except GelSightRenderError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
-        if not len(maps):
-            return np.empty((0, *self.renderer.config.shape, 3), np.uint8)
-        drawn = tensor.images(torch.as_tensor(maps).to(self.device), sigma_mm)
-        return drawn.to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        return tensor.images(torch.as_tensor(maps).to(self.device), sigma_mm)
 
     def _pressed(self, maps: np.ndarray) -> np.ndarray | slice:
         """Which ``maps`` reach into the gel (a bin below 0, the renderer's indentation), a mask;
@@ -180,6 +183,14 @@ class PhysicsPrior:
             return slice(None)
         return np.asarray((maps < 0).any(axis=(1, 2)))
 
-    def channels(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> np.ndarray:
-        """N x 3 x size x size float32 in [-1, 1] (the network's image units)."""
-        return self.images(depth_maps_m, pose_sigma_mm).transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0
+    def channels(self, depth_maps_m: np.ndarray, pose_sigma_mm: float | None = None) -> torch.Tensor:
+        """N x 3 x size x size float32 in [-1, 1] (the network's image units), a tensor on this
+        prior's device: on a GPU the images never leave it (each level's unit read from
+        IMAGE_UNITS, the CPU's own arithmetic, which a tensor division by 127.5 would round
+        otherwise)."""
+        if self._tensor is None:
+            images = self.images(depth_maps_m, pose_sigma_mm)
+            return torch.from_numpy(images.transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)
+        sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
+        levels = self._levels_on_device(self._tensor, depth_maps_m, sigma_mm)
+        return IMAGE_UNITS.to(self.device)[levels.to(torch.long)]

@@ -21,7 +21,7 @@ from dataset.synth import analytic_contact_maps
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
 
-Runner = Callable[[np.ndarray], np.ndarray]
+Runner = Callable[[np.ndarray | torch.Tensor], np.ndarray]
 
 # Where a runner computes: "auto" is CUDA when this machine and the runtime have it, else the CPU.
 DEVICES = ("cpu", "cuda", "auto")
@@ -79,14 +79,15 @@ class UncheckedGenerator(nn.Module):
 
 
 def eager_runner(module: nn.Module, bf16: bool, device: str = "cpu") -> Runner:
-    """N x C x H x W float32 -> the module's float32 output, under bf16 autocast if asked, the
-    module copied to ``device`` (cpu | cuda; resolve_device) and computing there."""
+    """N x C x H x W float32 (a NumPy array, or a tensor anywhere) -> the module's float32
+    output, under bf16 autocast if asked, the module copied to ``device`` (cpu | cuda;
+    resolve_device) and computing there: an input already there is not copied."""
     if device != "cpu":
         module = copy.deepcopy(module).to(device)  # the caller's module stays where it is
 
-    def run(x: np.ndarray) -> np.ndarray:
+    def run(x: np.ndarray | torch.Tensor) -> np.ndarray:
         with torch.inference_mode(), torch.autocast(device, dtype=torch.bfloat16, enabled=bf16):
-            return module(torch.from_numpy(x).to(device)).float().cpu().numpy()
+            return module(torch.as_tensor(x).to(device)).float().cpu().numpy()
 
     return run
 
@@ -132,7 +133,7 @@ def onnx_runner(graph: str | os.PathLike[str] | bytes, threads: int, device: str
             "device 'cuda' was asked for, but ONNX Runtime could not start its CUDA provider "
             "(no GPU, or its CUDA and cuDNN libraries are missing: see its warning above)"
         )
-    return lambda x: session.run(None, {"depth": x})[0]
+    return lambda x: session.run(None, {"depth": x if isinstance(x, np.ndarray) else x.cpu().numpy()})[0]
 
 
 def contact_inputs(generator: UNetGenerator, depth_range_m: tuple[float, float], count: int, seed: int) -> np.ndarray:

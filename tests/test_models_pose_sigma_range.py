@@ -80,7 +80,7 @@ def test_the_library_is_shown_as_registered_that_far_off_with_the_uncertainty_it
     prior = session_prior(reader, PRIOR)
     assert prior is not None
     moved = denormalise_depth_map(unsure[:, 0].numpy(), reader.info.depth_range_m)
-    expected = torch.from_numpy(prior.channels(moved, 1.0))
+    expected = prior.channels(moved, 1.0)
     assert (unsure[:, 1:] - expected).abs().max() <= 2 / 127.5  # float32 metres, read back
     assert (exact[:, 1:] - expected).abs().max() > 0.2  # not the exact pairs' sharp image
 

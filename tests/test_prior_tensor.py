@@ -16,8 +16,10 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from dataset.synth import analytic_contact_maps
+from models.data import network_input
 from models.errors import ModelConfigError
-from models.prior import PhysicsPrior, PriorSpec
+from models.networks import GeneratorConfig
+from models.prior import IMAGE_UNITS, PhysicsPrior, PriorSpec
 from models.prior_tensor import TensorPrior
 from sim.gelsight import camera_pixels_on_map
 
@@ -136,6 +138,26 @@ def test_the_prior_on_a_device_draws_with_the_tensor_form_and_checks_its_input(p
         tensor.images(np.zeros((10, 10), np.float32))
     with pytest.raises(ModelConfigError, match="pose_sigma_mm"):
         tensor.images(maps, pose_sigma_mm=float("nan"))
+
+
+def test_on_a_device_the_network_input_is_built_there_from_the_same_levels(prior: PhysicsPrior) -> None:
+    """The tensor form's channels are its images' levels in the network's units, each exactly
+    the CPU's conversion of that level (IMAGE_UNITS), and network_input joins them to the depth
+    channels where they are: the CPU path's input wherever the levels agree."""
+    tensor = PhysicsPrior.on(prior, "cpu")
+    tensor._tensor = TensorPrior(prior.renderer, (CROP_M[0], CROP_M[2]))  # the cuda form, on the CPU
+    maps = analytic_contact_maps(5, seed=2, y_far_m=FAR_M)
+    images = tensor.images(maps)
+    channels = tensor.channels(maps)
+    expected = images.transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0
+    np.testing.assert_array_equal(channels.numpy(), expected)
+    np.testing.assert_array_equal(IMAGE_UNITS.numpy(), np.arange(256, dtype=np.uint8).astype(np.float32) / 127.5 - 1.0)
+    config = GeneratorConfig(image_size=100, prior=True)
+    on_device = network_input(maps, (-0.005, FAR_M), config, tensor)
+    on_cpu = network_input(maps, (-0.005, FAR_M), config, prior)
+    np.testing.assert_array_equal(on_device[:, :-3].numpy(), on_cpu[:, :-3].numpy())  # the depth channels
+    np.testing.assert_array_equal(on_device[:, -3:].numpy(), expected)
+    assert tensor.channels(maps[:0]).shape == (0, 3, 100, 100)
 
 
 def test_a_renderer_that_spreads_on_a_coarser_grid_is_refused() -> None:
