@@ -35,7 +35,8 @@ Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), `
 (fp32 | bf16 | int8: bf16 with eager only; int8, the encoder's convolutions quantised
 (models.runtime.int8_convolutions), with onnxrt on the CPU only), ``device`` (cpu | cuda | auto:
 ONNX Runtime's CUDA provider or eager PyTorch on the GPU, the physics prior drawn there too
-(models.prior_tensor) and a cloud's depth-maps cut there (perception.depthmap_tensor); auto takes CUDA where the runtime has it; cuda without it: the node does
+(models.prior_tensor), a cloud's depth-maps cut there (perception.depthmap_tensor) and the
+network's input left there; auto takes CUDA where the runtime has it; cuda without it: the node does
 not start, its status the code ``cuda_unavailable`` and the reason on /log),
 ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts drawn as its
 calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
