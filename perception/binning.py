@@ -3,7 +3,8 @@
 One pass over the model points transforms them to a gel frame, crops them to its contact volume
 and keeps the minimum y per x-z bin, by the bin rule of :mod:`perception.depthmap`'s module
 docstring (bin i holds [edge_i, edge_i+1), the far crop edge belongs to the last bin). The
-kernels are what ``dtx bench perception`` and ``dtx bench serve`` time.
+kernels are what ``dtx bench perception`` and ``dtx bench serve`` time; :func:`region_groups`
+shares their regions out (among threads here, among chunks in perception.depthmap_tensor).
 """
 
 from __future__ import annotations
@@ -156,3 +157,15 @@ def min_y_per_bin(
     )
     min_y = min_y.reshape(rows, cols)
     return min_y, np.isfinite(min_y)
+
+
+def region_groups(run_lengths: np.ndarray, runs: np.ndarray, groups: int) -> list[tuple[int, int]]:
+    """Up to ``groups`` contiguous, non-empty ranges [first, stop) of the regions, with about
+    equal points to read each: region k reads the runs runs[k]..runs[k+1], run i holds
+    ``run_lengths[i]`` points. Equal counts of regions would not do: a gel on a face reads
+    several times the points of one at an edge."""
+    regions = len(runs) - 1
+    visits = np.concatenate([[0], np.cumsum(run_lengths)])[runs]  # points read before region k
+    cuts = np.searchsorted(visits, visits[-1] * np.arange(1, groups) / groups)
+    edges = np.unique(np.clip(np.concatenate([[0], cuts, [regions]]), 0, regions))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from perception.binning import bin_edges, cut_kernel
+from perception.binning import bin_edges, cut_kernel, region_groups
 from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, check_transforms
@@ -93,7 +93,8 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
     """(half_x, half_z, y_near, y_far) of the crop volume in metres, validated: every bound
     finite in float32 (the map is stored as float32), positive extent, y_far > y_near, and
     ``params.shape`` two positive Python or NumPy integers with at most MAX_DEPTH_MAP_BINS bins,
-    each wider than float32 resolves. Otherwise DepthMapError names what is wrong."""
+    each wider than float32 resolves, gap filling from at most 8 neighbours. Otherwise
+    DepthMapError names what is wrong."""
     sensed_x, sensed_z = geometry.sensed_extent_m
     half_x = 0.5 * sensed_x + params.margin_m
     half_z = 0.5 * sensed_z + params.margin_m
@@ -128,6 +129,8 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
         raise DepthMapError(f"depth range ({y_near}, {y_far}) m is below float32 resolution")
     if rows * cols > MAX_DEPTH_MAP_BINS:
         raise DepthMapError(f"bin shape {params.shape} has {rows * cols} bins, more than {MAX_DEPTH_MAP_BINS}")
+    if params.fill_gaps_min_neighbours > 8:
+        raise DepthMapError(f"min_neighbours must be in 1..8, got {params.fill_gaps_min_neighbours}")
     return half_x, half_z, float(y_near), float(y_far)
 
 
@@ -172,18 +175,6 @@ def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(points)):
         raise DepthMapError("model points must be finite: they contain NaN or inf")
     return points
-
-
-def region_groups(run_lengths: np.ndarray, runs: np.ndarray, groups: int) -> list[tuple[int, int]]:
-    """Up to ``groups`` contiguous, non-empty ranges [first, stop) of the regions, with about
-    equal points to read each: region k reads the runs runs[k]..runs[k+1], run i holds
-    ``run_lengths[i]`` points. Equal counts of regions would not do: a gel on a face reads
-    several times the points of one at an edge."""
-    regions = len(runs) - 1
-    visits = np.concatenate([[0], np.cumsum(run_lengths)])[runs]  # points read before region k
-    cuts = np.searchsorted(visits, visits[-1] * np.arange(1, groups) / groups)
-    edges = np.unique(np.clip(np.concatenate([[0], cuts, [regions]]), 0, regions))
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
 class _Reads(NamedTuple):
@@ -253,8 +244,6 @@ def _maps(
     the device of ``reads.device_points`` (the same arrays)."""
     shape = (int(params.shape[0]), int(params.shape[1]))
     fill = max(params.fill_gaps_min_neighbours, 0)  # 0 or less: no gap filling
-    if fill > 8:
-        raise DepthMapError(f"min_neighbours must be in 1..8, got {fill}")
     if reads.device_points is not None:
         from perception.depthmap_tensor import depth_maps_on_device  # noqa: PLC0415 - torch only when asked for
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from perception.binning import bin_edges
+from perception.binning import bin_edges, region_groups
 
 # Points handled at once: each costs ~150 bytes of temporaries (its index, region, float64
 # coordinates and the gathered transform), so a chunk takes ~1.2 GB of the GPU. Chunks of 2^21
@@ -37,17 +37,6 @@ def points_on_device(points_m: np.ndarray, device: str | torch.device) -> torch.
     if not host.flags.writeable:  # torch shares a NumPy array's memory and may not share a read-only one
         host = host.copy()
     return torch.from_numpy(host).to(device)
-
-
-def _run_chunks(lengths: np.ndarray, limit: int) -> list[tuple[int, int]]:
-    """Contiguous ranges [a, b) of runs holding about ``limit`` points each (a run longer than
-    that alone), covering every run."""
-    if lengths.size == 0:
-        return []
-    ends = np.cumsum(lengths)
-    cuts = np.searchsorted(ends, np.arange(limit, int(ends[-1]), limit), side="right")
-    edges = np.unique(np.concatenate([[0], cuts, [len(lengths)]]))
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
 def depth_maps_on_device(
@@ -117,7 +106,8 @@ def _min_y_per_region(
     z_edges = torch.from_numpy(bin_edges(half_z, rows)).to(device)
     min_y = torch.full((regions * rows * cols,), torch.inf, dtype=torch.float64, device=device)
     counts = torch.zeros(regions, dtype=torch.int64, device=device)
-    for first, stop in _run_chunks(lengths, CHUNK_POINTS):
+    chunks = max(1, -(-int(lengths.sum()) // CHUNK_POINTS))
+    for first, stop in region_groups(lengths, np.arange(len(lengths) + 1), chunks):  # each run a "region"
         total = int(lengths[first:stop].sum())
         if total == 0:
             continue

@@ -429,7 +429,7 @@ def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(
 
 
 def test_region_groups_split_the_points_to_read_evenly_and_cover_every_region_once():
-    from perception.depthmap import region_groups
+    from perception.binning import region_groups
 
     runs = np.array([0, 1, 1, 3, 4, 5])  # 5 regions; the second reads no run
     lengths = np.array([10, 5, 5, 10, 10])
@@ -465,6 +465,8 @@ def test_batched_maps_name_the_region_that_misses_and_bound_the_work():
         )
     with pytest.raises(DepthMapError, match=r"\(N, 4, 4\)"):
         contact_depth_maps(index, np.eye(4), np.eye(4), GEOMETRY, DepthMapParams())
+    with pytest.raises(DepthMapError, match="min_neighbours must be in 1..8, got 9"):
+        contact_depth_maps(index, np.eye(4), np.eye(4)[None], GEOMETRY, DepthMapParams(fill_gaps_min_neighbours=9))
 
 
 @settings(max_examples=60, deadline=None)
