@@ -127,7 +127,7 @@ class PhysicsPrior:
         Contract: ``depth_maps_m`` as ``sim.gelsight.render_depth_maps`` takes them (N >= 0 real
         float maps: none give none), ``pose_sigma_mm`` as :func:`checked_pose_sigma_mm`;
         otherwise ModelConfigError naming the argument, before anything is drawn."""
-        sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
+        sigma_mm = self._sigma_mm(pose_sigma_mm)
         if self._tensor is not None:
             levels = self._levels_on_device(self._tensor, depth_maps_m, sigma_mm)
             return levels.to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
@@ -163,6 +163,10 @@ class PhysicsPrior:
             image[...] = np.clip(np.rint(background + change), 0, 255)
         return images
 
+    def _sigma_mm(self, pose_sigma_mm: float | None) -> float:
+        """The pose blur asked for, checked: the spec's for None."""
+        return checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
+
     def _levels_on_device(self, tensor: TensorPrior, depth_maps_m: np.ndarray, sigma_mm: float) -> torch.Tensor:
         """:meth:`images` drawn by ``tensor`` on this prior's device, the same contract, as
         N x 3 x H x W float32 levels there."""
@@ -191,6 +195,5 @@ class PhysicsPrior:
         if self._tensor is None:
             images = self.images(depth_maps_m, pose_sigma_mm)
             return torch.from_numpy(images.transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)
-        sigma_mm = checked_pose_sigma_mm(self.spec.pose_sigma_mm if pose_sigma_mm is None else pose_sigma_mm)
-        levels = self._levels_on_device(self._tensor, depth_maps_m, sigma_mm)
+        levels = self._levels_on_device(self._tensor, depth_maps_m, self._sigma_mm(pose_sigma_mm))
         return IMAGE_UNITS.to(self.device)[levels.to(torch.long)]

@@ -280,8 +280,10 @@ class InferenceNode(Node):
         samples = [job.request.dropout_samples for job in ready]
         offsets = np.cumsum([0] + [m.shape[0] for m in maps])
         # Every region of a job asking for S samples is repeated S times; all go through together.
-        spans = [(offsets[i], offsets[i + 1], s) for i, s in enumerate(samples) if s > 1]
-        sampled = self._batched(self.sampled, _repeated(x, spans)) if spans else np.zeros((0,))
+        repeated = [
+            torch.repeat_interleave(x[offsets[i] : offsets[i + 1]], s, dim=0) for i, s in enumerate(samples) if s > 1
+        ]
+        sampled = self._batched(self.sampled, torch.cat(repeated)) if repeated else np.zeros((0,))
         cursor = 0
         for i, job in enumerate(ready):
             n, s = offsets[i + 1] - offsets[i], samples[i]
@@ -324,28 +326,26 @@ class InferenceNode(Node):
             return -1.0
         return self.prior.spec.pose_sigma_mm if request.pose_sigma_mm < 0 else request.pose_sigma_mm
 
-    def _network_input(self, maps: list[np.ndarray], sigmas: list[float]) -> np.ndarray | torch.Tensor:
+    def _network_input(self, maps: list[np.ndarray], sigmas: list[float]) -> torch.Tensor:
         """The network's input for each request's depth-maps, whose geometry is known to
         ``sigmas`` (mm). A model with a physics prior needs its image of every map: per-image
         NumPy and OpenCV, 1.9-2.0 ms CPU a region for the demo's model (a quarter of the
         server's, ``dtx bench serve``), mostly outside the GIL, so chunks render side by side on
         the cores the network uses next; on a GPU, drawn there and left there for the network."""
 
-        def inputs(part: tuple[np.ndarray, float | None]) -> np.ndarray:
+        def inputs(part: tuple[np.ndarray, float | None]) -> torch.Tensor:
             chunk, sigma = part
-            return network_input(chunk, self.depth_range_m, self.config, self.prior, sigma).numpy()
+            return network_input(chunk, self.depth_range_m, self.config, self.prior, sigma)
 
         if self.prior is None:
             return inputs((np.concatenate(maps), None))
         if self.prior.device != "cpu":  # one batched call a request on the device
-            return torch.cat(
-                [network_input(m, self.depth_range_m, self.config, self.prior, s) for m, s in zip(maps, sigmas)]
-            )
+            return torch.cat([inputs(part) for part in zip(maps, sigmas)])
         threads = self.params.threads
         parts = [(chunk, s) for m, s in zip(maps, sigmas) for chunk in np.array_split(m, min(threads, len(m)))]
         if len(parts) == 1:
             return inputs(parts[0])
-        return np.concatenate(list(self._prior_pool.map(inputs, parts)))
+        return torch.cat(list(self._prior_pool.map(inputs, parts)))
 
     def _depth_maps(
         self, request: TactileEstimateRequest, held: _KeptCloud | None
@@ -424,22 +424,13 @@ class InferenceNode(Node):
                     del self._clouds[next(iter(self._clouds))]
         return cloud, kept
 
-    def _batched(self, forward: Runner, x: np.ndarray | torch.Tensor) -> np.ndarray:
+    def _batched(self, forward: Runner, x: torch.Tensor) -> np.ndarray:
         step = self.params.max_batch
         outputs = []
         for start in range(0, len(x), step):
-            chunk = x[start : start + step]
-            outputs.append(forward(chunk if isinstance(chunk, torch.Tensor) else np.ascontiguousarray(chunk)))
+            outputs.append(forward(x[start : start + step]))  # rows of a contiguous tensor: contiguous
             self.forward_passes += 1
         return np.concatenate(outputs)
-
-
-def _repeated(x: np.ndarray | torch.Tensor, spans: list[tuple[int, int, int]]) -> np.ndarray | torch.Tensor:
-    """The rows first..stop of ``x``, each repeated ``times``, for each (first, stop, times) of
-    ``spans``, together: a NumPy array or a tensor where ``x`` is."""
-    if isinstance(x, torch.Tensor):
-        return torch.cat([torch.repeat_interleave(x[a:b], times, dim=0) for a, b, times in spans])
-    return np.concatenate([np.repeat(x[a:b], times, axis=0) for a, b, times in spans])
 
 
 def _check_params(p: InferenceNode.Params) -> None:
