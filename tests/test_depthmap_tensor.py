@@ -11,24 +11,15 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
+from test_perception_depthmap import GEOMETRY, random_pose
 
 import perception.depthmap_tensor as depthmap_tensor
 from perception.depthmap import DepthMapParams, contact_depth_maps, crop_bounds
 from perception.depthmap_tensor import points_on_device
 from perception.errors import DepthMapError
 from perception.pointcloud import VoxelIndex
-from workcell.kinematics import GripperGeometry
 
-GEOMETRY = GripperGeometry()
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-
-
-def _random_pose(rng: np.random.Generator, offset_m: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
-    pose[:3, 3] = offset_m + rng.uniform(-0.003, 0.003, 3)
-    return pose
 
 
 def _both(index, model_to_world, gels, params, device, **kwargs):
@@ -69,8 +60,8 @@ def test_property_device_cut_equals_the_compiled_pass(device, seed, regions, off
     or float64 points: every map, bin and count the same as the compiled pass's."""
     rng = np.random.default_rng(seed)
     points = rng.uniform(-0.015, 0.015, (3000, 3)).astype(dtype)
-    model_to_world = _random_pose(rng, offset)
-    gels = np.stack([model_to_world @ _random_pose(rng, 0.0) for _ in range(regions)])
+    model_to_world = random_pose(rng, offset)
+    gels = np.stack([model_to_world @ random_pose(rng, 0.0) for _ in range(regions)])
     params = DepthMapParams(shape=shape, fill_gaps_min_neighbours=fill)
     _assert_same(*_both(VoxelIndex(points, cell), model_to_world, gels, params, device))
 
@@ -104,7 +95,7 @@ def test_a_cut_split_into_chunks_gives_the_same_maps(device, monkeypatch):
     gather across them."""
     rng = np.random.default_rng(3)
     points = rng.uniform(-0.012, 0.012, (20000, 3))
-    gels = np.stack([_random_pose(rng, 0.0) for _ in range(5)])
+    gels = np.stack([random_pose(rng, 0.0) for _ in range(5)])
     index = VoxelIndex(points, 0.002)
     whole = _both(index, np.eye(4), gels, DepthMapParams(), device)[1]
     monkeypatch.setattr(depthmap_tensor, "CHUNK_POINTS", 37)

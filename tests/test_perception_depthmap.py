@@ -381,7 +381,7 @@ def numpy_reference_map(points_model, model_to_world, gel_to_world, params):
     return out.reshape(rows, cols)
 
 
-def _random_pose(rng, offset_m):
+def random_pose(rng, offset_m):
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
     pose[:3, 3] = offset_m + rng.uniform(-0.003, 0.003, 3)
@@ -409,8 +409,8 @@ def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(
 
     rng = np.random.default_rng(seed)
     points = rng.uniform(-0.015, 0.015, (3000, 3)).astype(dtype)
-    model_to_world = _random_pose(rng, offset)
-    gels = np.stack([model_to_world @ _random_pose(rng, 0.0) for _ in range(regions)])
+    model_to_world = random_pose(rng, offset)
+    gels = np.stack([model_to_world @ random_pose(rng, 0.0) for _ in range(regions)])
     params = DepthMapParams(shape=shape, fill_gaps_min_neighbours=0)
     try:
         singles = [contact_depth_map(points, model_to_world, gel, GEOMETRY, params) for gel in gels]
@@ -443,7 +443,7 @@ def test_region_groups_split_the_points_to_read_evenly_and_cover_every_region_on
 def test_float32_points_give_the_map_of_their_float64_values():
     rng = np.random.default_rng(5)
     points = rng.uniform(-0.012, 0.012, (20000, 3)).astype(np.float32)
-    gel = _random_pose(rng, 0.0)
+    gel = random_pose(rng, 0.0)
     wide, narrow = (
         contact_depth_map(p, np.eye(4), gel, GEOMETRY, DepthMapParams()) for p in (points.astype(np.float64), points)
     )
