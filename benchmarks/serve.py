@@ -190,19 +190,18 @@ def surface_gel_poses(cloud: ModelCloud, count: int, seed: int, press_m: float =
 
 
 def _cut_rates(
-    points: np.ndarray,
+    index: VoxelIndex,
+    on_device: torch.Tensor | None,
     poses: np.ndarray,
     geometry: GripperGeometry,
     params: DepthMapParams,
     per_gel: int,
     threads: int,
-    device: str,
 ) -> dict[str, float]:
     """Depth-map cutting in this process, regions/s: the batched indexed pass on the node's
-    ``threads`` (index built beforehand, as the node caches it), on ``device`` too where that is
-    not the CPU (``cut_device_regions_per_s``), and the way before it (a pass over the whole cloud
-    per gel, ``per_gel`` gels)."""
-    index = VoxelIndex(points)
+    ``threads`` (index built beforehand, as the node caches it), with the index's points
+    ``on_device`` too where the node serves on a GPU (``cut_device_regions_per_s``), and the way
+    before it (a pass over the whole cloud per gel, ``per_gel`` gels)."""
 
     def batched(device_points: torch.Tensor | None) -> float:
         cut = [index, np.eye(4), poses, geometry, params]
@@ -212,11 +211,11 @@ def _cut_rates(
         return round(len(poses) / (time.perf_counter() - started), 1)
 
     rates = {"cut_regions_per_s": batched(None)}
-    if device != "cpu":
-        rates["cut_device_regions_per_s"] = batched(points_on_device(index.points_m, device))
+    if on_device is not None:
+        rates["cut_device_regions_per_s"] = batched(on_device)
     started = time.perf_counter()
     for pose in poses[:per_gel]:
-        contact_depth_map(points, np.eye(4), pose, geometry, params)
+        contact_depth_map(index.points_m, np.eye(4), pose, geometry, params)
     return {**rates, "cut_per_gel_regions_per_s": round(per_gel / (time.perf_counter() - started), 1)}
 
 
@@ -278,7 +277,7 @@ def bench_points(
                     "object": Path(mesh).stem,
                     "cloud_points": len(points),
                     "poses": count,
-                    **_cut_rates(points, poses, geometry, params, min(count, 4), args.threads, device),
+                    **_cut_rates(index, on_device, poses, geometry, params, min(count, 4), args.threads),
                 }
                 handle = Cloud(points)
                 started = time.perf_counter()
