@@ -19,7 +19,7 @@ from dataset.synth import analytic_contact_maps
 from models.data import network_input
 from models.errors import ModelConfigError
 from models.networks import GeneratorConfig
-from models.prior import IMAGE_UNITS, PhysicsPrior, PriorSpec
+from models.prior import PhysicsPrior, PriorSpec
 from models.prior_tensor import TensorPrior
 from sim.gelsight import camera_pixels_on_map
 
@@ -151,7 +151,6 @@ def test_on_a_device_the_network_input_is_built_there_from_the_same_levels(prior
     channels = tensor.channels(maps)
     expected = images.transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0
     np.testing.assert_array_equal(channels.numpy(), expected)
-    np.testing.assert_array_equal(IMAGE_UNITS.numpy(), np.arange(256, dtype=np.uint8).astype(np.float32) / 127.5 - 1.0)
     config = GeneratorConfig(image_size=100, prior=True)
     on_device = network_input(maps, (-0.005, FAR_M), config, tensor)
     on_cpu = network_input(maps, (-0.005, FAR_M), config, prior)
