@@ -34,12 +34,12 @@ from perception.depthmap import (
     MODEL_CLOUD_SEED,
     MODEL_POINT_SPACING_M,
     DepthMapParams,
-    centre_between_gels,
     contact_depth_map,
     crop_bounds,
     crop_reach_m,
 )
 from perception.errors import OutOfReachError
+from perception.gripper_centring import centre_between_gels
 from perception.pointcloud import VoxelIndex, check_transform, transform_points
 from perception.registration import sample_model_cloud
 from workcell.kinematics import GripperGeometry

@@ -37,11 +37,11 @@ from perception.depthmap import (
     MODEL_CLOUD_SEED,
     MODEL_POINT_SPACING_M,
     DepthMapParams,
-    centre_between_gels,
     contact_depth_map,
     crop_reach_m,
 )
 from perception.errors import OutOfReachError
+from perception.gripper_centring import centre_between_gels
 from perception.pointcloud import VoxelIndex, depth_images_to_world, transform_points
 from perception.registration import PreparedModel, prepare_model, register_model, sample_model_cloud
 from perception.segmentation import segment_object, segmentation_params_for

@@ -163,7 +163,7 @@ class ContactPatches:
     y_range_m: tuple[float, float]
 
 
-def _points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
+def points_for_kernel(points_model_m: np.ndarray) -> np.ndarray:
     """float32 or float64 C-contiguous (N, 3), finite; other bool, integer and float dtypes are used
     in float64. Complex, text and object arrays are no points: DepthMapError."""
     points = np.asarray(points_model_m)
@@ -313,7 +313,7 @@ def contact_depth_map(
     Cost: one pass over the points, O(N) time, O(bins) memory beyond a converted copy of the
     points, bins <= MAX_DEPTH_MAP_BINS."""
     bounds = crop_bounds(geometry, params)  # refuses a bad crop or shape before the points are read
-    points = _points_for_kernel(points_model_m)
+    points = points_for_kernel(points_model_m)
     model_to_gel = _model_to_gels(
         check_transform(model_to_world, "model_to_world"), check_transform(gel_to_world, "gel_to_world")[None]
     )
@@ -414,46 +414,6 @@ def contact_depth_maps(
         allow_empty=allow_empty,
         threads=threads,
     )
-
-
-def centre_between_gels(
-    points_model_m: np.ndarray,
-    model_to_world: np.ndarray,
-    gel_left_to_world: np.ndarray,
-    gel_right_to_world: np.ndarray,
-    geometry: GripperGeometry = GripperGeometry(),
-) -> np.ndarray:
-    """``model_to_world`` moved along the closing axis so the model sits centred between the gels.
-
-    A parallel gripper that closes on a free-standing object pushes it until both gels hold it,
-    so after a grasp the object is no longer where it was registered: it is centred between the
-    fingers, which close symmetrically about the TCP. The registration cannot know that; the
-    gripper width can. The shift equalises the two gels' nearest model surface (the minimum gel
-    y of the model points over each gel's whole face) and moves nothing across the gels. When
-    either gel has no model point in front of its face, the pose is returned unchanged.
-    """
-    points = _points_for_kernel(points_model_m).astype(np.float64, copy=False)
-    nearest = []
-    for gel_to_world in (gel_left_to_world, gel_right_to_world):
-        model_to_gel = np.linalg.inv(check_transform(gel_to_world, "gel_to_world")) @ check_transform(
-            model_to_world, "model_to_world"
-        )
-        # The face is a small part of the model: y only for the points in front of it.
-        x = points @ model_to_gel[0, :3] + model_to_gel[0, 3]
-        z = points @ model_to_gel[2, :3] + model_to_gel[2, 3]
-        on_face = np.flatnonzero(
-            (np.abs(x) <= 0.5 * geometry.gel_size_m[0]) & (np.abs(z) <= 0.5 * geometry.gel_size_m[1])
-        )
-        if on_face.size == 0:
-            return np.asarray(model_to_world, dtype=np.float64).copy()
-        y = np.take(points, on_face, axis=0) @ model_to_gel[1, :3] + model_to_gel[1, 3]
-        nearest.append(float(y.min()))
-    # Moving the model by s along the left gel's +y (toward the right gel) adds s to the left
-    # gel's gap and takes s from the right one's.
-    shift_m = 0.5 * (nearest[1] - nearest[0])
-    moved = np.asarray(model_to_world, dtype=np.float64).copy()
-    moved[:3, 3] += shift_m * np.asarray(gel_left_to_world, dtype=np.float64)[:3, 1]
-    return moved
 
 
 def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighbours: int) -> np.ndarray:

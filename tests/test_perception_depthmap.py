@@ -13,8 +13,9 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from perception.binning import min_y_per_bin
-from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
+from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError, PerceptionError
+from perception.gripper_centring import centre_between_gels
 from perception.normalisation import denormalise_depth_map
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.depthmap import DepthMapParams, centre_between_gels, contact_depth_map, crop_bounds
+from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds
+from perception.gripper_centring import centre_between_gels
 from sim.world import SimWorld
 from workcell.kinematics import gel_poses_world, grasp_to_tcp_pose
 from workcell.scene import parse_scene
