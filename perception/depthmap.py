@@ -267,17 +267,18 @@ def _cut(
     batch: bool,
     allow_empty: bool = False,
     threads: int = 1,
+    first_region: int = 0,
 ) -> ContactPatches:
     """The kernel over already checked inputs (``bounds``: :func:`crop_bounds`), on up to
     ``threads`` threads, then the empty-bin policy and gap filling; an error about a region of
-    a ``batch`` names it. With ``allow_empty`` a region with no point is no error: its map is
-    all y_far (point count 0)."""
+    a ``batch`` names it (its regions numbered from ``first_region``). With ``allow_empty`` a
+    region with no point is no error: its map is all y_far (point count 0)."""
     half_x, half_z, y_near, y_far = bounds
     depth_maps_m, occupied, counts = _maps(reads, model_to_gel, bounds, params, threads)
     empty = np.flatnonzero(counts == 0)
     if empty.size and not allow_empty:
         raise OutOfReachError(
-            f"{f'region {int(empty[0])}: ' if batch else ''}"
+            f"{f'region {first_region + int(empty[0])}: ' if batch else ''}"
             f"no model point in the contact volume (x ±{half_x * 1e3:.1f} mm, "
             f"z ±{half_z * 1e3:.1f} mm, y {y_near * 1e3:.1f}..{y_far * 1e3:.1f} mm): "
             "the gel does not reach the object"
@@ -373,20 +374,67 @@ def contact_depth_maps(
     device_points: torch.Tensor | None = None,
 ) -> ContactPatches:
     """Depth-maps of many gels (``gels_to_world``: (N, 4, 4)) on one indexed model cloud: each
-    map equals :func:`contact_depth_map` on the whole cloud.
+    map equals :func:`contact_depth_map` on the whole cloud; :func:`plan_contact_cut` and then
+    every region cut (arguments as theirs)."""
+    return plan_contact_cut(
+        model, model_to_world, gels_to_world, geometry, params, max_point_visits, allow_empty, device_points
+    ).cut(threads=threads)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannedCut:
+    """Many gels' depth-maps on one indexed cloud, looked up and bounded (:func:`plan_contact_cut`),
+    not yet cut: any run of its regions is cut on its own, with the maps the whole cut gives
+    (a planner's request cut pass by pass while the network runs the pass before,
+    nodes.inference)."""
+
+    reads: _Reads
+    model_to_gel: np.ndarray
+    bounds: tuple[float, float, float, float]
+    params: DepthMapParams
+    allow_empty: bool
+
+    def __len__(self) -> int:
+        return len(self.model_to_gel)
+
+    def cut(self, first: int = 0, stop: int | None = None, threads: int = 1) -> ContactPatches:
+        """Regions ``first``..``stop`` - 1 (all by default), on up to ``threads`` threads (an
+        integer >= 1; never more than regions) in groups of about equal work, or on the device of
+        the plan's points; DepthMapError for a run outside the plan or such threads."""
+        stop = len(self) if stop is None else stop
+        if not (isinstance(threads, (int, np.integer)) and not isinstance(threads, bool) and threads >= 1):
+            raise DepthMapError(f"threads must be an integer >= 1, got {threads!r}")
+        if not 0 <= first < stop <= len(self):
+            raise DepthMapError(f"regions {first}..{stop - 1} are not a run of this cut's {len(self)}")
+        runs = self.reads.runs[first : stop + 1]
+        starts, ends = self.reads.starts[runs[0] : runs[-1]], self.reads.ends[runs[0] : runs[-1]]
+        reads = _Reads(self.reads.points, starts, ends, runs - runs[0], self.reads.device_points)
+        return _cut(
+            reads, self.model_to_gel[first:stop], self.bounds, self.params, True, self.allow_empty, threads, first
+        )
+
+
+def plan_contact_cut(
+    model: VoxelIndex,
+    model_to_world: np.ndarray,
+    gels_to_world: np.ndarray,
+    geometry: GripperGeometry = GripperGeometry(),
+    params: DepthMapParams = DepthMapParams(),
+    max_point_visits: int | None = None,
+    allow_empty: bool = False,
+    device_points: torch.Tensor | None = None,
+) -> PlannedCut:
+    """The cells of ``model`` each gel of ``gels_to_world`` (N, 4, 4) reads, checked and bounded.
 
     Why batched: a grasp planner asks for tens to hundreds of candidate gel poses on one dense
     cloud (millions of points); the index hands each gel the few cells within its crop's reach
     (:func:`crop_reach_m`), read in place by one compiled pass, instead of every point per gel.
     ``max_point_visits`` bounds the work (points read over all gels, known after the lookups and
     before any is read): more raises DepthMapError. A gel with no point raises DepthMapError
-    naming the region, unless ``allow_empty``: then its map is all y_far and its point count 0
-    (a planner's candidate that touches nothing is an answer, not a failed batch). ``threads``:
-    the regions are cut on up to that many threads, in groups of about equal work (an integer >= 1;
-    never more threads than regions are started). ``device_points``: ``model.points_m`` on a torch
-    device (perception.depthmap_tensor.points_on_device): the maps are cut there, the same maps."""
-    if not (isinstance(threads, (int, np.integer)) and not isinstance(threads, bool) and threads >= 1):
-        raise DepthMapError(f"threads must be an integer >= 1, got {threads!r}")
+    naming the region when it is cut, unless ``allow_empty``: then its map is all y_far and its
+    point count 0 (a planner's candidate that touches nothing is an answer, not a failed batch).
+    ``device_points``: ``model.points_m`` on a torch device
+    (perception.depthmap_tensor.points_on_device): the maps are cut there, the same maps."""
     bounds = crop_bounds(geometry, params)
     reach = _reach_m(geometry, bounds)
     gels = np.asarray(gels_to_world, dtype=np.float64)
@@ -405,15 +453,8 @@ def contact_depth_maps(
     visits = int(np.sum(ends - starts))
     if max_point_visits is not None and visits > max_point_visits:
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
-    return _cut(
-        _Reads(model.points_m, starts, ends, runs, device_points),
-        model_to_gel,
-        bounds,
-        params,
-        batch=True,  # float32 or 64
-        allow_empty=allow_empty,
-        threads=threads,
-    )
+    reads = _Reads(model.points_m, starts, ends, runs, device_points)
+    return PlannedCut(reads, model_to_gel, bounds, params, allow_empty)
 
 
 def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighbours: int) -> np.ndarray:

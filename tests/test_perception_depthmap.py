@@ -503,3 +503,53 @@ def test_min_y_per_bin_keeps_values_outside_the_crop_in_the_edge_bins():
     z = np.array([-1.0, 1.0, 0.0, np.nan])
     min_y, occupied = min_y_per_bin(x, z, np.array([0.1, 0.2, 0.3, 0.4]), HALF_X, HALF_Z, (3, 4))
     assert min_y[0, 0] == 0.1 and min_y[2, 3] == 0.2 and occupied.sum() <= 4
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    regions=st.integers(1, 9),
+    run=st.tuples(st.integers(0, 8), st.integers(1, 9)),
+    threads=st.integers(1, 3),
+    on_device=st.booleans(),
+)
+def test_property_any_run_of_a_planned_cut_is_the_whole_cuts_maps(seed, regions, run, threads, on_device):
+    """A planned cut cut region run by region run (a request pass by pass, nodes.inference),
+    on the compiled pass or the tensor one: each run's maps, occupancy and counts are the whole
+    cut's rows; a gel that misses is named by its place in the whole cut."""
+    from perception.depthmap import plan_contact_cut
+    from perception.depthmap_tensor import points_on_device
+    from perception.pointcloud import VoxelIndex
+
+    rng = np.random.default_rng(seed)
+    index = VoxelIndex(rng.uniform(-0.015, 0.015, (3000, 3)))
+    gels = np.stack([random_pose(rng, 0.0) for _ in range(regions)])
+    device_points = points_on_device(index.points_m, "cpu") if on_device else None
+    plan = plan_contact_cut(
+        index, np.eye(4), gels, GEOMETRY, DepthMapParams(), allow_empty=True, device_points=device_points
+    )
+    first, stop = min(run[0], regions - 1), min(max(run), regions)
+    stop = max(stop, first + 1)
+    whole, part = plan.cut(threads=threads), plan.cut(first, stop, threads=threads)
+    np.testing.assert_array_equal(part.depth_maps_m, whole.depth_maps_m[first:stop])
+    np.testing.assert_array_equal(part.occupied, whole.occupied[first:stop])
+    np.testing.assert_array_equal(part.point_counts, whole.point_counts[first:stop])
+    missing = np.flatnonzero(whole.point_counts[first:stop] == 0)
+    if missing.size:
+        strict = plan_contact_cut(index, np.eye(4), gels, GEOMETRY, DepthMapParams(), device_points=device_points)
+        with pytest.raises(DepthMapError, match=f"region {first + missing[0]}: no model point"):
+            strict.cut(first, stop)
+
+
+def test_a_planned_cut_refuses_a_run_it_does_not_hold_and_bad_threads():
+    from perception.depthmap import plan_contact_cut
+    from perception.pointcloud import VoxelIndex
+
+    index = VoxelIndex(np.random.default_rng(0).uniform(-0.005, 0.005, (1000, 3)))
+    plan = plan_contact_cut(index, np.eye(4), np.stack([np.eye(4)] * 3), GEOMETRY, DepthMapParams())
+    for first, stop in [(0, 4), (2, 2), (-1, 2), (3, 3)]:
+        with pytest.raises(DepthMapError, match=rf"regions {first}..{stop - 1} are not a run of this cut's 3"):
+            plan.cut(first, stop)
+    for threads in (0, 1.5, True):
+        with pytest.raises(DepthMapError, match="threads must be an integer >= 1"):
+            plan.cut(threads=threads)
