@@ -61,6 +61,7 @@ from models.runtime import DEVICES, CudaUnavailable, network_runner, resolve_dev
 from nodes.bus import Bus
 from nodes.inference import InferenceNode
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
+from nodes.inference_passes import max_batch_on
 from nodes.registry import Registry
 from perception.depthmap import (
     MODEL_CLOUD_SEED,
@@ -317,9 +318,10 @@ def _ratios(row: dict[str, Any], stages: dict[str, float]) -> dict[str, float]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     try:
-        resolve_device(args.device, args.runtime, args.precision)  # the node's own check, before it starts
+        device = resolve_device(args.device, args.runtime, args.precision)  # the node's own check, before it starts
     except CudaUnavailable as exc:
         raise SystemExit(f"dtx bench serve: {exc.code}: {exc}") from exc
+    args = argparse.Namespace(**{**vars(args), "max_batch": max_batch_on(device, args.max_batch)})
     with tempfile.TemporaryDirectory(prefix="dtxb") as tmp:
         checkpoint, weights, depth_range_m = _weights(args, Path(tmp))
         bus_dir = Path(tmp) / "bus"
@@ -446,7 +448,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", choices=list(DEVICES), default="cpu", help="where the node computes")
     parser.add_argument("--workers", type=int, default=1, help="inference node processes (round robin)")
     parser.add_argument("--threads", type=int, default=2, help="compute threads per worker")
-    parser.add_argument("--max-batch", type=int, default=32)
+    parser.add_argument(
+        "--max-batch", type=int, default=0, help="regions in one forward pass (0: the node's default for the device)"
+    )
     parser.add_argument("--window-ms", type=float, default=2.0)
     parser.add_argument("--requests", type=int, default=200, help="single-region requests for the latency")
     parser.add_argument("--regions", type=int, default=32, help="regions per request for the throughput")

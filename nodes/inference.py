@@ -15,7 +15,9 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
 - Batching: requests from every client that arrive within ``batch_window_ms`` of the oldest
   waiting one (and all that queued while the previous batch ran) go through the network
   together, in forward passes of at most ``max_batch`` regions; each client gets its own
-  reply when the batch is done.
+  reply when the batch is done. A pass's input (the physics prior's images) is drawn while the
+  network runs the pass before; on the CPU, with a prior, the network keeps half of ``threads``
+  and the cut and the prior the other half (``thread_split``).
 - ``images``: the deterministic estimate (dropout off). ``uncertainty``: with
   ``dropout_samples`` = S > 1, the per-pixel standard deviation (0..255 image units, mean of
   the three channels) of S extra passes with dropout on — pix2pix's noise z; zeros for S = 1.
@@ -75,15 +77,13 @@ from models.runtime import (
     sampling_copy,
 )
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.inference_requests import BadRequest, UnknownCloud, checked_regions, cloud_id
+from nodes.inference_passes import forward_pass_parts, max_batch_on, thread_split
+from nodes.inference_requests import BadRequest, UnknownCloud, check_params, checked_regions, cloud_id
 from nodes.node import Node, run_node
-from perception.depthmap import DepthMapParams, contact_depth_maps
+from perception.depthmap import DepthMapParams, PlannedCut, contact_depth_maps, plan_contact_cut
 from perception.depthmap_tensor import points_on_device
 from perception.errors import PerceptionError
 from perception.pointcloud import VoxelIndex
-
-# The precisions each runtime runs (dtx bench inference measures each pair).
-PRECISIONS = {"onnxrt": ("fp32", "int8"), "eager": ("fp32", "bf16")}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,7 +115,7 @@ class InferenceNode(Node):
         threads: int = 2
         max_regions: int = 256
         max_points: int = 12_000_000  # every YCB model cloud at the 0.1 mm training spacing
-        max_batch: int = 32
+        max_batch: int = 0  # regions in one forward pass; 0: the device's own (DEVICE_MAX_BATCH)
         batch_window_ms: float = 2.0
         max_dropout_samples: int = 16
         max_sampled_regions: int = 1024  # regions x dropout_samples: bounds the time of one request
@@ -128,13 +128,12 @@ class InferenceNode(Node):
     def __init__(self, name: str, params: dict[str, Any] | None = None, **kwargs: Any) -> None:
         super().__init__(name, params, **kwargs)
         p = self.params
-        _check_params(p)
+        check_params(p)
         try:
             self.device = resolve_device(p.device, p.runtime, p.precision)
         except CudaUnavailable as exc:
             self._refuse_to_start(exc)
         started = time.perf_counter()
-        torch.set_num_threads(p.threads)
         torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
         # The prior's images render in chunks on the node's own threads; OpenCV's pool inside
         # each chunk only added threads (2.3 -> 2.0 ms CPU per region, same wall time).
@@ -150,6 +149,7 @@ class InferenceNode(Node):
             self.device = "cpu"
             self.precision, self.deterministic, self.sampled = self._runners(generator)
         self.prior = self._prior_on_device(generator.prior)
+        self.max_batch = max_batch_on(self.device, p.max_batch)
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()
@@ -162,27 +162,33 @@ class InferenceNode(Node):
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
         # Renders the physics prior's images of a batch in chunks, one per network thread (below).
         self._prior_pool = ThreadPoolExecutor(p.threads, thread_name_prefix=f"{name}-prior")
+        self._ahead = ThreadPoolExecutor(1, thread_name_prefix=f"{name}-ahead")  # the next pass's input
         self._warm_up_cutting()
         self._lock = threading.Condition()
         self._waiting: list[_Job] = []
         self._flush_queued = False
         self.create_service("/inference/estimate", TactileEstimateRequest, TactileEstimateReply, self.on_estimate)
         self.log.info(
-            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms",
+            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms, %d threads for the network "
+            "and %d for the next pass's input",
             self.model,
             time.perf_counter() - started,
             self.depth_range_m,
-            p.max_batch,
+            self.max_batch,
             p.batch_window_ms,
+            self.network_threads,
+            self.input_threads,
         )
 
     def _runners(self, generator: UNetGenerator) -> tuple[str, Runner, Runner]:
         """(the precision served, the deterministic and the sampling runner). int8 is served
         only where it holds: measured against fp32 first (models.runtime.int8_ssim_loss)."""
         p = self.params
+        self.network_threads, self.input_threads = thread_split(p.threads, self.device, generator.prior is not None)
+        torch.set_num_threads(self.network_threads)
 
         def forward(network: UNetGenerator, precision: str) -> Runner:
-            return network_runner(network, self.depth_range_m, p.runtime, precision, p.threads, self.device)
+            return network_runner(network, self.depth_range_m, p.runtime, precision, self.network_threads, self.device)
 
         precision, deterministic = p.precision, forward(generator, p.precision)
         if precision == "int8":
@@ -216,6 +222,7 @@ class InferenceNode(Node):
     # -- requests ---------------------------------------------------------------------------
     def close(self) -> None:
         super().close()
+        self._ahead.shutdown(wait=True)
         self._prior_pool.shutdown(wait=True)
         # Flush-to-zero is process state; leave the process as torch starts it (a node run
         # inside another program, e.g. a test, must not change that program's arithmetic).
@@ -247,7 +254,7 @@ class InferenceNode(Node):
         window_s = self.params.batch_window_ms / 1e3
         with self._lock:
             self._lock.wait_for(
-                lambda: sum(j.regions for j in self._waiting) >= self.params.max_batch,
+                lambda: sum(j.regions for j in self._waiting) >= self.max_batch,
                 timeout=max(0.0, self._waiting[0].arrived + window_s - time.monotonic()),
             )
             jobs, self._waiting, self._flush_queued = self._waiting, [], False
@@ -259,26 +266,24 @@ class InferenceNode(Node):
                     job.future.set_exception(exc)
 
     def _run(self, jobs: list[_Job]) -> None:
-        # A request refused while its depth-maps are cut (too much work) fails alone: the other
+        # A request refused before its depth-maps are cut (too much work) fails alone: the other
         # clients' requests in the batch go on.
-        ready, maps, errors, clouds = [], [], [], []
+        ready, sources, clouds = [], [], []
         for job in jobs:
             try:
-                job_maps, job_errors, job_cloud = self._depth_maps(job.request, job.held)
+                source, cloud = self._regions_of(job.request, job.held)
             except BadRequest as exc:
                 job.future.set_exception(exc)
                 continue
             ready.append(job)
-            maps.append(job_maps)
-            errors.append(job_errors)
-            clouds.append(job_cloud)
+            sources.append(source)
+            clouds.append(cloud)
         if not ready:
             return
         sigmas = [self._pose_sigma_mm(job.request) for job in ready]
-        x = self._network_input(maps, sigmas)
-        images = to_uint8_rgb(torch.from_numpy(self._batched(self.deterministic, x)))
+        x, images, point_counts = self._estimates(sources, sigmas)
         samples = [job.request.dropout_samples for job in ready]
-        offsets = np.cumsum([0] + [m.shape[0] for m in maps])
+        offsets = np.cumsum([0] + [len(source) for source in sources])
         # Every region of a job asking for S samples is repeated S times; all go through together.
         repeated = [
             torch.repeat_interleave(x[offsets[i] : offsets[i + 1]], s, dim=0) for i, s in enumerate(samples) if s > 1
@@ -292,20 +297,59 @@ class InferenceNode(Node):
                 draws = (sampled[cursor : cursor + n * s] + 1.0) * 127.5  # image units, as images
                 cursor += n * s
                 uncertainty = draws.reshape(n, s, *draws.shape[1:]).std(axis=1).mean(axis=1).astype(np.float32)
+            errors = [
+                f"region {k}: no model point in the contact volume: the gel does not reach the object" if c == 0 else ""
+                for k, c in enumerate(point_counts[i])
+            ]
             job.future.set_result(
                 TactileEstimateReply(
                     images=images[offsets[i] : offsets[i + 1]],
                     uncertainty=uncertainty,
                     model=self.model,
                     latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
-                    region_status=["out_of_reach" if e else "ok" for e in errors[i]],
-                    region_errors=errors[i],
+                    region_status=["out_of_reach" if e else "ok" for e in errors],
+                    region_errors=errors,
                     depth_range_m=[float(y) for y in self.depth_range_m],
                     cloud_id=clouds[i],
                     worker=self.name,
                     pose_sigma_mm=sigmas[i],
                 )
             )
+
+    def _estimates(
+        self, sources: list[np.ndarray | PlannedCut], sigmas: list[float]
+    ) -> tuple[torch.Tensor, np.ndarray, list[np.ndarray]]:
+        """(the network's input, the deterministic images, the points each region's gel met: -1
+        for a depth-map sent as one) of every region of the requests' ``sources``, in forward
+        passes of at most ``max_batch``. Each pass's maps are cut and its prior drawn in the
+        background while the network runs the pass before: on the CPU the input (cut 0.9 ms CPU
+        a region, prior 0.85) and the network (2.2 on one thread) then keep the cores busy side
+        by side instead of in turn (64 regions cut from a cloud on 2 cores, in-process: 293 ->
+        400-412 regions/s; docs/measurements.md)."""
+        point_counts = [np.full(len(source), -1, np.int64) for source in sources]
+
+        def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
+            maps = []
+            for i, first, stop in parts:
+                source = sources[i]
+                if isinstance(source, PlannedCut):
+                    patches = source.cut(first, stop, self.input_threads)
+                    point_counts[i][first:stop] = patches.point_counts
+                    maps.append((patches.depth_maps_m, sigmas[i]))
+                else:
+                    maps.append((source[first:stop], sigmas[i]))
+            return self._network_input(maps)
+
+        passes = forward_pass_parts([len(source) for source in sources], self.max_batch)
+        pending = self._ahead.submit(draw, passes[0])
+        inputs, outputs = [], []
+        for following in [*passes[1:], None]:
+            inputs.append(pending.result())
+            if following is not None:
+                pending = self._ahead.submit(draw, following)
+            outputs.append(self.deterministic(inputs[-1]))
+            self.forward_passes += 1
+        return torch.cat(inputs), to_uint8_rgb(torch.from_numpy(np.concatenate(outputs))), point_counts
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
         """The physics prior drawing where the network computes: on CUDA as batched tensor
@@ -326,39 +370,38 @@ class InferenceNode(Node):
             return -1.0
         return self.prior.spec.pose_sigma_mm if request.pose_sigma_mm < 0 else request.pose_sigma_mm
 
-    def _network_input(self, maps: list[np.ndarray], sigmas: list[float]) -> torch.Tensor:
-        """The network's input for each request's depth-maps, whose geometry is known to
-        ``sigmas`` (mm). A model with a physics prior needs its image of every map: per-image
-        NumPy and OpenCV, 1.9-2.0 ms CPU a region for the demo's model (a quarter of the
-        server's, ``dtx bench serve``), mostly outside the GIL, so chunks render side by side on
-        the cores the network uses next; on a GPU, drawn there and left there for the network."""
+    def _network_input(self, parts: list[tuple[np.ndarray, float]]) -> torch.Tensor:
+        """The network's input for depth-maps whose geometry is known to the sigma (mm) beside
+        them. A model with a physics prior needs its image of every map: per-image NumPy and
+        OpenCV, mostly outside the GIL, so chunks render side by side on the node's threads; on a
+        GPU, drawn there and left there for the network."""
 
         def inputs(part: tuple[np.ndarray, float | None]) -> torch.Tensor:
             chunk, sigma = part
             return network_input(chunk, self.depth_range_m, self.config, self.prior, sigma)
 
         if self.prior is None:
-            return inputs((np.concatenate(maps), None))
-        if self.prior.device != "cpu":  # one batched call a request on the device
-            return torch.cat([inputs(part) for part in zip(maps, sigmas)])
-        threads = self.params.threads
-        parts = [(chunk, s) for m, s in zip(maps, sigmas) for chunk in np.array_split(m, min(threads, len(m)))]
-        if len(parts) == 1:
-            return inputs(parts[0])
-        return torch.cat(list(self._prior_pool.map(inputs, parts)))
+            return inputs((np.concatenate([m for m, _ in parts]), None))
+        if self.prior.device != "cpu":  # one batched call a request's part on the device
+            return torch.cat([inputs(part) for part in parts])
+        threads = self.input_threads
+        chunks = [(chunk, s) for m, s in parts for chunk in np.array_split(m, min(threads, len(m)))]
+        if len(chunks) == 1:
+            return inputs(chunks[0])
+        return torch.cat(list(self._prior_pool.map(inputs, chunks)))
 
-    def _depth_maps(
+    def _regions_of(
         self, request: TactileEstimateRequest, held: _KeptCloud | None
-    ) -> tuple[np.ndarray, list[str], str]:
-        """The request's depth-maps; per region, why its gel reaches no surface ("" when it
-        does: such a region gets the empty map, every bin y_far, what the gel feels there); the
-        id of the cloud they were cut from ("" for depth-maps). ``held``: the kept cloud the
-        request named by its id alone."""
+    ) -> tuple[np.ndarray | PlannedCut, str]:
+        """The request's regions: its depth-maps, or the planned cut of its gels on its cloud
+        (looked up and bounded now, cut pass by pass; a gel that reaches no surface gets the
+        empty map, every bin y_far, what the gel feels there); and the id of the cloud ("" for
+        depth-maps). ``held``: the kept cloud the request named by its id alone."""
         if request.depth_maps.size:
-            return request.depth_maps, [""] * len(request.depth_maps), ""
+            return request.depth_maps, ""
         cloud, kept = (request.cloud_id, held) if held is not None else self._keep(request.points, request.cloud_id)
         try:
-            patches = contact_depth_maps(
+            plan = plan_contact_cut(
                 kept.index,
                 np.eye(4),
                 request.gel_poses,
@@ -366,18 +409,13 @@ class InferenceNode(Node):
                 self.depth_map_params,
                 self.params.max_point_visits,
                 allow_empty=True,
-                threads=self.params.threads,  # the network's cores, idle while the maps are cut
                 device_points=kept.device_points,
             )
         except PerceptionError as exc:
             raise BadRequest(
                 f"{exc}; send fewer regions per request" if "too much work" in str(exc) else str(exc)
             ) from exc
-        errors = [
-            "" if count else f"region {i}: no model point in the contact volume: the gel does not reach the object"
-            for i, count in enumerate(patches.point_counts)
-        ]
-        return patches.depth_maps_m, errors, cloud
+        return plan, cloud
 
     def _warm_up_cutting(self) -> None:
         """Load the compiled depth-map kernels for the clouds requests carry (read-only float32
@@ -425,39 +463,12 @@ class InferenceNode(Node):
         return cloud, kept
 
     def _batched(self, forward: Runner, x: torch.Tensor) -> np.ndarray:
-        step = self.params.max_batch
+        step = self.max_batch
         outputs = []
         for start in range(0, len(x), step):
             outputs.append(forward(x[start : start + step]))  # rows of a contiguous tensor: contiguous
             self.forward_passes += 1
         return np.concatenate(outputs)
-
-
-def _check_params(p: InferenceNode.Params) -> None:
-    """ValueError naming what is wrong with the node's parameters."""
-    if p.precision not in PRECISIONS.get(p.runtime, ()):
-        raise ValueError(
-            f"runtime {p.runtime!r} with precision {p.precision!r} is not offered: "
-            f"the runtimes and their precisions are {PRECISIONS}"
-        )
-    limits = (
-        p.threads,
-        p.max_regions,
-        p.max_points,
-        p.max_batch,
-        p.max_dropout_samples,
-        p.max_sampled_regions,
-        p.max_point_visits,
-        p.index_cache,
-    )
-    if min(limits) < 1 or p.batch_window_ms < 0 or not 0 <= p.int8_max_ssim_loss <= 1:
-        raise ValueError(
-            "threads, max_regions, max_points, max_batch, max_dropout_samples, "
-            "max_sampled_regions, max_point_visits and index_cache must be >= 1, "
-            "batch_window_ms >= 0, int8_max_ssim_loss in [0, 1]"
-        )
-    if not p.checkpoint:
-        raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")
 
 
 if __name__ == "__main__":

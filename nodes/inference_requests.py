@@ -1,5 +1,5 @@
-"""What the inference node (nodes.inference) accepts: a request's checks, the errors it sends
-back with their codes, and the id a cloud is known by."""
+"""What the inference node (nodes.inference) accepts: its parameters' and a request's checks,
+the errors it sends back with their codes, and the id a cloud is known by."""
 
 from __future__ import annotations
 
@@ -14,6 +14,9 @@ from msgs.inference import TactileEstimateRequest
 from msgs.system import ErrorCode
 from perception.errors import PerceptionError
 from perception.pointcloud import check_transforms
+
+# The precisions each runtime runs (dtx bench inference measures each pair).
+PRECISIONS = {"onnxrt": ("fp32", "int8"), "eager": ("fp32", "bf16")}
 
 
 class BadRequest(ValueError):
@@ -103,3 +106,29 @@ def _check_finite(array: np.ndarray, what: str) -> None:
     if not np.isfinite(array).all():  # one pass over a cloud of millions; where, only when it fails
         first = np.argwhere(~np.isfinite(array))[0]
         raise BadRequest(f"{what} contain NaN or inf (first at index {tuple(int(i) for i in first)})")
+
+
+def check_params(p: Any) -> None:
+    """ValueError naming what is wrong with the node's parameters (InferenceNode.Params)."""
+    if p.precision not in PRECISIONS.get(p.runtime, ()):
+        raise ValueError(
+            f"runtime {p.runtime!r} with precision {p.precision!r} is not offered: "
+            f"the runtimes and their precisions are {PRECISIONS}"
+        )
+    limits = (
+        p.threads,
+        p.max_regions,
+        p.max_points,
+        p.max_dropout_samples,
+        p.max_sampled_regions,
+        p.max_point_visits,
+        p.index_cache,
+    )
+    if min(limits) < 1 or p.max_batch < 0 or p.batch_window_ms < 0 or not 0 <= p.int8_max_ssim_loss <= 1:
+        raise ValueError(
+            "threads, max_regions, max_points, max_dropout_samples, max_sampled_regions, "
+            "max_point_visits and index_cache must be >= 1, max_batch >= 0 (0: the device's own), "
+            "batch_window_ms >= 0, int8_max_ssim_loss in [0, 1]"
+        )
+    if not p.checkpoint:
+        raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")

@@ -105,6 +105,28 @@ def test_a_runtime_and_precision_that_do_not_go_together_are_refused(
         InferenceNode("refused", params, registry=Registry(tmp_path / "bus"))
 
 
+@pytest.mark.parametrize(
+    ("param", "value", "named"),
+    [("max_batch", -1, "max_batch >= 0"), ("threads", 0, "threads, max_regions"), ("batch_window_ms", -1.0, "batch")],
+)
+def test_bad_limits_are_refused_naming_them(
+    checkpoint: Path, tmp_path: Path, param: str, value: float, named: str
+) -> None:
+    with pytest.raises(ValueError, match=named):
+        InferenceNode("refused", {"checkpoint": str(checkpoint), param: value}, registry=Registry(tmp_path / "bus"))
+
+
+def test_passes_default_to_the_devices_width_and_a_prior_on_the_cpu_splits_the_threads(
+    registry: Registry, tmp_path: Path
+) -> None:
+    prior = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
+    with serving(registry, prior, device="cpu", threads=4) as node:
+        assert (node.max_batch, node.network_threads, node.input_threads) == (8, 2, 2)
+    plain = write_checkpoint(tmp_path / "plain.pt", width=8)
+    with serving(registry, plain, device="cpu", threads=4, max_batch=5) as node:
+        assert (node.max_batch, node.network_threads, node.input_threads) == (5, 4, 4)
+
+
 def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry, tmp_path: Path) -> None:
     checkpoint = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
     maps = depth_maps(3, seed=2)
