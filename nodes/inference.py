@@ -41,8 +41,10 @@ ONNX Runtime's CUDA provider or eager PyTorch on the GPU, the physics prior draw
 network's input left there; auto takes CUDA where the runtime has it; cuda without it: the node does
 not start, its status the code ``cuda_unavailable`` and the reason on /log),
 ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts drawn as its
-calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads``,
-``max_regions``, ``max_points``, ``max_batch``, ``batch_window_ms``, ``max_dropout_samples``,
+calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads`` (shared
+between the network and the next pass's input: nodes.inference_passes.thread_split),
+``max_regions``, ``max_points``, ``max_batch`` (regions in one forward pass; 0: the device's
+own, nodes.inference_passes.DEVICE_MAX_BATCH), ``batch_window_ms``, ``max_dropout_samples``,
 ``max_sampled_regions``, ``max_point_visits`` (cloud points near the gels, summed over regions:
 the work of cutting the depth-maps), ``index_cache``, ``scene`` (gripper geometry for the points
 path), ``margin_m`` (crop margin, as the patch extractor's).
