@@ -61,7 +61,7 @@ from models.runtime import DEVICES, CudaUnavailable, network_runner, resolve_dev
 from nodes.bus import Bus
 from nodes.inference import InferenceNode
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
-from nodes.inference_passes import max_batch_on
+from nodes.inference_passes import max_batch_on, thread_split
 from nodes.registry import Registry
 from perception.depthmap import (
     MODEL_CLOUD_SEED,
@@ -349,6 +349,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "model": model,
         "workers": args.workers,
         "threads_per_worker": args.threads,
+        # How each worker shares them (nodes.inference_passes.thread_split); the network alone
+        # in the points rows runs on all of them.
+        "network_and_input_threads": list(thread_split(args.threads, device, prior_ms is not None)),
         "p50_ms": round(statistics.median(latencies), 2),
         "p99_ms": round(float(np.percentile(latencies, 99)), 2),
         "regions_per_s": round(throughput, 1),

@@ -21,6 +21,7 @@ def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -
     assert result["model"] == "fresh.pt (ngf 8, onnxrt fp32, cpu)"
     assert 0 < result["p50_ms"] <= result["p99_ms"]
     assert result["regions_per_s"] > 0 and result["server_cpu_ms_per_region"] > 0
+    assert result["network_and_input_threads"] == [1, 1]  # no prior: the input shares the network's
 
 
 def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
@@ -54,6 +55,7 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
     )
     assert result["weights"] == "fresh generator, width 8, physics prior (seeded, untrained)"
     assert 0 < result["prior_cpu_ms_per_region"] and 0 < result["prior_share_of_server_cpu"]
+    assert result["network_and_input_threads"] == [1, 1]  # one thread: the input shares it
     (row,) = result["points"]
     assert row["poses"] == 4 and row["cloud_points"] > 1_000_000
     for key in (
