@@ -101,6 +101,7 @@ class PhysicsPrior:
         self.renderer = scene_renderer(scene, size=(size, size), effects=False)
         self.device = "cpu"
         self._tensor: TensorPrior | None = None
+        self._image_units = IMAGE_UNITS  # on the prior's device
 
     def on(self, device: str) -> "PhysicsPrior":
         """This prior drawing on ``device``: "cpu" with the renderer's own NumPy and OpenCV
@@ -110,6 +111,7 @@ class PhysicsPrior:
         moved = copy.copy(self)
         moved.device = device
         moved._tensor = None if device == "cpu" else TensorPrior(self.renderer, self._crop_xz_m, device)
+        moved._image_units = IMAGE_UNITS.to(device)
         return moved
 
     @property
@@ -196,4 +198,4 @@ class PhysicsPrior:
             images = self.images(depth_maps_m, pose_sigma_mm)
             return torch.from_numpy(images.transpose(0, 3, 1, 2).astype(np.float32) / 127.5 - 1.0)
         levels = self._levels_on_device(self._tensor, depth_maps_m, self._sigma_mm(pose_sigma_mm))
-        return IMAGE_UNITS.to(self.device)[levels.to(torch.long)]
+        return self._image_units[levels.to(torch.long)]
