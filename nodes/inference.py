@@ -162,8 +162,8 @@ class InferenceNode(Node):
         self.forward_passes = 0
         self._clouds: dict[str, _KeptCloud] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
-        # Renders the physics prior's images of a batch in chunks, one per network thread (below).
-        self._prior_pool = ThreadPoolExecutor(p.threads, thread_name_prefix=f"{name}-prior")
+        # Renders the physics prior's images of a pass in chunks, one per input thread (below).
+        self._prior_pool = ThreadPoolExecutor(self.input_threads, thread_name_prefix=f"{name}-prior")
         self._ahead = ThreadPoolExecutor(1, thread_name_prefix=f"{name}-ahead")  # the next pass's input
         self._warm_up_cutting()
         self._lock = threading.Condition()
