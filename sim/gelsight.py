@@ -39,6 +39,7 @@ import numpy as np
 from sim.effects import effects_of, resolve_effects
 from sim.gelsight_calibration import PolyCalibration, load_calibration, renderer_parameters
 from sim.gelsight_effects import EFFECTS, GelSightRenderError, LightingDrift, Markers, SensorNoise, make_effect
+from sim.gelsight_shading import add_tilted_colour
 from workcell.scene import Scene
 
 __all__ = [
@@ -375,12 +376,8 @@ class GelSightRenderer:
             direction = np.arctan2(slope_y, slope_x)
             i_mag = np.minimum((magnitude / grid.mag_step).astype(np.intp), n - 1)
             i_dir = np.minimum(((direction + math.pi) / grid.dir_step).astype(np.intp), n - 1)
-            # np.take on rows and 1-D element indices: several times faster than 2-D fancy indexing.
-            coeffs = np.take(grid.coeffs, i_mag * n + i_dir, axis=0)  # (tilted, 3, 6)
-            tilt_colour = np.einsum("pck,pk->pc", coeffs, np.take(grid.terms, tilted, axis=0))
-            tilt_change = tilt_colour - np.take(grid.flat_colour, tilted, axis=0)
-            elements = (tilted[:, None] * 3 + np.arange(3)).ravel()
-            change.reshape(-1)[elements] += np.float32(self.config.shading_gain) * tilt_change.ravel()
+            gain, bins = np.float32(self.config.shading_gain), i_mag * n + i_dir
+            add_tilted_colour(change.reshape(-1, 3), tilted, bins, grid.coeffs, grid.terms, grid.flat_colour, gain)
         return change
 
 

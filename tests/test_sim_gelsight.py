@@ -25,6 +25,7 @@ from sim.gelsight import (
     make_effect,
 )
 from sim.gelsight_check import ball_gap_map
+from sim.gelsight_shading import add_tilted_colour
 
 RENDERER = GelSightRenderer()
 H, W = RENDERER.config.shape
@@ -249,3 +250,38 @@ def test_large_images_computed_on_the_coarser_working_grid_match_the_full_comput
     gap = ball(1.2, config, center_mm=(2.0, -1.0))
     assert coarse.gel_depth_mm(gap).shape == full.gel_depth_mm(gap).shape == (480, 640)
     assert ssim_rgb(coarse.render(gap), full.render(gap)) > 0.99
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(1, 60),
+    st.integers(0, 2**32 - 1),
+    st.floats(0.125, 2.0, width=32),
+)
+def test_compiled_tilted_shading_is_the_einsum_it_replaced(pixels, seed, gain):
+    """The kernel sums the polynomial in a stated order: exactly that order in NumPy on any
+    machine, and the einsum the renderer used before within float32 rounding (equal on
+    AVX-512, where the README's figures come from)."""
+    rng = np.random.default_rng(seed)
+    image_pixels, n_bins = 2 * pixels + 3, 7
+    coeffs = (rng.standard_normal((n_bins, 3, 6)) * rng.uniform(0.1, 300, (n_bins, 3, 6))).astype(np.float32)
+    terms = (rng.standard_normal((image_pixels, 6)) * 100).astype(np.float32)
+    flat_colour = rng.uniform(-20, 20, (image_pixels, 3)).astype(np.float32)
+    tilted = np.sort(rng.choice(image_pixels, pixels, replace=False))
+    bins = rng.integers(0, n_bins, pixels)
+    start = rng.uniform(-50, 50, (image_pixels, 3)).astype(np.float32)
+    gain = np.float32(gain)
+
+    change = start.copy()
+    add_tilted_colour(change, tilted, bins, coeffs, terms, flat_colour, gain)
+
+    t = [coeffs[bins][:, :, k] * terms[tilted][:, None, k] for k in range(6)]
+    in_order = start.copy()
+    in_order[tilted] += gain * ((((t[0] + t[4]) + (t[1] + t[5])) + (t[2] + t[3])) - flat_colour[tilted])
+    assert np.array_equal(change, in_order)
+    before = start.copy()
+    before[tilted] += gain * (np.einsum("pck,pk->pc", coeffs[bins], terms[tilted]) - flat_colour[tilted])
+    untouched = np.setdiff1d(np.arange(image_pixels), tilted)
+    assert np.array_equal(change[untouched], start[untouched])
+    scale = np.abs(t).sum(axis=0) * gain + np.abs(start[tilted]) + np.abs(flat_colour[tilted]) * gain
+    assert np.all(np.abs(change[tilted] - before[tilted]) <= 4 * np.finfo(np.float32).eps * scale)
