@@ -324,8 +324,8 @@ class InferenceNode(Node):
         """(the network's input, the deterministic images, the points each region's gel met: -1
         for a depth-map sent as one) of every region of the requests' ``sources``, in forward
         passes of at most ``max_batch``. Each pass's maps are cut and its prior drawn in the
-        background while the network runs the pass before: on the CPU the input (cut 0.9 ms CPU
-        a region, prior 0.85) and the network (2.2 on one thread) then keep the cores busy side
+        background while the network runs the pass before: on the CPU the input (cut 0.8 ms CPU
+        a region, prior 0.55) and the network (2.2 on one thread) then keep the cores busy side
         by side instead of in turn (64 regions cut from a cloud on 2 cores, in-process: 293 ->
         400-412 regions/s; docs/measurements.md)."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]

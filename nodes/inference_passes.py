@@ -18,11 +18,13 @@ def max_batch_on(device: str, asked: int) -> int:
 
 def thread_split(threads: int, device: str, has_prior: bool) -> tuple[int, int]:
     """(the network's threads, the threads that cut and draw the next pass's input beside it)
-    of a node given ``threads``. On the CPU, a model with a physics prior spends about as much
-    CPU on a region's input (cut 0.9 ms, prior 0.85) as on its network (2.2 on one thread, 2.8 on
+    of a node given ``threads``. On the CPU, a model with a physics prior spends on a region's
+    input (cut 0.8 ms, prior 0.55) a good part of its network's CPU (2.2 ms on one thread, 2.8 on
     two): each then keeps half the cores busy all the time, instead of both taking all of them
-    in turn (64 regions cut from a cloud on 2 cores: 400-412 regions/s against 353-369,
-    docs/measurements.md). Otherwise the network has them all, and the input shares them."""
+    in turn (64 regions cut from a cloud on 2 cores: 400-412 regions/s against 353-369; the
+    network on both threads beside the input, or each pass's input and network on one thread in
+    two lanes side by side, measured no better: docs/measurements.md). Otherwise the network has
+    them all, and the input shares them."""
     if device == "cpu" and has_prior and threads >= 2:
         return threads - threads // 2, threads // 2
     return threads, threads
