@@ -8,8 +8,10 @@ measured against: the work around it is what separates the two."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -34,15 +36,31 @@ def _cpu_ms_per_region(work: Callable[[], object], regions: int, repeats: int) -
     return best / regions * 1e3
 
 
-def network_rate(run: Runner, x: np.ndarray | torch.Tensor, max_batch: int, repeats: int) -> tuple[float, float]:
-    """(regions/s, CPU ms per region) of ``run`` over ``x`` in batches of ``max_batch``, as the
-    node passes them, ``repeats`` times back to back."""
-    run(x[:max_batch])  # warm
-    wall, cpu = time.perf_counter(), time.process_time()
-    for _ in range(repeats):
-        for start in range(0, len(x), max_batch):
-            run(x[start : start + max_batch])
-    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+@dataclasses.dataclass(frozen=True)
+class ServedNetwork:
+    """The graph the node serves, as it runs it: ``run`` in ``lanes`` forward passes side by side
+    (each on its lane's threads; nodes.inference_passes.thread_split) of ``max_batch`` regions;
+    and ``one_pass`` the same graph on all the node's ``threads``, one pass at a time."""
+
+    run: Runner
+    lanes: int
+    max_batch: int
+    one_pass: Runner
+    threads: int
+
+
+def network_rate(
+    run: Runner, x: np.ndarray | torch.Tensor, max_batch: int, repeats: int, lanes: int = 1
+) -> tuple[float, float]:
+    """(regions/s, CPU ms per region) of ``run`` over ``x`` in passes of ``max_batch``, ``lanes``
+    of them side by side as the node runs them, ``repeats`` times back to back."""
+    starts = list(range(0, len(x), max_batch)) * repeats
+    with ThreadPoolExecutor(lanes) as pool:
+        run(x[:max_batch])  # warm
+        wall, cpu = time.perf_counter(), time.process_time()
+        for _ in pool.map(lambda start: run(x[start : start + max_batch]), starts):
+            pass
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3
 
 
@@ -54,27 +72,40 @@ def stage_costs(
     params: DepthMapParams,
     generator: UNetGenerator,
     depth_range_m: tuple[float, float],
-    run: Runner,
-    threads: int,
-    max_batch: int,
+    network: ServedNetwork,
+    input_threads: int,
     repeats: int,
 ) -> dict[str, float]:
     """CPU ms per region of each stage of a request of ``poses`` on the cloud ``index`` (cut on
-    the device of ``device_points``, its points there, as the node cuts them; None: the CPU), and
-    the network's own rate on these regions (``network_regions_per_s``)."""
+    ``input_threads`` or the device of ``device_points``, its points there, as the node cuts
+    them; None: the CPU), and the network's own rate on these regions as the node runs it
+    (``network_regions_per_s``) and one pass at a time on all its threads."""
 
     def cut() -> np.ndarray:
         maps = contact_depth_maps(
-            index, np.eye(4), poses, geometry, params, allow_empty=True, threads=threads, device_points=device_points
+            index,
+            np.eye(4),
+            poses,
+            geometry,
+            params,
+            allow_empty=True,
+            threads=input_threads,
+            device_points=device_points,
         )
         return maps.depth_maps_m
 
     maps = cut()
     x = network_input(maps, depth_range_m, generator.config, generator.prior)  # where the prior draws, as the node's
-    n = len(poses)
-    images = to_uint8_rgb(torch.from_numpy(np.concatenate([run(x[i : i + max_batch]) for i in range(0, n, max_batch)])))
+    n, width = len(poses), network.max_batch
+    images = to_uint8_rgb(torch.from_numpy(np.concatenate([network.run(x[i : i + width]) for i in range(0, n, width)])))
     reply = TactileEstimateReply(images=images, uncertainty=np.zeros(images.shape[:3], np.float32))
-    rate, network_cpu = network_rate(run, x, max_batch, repeats)
+    rate, network_cpu = network_rate(network.run, x, width, repeats, network.lanes)
+    lane_threads = torch.get_num_threads()
+    torch.set_num_threads(network.threads)  # eager PyTorch's threads are the process's
+    try:
+        one_pass_rate, one_pass_cpu = network_rate(network.one_pass, x, width, repeats)
+    finally:
+        torch.set_num_threads(lane_threads)
     return {
         "cut_cpu_ms": round(_cpu_ms_per_region(cut, n, repeats), 3),
         "prior_cpu_ms": round(
@@ -86,4 +117,6 @@ def stage_costs(
         "network_cpu_ms": round(network_cpu, 3),
         "encode_cpu_ms": round(_cpu_ms_per_region(lambda: encode("/inference/estimate", reply), n, repeats), 3),
         "network_regions_per_s": round(rate, 1),
+        "network_one_pass_cpu_ms": round(one_pass_cpu, 3),
+        "network_one_pass_regions_per_s": round(one_pass_rate, 1),
     }

@@ -15,9 +15,9 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
 - Batching: requests from every client that arrive within ``batch_window_ms`` of the oldest
   waiting one (and all that queued while the previous batch ran) go through the network
   together, in forward passes of at most ``max_batch`` regions; each client gets its own
-  reply when the batch is done. A pass's input (the physics prior's images) is drawn while the
-  network runs the pass before; on the CPU, with a prior, the network keeps half of ``threads``
-  and the cut and the prior the other half (``thread_split``).
+  reply when the batch is done. A pass's input (its cut, the physics prior's images) is drawn
+  while the network runs the passes before; on the CPU each of ``threads`` runs a pass of its
+  own side by side, the input drawn on half of them (``thread_split``).
 - ``images``: the deterministic estimate (dropout off). ``uncertainty``: with
   ``dropout_samples`` = S > 1, the per-pixel standard deviation (0..255 image units, mean of
   the three channels) of S extra passes with dropout on — pix2pix's noise z; zeros for S = 1.
@@ -42,7 +42,7 @@ network's input left there; auto takes CUDA where the runtime has it; cuda witho
 not start, its status the code ``cuda_unavailable`` and the reason on /log),
 ``int8_max_ssim_loss`` (int8 is measured against fp32 at start on contacts drawn as its
 calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads`` (shared
-between the network and the next pass's input: nodes.inference_passes.thread_split),
+between the forward passes and the next passes' input: nodes.inference_passes.thread_split),
 ``max_regions``, ``max_points``, ``max_batch`` (regions in one forward pass; 0: the device's
 own, nodes.inference_passes.DEVICE_MAX_BATCH), ``batch_window_ms``, ``max_dropout_samples``,
 ``max_sampled_regions``, ``max_point_visits`` (cloud points near the gels, summed over regions:
@@ -163,34 +163,36 @@ class InferenceNode(Node):
         self._clouds: dict[str, _KeptCloud] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
         # Renders the physics prior's images of a pass in chunks, one per input thread (below).
-        self._prior_pool = ThreadPoolExecutor(self.input_threads, thread_name_prefix=f"{name}-prior")
-        self._ahead = ThreadPoolExecutor(1, thread_name_prefix=f"{name}-ahead")  # the next pass's input
+        self._prior_pool = ThreadPoolExecutor(self.split.input_threads, thread_name_prefix=f"{name}-prior")
+        self._lanes = ThreadPoolExecutor(self.split.lanes, thread_name_prefix=f"{name}-pass")  # forward passes
         self._warm_up_cutting()
         self._lock = threading.Condition()
         self._waiting: list[_Job] = []
         self._flush_queued = False
         self.create_service("/inference/estimate", TactileEstimateRequest, TactileEstimateReply, self.on_estimate)
         self.log.info(
-            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms, %d threads for the network "
-            "and %d for the next pass's input",
+            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms, %d forward passes side by "
+            "side on %d thread(s) each, %d thread(s) for the next passes' input",
             self.model,
             time.perf_counter() - started,
             self.depth_range_m,
             self.max_batch,
             p.batch_window_ms,
-            self.network_threads,
-            self.input_threads,
+            self.split.lanes,
+            self.split.lane_threads,
+            self.split.input_threads,
         )
 
     def _runners(self, generator: UNetGenerator) -> tuple[str, Runner, Runner]:
         """(the precision served, the deterministic and the sampling runner). int8 is served
         only where it holds: measured against fp32 first (models.runtime.int8_ssim_loss)."""
         p = self.params
-        self.network_threads, self.input_threads = thread_split(p.threads, self.device, generator.prior is not None)
-        torch.set_num_threads(self.network_threads)
+        self.split = thread_split(p.threads, self.device)
+        torch.set_num_threads(self.split.lane_threads)
 
         def forward(network: UNetGenerator, precision: str) -> Runner:
-            return network_runner(network, self.depth_range_m, p.runtime, precision, self.network_threads, self.device)
+            threads = self.split.lane_threads
+            return network_runner(network, self.depth_range_m, p.runtime, precision, threads, self.device)
 
         precision, deterministic = p.precision, forward(generator, p.precision)
         if precision == "int8":
@@ -224,7 +226,7 @@ class InferenceNode(Node):
     # -- requests ---------------------------------------------------------------------------
     def close(self) -> None:
         super().close()
-        self._ahead.shutdown(wait=True)
+        self._lanes.shutdown(wait=True)
         self._prior_pool.shutdown(wait=True)
         # Flush-to-zero is process state; leave the process as torch starts it (a node run
         # inside another program, e.g. a test, must not change that program's arithmetic).
@@ -323,11 +325,11 @@ class InferenceNode(Node):
     ) -> tuple[torch.Tensor, np.ndarray, list[np.ndarray]]:
         """(the network's input, the deterministic images, the points each region's gel met: -1
         for a depth-map sent as one) of every region of the requests' ``sources``, in forward
-        passes of at most ``max_batch``. Each pass's maps are cut and its prior drawn in the
-        background while the network runs the pass before: on the CPU the input (cut 0.8 ms CPU
-        a region, prior 0.55) and the network (2.2 on one thread) then keep the cores busy side
-        by side instead of in turn (64 regions cut from a cloud on 2 cores, in-process: 293 ->
-        400-412 regions/s; docs/measurements.md)."""
+        passes of at most ``max_batch``. This thread cuts each pass's maps and draws its prior,
+        and hands the pass to the lanes (``thread_split``), which run it while the next pass's
+        input is drawn: on 2 cores the network then has both cores whenever the input leaves
+        them (64 regions cut from a cloud, in process: 293 regions/s in turn, 385-404 with the
+        input drawn beside one pass at a time, 421-442 in two lanes; docs/measurements.md)."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
 
         def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
@@ -335,23 +337,20 @@ class InferenceNode(Node):
             for i, first, stop in parts:
                 source = sources[i]
                 if isinstance(source, PlannedCut):
-                    patches = source.cut(first, stop, self.input_threads)
+                    patches = source.cut(first, stop, self.split.input_threads)
                     point_counts[i][first:stop] = patches.point_counts
                     maps.append((patches.depth_maps_m, sigmas[i]))
                 else:
                     maps.append((source[first:stop], sigmas[i]))
             return self._network_input(maps)
 
-        passes = forward_pass_parts([len(source) for source in sources], self.max_batch)
-        pending = self._ahead.submit(draw, passes[0])
         inputs, outputs = [], []
-        for following in [*passes[1:], None]:
-            inputs.append(pending.result())
-            if following is not None:
-                pending = self._ahead.submit(draw, following)
-            outputs.append(self.deterministic(inputs[-1]))
+        for parts in forward_pass_parts([len(source) for source in sources], self.max_batch):
+            inputs.append(draw(parts))
+            outputs.append(self._lanes.submit(self.deterministic, inputs[-1]))
             self.forward_passes += 1
-        return torch.cat(inputs), to_uint8_rgb(torch.from_numpy(np.concatenate(outputs))), point_counts
+        images = np.concatenate([output.result() for output in outputs])
+        return torch.cat(inputs), to_uint8_rgb(torch.from_numpy(images)), point_counts
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
         """The physics prior drawing where the network computes: on CUDA as batched tensor
@@ -386,7 +385,7 @@ class InferenceNode(Node):
             return inputs((np.concatenate([m for m, _ in parts]), None))
         if self.prior.device != "cpu":  # one batched call a request's part on the device
             return torch.cat([inputs(part) for part in parts])
-        threads = self.input_threads
+        threads = self.split.input_threads
         chunks = [(chunk, s) for m, s in parts for chunk in np.array_split(m, min(threads, len(m)))]
         if len(chunks) == 1:
             return inputs(chunks[0])
@@ -465,12 +464,11 @@ class InferenceNode(Node):
         return cloud, kept
 
     def _batched(self, forward: Runner, x: torch.Tensor) -> np.ndarray:
-        step = self.max_batch
-        outputs = []
-        for start in range(0, len(x), step):
-            outputs.append(forward(x[start : start + step]))  # rows of a contiguous tensor: contiguous
-            self.forward_passes += 1
-        return np.concatenate(outputs)
+        """``forward`` of every row of ``x`` in passes of max_batch, side by side in the lanes."""
+        starts = range(0, len(x), self.max_batch)
+        self.forward_passes += len(starts)
+        # Rows of a contiguous tensor: contiguous.
+        return np.concatenate(list(self._lanes.map(lambda start: forward(x[start : start + self.max_batch]), starts)))
 
 
 if __name__ == "__main__":

@@ -1,13 +1,15 @@
 """How the inference node (nodes.inference) runs a batch: the requests' regions laid into
-forward passes, and its threads shared between the network and the input of the pass after."""
+forward passes, and its threads shared between the passes and the input of the passes after."""
 
 from __future__ import annotations
 
+import dataclasses
+
 # Regions in one forward pass where the node's max_batch is 0 (its default), by device. On the
-# CPU the next pass's input is cut and drawn during this pass, so a short pass keeps the
-# pipeline's two stages in step: 64 regions cut from a cloud, 2 cores, the demo's model:
-# 335-374 regions/s in passes of 8, 319-333 of 16, 263-292 of 32, the network alone the same
-# (~575) at each. On a GPU the network wants wide passes (the lent H200's figures: 32).
+# CPU the next passes' input is cut and drawn while the network runs, so short passes keep the
+# two in step: 64 regions cut from a cloud, 2 cores, the demo's model, in two lanes: 349-397
+# regions/s in passes of 8, 329-354 of 16, 371-390 of 4 (one pass at a time: 335-374 of 8,
+# 263-292 of 32). On a GPU the network wants wide passes (the lent H200's figures: 32).
 DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 32}
 
 
@@ -16,18 +18,29 @@ def max_batch_on(device: str, asked: int) -> int:
     return asked or DEVICE_MAX_BATCH[device]
 
 
-def thread_split(threads: int, device: str, has_prior: bool) -> tuple[int, int]:
-    """(the network's threads, the threads that cut and draw the next pass's input beside it)
-    of a node given ``threads``. On the CPU, a model with a physics prior spends on a region's
-    input (cut 0.8 ms, prior 0.55) a good part of its network's CPU (2.2 ms on one thread, 2.8 on
-    two): each then keeps half the cores busy all the time, instead of both taking all of them
-    in turn (64 regions cut from a cloud on 2 cores: 400-412 regions/s against 353-369; the
-    network on both threads beside the input, or each pass's input and network on one thread in
-    two lanes side by side, measured no better: docs/measurements.md). Otherwise the network has
-    them all, and the input shares them."""
-    if device == "cpu" and has_prior and threads >= 2:
-        return threads - threads // 2, threads // 2
-    return threads, threads
+@dataclasses.dataclass(frozen=True)
+class ThreadSplit:
+    """How an inference node spends its ``threads``: forward passes side by side (``lanes``),
+    each computing on ``lane_threads``, while the batch's own thread cuts and draws the next
+    passes' input on ``input_threads``."""
+
+    lanes: int
+    lane_threads: int
+    input_threads: int
+
+
+def thread_split(threads: int, device: str) -> ThreadSplit:
+    """The node's threads on ``device``. On the CPU the network is cheapest a region on one
+    thread (2.2 ms CPU against 2.8 on two, the demo's model, passes of 8), so each core runs a
+    pass of its own: alone, two such lanes ran 861-898 regions/s where one pass on both cores ran
+    531-566. The input (cut 0.8 ms a region, prior 0.55) is drawn meanwhile on half of them:
+    one thread draws the prior's images, whose many short NumPy calls do not run two at a time
+    (64 regions on 2 cores, in process: cloud form 421-442 regions/s against 385-404 with one
+    pass at a time, depth-maps 569-578 against 425-448; docs/measurements.md). On a GPU one pass
+    at a time, the host's threads for the input."""
+    if device == "cpu":
+        return ThreadSplit(lanes=threads, lane_threads=1, input_threads=max(1, threads // 2))
+    return ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads)
 
 
 def forward_pass_parts(regions: list[int], max_batch: int) -> list[list[tuple[int, int, int]]]:

@@ -21,7 +21,7 @@ def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -
     assert result["model"] == "fresh.pt (ngf 8, onnxrt fp32, cpu)"
     assert 0 < result["p50_ms"] <= result["p99_ms"]
     assert result["regions_per_s"] > 0 and result["server_cpu_ms_per_region"] > 0
-    assert result["network_and_input_threads"] == [1, 1]  # no prior: the input shares the network's
+    assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1}
 
 
 def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
@@ -55,7 +55,7 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
     )
     assert result["weights"] == "fresh generator, width 8, physics prior (seeded, untrained)"
     assert 0 < result["prior_cpu_ms_per_region"] and 0 < result["prior_share_of_server_cpu"]
-    assert result["network_and_input_threads"] == [1, 1]  # one thread: the input shares it
+    assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1}
     (row,) = result["points"]
     assert row["poses"] == 4 and row["cloud_points"] > 1_000_000
     for key in (
@@ -75,12 +75,20 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
         "network_cpu_ms",
         "encode_cpu_ms",
         "network_regions_per_s",
+        "network_one_pass_cpu_ms",
+        "network_one_pass_regions_per_s",
     }
     assert all(value > 0 for value in row["stage_cpu_ms_per_region"].values())
     assert row["handle_over_network"] == round(row["handle_regions_per_s"] / row["network_regions_per_s"], 3)
     assert row["handle_over_maps"] == round(row["handle_regions_per_s"] / row["maps_regions_per_s"], 3)
-    network_cpu = row["stage_cpu_ms_per_region"]["network_cpu_ms"]
-    assert row["server_cpu_over_network"] == round(row["handle_server_cpu_ms_per_region"] / network_cpu, 3)
+    stages = row["stage_cpu_ms_per_region"]
+    one_pass = stages["network_one_pass_regions_per_s"]
+    assert row["handle_over_one_pass_network"] == round(row["handle_regions_per_s"] / one_pass, 3)
+    for network, ratio in (
+        ("network_cpu_ms", "server_cpu_over_network"),
+        ("network_one_pass_cpu_ms", "server_cpu_over_one_pass_network"),
+    ):
+        assert row[ratio] == round(row["handle_server_cpu_ms_per_region"] / stages[network], 3)
 
 
 @pytest.mark.skipif(not cuda_missing("onnxrt"), reason="this machine's ONNX Runtime has CUDA")

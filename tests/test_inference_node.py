@@ -23,6 +23,7 @@ from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.bus import Bus
 from nodes.inference import InferenceNode, cloud_id
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
+from nodes.inference_passes import ThreadSplit
 from nodes.registry import Registry
 from nodes.services import ServiceCallError
 from perception.depthmap import DepthMapParams, contact_depth_map
@@ -116,15 +117,15 @@ def test_bad_limits_are_refused_naming_them(
         InferenceNode("refused", {"checkpoint": str(checkpoint), param: value}, registry=Registry(tmp_path / "bus"))
 
 
-def test_passes_default_to_the_devices_width_and_a_prior_on_the_cpu_splits_the_threads(
+def test_passes_default_to_the_devices_width_and_each_thread_runs_a_pass_on_the_cpu(
     registry: Registry, tmp_path: Path
 ) -> None:
     prior = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
     with serving(registry, prior, device="cpu", threads=4) as node:
-        assert (node.max_batch, node.network_threads, node.input_threads) == (8, 2, 2)
+        assert (node.max_batch, node.split) == (8, ThreadSplit(lanes=4, lane_threads=1, input_threads=2))
     plain = write_checkpoint(tmp_path / "plain.pt", width=8)
     with serving(registry, plain, device="cpu", threads=4, max_batch=5) as node:
-        assert (node.max_batch, node.network_threads, node.input_threads) == (5, 4, 4)
+        assert (node.max_batch, node.split) == (5, ThreadSplit(lanes=4, lane_threads=1, input_threads=2))
 
 
 def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry, tmp_path: Path) -> None:

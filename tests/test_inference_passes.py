@@ -6,7 +6,7 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from nodes.inference_passes import forward_pass_parts, thread_split
+from nodes.inference_passes import ThreadSplit, forward_pass_parts, thread_split
 
 
 @given(regions=st.lists(st.integers(1, 40), min_size=1, max_size=6), max_batch=st.integers(1, 33))
@@ -20,8 +20,8 @@ def test_passes_hold_every_region_once_in_order_and_are_full_but_the_last(region
 
 
 @given(threads=st.integers(1, 64))
-def test_a_prior_on_the_cpu_gets_half_the_threads_beside_the_network(threads: int) -> None:
-    network, inputs = thread_split(threads, "cpu", has_prior=True)
-    assert network + inputs == max(threads, 2) and network >= inputs >= 1 and network - inputs <= 1
-    assert thread_split(threads, "cpu", has_prior=False) == (threads, threads)
-    assert thread_split(threads, "cuda", has_prior=True) == (threads, threads)
+def test_on_the_cpu_each_thread_runs_a_pass_and_half_of_them_draw_the_input(threads: int) -> None:
+    assert thread_split(threads, "cpu") == ThreadSplit(
+        lanes=threads, lane_threads=1, input_threads=max(1, threads // 2)
+    )
+    assert thread_split(threads, "cuda") == ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads)
