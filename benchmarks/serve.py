@@ -61,7 +61,7 @@ from models.runtime import DEVICES, CudaUnavailable, network_runner, resolve_dev
 from nodes.bus import Bus
 from nodes.inference import InferenceNode
 from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
-from nodes.inference_passes import max_batch_on, thread_split
+from nodes.inference_passes import ThreadSplit, max_batch_on, thread_split
 from nodes.registry import Registry
 from perception.depthmap import (
     MODEL_CLOUD_SEED,
@@ -244,17 +244,12 @@ def _request_rate(call: Any, regions: int, requests: int) -> tuple[float, float]
     return round(statistics.median(latencies) * 1e3, 1), round(regions * requests / sum(latencies), 1)
 
 
-def bench_points(
-    registry: Registry,
-    args: argparse.Namespace,
-    checkpoint: Path,
-    model: str,
-    servers: list[subprocess.Popen[bytes]],
-) -> list[dict]:
-    """The planner's cloud form beside the depth-map form and the network alone, per YCB
-    object and pose count, with the stages' costs (benchmarks._serve_stages)."""
-    generator, depth_range_m = load_generator(checkpoint)
-    # The graph the node serves (int8 refused falls back to fp32, which its model line says).
+def _served_network(
+    generator: UNetGenerator, depth_range_m: tuple[float, float], model: str, args: argparse.Namespace
+) -> tuple[ServedNetwork, ThreadSplit, str]:
+    """The graph the node serves as it runs it (its ``model`` line: int8 refused falls back to
+    fp32), how it shares its threads, and its device; this process set as the node's, so that
+    the network and the prior compute here as they do there."""
     runtime, precision, device = re.search(r"(\w+) (\w+), (\w+)\)$", model).groups()  # type: ignore[union-attr]
     split = thread_split(args.threads, device)
     network = ServedNetwork(
@@ -266,9 +261,22 @@ def bench_points(
     )
     if generator.prior is not None and device != "cpu":  # the prior draws where the node's does
         generator.prior = generator.prior.on(device)
-    # The node's process settings, so the network computes here as it does there.
     torch.set_num_threads(split.lane_threads)
     cv2.setNumThreads(1)
+    return network, split, device
+
+
+def bench_points(
+    registry: Registry,
+    args: argparse.Namespace,
+    checkpoint: Path,
+    model: str,
+    servers: list[subprocess.Popen[bytes]],
+) -> list[dict]:
+    """The planner's cloud form beside the depth-map form and the network alone, per YCB
+    object and pose count, with the stages' costs (benchmarks._serve_stages)."""
+    generator, depth_range_m = load_generator(checkpoint)
+    network, split, device = _served_network(generator, depth_range_m, model, args)
     geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     params = DepthMapParams(y_range_m=depth_range_m)
     rows = []

@@ -29,30 +29,9 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
     --points sends a YCB model cloud with gel poses on its surface beside the depth-map form."""
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    result = run(
-        parser.parse_args(
-            [
-                "--width",
-                "8",
-                "--threads",
-                "1",
-                "--requests",
-                "3",
-                "--regions",
-                "2",
-                "--seconds",
-                "0.2",
-                "--prior",
-                "--points",
-                "--objects",
-                "1",
-                "--poses",
-                "4",
-                "--point-requests",
-                "1",
-            ]
-        )
-    )
+    served = "--width 8 --threads 1 --requests 3 --regions 2 --seconds 0.2 --prior"
+    asked = "--points --objects 1 --poses 4 --point-requests 1"
+    result = run(parser.parse_args(f"{served} {asked}".split()))
     assert result["weights"] == "fresh generator, width 8, physics prior (seeded, untrained)"
     assert 0 < result["prior_cpu_ms_per_region"] and 0 < result["prior_share_of_server_cpu"]
     assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1}
