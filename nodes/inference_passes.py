@@ -35,8 +35,8 @@ def thread_split(threads: int, device: str) -> ThreadSplit:
     pass of its own: alone, two such lanes ran 861-898 regions/s where one pass on both cores ran
     531-566. The input (cut 0.8 ms a region, prior 0.55) is drawn meanwhile on half of them:
     one thread draws the prior's images, whose many short NumPy calls do not run two at a time
-    (64 regions on 2 cores, in process: cloud form 421-442 regions/s against 385-404 with one
-    pass at a time, depth-maps 569-578 against 425-448; docs/measurements.md). On a GPU one pass
+    (2 cores, through the bus: cloud form 349-397 regions/s at 64 poses against 318-365 with one
+    pass at a time, depth-maps 449-541 against 333-384; docs/measurements.md). On a GPU one pass
     at a time, the host's threads for the input."""
     if device == "cpu":
         return ThreadSplit(lanes=threads, lane_threads=1, input_threads=max(1, threads // 2))
