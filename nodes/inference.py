@@ -328,7 +328,7 @@ class InferenceNode(Node):
         passes of at most ``max_batch``. This thread cuts each pass's maps and draws its prior,
         and hands the pass to the lanes (``thread_split``), which run it while the next pass's
         input is drawn: on 2 cores the network then has both cores whenever the input leaves
-        them (64 regions cut from a cloud, in process: 293 regions/s in turn, 385-404 with the
+        them (64 regions cut from a cloud, in process: 293 regions/s in turn, 377-404 with the
         input drawn beside one pass at a time, 412-462 in two lanes; docs/measurements.md)."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
 
