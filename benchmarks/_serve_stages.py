@@ -40,12 +40,13 @@ def _cpu_ms_per_region(work: Callable[[], object], regions: int, repeats: int) -
 class ServedNetwork:
     """The graph the node serves, as it runs it: ``run`` in ``lanes`` forward passes side by side
     (each on its lane's threads; nodes.inference_passes.thread_split) of ``max_batch`` regions;
-    and ``one_pass`` the same graph on all the node's ``threads``, one pass at a time."""
+    and ``one_pass`` the same graph on all the node's ``threads``, one pass at a time (None where
+    the node runs one pass at a time: ``run`` is that graph)."""
 
     run: Runner
     lanes: int
     max_batch: int
-    one_pass: Runner
+    one_pass: Runner | None
     threads: int
 
 
@@ -100,12 +101,14 @@ def stage_costs(
     images = to_uint8_rgb(torch.from_numpy(np.concatenate([network.run(x[i : i + width]) for i in range(0, n, width)])))
     reply = TactileEstimateReply(images=images, uncertainty=np.zeros(images.shape[:3], np.float32))
     rate, network_cpu = network_rate(network.run, x, width, repeats, network.lanes)
-    lane_threads = torch.get_num_threads()
-    torch.set_num_threads(network.threads)  # eager PyTorch's threads are the process's
-    try:
-        one_pass_rate, one_pass_cpu = network_rate(network.one_pass, x, width, repeats)
-    finally:
-        torch.set_num_threads(lane_threads)
+    one_pass_rate, one_pass_cpu = rate, network_cpu
+    if network.one_pass is not None:
+        lane_threads = torch.get_num_threads()
+        torch.set_num_threads(network.threads)  # eager PyTorch's threads are the process's
+        try:
+            one_pass_rate, one_pass_cpu = network_rate(network.one_pass, x, width, repeats)
+        finally:
+            torch.set_num_threads(lane_threads)
     return {
         "cut_cpu_ms": round(_cpu_ms_per_region(cut, n, repeats), 3),
         "prior_cpu_ms": round(

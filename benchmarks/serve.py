@@ -252,11 +252,12 @@ def _served_network(
     the network and the prior compute here as they do there."""
     runtime, precision, device = re.search(r"(\w+) (\w+), (\w+)\)$", model).groups()  # type: ignore[union-attr]
     split = thread_split(args.threads, device)
+    served = (generator, depth_range_m, runtime, precision)
     network = ServedNetwork(
-        run=network_runner(generator, depth_range_m, runtime, precision, split.lane_threads, device),
+        run=network_runner(*served, split.lane_threads, device),
         lanes=split.lanes,
         max_batch=args.max_batch,
-        one_pass=network_runner(generator, depth_range_m, runtime, precision, args.threads, device),
+        one_pass=None if split.lanes == 1 else network_runner(*served, args.threads, device),
         threads=args.threads,
     )
     if generator.prior is not None and device != "cpu":  # the prior draws where the node's does
