@@ -285,18 +285,22 @@ class InferenceNode(Node):
         if not ready:
             return
         sigmas = [self._pose_sigma_mm(job.request) for job in ready]
-        x, images, point_counts = self._estimates(sources, sigmas)
+        inputs, images, point_counts = self._estimates(sources, sigmas)
         samples = [job.request.dropout_samples for job in ready]
         offsets = np.cumsum([0] + [len(source) for source in sources])
-        # Every region of a job asking for S samples is repeated S times; all go through together.
-        repeated = [
-            torch.repeat_interleave(x[offsets[i] : offsets[i + 1]], s, dim=0) for i, s in enumerate(samples) if s > 1
-        ]
-        sampled = self._batched(self.sampled, torch.cat(repeated)) if repeated else np.zeros((0,))
+        sampled = np.zeros((0,))
+        if max(samples) > 1:  # every region of a job asking for S samples S times, all together
+            x = torch.cat(inputs)
+            repeated = [
+                torch.repeat_interleave(x[offsets[i] : offsets[i + 1]], s, dim=0)
+                for i, s in enumerate(samples)
+                if s > 1
+            ]
+            sampled = self._batched(self.sampled, torch.cat(repeated))
         cursor = 0
         for i, job in enumerate(ready):
             n, s = offsets[i + 1] - offsets[i], samples[i]
-            uncertainty = np.zeros((n, *x.shape[2:]), np.float32)
+            uncertainty = np.zeros((n, *images.shape[1:3]), np.float32)
             if s > 1:
                 draws = (sampled[cursor : cursor + n * s] + 1.0) * 127.5  # image units, as images
                 cursor += n * s
@@ -322,10 +326,10 @@ class InferenceNode(Node):
 
     def _estimates(
         self, sources: list[np.ndarray | PlannedCut], sigmas: list[float]
-    ) -> tuple[torch.Tensor, np.ndarray, list[np.ndarray]]:
-        """(the network's input, the deterministic images, the points each region's gel met: -1
-        for a depth-map sent as one) of every region of the requests' ``sources``, in forward
-        passes of at most ``max_batch``. This thread cuts each pass's maps and draws its prior,
+    ) -> tuple[list[torch.Tensor], np.ndarray, list[np.ndarray]]:
+        """(the network's input of each pass, the deterministic images, the points each region's
+        gel met: -1 for a depth-map sent as one) of every region of the requests' ``sources``, in
+        forward passes of at most ``max_batch``. This thread cuts each pass's maps and draws its prior,
         and hands the pass to the lanes (``thread_split``), which run it while the next pass's
         input is drawn: on 2 cores the network then has both cores whenever the input leaves
         them (64 regions cut from a cloud, in process: 293 regions/s in turn, 377-404 with the
@@ -350,7 +354,7 @@ class InferenceNode(Node):
             outputs.append(self._lanes.submit(self.deterministic, inputs[-1]))
             self.forward_passes += 1
         images = np.concatenate([output.result() for output in outputs])
-        return torch.cat(inputs), to_uint8_rgb(torch.from_numpy(images)), point_counts
+        return inputs, to_uint8_rgb(torch.from_numpy(images)), point_counts
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
         """The physics prior drawing where the network computes: on CUDA as batched tensor
