@@ -55,11 +55,14 @@ def network_rate(
 ) -> tuple[float, float]:
     """(regions/s, CPU ms per region) of ``run`` over ``x`` in passes of ``max_batch``, ``lanes``
     of them side by side as the node runs them, ``repeats`` times back to back."""
-    starts = list(range(0, len(x), max_batch)) * repeats
+    starts = list(range(0, len(x), max_batch))
     with ThreadPoolExecutor(lanes) as pool:
-        run(x[:max_batch])  # warm
-        wall, cpu = time.perf_counter(), time.process_time()
+        # Warm on every pass, not one: a GPU left idle by the stage before clocks down, and a few
+        # timed passes of a small request would measure its ramp rather than the network.
         for _ in pool.map(lambda start: run(x[start : start + max_batch]), starts):
+            pass
+        wall, cpu = time.perf_counter(), time.process_time()
+        for _ in pool.map(lambda start: run(x[start : start + max_batch]), starts * repeats):
             pass
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3
