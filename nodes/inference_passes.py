@@ -9,8 +9,10 @@ import dataclasses
 # CPU the next passes' input is cut and drawn while the network runs, so short passes keep the
 # two in step: 64 regions cut from a cloud, 2 cores, the demo's model, in two lanes: 349-397
 # regions/s in passes of 8, 329-354 of 16, 371-390 of 4 (one pass at a time: 335-374 of 8,
-# 263-292 of 32). On a GPU the network wants wide passes (the lent H200's figures: 32).
-DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 32}
+# 263-292 of 32). On a GPU every pass costs kernel launches and a trip back, so a request is one
+# pass: a lent H100, three YCB clouds, 256 poses: 1,565-2,023 regions/s in passes of 256, 1,217-1,770
+# of 64 or 128, 1,243-1,351 of 32 (64 poses: 1,450-1,567 against 958-1,434 of 32).
+DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 256}
 
 
 def max_batch_on(device: str, asked: int) -> int:
