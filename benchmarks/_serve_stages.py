@@ -52,20 +52,24 @@ class ServedNetwork:
 
 def network_rate(
     run: Runner, x: np.ndarray | torch.Tensor, max_batch: int, repeats: int, lanes: int = 1
-) -> tuple[float, float]:
-    """(regions/s, CPU ms per region) of ``run`` over ``x`` in passes of ``max_batch``, ``lanes``
-    of them side by side as the node runs them, ``repeats`` times back to back."""
+) -> tuple[float, float, np.ndarray]:
+    """(regions/s, CPU ms per region, the outputs) of ``run`` over ``x`` in passes of
+    ``max_batch``, ``lanes`` of them side by side as the node runs them, ``repeats`` times back
+    to back. The outputs are a first, untimed round over every pass: it warms every pass, not
+    one, since a GPU left idle by the stage before clocks down, and a few timed passes of a
+    small request would measure its ramp rather than the network."""
+
+    def one_pass(start: int) -> np.ndarray:
+        return run(x[start : start + max_batch])
+
     starts = list(range(0, len(x), max_batch))
     with ThreadPoolExecutor(lanes) as pool:
-        # Warm on every pass, not one: a GPU left idle by the stage before clocks down, and a few
-        # timed passes of a small request would measure its ramp rather than the network.
-        for _ in pool.map(lambda start: run(x[start : start + max_batch]), starts):
-            pass
+        outputs = np.concatenate(list(pool.map(one_pass, starts)))
         wall, cpu = time.perf_counter(), time.process_time()
-        for _ in pool.map(lambda start: run(x[start : start + max_batch]), starts * repeats):
+        for _ in pool.map(one_pass, starts * repeats):
             pass
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3
+    return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3, outputs
 
 
 def stage_costs(
@@ -100,16 +104,16 @@ def stage_costs(
 
     maps = cut()
     x = network_input(maps, depth_range_m, generator.config, generator.prior)  # where the prior draws, as the node's
-    n, width = len(poses), network.max_batch
-    images = to_uint8_rgb(torch.from_numpy(np.concatenate([network.run(x[i : i + width]) for i in range(0, n, width)])))
+    n = len(poses)
+    rate, network_cpu, outputs = network_rate(network.run, x, network.max_batch, repeats, network.lanes)
+    images = to_uint8_rgb(torch.from_numpy(outputs))
     reply = TactileEstimateReply(images=images, uncertainty=np.zeros(images.shape[:3], np.float32))
-    rate, network_cpu = network_rate(network.run, x, width, repeats, network.lanes)
     one_pass_rate, one_pass_cpu = rate, network_cpu
     if network.one_pass is not None:
         lane_threads = torch.get_num_threads()
         torch.set_num_threads(network.threads)  # eager PyTorch's threads are the process's
         try:
-            one_pass_rate, one_pass_cpu = network_rate(network.one_pass, x, width, repeats)
+            one_pass_rate, one_pass_cpu, _ = network_rate(network.one_pass, x, network.max_batch, repeats)
         finally:
             torch.set_num_threads(lane_threads)
     return {
