@@ -27,7 +27,7 @@ from sim.gelsight_calibration import BACKGROUND_FILE, PARAMETERS_FILE, POLYNOMIA
 from sim.gelsight_check import ball_gap_map, press_depth_mm, read_press_arrays
 from sim.gelsight_effects import GelSightRenderError
 from sim.gelsight_fit import Presses, PressFit, fit_presses, press_scores, render_fit
-from sim.press_annotation import FoundPresses, find_presses
+from sim.press_annotation import FoundPresses, change_extent_px, change_magnitude, find_presses
 
 # Usable presses needed: the half-against-all check fits a half, and below about a dozen presses a
 # fit leaves too many slope bins to too few positions on the gel (on rendered presses: six score a
@@ -40,6 +40,10 @@ MAX_BACKGROUND_MISMATCH_LEVELS = 30.0
 # fraction of a millimetre at most); one narrower than half of it is a press too shallow (an eighth of
 # the radius deep) to calibrate from.
 RING_RADIUS_RANGE = (0.5, 1.5)
+# How far a press changes the frame, in ball radii, at most: the shipped presses reach 1.1-1.5 (their
+# coloured halo lies outside the ring), presses rendered with a 1.9 mm contact 1.06-1.17. Beyond it
+# the ball given is too small for the presses (the finder would lock onto pieces of the rings).
+MAX_REACH_RADII = 2.0
 
 
 def load_press_file(
@@ -99,6 +103,13 @@ def annotate(frames: np.ndarray, background: np.ndarray, mm_per_px: float, ball_
         raise GelSightRenderError(
             f"a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px is {ball_px:.1f} px: a press of it "
             f"cannot be seen in a {background.shape[1]} x {background.shape[0]} frame (4 px to half the frame's height)"
+        )
+    reach_px = float(np.median([change_extent_px(change_magnitude(frame, background)) for frame in frames]))
+    if reach_px > MAX_REACH_RADII * ball_px:
+        raise GelSightRenderError(
+            f"the presses change the frame out to {reach_px * mm_per_px:.2f} mm from their centres (median), "
+            f"more than {MAX_REACH_RADII:g} radii of a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px: "
+            "the ball radius is too small or the scale too coarse; check --ball-radius-mm and --mm-per-px"
         )
     found = find_presses(frames, background, ball_px)
     ratio = found.radii_px / ball_px

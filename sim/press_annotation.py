@@ -35,6 +35,9 @@ SATURATED_FRACTION = 0.10  # share of a ring's pixel values clipped at 0 or 255 
 SEARCH_PX = 6  # how far the template search moves a centre in each round
 ROUNDS = 3
 MAX_RING_RADII = 2.5  # the widest ring looked for, in ball radii
+# Where a press's reach ends, from the frame's median (0) to its peak (1); on the shipped presses a
+# pixel's change at that level is about the ring profile's edge (RING_EDGE_FRACTION) plus its halo.
+REACH_LEVEL = 0.3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +58,21 @@ class FoundPresses:
 def change_magnitude(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
     """|frame - background| summed over the channels (HxW float32 levels)."""
     return np.abs(frame.astype(np.float32) - background.astype(np.float32)).sum(axis=2)
+
+
+def change_extent_px(magnitude: np.ndarray) -> float:
+    """How far a press reaches (px): the radius of the disc as large as the frame's largest region
+    where ``magnitude`` (one press's change) rises REACH_LEVEL of the way from the frame's median to
+    its peak (99.9th percentile), the ring's inside counted. Found without a centre or a ball radius, so
+    that it still holds when the radius a lab gives is wrong: the finder then locks onto a piece of
+    the ring, and the rings it finds fit the wrong ball."""
+    smooth = cv2.GaussianBlur(magnitude.astype(np.float32), (0, 0), 1.0)
+    far = float(np.median(smooth))
+    peak = float(np.percentile(smooth, 99.9))
+    changed = (smooth > far + REACH_LEVEL * (peak - far)).astype(np.uint8)
+    outlines, _ = cv2.findContours(changed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    area = max((cv2.contourArea(outline) for outline in outlines), default=0.0)
+    return math.sqrt(area / math.pi)
 
 
 def hough_center(magnitude: np.ndarray, radius_range_px: tuple[float, float]) -> tuple[float, float]:

@@ -19,7 +19,7 @@ from sim.gelsight_calibrate import calibrate_presses, check_background
 from sim.gelsight_calibration import renderer_parameters
 from sim.gelsight_check import ball_gap_map, press_depth_mm, run_check
 from sim.gelsight_fit import Presses, fit_background, fit_with_parameters, press_scores, render_fit
-from sim.press_annotation import find_presses, ring_edge_px
+from sim.press_annotation import change_extent_px, find_presses, ring_edge_px
 
 MM_PER_PX = 0.1245
 BALL_MM = 2.0
@@ -170,6 +170,40 @@ def test_a_ball_or_scale_that_cannot_explain_the_rings_is_refused(
     frames, background, _ = synthetic
     error = _refused(tmp_path, capsys, monkeypatch, frames, background, option, value)
     assert "cannot explain the rings of presses [0, 1, 2" in error, error
+
+
+@pytest.mark.parametrize(("option", "value"), [("--ball-radius-mm", "0.8"), ("--mm-per-px", "0.3")])
+def test_a_ball_too_small_for_how_far_the_presses_reach_is_refused(
+    tmp_path, capsys, monkeypatch, synthetic, option, value
+):
+    frames, background, _ = synthetic
+    error = _refused(tmp_path, capsys, monkeypatch, frames, background, option, value)
+    assert "the presses change the frame out to" in error and "the ball radius is too small" in error, error
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.floats(4.0, 40.0),
+    st.floats(0.0, 1.0),
+    st.floats(0.0, 1.0),
+    st.floats(20.0, 300.0),
+    st.floats(0.0, 20.0),
+    st.booleans(),
+)
+def test_change_extent_is_the_radius_of_a_press_whatever_its_place_and_levels(
+    radius_px, x_share, y_share, height, floor, ring_only
+):
+    """A disc (or a ring with a flat inside, as a ball's press) of ``radius_px`` anywhere in the
+    frame, on any floor: the reach is its radius to a pixel, clipped where the frame ends."""
+    h, w = 120, 160
+    rows, cols = np.mgrid[0:h, 0:w]
+    center = (radius_px + x_share * (w - 2 * radius_px), radius_px + y_share * (h - 2 * radius_px))
+    distance = np.hypot(cols - center[0], rows - center[1])
+    press = distance <= radius_px
+    if ring_only:
+        press &= distance >= 0.6 * radius_px
+    magnitude = np.where(press, floor + height, floor).astype(np.float32)
+    assert abs(change_extent_px(magnitude) - radius_px) <= 1.0
 
 
 def test_a_file_without_scale_and_an_existing_directory_without_force_are_refused(tmp_path, capsys, synthetic):
