@@ -127,7 +127,15 @@ def _gelsight(args: argparse.Namespace) -> int:
     files = calibration_files(fit, presses)
     files["report.json"] = (strict_json.dumps(report, indent=1) + "\n").encode()
     write_calibration_dir(Path(args.out), files, args.force)
-    print(strict_json.dumps(report) if args.json else format_report(report) + f"\nwrote {args.out}")
+    if args.json:
+        print(strict_json.dumps(report))
+        return 0
+    h, w = report["frame_shape"]
+    print(format_report(report) + f"\nwrote {args.out}")
+    print(
+        f"a scene renders this sensor with gelsight: {{image_height: {h}, image_width: {w}, "
+        f"mm_per_px: {report['mm_per_px']:g}, calibration_dir: {args.out}}}"
+    )
     return 0
 
 

@@ -228,8 +228,8 @@ class GelSightRenderer:
     ``effects`` (from :mod:`sim.gelsight_effects`) are applied in order; with none the image
     is the noise-free rendering, deterministic. ``rng`` drives the effects (default: seeded
     with 0, so a run is reproducible). ``background`` is the sensor's no-contact frame at the
-    calibration's size (default: the calibration's own); render against the background
-    captured at start. ``calibration`` shades instead of ``config.calibration_dir``'s (a fit's
+    calibration's size or at the image's (default: the calibration's own); render against the
+    background captured at start. ``calibration`` shades instead of ``config.calibration_dir``'s (a fit's
     calibration before it is written, ``sim.gelsight_fit``).
 
     The camera does not resolve the gel finer than ``optical_blur_mm``, so on large images
@@ -257,31 +257,32 @@ class GelSightRenderer:
         self.calibration = load_calibration(config.calibration_dir) if calibration is None else calibration
         native = self.calibration.native_shape
         background = self.calibration.background if background is None else background
-        if not (
-            isinstance(background, np.ndarray) and background.dtype == np.uint8 and background.shape == native + (3,)
-        ):
+        sizes = (native + (3,), config.shape + (3,))
+        if not (isinstance(background, np.ndarray) and background.dtype == np.uint8 and background.shape in sizes):
             raise GelSightRenderError(
-                f"background must be a {native[0]}x{native[1]}x3 uint8 frame (the calibration's "
-                f"size), got {getattr(background, 'shape', None)} {getattr(background, 'dtype', None)}"
+                f"background must be a uint8 frame of the calibration's size or the image's, {' or '.join(map(str, sizes))}"
+                f", got {getattr(background, 'shape', None)} {getattr(background, 'dtype', None)}"
             )
-
         h, w = config.shape
         row_mm = config.mm_per_px * (w / h) * (native[0] / native[1])
         self.pixel_pitch_mm = (row_mm, config.mm_per_px)  # along rows, along columns
         coarsening = max(1, int(config.optical_blur_mm / max(self.pixel_pitch_mm) // SHADING_GRID_PER_SIGMA))
         work_shape = (max(3, round(h / coarsening)), max(3, round(w / coarsening)))
         self.grid = self._shading_grid(work_shape, (row_mm * h / work_shape[0], config.mm_per_px * w / work_shape[1]))
-
-        smoothed = cv2.GaussianBlur(
-            background.astype(np.float32),
-            (0, 0),
-            config.background_smoothing_mm / config.calibration_mm_per_px,
-            borderType=cv2.BORDER_REPLICATE,
-        )
-        xx, yy = self._calibration_positions((h, w), self.pixel_pitch_mm)
-        # The no-contact frame at the image's size, float32 levels (``background`` rounds it).
-        self.background_levels = cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        self.background_levels = self._smoothed_background(background)  # ``background`` rounds it
         self.background_levels.flags.writeable = False
+
+    def _smoothed_background(self, frame: np.ndarray) -> np.ndarray:
+        """``frame`` smoothed by ``background_smoothing_mm`` at the image's size (float32 levels):
+        a frame of the calibration's size is resampled at the image's pixels; a frame of the
+        image's size is the rendered camera's own (a press file's background at any size)."""
+        config, smoothing_mm = self.config, self.config.background_smoothing_mm
+        if frame.shape[:2] != self.calibration.native_shape:
+            return _gaussian_blur(frame.astype(np.float32), tuple(smoothing_mm / p for p in self.pixel_pitch_mm))
+        sigma_px = smoothing_mm / config.calibration_mm_per_px
+        smoothed = _gaussian_blur(frame.astype(np.float32), (sigma_px, sigma_px))
+        xx, yy = self._calibration_positions(config.shape, self.pixel_pitch_mm)
+        return cv2.remap(smoothed, xx, yy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _shading_grid(self, shape: tuple[int, int], pitch_mm: tuple[float, float]) -> ShadingGrid:
         config, n = self.config, self.calibration.n_bins

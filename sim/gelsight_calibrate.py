@@ -24,7 +24,13 @@ import numpy as np
 
 from sim.gelsight import GelSightConfig
 from sim.gelsight_calibration import BACKGROUND_FILE, PARAMETERS_FILE, POLYNOMIAL_FILE
-from sim.gelsight_check import ball_gap_map, press_depth_mm, read_press_arrays
+from sim.gelsight_check import (
+    BALL_RADIUS_RANGE_MM,
+    MM_PER_PX_RANGE,
+    ball_gap_map,
+    press_depth_mm,
+    read_press_arrays,
+)
 from sim.gelsight_effects import GelSightRenderError
 from sim.gelsight_fit import Presses, PressFit, fit_presses, press_scores, render_fit
 from sim.press_annotation import FoundPresses, change_extent_px, change_magnitude, find_presses
@@ -68,8 +74,8 @@ def load_press_file(
             f"{path}: frames must be N x {' x '.join(map(str, background.shape))} uint8 like the background, "
             f"got {frames.shape} {frames.dtype}"
         )
-    scale = _number(path, "mm_per_px", mm_per_px, contents, (1e-3, 10.0))
-    ball = _number(path, "ball_radius_mm", ball_radius_mm, contents, (0.1, 50.0))
+    scale = _number(path, "mm_per_px", mm_per_px, contents, MM_PER_PX_RANGE)
+    ball = _number(path, "ball_radius_mm", ball_radius_mm, contents, BALL_RADIUS_RANGE_MM)
     annotations = {k: contents[k].astype(np.float64) for k in ("touch_center", "touch_radius") if k in contents}
     return frames, background, annotations, scale, ball
 
@@ -231,6 +237,7 @@ def calibrate_presses(
         "file": str(path),
         "mm_per_px": scale,
         "ball_radius_mm": ball,
+        "frame_shape": list(background.shape[:2]),
         "presses": int(len(frames)),
         "used": used.tolist(),
         "left_out": {int(i): reason for i, reason in enumerate(found.reasons) if reason},

@@ -28,7 +28,10 @@ from sim.gelsight_calibration import renderer_parameters
 
 BALL_RADIUS_MM = 2.0
 FILE_MM_PER_PX = 0.1245
-CROP_PX = 48
+MM_PER_PX_RANGE = (1e-3, 10.0)
+BALL_RADIUS_RANGE_MM = (0.1, 50.0)
+CROP_PX = 48  # the touch crop on the shipped 120 x 160 frames: 6 mm of gel
+CROP_MM = CROP_PX * FILE_MM_PER_PX
 N_RANDOM_FRAMES = 15
 KEYS = ("crop", "full", "background_crop", "background_full", "random_crop", "random_full")
 # The renderer's fitted parameters and where a fit starts: neutral, physically plausible
@@ -49,6 +52,8 @@ class BallPresses:
     frames: np.ndarray  # NxHxWx3 uint8
     centers_xy_px: np.ndarray  # Nx2 (x column, y row)
     radii_px: np.ndarray  # N
+    mm_per_px: float = FILE_MM_PER_PX  # the frames' scale, the file's own where it holds one
+    ball_radius_mm: float = BALL_RADIUS_MM  # the pressed ball's, the file's own where it holds one
 
 
 def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndarray]:
@@ -98,7 +103,22 @@ def load_ball_presses(path: str | Path) -> BallPresses:
         raise GelSightRenderError(
             f"{path}: touch_center outside the {w}x{h} frame for frames {np.flatnonzero(outside).tolist()}"
         )
-    return BallPresses(background, frames, centers, radii)
+    scale = file_scalar(path, contents, "mm_per_px", FILE_MM_PER_PX, MM_PER_PX_RANGE)
+    ball = file_scalar(path, contents, "ball_radius_mm", BALL_RADIUS_MM, BALL_RADIUS_RANGE_MM)
+    return BallPresses(background, frames, centers, radii, scale, ball)
+
+
+def file_scalar(
+    path: str | Path, contents: dict[str, np.ndarray], key: str, default: float, limits: tuple[float, float]
+) -> float:
+    """The press file's ``key`` (``dtx calibrate gelsight``'s files hold their scale and ball), else
+    ``default`` (the shipped file's); GelSightRenderError when it is not a number within ``limits``."""
+    if key not in contents:
+        return default
+    value = contents[key]
+    if value.shape != () or value.dtype.kind not in "iuf" or not limits[0] <= float(value) <= limits[1]:
+        raise GelSightRenderError(f"{path}: {key} must be a number in [{limits[0]:g}, {limits[1]:g}], got {value!r}")
+    return float(value)
 
 
 def press_depth_mm(contact_radius_mm: float, ball_radius_mm: float = BALL_RADIUS_MM) -> float:
@@ -132,6 +152,11 @@ def ball_gap_map(
     return gap.astype(np.float32)
 
 
+def crop_px(mm_per_px: float) -> int:
+    """The side of the touch crop at ``mm_per_px``: the same CROP_MM of gel at any frame size."""
+    return max(16, round(CROP_MM / mm_per_px))
+
+
 def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int = CROP_PX) -> np.ndarray:
     """The size x size window centred on the touch, shifted inside the frame at its edges."""
     h, w = image.shape[:2]
@@ -147,43 +172,31 @@ def render_presses(
     ``file_background``, the calibration's: a fitted calibration's is the sensor's mean no-contact frame)."""
     renderer = GelSightRenderer(config, background=presses.background if file_background else None)
     images = []
+    ball_mm = presses.ball_radius_mm
     for i in indices:
-        depth = press_depth_mm(presses.radii_px[i] * config.mm_per_px)
-        gap = ball_gap_map(config.shape, presses.centers_xy_px[i], depth, config.mm_per_px)
+        depth = press_depth_mm(presses.radii_px[i] * config.mm_per_px, ball_mm)
+        gap = ball_gap_map(config.shape, presses.centers_xy_px[i], depth, config.mm_per_px, ball_mm)
         images.append(renderer.render(gap))
     return images
 
 
-def file_mm_per_px(path: str | Path) -> float:
-    """The press file's scale: its ``mm_per_px`` if it holds one (``dtx calibrate gelsight``'s
-    files do), else the shipped file's FILE_MM_PER_PX."""
-    with np.load(path, allow_pickle=False) as data:
-        if "mm_per_px" not in data.files:
-            return FILE_MM_PER_PX
-        value = float(np.asarray(data["mm_per_px"]))
-    if not 0 < value < math.inf:
-        raise GelSightRenderError(f"{path}: mm_per_px must be a finite number > 0, got {value!r}")
-    return value
-
-
-def _file_config(presses: BallPresses, mm_per_px: float = FILE_MM_PER_PX, **params: float | str) -> GelSightConfig:
+def _file_config(presses: BallPresses, **params: float | str) -> GelSightConfig:
     h, w = presses.background.shape[:2]
-    return GelSightConfig(image_height=h, image_width=w, mm_per_px=mm_per_px, **params)  # type: ignore[arg-type]
+    return GelSightConfig(image_height=h, image_width=w, mm_per_px=presses.mm_per_px, **params)  # type: ignore[arg-type]
 
 
-def calibration_config(presses: BallPresses, mm_per_px: float, calibration_dir: str | Path) -> GelSightConfig:
+def calibration_config(presses: BallPresses, calibration_dir: str | Path) -> GelSightConfig:
     """The renderer of ``calibration_dir`` (its tables and physical parameters) at the file's size and scale."""
-    return _file_config(
-        presses, mm_per_px, calibration_dir=str(calibration_dir), **renderer_parameters(calibration_dir)
-    )
+    return _file_config(presses, calibration_dir=str(calibration_dir), **renderer_parameters(calibration_dir))
 
 
 def _mean_ssim(presses: BallPresses, indices: Sequence[int], config: GelSightConfig) -> dict[str, float]:
     crops, fulls = [], []
+    size = crop_px(presses.mm_per_px)
     for i, image in zip(indices, render_presses(presses, indices, config)):
         real, center = presses.frames[i], presses.centers_xy_px[i]
         fulls.append(float(ssim_rgb(image, real)))
-        crops.append(float(ssim_rgb(touch_crop(image, center), touch_crop(real, center))))
+        crops.append(float(ssim_rgb(touch_crop(image, center, size), touch_crop(real, center, size))))
     return {"crop": float(np.mean(crops)), "full": float(np.mean(fulls))}
 
 
@@ -218,18 +231,21 @@ def run_check(
     presses = load_ball_presses(npz_path)
     n = presses.frames.shape[0]
     if calibration_dir is None:
-        renders = render_presses(presses, range(n), _file_config(presses, file_mm_per_px(npz_path)))
+        renders = render_presses(presses, range(n), _file_config(presses))
     else:
-        config = calibration_config(presses, file_mm_per_px(npz_path), calibration_dir)
+        config = calibration_config(presses, calibration_dir)
         renders = render_presses(presses, range(n), config, file_background=False)
     rng = np.random.default_rng(seed)
+    size = crop_px(presses.mm_per_px)
     frames = []
     for i in range(n):
         real, center = presses.frames[i], presses.centers_xy_px[i]
         others = rng.choice(np.delete(np.arange(n), i), size=min(N_RANDOM_FRAMES, n - 1), replace=False)
 
         def full_and_crop(image: np.ndarray) -> tuple[float, float]:
-            return float(ssim_rgb(image, real)), float(ssim_rgb(touch_crop(image, center), touch_crop(real, center)))
+            return float(ssim_rgb(image, real)), float(
+                ssim_rgb(touch_crop(image, center, size), touch_crop(real, center, size))
+            )
 
         full, crop = full_and_crop(renders[i])
         bg_full, bg_crop = full_and_crop(presses.background)

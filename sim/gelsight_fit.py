@@ -38,7 +38,7 @@ from scipy.optimize import minimize
 from perception.ssim import ssim_rgb
 from sim.gelsight import GelSightConfig, GelSightRenderer, gel_surface_depth_mm, indentation_mm
 from sim.gelsight_calibration import PolyCalibration, calibration_from_tables
-from sim.gelsight_check import ball_gap_map, press_depth_mm, touch_crop
+from sim.gelsight_check import ball_gap_map, crop_px, press_depth_mm, touch_crop
 from sim.gelsight_effects import GelSightRenderError
 
 N_BINS = 60  # slope magnitude bins over [0, pi/2) and direction bins over [-pi, pi)
@@ -47,7 +47,6 @@ FLAT_RIDGE = 1.0  # the same for the flat pressed gel's colour
 RIDGE = 0.05  # weight, per sample, pulling a bin's position terms towards a constant colour
 FAR_RADII = 2.5  # a pixel this many ball radii from a press is untouched by it
 NEAR_RADII = 2.0  # pixels this many ball radii from a press carry its shading
-CROP_MM = 48 * 0.1245  # the check's crop: 48 px on the 120 x 160 frames at 0.1245 mm/px
 FITTED = ("spreading_length_mm", "optical_blur_mm", "compression_saturation_mm", "background_smoothing_mm")
 FIT_EVALUATIONS = 40
 
@@ -64,11 +63,6 @@ class PressFit:
 
     def calibration(self) -> PolyCalibration:
         return calibration_from_tables(self.tables, self.background)
-
-
-def crop_px(mm_per_px: float) -> int:
-    """The side of the touch crop at ``mm_per_px``: the same 6 mm of gel at any frame size."""
-    return max(16, round(CROP_MM / mm_per_px))
 
 
 def fit_background(frames: np.ndarray, background: np.ndarray, centers_xy_px: np.ndarray, ball_radius_px: float):

@@ -168,6 +168,21 @@ def test_bad_calibration_dir_and_background_are_rejected(tmp_path):
         GelSightRenderer(background=np.zeros((H, W, 3), np.float32))
     with pytest.raises(GelSightRenderError, match="apply"):
         GelSightRenderer(effects=(object(),))
+    mini = GelSightConfig(image_height=240, image_width=320, mm_per_px=0.0623)
+    with pytest.raises(GelSightRenderError, match=r"\(120, 160, 3\) or \(240, 320, 3\), got \(100, 100, 3\)"):
+        GelSightRenderer(mini, background=np.zeros((100, 100, 3), np.uint8))
+
+
+def test_a_background_of_the_images_size_is_that_cameras_own_frame_smoothed():
+    """Another sensor's no-contact frame (a press file at 240 x 320) is rendered against as it is,
+    smoothed by the config's millimetres at that camera's pitch, not resampled from the calibration's."""
+    config = GelSightConfig(image_height=240, image_width=320, mm_per_px=0.0623, background_smoothing_mm=0.1246)
+    frame = np.zeros((240, 320, 3), np.uint8)
+    frame[120, 160] = 255
+    levels = GelSightRenderer(config, background=frame).background_levels
+    assert levels.shape == (240, 320, 3) and levels.sum() == pytest.approx(3 * 255, rel=1e-3)
+    # Two pixels' sigma: the point's spread falls to e^-1/2 of its peak two pixels away.
+    assert levels[120, 162, 0] / levels[120, 160, 0] == pytest.approx(np.exp(-0.5), rel=0.02)
 
 
 def test_sensor_noise_is_seeded_zero_mean_and_of_its_size():

@@ -18,6 +18,7 @@ from sim.gelsight_check import (
     _file_config,
     _mean_ssim,
     ball_gap_map,
+    crop_px,
     load_ball_presses,
     press_depth_mm,
     run_check,
@@ -82,12 +83,26 @@ def test_touch_crop_is_always_48x48_inside_the_frame():
         ({"touch_center": np.array([[10.0, 10.0]] * 3 + [[200.0, 10.0]])}, "outside"),
         ({"touch_radius": np.array([17, 17, 0, 17])}, "touch_radius must be > 0"),
         ({"touch_center": np.array([[np.nan, 10.0]] * 4)}, "finite"),
+        ({"mm_per_px": np.float64(np.nan)}, r"mm_per_px must be a number in \[0.001, 10\]"),
+        ({"mm_per_px": np.array([0.1, 0.1])}, "mm_per_px must be a number"),
+        ({"ball_radius_mm": np.array("two")}, "ball_radius_mm must be a number"),
+        ({"ball_radius_mm": np.float64(0.0)}, r"ball_radius_mm must be a number in \[0.1, 50\]"),
     ],
 )
 def test_bad_press_files_are_rejected(tmp_path, presses, override, message):
     path = write_presses(tmp_path / "bad.npz", presses, **override)
     with pytest.raises(GelSightRenderError, match=message):
         run_check(path)
+
+
+def test_a_files_own_scale_and_ball_are_the_checks(tmp_path, presses):
+    """A press file that carries its scale and ball (``dtx calibrate gelsight``'s copies do) is
+    rendered and cropped with them: at half the pitch the same 6 mm crop is twice the pixels."""
+    assert (presses.mm_per_px, presses.ball_radius_mm) == (0.1245, 2.0)  # the shipped file's, by default
+    path = write_presses(tmp_path / "own.npz", presses, mm_per_px=np.float64(0.06225), ball_radius_mm=np.float64(3.0))
+    own = load_ball_presses(path)
+    assert (own.mm_per_px, own.ball_radius_mm) == (0.06225, 3.0)
+    assert crop_px(own.mm_per_px) == 96 and crop_px(presses.mm_per_px) == 48
 
 
 def test_missing_file_is_rejected(tmp_path):

@@ -31,24 +31,32 @@ TRUTH_PARAMETERS: dict[str, Any] = {
 }
 
 
-def synthetic_presses(n: int, seed: int = 0, contact_mm: float = 1.9, margin_px: float = 30.0):
+def synthetic_presses(
+    n: int,
+    seed: int = 0,
+    contact_mm: float = 1.9,
+    margin_px: float = 30.0,
+    shape: tuple[int, int] = (120, 160),
+    mm_per_px: float = MM_PER_PX,
+):
     """Frames of ``n`` presses of the 4 mm ball rendered by the shipped renderer (with camera
-    noise) at random centres, the background, and the true centres."""
+    noise) at random centres, the background, and the true centres; frames of ``shape`` at ``mm_per_px``."""
     rng = np.random.default_rng(seed)
-    renderer = GelSightRenderer(GelSightConfig(**TRUTH_PARAMETERS, shading_gain=1.0))
-    h, w = renderer.config.shape
+    h, w = shape
+    config = GelSightConfig(image_height=h, image_width=w, mm_per_px=mm_per_px, **TRUTH_PARAMETERS, shading_gain=1.0)
+    renderer = GelSightRenderer(config)
     centers = np.column_stack([rng.uniform(margin_px, w - margin_px, n), rng.uniform(margin_px, h - margin_px, n)])
     depth = press_depth_mm(contact_mm, BALL_MM)
     frames = []
     for center in centers:
-        clean = renderer.render(ball_gap_map((h, w), center, depth, MM_PER_PX, BALL_MM)).astype(np.float32)
+        clean = renderer.render(ball_gap_map((h, w), center, depth, mm_per_px, BALL_MM)).astype(np.float32)
         frames.append(np.clip(np.rint(clean + rng.normal(0.0, 1.5, clean.shape)), 0, 255).astype(np.uint8))
     background = np.clip(np.rint(renderer.background() + rng.normal(0.0, 1.5, (h, w, 3))), 0, 255).astype(np.uint8)
     return np.stack(frames), background, centers
 
 
-def write_press_file(path, frames, background, **extra):
-    np.savez(path, frames=frames, background=background, mm_per_px=MM_PER_PX, ball_radius_mm=BALL_MM, **extra)
+def write_press_file(path, frames, background, mm_per_px=MM_PER_PX, **extra):
+    np.savez(path, frames=frames, background=background, mm_per_px=mm_per_px, ball_radius_mm=BALL_MM, **extra)
     return path
 
 
@@ -101,6 +109,41 @@ def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path
     config = scene_renderer(load_scene(scene_file), effects=False).config
     assert config.calibration_dir == str(out)
     assert config.spreading_length_mm == parameters["spreading_length_mm"]
+
+
+def test_presses_of_another_frame_size_calibrate_end_to_end(tmp_path, monkeypatch, capsys):
+    """A GelSight Mini's 240 x 320 frames at 0.0634 mm/px: the fit, its references (the shipped
+    tables against this sensor's background), the check on the directory's copy (a crop of the same
+    6 mm of gel) and a scene rendering that sensor at its size and at the model's."""
+    mini_mm = 0.0634
+    frames, background, _ = synthetic_presses(24, seed=3, margin_px=50.0, shape=(240, 320), mm_per_px=mini_mm)
+    path = write_press_file(tmp_path / "mini.npz", frames, background, mm_per_px=mini_mm)
+    monkeypatch.setattr("sim.gelsight_fit.FIT_EVALUATIONS", 1)
+    out = tmp_path / "mini_calibration"
+    assert _calibrate(path, out, "--folds", "2") == 0
+    block = f"gelsight: {{image_height: 240, image_width: 320, mm_per_px: 0.0634, calibration_dir: {out}}}"
+    assert block in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text(), parse_constant=_not_json)
+    assert report["frame_shape"] == [240, 320] and report["used"] == list(range(24))
+    k_fold = report["k_fold"]
+    assert k_fold["crop"] > k_fold["background_crop"] and k_fold["shipped_crop"] > k_fold["background_crop"]
+    check = run_check(out / "ball_presses.npz", calibration_dir=out)
+    assert check["mean"]["crop"] > 0.9 and check["mean"]["crop"] > check["mean"]["background_crop"]
+    scene_file = tmp_path / "scene.yaml"
+    shipped_sensor = "gelsight:\n  image_height: 120\n  image_width: 160\n  mm_per_px: 0.1245\n"
+    scene_file.write_text(open("scenes/ideal.yaml").read().replace(shipped_sensor, "gelsight:\n" + _block_lines(block)))
+    from workcell.scene import load_scene
+
+    scene = load_scene(scene_file)
+    assert scene_renderer(scene, effects=False).render(np.full((240, 320), np.inf, np.float32)).shape == (240, 320, 3)
+    assert scene_renderer(scene, size=(100, 100), effects=False).pixel_pitch_mm == pytest.approx(
+        (0.0634 * 240 / 100, 0.0634 * 320 / 100)
+    )
+
+
+def _block_lines(block: str) -> str:
+    """The scene file's lines of a one-line ``gelsight: {...}`` block."""
+    return "".join(f"  {item.strip()}\n" for item in block.split("{", 1)[1].rstrip("}").split(","))
 
 
 def _scene_with_calibration(directory) -> str:
