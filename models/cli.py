@@ -117,9 +117,13 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         help="score the model on real GelSight presses of a ball (layout of "
         "assets/gelsight/ball_presses.npz) beside the background, renderer and random frames",
     )
-    evaluate.add_argument("--ball-radius-mm", type=float, default=2.0, help="radius of the pressed ball (default 2)")
     evaluate.add_argument(
-        "--mm-per-px", type=float, default=0.1245, help="pixel pitch of the presses' frames (default 0.1245)"
+        "--ball-radius-mm", type=float, help="radius of the pressed ball (default: the file's ball_radius_mm, else 2)"
+    )
+    evaluate.add_argument(
+        "--mm-per-px",
+        type=float,
+        help="pixel pitch of the presses' frames (default: the file's mm_per_px, else 0.1245)",
     )
     evaluate.add_argument(
         "--scene",

@@ -191,24 +191,27 @@ def evaluate_real_presses(
     depth_range_m: tuple[float, float],
     path: str | os.PathLike[str],
     scene: Scene | str = DEFAULT_SCENE,
-    ball_radius_mm: float = 2.0,
-    mm_per_px: float = 0.1245,
+    ball_radius_mm: float | None = None,
+    mm_per_px: float | None = None,
     margin_m: float = 0.002,
     seed: int = 0,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Scores of every estimate on every press (module docstring): the JSON of ``dtx evaluate
-    --real-presses`` and the images behind it (for figures).
+    --real-presses`` and the images behind it (for figures). The ball and the scale are the
+    file's own (``sim.gelsight_check.load_ball_presses``) unless given.
 
     Contract: ``ball_radius_mm`` in BALL_RADIUS_RANGE_MM, ``mm_per_px`` in
     sim.gelsight.PIXEL_PITCH_RANGE_MM, ``margin_m`` in [0, MAX_MARGIN_M], ``seed`` an integer >= 0,
     ``depth_range_m`` as perception.depthmap.crop_bounds takes it. Bad input raises
     ModelConfigError naming it, before any depth-map is cut."""
-    _check_press_settings(ball_radius_mm, mm_per_px)
     if not (_is_real(margin_m) and 0 <= margin_m <= MAX_MARGIN_M):
         raise ModelConfigError(f"margin_m must be in [0, {MAX_MARGIN_M:g}] m, got {margin_m!r}")
     if not (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0):
         raise ModelConfigError(f"seed must be an integer >= 0, got {seed!r}")
     presses, scene, renderer = _load_presses(path, scene)
+    ball_radius_mm = presses.ball_radius_mm if ball_radius_mm is None else ball_radius_mm
+    mm_per_px = presses.mm_per_px if mm_per_px is None else mm_per_px
+    _check_press_settings(ball_radius_mm, mm_per_px)
     grid = (generator.config.image_size, generator.config.image_size)
     n = len(presses.frames)
     geometries = [press_geometry(presses, i, mm_per_px, ball_radius_mm, grid) for i in range(n)]

@@ -165,6 +165,18 @@ def test_a_bad_presses_file_gets_a_clear_error_and_exit_2(
     assert message in capsys.readouterr().err
 
 
+def test_a_files_own_ball_and_scale_are_used_unless_given(checkpoint: Path, tmp_path: Path) -> None:
+    """A press file that says its ball and scale (``dtx calibrate gelsight``'s copies do) is read
+    with them; the options override them."""
+    generator, depth_range_m = load_generator(checkpoint)
+    path = _bad_file(tmp_path, ball_radius_mm=np.float64(2.5), mm_per_px=np.float64(0.1245))
+    own, _ = evaluate_real_presses(generator, depth_range_m, path, SCENE)
+    given, _ = evaluate_real_presses(generator, depth_range_m, path, SCENE, ball_radius_mm=2.0)
+    shipped, _ = evaluate_real_presses(generator, depth_range_m, PRESSES, SCENE)
+    assert (own["ball_radius_mm"], given["ball_radius_mm"], shipped["ball_radius_mm"]) == (2.5, 2.0, 2.0)
+    assert given["window_ssim"] == shipped["window_ssim"] and own["window_ssim"] != shipped["window_ssim"]
+
+
 def test_bad_options_and_a_missing_file_get_exit_2(checkpoint: Path, tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers())
