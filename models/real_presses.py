@@ -208,9 +208,8 @@ def evaluate_real_presses(
         raise ModelConfigError(f"margin_m must be in [0, {MAX_MARGIN_M:g}] m, got {margin_m!r}")
     if not (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0):
         raise ModelConfigError(f"seed must be an integer >= 0, got {seed!r}")
-    presses, scene, renderer = _load_presses(path, scene)
-    ball_radius_mm = presses.ball_radius_mm if ball_radius_mm is None else ball_radius_mm
-    mm_per_px = presses.mm_per_px if mm_per_px is None else mm_per_px
+    presses, scene, renderer = _load_presses(path, scene, mm_per_px, ball_radius_mm)
+    ball_radius_mm, mm_per_px = presses.ball_radius_mm, presses.mm_per_px
     _check_press_settings(ball_radius_mm, mm_per_px)
     grid = (generator.config.image_size, generator.config.image_size)
     n = len(presses.frames)
@@ -245,14 +244,17 @@ def evaluate_real_presses(
     height, width = presses.background.shape[:2]
     scores = _score_presses(images, geometries, others, (height * mm_per_px, width * mm_per_px))
     settings = {"ball_radius_mm": ball_radius_mm, "mm_per_px": mm_per_px, "window_radii": WINDOW_RADII, "seed": seed}
-    return {"n": n, "file": str(path), **settings, **_summary(scores, geometries)}, images
+    return {"n": n, "file": str(path), **settings, **_summary(scores, geometries, presses)}, images
 
 
-def _load_presses(path: str | os.PathLike[str], scene: Scene | str) -> tuple[BallPresses, Scene, GelSightRenderer]:
-    """The presses file, the scene and its GelSight renderer (effects off), which must draw
-    frames of the file's size; ModelConfigError otherwise."""
+def _load_presses(
+    path: str | os.PathLike[str], scene: Scene | str, mm_per_px: float | None, ball_radius_mm: float | None
+) -> tuple[BallPresses, Scene, GelSightRenderer]:
+    """The presses file (its presses found where it has no annotations), the scene and its
+    GelSight renderer (effects off), which must draw frames of the file's size; ModelConfigError
+    otherwise."""
     try:
-        presses = load_ball_presses(path)
+        presses = load_ball_presses(path, mm_per_px, ball_radius_mm)
         scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
         renderer = scene_renderer(scene, effects=False)
     except GelSightRenderError as err:
@@ -332,10 +334,14 @@ def _score_presses(
 PER_PRESS = ("model", "renderer", "renderer_depth_map")
 
 
-def _summary(scores: dict[str, dict[str, list[float]]], geometries: list[PressGeometry]) -> dict[str, Any]:
+def _summary(
+    scores: dict[str, dict[str, list[float]]], geometries: list[PressGeometry], presses: BallPresses
+) -> dict[str, Any]:
     """The result's scores: each estimate's mean (location: median) over the presses, and the
-    model's and the renderers' scores on every press."""
-    result: dict[str, Any] = {
+    model's and the renderers' scores on every press (named by its frame in the file); where the
+    centres and radii came from and the presses the finder left out."""
+    result: dict[str, Any] = {"annotations": "finder" if presses.found else "file", "left_out": presses.left_out}
+    result |= {
         key: {name: float(np.mean(values)) for name, values in scores[key].items()}
         for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db")
     }
@@ -344,7 +350,7 @@ def _summary(scores: dict[str, dict[str, list[float]]], geometries: list[PressGe
     result["location_error_mm_median_of"] = {name: _nan_median(values) for name, values in location.items()}
     result["per_press"] = [
         {
-            "index": i,
+            "index": presses.file_indices[i],
             "depth_mm": g.depth_mm,
             "contact_radius_mm": g.contact_radius_mm,
             "window": list(g.window),

@@ -17,10 +17,15 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "gelsight-check",
         help="SSIM of rendered ball presses against real GelSight frames",
         description="Render each ball press of FILE.npz (layout of assets/gelsight/ball_presses.npz) from its "
-        "annotated centre and radius and compare it with the real frame by SSIM, full frame and "
-        "48x48 crop, next to the background and random-frame baselines.",
+        "annotated centre and radius (found by the press finder when the file has none) and compare it with "
+        "the real frame by SSIM, full frame and a crop of 6 mm of gel (48 x 48 px on the shipped frames), "
+        "next to the background and random-frame baselines.",
     )
-    check.add_argument("file", metavar="FILE.npz", help="background, frames, touch_center, touch_radius")
+    check.add_argument(
+        "file", metavar="FILE.npz", help="background, frames [touch_center, touch_radius, mm_per_px, ball_radius_mm]"
+    )
+    check.add_argument("--mm-per-px", type=float, help="the frames' scale (default: the file's, else 0.1245)")
+    check.add_argument("--ball-radius-mm", type=float, help="the ball's radius (default: the file's, else 2)")
     check.add_argument("--json", action="store_true", help="print the result as JSON")
     check.add_argument("--seed", type=int, default=0, help="seed of the random-frame baseline (default 0)")
     check.add_argument(
@@ -69,7 +74,14 @@ def gelsight_check(args: argparse.Namespace) -> int:
     from sim.gelsight_check import format_table, run_check
 
     try:
-        result = run_check(args.file, seed=args.seed, holdout=args.holdout, calibration_dir=args.calibration)
+        result = run_check(
+            args.file,
+            seed=args.seed,
+            holdout=args.holdout,
+            calibration_dir=args.calibration,
+            mm_per_px=args.mm_per_px,
+            ball_radius_mm=args.ball_radius_mm,
+        )
     except GelSightRenderError as exc:
         print(f"dtx sim gelsight-check: {exc}", file=sys.stderr)
         return 2

@@ -29,11 +29,12 @@ from sim.gelsight_check import (
     MM_PER_PX_RANGE,
     ball_gap_map,
     press_depth_mm,
+    press_scalar,
     read_press_arrays,
 )
 from sim.gelsight_effects import GelSightRenderError
 from sim.gelsight_fit import Presses, PressFit, fit_presses, press_scores, render_fit
-from sim.press_annotation import FoundPresses, change_extent_px, change_magnitude, find_presses
+from sim.press_annotation import FoundPresses, find_checked_presses
 
 # Usable presses needed: the half-against-all check fits a half, and below about a dozen presses a
 # fit leaves too many slope bins to too few positions on the gel (on rendered presses: six score a
@@ -42,14 +43,6 @@ MIN_PRESSES = 24
 # The median, over a frame's pixels, of |frame - background| averaged over channels: the shipped
 # frames' fringes and drift give 4-9 levels; a frame of another sensor or light is far beyond.
 MAX_BACKGROUND_MISMATCH_LEVELS = 30.0
-# A ring wider than this many ball radii cannot be a press of that ball (the gel's spread adds a
-# fraction of a millimetre at most); one narrower than half of it is a press too shallow (an eighth of
-# the radius deep) to calibrate from.
-RING_RADIUS_RANGE = (0.5, 1.5)
-# How far a press changes the frame, in ball radii, at most: the shipped presses reach 1.1-1.5 (their
-# coloured halo lies outside the ring), presses rendered with a 1.9 mm contact 1.06-1.17. Beyond it
-# the ball given is too small for the presses (the finder would lock onto pieces of the rings).
-MAX_REACH_RADII = 2.0
 
 
 def load_press_file(
@@ -74,20 +67,10 @@ def load_press_file(
             f"{path}: frames must be N x {' x '.join(map(str, background.shape))} uint8 like the background, "
             f"got {frames.shape} {frames.dtype}"
         )
-    scale = _number(path, "mm_per_px", mm_per_px, contents, MM_PER_PX_RANGE)
-    ball = _number(path, "ball_radius_mm", ball_radius_mm, contents, BALL_RADIUS_RANGE_MM)
+    scale = press_scalar(path, contents, "mm_per_px", mm_per_px, None, MM_PER_PX_RANGE)
+    ball = press_scalar(path, contents, "ball_radius_mm", ball_radius_mm, None, BALL_RADIUS_RANGE_MM)
     annotations = {k: contents[k].astype(np.float64) for k in ("touch_center", "touch_radius") if k in contents}
     return frames, background, annotations, scale, ball
-
-
-def _number(path: Path, key: str, given: float | None, contents: dict, limits: tuple[float, float]) -> float:
-    if given is None:
-        if key not in contents:
-            raise GelSightRenderError(f"{path}: no {key}: store it in the file or give --{key.replace('_', '-')}")
-        given = float(contents[key])
-    if not limits[0] <= given <= limits[1]:  # NaN fails too
-        raise GelSightRenderError(f"{key} must be in [{limits[0]}, {limits[1]}], got {given!r}")
-    return float(given)
 
 
 def check_background(frames: np.ndarray, background: np.ndarray) -> None:
@@ -103,32 +86,9 @@ def check_background(frames: np.ndarray, background: np.ndarray) -> None:
 
 
 def annotate(frames: np.ndarray, background: np.ndarray, mm_per_px: float, ball_radius_mm: float) -> FoundPresses:
-    """The finder's presses; refuses a ball radius or scale that cannot explain the rings, and too few trusted presses."""
-    ball_px = ball_radius_mm / mm_per_px
-    if not 4.0 <= ball_px <= 0.5 * min(background.shape[:2]):
-        raise GelSightRenderError(
-            f"a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px is {ball_px:.1f} px: a press of it "
-            f"cannot be seen in a {background.shape[1]} x {background.shape[0]} frame (4 px to half the frame's height)"
-        )
-    reach_px = float(np.median([change_extent_px(change_magnitude(frame, background)) for frame in frames]))
-    if reach_px > MAX_REACH_RADII * ball_px:
-        raise GelSightRenderError(
-            f"the presses change the frame out to {reach_px * mm_per_px:.2f} mm from their centres (median), "
-            f"more than {MAX_REACH_RADII:g} radii of a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px: "
-            "the ball radius is too small or the scale too coarse; check --ball-radius-mm and --mm-per-px"
-        )
-    found = find_presses(frames, background, ball_px)
-    ratio = found.radii_px / ball_px
+    """The finder's presses (``find_checked_presses``); refuses too few trusted presses."""
+    found = find_checked_presses(frames, background, mm_per_px, ball_radius_mm)
     trusted = found.trusted
-    low, high = RING_RADIUS_RANGE
-    unexplained = np.flatnonzero(trusted & ~((ratio >= low) & (ratio <= high)))
-    if unexplained.size > trusted.sum() // 2:
-        rings_mm = np.nanmedian(found.radii_px[unexplained]) * mm_per_px
-        raise GelSightRenderError(
-            f"a ball of {ball_radius_mm:g} mm radius at {mm_per_px:g} mm/px cannot explain the rings of presses "
-            f"{unexplained.tolist()} ({rings_mm:.2f} mm median radius, {low:g} to {high:g} ball radii expected): "
-            "check --ball-radius-mm and --mm-per-px"
-        )
     if trusted.sum() < MIN_PRESSES:
         left_out = "; ".join(f"press {i}: {r}" for i, r in enumerate(found.reasons) if r)
         raise GelSightRenderError(

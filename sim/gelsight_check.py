@@ -25,6 +25,7 @@ from scipy.optimize import minimize
 from perception.ssim import ssim_rgb
 from sim.gelsight import MAX_LENGTH_MM, GelSightConfig, GelSightRenderer, GelSightRenderError
 from sim.gelsight_calibration import renderer_parameters
+from sim.press_annotation import find_checked_presses
 
 BALL_RADIUS_MM = 2.0
 FILE_MM_PER_PX = 0.1245
@@ -54,6 +55,9 @@ class BallPresses:
     radii_px: np.ndarray  # N
     mm_per_px: float = FILE_MM_PER_PX  # the frames' scale, the file's own where it holds one
     ball_radius_mm: float = BALL_RADIUS_MM  # the pressed ball's, the file's own where it holds one
+    file_indices: tuple[int, ...] = ()  # each press's frame in the file
+    left_out: dict[int, str] = dataclasses.field(default_factory=dict)  # frames the finder could not trust
+    found: bool = False  # centres and radii from the press finder, not the file
 
 
 def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndarray]:
@@ -73,21 +77,53 @@ def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndar
     return contents
 
 
-def load_ball_presses(path: str | Path) -> BallPresses:
-    """Read and check a ball-press file; every problem raises :class:`GelSightRenderError`."""
+def load_ball_presses(
+    path: str | Path, mm_per_px: float | None = None, ball_radius_mm: float | None = None
+) -> BallPresses:
+    """Read and check a ball-press file; every problem raises :class:`GelSightRenderError`. The
+    scale and the ball are the arguments, else the file's, else the shipped file's. A file without
+    ``touch_center`` and ``touch_radius`` (a lab's raw presses) has its presses found by
+    ``sim.press_annotation``; those it cannot trust are left out and named."""
     path = Path(path)
-    contents = read_press_arrays(path, {"background", "frames", "touch_center", "touch_radius"})
+    contents = read_press_arrays(path, {"background", "frames"})
     background, frames = contents["background"], contents["frames"]
-    centers, radii = contents["touch_center"], contents["touch_radius"]
     if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
         raise GelSightRenderError(f"{path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
     if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
         raise GelSightRenderError(
             f"{path}: frames must be Nx{'x'.join(map(str, background.shape))} uint8, got {frames.shape} {frames.dtype}"
         )
-    n = frames.shape[0]
-    if n < 2:
-        raise GelSightRenderError(f"{path}: needs at least 2 frames for the random-frame baseline, got {n}")
+    scale = press_scalar(path, contents, "mm_per_px", mm_per_px, FILE_MM_PER_PX, MM_PER_PX_RANGE)
+    ball = press_scalar(path, contents, "ball_radius_mm", ball_radius_mm, BALL_RADIUS_MM, BALL_RADIUS_RANGE_MM)
+    annotated = {"touch_center", "touch_radius"} & set(contents)
+    if len(annotated) == 1:
+        raise GelSightRenderError(
+            f"{path}: {annotated.pop()} without its pair: give touch_center and touch_radius, or neither "
+            "for the press finder"
+        )
+    if annotated:
+        indices, left_out = np.arange(len(frames)), {}
+        centers, radii = _checked_annotations(path, contents, background.shape[:2])
+    else:
+        found = find_checked_presses(frames, background, scale, ball)
+        indices = np.flatnonzero(found.trusted)
+        left_out = {int(i): reason for i, reason in enumerate(found.reasons) if reason}
+        frames, centers, radii = frames[indices], found.centers_xy_px[indices], found.radii_px[indices]
+    if len(frames) < 2:
+        raise GelSightRenderError(
+            f"{path}: needs at least 2 presses for the random-frame baseline, got {len(frames)} "
+            f"({'; '.join(f'press {i}: {r}' for i, r in left_out.items()) or 'none left out'})"
+        )
+    kept = tuple(indices.tolist())
+    return BallPresses(background, frames, centers, radii, scale, ball, kept, left_out, found=not annotated)
+
+
+def _checked_annotations(
+    path: Path, contents: dict[str, np.ndarray], shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The file's touch_center (N x 2) and touch_radius (N) as float64, checked against its frames."""
+    n, (h, w) = len(contents["frames"]), shape
+    centers, radii = contents["touch_center"], contents["touch_radius"]
     if centers.shape != (n, 2) or radii.shape != (n,):
         raise GelSightRenderError(
             f"{path}: touch_center must be {n}x2 and touch_radius {n}, got {centers.shape} and {radii.shape}"
@@ -97,27 +133,32 @@ def load_ball_presses(path: str | Path) -> BallPresses:
         raise GelSightRenderError(f"{path}: touch_center and touch_radius must be finite")
     if np.any(radii <= 0):
         raise GelSightRenderError(f"{path}: touch_radius must be > 0 px, got {radii[radii <= 0].tolist()}")
-    h, w = background.shape[:2]
     outside = (centers[:, 0] < 0) | (centers[:, 0] > w - 1) | (centers[:, 1] < 0) | (centers[:, 1] > h - 1)
     if np.any(outside):
         raise GelSightRenderError(
             f"{path}: touch_center outside the {w}x{h} frame for frames {np.flatnonzero(outside).tolist()}"
         )
-    scale = file_scalar(path, contents, "mm_per_px", FILE_MM_PER_PX, MM_PER_PX_RANGE)
-    ball = file_scalar(path, contents, "ball_radius_mm", BALL_RADIUS_MM, BALL_RADIUS_RANGE_MM)
-    return BallPresses(background, frames, centers, radii, scale, ball)
+    return centers, radii
 
 
-def file_scalar(
-    path: str | Path, contents: dict[str, np.ndarray], key: str, default: float, limits: tuple[float, float]
+def press_scalar(
+    path: str | Path,
+    contents: dict[str, np.ndarray],
+    key: str,
+    given: float | None,
+    default: float | None,
+    limits: tuple[float, float],
 ) -> float:
-    """The press file's ``key`` (``dtx calibrate gelsight``'s files hold their scale and ball), else
-    ``default`` (the shipped file's); GelSightRenderError when it is not a number within ``limits``."""
-    if key not in contents:
-        return default
-    value = contents[key]
+    """``given``, else the press file's ``key`` (``dtx calibrate gelsight``'s files hold their scale
+    and ball), else ``default`` (the shipped file's; None: the value is needed); GelSightRenderError
+    when there is none or it is not a number within ``limits``."""
+    option = f"--{key.replace('_', '-')}"
+    if given is None and key not in contents and default is None:
+        raise GelSightRenderError(f"{path}: no {key}: store it in the file or give {option}")
+    value = np.asarray(given if given is not None else contents.get(key, default))
     if value.shape != () or value.dtype.kind not in "iuf" or not limits[0] <= float(value) <= limits[1]:
-        raise GelSightRenderError(f"{path}: {key} must be a number in [{limits[0]:g}, {limits[1]:g}], got {value!r}")
+        source = option if given is not None else f"{path}: {key}"
+        raise GelSightRenderError(f"{source} must be a number in [{limits[0]:g}, {limits[1]:g}], got {value!r}")
     return float(value)
 
 
@@ -222,19 +263,10 @@ def fit_parameters(presses: BallPresses, indices: Sequence[int], max_evaluations
     return dict(zip(names, map(float, result.x)))
 
 
-def run_check(
-    npz_path: str | Path, seed: int = 0, holdout: bool = False, calibration_dir: str | Path | None = None
-) -> dict:
-    """SSIM of the renderings and of the two baselines, per frame and on average (the JSON of
-    ``dtx sim gelsight-check``); with ``holdout`` also the even/odd refit figures. With
-    ``calibration_dir`` the renderer is that calibration's, its background included."""
-    presses = load_ball_presses(npz_path)
-    n = presses.frames.shape[0]
-    if calibration_dir is None:
-        renders = render_presses(presses, range(n), _file_config(presses))
-    else:
-        config = calibration_config(presses, calibration_dir)
-        renders = render_presses(presses, range(n), config, file_background=False)
+def _frame_scores(presses: BallPresses, renders: Sequence[np.ndarray], seed: int) -> list[dict[str, float]]:
+    """Each press's SSIM (full frame, touch crop) of its rendering, the background and the mean
+    of N_RANDOM_FRAMES other frames (seeded), named by its frame in the file."""
+    n = len(presses.frames)
     rng = np.random.default_rng(seed)
     size = crop_px(presses.mm_per_px)
     frames = []
@@ -252,7 +284,7 @@ def run_check(
         random_scores = np.array([full_and_crop(presses.frames[j]) for j in others])
         frames.append(
             {
-                "index": i,
+                "index": presses.file_indices[i],
                 "crop": crop,
                 "full": full,
                 "background_crop": bg_crop,
@@ -261,11 +293,38 @@ def run_check(
                 "random_full": float(random_scores[:, 0].mean()),
             }
         )
+    return frames
+
+
+def run_check(
+    npz_path: str | Path,
+    seed: int = 0,
+    holdout: bool = False,
+    calibration_dir: str | Path | None = None,
+    mm_per_px: float | None = None,
+    ball_radius_mm: float | None = None,
+) -> dict:
+    """SSIM of the renderings and of the two baselines, per frame and on average (the JSON of
+    ``dtx sim gelsight-check``); with ``holdout`` also the even/odd refit figures. With
+    ``calibration_dir`` the renderer is that calibration's, its background included. Scale and
+    ball as :func:`load_ball_presses` reads them; frames are named by their index in the file."""
+    presses = load_ball_presses(npz_path, mm_per_px, ball_radius_mm)
+    n = presses.frames.shape[0]
+    if calibration_dir is None:
+        renders = render_presses(presses, range(n), _file_config(presses))
+    else:
+        config = calibration_config(presses, calibration_dir)
+        renders = render_presses(presses, range(n), config, file_background=False)
+    frames = _frame_scores(presses, renders, seed)
     result = {
         "file": str(npz_path),
         "calibration": str(calibration_dir or GelSightConfig().calibration_dir),
         "seed": seed,
+        "mm_per_px": presses.mm_per_px,
+        "ball_radius_mm": presses.ball_radius_mm,
         "n_frames": n,
+        "annotations": "finder" if presses.found else "file",
+        "left_out": presses.left_out,
         "mean": {key: float(np.mean([f[key] for f in frames])) for key in KEYS},
         "frames": frames,
     }
@@ -273,8 +332,8 @@ def run_check(
         train, test = list(range(0, n, 2)), list(range(1, n, 2))
         fitted = fit_parameters(presses, train)
         result["holdout"] = {
-            "fit_frames": train,
-            "test_frames": test,
+            "fit_frames": [presses.file_indices[i] for i in train],
+            "test_frames": [presses.file_indices[i] for i in test],
             "fitted_parameters": fitted,
             "test_default": _mean_ssim(presses, test, _file_config(presses)),
             "test_fitted": _mean_ssim(presses, test, _file_config(presses, **fitted)),
@@ -286,7 +345,13 @@ def run_check(
 def format_table(result: dict) -> str:
     """The check's result as a readable table."""
     header = f"{'frame':>6} " + " ".join(f"{key:>16}" for key in KEYS)
-    lines = [f"gelsight-check {result['file']} ({result['n_frames']} frames, seed {result['seed']}): SSIM", header]
+    lines = [
+        f"gelsight-check {result['file']} ({result['n_frames']} frames, {result['mm_per_px']:g} mm/px, ball radius "
+        f"{result['ball_radius_mm']:g} mm, centres and radii from the {result['annotations']}, seed {result['seed']})",
+        *(f"  left out: press {i}: {reason}" for i, reason in result["left_out"].items()),
+        "SSIM",
+        header,
+    ]
     for f in result["frames"]:
         lines.append(f"{f['index']:>6} " + " ".join(f"{f[key]:>16.4f}" for key in KEYS))
     lines.append(f"{'mean':>6} " + " ".join(f"{result['mean'][key]:>16.4f}" for key in KEYS))

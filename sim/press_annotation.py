@@ -29,6 +29,8 @@ import math
 import cv2
 import numpy as np
 
+from sim.gelsight_effects import GelSightRenderError
+
 RING_EDGE_FRACTION = 0.3  # how far (0: at the peak, 1: the far level) the ring's edge has fallen
 MIN_MATCH = 0.8  # normalised correlation with the template below which a press is not trusted
 SATURATED_FRACTION = 0.10  # share of a ring's pixel values clipped at 0 or 255 that makes it saturated
@@ -38,6 +40,14 @@ MAX_RING_RADII = 2.5  # the widest ring looked for, in ball radii
 # Where a press's reach ends, from the frame's median (0) to its peak (1); on the shipped presses a
 # pixel's change at that level is about the ring profile's edge (RING_EDGE_FRACTION) plus its halo.
 REACH_LEVEL = 0.3
+# A ring wider than this many ball radii cannot be a press of that ball (the gel's spread adds a
+# fraction of a millimetre at most); one narrower than half of it is a press too shallow (an eighth of
+# the radius deep) to calibrate from.
+RING_RADIUS_RANGE = (0.5, 1.5)
+# How far a press changes the frame, in ball radii, at most: the shipped presses reach 1.1-1.5 (their
+# coloured halo lies outside the ring), presses rendered with a 1.9 mm contact 1.06-1.17. Beyond it
+# the ball given is too small for the presses (the finder would lock onto pieces of the rings).
+MAX_REACH_RADII = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,3 +245,36 @@ def _clipped_share(frame: np.ndarray, background: np.ndarray, center: np.ndarray
     ring = np.hypot(cols - center[0], rows - center[1]) <= radius
     clipped = ((frame == 0) | (frame == 255)) & ~((background == 0) | (background == 255))
     return float(clipped[ring].mean())
+
+
+def find_checked_presses(
+    frames: np.ndarray, background: np.ndarray, mm_per_px: float, ball_radius_mm: float
+) -> FoundPresses:
+    """:func:`find_presses` for a ball of ``ball_radius_mm`` at ``mm_per_px``; GelSightRenderError
+    for a ball too small to see or too large for the frame, presses that reach farther than the
+    ball can press, and rings that most presses' ball could not make (a wrong radius or scale)."""
+    ball_px = ball_radius_mm / mm_per_px
+    if not 4.0 <= ball_px <= 0.5 * min(background.shape[:2]):
+        raise GelSightRenderError(
+            f"a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px is {ball_px:.1f} px: a press of it "
+            f"cannot be seen in a {background.shape[1]} x {background.shape[0]} frame (4 px to half the frame's height)"
+        )
+    reach_px = float(np.median([change_extent_px(change_magnitude(frame, background)) for frame in frames]))
+    if reach_px > MAX_REACH_RADII * ball_px:
+        raise GelSightRenderError(
+            f"the presses change the frame out to {reach_px * mm_per_px:.2f} mm from their centres (median), "
+            f"more than {MAX_REACH_RADII:g} radii of a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px: "
+            "the ball radius is too small or the scale too coarse; check --ball-radius-mm and --mm-per-px"
+        )
+    found = find_presses(frames, background, ball_px)
+    ratio = found.radii_px / ball_px
+    low, high = RING_RADIUS_RANGE
+    unexplained = np.flatnonzero(found.trusted & ~((ratio >= low) & (ratio <= high)))
+    if unexplained.size > found.trusted.sum() // 2:
+        rings_mm = np.nanmedian(found.radii_px[unexplained]) * mm_per_px
+        raise GelSightRenderError(
+            f"a ball of {ball_radius_mm:g} mm radius at {mm_per_px:g} mm/px cannot explain the rings of presses "
+            f"{unexplained.tolist()} ({rings_mm:.2f} mm median radius, {low:g} to {high:g} ball radii expected): "
+            "check --ball-radius-mm and --mm-per-px"
+        )
+    return found

@@ -147,7 +147,7 @@ def _bad_file(tmp_path: Path, **changes: object) -> Path:
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"touch_radius": None}, "missing keys"),
+        ({"touch_radius": None}, "touch_center without its pair"),
         ({"frames": np.zeros((30, 120, 159, 3), np.uint8)}, "frames must be"),
         ({"frames": np.zeros((30, 120, 160, 3), np.float32)}, "frames must be"),
         ({"touch_center": np.full((30, 2), np.nan)}, "finite"),
@@ -175,6 +175,15 @@ def test_a_files_own_ball_and_scale_are_used_unless_given(checkpoint: Path, tmp_
     shipped, _ = evaluate_real_presses(generator, depth_range_m, PRESSES, SCENE)
     assert (own["ball_radius_mm"], given["ball_radius_mm"], shipped["ball_radius_mm"]) == (2.5, 2.0, 2.0)
     assert given["window_ssim"] == shipped["window_ssim"] and own["window_ssim"] != shipped["window_ssim"]
+
+
+def test_a_labs_raw_presses_are_evaluated_at_the_finders_centres(checkpoint: Path, tmp_path: Path) -> None:
+    generator, depth_range_m = load_generator(checkpoint)
+    with np.load(PRESSES) as data:
+        np.savez(tmp_path / "raw.npz", background=data["background"], frames=data["frames"][:8])
+    result, images = evaluate_real_presses(generator, depth_range_m, tmp_path / "raw.npz", SCENE)
+    assert result["annotations"] == "finder" and result["left_out"] == {} and result["n"] == 8
+    assert [press["index"] for press in result["per_press"]] == list(range(8)) and len(images["model"]) == 8
 
 
 def test_bad_options_and_a_missing_file_get_exit_2(checkpoint: Path, tmp_path: Path) -> None:

@@ -78,7 +78,7 @@ def test_touch_crop_is_always_48x48_inside_the_frame():
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ({"touch_radius": None}, "missing keys"),
+        ({"touch_radius": None}, "touch_center without its pair"),
         ({"frames": np.zeros((4, 120, 160, 3), np.float32)}, "frames must be"),
         ({"touch_center": np.array([[10.0, 10.0]] * 3 + [[200.0, 10.0]])}, "outside"),
         ({"touch_radius": np.array([17, 17, 0, 17])}, "touch_radius must be > 0"),
@@ -103,6 +103,25 @@ def test_a_files_own_scale_and_ball_are_the_checks(tmp_path, presses):
     own = load_ball_presses(path)
     assert (own.mm_per_px, own.ball_radius_mm) == (0.06225, 3.0)
     assert crop_px(own.mm_per_px) == 96 and crop_px(presses.mm_per_px) == 48
+
+
+def test_a_file_without_annotations_has_its_presses_found(tmp_path, presses):
+    """A lab's raw presses (background and frames only): the finder's centres and radii, the
+    presses it cannot trust left out and named, every frame by its index in the file."""
+    frames = presses.frames[:6].copy()
+    frames[2] = presses.background  # nothing pressed: no ring to find
+    path = tmp_path / "raw.npz"
+    np.savez(path, background=presses.background, frames=frames)
+    result = run_check(path)
+    assert result["annotations"] == "finder" and list(result["left_out"]) == [2]
+    assert [f["index"] for f in result["frames"]] == [0, 1, 3, 4, 5]
+    # The finder's centres render these presses better than the file's (docs/measurements.md).
+    annotated = run_check(write_presses(tmp_path / "annotated.npz", presses, indices=(0, 1, 3, 4, 5)))
+    assert annotated["annotations"] == "file" and result["mean"]["crop"] > annotated["mean"]["crop"]
+    with pytest.raises(GelSightRenderError, match="the ball radius is too small"):
+        run_check(path, ball_radius_mm=0.7)
+    with pytest.raises(GelSightRenderError, match=r"--mm-per-px must be a number"):
+        run_check(path, mm_per_px=-1.0)
 
 
 def test_missing_file_is_rejected(tmp_path):
