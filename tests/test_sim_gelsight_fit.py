@@ -111,41 +111,6 @@ def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path
     assert config.spreading_length_mm == parameters["spreading_length_mm"]
 
 
-def test_presses_of_another_frame_size_calibrate_end_to_end(tmp_path, monkeypatch, capsys):
-    """A GelSight Mini's 240 x 320 frames at 0.0634 mm/px: the fit, its references (the shipped
-    tables against this sensor's background), the check on the directory's copy (a crop of the same
-    6 mm of gel) and a scene rendering that sensor at its size and at the model's."""
-    mini_mm = 0.0634
-    frames, background, _ = synthetic_presses(24, seed=3, margin_px=50.0, shape=(240, 320), mm_per_px=mini_mm)
-    path = write_press_file(tmp_path / "mini.npz", frames, background, mm_per_px=mini_mm)
-    monkeypatch.setattr("sim.gelsight_fit.FIT_EVALUATIONS", 1)
-    out = tmp_path / "mini_calibration"
-    assert _calibrate(path, out, "--folds", "2") == 0
-    block = f"gelsight: {{image_height: 240, image_width: 320, mm_per_px: 0.0634, calibration_dir: {out}}}"
-    assert block in capsys.readouterr().out
-    report = json.loads((out / "report.json").read_text(), parse_constant=_not_json)
-    assert report["frame_shape"] == [240, 320] and report["used"] == list(range(24))
-    k_fold = report["k_fold"]
-    assert k_fold["crop"] > k_fold["background_crop"] and k_fold["shipped_crop"] > k_fold["background_crop"]
-    check = run_check(out / "ball_presses.npz", calibration_dir=out)
-    assert check["mean"]["crop"] > 0.9 and check["mean"]["crop"] > check["mean"]["background_crop"]
-    scene_file = tmp_path / "scene.yaml"
-    shipped_sensor = "gelsight:\n  image_height: 120\n  image_width: 160\n  mm_per_px: 0.1245\n"
-    scene_file.write_text(open("scenes/ideal.yaml").read().replace(shipped_sensor, "gelsight:\n" + _block_lines(block)))
-    from workcell.scene import load_scene
-
-    scene = load_scene(scene_file)
-    assert scene_renderer(scene, effects=False).render(np.full((240, 320), np.inf, np.float32)).shape == (240, 320, 3)
-    assert scene_renderer(scene, size=(100, 100), effects=False).pixel_pitch_mm == pytest.approx(
-        (0.0634 * 240 / 100, 0.0634 * 320 / 100)
-    )
-
-
-def _block_lines(block: str) -> str:
-    """The scene file's lines of a one-line ``gelsight: {...}`` block."""
-    return "".join(f"  {item.strip()}\n" for item in block.split("{", 1)[1].rstrip("}").split(","))
-
-
 def _scene_with_calibration(directory) -> str:
     text = open("scenes/ideal.yaml").read()
     return text.replace("gelsight:\n", f"gelsight:\n  calibration_dir: {directory}\n", 1)
