@@ -59,6 +59,10 @@ class BallPresses:
     left_out: dict[int, str] = dataclasses.field(default_factory=dict)  # frames the finder could not trust
     found: bool = False  # centres and radii from the press finder, not the file
 
+    def __post_init__(self) -> None:
+        if not self.file_indices:  # made in code, not read: every frame, in order
+            object.__setattr__(self, "file_indices", tuple(range(len(self.frames))))
+
 
 def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndarray]:
     """Every array of a press file (.npz, no pickles), by key; GelSightRenderError when the file

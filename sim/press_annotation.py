@@ -48,6 +48,9 @@ RING_RADIUS_RANGE = (0.5, 1.5)
 # coloured halo lies outside the ring), presses rendered with a 1.9 mm contact 1.06-1.17. Beyond it
 # the ball given is too small for the presses (the finder would lock onto pieces of the rings).
 MAX_REACH_RADII = 2.0
+# The median, over a frame's pixels, of |frame - background| averaged over channels: the shipped
+# frames' fringes and drift give 4-9 levels; a frame of another sensor or light is far beyond.
+MAX_BACKGROUND_MISMATCH_LEVELS = 30.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,12 +250,26 @@ def _clipped_share(frame: np.ndarray, background: np.ndarray, center: np.ndarray
     return float(clipped[ring].mean())
 
 
+def check_background(frames: np.ndarray, background: np.ndarray) -> None:
+    """Refuses a background that is not the frames' sensor at rest, naming the frames it does not match."""
+    mismatch = np.array([np.median(np.abs(f.astype(np.float32) - background).mean(axis=2)) for f in frames])
+    bad = np.flatnonzero(mismatch > MAX_BACKGROUND_MISMATCH_LEVELS)
+    if bad.size > len(frames) // 2:
+        raise GelSightRenderError(
+            f"the background does not match the frames: presses {bad.tolist()} differ from it by a median "
+            f"{np.median(mismatch[bad]):.0f} levels away from any press (at most {MAX_BACKGROUND_MISMATCH_LEVELS:g}): "
+            "capture the no-contact frame with the same sensor, lights and exposure"
+        )
+
+
 def find_checked_presses(
     frames: np.ndarray, background: np.ndarray, mm_per_px: float, ball_radius_mm: float
 ) -> FoundPresses:
     """:func:`find_presses` for a ball of ``ball_radius_mm`` at ``mm_per_px``; GelSightRenderError
     for a ball too small to see or too large for the frame, presses that reach farther than the
-    ball can press, and rings that most presses' ball could not make (a wrong radius or scale)."""
+    ball can press, and rings that most presses' ball could not make (a wrong radius or scale),
+    and a background that is not these frames' sensor at rest (:func:`check_background`)."""
+    check_background(frames, background)
     ball_px = ball_radius_mm / mm_per_px
     if not 4.0 <= ball_px <= 0.5 * min(background.shape[:2]):
         raise GelSightRenderError(

@@ -122,6 +122,9 @@ def test_a_file_without_annotations_has_its_presses_found(tmp_path, presses):
         run_check(path, ball_radius_mm=0.7)
     with pytest.raises(GelSightRenderError, match=r"--mm-per-px must be a number"):
         run_check(path, mm_per_px=-1.0)
+    np.savez(tmp_path / "other.npz", background=255 - presses.background, frames=frames)
+    with pytest.raises(GelSightRenderError, match="background does not match the frames"):
+        run_check(tmp_path / "other.npz")
 
 
 def test_missing_file_is_rejected(tmp_path):

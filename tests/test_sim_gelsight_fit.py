@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 
 from dtx.calibrate import add_commands
 from sim.gelsight import GelSightConfig, GelSightRenderer, GelSightRenderError, scene_renderer
-from sim.gelsight_calibrate import calibrate_presses, check_background
+from sim.gelsight_calibrate import calibrate_presses
 from sim.gelsight_calibration import renderer_parameters
 from sim.gelsight_check import ball_gap_map, press_depth_mm, run_check
 from sim.gelsight_fit import Presses, fit_background, fit_with_parameters, press_scores, render_fit
-from sim.press_annotation import change_extent_px, find_presses, ring_edge_px
+from sim.press_annotation import change_extent_px, check_background, find_presses, ring_edge_px
 
 MM_PER_PX = 0.1245
 BALL_MM = 2.0
