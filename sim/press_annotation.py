@@ -219,9 +219,12 @@ def find_presses(frames: np.ndarray, background: np.ndarray, ball_radius_px: flo
             for m, c in zip(magnitudes, centers)
         ]
     )
+    reaches = np.array([change_extent_px(m) for m in magnitudes])
     reasons = [
-        _distrust(frame, background, center, radius, score)
-        for frame, center, radius, score in zip(frames, centers, radii, match)
+        "no press (the frame changes over less than a quarter of the presses' median reach)"
+        if reach < 0.25 * np.median(reaches)
+        else _distrust(frame, background, center, radius, score)
+        for frame, reach, center, radius, score in zip(frames, reaches, centers, radii, match)
     ]
     return FoundPresses(centers, radii, match, reasons)
 
@@ -246,6 +249,8 @@ def _clipped_share(frame: np.ndarray, background: np.ndarray, center: np.ndarray
     h, w = frame.shape[:2]
     rows, cols = np.mgrid[0:h, 0:w]
     ring = np.hypot(cols - center[0], rows - center[1]) <= radius
+    if not ring.any():  # found outside the frame (a frame with no press): nothing of it is clipped
+        return 0.0
     clipped = ((frame == 0) | (frame == 255)) & ~((background == 0) | (background == 255))
     return float(clipped[ring].mean())
 

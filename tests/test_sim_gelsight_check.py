@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from sim.cli import add_commands, main
 from sim.gelsight import GelSightRenderError
 from sim.gelsight_check import (
+    FIT_START,
     KEYS,
     _file_config,
     _mean_ssim,
@@ -114,6 +115,7 @@ def test_a_file_without_annotations_has_its_presses_found(tmp_path, presses):
     np.savez(path, background=presses.background, frames=frames)
     result = run_check(path)
     assert result["annotations"] == "finder" and list(result["left_out"]) == [2]
+    assert result["left_out"][2].startswith("no press"), result["left_out"]
     assert [f["index"] for f in result["frames"]] == [0, 1, 3, 4, 5]
     # The finder's centres render these presses better than the file's (docs/measurements.md).
     annotated = run_check(write_presses(tmp_path / "annotated.npz", presses, indices=(0, 1, 3, 4, 5)))
@@ -125,6 +127,17 @@ def test_a_file_without_annotations_has_its_presses_found(tmp_path, presses):
     np.savez(tmp_path / "other.npz", background=255 - presses.background, frames=frames)
     with pytest.raises(GelSightRenderError, match="background does not match the frames"):
         run_check(tmp_path / "other.npz")
+
+
+def test_holdout_refits_on_the_even_presses_and_names_them_by_their_frames(tmp_path, presses):
+    path = tmp_path / "raw.npz"
+    frames = presses.frames[:7].copy()
+    frames[0] = presses.background  # left out by the finder: the even and odd presses are 1, 3, 5 and 2, 4, 6
+    np.savez(path, background=presses.background, frames=frames)
+    holdout = run_check(path, holdout=True)["holdout"]
+    assert holdout["fit_frames"] == [1, 3, 5] and holdout["test_frames"] == [2, 4, 6]
+    assert set(holdout["fitted_parameters"]) == set(FIT_START)
+    assert holdout["test_fitted"]["crop"] > 0.8 and holdout["train_fitted"]["crop"] > 0.8
 
 
 def test_missing_file_is_rejected(tmp_path):
