@@ -124,6 +124,22 @@ def _held_out(
     return fit, press_scores(render_fit(fit, presses.subset(test)), presses.subset(test))
 
 
+def _k_fold(presses: Presses, folds: int, **budget: int) -> tuple[dict[str, list[float]], list[dict[str, float]]]:
+    """Each press's crop and full SSIM from the fit of the other folds (press i in fold i % folds),
+    and each fold's fitted parameters."""
+    n = len(presses.frames)
+    held = {key: [math.nan] * n for key in ("crop", "full")}
+    fold_parameters = []
+    for k in range(folds):
+        test = list(range(k, n, folds))
+        fit, scores = _held_out(presses, [i for i in range(n) if i % folds != k], test, **budget)
+        fold_parameters.append(fit.parameters)
+        for key in held:
+            for i, value in zip(test, scores[key]):
+                held[key][i] = value
+    return held, fold_parameters
+
+
 def annotation_agreement(found: FoundPresses, annotations: dict[str, np.ndarray]) -> dict[str, Any] | None:
     """How far the finder's centres and radii are from the file's own annotations (px), per press and in sum."""
     if (
@@ -162,16 +178,8 @@ def calibrate_presses(
         )
     presses = Presses(frames[used], background, found.centers_xy_px[used], found.radii_px[used], scale, ball)
     budget = {} if evaluations is None else {"evaluations": evaluations}
+    held, fold_parameters = _k_fold(presses, folds, **budget)
     n = len(used)
-    held = {key: [math.nan] * n for key in ("crop", "full")}
-    fold_parameters = []
-    for k in range(folds):
-        test = list(range(k, n, folds))
-        fit, scores = _held_out(presses, [i for i in range(n) if i % folds != k], test, **budget)
-        fold_parameters.append(fit.parameters)
-        for key in held:
-            for i, value in zip(test, scores[key]):
-                held[key][i] = value
     even, odd = list(range(0, n, 2)), list(range(1, n, 2))
     _, half = _held_out(presses, even, odd, **budget)
     full = fit_presses(presses, **budget)
