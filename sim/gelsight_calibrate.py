@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from msgs.progress import Progress
 from sim.gelsight import GelSightConfig
 from sim.gelsight_calibration import BACKGROUND_FILE, PARAMETERS_FILE, POLYNOMIAL_FILE
 from sim.gelsight_check import (
@@ -124,9 +125,11 @@ def _held_out(
     return fit, press_scores(render_fit(fit, presses.subset(test)), presses.subset(test))
 
 
-def _k_fold(presses: Presses, folds: int, **budget: int) -> tuple[dict[str, list[float]], list[dict[str, float]]]:
+def _k_fold(
+    presses: Presses, folds: int, shown: Progress, **budget: int
+) -> tuple[dict[str, list[float]], list[dict[str, float]]]:
     """Each press's crop and full SSIM from the fit of the other folds (press i in fold i % folds),
-    and each fold's fitted parameters."""
+    and each fold's fitted parameters; ``shown`` counts the fits."""
     n = len(presses.frames)
     held = {key: [math.nan] * n for key in ("crop", "full")}
     fold_parameters = []
@@ -134,6 +137,7 @@ def _k_fold(presses: Presses, folds: int, **budget: int) -> tuple[dict[str, list
         test = list(range(k, n, folds))
         fit, scores = _held_out(presses, [i for i in range(n) if i % folds != k], test, **budget)
         fold_parameters.append(fit.parameters)
+        shown.update()
         for key in held:
             for i, value in zip(test, scores[key]):
                 held[key][i] = value
@@ -167,8 +171,11 @@ def calibrate_presses(
     mm_per_px: float | None = None,
     ball_radius_mm: float | None = None,
     evaluations: int | None = None,
+    progress: bool = True,
 ) -> tuple[PressFit, Presses, dict[str, Any]]:
-    """The fit of all usable presses, those presses (found centres and radii) and the report."""
+    """The fit of all usable presses, those presses (found centres and radii) and the report;
+    with ``progress`` a line on stderr as each of the folds + 2 fits ends (a fit takes 5 s to
+    minutes with the frame's size)."""
     frames, background, annotations, scale, ball = load_press_file(path, mm_per_px, ball_radius_mm)
     found = annotate(frames, background, scale, ball)
     used = np.flatnonzero(found.trusted)
@@ -178,11 +185,14 @@ def calibrate_presses(
         )
     presses = Presses(frames[used], background, found.centers_xy_px[used], found.radii_px[used], scale, ball)
     budget = {} if evaluations is None else {"evaluations": evaluations}
-    held, fold_parameters = _k_fold(presses, folds, **budget)
-    n = len(used)
-    even, odd = list(range(0, n, 2)), list(range(1, n, 2))
-    _, half = _held_out(presses, even, odd, **budget)
-    full = fit_presses(presses, **budget)
+    with Progress("calibrate gelsight", folds + 2, "fits", enabled=progress) as shown:
+        held, fold_parameters = _k_fold(presses, folds, shown, **budget)
+        n = len(used)
+        even, odd = list(range(0, n, 2)), list(range(1, n, 2))
+        _, half = _held_out(presses, even, odd, **budget)
+        shown.update()
+        full = fit_presses(presses, **budget)
+        shown.update()
     full_on_odd = press_scores(render_fit(full, presses.subset(odd)), presses.subset(odd))
     references = _references(presses)
     report = {

@@ -95,7 +95,9 @@ def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path
     out = tmp_path / "calibration"
     assert _calibrate(path, out, "--folds", "2", "--json") == 0
     report = json.loads((out / "report.json").read_text(), parse_constant=_not_json)
-    assert json.loads(capsys.readouterr().out, parse_constant=_not_json) == report  # --json: strict, the file's
+    printed = capsys.readouterr()
+    assert json.loads(printed.out, parse_constant=_not_json) == report  # --json: strict, the file's
+    assert "calibrate gelsight: 4/4 fits (100 %)" in printed.err  # 2 folds, the half, all: progress on stderr
     assert report["used"] == list(range(24)) and report["left_out"] == {}
     assert report["k_fold"]["crop"] > report["k_fold"]["background_crop"]
     parameters = renderer_parameters(out)
