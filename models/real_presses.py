@@ -340,7 +340,7 @@ def _summary(
     """The result's scores: each estimate's mean (location: median) over the presses, and the
     model's and the renderers' scores on every press (named by its frame in the file); where the
     centres and radii came from and the presses the finder left out."""
-    result: dict[str, Any] = {"annotations": "finder" if presses.found else "file", "left_out": presses.left_out}
+    result: dict[str, Any] = {"annotations": presses.annotations, "left_out": presses.left_out}
     result |= {
         key: {name: float(np.mean(values)) for name, values in scores[key].items()}
         for key in ("window_ssim", "full_ssim", "window_psnr_db", "full_psnr_db")

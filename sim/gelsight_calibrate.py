@@ -31,7 +31,7 @@ from sim.gelsight_check import (
     ball_gap_map,
     press_depth_mm,
     press_scalar,
-    read_press_arrays,
+    read_press_file,
 )
 from sim.gelsight_effects import GelSightRenderError
 from sim.gelsight_fit import Presses, PressFit, fit_presses, press_scores, render_fit
@@ -49,22 +49,7 @@ def load_press_file(
     """Frames, background, the file's own annotations (may be empty), scale and ball radius;
     the arguments override the file's keys."""
     path = Path(path)
-    contents = read_press_arrays(path, {"background", "frames"})
-    background, frames = contents["background"], contents["frames"]
-    if (
-        background.ndim != 3
-        or background.shape[2] != 3
-        or background.dtype != np.uint8
-        or min(background.shape[:2]) < 16
-    ):
-        raise GelSightRenderError(
-            f"{path}: background must be HxWx3 uint8 (H, W >= 16), got {background.shape} {background.dtype}"
-        )
-    if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
-        raise GelSightRenderError(
-            f"{path}: frames must be N x {' x '.join(map(str, background.shape))} uint8 like the background, "
-            f"got {frames.shape} {frames.dtype}"
-        )
+    contents, frames, background = read_press_file(path)
     scale = press_scalar(path, contents, "mm_per_px", mm_per_px, None, MM_PER_PX_RANGE)
     ball = press_scalar(path, contents, "ball_radius_mm", ball_radius_mm, None, BALL_RADIUS_RANGE_MM)
     annotations = {k: contents[k].astype(np.float64) for k in ("touch_center", "touch_radius") if k in contents}

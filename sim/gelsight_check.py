@@ -53,20 +53,17 @@ class BallPresses:
     frames: np.ndarray  # NxHxWx3 uint8
     centers_xy_px: np.ndarray  # Nx2 (x column, y row)
     radii_px: np.ndarray  # N
-    mm_per_px: float = FILE_MM_PER_PX  # the frames' scale, the file's own where it holds one
-    ball_radius_mm: float = BALL_RADIUS_MM  # the pressed ball's, the file's own where it holds one
-    file_indices: tuple[int, ...] = ()  # each press's frame in the file
-    left_out: dict[int, str] = dataclasses.field(default_factory=dict)  # frames the finder could not trust
-    found: bool = False  # centres and radii from the press finder, not the file
-
-    def __post_init__(self) -> None:
-        if not self.file_indices:  # made in code, not read: every frame, in order
-            object.__setattr__(self, "file_indices", tuple(range(len(self.frames))))
+    mm_per_px: float  # the frames' scale
+    ball_radius_mm: float  # the pressed ball's
+    file_indices: tuple[int, ...]  # each press's frame in the file
+    left_out: dict[int, str]  # frames the press finder could not trust, and why
+    annotations: str  # where the centres and radii come from: "file" or "finder"
 
 
-def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndarray]:
-    """Every array of a press file (.npz, no pickles), by key; GelSightRenderError when the file
-    is missing or unreadable or lacks a ``required`` key."""
+def read_press_file(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Every array of a press file (.npz, no pickles) by key, its frames and its background;
+    GelSightRenderError when the file is missing or unreadable, or its background is not an
+    H x W x 3 uint8 frame (H, W >= 16) with N frames like it."""
     path = Path(path)
     if not path.is_file():
         raise GelSightRenderError(f"{path}: no such file")
@@ -75,10 +72,25 @@ def read_press_arrays(path: str | Path, required: set[str]) -> dict[str, np.ndar
             contents = {key: np.asarray(data[key]) for key in data.files}
     except (OSError, ValueError) as exc:
         raise GelSightRenderError(f"{path}: not a readable .npz file ({exc})") from exc
-    missing = sorted(required - set(contents))
+    missing = sorted({"background", "frames"} - set(contents))
     if missing:
         raise GelSightRenderError(f"{path}: missing keys {missing}")
-    return contents
+    background, frames = contents["background"], contents["frames"]
+    if (
+        background.ndim != 3
+        or background.shape[2] != 3
+        or background.dtype != np.uint8
+        or min(background.shape[:2]) < 16
+    ):
+        raise GelSightRenderError(
+            f"{path}: background must be HxWx3 uint8 (H, W >= 16), got {background.shape} {background.dtype}"
+        )
+    if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
+        raise GelSightRenderError(
+            f"{path}: frames must be N x {' x '.join(map(str, background.shape))} uint8 like the background, "
+            f"got {frames.shape} {frames.dtype}"
+        )
+    return contents, frames, background
 
 
 def load_ball_presses(
@@ -89,14 +101,7 @@ def load_ball_presses(
     ``touch_center`` and ``touch_radius`` (a lab's raw presses) has its presses found by
     ``sim.press_annotation``; those it cannot trust are left out and named."""
     path = Path(path)
-    contents = read_press_arrays(path, {"background", "frames"})
-    background, frames = contents["background"], contents["frames"]
-    if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
-        raise GelSightRenderError(f"{path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}")
-    if frames.ndim != 4 or frames.shape[1:] != background.shape or frames.dtype != np.uint8:
-        raise GelSightRenderError(
-            f"{path}: frames must be Nx{'x'.join(map(str, background.shape))} uint8, got {frames.shape} {frames.dtype}"
-        )
+    contents, frames, background = read_press_file(path)
     scale = press_scalar(path, contents, "mm_per_px", mm_per_px, FILE_MM_PER_PX, MM_PER_PX_RANGE)
     ball = press_scalar(path, contents, "ball_radius_mm", ball_radius_mm, BALL_RADIUS_MM, BALL_RADIUS_RANGE_MM)
     annotated = {"touch_center", "touch_radius"} & set(contents)
@@ -118,8 +123,8 @@ def load_ball_presses(
             f"{path}: needs at least 2 presses for the random-frame baseline, got {len(frames)} "
             f"({'; '.join(f'press {i}: {r}' for i, r in left_out.items()) or 'none left out'})"
         )
-    kept = tuple(indices.tolist())
-    return BallPresses(background, frames, centers, radii, scale, ball, kept, left_out, found=not annotated)
+    source = "file" if annotated else "finder"
+    return BallPresses(background, frames, centers, radii, scale, ball, tuple(indices.tolist()), left_out, source)
 
 
 def _checked_annotations(
@@ -327,7 +332,7 @@ def run_check(
         "mm_per_px": presses.mm_per_px,
         "ball_radius_mm": presses.ball_radius_mm,
         "n_frames": n,
-        "annotations": "finder" if presses.found else "file",
+        "annotations": presses.annotations,
         "left_out": presses.left_out,
         "mean": {key: float(np.mean([f[key] for f in frames])) for key in KEYS},
         "frames": frames,

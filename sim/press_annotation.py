@@ -55,22 +55,19 @@ MAX_BACKGROUND_MISMATCH_LEVELS = 30.0
 
 @dataclasses.dataclass(frozen=True)
 class FoundPresses:
-    """Per press: centre (N x 2 px), radius (N px; NaN where not found), the template match and
-    why it is not trusted (empty when it is)."""
+    """Per press: centre (N x 2 px), radius (N px; NaN where not found), how far its change
+    reaches (:func:`change_extent_px`), the template match and why it is not trusted (empty when
+    it is)."""
 
     centers_xy_px: np.ndarray
     radii_px: np.ndarray
+    reaches_px: np.ndarray
     match: np.ndarray
     reasons: list[str]
 
     @property
     def trusted(self) -> np.ndarray:
         return np.array([not reason for reason in self.reasons], bool)
-
-
-def change_magnitude(frame: np.ndarray, background: np.ndarray) -> np.ndarray:
-    """|frame - background| summed over the channels (HxW float32 levels)."""
-    return np.abs(frame.astype(np.float32) - background.astype(np.float32)).sum(axis=2)
 
 
 def change_extent_px(magnitude: np.ndarray) -> float:
@@ -220,13 +217,14 @@ def find_presses(frames: np.ndarray, background: np.ndarray, ball_radius_px: flo
         ]
     )
     reaches = np.array([change_extent_px(m) for m in magnitudes])
+    least_reach = 0.25 * float(np.median(reaches))
     reasons = [
         "no press (the frame changes over less than a quarter of the presses' median reach)"
-        if reach < 0.25 * np.median(reaches)
+        if reach < least_reach
         else _distrust(frame, background, center, radius, score)
         for frame, reach, center, radius, score in zip(frames, reaches, centers, radii, match)
     ]
-    return FoundPresses(centers, radii, match, reasons)
+    return FoundPresses(centers, radii, reaches, match, reasons)
 
 
 def _distrust(frame: np.ndarray, background: np.ndarray, center: np.ndarray, radius: float, match: float) -> str:
@@ -249,7 +247,7 @@ def _clipped_share(frame: np.ndarray, background: np.ndarray, center: np.ndarray
     h, w = frame.shape[:2]
     rows, cols = np.mgrid[0:h, 0:w]
     ring = np.hypot(cols - center[0], rows - center[1]) <= radius
-    if not ring.any():  # found outside the frame (a frame with no press): nothing of it is clipped
+    if not ring.any():  # a ring found wholly outside the frame: none of its values is clipped
         return 0.0
     clipped = ((frame == 0) | (frame == 255)) & ~((background == 0) | (background == 255))
     return float(clipped[ring].mean())
@@ -281,14 +279,15 @@ def find_checked_presses(
             f"a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px is {ball_px:.1f} px: a press of it "
             f"cannot be seen in a {background.shape[1]} x {background.shape[0]} frame (4 px to half the frame's height)"
         )
-    reach_px = float(np.median([change_extent_px(change_magnitude(frame, background)) for frame in frames]))
+    found = find_presses(frames, background, ball_px)
+    # Before the rings: with too small a ball the finder fits pieces of them, which that ball explains.
+    reach_px = float(np.median(found.reaches_px))
     if reach_px > MAX_REACH_RADII * ball_px:
         raise GelSightRenderError(
             f"the presses change the frame out to {reach_px * mm_per_px:.2f} mm from their centres (median), "
             f"more than {MAX_REACH_RADII:g} radii of a ball of {ball_radius_mm:g} mm at {mm_per_px:g} mm/px: "
             "the ball radius is too small or the scale too coarse; check --ball-radius-mm and --mm-per-px"
         )
-    found = find_presses(frames, background, ball_px)
     ratio = found.radii_px / ball_px
     low, high = RING_RADIUS_RANGE
     unexplained = np.flatnonzero(found.trusted & ~((ratio >= low) & (ratio <= high)))
