@@ -54,6 +54,12 @@ class TrainConfig:
     # CONTACT_SCALE). 0: the paper's plain L1, in which the ~90 % of pixels that show the
     # sensor's own background outweigh the contact.
     contact_weight: float = 0.0
+    # Weight r of an L1 on the correction (the generated image minus its physics prior), against
+    # the L1 on the target: per pixel, lambda_l1 * (|G - y| + r |G - prior|). Its minimum leaves a
+    # pixel at the prior unless the target lies on one side of it in over (1 + r) / 2 of the
+    # samples that look alike, so the correction moves only what the simulated sensor says
+    # consistently. 0: the correction is free; 1 or more would pin every pixel to the prior.
+    correction_weight: float = 0.0
     # In-plane pose error (mm, per axis) of the session's depth-maps, which come from registered
     # model clouds: the physics prior of a session pair is the image expected over it
     # (models.prior), a library pair's the sharp image of its exact geometry. Stored in the
@@ -79,6 +85,10 @@ class TrainConfig:
             raise ModelConfigError("max_steps and threads must be >= 0 (0: no limit / torch's default)")
         if not (np.isfinite(self.contact_weight) and self.contact_weight >= 0):
             raise ModelConfigError(f"contact_weight must be a finite number >= 0, got {self.contact_weight}")
+        if not (np.isfinite(self.correction_weight) and 0 <= self.correction_weight < 1):
+            raise ModelConfigError(f"correction_weight must be in [0, 1), got {self.correction_weight}")
+        if self.correction_weight and not self.generator.prior:
+            raise ModelConfigError("correction_weight needs a generator with a physics prior (prior: true)")
         checked_pose_sigma_mm(self.session_pose_sigma_mm, "session_pose_sigma_mm")
         self._check_library_pose_sigma_range()
         if not 0.0 <= self.ema_decay < 1.0:

@@ -290,13 +290,34 @@ def _distribute(state: TrainState) -> None:
         state.discriminator = nn.parallel.DistributedDataParallel(state.discriminator, device_ids=device_ids)
 
 
+def generator_l1(
+    fake: torch.Tensor,
+    target: torch.Tensor,
+    weights: torch.Tensor,
+    prior: torch.Tensor | None = None,
+    correction_weight: float = 0.0,
+) -> torch.Tensor:
+    """The G step's L1 term (images N x 3 x H x W in [-1, 1], ``weights`` N x 1 x H x W):
+    mean |G - y|, plus ``correction_weight`` r times mean |G - prior|, each pixel weighted.
+
+    A pixel that looks the same in many samples is left at its prior unless the targets lie
+    above it (or below) in over (1 + r) / 2 of them: the correction moves only what the
+    training targets say consistently, and stays out of what they disagree on."""
+    l1 = ((fake - target).abs() * weights).mean()
+    if correction_weight:
+        if prior is None:
+            raise ModelConfigError("correction_weight needs the physics prior's images")
+        l1 = l1 + correction_weight * ((fake - prior).abs() * weights).mean()
+    return l1 / weights.mean()
+
+
 def train_step(state: TrainState, batch: tuple[torch.Tensor, torch.Tensor]) -> dict[str, float]:
     """One pix2pix iteration on a batch of inputs x (depth-maps) and targets y (tactile images):
 
     * D step: minimise (BCE(D(x, y), 1) + BCE(D(x, G(x)), 0)) / 2, real pairs against
       generated ones (the generated image detached);
-    * G step: minimise BCE(D(x, G(x)), 1) + lambda_l1 * L1(G(x), y), the L1 weighted per
-      pixel by :func:`contact_weights` (all 1 with contact_weight 0: the paper's L1);
+    * G step: minimise BCE(D(x, G(x)), 1) + lambda_l1 * :func:`generator_l1` (the paper's L1
+      with contact_weight and correction_weight 0);
     * the weight average (ema_decay) follows the generator.
 
     Returns the four losses, in that order."""
@@ -323,7 +344,8 @@ def train_step(state: TrainState, batch: tuple[torch.Tensor, torch.Tensor]) -> d
     pred = _unwrap(state.discriminator)(x, fake)
     loss_g_gan = bce(pred, torch.ones_like(pred))
     weights = contact_weights(y, state.mean_image, config.contact_weight)  # all 1: the paper's L1
-    loss_g_l1 = ((fake - y).abs() * weights).mean() / weights.mean()
+    prior = x[:, config.generator.in_channels :] if config.generator.prior else None
+    loss_g_l1 = generator_l1(fake, y, weights, prior, config.correction_weight)
     (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
     state.opt_g.step()
     if state.average is not None:
