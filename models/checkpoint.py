@@ -54,11 +54,9 @@ class TrainConfig:
     # CONTACT_SCALE). 0: the paper's plain L1, in which the ~90 % of pixels that show the
     # sensor's own background outweigh the contact.
     contact_weight: float = 0.0
-    # Weight r of an L1 on the correction (the generated image minus its physics prior), against
-    # the L1 on the target: per pixel, lambda_l1 * (|G - y| + r |G - prior|). Its minimum leaves a
-    # pixel at the prior unless the target lies on one side of it in over (1 + r) / 2 of the
-    # samples that look alike, so the correction moves only what the simulated sensor says
-    # consistently. 0: the correction is free; 1 or more would pin every pixel to the prior.
+    # Weight r, in [0, 1), of the hold on the correction (models.train.generator_l1): a pixel
+    # leaves its physics prior only where over (1 + r) / 2 of the targets that look alike lie on
+    # one side of it. 0: the correction is free; 1 or more would pin every pixel to the prior.
     correction_weight: float = 0.0
     # In-plane pose error (mm, per axis) of the session's depth-maps, which come from registered
     # model clouds: the physics prior of a session pair is the image expected over it

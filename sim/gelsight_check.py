@@ -207,12 +207,25 @@ def crop_px(mm_per_px: float) -> int:
     return max(16, round(CROP_MM / mm_per_px))
 
 
-def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int = CROP_PX) -> np.ndarray:
+def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int) -> np.ndarray:
     """The size x size window centred on the touch, shifted inside the frame at its edges."""
     h, w = image.shape[:2]
     x0 = int(np.clip(round(center_xy_px[0]) - size // 2, 0, w - size))
     y0 = int(np.clip(round(center_xy_px[1]) - size // 2, 0, h - size))
     return image[y0 : y0 + size, x0 : x0 + size]
+
+
+def press_ssim(
+    images: Sequence[np.ndarray], frames: Sequence[np.ndarray], centers_xy_px: np.ndarray, mm_per_px: float
+) -> dict[str, np.ndarray]:
+    """SSIM of each image against its real frame: the touch crop (:func:`crop_px` at
+    ``mm_per_px``, around each centre) and the full frame, one batch each (SSIM's set-up costs
+    more than a frame)."""
+    size = crop_px(mm_per_px)
+    images, frames = np.stack(images), np.stack(frames)
+    crops = np.stack([touch_crop(i, c, size) for i, c in zip(images, centers_xy_px)])
+    real_crops = np.stack([touch_crop(r, c, size) for r, c in zip(frames, centers_xy_px)])
+    return {"crop": ssim_rgb(crops, real_crops), "full": ssim_rgb(images, frames)}
 
 
 def render_presses(
@@ -241,13 +254,14 @@ def calibration_config(presses: BallPresses, calibration_dir: str | Path) -> Gel
 
 
 def _mean_ssim(presses: BallPresses, indices: Sequence[int], config: GelSightConfig) -> dict[str, float]:
-    crops, fulls = [], []
-    size = crop_px(presses.mm_per_px)
-    for i, image in zip(indices, render_presses(presses, indices, config)):
-        real, center = presses.frames[i], presses.centers_xy_px[i]
-        fulls.append(float(ssim_rgb(image, real)))
-        crops.append(float(ssim_rgb(touch_crop(image, center, size), touch_crop(real, center, size))))
-    return {"crop": float(np.mean(crops)), "full": float(np.mean(fulls))}
+    indices = list(indices)
+    scores = press_ssim(
+        render_presses(presses, indices, config),
+        presses.frames[indices],
+        presses.centers_xy_px[indices],
+        presses.mm_per_px,
+    )
+    return {key: float(np.mean(values)) for key, values in scores.items()}
 
 
 def fit_parameters(presses: BallPresses, indices: Sequence[int], max_evaluations: int = 300) -> dict[str, float]:
@@ -275,31 +289,23 @@ def fit_parameters(presses: BallPresses, indices: Sequence[int], max_evaluations
 def _frame_scores(presses: BallPresses, renders: Sequence[np.ndarray], seed: int) -> list[dict[str, float]]:
     """Each press's SSIM (full frame, touch crop) of its rendering, the background and the mean
     of N_RANDOM_FRAMES other frames (seeded), named by its frame in the file."""
-    n = len(presses.frames)
+    n, real, centers = len(presses.frames), presses.frames, presses.centers_xy_px
     rng = np.random.default_rng(seed)
-    size = crop_px(presses.mm_per_px)
+    rendered = press_ssim(renders, real, centers, presses.mm_per_px)
+    background = press_ssim([presses.background] * n, real, centers, presses.mm_per_px)
     frames = []
     for i in range(n):
-        real, center = presses.frames[i], presses.centers_xy_px[i]
         others = rng.choice(np.delete(np.arange(n), i), size=min(N_RANDOM_FRAMES, n - 1), replace=False)
-
-        def full_and_crop(image: np.ndarray) -> tuple[float, float]:
-            return float(ssim_rgb(image, real)), float(
-                ssim_rgb(touch_crop(image, center, size), touch_crop(real, center, size))
-            )
-
-        full, crop = full_and_crop(renders[i])
-        bg_full, bg_crop = full_and_crop(presses.background)
-        random_scores = np.array([full_and_crop(presses.frames[j]) for j in others])
+        random = press_ssim(real[others], [real[i]] * len(others), centers[[i] * len(others)], presses.mm_per_px)
         frames.append(
             {
                 "index": presses.file_indices[i],
-                "crop": crop,
-                "full": full,
-                "background_crop": bg_crop,
-                "background_full": bg_full,
-                "random_crop": float(random_scores[:, 1].mean()),
-                "random_full": float(random_scores[:, 0].mean()),
+                "crop": float(rendered["crop"][i]),
+                "full": float(rendered["full"][i]),
+                "background_crop": float(background["crop"][i]),
+                "background_full": float(background["full"][i]),
+                "random_crop": float(random["crop"].mean()),
+                "random_full": float(random["full"].mean()),
             }
         )
     return frames

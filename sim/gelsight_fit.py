@@ -35,10 +35,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import minimize
 
-from perception.ssim import ssim_rgb
 from sim.gelsight import GelSightConfig, GelSightRenderer, gel_surface_depth_mm, indentation_mm
 from sim.gelsight_calibration import PolyCalibration, calibration_from_tables
-from sim.gelsight_check import ball_gap_map, crop_px, press_depth_mm, touch_crop
+from sim.gelsight_check import ball_gap_map, press_depth_mm, press_ssim
 from sim.gelsight_effects import GelSightRenderError
 
 N_BINS = 60  # slope magnitude bins over [0, pi/2) and direction bins over [-pi, pi)
@@ -268,11 +267,8 @@ def render_fit(fit: PressFit, presses: Presses) -> list[np.ndarray]:
 def press_scores(images: Sequence[np.ndarray], presses: Presses) -> dict[str, list[float]]:
     """SSIM of each image against its real press: the touch crop and the full frame (one
     batch each: SSIM's set-up costs more than a frame)."""
-    size = crop_px(presses.mm_per_px)
-    rendered = np.stack(images)
-    crops = np.stack([touch_crop(i, c, size) for i, c in zip(rendered, presses.centers_xy_px)])
-    real_crops = np.stack([touch_crop(r, c, size) for r, c in zip(presses.frames, presses.centers_xy_px)])
-    return {"crop": ssim_rgb(crops, real_crops).tolist(), "full": ssim_rgb(rendered, presses.frames).tolist()}
+    scores = press_ssim(images, presses.frames, presses.centers_xy_px, presses.mm_per_px)
+    return {key: values.tolist() for key, values in scores.items()}
 
 
 def fit_presses(presses: Presses, evaluations: int | None = None) -> PressFit:

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from sim.cli import add_commands, main
 from sim.gelsight import GelSightRenderError
 from sim.gelsight_check import (
+    CROP_PX,
     FIT_START,
     KEYS,
     _file_config,
@@ -71,9 +72,9 @@ def test_ball_gap_map_has_the_ball_shape():
 def test_touch_crop_is_always_48x48_inside_the_frame():
     image = np.arange(120 * 160).reshape(120, 160)
     for center in [(0, 0), (159, 119), (80, 60), (3.4, 100.6)]:
-        crop = touch_crop(image, center)
+        crop = touch_crop(image, center, CROP_PX)
         assert crop.shape == (48, 48)
-    assert touch_crop(image, (80, 60))[24, 24] == image[60, 80]
+    assert touch_crop(image, (80, 60), CROP_PX)[24, 24] == image[60, 80]
 
 
 @pytest.mark.parametrize(
