@@ -2,7 +2,9 @@
 
 Every backend keeps the contract of :class:`Device`: ``connect()`` opens and checks the
 device, ``read()`` returns its latest message, ``disconnect()`` releases it, and it works as
-a context manager. Each ``drivers/<kind>/`` declares its kind's contract in ``base.py``
+a context manager. Every call that waits on the device has a deadline, set in the backend's
+config: it returns or raises the kind's error (a :class:`DeviceTimeoutError` when the device
+did not answer in time) within it, so no node can block forever on a silent device. Each ``drivers/<kind>/`` declares its kind's contract in ``base.py``
 (:class:`Device` plus the kind's commands and return types), holds the real backends and the
 simulated one side by side behind it, and exposes ``make_backend(params)``:
 ``params["backend"]`` picks the class, the remaining keys fill its config dataclass
@@ -16,6 +18,8 @@ import abc
 import dataclasses
 import functools
 import importlib
+import queue
+import threading
 from collections.abc import Callable
 from typing import Any, ClassVar, Self, TypeVar
 
@@ -36,6 +40,49 @@ class DeviceNotConnectedError(DeviceError):
     """A device read or commanded before ``connect()`` or after ``disconnect()``."""
 
 
+class DeviceTimeoutError(DeviceError):
+    """A device did not answer a call within the call's deadline."""
+
+
+T = TypeVar("T")
+
+
+def call_with_deadline(
+    call: Callable[[], T],
+    deadline_s: float,
+    what: str,
+    timeout_error: type[DeviceError] = DeviceTimeoutError,
+    on_return: Callable[[], None] | None = None,
+) -> T:
+    """``call()``'s result or error if it comes within ``deadline_s``, else ``timeout_error``.
+
+    For vendor calls that wait on the device with no deadline of their own (or one of minutes,
+    as ur_rtde's 300 s): the call runs in a daemon thread and is abandoned when late, so it
+    must release the GIL while it waits (pybind11 bindings that declare ``gil_scoped_release``
+    do). ``on_return`` runs in that thread when the call really returns, late or not: the
+    place to release a lock that must stay held while the device may still act on the call.
+    """
+    outcome: queue.SimpleQueue[tuple[bool, Any]] = queue.SimpleQueue()
+
+    def run() -> None:
+        try:
+            outcome.put((True, call()))
+        except BaseException as error:  # noqa: BLE001 - handed to the waiting thread, which raises it
+            outcome.put((False, error))
+        finally:
+            if on_return is not None:
+                on_return()
+
+    threading.Thread(target=run, name=f"deadline: {what}", daemon=True).start()
+    try:
+        returned, value = outcome.get(timeout=deadline_s)
+    except queue.Empty:
+        raise timeout_error(f"{what}: no answer within {deadline_s:g} s") from None
+    if returned:
+        return value  # type: ignore[no-any-return]
+    raise value
+
+
 class Device(abc.ABC):
     """What every backend of every kind does; the kind's ``base.py`` adds its commands and
     names its not-connected error (a DeviceNotConnectedError that is also the kind's error,
@@ -50,7 +97,8 @@ class Device(abc.ABC):
 
     @abc.abstractmethod
     def connect(self) -> None:
-        """Open the device and check it can work; raise the kind's error, with the fix, if not."""
+        """Open the device and check it can work; raise the kind's error, with the fix, if not.
+        Like every call that waits on the device, it ends within the deadline its config sets."""
 
     @abc.abstractmethod
     def read(self) -> Any:

@@ -12,16 +12,19 @@ from msgs.base import Message, empty
 @dataclasses.dataclass
 class ArmState(Message):
     """TCP pose (x, y, z, rx, ry, rz: position in m, rotation vector in rad, UR convention),
-    joint positions (rad) and velocities (rad/s), and the controller's safety status."""
+    joint positions (rad) and velocities (rad/s), the controller's safety status, and the
+    code of the last thing that went wrong with the arm (drivers.arm.base.ArmErrorCode; empty
+    while all is well)."""
 
     SCHEMA = "dtx.robot.ArmState"
-    VERSION = 1
+    VERSION = 2
 
     tcp_pose: np.ndarray = empty((6,), np.float64)
     joint_positions: np.ndarray = empty((6,), np.float64)
     joint_velocities: np.ndarray = empty((6,), np.float64)
     moving: bool = False
     safety_status: str = "normal"  # normal | protective_stop | emergency_stop | disconnected
+    error_code: str = ""
 
 
 @dataclasses.dataclass

@@ -6,7 +6,8 @@ Poses on the bus are in ``world``. A real UR reports and takes poses in its ``ba
 ways. Params: ``state_rate_hz``, ``base_pose_world`` and the backend's (``backend:``
 ur_rtde or simulated and its config fields, see ``drivers.arm``). Targets outside the workspace or limits are refused by
 the backend before anything moves; a protective stop or a lost link makes the node report
-the error and stop (the session then stops safely).
+the error and stop (the session then stops safely). ``/arm/stop`` answers once the arm is
+at rest; ``/arm/state``'s ``error_code`` says what a stop took (drivers.arm.base.ArmErrorCode).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 
 import drivers.arm
+import drivers.arm.base
 import msgs
 from nodes.node import Node, run_node, split_params
 from workcell.kinematics import matrix_to_pose, pose_to_matrix
@@ -49,7 +51,7 @@ class ArmNode(Node):
 
     def publish_state(self) -> None:
         state = self.read_world()
-        self.status = "ok" if state.safety_status == "normal" else state.safety_status
+        self.status = state.safety_status if state.safety_status != "normal" else state.error_code or "ok"
         self.state.publish(state)
 
     def on_move(self, request: msgs.ArmMoveRequest) -> Future[msgs.ArmState]:
@@ -70,9 +72,13 @@ class ArmNode(Node):
         return self.read_world()
 
     def close(self) -> None:
-        self.arm.stop()
-        self.arm.disconnect()
-        super().close()
+        try:
+            self.arm.stop()
+        except drivers.arm.base.ArmError as error:
+            self.log.error("stopping the arm on close: %s (code %s)", error, error.code)
+        finally:
+            self.arm.disconnect()
+            super().close()
 
 
 if __name__ == "__main__":

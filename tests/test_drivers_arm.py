@@ -10,6 +10,7 @@ of blocking.
 from __future__ import annotations
 
 import random
+import socket
 import threading
 import time
 from typing import Callable, Iterator
@@ -23,6 +24,7 @@ from drivers.arm import make_backend
 from drivers.arm.base import (
     ArmConnectionError,
     ArmError,
+    ArmErrorCode,
     ConnectionLostError,
     EmergencyStopError,
     MotionAbortedError,
@@ -316,6 +318,118 @@ def test_a_move_after_an_unlocked_protective_stop_uploads_the_script_again(fake:
     arm.move_linear(target, speed_m_s=0.25, accel_m_s2=1.2)
     np.testing.assert_allclose(fake.snapshot()["tcp_pose"], target, atol=1e-6)
     assert fake.snapshot()["events"].count("control script started") == 2
+
+
+def start_a_move_of(
+    arm: URArm, fake: FakeURController, distance_m: float = 0.3
+) -> tuple[threading.Thread, list[BaseException], np.ndarray]:
+    target = arm.read().tcp_pose + np.array([0.0, distance_m, 0.0, 0.0, 0.0, 0.0])
+    thread, errors = move_in_thread(lambda: arm.move_linear(target, 0.1, 1.0))
+    wait_until_moving(fake)
+    return thread, errors, target
+
+
+def assert_stopped_short(
+    fake: FakeURController, thread: threading.Thread, errors: list[BaseException], target: np.ndarray
+) -> None:
+    thread.join(timeout=30.0)
+    assert not thread.is_alive(), "the move still waits after the stop returned"
+    assert len(errors) == 1 and isinstance(errors[0], MotionAbortedError), errors
+    snapshot = fake.snapshot()
+    assert not snapshot["moving"]
+    assert abs(snapshot["tcp_pose"][1] - target[1]) > 0.01, "the move reached its target: the stop was lost"
+
+
+@pytest.fixture
+def quick_arm(fake: FakeURController) -> Iterator[URArm]:
+    """An arm whose commands time out well before the script's watchdog would end a wait."""
+    backend = make_backend(arm_params(fake, command_deadline_s=0.15))
+    backend.connect()
+    try:
+        yield backend
+    finally:
+        backend.disconnect()
+
+
+def test_an_erased_stop_is_carried_out_by_the_watchdog_it_leaves_unkicked(fake: FakeURController, arm: URArm) -> None:
+    """The erased stop of issue 55, which let the move go on to its target: the pending stopJ
+    holds the command register, so no kick reaches the watchdog, which ends the program."""
+    thread, errors, target = start_a_move_of(arm, fake)
+    fake.inject_fault("lose_command", CMD_STOPJ)
+    arm.stop()
+    assert_stopped_short(fake, thread, errors, target)
+    assert arm.read().error_code == ArmErrorCode.STOP_BY_PROGRAM_END
+    assert "watchdog: no input in time, program stopped" in fake.snapshot()["events"]
+
+
+@pytest.mark.parametrize(
+    ("faults", "code", "event"),
+    [
+        # A stop erased before the script's cycle read it.
+        ([("lose_command", CMD_STOPJ)], ArmErrorCode.STOP_ESCALATED_DASHBOARD, "dashboard: stop"),
+        # A "done" the client misses: ur_rtde would wait 300 s; the stop's deadline ends that wait.
+        ([("brief_done", CMD_STOPJ)], ArmErrorCode.STOP_ESCALATED_DASHBOARD, "dashboard: stop"),
+        # The stop erased and the dashboard's refused: silence until the watchdog ends the program.
+        (
+            [("lose_command", CMD_STOPJ), ("refuse_dashboard_stop", 0)],
+            ArmErrorCode.STOP_ESCALATED_WATCHDOG,
+            "watchdog: no input in time, program stopped",
+        ),
+    ],
+)
+def test_a_stop_the_controller_does_not_answer_escalates_until_the_arm_rests(
+    fake: FakeURController, quick_arm: URArm, faults: list[tuple[str, int]], code: str, event: str
+) -> None:
+    arm = quick_arm
+    thread, errors, target = start_a_move_of(arm, fake)
+    for fault, command in faults:
+        fake.inject_fault(fault, command)
+    arm.stop()
+    assert_stopped_short(fake, thread, errors, target)
+    assert arm.read().error_code == code
+    events = fake.snapshot()["events"]
+    assert event in events and all(f"fault: {fault} {command}" in events for fault, command in faults)
+    # The program ended; the next move uploads it again and clears the code.
+    arm.move_linear(arm.read().tcp_pose + np.array([0.0, 0.0, -0.02, 0.0, 0.0, 0.0]), 0.25, 1.2)
+    assert arm.read().error_code == ArmErrorCode.NONE and fake.snapshot()["program_running"]
+
+
+def test_a_link_dropped_during_a_stop_is_reported_as_unverified(fake: FakeURController, arm: URArm) -> None:
+    thread, errors, target = start_a_move_of(arm, fake)
+    fake.inject_fault("cut_on_command", CMD_STOPJ)
+    with pytest.raises(ConnectionLostError, match="cannot see the UR arm stop") as raised:
+        arm.stop()
+    assert raised.value.code == ArmErrorCode.STOP_UNVERIFIED
+    assert arm.read().error_code == ArmErrorCode.STOP_UNVERIFIED
+    wait_until(lambda: not fake.snapshot()["moving"], "the arm stops")
+    thread.join(timeout=30.0)
+    assert not thread.is_alive() and errors
+
+
+def test_watchdog_kicks_never_erase_a_command(fake: FakeURController) -> None:
+    """Kicks every 5 ms beside moves and stops: each command reaches the script."""
+    arm = make_backend(arm_params(fake, watchdog_hz=50.0))
+    arm.connect()
+    try:
+        for trial in range(6):
+            thread, errors, target = start_a_move_of(arm, fake, 0.2 if trial % 2 == 0 else -0.2)
+            arm.stop()
+            assert_stopped_short(fake, thread, errors, target)
+            assert arm.read().error_code == ArmErrorCode.NONE
+    finally:
+        arm.disconnect()
+    assert not [event for event in fake.snapshot()["events"] if "erased" in event]
+
+
+def test_a_controller_that_accepts_and_never_answers_fails_connect_within_its_deadline() -> None:
+    host = f"127.{random.randint(32, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}"
+    silent = socket.create_server((host, 29999))
+    try:
+        arm = make_backend({"backend": "ur_rtde", "robot_ip": host, "dashboard_deadline_s": 0.5})
+        with pytest.raises(ArmConnectionError, match="no answer within 0.5 s"):
+            arm.connect()
+    finally:
+        silent.close()
 
 
 def test_the_watchdog_stops_the_arm_when_the_link_is_cut(fake: FakeURController, arm: URArm) -> None:

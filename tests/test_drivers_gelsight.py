@@ -4,6 +4,8 @@ on a sysfs tree laid out like the kernel's, and the end / loss of a stream."""
 from __future__ import annotations
 
 import os
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -11,7 +13,7 @@ import numpy as np
 import pytest
 
 from drivers.gelsight import EndOfStreamError, GelSightError, make_backend
-from drivers.gelsight.base import PRESETS
+from drivers.gelsight.base import PRESETS, GelSightTimeoutError
 from drivers.gelsight.v4l2 import FrameSource, find_camera
 
 ASSET = Path(__file__).resolve().parent.parent / "assets" / "gelsight" / "ball_presses.npz"
@@ -92,7 +94,11 @@ def test_looping_video_starts_over(video, presses):
 def test_camera_that_stops_delivering_frames(video):
     """A live source whose frames stop (here: a file that runs out) reports a lost camera."""
     source = FrameSource(
-        cv2.VideoCapture(str(video)), "/dev/video4 (GelSight Mini, USB 1-2)", live=True, max_failed_reads=3
+        cv2.VideoCapture(str(video)),
+        "/dev/video4 (GelSight Mini, USB 1-2)",
+        live=True,
+        max_failed_reads=3,
+        deadline_s=10.0,
     )
     try:
         for _ in range(37):
@@ -101,6 +107,36 @@ def test_camera_that_stops_delivering_frames(video):
             source.next_rgb()
     finally:
         source.release()
+
+
+class SilentCamera:
+    """A capture whose read() never returns until released: a camera that stopped answering
+    inside the driver (OpenCV's V4L2 read then waits its select time-out, 10 s, per try)."""
+
+    def __init__(self) -> None:
+        self.answer = threading.Event()
+
+    def read(self) -> tuple[bool, np.ndarray]:
+        self.answer.wait()
+        return True, np.zeros((240, 320, 3), np.uint8)
+
+
+def test_a_camera_that_stops_answering_fails_the_read_within_its_deadline():
+    camera = SilentCamera()
+    source = FrameSource(camera, "/dev/video4", live=True, max_failed_reads=3, deadline_s=0.2)  # type: ignore[arg-type]
+    with pytest.raises(GelSightTimeoutError, match="/dev/video4: read a frame: no answer within 0.2 s"):
+        source.next_rgb()
+    with pytest.raises(GelSightTimeoutError, match="an earlier read past its deadline has not returned"):
+        source.next_rgb()
+    camera.answer.set()
+    deadline = time.monotonic() + 10.0
+    while True:  # the late read returns and frees the camera
+        try:
+            assert source.next_rgb().shape == (240, 320, 3)
+            break
+        except GelSightTimeoutError:
+            assert time.monotonic() < deadline, "the late read never freed the camera"
+            time.sleep(0.01)
 
 
 def test_missing_video_file(tmp_path):

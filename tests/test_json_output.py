@@ -97,6 +97,17 @@ COMMANDS: dict[str, Callable[[Inputs], list[str]]] = {
     ],
     "sim gelsight-check": lambda i: ["sim", "gelsight-check", str(i.presses()), "--json"],
     "bench arm": lambda i: ["bench", "arm", "--json", "--rate-seconds", "0.3", "--stop-trials", "2"],
+    "bench arm_stress": lambda i: [
+        "bench",
+        "arm_stress",
+        "--json",
+        "--runs",
+        "1",
+        "--hogs",
+        "0",
+        "--stop-trials",
+        "1",
+    ],
     "bench bus": lambda i: [
         "bench",
         "bus",

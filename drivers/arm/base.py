@@ -13,12 +13,34 @@ import dataclasses
 import numpy as np
 import numpy.typing as npt
 
-from drivers import Device, DeviceError, DeviceNotConnectedError
+from drivers import Device, DeviceError, DeviceNotConnectedError, DeviceTimeoutError
 from msgs import ArmState
 
 
+class ArmErrorCode:
+    """What went wrong with the arm, as ``ArmState.error_code`` reports it on ``/arm/state``
+    for the collector (and any other process) to branch on; empty while all is well."""
+
+    NONE = ""
+    ARM_ERROR = "arm_error"  # any other failure of the arm: its text says which
+    COMMAND_TIMEOUT = "command_timeout"  # a command to the controller got no answer in its deadline
+    STOP_BY_PROGRAM_END = "stop_by_program_end"  # stopJ not carried out: the control script ended (watchdog, pendant)
+    STOP_ESCALATED_DASHBOARD = "stop_escalated_dashboard"  # the arm came to rest only after the dashboard's stop
+    STOP_ESCALATED_WATCHDOG = "stop_escalated_watchdog"  # ... only once the link fell silent (watchdog)
+    STOP_FAILED = "stop_failed"  # not at rest after every escalation: use the emergency stop
+    STOP_UNVERIFIED = "stop_unverified"  # the link was lost: the watchdog stops the arm, unseen
+
+
 class ArmError(DeviceError):
-    """Any failure of the arm; the arm node turns it into a safe session stop."""
+    """Any failure of the arm; the arm node turns it into a safe session stop. ``code`` is its
+    ArmErrorCode, which the ``/arm/*`` services send as their error reply's code."""
+
+    code = ArmErrorCode.ARM_ERROR
+
+    def __init__(self, reason: str, fix: str = "", code: str | None = None) -> None:
+        super().__init__(reason, fix)
+        if code is not None:
+            self.code = code
 
 
 class ArmConnectionError(ArmError):
@@ -35,6 +57,18 @@ class ProtectiveStopError(ArmError):
 
 class EmergencyStopError(ArmError):
     """An emergency stop is pressed; an operator must release it and restart the arm."""
+
+
+class ArmTimeoutError(ArmError, DeviceTimeoutError):
+    """The controller did not answer a command within its deadline."""
+
+    code = ArmErrorCode.COMMAND_TIMEOUT
+
+
+class StopFailedError(ArmError):
+    """The arm was still seen moving after every way of stopping it was tried."""
+
+    code = ArmErrorCode.STOP_FAILED
 
 
 class ArmNotConnectedError(DeviceNotConnectedError, ArmConnectionError):
@@ -73,7 +107,8 @@ class Arm(Device):
 
     @abc.abstractmethod
     def stop(self) -> None:
-        """Stop any move in progress where it is."""
+        """Stop any move in progress where it is, and return once the arm's state says it is at
+        rest (StopFailedError if it cannot be brought to or seen at rest)."""
 
 
 @dataclasses.dataclass(frozen=True)

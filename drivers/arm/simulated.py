@@ -21,6 +21,7 @@ from drivers.arm.base import (
     ArmError,
     MotionAbortedError,
     MotionLimits,
+    StopFailedError,
     WorkspaceError,
     as_six_vector,
 )
@@ -55,6 +56,7 @@ class SimulatedArmConfig:
             raise ValueError(f"time_scale {self.time_scale} outside [0, 100]")
 
 
+STOP_DEADLINE_S = 1.0  # a stopped move ends within one of its 20 ms waits; this is its deadline
 _SEED_JOINTS = np.array([-np.pi / 2, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
 
 
@@ -192,8 +194,14 @@ class SimulatedArm(Arm):
         self._run(motion)
 
     def stop(self) -> None:
-        """Stop a move in progress where it is (the blocked move raises MotionAbortedError)."""
+        """Stop a move in progress where it is (the blocked move raises MotionAbortedError)
+        and return once it has ended; the simulated arm halts at once."""
         self._stop.set()
+        deadline = time.monotonic() + STOP_DEADLINE_S
+        while self._motion is not None:
+            if time.monotonic() > deadline:
+                raise StopFailedError(f"the simulated arm's move did not end within {STOP_DEADLINE_S} s of the stop")
+            time.sleep(0.002)
 
     def _ik(self, pose_world: np.ndarray, q_seed: np.ndarray) -> np.ndarray:
         try:

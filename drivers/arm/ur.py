@@ -23,9 +23,24 @@ has no such mode; an e-Series before 5.6 cannot say, and in local control does n
 uploaded script, so that failure's fix names remote control. ``identify()`` reports what was
 found, for ``dtx hw check``.
 
-Known limit of ur_rtde 1.6.5: if the connection drops during the few milliseconds in which
-the client hands a command over (it waits for the script's "done" flag), the client keeps
-waiting on its stale state for up to its 300 s execution time-out, holding the GIL.
+Every call that waits on the controller has a deadline (URArmConfig's ``*_deadline_s``):
+ur_rtde waits for its script's "done" up to 300 s (``UR_EXECUTION_TIMEOUT`` in
+rtde_control_interface.h), so each call runs under :func:`drivers.call_with_deadline` (the
+1.6.5 bindings release the GIL while they wait) and a late one raises ArmTimeoutError.
+
+One writer of the script's command register at a time. ``input_int_register_0`` carries both
+the commands and the watchdog's kicks (ur_rtde's kickWatchdog writes NO_CMD there, rtde.cpp),
+and the script reads it once a cycle (rtde_control.script, ``rtde_cmd()``): a kick that lands
+between a command and the script's read erases the command, and one that lands while the
+script shows "done" turns it back to "ready" within a cycle, so a client that misses that
+cycle waits 300 s. Every write therefore holds ``_register``, kicks included, and a command
+waits for no motion (moves and stops are sent asynchronously and awaited here).
+
+A stop is verified: ``stop()`` returns once the state says the arm is at rest, escalating as
+UR's own tools do when it is not: the script's asynchronous stopJ, then the dashboard
+server's ``stop`` (the program ends and the controller brakes the arm), then silence on the
+link (the script's RTDE watchdog stops the program). ``read()`` reports what it took as
+``ArmState.error_code`` (drivers.arm.base.ArmErrorCode).
 """
 
 from __future__ import annotations
@@ -33,7 +48,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 import dashboard_client
 import numpy as np
@@ -41,16 +56,19 @@ import rtde_control
 import rtde_receive
 from scipy.spatial.transform import Rotation
 
-from drivers import requires_connection
+from drivers import call_with_deadline, requires_connection
 from drivers.arm.base import (
     Arm,
     ArmConnectionError,
     ArmError,
+    ArmErrorCode,
+    ArmTimeoutError,
     ConnectionLostError,
     EmergencyStopError,
     MotionAbortedError,
     MotionLimits,
     ProtectiveStopError,
+    StopFailedError,
     WorkspaceBox,
     WorkspaceError,
     as_six_vector,
@@ -89,6 +107,9 @@ MOVING_SPEED_RAD_S = 1e-3
 POLL_PERIOD_S = 0.002
 SAFETY_REPORT_WAIT_S = 0.05
 SCRIPT_START_TIMEOUT_S = 5.0  # a re-uploaded script reports running within this
+REST_STATES = 3  # consecutive fresh states with every joint still: the arm is at rest
+
+T = TypeVar("T")
 
 
 @dataclasses.dataclass
@@ -111,6 +132,12 @@ class URArmConfig:
     # The robot stops when the script's watchdog hears nothing for 1/watchdog_hz s; this
     # process kicks it four times as often.
     watchdog_hz: float = 5.0
+    # Deadlines of the calls that wait on the controller (s). A real controller hands a
+    # command over in a few ms; connecting uploads and starts the control script.
+    command_deadline_s: float = 1.0
+    connect_deadline_s: float = 15.0
+    dashboard_deadline_s: float = 3.0
+    stop_margin_s: float = 0.5  # a stop escalates this long after its deceleration should have ended
 
     def __post_init__(self) -> None:
         if self.model not in DH_PARAMETERS:
@@ -120,6 +147,16 @@ class URArmConfig:
             raise ValueError(
                 f"rtde_frequency_hz must be a positive rate in Hz or left out, got {self.rtde_frequency_hz}"
             )
+        for name in (
+            "watchdog_hz",
+            "command_deadline_s",
+            "connect_deadline_s",
+            "dashboard_deadline_s",
+            "stop_margin_s",
+        ):
+            value = getattr(self, name)
+            if not 0 < value < float("inf"):
+                raise ValueError(f"{name} must be a positive number, got {value}")
 
 
 class URArm(Arm):
@@ -134,6 +171,10 @@ class URArm(Arm):
         self._last_timestamp: float | None = None
         self._last_fresh = 0.0
         self._move_lock = threading.Lock()
+        # Held by every write of the script's command register until ur_rtde's call returns,
+        # even after its deadline: a late call may still clear the register.
+        self._register = threading.Lock()
+        self._error_code = ArmErrorCode.NONE
         self._kicking = threading.Event()  # set: the watchdog kicker should end
         self._kicker: threading.Thread | None = None
         self.software: ControllerSoftware | None = None  # known from connect() on
@@ -149,8 +190,11 @@ class URArm(Arm):
         self.software = self._ask_software()
         self.software.check_arm_model(self.config.model)
         ip, frequency = self.config.robot_ip, self._rtde_frequency_hz()
+        self._error_code = ArmErrorCode.NONE
         try:
-            self._receive = rtde_receive.RTDEReceiveInterface(ip, frequency, STATE_VARIABLES)
+            self._receive = self._connect_call(
+                "open RTDE", lambda: rtde_receive.RTDEReceiveInterface(ip, frequency, STATE_VARIABLES)
+            )
         except RuntimeError as error:
             raise ArmConnectionError(f"cannot open RTDE to the UR controller at {ip}: {error}") from error
         self._last_timestamp = None
@@ -161,10 +205,13 @@ class URArm(Arm):
             self._receive = None
             raise
         try:
-            self._control = rtde_control.RTDEControlInterface(
-                ip, frequency, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+            self._control = self._connect_call(
+                "start ur_rtde's control script",
+                lambda: rtde_control.RTDEControlInterface(
+                    ip, frequency, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+                ),
             )
-        except RuntimeError as error:
+        except (RuntimeError, ArmTimeoutError) as error:
             self._receive.disconnect()
             self._receive = None
             raise ArmConnectionError(
@@ -173,6 +220,43 @@ class URArm(Arm):
             ) from error
         self._start_watchdog()
 
+    def _connect_call(self, what: str, call: Callable[[], T]) -> T:
+        """``call()`` within the connect deadline. A late one is abandoned: the interface it
+        may still build is never used, and without our kicks its script's watchdog stays off
+        (it is armed only by connect(), after this)."""
+        return call_with_deadline(
+            call, self.config.connect_deadline_s, f"UR at {self.config.robot_ip}: {what}", ArmTimeoutError
+        )
+
+    def _command(self, what: str, call: Callable[[], T], deadline_s: float | None = None) -> T:
+        """``call()``, a ur_rtde call that writes the script's command register, once no
+        other write is pending, within ``deadline_s`` (the command deadline by default)."""
+        deadline_s = self.config.command_deadline_s if deadline_s is None else deadline_s
+        if not self._register.acquire(timeout=deadline_s):
+            raise ArmTimeoutError(
+                f"{what}: the previous command to the UR controller is still pending after {deadline_s:g} s"
+            )
+        return call_with_deadline(call, deadline_s, what, ArmTimeoutError, on_return=self._register.release)
+
+    def _dashboard(self, what: str, call: Callable[[Any], T]) -> T:
+        """``call(client)`` on a dashboard connection of its own, connect to disconnect within
+        the dashboard deadline (the server answers each query with one line)."""
+
+        def session() -> T:
+            dashboard = dashboard_client.DashboardClient(self.config.robot_ip)
+            try:
+                dashboard.connect()
+                return call(dashboard)
+            finally:
+                dashboard.disconnect()
+
+        return call_with_deadline(
+            session,
+            self.config.dashboard_deadline_s,
+            f"UR dashboard at {self.config.robot_ip}: {what}",
+            ArmTimeoutError,
+        )
+
     def identify(self) -> str:
         return "" if self.software is None else f"UR controller {self.software.name}, {self.software.control_mode}"
 
@@ -180,17 +264,19 @@ class URArm(Arm):
         """The controller's software version from the dashboard server, and whether it is in
         remote control where it has that mode and can say (ArmConnectionError if it is not)."""
         ip = self.config.robot_ip
-        dashboard = dashboard_client.DashboardClient(ip)
-        try:
-            dashboard.connect()
+
+        def ask(dashboard: Any) -> tuple[ControllerSoftware, bool]:
             software = ControllerSoftware.parse(dashboard.polyscopeVersion())
-            remote = dashboard.isInRemoteControl() if software.reports_remote_control else True
+            return software, dashboard.isInRemoteControl() if software.reports_remote_control else True
+
+        try:
+            software, remote = self._dashboard("software version", ask)
+        except ArmTimeoutError as error:
+            raise ArmConnectionError(error.reason, "check that the controller is on and reachable") from error
         except ArmError:
             raise  # the version's own error, which says what the controller answered
         except RuntimeError as error:
             raise ArmConnectionError(f"cannot reach the UR dashboard server at {ip}: {error}") from error
-        finally:
-            dashboard.disconnect()
         if not remote:
             raise ArmConnectionError(
                 f"UR at {ip} ({software.name}) is in local control",
@@ -225,7 +311,8 @@ class URArm(Arm):
     def _start_watchdog(self) -> None:
         """Arm the script's watchdog and kick it from a thread of this process: if the
         process or the link dies, the kicks stop and so does the robot."""
-        self._control.setWatchdog(self.config.watchdog_hz)
+        control = self._control
+        self._command("set the RTDE watchdog", lambda: control.setWatchdog(self.config.watchdog_hz))
         if self._kicker is not None and self._kicker.is_alive():
             return  # still kicking: a re-uploaded script only needed its watchdog set again
         self._kicking.clear()
@@ -239,7 +326,9 @@ class URArm(Arm):
             if control is None:
                 return
             try:
-                control.kickWatchdog()
+                self._command("kick the RTDE watchdog", control.kickWatchdog)
+            except ArmTimeoutError:
+                continue  # a command holds the register; if it keeps it, the watchdog stops the arm
             except RuntimeError:
                 return  # the link is gone: the robot stops by the watchdog, as it should
 
@@ -247,7 +336,9 @@ class URArm(Arm):
         """Upload ur_rtde's script again and wait until it runs (reuploadScript returns once
         it is sent, before the controller reports the program running)."""
         deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
-        uploaded = self._control.reuploadScript()
+        uploaded = self._command(
+            "upload the control script", self._control.reuploadScript, deadline_s=SCRIPT_START_TIMEOUT_S
+        )
         while uploaded and not self._control.isProgramRunning():
             if time.monotonic() > deadline:
                 uploaded = False
@@ -278,7 +369,7 @@ class URArm(Arm):
         """
         receive = self._receive
         if receive is None:
-            return ArmState(header=Header.now("base"), safety_status="disconnected")
+            return ArmState(header=Header.now("base"), safety_status="disconnected", error_code=self._error_code)
         now = time.monotonic()
         timestamp = receive.getTimestamp()
         if timestamp != self._last_timestamp:
@@ -299,6 +390,7 @@ class URArm(Arm):
             joint_velocities=joint_velocities,
             moving=self._move_lock.locked() or bool(np.any(np.abs(joint_velocities) > MOVING_SPEED_RAD_S)),
             safety_status=safety_status,
+            error_code=self._error_code,
         )
 
     @requires_connection
@@ -354,31 +446,105 @@ class URArm(Arm):
         )
 
     def stop(self) -> None:
-        """Decelerate the arm to rest and return once the controller reports it stopped. A
-        move waiting in another thread then raises MotionAbortedError. Raises
-        ConnectionLostError if the link is down.
+        """Bring the arm to rest and return once its state says it is: every joint still for
+        REST_STATES fresh states and no asynchronous operation of the script running. A move
+        waiting in another thread then raises MotionAbortedError.
+
+        Escalates while the arm is not at rest in its deceleration time plus ``stop_margin_s``
+        (controller time): the script's asynchronous stopJ, then the dashboard's ``stop``, then
+        silence on the link until the script's watchdog ends the program. ``read()`` then
+        reports the step that worked as its error code. Raises StopFailedError if the arm still
+        moves after all three (the fix: the emergency stop), ConnectionLostError (code
+        STOP_UNVERIFIED) if the link is down and the stop cannot be seen.
 
         Sends stopJ: ur_rtde 1.6.5's script ends a running move with stopj whichever stop is
         asked for (rtde_control.script, exec_stopl_stopj() and stop_thread()), so a stopL
         would have its TCP deceleration applied to the joints."""
-        state = self.read()
-        if state.safety_status == "disconnected":
-            raise ConnectionLostError("cannot send stop: no live connection to the UR controller")
+        state = self._state_for_stop()
         if state.safety_status != "normal":
             return  # a protective or emergency stop has already brought the arm to rest
-        self._control.stopJ(self.config.stop_decel_rad_s2, False)
+        decel_s = float(np.max(np.abs(state.joint_velocities))) / self.config.stop_decel_rad_s2
+        control = self._control
+        try:
+            self._command("stopJ", lambda: control.stopJ(self.config.stop_decel_rad_s2, True))
+        except ArmTimeoutError:
+            pass  # the script's state is unknown now: the dashboard's stop settles it
+        else:
+            if self._wait_for_rest(decel_s):
+                # stopJ returns nothing: a script that ended while it waited (its watchdog,
+                # unkicked while the command held the register, or the pendant) did not run it.
+                program_running = control.isProgramRunning()
+                self._error_code = ArmErrorCode.NONE if program_running else ArmErrorCode.STOP_BY_PROGRAM_END
+                return
+        try:
+            self._dashboard("stop", lambda dashboard: dashboard.stop())
+        except (ArmError, RuntimeError):
+            pass  # refused or unanswered: the watchdog is the last resort
+        else:
+            if self._wait_for_rest(decel_s):
+                self._error_code = ArmErrorCode.STOP_ESCALATED_DASHBOARD
+                return
+        self._stop_watchdog()  # the script hears nothing more: its watchdog ends the program
+        if self._wait_for_rest(decel_s + 1.0 / self.config.watchdog_hz):
+            self._error_code = ArmErrorCode.STOP_ESCALATED_WATCHDOG
+            return
+        self._error_code = ArmErrorCode.STOP_FAILED
+        raise StopFailedError(
+            f"the UR arm at {self.config.robot_ip} still moves after stopJ, the dashboard's stop and the watchdog",
+            "press the emergency stop",
+        )
+
+    def _state_for_stop(self) -> ArmState:
+        state = self.read()
+        if state.safety_status == "disconnected":
+            self._error_code = ArmErrorCode.STOP_UNVERIFIED
+            raise ConnectionLostError(
+                "cannot see the UR arm stop: no live connection to the controller",
+                f"its watchdog stops the arm within {1.0 / self.config.watchdog_hz:g} s of silence; check it has",
+                code=ArmErrorCode.STOP_UNVERIFIED,
+            )
+        return state
+
+    def _wait_for_rest(self, decel_s: float) -> bool:
+        """Whether the arm comes to rest within ``decel_s`` plus the stop margin, counted on
+        the controller's clock (a stalled controller is no moving arm; a silent one raises
+        ConnectionLostError through the staleness of its state)."""
+        allowed_s = decel_s + self.config.stop_margin_s
+        receive, control = self._receive, self._control
+        start = last = receive.getTimestamp()
+        still = 0
+        while last - start <= allowed_s:
+            state = self._state_for_stop()
+            if state.safety_status != "normal":
+                return True  # a safety stop holds the arm
+            timestamp = receive.getTimestamp()
+            if timestamp != last:
+                last = timestamp
+                joints_still = bool(np.all(np.abs(state.joint_velocities) <= MOVING_SPEED_RAD_S))
+                operation_running = (
+                    control.isProgramRunning() and control.getAsyncOperationProgressEx().isAsyncOperationRunning()
+                )
+                still = still + 1 if joints_still and not operation_running else 0
+                if still >= REST_STATES:
+                    return True
+            time.sleep(POLL_PERIOD_S)
+        return False
 
     def disconnect(self) -> None:
-        """Stop ur_rtde's control script and close both RTDE connections."""
+        """Stop ur_rtde's control script and close both RTDE connections, each within its
+        deadline (a late one is abandoned: the script's watchdog is silent from here on)."""
         self._stop_watchdog()
         control, receive = self._control, self._receive
         self._control = self._receive = None
         if control is not None:
             if receive is not None and receive.isConnected() and control.isConnected():
-                control.stopScript()
-            control.disconnect()
+                try:
+                    self._command("stop the control script", control.stopScript)
+                except ArmTimeoutError:
+                    pass  # its watchdog ends the script within a period
+            self._connect_call("close the control link", control.disconnect)
         if receive is not None:
-            receive.disconnect()
+            self._connect_call("close the state stream", receive.disconnect)
 
     def _execute(
         self, description: str, send: Callable[[], bool], arrived: Callable[[ArmState], bool], expected_s: float
@@ -394,9 +560,16 @@ class URArm(Arm):
             # The script's operation id changes when the move starts, so a move counts
             # as finished only once it has started and then stopped running.
             operation_before = self._control.getAsyncOperationProgressEx().operationId()
-            if not send():
+            try:
+                accepted = self._command(description, send)
+            except ArmTimeoutError:
+                self._error_code = ArmErrorCode.COMMAND_TIMEOUT
+                self.stop()  # the move may have started: the arm is brought to rest either way
+                raise
+            if not accepted:
                 self._raise_if_unsafe(self.read(), description)
                 raise ArmError(f"{description}: the controller refused the command")
+            self._error_code = ArmErrorCode.NONE
             # The deadline runs in the controller's time: at the speed slider's fraction f a
             # move takes 1/f as long (at 0 the operator has paused it, and it waits).
             allowed_s = expected_s + self.config.move_timeout_margin_s

@@ -13,12 +13,16 @@ import dataclasses
 import cv2
 import numpy as np
 
-from drivers import Device, DeviceError, DeviceNotConnectedError
+from drivers import Device, DeviceError, DeviceNotConnectedError, DeviceTimeoutError
 from msgs import TactileImage
 
 
 class GelSightError(DeviceError):
     """Any failure of a GelSight backend; the message says which device and what to do."""
+
+
+class GelSightTimeoutError(GelSightError, DeviceTimeoutError):
+    """The camera gave no frame within the read deadline."""
 
 
 class GelSightNotConnectedError(DeviceNotConnectedError, GelSightError):

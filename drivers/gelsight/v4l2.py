@@ -11,13 +11,21 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from drivers import requires_connection
-from drivers.gelsight.base import EndOfStreamError, GelSight, GelSightError, SensorPreset, preset
+from drivers import call_with_deadline, requires_connection
+from drivers.gelsight.base import (
+    EndOfStreamError,
+    GelSight,
+    GelSightError,
+    GelSightTimeoutError,
+    SensorPreset,
+    preset,
+)
 from msgs import Header, TactileImage
 
 # V4L2's V4L2_CID_EXPOSURE_AUTO value for manual exposure (OpenCV passes it through).
@@ -40,8 +48,10 @@ class V4L2GelSightConfig:
     warmup_frames: int = 15
     background_frames: int = 5
     # Consecutive failed reads before the camera counts as lost; OpenCV's V4L2 backend waits
-    # up to 10 s per read (OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT) before one fails.
+    # up to 10 s per read (OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT) before one fails, hence the deadline.
     max_failed_reads: int = 3
+    # Every frame, its retries included, comes within this or the camera counts as lost.
+    read_deadline_s: float = 2.0
     mm_per_px: float = 0.0  # 0: the preset's
     sysfs_root: str = "/sys/class/video4linux"
 
@@ -96,17 +106,38 @@ class FrameSource:
     """A cv2.VideoCapture, and what to report when it stops giving frames."""
 
     def __init__(
-        self, capture: cv2.VideoCapture, label: str, live: bool, max_failed_reads: int, loop: bool = False
+        self,
+        capture: cv2.VideoCapture,
+        label: str,
+        live: bool,
+        max_failed_reads: int,
+        deadline_s: float,
+        loop: bool = False,
     ) -> None:
         self.capture = capture
         self.label = label
         self.live = live
         self.max_failed_reads = max_failed_reads
+        self.deadline_s = deadline_s
         self.loop = loop
         self.frames_read = 0
+        # Held from a read's start until OpenCV returns, late or not: a VideoCapture serves
+        # one read at a time.
+        self._reading = threading.Lock()
 
     def next_rgb(self) -> np.ndarray:
-        """The next frame, HxWx3 uint8 RGB."""
+        """The next frame, HxWx3 uint8 RGB, within the deadline (GelSightTimeoutError)."""
+        if not self._reading.acquire(blocking=False):
+            raise GelSightTimeoutError(f"{self.label}: an earlier read past its deadline has not returned")
+        return call_with_deadline(
+            self._read_rgb,
+            self.deadline_s,
+            f"{self.label}: read a frame",
+            GelSightTimeoutError,
+            on_return=self._reading.release,
+        )
+
+    def _read_rgb(self) -> np.ndarray:
         attempts = self.max_failed_reads if self.live else 1
         for _ in range(attempts):
             ok, frame = self.capture.read()
@@ -189,7 +220,12 @@ class V4L2GelSight(GelSight):
                 f"OpenCV cannot decode the tactile video {path}; record it losslessly, e.g. FFV1 in an .avi"
             )
         return FrameSource(
-            capture, f"tactile video {path}", live=False, max_failed_reads=1, loop=self.config.loop_video
+            capture,
+            f"tactile video {path}",
+            live=False,
+            max_failed_reads=1,
+            deadline_s=self.config.read_deadline_s,
+            loop=self.config.loop_video,
         )
 
     def _open_camera(self) -> FrameSource:
@@ -227,4 +263,10 @@ class V4L2GelSight(GelSight):
                     f"{label} refused {what} = {value}; list what it supports with "
                     f"`v4l2-ctl -d /dev/video{index} --list-ctrls --list-formats-ext`"
                 )
-        return FrameSource(capture, label, live=True, max_failed_reads=self.config.max_failed_reads)
+        return FrameSource(
+            capture,
+            label,
+            live=True,
+            max_failed_reads=self.config.max_failed_reads,
+            deadline_s=self.config.read_deadline_s,
+        )

@@ -29,7 +29,19 @@ It is as strict as the controller running what ur_rtde 1.6.5 uploads:
 - it runs one software version (:mod:`sim.ur_controller.versions`): CB3 (3.x) or e-Series
   (5.x), which sets what the dashboard knows, the RTDE rate and whether there is a local and a
   remote control mode; an e-Series controller in local control does not run programs sent over
-  the network (:meth:`sim.ur_controller.FakeURController.set_remote_control`).
+  the network (:meth:`sim.ur_controller.FakeURController.set_remote_control`);
+- the script's command register has one cell (``input_int_register_0``), written by every
+  input package that carries it, commands and ur_rtde's watchdog kicks (NO_CMD) alike, and
+  read once a cycle (rtde_control.script, ``rtde_cmd()``); "done" stands until the register
+  goes back to NO_CMD.
+
+And it fails to answer the ways that register lets a real one (:data:`FAULTS`, injected per
+command by :meth:`sim.ur_controller.FakeURController.inject_fault`): a command erased before
+the script's cycle reads it, as a second writer's NO_CMD erases it (``lose_command``); a
+"done" replaced by "ready" before any state package shows it, as a NO_CMD landing right after
+the script's read makes it (``brief_done``; ur_rtde then waits its 300 s); the link dropped as
+the command arrives (``cut_on_command``); and the dashboard's ``stop`` refused as a controller
+refuses it ("Failed to execute: stop", ``refuse_dashboard_stop``).
 """
 
 from __future__ import annotations
@@ -61,6 +73,7 @@ SCRIPT_READY, SCRIPT_DONE_WITH_COMMAND = 1, 2
 CMD_NONE, CMD_MOVEJ, CMD_MOVEL, CMD_STOPL, CMD_STOPJ, CMD_SET_WATCHDOG, CMD_STOP_SCRIPT = 0, 1, 3, 33, 34, 35, 255
 ASYNC_RUNNING_BIT = 1 << 15
 PROGRAM_STOP_DECEL = 10.0  # m/s² or rad/s² when a program ends mid-move
+FAULTS = ("lose_command", "brief_done", "cut_on_command", "refuse_dashboard_stop")
 
 
 class StreamingSession(Protocol):
@@ -83,6 +96,7 @@ class _ControlScript:
         self.blocking_motion: Motion | None = None  # a synchronous move or stop in progress
         self.async_write_count = 0
         self.async_operation_id = 0
+        self.brief_done = False  # the next "done" is cleared before a state package shows it
 
 
 class Controller:
@@ -112,6 +126,7 @@ class Controller:
         self.remote_control = True  # e-Series only: CB3 has no local or remote control
         self.watchdog_period_s: float | None = None  # set by the script's set_watchdog
         self.watchdog_kicked = time.monotonic()
+        self.faults: dict[str, int] = {}  # fault -> the command number it strikes (0: dashboard)
         self.outputs = self._modelled_outputs()
 
     # ---- values the RTDE outputs report -------------------------------------------
@@ -276,8 +291,16 @@ class Controller:
             self._write_async_progress(-1)
 
     def _write_int(self, register: int, value: int) -> None:
-        assert self.script is not None
-        self.registers[f"output_int_register_{self.script.offset + register}"] = value
+        script = self.script
+        assert script is not None
+        if register == 0 and value == SCRIPT_DONE_WITH_COMMAND and script.brief_done:
+            # A NO_CMD lands on the command register right after the script read it: the next
+            # cycle sees no command and says "ready" before the client saw "done".
+            script.brief_done = False
+            script.executing_command = False
+            self.registers[f"input_int_register_{script.offset}"] = CMD_NONE
+            value = SCRIPT_READY
+        self.registers[f"output_int_register_{script.offset + register}"] = value
 
     def _write_async_progress(self, progress: int) -> None:
         """Encode progress as the script's write_async_progress_register does: change count
@@ -376,9 +399,51 @@ class Controller:
                 "controller_time_s": self.ticks * self.dt,
             }
 
-    def note_command(self, name: str, value: Any, received_ns: int) -> None:
-        """Log when a new command number reaches the script's command register."""
+    def write_input(self, name: str, value: Any, received_ns: int) -> None:
+        """One value of an RTDE input package: a new command number is logged (when it was
+        received, ``time.monotonic_ns()``), any write of the command register kicks the
+        watchdog, and a fault injected for the command strikes it. A command overwritten before
+        the script's cycle read it is logged as erased: a real controller loses it silently."""
         offset = self.script.offset if self.script is not None else 0
         register = f"input_int_register_{offset}"
-        if name == register and value != CMD_NONE and self.registers.get(register) != value:
+        previous = self.registers.get(register, CMD_NONE)
+        new_command = name == register and value != CMD_NONE and previous != value
+        if new_command:
             self.commands_received.append((received_ns, int(value)))
+        script = self.script
+        if (
+            name == register
+            and previous not in (CMD_NONE, value)
+            and script is not None
+            and not script.executing_command
+        ):
+            self.events.append(f"command {previous} erased before the script read it")
+        self.registers[name] = value
+        if self.script is not None and name == register:
+            self.watchdog_kicked = time.monotonic()
+        if new_command:
+            self._strike(int(value), register)
+
+    def inject_fault(self, fault: str, command: int) -> None:
+        """Let ``fault`` (one of FAULTS) strike the next ``command`` (a command number; 0 for
+        the dashboard's stop)."""
+        with self.lock:
+            if fault not in FAULTS:
+                raise ValueError(f"unknown fault {fault!r}; known: {', '.join(FAULTS)}")
+            self.faults[fault] = int(command)
+
+    def take_fault(self, fault: str, command: int) -> bool:
+        """Whether ``fault`` was injected for ``command``; it strikes once."""
+        if self.faults.get(fault) != command:
+            return False
+        del self.faults[fault]
+        self.events.append(f"fault: {fault} {command}")
+        return True
+
+    def _strike(self, command: int, register: str) -> None:
+        if self.take_fault("lose_command", command):
+            self.registers[register] = CMD_NONE
+        if self.take_fault("brief_done", command) and self.script is not None:
+            self.script.brief_done = True
+        if self.take_fault("cut_on_command", command):
+            self.cut()

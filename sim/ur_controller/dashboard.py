@@ -101,7 +101,7 @@ def _action_answer(controller: Controller, command: str) -> str | None:
     """Carry out a command that changes the controller's state and answer it, or None if
     ``command`` is none."""
     if command == "stop":
-        if controller.script is None:
+        if controller.script is None or controller.take_fault("refuse_dashboard_stop", 0):
             return "Failed to execute: stop"
         controller.end_program()
         return "Stopped"

@@ -238,10 +238,7 @@ class RTDESession:
                 width = _width(variable_type(name) or "DOUBLE")
                 value = flat[0] if width == 1 else flat[:width]
                 del flat[:width]
-                controller.note_command(name, value, received_ns)
-                controller.registers[name] = value
-                if controller.script is not None and name == f"input_int_register_{controller.script.offset}":
-                    controller.watchdog_kicked = time.monotonic()
+                controller.write_input(name, value, received_ns)
 
     def send_state_if_due(self, tick: int) -> None:
         if self.output_struct is None or tick % self.ticks_per_package:

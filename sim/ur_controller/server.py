@@ -76,6 +76,7 @@ def _controller_process(
         "speed_slider": controller.set_speed_slider,
         "remote_control": lambda remote: controller.set_remote_control(bool(remote)),
         "cut": lambda _: controller.cut(),
+        "fault": lambda fault_and_command: controller.inject_fault(*fault_and_command),
         "shutdown": lambda _: _shut_down(controller),
     }
     while controller.running:
@@ -164,6 +165,12 @@ class FakeURController:
         """Remote control (True) or local control (False) on the pendant of an e-Series
         controller; ValueError on a CB3, which has neither."""
         self._request("remote_control", remote)
+
+    def inject_fault(self, fault: str, command: int = 0) -> None:
+        """Make the controller fail to answer the next ``command`` (a command number; 0 for
+        the dashboard's stop) the way ``fault`` says: "lose_command", "brief_done",
+        "cut_on_command" or "refuse_dashboard_stop" (:mod:`sim.ur_controller.controller`)."""
+        self._request("fault", (fault, command))
 
     def cut_connections(self) -> None:
         """Drop all client connections and refuse new ones."""
