@@ -2,9 +2,8 @@
 
 State comes from a receive interface at the RTDE rate; moves go through the control
 interface, which uploads ur_rtde's control script and passes commands in RTDE registers.
-Moves are sent *asynchronously* and awaited here, in Python: ur_rtde's compiled calls hold
-the GIL, so a blocking moveL would freeze every other thread of the node (state
-publishing, a stop request) for the whole motion.
+Moves are sent *asynchronously* and awaited here, in Python: a blocking moveL holds the
+script's command register for the whole motion, and no stop could be handed over meanwhile.
 
 What the controller really does shapes the rest (ur_rtde 1.6.5 and its rtde_control.script):
 the pendant's speed slider scales motion time, so a move's deadline stretches by the
@@ -41,6 +40,10 @@ UR's own tools do when it is not: the script's asynchronous stopJ, then the dash
 server's ``stop`` (the program ends and the controller brakes the arm), then silence on the
 link (the script's RTDE watchdog stops the program). ``read()`` reports what it took as
 ``ArmState.error_code`` (drivers.arm.base.ArmErrorCode).
+
+The module is longer than 500 lines because one class keeps one controller's contract: connect, moves, the
+verified stop and disconnect share its register lock, watchdog and state, and splitting them
+would spread that shared state over modules.
 """
 
 from __future__ import annotations
@@ -560,16 +563,7 @@ class URArm(Arm):
             # The script's operation id changes when the move starts, so a move counts
             # as finished only once it has started and then stopped running.
             operation_before = self._control.getAsyncOperationProgressEx().operationId()
-            try:
-                accepted = self._command(description, send)
-            except ArmTimeoutError:
-                self._error_code = ArmErrorCode.COMMAND_TIMEOUT
-                self.stop()  # the move may have started: the arm is brought to rest either way
-                raise
-            if not accepted:
-                self._raise_if_unsafe(self.read(), description)
-                raise ArmError(f"{description}: the controller refused the command")
-            self._error_code = ArmErrorCode.NONE
+            self._send_move(description, send)
             # The deadline runs in the controller's time: at the speed slider's fraction f a
             # move takes 1/f as long (at 0 the operator has paused it, and it waits).
             allowed_s = expected_s + self.config.move_timeout_margin_s
@@ -609,6 +603,20 @@ class URArm(Arm):
                 raise MotionAbortedError(f"{description}: stopped short at TCP {np.round(final.tcp_pose, 4).tolist()}")
         finally:
             self._move_lock.release()
+
+    def _send_move(self, description: str, send: Callable[[], bool]) -> None:
+        """Hand the move to the script within the command deadline; a late hand-over may still
+        start the move, so the arm is brought to rest before the ArmTimeoutError is raised."""
+        try:
+            accepted = self._command(description, send)
+        except ArmTimeoutError:
+            self._error_code = ArmErrorCode.COMMAND_TIMEOUT
+            self.stop()
+            raise
+        if not accepted:
+            self._raise_if_unsafe(self.read(), description)
+            raise ArmError(f"{description}: the controller refused the command")
+        self._error_code = ArmErrorCode.NONE
 
     @staticmethod
     def _raise_if_unsafe(state: ArmState, action: str) -> None:

@@ -4,8 +4,8 @@ rate and each interface accepts its clients on its own port of one loopback addr
 :mod:`sim.ur_controller.rtde`, dashboard: :mod:`sim.ur_controller.dashboard`, script:
 :mod:`sim.ur_controller.script`).
 
-The client's compiled code holds the GIL, so the fake runs in its own (spawned) process;
-tests drive it through :class:`FakeURController`. Every fake gets its own 127.x.y.z
+The fake runs in its own (spawned) process, so its ticks keep the controller's pace whatever
+the client's process does; tests drive it through :class:`FakeURController`. Every fake gets its own 127.x.y.z
 address because the client's ports are fixed.
 """
 
