@@ -1,9 +1,13 @@
 """Recording under full sensor load, then replay speed.
 
 A publisher process emits what a collection session does — two 512x424 depth streams and two
-640x480 RGB tactile streams at 30 Hz, arm and gripper state at 125 Hz — while the real
-``dtx bag record`` runs as its own process. Per topic: published, recorded, dropped. Then the
-bag is replayed with ``dtx bag play --fast`` and its rate given in MB/s.
+640x480 RGB tactile streams at 30 Hz, arm and gripper state at 125 Hz, six transforms on
+``/tf`` at 20 Hz — while the real ``dtx bag record`` runs as its own process. Per topic:
+published, recorded, dropped, and how far behind the recorder was, read from the bag
+(``nodes.bag.recording_lag``: lag p50/p99/max and the largest backlog); then how much further
+``/tf`` fell behind than the worst other topic (issue 55's target: at most 1 s under load) and
+the spread from the least to the most behind topic. Then the bag is replayed with
+``dtx bag play --fast`` and its rate given in MB/s.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ STREAMS = {  # topic -> (rate Hz, message factory)
     "/gelsight/right/image": 30.0,
     "/arm/state": 125.0,
     "/gripper/state": 125.0,
+    "/tf": 120.0,  # the transform node's six frames at 20 Hz
 }
 
 
@@ -59,6 +64,7 @@ def _sensor_messages(rng: np.random.Generator) -> dict[str, Any]:
         ),
         "/arm/state": msgs.ArmState(tcp_pose=np.zeros(6), joint_positions=np.zeros(6), joint_velocities=np.zeros(6)),
         "/gripper/state": msgs.GripperState(width_m=0.08),
+        "/tf": msgs.FrameTransform(header=msgs.Header(frame_id="world"), child_frame_id="tcp", translation=np.zeros(3)),
     }
 
 
@@ -102,7 +108,9 @@ def run(args: argparse.Namespace) -> dict:
         load.join()
         time.sleep(1.0)
         recorder.send_signal(signal.SIGINT)
-        recorder_output, _ = recorder.communicate(timeout=120)
+        # A recorder that fell behind (a loaded machine) writes its whole backlog before it ends:
+        # minutes after a minute of load on two busy cores.
+        recorder_output, _ = recorder.communicate(timeout=120 + 10 * args.duration)
         recorded = json.loads(recorder_output.strip().splitlines()[-1])["recorded"]
         info = bag_info(bag)
         size_mb = bag.stat().st_size / 1e6
@@ -123,6 +131,7 @@ def run(args: argparse.Namespace) -> dict:
             "published": published[t],
             "recorded": recorded.get(t, 0),
             "dropped": published[t] - recorded.get(t, 0),
+            **_lag_columns(info.topics.get(t)),
         }
         for t in STREAMS
     ]
@@ -131,8 +140,41 @@ def run(args: argparse.Namespace) -> dict:
         "compression": args.compression,
         "topics": per_topic,
         "dropped_total": sum(row["dropped"] for row in per_topic),
+        **_tf_behind_others(per_topic),
         "bag_mb": round(size_mb, 1),
         "bag_truncated": info.truncated,
         "play_fast_mb_per_s": round(dtx_bytes / 1e6 / reported_s, 1),
         "play_fast_wall_s_including_start": round(play_s, 2),
     }
+
+
+def _lag_columns(entry: dict[str, Any] | None) -> dict[str, Any]:
+    """A topic's lag figures from ``bag_info`` as flat columns (null, with the reason, if none)."""
+    if entry is None or entry["lag_ms"] is None:
+        reason = "the topic has no stamped message in the bag"
+        return {
+            **{f"lag_{k}_ms": None for k in ("p50", "p99", "max")},
+            **{f"lag_{k}_ms_undefined": reason for k in ("p50", "p99", "max")},
+            "backlog_max": None,
+            "backlog_max_undefined": reason,
+        }
+    return {**{f"lag_{k}_ms": v for k, v in entry["lag_ms"].items()}, "backlog_max": entry["backlog_max"]}
+
+
+def _tf_behind_others(per_topic: list[dict[str, Any]]) -> dict[str, Any]:
+    """Fairness in two figures per statistic (p99, max of the lag): how much further /tf went
+    than the worst other topic (negative: less far), and the spread from the least to the most
+    behind of all topics."""
+    figures: dict[str, Any] = {}
+    if any(row["lag_max_ms"] is None for row in per_topic):
+        reason = "a topic has no lag to compare (it recorded nothing)"
+        for stat in ("p99", "max"):
+            for key in (f"tf_lag_{stat}_over_others_ms", f"lag_{stat}_spread_ms"):
+                figures[key], figures[f"{key}_undefined"] = None, reason
+        return figures
+    for stat in ("p99", "max"):
+        lags = {row["topic"]: row[f"lag_{stat}_ms"] for row in per_topic}
+        tf = lags.pop("/tf")
+        figures[f"tf_lag_{stat}_over_others_ms"] = round(tf - max(lags.values()), 3)
+        figures[f"lag_{stat}_spread_ms"] = round(max(tf, *lags.values()) - min(tf, *lags.values()), 3)
+    return figures

@@ -274,6 +274,12 @@ def cmd_bag_info(args: argparse.Namespace) -> int:
     print(f"messages:    {info.message_count}")
     for topic, entry in info.topics.items():
         print(f"  {topic:40} {entry['count']:8d} msgs  {entry['bytes'] / 1e6:9.2f} MB  {entry['schema']}")
+        lag = entry["lag_ms"]
+        if lag is not None:  # how far behind the recorder was (docs/bag-format.md)
+            print(
+                f"  {'':40} lag p50 {lag['p50']:.1f} ms, p99 {lag['p99']:.1f} ms, max {lag['max']:.1f} ms; "
+                f"backlog at most {entry['backlog_max']}"
+            )
     return 0
 
 

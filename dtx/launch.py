@@ -21,7 +21,8 @@ Every node runs as its own process; its output is prefixed with its name. A node
 die together come back together), when it exits non-zero, but not 2 (a node says with 2 that
 restarting cannot help)); when a ``required`` node ends otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
 left out. Every
-child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9.
+child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9, and starts
+through ``nodes.start``, so a stop that comes while it is still starting ends it quietly.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ import yaml
 from msgs.progress import TERMINAL_ENV, on_terminal
 from nodes.node import EXIT_DO_NOT_RESPAWN
 from nodes.registry import Registry
+from nodes.start import hold_stops
 
 NODE_KEYS = {
     "name",
@@ -90,6 +92,7 @@ class NodeSpec:
         command = [
             sys.executable,
             "-m",
+            "nodes.start",  # a stop during start-up ends the node quietly (see there)
             self.module,
             "--name",
             self.name,
@@ -247,9 +250,10 @@ def _substitute(path: Path, node: yaml.Node, args: dict[str, str]) -> Any:
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
+def _prepare_child() -> None:
     # SIGKILL: a node stuck in a blocking call must not outlive a launcher that was killed.
     ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    hold_stops()  # a stop during the interpreter's start-up waits for nodes.start's handler
 
 
 @dataclasses.dataclass
@@ -291,7 +295,7 @@ class Launcher:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
-            preexec_fn=_die_with_parent,
+            preexec_fn=_prepare_child,
             env={
                 **os.environ,
                 "PYTHONUNBUFFERED": "1",

@@ -21,11 +21,13 @@ import stat
 import struct
 import time
 import typing
-from collections.abc import Iterator
+from array import array
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import lz4.frame
+import numpy as np
 import zstandard
 from mcap.exceptions import McapError, RecordLengthLimitExceeded
 from mcap.reader import SeekingReader
@@ -199,6 +201,7 @@ class BagRecord:
     message_encoding: str
     log_time_ns: int
     data: bytes
+    publish_time_ns: int = 0
 
 
 class _BoundedFile:
@@ -318,6 +321,7 @@ def read_records(path: str | Path) -> tuple[Iterator[BagRecord], BagReading]:
                                 channel.message_encoding,
                                 item.log_time,
                                 item.data,
+                                item.publish_time,
                             )
             except BagError:
                 raise
@@ -332,8 +336,11 @@ def read_records(path: str | Path) -> tuple[Iterator[BagRecord], BagReading]:
 
 
 def bag_info(path: str | Path) -> BagInfo:
+    """Per channel: schema, encoding, messages, bytes, and how far behind the recorder was
+    (:func:`recording_lag`)."""
     records, reading = read_records(path)
     topics: dict[str, dict[str, Any]] = {}
+    times: dict[str, tuple[array[int], array[int]]] = {}  # topic -> (log times, publish times), in file order
     start = end = 0
     count = 0
     for record in records:
@@ -342,10 +349,37 @@ def bag_info(path: str | Path) -> BagInfo:
         )
         entry["count"] += 1
         entry["bytes"] += len(record.data)
+        if record.publish_time_ns:
+            log_times, publish_times = times.setdefault(record.topic, (array("q"), array("q")))
+            log_times.append(record.log_time_ns)
+            publish_times.append(record.publish_time_ns)
         start = record.log_time_ns if count == 0 else min(start, record.log_time_ns)
         end = max(end, record.log_time_ns)
         count += 1
+    for topic, entry in topics.items():
+        if topic in times:
+            entry.update(recording_lag(*times[topic]))
+        else:
+            reason = "no message of this channel carries a publish time"
+            entry.update(lag_ms=None, lag_ms_undefined=reason, backlog_max=None, backlog_max_undefined=reason)
     return BagInfo(str(path), reading.truncated, count, start, end, topics, reading.compression)
+
+
+def recording_lag(log_times: Sequence[int], publish_times: Sequence[int]) -> dict[str, Any]:
+    """How far behind its recorder one channel was, from the records alone, in file (= write)
+    order (docs/bag-format.md): each message's lag is its log time minus its publish time (the
+    header stamp), in ms; the backlog when a message was written is the count of the channel's
+    messages published by then but written after it."""
+    logged = np.asarray(log_times, np.int64)
+    published = np.asarray(publish_times, np.int64)
+    lag_ms = (logged - published) / 1e6
+    p50, p99 = np.percentile(lag_ms, [50, 99])
+    published_by = np.searchsorted(np.sort(published), logged, side="right")
+    backlog = published_by - np.arange(1, len(logged) + 1)
+    return {
+        "lag_ms": {"p50": round(float(p50), 3), "p99": round(float(p99), 3), "max": round(float(lag_ms.max()), 3)},
+        "backlog_max": max(0, int(backlog.max())),
+    }
 
 
 def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:

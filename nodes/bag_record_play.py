@@ -1,12 +1,19 @@
 """Record the bus into an MCAP bag (nodes.bag), and replay a bag onto the bus.
 
-Recording takes a slice from each ready topic in turn, so one busy topic does not starve the
-others; playing keeps the recorded timing scaled by a rate and can publish the bag's time on
-``/clock``.
+Recording goes in rounds, fair to every topic: a round takes everything waiting on each topic's
+socket (at most ``round_limit`` messages, by default the bus's high-water mark, what a socket
+holds), then writes all of it, the topics merged oldest header stamp first, before the next round
+takes more. However busy a topic, none of its messages waits past the round after the one it
+arrived in, so no topic falls behind another by more than a round (a fixed share per socket and
+turn, 100 messages, let the busiest topic, ``/tf``, fall seconds behind whenever rounds were
+slow). :class:`RecordStats` says per topic how far behind the recorder is. Playing keeps the
+recorded timing scaled by a rate and can publish the bag's time on ``/clock``.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import heapq
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -15,10 +22,59 @@ from typing import Any
 import zmq
 
 import msgs
+from msgs.codec import Envelope
 from nodes.bag import BagWriter, bag_channels, iter_envelopes
 from nodes.bag_format import MESSAGE_ENCODING, BagError
 from nodes.bus import Bus, Publisher, Subscriber
-from nodes.bus_context import SLICE_MESSAGES, recv_frames
+from nodes.bus_context import recv_frames
+
+# The longest the recorder writes without serving its node (heartbeat, services, a stop).
+SERVE_PERIOD_S = 0.05
+SCAN_PERIOD_S = 0.5  # how often new topics and publishers are looked for
+IDLE_WAIT_MS = 50  # with nothing waiting, how long to wait for a message before serving again
+
+Taken = tuple[list[zmq.Frame], Envelope]  # a received message: its frames (written as they are) and itself
+
+
+@dataclasses.dataclass
+class TopicProgress:
+    """How far behind the recorder is on one topic."""
+
+    written: int = 0
+    backlog: int = 0  # received and not yet written
+    peak_backlog: int = 0  # the largest backlog since the last report
+    peak_lag_ns: int = 0  # the largest lag of a message written since the last report
+
+
+class RecordStats:
+    """What ``record`` says while it runs, per topic: messages written, the backlog (received and
+    not yet written) and the lag (write time minus the message's header stamp). Messages ZeroMQ
+    still holds for the recorder cannot be counted (it does not tell a queue's length); the next
+    round takes them, up to its limit."""
+
+    def __init__(self) -> None:
+        self.topics: dict[str, TopicProgress] = {}
+
+    def received(self, topic: str, count: int) -> None:
+        progress = self.topics.setdefault(topic, TopicProgress())
+        progress.backlog += count
+        progress.peak_backlog = max(progress.peak_backlog, progress.backlog)
+
+    def wrote(self, topic: str, lag_ns: int) -> None:
+        progress = self.topics[topic]
+        progress.written += 1
+        progress.backlog -= 1
+        progress.peak_lag_ns = max(progress.peak_lag_ns, lag_ns)
+
+    def report(self) -> dict[str, int]:
+        """``backlog:<topic>`` and ``lag_ms:<topic>``: the largest since the previous report (a
+        node's heartbeat counters, once a beat); the next report's start from now."""
+        counters = {}
+        for topic, progress in self.topics.items():
+            counters[f"backlog:{topic}"] = progress.peak_backlog
+            counters[f"lag_ms:{topic}"] = progress.peak_lag_ns // 1_000_000
+            progress.peak_backlog, progress.peak_lag_ns = progress.backlog, 0
+        return counters
 
 
 def record(
@@ -28,58 +84,114 @@ def record(
     topics: list[str] | None = None,
     compression: str = "lz4",
     foxglove: bool = True,
-    on_message: Callable[[str], None] | None = None,
     on_subscriber: Callable[[Subscriber[Any]], None] | None = None,
+    stats: RecordStats | None = None,
+    round_limit: int | None = None,
+    on_round: Callable[[dict[str, int]], None] | None = None,
 ) -> dict[str, int]:
-    """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``.
+    """Record ``topics`` (all topics, also ones that appear later, when None) until ``stop()``,
+    which is called between rounds and at least every ``SERVE_PERIOD_S`` while one is written.
     Returns messages written per topic; the bag is closed properly when this returns. When the
     disk refuses the data, BagWriteError: recording stops, the bag keeps what it had.
-    ``on_subscriber`` is told of each subscriber made (a node counts its drops)."""
+    ``on_subscriber`` is told of each subscriber made (a node counts its drops), ``stats`` kept
+    up to date (a node's heartbeat reports it), ``on_round`` told what each round wrote per topic."""
     writer = BagWriter(path, compression, foxglove)
-    subscribers: dict[zmq.Socket, Subscriber[Any]] = {}
+    stats = stats if stats is not None else RecordStats()
+    limit = round_limit or bus.transport.high_water_mark
+    subscribers: list[Subscriber[Any]] = []
     poller = zmq.Poller()
     next_scan = 0.0
+    stopping = False
+
+    def serve() -> bool:
+        nonlocal next_scan, stopping
+        if time.monotonic() >= next_scan:
+            next_scan = time.monotonic() + SCAN_PERIOD_S
+            for subscriber in _subscribe_new(bus, topics, subscribers, on_subscriber):
+                poller.register(subscriber.sock, zmq.POLLIN)
+        stopping = stop() or stopping
+        return stopping
+
     try:
-        while not stop():
-            if time.monotonic() >= next_scan:
-                next_scan = time.monotonic() + 0.5
-                for topic in topics or list(bus.registry.names("topic")):
-                    if topic not in {s.topic for s in subscribers.values()}:
-                        subscriber: Subscriber[Any] = bus.subscriber(topic, None)
-                        subscribers[subscriber.sock] = subscriber
-                        poller.register(subscriber.sock, zmq.POLLIN)
-                        if on_subscriber is not None:
-                            on_subscriber(subscriber)
-                for subscriber in subscribers.values():
-                    subscriber.discover()
-            for sock, _ in poller.poll(50):  # a slice from each ready topic, then the others
-                _drain(subscribers[sock], writer, on_message, SLICE_MESSAGES)
-            writer.flush_if_due()
-        for subscriber in subscribers.values():  # what arrived before the stop is kept
-            _drain(subscriber, writer, on_message, None)
+        while not serve():
+            batch = _take(subscribers, limit, stats)
+            if batch:
+                _write_round(batch, writer, stats, serve, on_round)
+            else:
+                poller.poll(IDLE_WAIT_MS)
+                writer.flush_if_due()
+        if batch := _take(subscribers, limit, stats):  # what arrived before the stop is kept
+            _write_round(batch, writer, stats, serve, on_round)
     finally:
-        for subscriber in subscribers.values():
+        for subscriber in subscribers:
             subscriber.close()
         writer.close()  # after a BagWriteError, a no-op: the file is already closed as it stood
     return dict(writer.counts)
 
 
-def _drain(
-    subscriber: Subscriber[Any], writer: BagWriter, on_message: Callable[[str], None] | None, limit: int | None
+def _subscribe_new(
+    bus: Bus,
+    topics: list[str] | None,
+    subscribers: list[Subscriber[Any]],
+    on_subscriber: Callable[[Subscriber[Any]], None] | None,
+) -> list[Subscriber[Any]]:
+    """Subscribe to the topics not yet recorded (added to ``subscribers``, and returned), and let
+    every subscriber look for new publishers."""
+    known = {subscriber.topic for subscriber in subscribers}
+    made: list[Subscriber[Any]] = [
+        bus.subscriber(t, None) for t in topics or bus.registry.names("topic") if t not in known
+    ]
+    for subscriber in made:
+        subscribers.append(subscriber)
+        if on_subscriber is not None:
+            on_subscriber(subscriber)
+    for subscriber in subscribers:
+        subscriber.discover()
+    return made
+
+
+def _take(subscribers: list[Subscriber[Any]], limit: int, stats: RecordStats) -> list[list[Taken]]:
+    """What waits on each subscriber, ``limit`` messages at most from each: a list per topic,
+    in the order received."""
+    batch = []
+    for subscriber in subscribers:
+        taken: list[Taken] = []
+        for _ in range(limit):
+            try:
+                frames = recv_frames(subscriber.sock, zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            envelope = subscriber.handle(frames)
+            if envelope is not None:
+                taken.append((frames, envelope))
+        if taken:
+            stats.received(subscriber.topic, len(taken))
+            batch.append(taken)
+    return batch
+
+
+def _write_round(
+    batch: list[list[Taken]],
+    writer: BagWriter,
+    stats: RecordStats,
+    serve: Callable[[], bool],
+    on_round: Callable[[dict[str, int]], None] | None,
 ) -> None:
-    """Write what is waiting on one subscriber: ``limit`` messages at most (None: all)."""
-    count = 0
-    while limit is None or count < limit:
-        count += 1
-        try:
-            frames = recv_frames(subscriber.sock, zmq.NOBLOCK)
-        except zmq.Again:
-            return
-        envelope = subscriber.handle(frames)
-        if envelope is not None:
-            writer.write(envelope, frames)
-            if on_message is not None:
-                on_message(envelope.topic)
+    """Write a round's messages, the topics merged oldest header stamp first (each keeps its own
+    order, so a topic whose stamps are not in order, as /tf's, still comes out as received);
+    ``serve`` is called at least every ``SERVE_PERIOD_S``."""
+    written: dict[str, int] = {}
+    next_serve = time.monotonic() + SERVE_PERIOD_S
+    for frames, envelope in heapq.merge(*batch, key=lambda taken: taken[1].message.header.stamp_ns):
+        log_time_ns = time.time_ns()
+        writer.write(envelope, frames, log_time_ns)
+        stats.wrote(envelope.topic, log_time_ns - envelope.message.header.stamp_ns)
+        written[envelope.topic] = written.get(envelope.topic, 0) + 1
+        if time.monotonic() >= next_serve:
+            serve()
+            next_serve = time.monotonic() + SERVE_PERIOD_S
+    if on_round is not None:
+        on_round(written)
 
 
 def play(

@@ -11,6 +11,9 @@ publishers, subscribers, services (nodes.services) and clients.
   a publisher's too (it receives only subscriptions). Executors take at most
   ``SLICE_MESSAGES`` from one socket before serving the others, so a flood on one socket
   delays the rest by one slice, not by the whole flood.
+- A dropped link is told apart by what ZeroMQ does next: one whose publisher went away without
+  leaving (killed with -9, or the link broke) counts as ``publishers_gone``; one ZeroMQ closed
+  over an oversized or malformed message counts as ``connection_resets`` and is reconnected.
 """
 
 from __future__ import annotations
@@ -46,6 +49,10 @@ FORGET_AFTER_S = 10.0
 SUBSCRIPTIONS_PERIOD_S = 0.05
 # What a publisher's XPUB socket receives: subscriptions, a flag byte and a topic name.
 MAX_SUBSCRIPTION_BYTES = 64 * 1024
+# How long a dropped link waits for ZeroMQ's own reconnect before the drop is taken for refused
+# data; libzmq reports the retry in the same call as the drop, so any wait will do, and links are
+# looked at once a discovery period (DISCOVERY_PERIOD_S) anyway.
+LINK_VERDICT_S = 0.05
 
 
 class Bus(BusContext):
@@ -170,19 +177,39 @@ class Subscriber(Generic[M]):
         self._missing_since: dict[str, float] = {}
         self._last_seq: dict[str, int] = {}
         self._next_discovery = 0.0
-        # ZeroMQ drops a connection that carries an oversized message (refused before it is
-        # allocated) and does not come back by itself; the monitor tells us so we reconnect.
-        self._monitor = self.sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        # ZeroMQ reports every dropped link alike (EVENT_DISCONNECTED); what it does next says
+        # why. After a connection error (the publisher was killed, or the link broke) it
+        # reconnects by itself and says so at once (EVENT_CONNECT_RETRIED); after a protocol
+        # error (a message over MAXMSGSIZE, refused before it is allocated, or broken framing)
+        # it gives the link up for good, so we reconnect (libzmq session_base_t::engine_error).
+        self._monitor = self.sock.get_monitor_socket(zmq.EVENT_DISCONNECTED | zmq.EVENT_CONNECT_RETRIED)
+        # Dropped links whose cause is not known yet: address -> (when seen, whether the drop is news)
+        self._dropped: dict[str, tuple[float, bool]] = {}
         self.discover()
 
-    def _reconnect_dropped(self) -> None:
+    def _sort_dropped_links(self) -> None:
+        """Count and log each dropped link by its cause, and reconnect a link ZeroMQ gave up."""
+        now = time.monotonic()
         while self._monitor.poll(0):
             event = recv_monitor_message(self._monitor)
             address = event["endpoint"].decode()
-            still_advertised = any(
-                e.address == address for e in self._static + self.bus.registry.lookup("topic", self.topic)
-            )
-            if address in self._connected and still_advertised:  # not a publisher that ended
+            if event["event"] == zmq.EVENT_DISCONNECTED:
+                self._dropped[address] = (now, self._unannounced(address))
+            elif address in self._dropped:  # ZeroMQ retries by itself: the peer left, the data was fine
+                _, news = self._dropped.pop(address)
+                if news:
+                    self.counters.publishers_gone += 1
+                    log.warning(
+                        "%s: the publisher at %s went away without leaving the registry (killed, or the "
+                        "link broke); ZeroMQ reconnects if it comes back",
+                        self.topic,
+                        address,
+                    )
+        for address, (seen, news) in list(self._dropped.items()):
+            if now - seen < LINK_VERDICT_S:
+                continue
+            del self._dropped[address]
+            if news and address in self._connected:  # no retry came: ZeroMQ refused the data
                 self.counters.connection_resets += 1
                 log.warning(
                     "%s: connection to %s dropped (oversized or malformed data); reconnecting", self.topic, address
@@ -190,13 +217,20 @@ class Subscriber(Generic[M]):
                 self.sock.disconnect(address)
                 self.sock.connect(address)
 
+    def _unannounced(self, address: str) -> bool:
+        """Whether a link to ``address`` ending is news: one of ours whose publisher is still
+        advertised. A publisher that closes removes its entry first, so its leaving is not."""
+        return address in self._connected and any(
+            e.address == address for e in self._static + self.bus.registry.lookup("topic", self.topic)
+        )
+
     def discover(self, force: bool = False) -> None:
         """Connect to new publishers of the topic, forget dead ones (cheap; called often)."""
         now = time.monotonic()
         if not force and now < self._next_discovery:
             return
         self._next_discovery = now + DISCOVERY_PERIOD_S
-        self._reconnect_dropped()
+        self._sort_dropped_links()
         endpoints = self._static + self.bus.registry.lookup("topic", self.topic)
         live = {e.address: e for e in endpoints}
         for address, endpoint in live.items():

@@ -111,7 +111,8 @@ class Counters:
     duplicates: int = 0
     malformed: int = 0
     wrong_type: int = 0
-    connection_resets: int = 0
+    connection_resets: int = 0  # links ZeroMQ closed over oversized or malformed data
+    publishers_gone: int = 0  # links whose publisher went away unannounced (killed, or the link lost)
     handler_errors: int = 0
     bytes: int = 0
 

@@ -33,6 +33,7 @@ from nodes.bus_context import Counters, PeerConfig, TransportConfig
 from nodes.registry import Registry
 from nodes.security import CurveConfig
 from nodes.services import ServiceClient, ServiceServer
+from nodes.start import STOP_SIGNALS, stop_quietly
 
 M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
@@ -312,6 +313,10 @@ def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")
     curve = CurveConfig(args.curve_secret_key, args.curve_authorized_keys) if args.curve_secret_key else None
+    # A stop while the node is being made (a device connecting, a model loading) ends it at once,
+    # quietly: the launcher's start-up handler (nodes.start), in place as well for a node started by hand.
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, stop_quietly)
     try:
         peers = {name: PeerConfig(**peer) for name, peer in json.loads(args.peers).items()}
         transport = TransportConfig(
@@ -321,9 +326,9 @@ def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
     except (ParameterError, ValueError, TypeError) as exc:
         print(f"{args.name}: cannot start: {exc}", file=sys.stderr)
         raise SystemExit(EXIT_DO_NOT_RESPAWN) from exc
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: node.request_shutdown())
     try:
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, lambda *_: node.request_shutdown())
         node.spin()
     finally:
         node.close()

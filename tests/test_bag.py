@@ -23,7 +23,7 @@ import msgs
 from msgs.codec import decode, encode
 from nodes.bag import BagWriter, bag_info, iter_envelopes
 from nodes.bag_format import BagError
-from nodes.bag_record_play import play, record
+from nodes.bag_record_play import RecordStats, play, record
 from nodes.bus import Bus
 from nodes.registry import Registry
 
@@ -143,11 +143,11 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     recorder_bus = Bus("recorder", registry)
     stop = threading.Event()
     counts: dict[str, int] = {}
-    seen: list[str] = []
+    stats = RecordStats()
     subscribed: list = []  # a recorder node counts these subscribers' drops in its heartbeat
     thread = threading.Thread(
         target=lambda: counts.update(
-            record(path, recorder_bus, stop.is_set, on_message=seen.append, on_subscriber=subscribed.append)
+            record(path, recorder_bus, stop.is_set, on_subscriber=subscribed.append, stats=stats)
         )
     )
     thread.start()
@@ -156,7 +156,7 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
         publisher.publish(msgs.GripperState(width_m=i / 1000))
         time.sleep(0.002)
     deadline = time.monotonic() + 10.0
-    while len(seen) < 50 and time.monotonic() < deadline:  # the recorder may lag on a busy machine
+    while _written(stats, "/gripper/state") < 50 and time.monotonic() < deadline:  # a busy machine delays it
         time.sleep(0.05)
     stop.set()
     thread.join()
@@ -187,6 +187,11 @@ def test_record_then_play_reproduces_the_stream(registry: Registry, tmp_path: Pa
     assert ticks and ticks == sorted(ticks)  # /clock carried the bag's time, in order
     for bus in (source, recorder_bus, listener_bus, player_bus):
         bus.close()
+
+
+def _written(stats: RecordStats, topic: str) -> int:
+    progress = stats.topics.get(topic)
+    return 0 if progress is None else progress.written
 
 
 def test_play_refuses_a_non_positive_rate(registry: Registry, tmp_path: Path) -> None:

@@ -358,3 +358,68 @@ def test_nodes_learn_whether_the_launchers_output_is_a_terminal(tmp_path: Path, 
             chunks.append(chunk)
         assert process.wait(timeout=60) == 0
     assert "[probe] progress on a terminal: True" in b"".join(chunks).decode(errors="replace")
+
+
+def _read_until(process: subprocess.Popen[str], wanted: set[str]) -> str:
+    """The process's output up to the line that completes ``wanted`` (substrings), as read."""
+    assert process.stdout is not None
+    seen = ""
+    while not all(text in seen for text in wanted):
+        line = process.stdout.readline()
+        assert line, f"the output ended before {wanted} appeared: {seen}"
+        seen += line
+    return seen
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize(
+    ("module", "params", "line"),
+    [("slow_import", {}, "importing"), ("fixture_nodes", {"start_s": 60.0}, "starting")],
+    ids=["while-importing", "while-being-made"],
+)
+def test_a_node_stopped_while_it_starts_exits_quietly_with_status_0(
+    launch_env: dict[str, str], signum: int, module: str, params: dict[str, float], line: str
+) -> None:
+    """A stop while a node loads its module or is being made, started as the launcher starts it:
+    status 0 and no traceback (a KeyboardInterrupt's was printed; SIGTERM gave -15)."""
+    from dtx.launch import NodeSpec, _prepare_child
+
+    process = subprocess.Popen(
+        NodeSpec("starter", module, params).command(),
+        env=launch_env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        preexec_fn=_prepare_child,
+    )
+    try:
+        _read_until(process, {line})
+        process.send_signal(signum)
+        _, errors = process.communicate(timeout=60)
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 0, errors
+    assert "Traceback" not in errors and "KeyboardInterrupt" not in errors, errors
+
+
+def test_ctrl_c_while_nodes_start_stops_the_graph_without_a_traceback(
+    tmp_path: Path, launch_env: dict[str, str]
+) -> None:
+    path = write(
+        tmp_path,
+        "launch:\n"
+        "  - node: {name: loading, module: slow_import}\n"
+        "  - node: {name: making, module: fixture_nodes, params: {start_s: 60}}\n",
+    )
+    launcher = dtx("launch", str(path), env=launch_env)
+    try:
+        seen = _read_until(launcher, {"[loading] importing", "[making] starting"})
+        launcher.send_signal(signal.SIGINT)
+        output, _ = launcher.communicate(timeout=60)
+    finally:
+        launcher.kill()
+    output = seen + output
+    assert launcher.returncode == 0, output
+    assert "Traceback" not in output and "KeyboardInterrupt" not in output, output
+    assert "killing it" not in output, output  # each stopped at once, within the grace time

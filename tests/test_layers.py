@@ -32,6 +32,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "nodes.bag_format",
             "nodes.bag_record_play",
             "nodes.inference_client",
+            "nodes.start",
         ),
     ),
     ("perception", ("perception",)),

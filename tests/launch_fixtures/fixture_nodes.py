@@ -26,9 +26,13 @@ class CounterNode(Node):
         hold_s: float = 0.0
         text_bytes: int = 0  # padding of each /count message, for a recorder to fill a disk
         call_hold: bool = False  # each tick calls /target/hold and waits (as the collector calls)
+        start_s: float = 0.0  # how long making the node takes (a device connecting, a model loading)
 
     def __init__(self, name: str, params: dict | None = None, **kwargs: object) -> None:
         super().__init__(name, params, **kwargs)
+        if self.params.start_s:
+            print("starting", flush=True)
+            time.sleep(self.params.start_s)
         self.count = 0
         self.publisher = self.create_publisher("/count", msgs.Log)
         self.create_service(
