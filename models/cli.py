@@ -62,9 +62,9 @@ def _evaluate(args: argparse.Namespace) -> int:
             return 2
         if args.figures:
             write_real_press_figure(real, images, args.figures)
-    if args.dataset is None:
-        print(strict_json.dumps(real, indent=2) if args.json else real_press_table(real))
-        return 0
+        if args.dataset is None:  # real presses alone
+            print(strict_json.dumps(real, indent=2) if args.json else real_press_table(real))
+            return 0
     result, predictions = evaluate(
         generator,
         depth_range_m,

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from models.evaluate import PAPER, Predictions
+from models.evaluate import PAPER_DENSITY_SSIM, Predictions
 from workcell.scene import SceneError, load_scene
 
 
@@ -111,7 +111,7 @@ def _density_figure(density_rows: list[dict[str, Any]], path: Path) -> Path:
         capsize=4,
         label="this model",
     )
-    paper = sorted(PAPER["density"].items())
+    paper = sorted(PAPER_DENSITY_SSIM.items())
     ax.plot([d for d, _ in paper], [v for _, v in paper], "s--", color="grey", label="paper")
     ax.set_xscale("log")
     ax.set_xlabel("point-cloud density (points/cm³)")
@@ -129,7 +129,7 @@ def _draw_object(ax: Any, predictions: Predictions, row: int) -> None:
     label = f"{predictions.objects[row]}\n{predictions.sample_ids[row]}"
     model_to_gel = predictions.model_to_gel[row] if predictions.model_to_gel else None
     cloud = _model_cloud(predictions.scene, predictions.objects[row]) if model_to_gel is not None else None
-    if cloud is None or predictions.depth_crop_m is None:
+    if model_to_gel is None or cloud is None or predictions.depth_crop_m is None:
         ax.text(0.5, 0.5, label, ha="center", va="center", fontsize=7)
         return
     points_mm = (cloud @ model_to_gel[:3, :3].T + model_to_gel[:3, 3]) * 1e3

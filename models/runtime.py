@@ -6,7 +6,6 @@ the graphs the node serves."""
 from __future__ import annotations
 
 import copy
-import io
 import os
 import tempfile
 import warnings
@@ -92,7 +91,7 @@ def eager_runner(module: nn.Module, bf16: bool, device: str = "cpu") -> Runner:
     return run
 
 
-def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.BytesIO) -> None:
+def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str]) -> None:
     """The generator (eval mode, batch dimension dynamic) as an ONNX graph: inputs ``depth``,
     outputs ``image``."""
     size = generator.config.image_size
@@ -104,7 +103,7 @@ def export_onnx(generator: UNetGenerator, target: str | os.PathLike[str] | io.By
         torch.onnx.export(
             UncheckedGenerator(generator).eval(),
             (torch.zeros(1, generator.config.input_channels, size, size),),
-            target if isinstance(target, io.BytesIO) else str(target),
+            str(target),
             dynamo=False,
             input_names=["depth"],
             output_names=["image"],
@@ -154,13 +153,16 @@ CALIBRATION_SEED = 2020
 def onnx_graph(generator: UNetGenerator, depth_range_m: tuple[float, float], precision: str) -> bytes:
     """The generator's ONNX graph in ``precision``: fp32, or int8 (:func:`int8_convolutions`,
     calibrated on the fixed contacts)."""
-    graph = io.BytesIO()
-    export_onnx(generator, graph)
+    # torch.onnx.export writes to a path (the file holds the same bytes a file object got).
+    with tempfile.TemporaryDirectory(prefix="dtx-onnx") as tmp:
+        path = Path(tmp) / "generator.onnx"
+        export_onnx(generator, path)
+        graph = path.read_bytes()
     if precision == "fp32":
-        return graph.getvalue()
+        return graph
     if precision == "int8":
         calibration = contact_inputs(generator, depth_range_m, CALIBRATION_CONTACTS, CALIBRATION_SEED)
-        return int8_convolutions(graph.getvalue(), calibration)
+        return int8_convolutions(graph, calibration)
     raise ValueError(f"ONNX graphs are fp32 or int8, not {precision!r}")
 
 

@@ -103,8 +103,8 @@ def _update_average(average: nn.Module, model: nn.Module, decay: float) -> None:
     the model's own (they describe activations, not a direction of descent)."""
     for mean, value in zip(average.parameters(), model.parameters()):
         mean.lerp_(value, 1.0 - decay)
-    for mean, value in zip(average.buffers(), model.buffers()):
-        mean.copy_(value)
+    for average_buffer, buffer in zip(average.buffers(), model.buffers()):
+        average_buffer.copy_(buffer)
 
 
 def _append_csv(path: Path, header: list[str], row: list[Any]) -> None:
@@ -404,6 +404,8 @@ class TrainLog:
 
     def validation(self, epoch: int, step: int, generator: nn.Module, x_val: torch.Tensor, y_val: torch.Tensor) -> None:
         """Validate ``generator`` after ``epoch``; rank 0 alone calls this."""
+        if self.board is None:
+            raise RuntimeError("TrainLog.validation is rank 0's: this rank writes no logs")
         val_l1, val_ssim = _validate(generator, x_val, y_val)
         _append_csv(
             self.out_dir / "val_log.csv",

@@ -150,12 +150,10 @@ def min_y_per_bin(
     perception.depthmap's module docstring, exact): NumPy's np.minimum.at needs the bin indices
     computed first, in several more passes (benchmarks/perception.py, binning, measures both)."""
     rows, cols = shape
-    min_y = np.full(rows * cols, np.inf)
+    flat = np.full(rows * cols, np.inf)
     x, z, y = (np.ascontiguousarray(a, dtype=np.float64) for a in (x_m, z_m, y_m))
-    _min_y_kernel(
-        x, z, y, float(half_x_m), float(half_z_m), bin_edges(half_x_m, cols), bin_edges(half_z_m, rows), min_y
-    )
-    min_y = min_y.reshape(rows, cols)
+    _min_y_kernel(x, z, y, float(half_x_m), float(half_z_m), bin_edges(half_x_m, cols), bin_edges(half_z_m, rows), flat)
+    min_y = flat.reshape(rows, cols)
     return min_y, np.isfinite(min_y)
 
 

@@ -33,5 +33,7 @@ def add_s_error_m(
     in_model = points @ estimate_to_truth[:3, :3].T + estimate_to_truth[:3, 3]
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(surface))
-    distances = scene.compute_distance(o3d.core.Tensor(in_model.astype(np.float32))).numpy()
+    distances = scene.compute_distance(
+        o3d.core.Tensor(in_model.astype(np.float32), o3d.core.float32, o3d.core.Device("CPU:0"))
+    ).numpy()
     return float(distances.mean())

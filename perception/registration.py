@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import open3d as o3d
@@ -35,6 +37,10 @@ from perception.planar_icp import refine_best, sweep_subset, sweep_yaws, upright
 from perception.pointcloud import principal_spread_m, seeded_open3d
 
 _reg = o3d.pipelines.registration
+# Open3D's binding takes ``indices`` as optional (None, the default: a feature for every point)
+# where its stub declares it required; the cast states the binding's real signature.
+_FpfhFeature = Callable[[o3d.geometry.PointCloud, o3d.geometry.KDTreeSearchParam], o3d.pipelines.registration.Feature]
+_compute_fpfh_feature = cast(_FpfhFeature, _reg.compute_fpfh_feature)
 # Most points sample_model_cloud makes: a 0.1 mm cloud (MODEL_POINT_SPACING_M) of a 0.2 m² box.
 MAX_MODEL_POINTS = 32_000_000
 
@@ -106,7 +112,7 @@ def sample_model_cloud(mesh_path: str | Path, point_spacing_m: float = 0.002, se
         spacing = float("nan")
     if not (np.isfinite(spacing) and spacing > 0):
         raise RegistrationError(f"point spacing must be a positive number of metres, got {point_spacing_m!r}")
-    mesh = o3d.io.read_triangle_mesh(str(mesh_path))
+    mesh = o3d.io.read_triangle_mesh(Path(mesh_path))
     if len(mesh.triangles) == 0:
         raise RegistrationError(f"mesh {mesh_path} has no triangles (missing or unreadable file?)")
     area_m2 = float(mesh.get_surface_area())
@@ -138,7 +144,7 @@ def _to_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geom
 
 def _features(cloud: o3d.geometry.PointCloud, params: RegistrationParams) -> o3d.pipelines.registration.Feature:
     radius = params.voxel_size_m * params.feature_radius_factor
-    return _reg.compute_fpfh_feature(
+    return _compute_fpfh_feature(
         cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=params.feature_max_nn)
     )
 

@@ -332,7 +332,9 @@ def _point_rows(
     points = np.asarray(points_m, dtype=np.float64)[:: max(1, len(points_m) // _MAX_VIEW_POINTS)]
     corrected = points @ correction[:3, :3].T + correction[:3, 3]
     in_model = (corrected - pose[:3, 3]) @ pose[:3, :3]
-    closest = surface.compute_closest_points(o3d.core.Tensor(in_model.astype(np.float32)))
+    closest = surface.compute_closest_points(
+        o3d.core.Tensor(in_model.astype(np.float32), o3d.core.float32, o3d.core.Device("CPU:0"))
+    )
     nearest = closest["points"].numpy().astype(np.float64)
     found = np.linalg.norm(nearest - in_model, axis=1) < _POINT_REACH_MM * 1e-3
     x = corrected[found] * 1e3

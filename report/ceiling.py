@@ -83,7 +83,7 @@ def depth_map_images(
     return np.stack([resize_rgb(image, *size) for image in images])
 
 
-def _scored(truth: np.ndarray, estimate: np.ndarray, objects: np.ndarray, seed: int) -> dict[str, Any]:
+def _scored(truth: np.ndarray, estimate: np.ndarray, objects: list[str], seed: int) -> dict[str, Any]:
     row = {k: v for k, v in ssim_statistics(truth, estimate, seed=seed).items() if k in SUMMARY_KEYS}
     row["objects"] = per_object_statistics(truth, estimate, objects, seed=seed)
     return row
@@ -113,7 +113,7 @@ def information_ceiling(
         raise CeilingError(f"{root} does not record its depth-maps' crop (dataset.json depth_crop_m)")
     samples = [reader.load(r) for r in records]
     truth = np.stack([s.tactile_rgb for s in samples])
-    objects = np.array([r.object_name for r in records])
+    objects = [r.object_name for r in records]
     size = truth.shape[1:3]
     report = progress or (lambda _: None)
     estimates = {}

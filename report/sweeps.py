@@ -32,7 +32,8 @@ from dataset.redepth import depth_map_again, depth_map_params, model_cloud
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.checkpoint import load_generator
 from models.data import network_input, select_records
-from models.evaluate import PAPER, contact_ssim, predict
+from models.evaluate import PAPER_DENSITY_SSIM, contact_ssim, predict
+from models.networks import UNetGenerator
 from models.runtime import sampling_copy
 from perception.density import downsample_to_density
 from perception.pointcloud import VoxelIndex
@@ -85,7 +86,7 @@ def _session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndar
     }
 
 
-def _no_contact_estimate(generator: torch.nn.Module, depth_range: tuple[float, float], size: int) -> np.ndarray:
+def _no_contact_estimate(generator: UNetGenerator, depth_range: tuple[float, float], size: int) -> np.ndarray:
     """The model's estimate (resized to 100 x 100) from a depth-map with nothing in reach."""
     empty = np.full((1, size, size), depth_range[1], np.float32)
     return _resize(predict(generator, empty, depth_range), REFERENCE_SIZE)[0]
@@ -202,7 +203,7 @@ def density(ws: Workspace) -> list[Point]:
                 scores.pop("contact_ssim"),
                 points_median=int(np.median([len(c.points_m) for c in clouds.values()])),
                 thinning_ms=round(statistics.median(thinning), 3),
-                paper_ssim=None if value is None else PAPER["density"].get(int(value)),
+                paper_ssim=None if value is None else PAPER_DENSITY_SSIM.get(int(value)),
                 **scores,
             )
         )
@@ -219,6 +220,9 @@ def gelsight_effects(ws: Workspace) -> list[Point]:
         generator, np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")]), depth_range
     )
     plain, pitch = gelsight_renderer(REFERENCE_SIZE)
+    # The effects are the simulated GelSight's: its configuration renders again with them.
+    if not isinstance(plain, GelSightRenderer):
+        raise TypeError(f"the GelSight effects sweep needs the simulated GelSight, not {type(plain).__name__}")
     gaps = [gel_gap_from_surface(c.surface, REFERENCE_SIZE, REFERENCE_SIZE, pitch) for c in items]
     points, ideal = [], None
     for names in ((), *((n,) for n in GELSIGHT_EFFECTS), tuple(GELSIGHT_EFFECTS)):

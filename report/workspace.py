@@ -151,7 +151,7 @@ class Workspace:
             self.plan.library_samples,
             self.plan.seed,
             session.info.scene,
-            params.y_range_m,
+            session.info.depth_range_m,  # the session's depth-maps' y range (depth_map_params)
             params.margin_m,
             size=bins,
         ).root

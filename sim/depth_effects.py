@@ -242,6 +242,14 @@ DEPTH_EFFECT_CLASSES = {
 }
 
 
+def _incidence(cos_incidence: np.ndarray | None, effect: str) -> np.ndarray:
+    """The cosine of each pixel's incidence angle, which ``effect`` reads: a caller of a chain
+    that :attr:`DepthEffectChain.needs_incidence` passes it."""
+    if cos_incidence is None:
+        raise ValueError(f"the {effect} depth effect needs each pixel's cos incidence, and none was given")
+    return cos_incidence
+
+
 class DepthEffectChain:
     """The depth effects one camera runs, built from the scene's effect list (only those
     listed; none listed = ideal, exact depth)."""
@@ -266,7 +274,8 @@ class DepthEffectChain:
         static: dict = {}
         if self.axial is not None:
             with np.errstate(invalid="ignore"):
-                static["axial_sigma"] = self.axial.sigma_m(z, cos_incidence).astype(np.float32)
+                sigma = self.axial.sigma_m(z, _incidence(cos_incidence, self.axial.name))
+                static["axial_sigma"] = sigma.astype(np.float32)
         return static
 
     def measure(
@@ -284,9 +293,10 @@ class DepthEffectChain:
         if self.flying is not None:
             z = self.flying.apply(z, rng)
         if self.axial is not None:
-            z = self.axial.apply(z, cos_incidence, rng, static.get("axial_sigma"), dynamic_idx)
+            cos_axial = _incidence(cos_incidence, self.axial.name)
+            z = self.axial.apply(z, cos_axial, rng, static.get("axial_sigma"), dynamic_idx)
         if self.missing is not None:
-            z = self.missing.apply(z, cos_incidence, rng)
+            z = self.missing.apply(z, _incidence(cos_incidence, self.missing.name), rng)
         if self.quantise is not None:
             z = self.quantise.apply(z)
         return z

@@ -19,12 +19,39 @@ import open3d as o3d
 import open3d.core as o3c
 from scipy import ndimage
 
-from sim.depth_effects import DepthEffectChain, gaussian
+from sim.depth_effects import DepthEffectChain, LateralNoise, gaussian
 from sim.effects import DEPTH_EFFECT_ORDER
 from sim.meshes import SceneObjects, table_mesh
 from sim.seeding import state_rng
 from workcell.parts import CameraSpec
 from workcell.scene import Scene, SceneError
+
+# Open3D tensors are made on the CPU with the dtype of the array they copy.
+_CPU = o3c.Device("CPU:0")
+
+
+@dataclasses.dataclass
+class LateralPixels:
+    """How the lateral-noise effect samples one camera's exact cast: pixels whose jittered ray
+    may land on another surface are re-cast each frame; elsewhere the jittered sample follows
+    from the local inverse-depth gradient (:meth:`DepthRenderer._split_lateral_pixels`)."""
+
+    noise: LateralNoise
+    recast_idx: np.ndarray  # flat indices of the pixels re-cast each frame
+    smooth_idx: np.ndarray  # flat indices of the others
+    inv_z_smooth: np.ndarray  # float32 1/z of the smooth pixels
+    lateral_scale_smooth: np.ndarray  # float32 sigma of their jittered 1/z
+
+
+@dataclasses.dataclass
+class ExactCast:
+    """A camera's exact ray cast (true pose, micro-relief included), made once: what each of
+    its frames reuses."""
+
+    z: np.ndarray  # H*W float32 z-depth, NaN = no return
+    cos_incidence: np.ndarray | None  # H*W float32, where the effects need it
+    static: dict  # per-pixel quantities of the exact cast the effects reuse
+    lateral: LateralPixels | None  # with the lateral-noise effect only
 
 
 @dataclasses.dataclass
@@ -41,12 +68,7 @@ class SimCamera:
     rays: o3c.Tensor  # H*W x 6 float32 (true pose)
     dirs_world: np.ndarray
     stream: int  # the camera's noise stream (its index in the scene)
-    cache: tuple | None = None  # exact (z, cos incidence), flat
-    recast_idx: np.ndarray | None = None
-    smooth_idx: np.ndarray | None = None
-    inv_z_smooth: np.ndarray | None = None
-    lateral_scale_smooth: np.ndarray | None = None
-    static: dict | None = None  # per-pixel quantities of the exact cast the effects reuse
+    cache: ExactCast | None = None  # made by the first frame
 
 
 def _pixel_dirs(cam, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -63,7 +85,7 @@ def _rays(camera_to_world: np.ndarray, dirs_cam: np.ndarray) -> tuple[np.ndarray
     rays = np.empty((dirs_cam.shape[0], 6), dtype=np.float32)
     rays[:, :3] = camera_to_world[:3, 3].astype(np.float32)
     rays[:, 3:] = dirs_world
-    return dirs_world, o3c.Tensor(rays)
+    return dirs_world, o3c.Tensor(rays, o3c.float32, _CPU)
 
 
 def _depth_discontinuities(z: np.ndarray, gids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,10 +117,14 @@ class DepthRenderer:
         self.seed = seed
         self.raycast_scene = o3d.t.geometry.RaycastingScene()
         tv, tt = table_mesh(scene.table)
-        self.raycast_scene.add_triangles(o3c.Tensor(tv.astype(np.float32)), o3c.Tensor(tt.astype(np.uint32)))
+        self.raycast_scene.add_triangles(
+            o3c.Tensor(tv.astype(np.float32), o3c.float32, _CPU), o3c.Tensor(tt.astype(np.uint32), o3c.uint32, _CPU)
+        )
         self.geom_to_object: dict[int, int] = {}
         for i, (v, t) in enumerate(objects.meshes):
-            gid = self.raycast_scene.add_triangles(o3c.Tensor(v.astype(np.float32)), o3c.Tensor(t.astype(np.uint32)))
+            gid = self.raycast_scene.add_triangles(
+                o3c.Tensor(v.astype(np.float32), o3c.float32, _CPU), o3c.Tensor(t.astype(np.uint32), o3c.uint32, _CPU)
+            )
             self.geom_to_object[gid] = i
         self.cameras: dict[str, SimCamera] = {}
         for ci, cam in enumerate(scene.cameras):
@@ -125,7 +151,7 @@ class DepthRenderer:
         step = 8
         sel = (c.u.astype(int) % step == 0) & (c.v.astype(int) % step == 0)
         rays = c.rays.numpy()[sel]
-        ans = self.raycast_scene.cast_rays(o3c.Tensor(np.ascontiguousarray(rays)))
+        ans = self.raycast_scene.cast_rays(o3c.Tensor(np.ascontiguousarray(rays), o3c.float32, _CPU))
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
         pts = rays[hit, :3] + t[hit, None] * rays[hit, 3:]
@@ -164,21 +190,20 @@ class DepthRenderer:
         rng = state_rng(b"static world", self.seed, c.stream) if rng is None else rng
         cam = c.spec
         chain = c.effects
-        if c.cache is None:
-            self._build_cache(c)
-        z, cos_inc = c.cache
-        if chain.lateral is not None:
-            z, cos_inc = self._lateral(c, rng)
+        cast = self._exact_cast(c) if c.cache is None else c.cache
+        z, cos_inc = cast.z, cast.cos_incidence
+        if cast.lateral is not None:
+            z, cos_inc = self._lateral(c, cast, cast.lateral, rng)
         else:
             z = z.copy()
         z = z.reshape(cam.height, cam.width)
         if cos_inc is not None:
             cos_inc = cos_inc.reshape(cam.height, cam.width)
-        return chain.measure(z, cos_inc, rng, c.static, c.recast_idx if chain.lateral is not None else None)
+        return chain.measure(z, cos_inc, rng, cast.static, None if cast.lateral is None else cast.lateral.recast_idx)
 
     def _cast_camera(
         self, c: SimCamera, rays: o3c.Tensor, dirs_world: np.ndarray, nthreads: int = 0
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Exact cast: (z-depth float32 with NaN, cos incidence float32 or None, geometry ids)."""
         ans = self.raycast_scene.cast_rays(rays, nthreads=nthreads)
         # Ray directions have a camera-frame z component of exactly 1, so the hit parameter
@@ -192,7 +217,7 @@ class DepthRenderer:
             z = z.copy()
             n = None if n is None else n.copy()
             self.objects.refine_spheres(rays.numpy(), z, gids, n, self.geom_to_object)
-        if need_normals:
+        if n is not None:  # need_normals
             ndotd = np.einsum("ij,ij->i", n, dirs_world)
             dnorm = np.sqrt(np.einsum("ij,ij->i", dirs_world, dirs_world))
             if self.objects.relief_objects:
@@ -202,17 +227,20 @@ class DepthRenderer:
         z = np.where(np.isfinite(z), z, np.float32(np.nan)).astype(np.float32, copy=False)
         return z, cos_inc, gids
 
-    def _build_cache(self, c: SimCamera) -> None:
+    def _exact_cast(self, c: SimCamera) -> ExactCast:
+        """Cast ``c``'s rays exactly and keep the cast (``c.cache``)."""
         z, cos_inc, gids = self._cast_camera(c, c.rays, c.dirs_world)
-        c.cache = (z, cos_inc)
-        c.static = c.effects.prepare(
+        static = c.effects.prepare(
             z.reshape(c.spec.height, c.spec.width),
             None if cos_inc is None else cos_inc.reshape(c.spec.height, c.spec.width),
         )
-        if c.effects.lateral is not None:
-            self._split_lateral_pixels(c, z, gids)
+        lateral = None if c.effects.lateral is None else self._split_lateral_pixels(c, c.effects.lateral, z, gids)
+        c.cache = ExactCast(z, cos_inc, static, lateral)
+        return c.cache
 
-    def _split_lateral_pixels(self, c: SimCamera, z: np.ndarray, gids: np.ndarray) -> None:
+    def _split_lateral_pixels(
+        self, c: SimCamera, noise: LateralNoise, z: np.ndarray, gids: np.ndarray
+    ) -> LateralPixels:
         # Pixels whose jittered ray may land on another surface (depth jump, another
         # geometry, no return) within the jitter radius are re-cast each frame; elsewhere the
         # jittered sample follows from the local inverse-depth gradient (exact on planes).
@@ -221,33 +249,37 @@ class DepthRenderer:
         valid, disc = _depth_discontinuities(zi, gids.reshape(h, w).astype(np.int64))
         # A jump lies half a pixel beyond a flagged pixel, so a pixel ``radius`` away from
         # every flagged one keeps its jittered sample (|jitter| <= 3 sigma) on its own surface.
-        radius = max(1, int(math.ceil(3.0 * c.effects.lateral.sigma_px - 0.5)))
+        radius = max(1, int(math.ceil(3.0 * noise.sigma_px - 0.5)))
         near = ndimage.binary_dilation(disc, structure=np.ones((3, 3), bool), iterations=radius)
         near &= ndimage.binary_dilation(valid, structure=np.ones((3, 3), bool), iterations=radius)
-        c.recast_idx = np.flatnonzero(near)
-        c.smooth_idx = np.flatnonzero(valid & ~near)
+        smooth_idx = np.flatnonzero(valid & ~near)
         inv_z = np.where(valid, 1.0 / np.where(valid, zi, 1.0), 0.0)
         gv, gu = np.gradient(inv_z)  # central differences: exact for 1/z affine (planes)
-        c.inv_z_smooth = inv_z.reshape(-1)[c.smooth_idx].astype(np.float32)
         # gu du + gv dv with du, dv ~ N(0, s^2) is N(0, s^2 (gu^2 + gv^2)): one draw per pixel
-        grad = np.hypot(gu, gv).reshape(-1)[c.smooth_idx]
-        c.lateral_scale_smooth = (grad * c.effects.lateral.sigma_px).astype(np.float32)
+        grad = np.hypot(gu, gv).reshape(-1)[smooth_idx]
+        return LateralPixels(
+            noise,
+            recast_idx=np.flatnonzero(near),
+            smooth_idx=smooth_idx,
+            inv_z_smooth=inv_z.reshape(-1)[smooth_idx].astype(np.float32),
+            lateral_scale_smooth=(grad * noise.sigma_px).astype(np.float32),
+        )
 
-    def _lateral(self, c: SimCamera, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray | None]:
-        lat = c.effects.lateral
+    def _lateral(
+        self, c: SimCamera, cast: ExactCast, lat: LateralPixels, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         cam = c.spec
-        z0, cos0 = c.cache
-        sigma = np.float32(lat.sigma_px)
-        limit = np.float32(3.0 * lat.sigma_px)  # jitter truncated at 3 sigma
-        z = np.full(z0.shape, np.nan, dtype=np.float32)
-        cos_inc = None if cos0 is None else cos0.copy()
+        sigma = np.float32(lat.noise.sigma_px)
+        limit = np.float32(3.0 * lat.noise.sigma_px)  # jitter truncated at 3 sigma
+        z = np.full(cast.z.shape, np.nan, dtype=np.float32)
+        cos_inc = None if cast.cos_incidence is None else cast.cos_incidence.copy()
         # smooth pixels: 1/z is affine in (u, v) on a plane, so the jittered sample is
         # 1 / (1/z + d(1/z)/du du + d(1/z)/dv dv) (exact on planes, first order elsewhere)
-        idx = c.smooth_idx
+        idx = lat.smooth_idx
         n = np.clip(gaussian(rng, idx.size), -3.0, 3.0)
-        z[idx] = 1.0 / (c.inv_z_smooth + c.lateral_scale_smooth * n)
+        z[idx] = 1.0 / (lat.inv_z_smooth + lat.lateral_scale_smooth * n)
         # pixels near discontinuities: cast the jittered rays exactly
-        idx = c.recast_idx
+        idx = lat.recast_idx
         if idx.size:
             jit = np.clip(gaussian(rng, 2 * idx.size).reshape(2, idx.size) * sigma, -limit, limit)
             dirs_cam = _pixel_dirs(cam, c.u[idx] + jit[0], c.v[idx] + jit[1])

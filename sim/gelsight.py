@@ -278,7 +278,8 @@ class GelSightRenderer:
         image's size is the rendered camera's own (a press file's background at any size)."""
         config, smoothing_mm = self.config, self.config.background_smoothing_mm
         if frame.shape[:2] != self.calibration.native_shape:
-            return _gaussian_blur(frame.astype(np.float32), tuple(smoothing_mm / p for p in self.pixel_pitch_mm))
+            row_mm, column_mm = self.pixel_pitch_mm
+            return _gaussian_blur(frame.astype(np.float32), (smoothing_mm / row_mm, smoothing_mm / column_mm))
         sigma_px = smoothing_mm / config.calibration_mm_per_px
         smoothed = _gaussian_blur(frame.astype(np.float32), (sigma_px, sigma_px))
         xx, yy = self._calibration_positions(config.shape, self.pixel_pitch_mm)

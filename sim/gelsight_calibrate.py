@@ -52,7 +52,9 @@ def load_press_file(
     contents, frames, background = read_press_file(path)
     scale = press_scalar(path, contents, "mm_per_px", mm_per_px, None, MM_PER_PX_RANGE)
     ball = press_scalar(path, contents, "ball_radius_mm", ball_radius_mm, None, BALL_RADIUS_RANGE_MM)
-    annotations = {k: contents[k].astype(np.float64) for k in ("touch_center", "touch_radius") if k in contents}
+    annotations: dict[str, np.ndarray] = {
+        k: contents[k].astype(np.float64) for k in ("touch_center", "touch_radius") if k in contents
+    }
     return frames, background, annotations, scale, ball
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -94,7 +95,7 @@ def read_press_file(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray
 
 
 def load_ball_presses(
-    path: str | Path, mm_per_px: float | None = None, ball_radius_mm: float | None = None
+    path: str | os.PathLike[str], mm_per_px: float | None = None, ball_radius_mm: float | None = None
 ) -> BallPresses:
     """Read and check a ball-press file; every problem raises :class:`GelSightRenderError`. The
     scale and the ball are the arguments, else the file's, else the shipped file's. A file without
@@ -216,16 +217,20 @@ def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int) -> n
 
 
 def press_ssim(
-    images: Sequence[np.ndarray], frames: Sequence[np.ndarray], centers_xy_px: np.ndarray, mm_per_px: float
+    images: Sequence[np.ndarray] | np.ndarray,
+    frames: Sequence[np.ndarray] | np.ndarray,
+    centers_xy_px: np.ndarray,
+    mm_per_px: float,
 ) -> dict[str, np.ndarray]:
     """SSIM of each image against its real frame: the touch crop (:func:`crop_px` at
     ``mm_per_px``, around each centre) and the full frame, one batch each (SSIM's set-up costs
     more than a frame)."""
     size = crop_px(mm_per_px)
-    images, frames = np.stack(images), np.stack(frames)
-    crops = np.stack([touch_crop(i, c, size) for i, c in zip(images, centers_xy_px)])
-    real_crops = np.stack([touch_crop(r, c, size) for r, c in zip(frames, centers_xy_px)])
-    return {"crop": ssim_rgb(crops, real_crops), "full": ssim_rgb(images, frames)}
+    # list(): np.stack takes a sequence of arrays; an N x ... array is one, row by row.
+    image_stack, frame_stack = np.stack(list(images)), np.stack(list(frames))
+    crops = np.stack([touch_crop(i, c, size) for i, c in zip(image_stack, centers_xy_px)])
+    real_crops = np.stack([touch_crop(r, c, size) for r, c in zip(frame_stack, centers_xy_px)])
+    return {"crop": ssim_rgb(crops, real_crops), "full": ssim_rgb(image_stack, frame_stack)}
 
 
 def render_presses(

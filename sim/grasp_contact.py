@@ -36,6 +36,8 @@ from workcell.scene import Scene
 _BACK_OFF_MM = 5.0
 # Grid spacing (mm) over the gel area used to find the first touch and the force balance.
 _CONTACT_GRID_MM = 0.3
+# Open3D tensors are made on the CPU with the dtype of the array they copy.
+_CPU = o3c.Device("CPU:0")
 
 
 @dataclasses.dataclass
@@ -63,7 +65,7 @@ class GraspContact:
     fingers: dict[str, FingerContact]
     gap_mm: dict[str, np.ndarray]
     # The world's gels that computed this contact: they cast the gap maps of other sizes.
-    world: GelContact = dataclasses.field(repr=False, default=None)
+    world: GelContact = dataclasses.field(repr=False)
     # Each finger closes to its own contact, as if the object slid to sit between the fingers;
     # the midpoint of the two gels ends this far from the TCP along tool +y (0 when centred).
     centre_shift_m: float = 0.0
@@ -96,7 +98,9 @@ class GelContact:
         self.raycast_scene = o3d.t.geometry.RaycastingScene()
         self.geom_to_object: dict[int, int] = {}
         for i, (v, t) in enumerate(objects.meshes):
-            gid = self.raycast_scene.add_triangles(o3c.Tensor(v.astype(np.float32)), o3c.Tensor(t.astype(np.uint32)))
+            gid = self.raycast_scene.add_triangles(
+                o3c.Tensor(v.astype(np.float32), o3c.float32, _CPU), o3c.Tensor(t.astype(np.uint32), o3c.uint32, _CPU)
+            )
             self.geom_to_object[gid] = i
 
     def default_extent_mm(self) -> tuple[float, float]:
@@ -110,7 +114,7 @@ class GelContact:
         pts = o + np.outer(x.reshape(-1), R[:, 0]) + np.outer(z.reshape(-1), R[:, 2]) - back_off_m * R[:, 1]
         d = np.broadcast_to(R[:, 1], pts.shape)
         rays = np.concatenate([pts, d], axis=1).astype(np.float32)
-        ans = self.raycast_scene.cast_rays(o3c.Tensor(rays))
+        ans = self.raycast_scene.cast_rays(o3c.Tensor(rays, o3c.float32, _CPU))
         t = ans["t_hit"].numpy().astype(np.float64)
         hit = np.isfinite(t)
         if not np.any(hit):

@@ -29,7 +29,7 @@ from workcell.scene import Scene, SceneError, resolve_path
 def _load_mesh_file(path: str) -> tuple[np.ndarray, np.ndarray, str]:
     """(vertices float64 Nx3, triangles int32 Mx3, problem) of a mesh file, duplicates merged.
     ``problem`` is empty for a usable mesh, else says what is wrong."""
-    raw = o3d.io.read_triangle_mesh(path)
+    raw = o3d.io.read_triangle_mesh(Path(path))
     verts = np.asarray(raw.vertices, dtype=np.float64)
     tris = np.asarray(raw.triangles, dtype=np.int32)
     if len(verts) == 0 or len(tris) == 0:
@@ -66,6 +66,8 @@ def object_mesh(obj: ObjectSpec, index: int, label: str) -> tuple[np.ndarray, np
     mesh file is a SceneError of file ``label``."""
     if obj.primitive is not None:
         return _primitive_mesh(obj.primitive)
+    if obj.mesh is None:  # the scene reader requires one of the two
+        raise SceneError(label, f"objects[{index}]", "object has neither a mesh nor a primitive", ["mesh", "primitive"])
     path = resolve_path(obj.mesh)
     if not Path(path).is_file():
         raise SceneError(

@@ -191,7 +191,7 @@ def register_check(
     report = {}
     for mesh_path in mesh_paths:
         model = sample_model_cloud(mesh_path, seed=seed)
-        surface = o3d.io.read_triangle_mesh(str(mesh_path))
+        surface = o3d.io.read_triangle_mesh(Path(mesh_path))
         prepared = prepare_model(model, params)
         # The simulator turns the mesh about its own origin, so that is where the radius counts from.
         footprint = float(np.max(np.linalg.norm(model.points_m[:, :2], axis=1)))

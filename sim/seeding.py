@@ -27,7 +27,7 @@ def state_rng(state: bytes | np.ndarray, seed: int, *streams: int) -> np.random.
     """The generator of one simulated draw: the same (state bytes, seed, streams) give the same
     draws in any process; any difference in them gives independent ones. ``state``: bytes or an
     array, hashed in place when C-contiguous (a frame's gap map is not copied per frame)."""
-    if isinstance(state, np.ndarray):
-        state = np.ascontiguousarray(state)
-    digest = np.frombuffer(hashlib.blake2b(state, digest_size=16).digest(), dtype=np.uint32)
+    # An array's bytes are hashed through its buffer (``.data``, a memoryview), not a copy.
+    data = np.ascontiguousarray(state).data if isinstance(state, np.ndarray) else state
+    digest = np.frombuffer(hashlib.blake2b(data, digest_size=16).digest(), dtype=np.uint32)
     return np.random.default_rng([int(seed), *(int(s) for s in streams), *digest.tolist()])

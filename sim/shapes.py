@@ -95,7 +95,7 @@ def write_shapes(directory: str | Path, names: list[str] | None = None) -> list[
     paths = []
     for name in names:
         path = directory / f"{name}.obj"
-        if not o3d.io.write_triangle_mesh(str(path), shapes[name], write_vertex_normals=False):
+        if not o3d.io.write_triangle_mesh(path, shapes[name], write_vertex_normals=False):
             raise OSError(f"could not write {path}")
         paths.append(path)
     return paths

@@ -124,7 +124,9 @@ def test_lateral_noise_moves_edges_only() -> None:
     w1 = world(BOX, [{"name": "lateral_noise", "sigma_px": 0.5}], oblique=False)
     ideal, noisy = w0.render_depth("top"), w1.render_depth("top")
     changed = ~((ideal == noisy) | (np.isnan(ideal) & np.isnan(noisy)))
-    near_edge = w1.cameras["top"].recast_idx
+    cast = w1.cameras["top"].cache
+    assert cast is not None and cast.lateral is not None
+    near_edge = cast.lateral.recast_idx
     mask = np.zeros(ideal.size, bool)
     mask[near_edge] = True
     mask = mask.reshape(ideal.shape)
