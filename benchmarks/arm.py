@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import rtde_receive
 
-from drivers.arm.base import MotionAbortedError
+from drivers.arm.base import ArmError, MotionAbortedError
 from drivers.arm.ur import STATE_VARIABLES, URArm, URArmConfig
 from sim.ur_controller import CMD_STOPJ, FakeURController
 
@@ -64,7 +64,8 @@ def stop_trials(fake: FakeURController, trials: int, each_stop: bool = False) ->
     stop() returning at rest, the stops that escalated (by error code) and the lost ones."""
     arm = URArm(URArmConfig(robot_ip=fake.host))
     arm.connect()
-    received_ms, rest_ms, lost, escalations = [], [], 0, collections.Counter[str]()
+    received_ms, rest_ms, lost = [], [], 0
+    escalations, unstarted = collections.Counter[str](), collections.Counter[str]()
     try:
         start = arm.read().tcp_pose
         for trial in range(trials):
@@ -72,7 +73,9 @@ def stop_trials(fake: FakeURController, trials: int, each_stop: bool = False) ->
             outcome: list[str] = []
             mover = threading.Thread(target=_move_until_stopped, args=(arm, target, outcome))
             mover.start()
-            _wait_until_moving(fake)
+            if not _wait_until_moving(fake, mover):
+                unstarted[outcome[0]] += 1
+                continue
             requested_ns = time.monotonic_ns()
             arm.stop()
             rest_ms.append((time.monotonic_ns() - requested_ns) / 1e6)
@@ -91,6 +94,10 @@ def stop_trials(fake: FakeURController, trials: int, each_stop: bool = False) ->
         *(
             {"figure": f"stops ending with error code {code}", "unit": "stops", "samples": trials, "value": count}
             for code, count in sorted(escalations.items())
+        ),
+        *(
+            {"figure": f"moves that ended before their stop ({code})", "unit": "moves", "samples": trials, "value": n}
+            for code, n in sorted(unstarted.items())
         ),
     ]
 
@@ -112,15 +119,19 @@ def _move_until_stopped(arm: URArm, target: np.ndarray, outcome: list[str]) -> N
         outcome.append("arrived")
     except MotionAbortedError:
         outcome.append("stopped")  # the stop this trial is timing
+    except ArmError as error:
+        outcome.append(error.code)
 
 
-def _wait_until_moving(fake: FakeURController) -> None:
-    """Until the fake arm moves and the client has cleared the move command."""
-    while True:
+def _wait_until_moving(fake: FakeURController, mover: threading.Thread) -> bool:
+    """Whether the fake arm moves with the move command cleared by the client before the move
+    ends (a move that failed to start ends at once)."""
+    while mover.is_alive():
         snapshot = fake.snapshot()
         if snapshot["moving"] and snapshot["command_register"] == 0:
-            return
+            return True
         time.sleep(0.002)
+    return False
 
 
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:

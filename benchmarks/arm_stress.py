@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -57,17 +58,30 @@ def _one_run(args: argparse.Namespace) -> dict[str, Any]:
         "--each-stop",
     ]
     started = time.monotonic()
+    process = subprocess.Popen(
+        [sys.executable, "-X", "faulthandler", *command[1:]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=args.run_deadline_s)
+        stdout, stderr = process.communicate(timeout=args.run_deadline_s)
     except subprocess.TimeoutExpired:
-        return {"outcome": "hang", "seconds": time.monotonic() - started}
-    if done.returncode != 0:
-        return {
-            "outcome": "failed",
-            "error": done.stderr.strip().splitlines()[-1:],
-            "seconds": time.monotonic() - started,
-        }
-    return {"outcome": "ok", "rows": json.loads(done.stdout), "seconds": time.monotonic() - started}
+        process.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+        stdout, stderr = process.communicate()
+        return {"outcome": "hang", "where": _innermost_frames(stderr), "seconds": time.monotonic() - started}
+    if process.returncode != 0:
+        return {"outcome": "failed", "error": stderr.strip().splitlines()[-1:], "seconds": time.monotonic() - started}
+    return {"outcome": "ok", "rows": json.loads(stdout), "seconds": time.monotonic() - started}
+
+
+def _innermost_frames(faulthandler_dump: str) -> list[str]:
+    """The line each thread of a faulthandler dump was waiting on."""
+    frames, expect_frame = [], False
+    for line in faulthandler_dump.splitlines():
+        if line.startswith(("Thread 0x", "Current thread 0x")):
+            expect_frame = True
+        elif expect_frame and line.strip().startswith("File "):
+            frames.append(line.strip())
+            expect_frame = False
+    return frames
 
 
 def _summary(hogs: int, runs: list[dict[str, Any]], trials: int) -> dict[str, Any]:
@@ -92,7 +106,7 @@ def _summary(hogs: int, runs: list[dict[str, Any]], trials: int) -> dict[str, An
         "runs": len(runs),
         "hangs": sum(run["outcome"] == "hang" for run in runs),
         "failed": sum(run["outcome"] == "failed" for run in runs),
-        "stops": len(finished) * trials,
+        "stops": len(at_rest),
         "stops_lost": stop_count("stops lost"),
         "stops_escalated": escalated,
         "stopj_received_p50_ms": _percentile(received, 50),
@@ -101,7 +115,9 @@ def _summary(hogs: int, runs: list[dict[str, Any]], trials: int) -> dict[str, An
         "at_rest_p99_ms": _percentile(at_rest, 99),
         "at_rest_max_ms": max(at_rest, default=None),
         "run_seconds_p50": float(np.median([run["seconds"] for run in runs])),
+        "moves_ended_before_their_stop": stop_count("moves that ended before their stop"),
         "errors": sorted({line for run in runs if run["outcome"] == "failed" for line in run["error"]}),
+        "hung_at": sorted({frame for run in runs if run["outcome"] == "hang" for frame in run["where"]}),
     }
 
 
