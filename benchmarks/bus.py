@@ -30,11 +30,11 @@ import numpy as np
 import zmq
 
 import msgs
+from bus.context import TransportConfig, recv_frames, send_frames
+from bus.pubsub import Bus
+from bus.registry import Registry
 from msgs.base import Header, Message
 from msgs.codec import decode, encode
-from nodes.bus import Bus
-from nodes.bus_context import TransportConfig, recv_frames, send_frames
-from nodes.registry import Registry
 
 PAYLOADS = {  # bytes -> the message a real node sends at that size
     1024: "1 KiB",

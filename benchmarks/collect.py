@@ -24,10 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from bus.bag import iter_envelopes
+from bus.bag_format import BagError
+from bus.registry import Registry
 from dataset.check import check_dataset
-from nodes.bag import iter_envelopes
-from nodes.bag_format import BagError
-from nodes.registry import Registry
 
 NODES = [
     "collector",

@@ -32,11 +32,11 @@ import numpy as np
 import zmq
 
 from benchmarks.collect import launch_collection
+from bus.pubsub import Bus
+from bus.registry import Endpoint, Registry
 from dataset.check import check_dataset
 from msgs import MESSAGE_TYPES
 from msgs.codec import MessageError, decode, encode
-from nodes.bus import Bus
-from nodes.registry import Endpoint, Registry
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

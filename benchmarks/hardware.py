@@ -26,11 +26,11 @@ from typing import Any
 import numpy as np
 
 import msgs
+from bus.pubsub import Bus
+from bus.registry import Registry
+from bus.services import ServiceCallError
 from drivers.gripper.firmware import GripperFirmware
 from drivers.gripper.wsg50 import WSG50Config, WSG50Gripper
-from nodes.bus import Bus
-from nodes.registry import Registry
-from nodes.services import ServiceCallError
 
 OBJECT_WIDTH_M = 0.04  # the part between the fingers in the completion figures
 HOMING_SPEED_M_S = 0.1  # the firmware simulator's referencing speed

@@ -4,7 +4,7 @@ A publisher process emits what a collection session does — two 512x424 depth s
 640x480 RGB tactile streams at 30 Hz, arm and gripper state at 125 Hz, six transforms on
 ``/tf`` at 20 Hz — while the real ``dtx bag record`` runs as its own process. Per topic:
 published, recorded, dropped, and how far behind the recorder was, read from the bag
-(``nodes.bag.recording_lag``: lag p50/p99/max and the largest backlog); then how much further
+(``bus.bag.recording_lag``: lag p50/p99/max and the largest backlog); then how much further
 ``/tf`` fell behind than the worst other topic (issue 55's target: at most 1 s under load) and
 the spread from the least to the most behind topic. Then the bag is replayed with
 ``dtx bag play --fast`` and its rate given in MB/s.
@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 import msgs
-from nodes.bag import bag_info
-from nodes.bus import Bus
-from nodes.registry import Registry
+from bus.bag import bag_info
+from bus.pubsub import Bus
+from bus.registry import Registry
 
 STREAMS = {  # topic -> (rate Hz, message factory)
     "/camera/left/depth": 30.0,

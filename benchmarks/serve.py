@@ -1,7 +1,7 @@
 """``dtx bench serve``: the inference server node end to end through the bus.
 
 The real node (nodes.inference; ``--workers`` of them, as launch/serve.yaml starts them) runs
-in its own process on a private bus directory; this process is the grasp planner (nodes.inference_client.TactileClient). Figures:
+in its own process on a private bus directory; this process is the grasp planner (bus.inference_client.TactileClient). Figures:
 - ``p50_ms``/``p99_ms``: one region per request, requests one after another, measured from
   the call to the decoded reply (encode, ipc, batching window, network, reply);
 - ``regions_per_s``: ``--clients`` planners sending ``--regions`` regions per request back to
@@ -53,16 +53,16 @@ import numpy as np
 import torch
 
 from benchmarks._serve_stages import ServedNetwork, stage_costs
+from bus.inference_client import SERVICE, Cloud, InferenceError, TactileClient
+from bus.pubsub import Bus
+from bus.registry import Registry
 from dataset.synth import analytic_contact_maps
 from models.checkpoint import TrainConfig, load_generator
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
 from models.runtime import DEVICES, CudaUnavailable, network_runner, resolve_device
-from nodes.bus import Bus
 from nodes.inference import InferenceNode
-from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.inference_passes import ThreadSplit, max_batch_on, thread_split
-from nodes.registry import Registry
 from perception.depthmap import (
     MODEL_CLOUD_SEED,
     MODEL_POINT_SPACING_M,

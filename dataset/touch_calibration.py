@@ -31,13 +31,13 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 import msgs
+from bus.bag import BagError, iter_envelopes
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError, SampleRecord
 from dataset.redepth import depth_map_params
 from dataset.splits import split_records
 from dataset.touches import measure_session_touches, touch_measure
 from dataset.turns import TurnJudge, segmented_objects, turns_alike
-from nodes.bag import BagError, iter_envelopes
 from perception.pointcloud import depth_images_to_world, depth_to_points_camera, transform_points
 from perception.registration import sample_model_cloud
 from perception.segmentation import crop_to_workspace, segmentation_params_for

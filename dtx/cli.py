@@ -45,7 +45,7 @@ def message_to_yaml(message: Any, full: bool = False) -> str:
 
 
 def _bus(name: str) -> Any:
-    from nodes.bus import Bus
+    from bus.pubsub import Bus
 
     return Bus(name)
 
@@ -63,7 +63,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
 
 
 def cmd_node_list(args: argparse.Namespace) -> int:
-    from nodes.registry import Registry
+    from bus.registry import Registry
 
     rows = [s for s in Registry().node_statuses() if s["alive"] or args.all]
     print(f"{'NAME':24} {'PID':>7} {'STATUS':10} {'AGE_S':>6}  TOPICS")
@@ -79,7 +79,7 @@ def cmd_node_list(args: argparse.Namespace) -> int:
 
 # -- topics ------------------------------------------------------------------------------
 def cmd_topic_list(args: argparse.Namespace) -> int:
-    from nodes.registry import Registry
+    from bus.registry import Registry
 
     for topic, endpoints in Registry().names("topic").items():
         schemas = sorted({e.schema for e in endpoints})
@@ -155,7 +155,7 @@ def cmd_topic_bw(args: argparse.Namespace) -> int:
 
 # -- services ----------------------------------------------------------------------------
 def cmd_service_list(args: argparse.Namespace) -> int:
-    from nodes.registry import Registry
+    from bus.registry import Registry
 
     for name, endpoints in Registry().names("service").items():
         e = endpoints[0]
@@ -164,9 +164,9 @@ def cmd_service_list(args: argparse.Namespace) -> int:
 
 
 def cmd_service_call(args: argparse.Namespace) -> int:
+    from bus.registry import Registry
+    from bus.services import ServiceCallError
     from msgs import MESSAGE_TYPES
-    from nodes.registry import Registry
-    from nodes.services import ServiceCallError
 
     endpoints = Registry().lookup("service", args.name)
     if not endpoints:
@@ -206,7 +206,7 @@ def _fields_from_yaml(msg_type: type, fields: dict[str, Any]) -> dict[str, Any]:
 
 # -- bags --------------------------------------------------------------------------------
 def cmd_bag_record(args: argparse.Namespace) -> int:
-    from nodes.bag_record_play import record
+    from bus.bag_record_play import record
 
     stop_at = time.monotonic() + args.duration if args.duration else None
     stopping = {"now": False}
@@ -228,8 +228,8 @@ def cmd_bag_record(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_play(args: argparse.Namespace) -> int:
-    from nodes.bag_format import BagError
-    from nodes.bag_record_play import play
+    from bus.bag_format import BagError
+    from bus.bag_record_play import play
 
     bus = _bus("dtx_bag_play")
     stopping = {"now": False}
@@ -256,8 +256,8 @@ def cmd_bag_play(args: argparse.Namespace) -> int:
 
 
 def cmd_bag_info(args: argparse.Namespace) -> int:
-    from nodes.bag import bag_info
-    from nodes.bag_format import BagError
+    from bus.bag import bag_info
+    from bus.bag_format import BagError
 
     try:
         info = bag_info(args.file)
@@ -422,7 +422,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nodes.registry import BusDirectoryError
+    from bus.registry import BusDirectoryError
 
     args = build_parser(argv).parse_args(argv)
     try:

@@ -22,7 +22,7 @@ die together come back together), when it exits non-zero, but not 2 (a node says
 restarting cannot help)); when a ``required`` node ends otherwise, everything stops. A node with ``if: false`` (e.g. ``if: $(var foxglove)``) is
 left out. Every
 child gets PR_SET_PDEATHSIG so none outlives the launcher, even one killed with -9, and starts
-through ``nodes.start``, so a stop that comes while it is still starting ends it quietly.
+through ``bus.start``, so a stop that comes while it is still starting ends it quietly.
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from typing import Any, TextIO
 
 import yaml
 
+from bus.node import EXIT_DO_NOT_RESPAWN
+from bus.registry import Registry
+from bus.start import hold_stops
 from msgs.progress import TERMINAL_ENV, on_terminal
-from nodes.node import EXIT_DO_NOT_RESPAWN
-from nodes.registry import Registry
-from nodes.start import hold_stops
 
 NODE_KEYS = {
     "name",
@@ -92,7 +92,7 @@ class NodeSpec:
         command = [
             sys.executable,
             "-m",
-            "nodes.start",  # a stop during start-up ends the node quietly (see there)
+            "bus.start",  # a stop during start-up ends the node quietly (see there)
             self.module,
             "--name",
             self.name,
@@ -253,7 +253,7 @@ _PR_SET_PDEATHSIG = 1
 def _prepare_child() -> None:
     # SIGKILL: a node stuck in a blocking call must not outlive a launcher that was killed.
     ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    hold_stops()  # a stop during the interpreter's start-up waits for nodes.start's handler
+    hold_stops()  # a stop during the interpreter's start-up waits for bus.start's handler
 
 
 @dataclasses.dataclass

@@ -21,7 +21,7 @@ import numpy as np
 import drivers.arm
 import drivers.arm.base
 import msgs
-from nodes.node import Node, run_node, split_params
+from bus.node import Node, run_node, split_params
 from workcell.kinematics import matrix_to_pose, pose_to_matrix
 
 

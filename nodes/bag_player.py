@@ -11,9 +11,9 @@ import json
 from typing import Any
 
 import msgs
-from nodes.bag_format import BagError
-from nodes.bag_record_play import play
-from nodes.node import Node, run_node
+from bus.bag_format import BagError
+from bus.bag_record_play import play
+from bus.node import Node, run_node
 
 
 class BagPlayerNode(Node):

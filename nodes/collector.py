@@ -36,6 +36,8 @@ from typing import Any, NoReturn
 import numpy as np
 
 import msgs
+from bus.node import EXIT_DO_NOT_RESPAWN, Node, run_node
+from bus.services import ServiceCallError
 from dataset.announced import write_samples
 from dataset.check import check_dataset
 from dataset.images import resize_rgb, subtract_background
@@ -43,8 +45,6 @@ from dataset.records import DatasetError, DatasetInfo, code_version
 from dataset.writer import DatasetWriter
 from msgs.progress import Progress
 from msgs.system import ErrorCode
-from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
-from nodes.services import ServiceCallError
 from perception.pointcloud import transform_points
 from perception.registration import sample_model_cloud
 from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose

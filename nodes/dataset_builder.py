@@ -11,9 +11,9 @@ import json
 from typing import Any
 
 import msgs
+from bus.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 from dataset.announced import dataset_info, write_samples
 from dataset.writer import DatasetWriter
-from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 
 
 class DatasetBuilderNode(Node):

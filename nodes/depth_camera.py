@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import drivers.depth_camera
 import msgs
-from nodes.node import run_node
+from bus.node import run_node
 from nodes.sensor import SensorNode
 
 

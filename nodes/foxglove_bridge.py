@@ -34,8 +34,8 @@ from typing import Any
 import foxglove
 
 import msgs
+from bus.node import Node, run_node
 from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_frames, foxglove_schema, foxglove_view
-from nodes.node import Node, run_node
 
 # What the rate limit tells apart: (dtx topic, frame id, child frame id).
 ThrottleKey = tuple[str, str, str]

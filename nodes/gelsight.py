@@ -15,7 +15,7 @@ from typing import Any
 
 import drivers.gelsight
 import msgs
-from nodes.node import run_node
+from bus.node import run_node
 from nodes.sensor import SensorNode
 
 if typing.TYPE_CHECKING:

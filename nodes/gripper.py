@@ -21,7 +21,7 @@ from typing import Any
 
 import drivers.gripper
 import msgs
-from nodes.node import Node, run_node, split_params
+from bus.node import Node, run_node, split_params
 
 
 class GripperNode(Node):

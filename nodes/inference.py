@@ -65,6 +65,7 @@ import cv2
 import numpy as np
 import torch
 
+from bus.node import Node, run_node
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.errors import ModelConfigError
@@ -81,7 +82,6 @@ from models.runtime import (
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.inference_passes import forward_pass_parts, max_batch_on, thread_split
 from nodes.inference_requests import BadRequest, UnknownCloud, check_params, checked_regions, cloud_id
-from nodes.node import Node, run_node
 from perception.depthmap import DepthMapParams, PlannedCut, contact_depth_maps, plan_contact_cut
 from perception.depthmap_tensor import points_on_device
 from perception.errors import PerceptionError

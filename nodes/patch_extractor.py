@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 import msgs
+from bus.node import Node, run_node
 from msgs.system import ErrorCode
-from nodes.node import Node, run_node
 from nodes.transforms import frame_transform
 from perception.depthmap import (
     MODEL_CLOUD_SEED,

@@ -11,9 +11,9 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from nodes.bag import BagWriteError
-from nodes.bag_record_play import RecordStats, record
-from nodes.node import EXIT_DO_NOT_RESPAWN, Node, run_node
+from bus.bag import BagWriteError
+from bus.bag_record_play import RecordStats, record
+from bus.node import EXIT_DO_NOT_RESPAWN, Node, run_node
 
 
 class RecorderNode(Node):

@@ -8,9 +8,9 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, ClassVar
 
+from bus.node import Node, split_params
+from bus.pubsub import Publisher
 from drivers import Device
-from nodes.bus import Publisher
-from nodes.node import Node, split_params
 
 
 class SensorNode(Node):

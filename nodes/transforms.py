@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import msgs
-from nodes.node import Node, run_node
+from bus.node import Node, run_node
 from workcell.kinematics import gel_poses_world, pose_to_matrix
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from nodes.bus_context import OPEN_BUSES
-from nodes.registry import Registry
+from bus.context import OPEN_BUSES
+from bus.registry import Registry
 
 
 @pytest.fixture(autouse=True)

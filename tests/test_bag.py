@@ -20,12 +20,12 @@ import pytest
 from mcap.reader import make_reader
 
 import msgs
+from bus.bag import BagWriter, bag_info, iter_envelopes
+from bus.bag_format import BagError
+from bus.bag_record_play import RecordStats, play, record
+from bus.pubsub import Bus
+from bus.registry import Registry
 from msgs.codec import decode, encode
-from nodes.bag import BagWriter, bag_info, iter_envelopes
-from nodes.bag_format import BagError
-from nodes.bag_record_play import RecordStats, play, record
-from nodes.bus import Bus
-from nodes.registry import Registry
 
 
 def sample_messages() -> list[tuple[str, msgs.Message]]:

@@ -19,12 +19,12 @@ import zmq
 import zmq.auth
 
 import msgs
+from bus.context import PeerConfig, TransportConfig
+from bus.pubsub import Bus
+from bus.registry import Endpoint, Registry
+from bus.security import CurveConfig, SecurityError
+from bus.services import ServiceCallError
 from msgs.codec import decode, encode
-from nodes.bus import Bus
-from nodes.bus_context import PeerConfig, TransportConfig
-from nodes.registry import Endpoint, Registry
-from nodes.security import CurveConfig, SecurityError
-from nodes.services import ServiceCallError
 
 
 @pytest.fixture
@@ -164,7 +164,7 @@ def test_a_publisher_killed_with_9_is_a_publisher_gone_not_bad_data(
             sys.executable,
             "-c",
             "import time, msgs\n"
-            "from nodes.bus import Bus\n"
+            "from bus.pubsub import Bus\n"
             "publisher = Bus('talker').publisher('/state', msgs.GripperState)\n"
             "while True:\n"
             "    publisher.publish(msgs.GripperState(width_m=0.01))\n"
@@ -400,8 +400,8 @@ def test_the_default_bus_directory_is_private(default_bus: Path) -> None:
 def test_a_bus_directory_another_user_made_first_is_refused(
     default_bus: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    from bus.registry import BusDirectoryError
     from dtx.cli import main
-    from nodes.registry import BusDirectoryError
 
     default_bus.mkdir(mode=0o700)
     os.chown(default_bus, 4242, 4242)
@@ -424,7 +424,7 @@ def test_a_bus_directory_another_user_made_first_is_refused(
 
 
 def test_a_flood_is_served_in_slices_and_logged_sparingly(registry: Registry, caplog: pytest.LogCaptureFixture) -> None:
-    from nodes.bus_context import SLICE_MESSAGES
+    from bus.context import SLICE_MESSAGES
 
     bus = Bus("server", registry)
     server = bus.service("/echo", msgs.GripperCommand, msgs.GripperState, lambda r: msgs.GripperState())
@@ -449,7 +449,7 @@ def test_a_flood_is_served_in_slices_and_logged_sparingly(registry: Registry, ca
 
 
 def test_a_publisher_refuses_an_oversized_message_before_allocating_it(registry: Registry) -> None:
-    from nodes.bus import MAX_SUBSCRIPTION_BYTES
+    from bus.pubsub import MAX_SUBSCRIPTION_BYTES
 
     bus = Bus("camera", registry)
     publisher = bus.publisher("/camera/depth", msgs.DepthImage)
@@ -596,7 +596,7 @@ def test_a_call_whose_server_is_killed_is_answered_by_its_respawn(registry: Regi
 
 
 def test_a_node_asked_to_stop_cancels_its_calls(registry: Registry) -> None:
-    from nodes.node import Node
+    from bus.node import Node
 
     server = start_fixture_node("holder", '{"hold_s": 600}')
     node = Node("caller", registry=registry)
@@ -617,7 +617,7 @@ def test_a_node_asked_to_stop_cancels_its_calls(registry: Registry) -> None:
 def test_frames_of_every_size_cross_a_socket_whole_and_in_order(tmp_path: Path) -> None:
     """send_frames copies small frames and hands large ones over without copying; recv_frames
     gathers one message's frames by their more-flags. Both ends see the same bytes."""
-    from nodes.bus_context import ZERO_COPY_BYTES, recv_frames, send_frames
+    from bus.context import ZERO_COPY_BYTES, recv_frames, send_frames
 
     context = zmq.Context()
     push, pull = context.socket(zmq.PUSH), context.socket(zmq.PULL)

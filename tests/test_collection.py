@@ -19,6 +19,7 @@ import torch
 
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
+from bus.bag import bag_info, iter_envelopes
 from dataset.check import check_dataset, content_checksum
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
@@ -29,7 +30,6 @@ from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS, evaluate, predict_dataset
 from models.networks import GeneratorConfig, UNetGenerator
 from msgs import strict_json
-from nodes.bag import bag_info, iter_envelopes
 from perception.ssim import ssim_rgb
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 from sim.cli import main as sim_cli

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import msgs
-from nodes.bus import Bus
+from bus.pubsub import Bus
+from bus.registry import Registry
 from nodes.foxglove_bridge import FoxgloveBridge, FrameThrottle
-from nodes.registry import Registry
 
 
 def test_image_topic_is_served_to_foxglove_studio(registry: Registry) -> None:

@@ -9,11 +9,11 @@ import time
 import pytest
 
 import msgs
+from bus.pubsub import Bus
+from bus.registry import Registry
+from bus.services import ServiceCallError
 from drivers.gripper.firmware import GripperFirmware
-from nodes.bus import Bus
 from nodes.gripper import GripperNode
-from nodes.registry import Registry
-from nodes.services import ServiceCallError
 
 
 @pytest.fixture

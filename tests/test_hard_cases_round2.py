@@ -25,6 +25,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from bus.inference_client import Cloud, InferenceError, TactileClient
 from dataset.records import DatasetError
 from dataset.redepth import depth_map_again
 from dataset.synth import MAX_CONTACT_MAP_SIZE, MAX_OVERSAMPLE, analytic_contact_maps, depth_map_from_surface
@@ -36,7 +37,6 @@ from models.real_presses import BALL_RADIUS_RANGE_MM, MAX_BALL_POINTS, ball_clou
 from models.template_match import most_deformed_box, template_match
 from msgs.config import ConfigError, config_from_dict
 from nodes.inference import cloud_id
-from nodes.inference_client import Cloud, InferenceError, TactileClient
 from perception.density import MAX_POINTS_PER_CM3, downsample_to_density, voxel_size_for_density
 from perception.depthmap import DepthMapParams, contact_depth_map, contact_depth_maps
 from perception.errors import DepthMapError, PerceptionError, PointCloudError

@@ -19,6 +19,10 @@ import torch
 from test_inference_node import serving
 
 from benchmarks.serve import depth_maps, write_checkpoint
+from bus.inference_client import TactileClient
+from bus.node import EXIT_DO_NOT_RESPAWN
+from bus.pubsub import Bus
+from bus.registry import Registry
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.runtime import (
@@ -30,11 +34,7 @@ from models.runtime import (
     onnx_runner,
     resolve_device,
 )
-from nodes.bus import Bus
 from nodes.inference import InferenceNode
-from nodes.inference_client import TactileClient
-from nodes.node import EXIT_DO_NOT_RESPAWN
-from nodes.registry import Registry
 
 REPO = Path(__file__).resolve().parent.parent
 

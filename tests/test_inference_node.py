@@ -16,16 +16,16 @@ import torch
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
+from bus.inference_client import SERVICE, Cloud, InferenceError, TactileClient
+from bus.pubsub import Bus
+from bus.registry import Registry
+from bus.services import ServiceCallError
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.runtime import cuda_missing, onnx_graph, onnx_runner
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.bus import Bus
 from nodes.inference import InferenceNode, cloud_id
-from nodes.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from nodes.inference_passes import ThreadSplit
-from nodes.registry import Registry
-from nodes.services import ServiceCallError
 from perception.depthmap import DepthMapParams, contact_depth_map
 from workcell.scene import load_scene
 

@@ -17,15 +17,15 @@ import torch
 from test_inference_node import planner, serving
 
 from benchmarks.serve import depth_maps, write_checkpoint
+from bus.inference_client import SERVICE, InferenceError
+from bus.pubsub import Bus
+from bus.registry import Registry
+from bus.services import ServiceCallError
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.prior import MAX_POSE_SIGMA_MM
 from models.real_presses import evaluate_real_presses
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.bus import Bus
-from nodes.inference_client import SERVICE, InferenceError
-from nodes.registry import Registry
-from nodes.services import ServiceCallError
 
 PRESSES = Path(__file__).resolve().parent.parent / "assets" / "gelsight" / "ball_presses.npz"
 DEFAULT_SIGMA_MM = 1.0

@@ -11,9 +11,9 @@ import time
 from pathlib import Path
 
 from benchmarks.serve import depth_maps, write_checkpoint
-from nodes.bus import Bus
-from nodes.inference_client import SERVICE, TactileClient
-from nodes.registry import Registry
+from bus.inference_client import SERVICE, TactileClient
+from bus.pubsub import Bus
+from bus.registry import Registry
 
 ROOT = Path(__file__).resolve().parent.parent
 

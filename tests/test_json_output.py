@@ -44,9 +44,9 @@ class Inputs:
         self.root = root
 
     def bag(self) -> Path:
+        from bus.bag import BagWriter
         from msgs import GripperState, Header
         from msgs.codec import decode, encode
-        from nodes.bag import BagWriter
 
         path = self.root / "small.mcap"
         if not path.exists():

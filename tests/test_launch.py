@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from bus.registry import Registry, pid_alive
 from dtx.launch import LaunchError, load_launch
-from nodes.registry import Registry, pid_alive
 
 FIXTURES = Path(__file__).parent / "launch_fixtures"
 
@@ -263,7 +263,7 @@ def test_a_recorder_the_disk_refuses_stops_cleanly_and_is_not_respawned(
 ) -> None:
     """It crash-looped: each respawn opened one more bag (session.1.mcap, ...) that the disk
     refused in turn. Now it stops with the do-not-respawn status and its bag reads."""
-    from nodes.bag import bag_info
+    from bus.bag import bag_info
 
     bag = tmp_path / "session.mcap"
     path = write(

@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
+from bus.node import Node, parse_params
 from dtx.launch import LaunchDescription, load_launch
-from nodes.node import Node, parse_params
 
 LAUNCH = Path(__file__).resolve().parent.parent / "launch"
 # Everything a session needs beyond its devices.

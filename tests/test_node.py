@@ -15,10 +15,10 @@ import pytest
 
 import msgs
 from benchmarks.fuzz import mutants
+from bus.node import Node, ParameterError
+from bus.pubsub import Bus
+from bus.registry import Registry
 from dtx.launch import load_launch
-from nodes.bus import Bus
-from nodes.node import Node, ParameterError
-from nodes.registry import Registry
 
 
 class SlowMover(Node):

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import msgs
+from bus.pubsub import Bus
+from bus.registry import Registry
+from bus.services import ServiceCallError
 from msgs.system import ErrorCode
-from nodes.bus import Bus
 from nodes.patch_extractor import GelOutOfReach, PatchExtractorNode, Registered
-from nodes.registry import Registry
-from nodes.services import ServiceCallError
 from perception.pointcloud import VoxelIndex
 
 

@@ -16,13 +16,13 @@ from pathlib import Path
 import pytest
 
 import msgs
+from bus.bag import bag_info, iter_envelopes
+from bus.bag_record_play import RecordStats, record
+from bus.context import PeerConfig, TransportConfig
+from bus.pubsub import Bus, Publisher
+from bus.registry import Registry
 from dtx.cli import main
-from nodes.bag import bag_info, iter_envelopes
-from nodes.bag_record_play import RecordStats, record
-from nodes.bus import Bus, Publisher
-from nodes.bus_context import PeerConfig, TransportConfig
 from nodes.recorder import RecorderNode
-from nodes.registry import Registry
 
 # Per tick: how many messages each topic gets (the flood's published first, the trickle's last).
 TICK = {"/tf": 300, "/arm/state": 10, "/gripper/state": 1}

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 
 import msgs
-from nodes.bus import Bus
+from bus.pubsub import Bus
+from bus.registry import Registry
 from nodes.gelsight import GelSightNode
-from nodes.registry import Registry
 
 FRAMES = Path(__file__).resolve().parent.parent / "assets" / "gelsight" / "ball_presses.npz"
 

@@ -24,13 +24,13 @@ import pytest
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
+from bus.bag import BagWriter, bag_info
+from bus.inference_client import SERVICE, Cloud, TactileClient
+from bus.pubsub import Bus
+from bus.registry import Registry
 from dataset.reader import DatasetReader
 from msgs.codec import decode, encode
-from nodes.bag import BagWriter, bag_info
-from nodes.bus import Bus
 from nodes.foxglove_bridge import FoxgloveBridge
-from nodes.inference_client import SERVICE, Cloud, TactileClient
-from nodes.registry import Registry
 
 ROOT = Path(__file__).resolve().parent.parent
 CLIENTS = ROOT / "clients" / "node"

@@ -9,8 +9,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import msgs
-from nodes.bus import Bus
-from nodes.registry import Registry
+from bus.pubsub import Bus
+from bus.registry import Registry
 from nodes.transforms import TransformPublisher
 from workcell.kinematics import gel_poses_world, pose_to_matrix
 

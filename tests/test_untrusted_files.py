@@ -23,11 +23,11 @@ from mcap.records import Chunk, Header
 from mcap.writer import CompressionType, Writer
 
 import msgs
+from bus.bag_format import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 from dataset.images import subtract_background
 from dataset.records import DatasetInfo
 from dataset.writer import DatasetWriter
 from msgs.codec import encode
-from nodes.bag_format import MESSAGE_ENCODING, SCHEMA_ENCODING, pack_frames
 
 MAGIC = b"\x89MCAP0\r\n"
 INFO = DatasetInfo(
@@ -48,8 +48,8 @@ def run_capped(body: str, timeout_s: float = 120.0) -> dict:
         textwrap.dedent("""
         import json, resource
         from dataset.check import check_dataset
-        from nodes.bag import bag_info, iter_envelopes
-        from nodes.bag_format import BagError
+        from bus.bag import bag_info, iter_envelopes
+        from bus.bag_format import BagError
         vm = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
         resource.setrlimit(resource.RLIMIT_AS, (vm + (1 << 30), vm + (1 << 30)))
         result = {}

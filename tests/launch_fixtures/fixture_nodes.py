@@ -9,8 +9,8 @@ import time
 from concurrent.futures import Future
 
 import msgs
-from nodes.node import Node, run_node
-from nodes.services import ServiceCallError
+from bus.node import Node, run_node
+from bus.services import ServiceCallError
 
 
 class CounterNode(Node):

@@ -7,7 +7,7 @@ import time
 
 from fixture_nodes import CounterNode
 
-from nodes.node import run_node
+from bus.node import run_node
 
 print("importing", flush=True)
 time.sleep(60)

@@ -24,16 +24,16 @@ from typing import Any, ClassVar, TypeVar
 
 import zmq
 
+from bus.context import Counters, PeerConfig, TransportConfig
+from bus.pubsub import Bus, Publisher, Subscriber
+from bus.registry import Registry
+from bus.security import CurveConfig
+from bus.services import ServiceClient, ServiceServer
+from bus.start import STOP_SIGNALS, stop_quietly
 from msgs.base import Message
 from msgs.codec import Envelope
 from msgs.config import ConfigError, config_from_dict
 from msgs.system import Heartbeat, Log
-from nodes.bus import Bus, Publisher, Subscriber
-from nodes.bus_context import Counters, PeerConfig, TransportConfig
-from nodes.registry import Registry
-from nodes.security import CurveConfig
-from nodes.services import ServiceClient, ServiceServer
-from nodes.start import STOP_SIGNALS, stop_quietly
 
 M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
@@ -314,7 +314,7 @@ def run_node(node_class: type[Node], argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(message)s")
     curve = CurveConfig(args.curve_secret_key, args.curve_authorized_keys) if args.curve_secret_key else None
     # A stop while the node is being made (a device connecting, a model loading) ends it at once,
-    # quietly: the launcher's start-up handler (nodes.start), in place as well for a node started by hand.
+    # quietly: the launcher's start-up handler (bus.start), in place as well for a node started by hand.
     for signum in STOP_SIGNALS:
         signal.signal(signum, stop_quietly)
     try:

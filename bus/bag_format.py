@@ -1,4 +1,4 @@
-"""How a dtx message is stored in an MCAP bag (nodes.bag writes and reads the bags).
+"""How a dtx message is stored in an MCAP bag (bus.bag writes and reads the bags).
 
 A dtx message is stored in its own encoding: the channel's message encoding is
 ``dtx/msgpack+buffers``, the data is the wire header and array buffers each prefixed by its

@@ -1,4 +1,4 @@
-"""How the launcher starts a node: ``python -m nodes.start MODULE ARGS...`` runs MODULE as
+"""How the launcher starts a node: ``python -m bus.start MODULE ARGS...`` runs MODULE as
 ``python -m MODULE ARGS...`` does, except that a stop (SIGINT, SIGTERM) that comes while the
 node is still starting ends it quietly, with status 0 as for any stop it was asked for.
 
@@ -8,7 +8,7 @@ raise KeyboardInterrupt wherever the node happens to be (importing its libraries
 its device) and print its traceback; SIGTERM would kill it with status -15. This module
 imports nothing of the project, so its handler is in place before the node's imports begin;
 the launcher starts the interpreter with both signals blocked (:func:`hold_stops`), so one that
-comes even before this module runs waits for it. ``nodes.node.run_node`` replaces the handler
+comes even before this module runs waits for it. ``bus.node.run_node`` replaces the handler
 with a clean shutdown once the node is made.
 """
 
@@ -40,7 +40,7 @@ def main() -> None:
     # The node's own threads and children must take signals as usual.
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     if len(sys.argv) < 2:
-        raise SystemExit("usage: python -m nodes.start MODULE [ARGS...]")
+        raise SystemExit("usage: python -m bus.start MODULE [ARGS...]")
     module = sys.argv.pop(1)
     runpy.run_module(module, run_name="__main__", alter_sys=True)
 

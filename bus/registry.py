@@ -7,7 +7,7 @@ find, so a node names topics, never ports. Entries of dead processes are ignored
 The directory is private: created 0700, and refused when another user owns it or anyone but
 its owner may write it (whoever can write there could answer this user's requests).
 Chosen over a master process because there is nothing to start first and nothing to crash;
-crossing machines uses endpoints named in the launch file instead (see ``nodes.security``).
+crossing machines uses endpoints named in the launch file instead (see ``bus.security``).
 """
 
 from __future__ import annotations

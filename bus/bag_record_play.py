@@ -1,4 +1,4 @@
-"""Record the bus into an MCAP bag (nodes.bag), and replay a bag onto the bus.
+"""Record the bus into an MCAP bag (bus.bag), and replay a bag onto the bus.
 
 Recording goes in rounds, fair to every topic: a round takes everything waiting on each topic's
 socket (at most ``round_limit`` messages, by default the bus's high-water mark, what a socket
@@ -22,11 +22,11 @@ from typing import Any
 import zmq
 
 import msgs
+from bus.bag import BagWriter, bag_channels, iter_envelopes
+from bus.bag_format import MESSAGE_ENCODING, BagError
+from bus.context import recv_frames
+from bus.pubsub import Bus, Publisher, Subscriber
 from msgs.codec import Envelope
-from nodes.bag import BagWriter, bag_channels, iter_envelopes
-from nodes.bag_format import MESSAGE_ENCODING, BagError
-from nodes.bus import Bus, Publisher, Subscriber
-from nodes.bus_context import recv_frames
 
 # The longest the recorder writes without serving its node (heartbeat, services, a stop).
 SERVE_PERIOD_S = 0.05

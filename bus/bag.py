@@ -1,5 +1,5 @@
 """MCAP bags: write them, read them back (also ones cut short by a crash). How a message is
-stored is nodes.bag_format's; recording the bus and replaying bags, nodes.bag_record_play's.
+stored is bus.bag_format's; recording the bus and replaying bags, bus.bag_record_play's.
 
 Chunks are closed by age as well as size, and the file's header is on disk from the start, so
 a recorder killed at any moment loses at most ``CHUNK_PERIOD_S`` and never leaves an empty
@@ -36,9 +36,7 @@ from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
-from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_view
-from nodes.bag_format import (
+from bus.bag_format import (
     MESSAGE_ENCODING,
     SCHEMA_ENCODING,
     BagError,
@@ -46,6 +44,8 @@ from nodes.bag_format import (
     schema_description,
     unpack_frames,
 )
+from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope, MessageError, decode
+from msgs.foxglove import FOXGLOVE_SUFFIX, foxglove_view
 
 COMPRESSIONS = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 # No record, and no chunk once decompressed, may be larger than the largest message the bus

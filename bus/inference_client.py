@@ -21,9 +21,9 @@ from types import TracebackType
 
 import numpy as np
 
+from bus.pubsub import Bus
+from bus.services import ServiceCallError
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.bus import Bus
-from nodes.services import ServiceCallError
 
 SERVICE = "/inference/estimate"
 

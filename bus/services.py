@@ -20,11 +20,11 @@ from typing import Any, Generic, TypeVar
 import msgpack
 import zmq
 
+from bus.context import SLICE_MESSAGES, BusContext, Counters, DropLog, recv_frames, send_frames
+from bus.registry import Endpoint
 from msgs.base import Header, Message
 from msgs.codec import MAX_HEADER_BYTES, Envelope, MessageError, decode, encode
 from msgs.system import ErrorCode, ServiceError
-from nodes.bus_context import SLICE_MESSAGES, BusContext, Counters, DropLog, recv_frames, send_frames
-from nodes.registry import Endpoint
 
 log = logging.getLogger("dtx.bus")
 M = TypeVar("M", bound=Message)

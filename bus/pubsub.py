@@ -1,5 +1,5 @@
 """Publish/subscribe over ZeroMQ, with discovery through the registry; the Bus that makes
-publishers, subscribers, services (nodes.services) and clients.
+publishers, subscribers, services (bus.services) and clients.
 
 - Topics: a publisher binds an XPUB socket (so it sees subscriptions arrive) and advertises
   it; subscribers connect to every live publisher of the topic. Latched topics resend their
@@ -28,11 +28,11 @@ from typing import Any, Generic, TypeVar
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
+from bus.context import SLICE_MESSAGES, BusContext, Counters, DropLog, recv_frames, send_frames
+from bus.registry import Endpoint
+from bus.services import ServiceClient, ServiceServer
 from msgs.base import Header, Message
 from msgs.codec import Envelope, MessageError, decode, encode
-from nodes.bus_context import SLICE_MESSAGES, BusContext, Counters, DropLog, recv_frames, send_frames
-from nodes.registry import Endpoint
-from nodes.services import ServiceClient, ServiceServer
 
 log = logging.getLogger("dtx.bus")
 M = TypeVar("M", bound=Message)

@@ -2,8 +2,8 @@
 
 A :class:`BusContext` holds the ZeroMQ context, the registry and the transport settings (ipc or
 tcp, CURVE, fixed endpoints, peers on other machines), and binds and connects sockets by them.
-:class:`nodes.bus.Bus` adds the factories of publishers, subscribers, services and clients on
-top of it; those (nodes.bus, nodes.services) are built on this part alone, so neither has to
+:class:`bus.pubsub.Bus` adds the factories of publishers, subscribers, services and clients on
+top of it; those (bus.pubsub, bus.services) are built on this part alone, so neither has to
 import the other. Socket owners share :class:`Counters`, :class:`DropLog` (dropped-message
 warnings at most once a second per socket) and ``SLICE_MESSAGES``.
 """
@@ -20,9 +20,9 @@ from typing import Any
 import zmq
 import zmq.auth
 
+from bus.registry import Endpoint, Registry
+from bus.security import CurveConfig, secure_client, secure_server, stop_authenticator
 from msgs.codec import DEFAULT_MAX_MESSAGE_BYTES
-from nodes.registry import Endpoint, Registry
-from nodes.security import CurveConfig, secure_client, secure_server, stop_authenticator
 
 log = logging.getLogger("dtx.bus")
 
