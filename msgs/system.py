@@ -75,7 +75,7 @@ class ErrorCode:
     UNKNOWN_CLOUD = "unknown_cloud"  # inference: a cloud id this worker does not hold
     NOT_REGISTERED = "not_registered"  # patch extractor: the object has no registered pose
     OUT_OF_REACH = "out_of_reach"  # patch extractor: a gel reaches no point of the object
-    # Set by the calling side (nodes.services.ServiceClient), never sent:
+    # Set by the calling side (bus.services.ServiceClient), never sent:
     TIMEOUT = "timeout"
     UNAVAILABLE = "unavailable"
     CANCELLED = "cancelled"
