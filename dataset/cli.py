@@ -63,7 +63,9 @@ def _redepth(args: argparse.Namespace) -> int:
 
     from dataset.redepth import density_dirs, redepth_datasets
 
-    targets: dict[float | None, str | Path] = dict(density_dirs(args.dir, args.density)) if args.density else {}
+    targets: dict[float | None, str | Path] = (
+        {density: path for density, path in density_dirs(args.dir, args.density).items()} if args.density else {}
+    )
     if args.out:
         if len(args.density) > 1:
             print("error: --out takes one density; leave it out to get DIR_density_D for each", file=sys.stderr)

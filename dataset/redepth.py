@@ -17,7 +17,7 @@ import dataclasses
 import functools
 import multiprocessing
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -130,7 +130,7 @@ def redepth_dataset(
 
 def redepth_datasets(
     source: str | os.PathLike[str],
-    targets: dict[float | None, str | os.PathLike[str]],
+    targets: Mapping[float | None, str | os.PathLike[str]],
     bins: int | None = None,
     progress: bool = True,
     registered: dict[str, np.ndarray] | None = None,
@@ -174,7 +174,7 @@ def _one_pass(
     scene: Scene,
     params: DepthMapParams,
     info: DatasetInfo,
-    targets: dict[float | None, str | os.PathLike[str]],
+    targets: Mapping[float | None, str | os.PathLike[str]],
     progress: bool,
     poses: PosesBySample,
 ) -> dict[float | None, DatasetWriter]:
@@ -217,7 +217,7 @@ def _record_map_again(
 def _one_pass_in_process(
     source: str | os.PathLike[str],
     bins: int | None,
-    targets: dict[float | None, str | os.PathLike[str]],
+    targets: Mapping[float | None, str | os.PathLike[str]],
     progress: bool,
     poses: PosesBySample,
 ) -> None:

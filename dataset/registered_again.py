@@ -165,7 +165,7 @@ def placement_report(session: str | os.PathLike[str], registered: dict[str, np.n
     for name, pose in sorted(registered.items()):
         row = dict(zip(("moved_mm", "moved_deg"), pose_error(pose, recorded[name]))) if name in recorded else {}
         if name in truth:
-            mesh = o3d.io.read_triangle_mesh(scene.mesh(name))
+            mesh = o3d.io.read_triangle_mesh(Path(scene.mesh(name)))
             points = sample_model_cloud(scene.mesh(name), seed=0).points_m
             row["add_s_mm"] = add_s_error_m(mesh, points, pose, truth[name]) * 1e3
         report[name] = row

@@ -53,7 +53,12 @@ def random_surface(shape: str, rng: np.random.Generator) -> SurfaceMm:
 
     if shape == "sphere":
         radius = rng.uniform(2.0, 8.0)
-        return lambda x, z: cap(sum(c**2 for c in local(x, z)), radius)
+
+        def sphere(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+            u, v = local(x, z)
+            return cap(u**2 + v**2, radius)
+
+        return sphere
     if shape == "cylinder":
         radius = rng.uniform(2.0, 10.0)
         return lambda x, z: cap(local(x, z)[0] ** 2, radius)

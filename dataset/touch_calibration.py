@@ -224,7 +224,7 @@ def fit_cell(
     touches and no-contacts; TouchCalibrationError when fewer than :data:`MIN_TOUCHES` show a
     contact the renderer can place."""
     params, scene = depth_map_params(reader)
-    models = {name: o3d.io.read_triangle_mesh(scene.mesh(name)) for name in predicted}
+    models = {name: o3d.io.read_triangle_mesh(Path(scene.mesh(name))) for name in predicted}
     for touches_per_object in per_object:
         touches, no_contact = measure_session_touches(measure, train, predicted, scene, params, touches_per_object)
         counted = sum(len(t) for t in touches.values())

@@ -21,7 +21,7 @@ import numpy as np
 from dataset.reader import DatasetReader
 from dataset.records import FINGERS, SampleRecord
 from dataset.redepth import depth_map_again, depth_map_params, model_index, poses_at
-from perception.depthmap import DepthMapParams
+from perception.depthmap import DepthMapParams, crop_bounds
 from perception.pointcloud import transform_points
 from perception.touch_calibration import TouchOffset, moved_depth_map, profiled_fit
 from sim.gelsight import render_depth_maps, scene_renderer
@@ -62,7 +62,7 @@ class TouchRenderer:
 
     def _ssd(self, cuts: list[np.ndarray], frames: np.ndarray, centres: np.ndarray, grid: tuple) -> np.ndarray:
         """N x |x| x |z| x |y|: each touch's frame against its cut moved to centre + grid."""
-        far = self.params.y_range_m[1]
+        far = crop_bounds(self.geometry, self.params)[3]
         offsets = np.stack(np.meshgrid(*grid, indexing="ij"), axis=-1).reshape(-1, 3)
         out = np.empty((len(cuts), len(offsets)))
         for i, (cut, frame, centre) in enumerate(zip(cuts, frames, centres)):

@@ -6,7 +6,7 @@ registration may take either; the touches, which feel the object's edges, can te
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -37,7 +37,7 @@ TURN_MARGIN = 0.8
 
 
 def segmented_objects(
-    reader: DatasetReader, scene: Scene, clouds: np.ndarray
+    reader: DatasetReader, scene: Scene, clouds: Sequence[np.ndarray]
 ) -> Iterator[tuple[str, PreparedModel, np.ndarray]]:
     """Each object of ``reader``'s session as its patch extractor segments it from ``clouds``
     (world, m) and prepares its model (same seed): (name, prepared model, its points, world m)."""
