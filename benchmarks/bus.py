@@ -24,6 +24,8 @@ import multiprocessing as mp
 import tempfile
 import time
 from collections.abc import Callable
+from multiprocessing.context import SpawnContext
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,7 +33,7 @@ import zmq
 
 import msgs
 from bus.context import TransportConfig, recv_frames, send_frames
-from bus.pubsub import Bus
+from bus.pubsub import Bus, Subscriber
 from bus.registry import Registry
 from msgs.base import Header, Message
 from msgs.codec import decode, encode
@@ -64,10 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _receiver(impl: str, transport: str, address: str, bus_dir: str, expected: int, out: Any) -> None:
     """Child process: receive ``expected`` messages, report latencies (us) and the span."""
-    latencies, first, last, received, nbytes = [], 0.0, 0.0, 0, 0
+    latencies: list[float] = []
+    first, last, received, nbytes = 0.0, 0.0, 0, 0
     if impl == "dtx":
-        bus = Bus("bench_sub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
-        subscriber = bus.subscriber(TOPIC, None)
+        bus = Bus("bench_sub", Registry(Path(bus_dir)), TransportConfig(transport=transport, high_water_mark=100_000))
+        subscriber: Subscriber[Message] = bus.subscriber(TOPIC, None)  # any schema: the receiver reads headers only
         out.put("ready")
         while received < expected:
             envelope = subscriber.receive(timeout_s=5.0)
@@ -100,12 +103,12 @@ def _receiver(impl: str, transport: str, address: str, bus_dir: str, expected: i
 
 
 def _send_dtx(
-    context_mp: mp.context.BaseContext, message: Message, transport: str, bus_dir: str, count: int, pause_s: float
+    context_mp: SpawnContext, message: Message, transport: str, bus_dir: str, count: int, pause_s: float
 ) -> dict:
     """One phase through dtx: publish ``count`` stamped messages to a receiver process, ``pause_s``
     apart; the receiver's report."""
     out = context_mp.Queue()
-    bus = Bus("bench_pub", Registry(bus_dir), TransportConfig(transport=transport, high_water_mark=100_000))
+    bus = Bus("bench_pub", Registry(Path(bus_dir)), TransportConfig(transport=transport, high_water_mark=100_000))
     publisher = bus.publisher(TOPIC, type(message))
     child = context_mp.Process(target=_receiver, args=("dtx", transport, "", bus_dir, count, out))
     child.start()
@@ -125,7 +128,7 @@ def _send_dtx(
 
 
 def _send_raw(
-    context_mp: mp.context.BaseContext, payload_bytes: int, transport: str, bus_dir: str, count: int, pause_s: float
+    context_mp: SpawnContext, payload_bytes: int, transport: str, bus_dir: str, count: int, pause_s: float
 ) -> dict:
     """The same phase through raw pyzmq: topic, stamp and payload frames, sent zero-copy."""
     out = context_mp.Queue()
@@ -140,7 +143,7 @@ def _send_raw(
     out.get(timeout=60)
     sock.recv()  # the subscription arrives: the subscriber is connected
     time.sleep(0.2)
-    payload = memoryview(np.ones(payload_bytes, np.uint8))
+    payload = np.ones(payload_bytes, np.uint8).data  # a memoryview of the array
     for _ in range(count):
         sock.send_multipart([TOPIC.encode(), time.monotonic_ns().to_bytes(8, "little"), payload], copy=False)
         if pause_s:
@@ -212,7 +215,7 @@ def _work_rows(payload_bytes: int, batches: int, bus_dir: str) -> list[dict]:
     push.bind(f"ipc://{bus_dir}/work.sock")
     pull.connect(f"ipc://{bus_dir}/work.sock")
     message = make_message(payload_bytes)
-    payload = memoryview(np.ones(payload_bytes, np.uint8))
+    payload = np.ones(payload_bytes, np.uint8).data  # a memoryview of the array
     sends: dict[str, Callable[[], object]] = {  # the reference first, as in the other rows
         "raw_pyzmq": lambda: push.send_multipart(
             [TOPIC.encode(), time.monotonic_ns().to_bytes(8, "little"), payload], copy=False

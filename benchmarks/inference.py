@@ -72,7 +72,8 @@ def _measure(run: Runner, inputs: np.ndarray, batch: int, seconds: float) -> tup
         regions += batch
     throughput = regions / (time.perf_counter() - started)
     run(inputs[:1])
-    latencies, started = [], time.perf_counter()
+    latencies: list[float] = []
+    started = time.perf_counter()
     while time.perf_counter() - started < seconds or len(latencies) < 5:
         t0 = time.perf_counter()
         run(inputs[len(latencies) % len(inputs)][None])
@@ -103,11 +104,14 @@ def gflop_per_region(generator: UNetGenerator, inputs: np.ndarray) -> float:
     return counter.get_total_flops() / 1e9
 
 
-def _generator(width: int, checkpoint: str | None, seed: int) -> tuple[UNetGenerator, tuple[float, float]]:
+def _generator(width: int | None, checkpoint: str | None, seed: int) -> tuple[UNetGenerator, tuple[float, float]]:
+    """The trained generator of ``checkpoint``, else a seeded random one of ``width``."""
     if checkpoint:
         from models.checkpoint import load_generator
 
         return load_generator(checkpoint)
+    if width is None:
+        raise ValueError("a generator needs a checkpoint or a width")
     torch.manual_seed(seed)
     return UNetGenerator(GeneratorConfig(ngf=width)).eval(), DEPTH_RANGE_M
 
@@ -139,7 +143,9 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows = []
     peak = fp32_peak_gflops()
     print(f"fp32 matrix-product peak on {args.threads} thread(s): {peak:.1f} GFLOP/s", file=sys.stderr, flush=True)
-    models = [(None, c) for c in args.checkpoint] if args.checkpoint else [(w, None) for w in args.widths]
+    models: list[tuple[int | None, str | None]] = (  # (width, checkpoint): one of the two
+        [(None, c) for c in args.checkpoint] if args.checkpoint else [(w, None) for w in args.widths]
+    )
     for width, checkpoint in models:
         generator, depth_range_m = _generator(width, checkpoint, args.seed)
         if args.dataset:
@@ -155,7 +161,12 @@ def _run_table(args: argparse.Namespace) -> list[dict[str, Any]]:
                     continue
                 device = _device(args.device, runtime, precision)
                 if runtime == "compile":
-                    runner = eager_runner(torch.compile(UncheckedGenerator(generator)), bf16=precision == "bf16")
+                    compiled = torch.compile(UncheckedGenerator(generator))
+                    # torch.compile of a module returns a module (an OptimizedModule); its
+                    # annotation says only "a callable".
+                    if not isinstance(compiled, torch.nn.Module):
+                        raise TypeError(f"torch.compile returned {type(compiled).__name__}, not a module")
+                    runner = eager_runner(compiled, bf16=precision == "bf16")
                 else:  # the node's runners, graphs and session options
                     runner = network_runner(generator, depth_range_m, runtime, precision, args.threads, device)
                 output = to_uint8_rgb(torch.from_numpy(runner(inputs)))

@@ -68,7 +68,8 @@ def _repeat(function, min_seconds: float = 0.3, min_runs: int = 3) -> tuple[floa
 
     Throughput is quoted from the best run, as timeit advises: slower runs measure the other
     processes on the machine, not the code."""
-    walls, cpus = [], []
+    walls: list[float] = []
+    cpus: list[float] = []
     started = time.perf_counter()
     while len(walls) < min_runs or time.perf_counter() - started < min_seconds:
         wall, cpu = time.perf_counter(), time.process_time()
@@ -123,7 +124,7 @@ def _numpy_contact_depth_map(points, half_x, half_z, y_range, shape):
 def bench_binning(seed: int) -> list[dict]:
     rng = np.random.default_rng(seed)
     half_x, half_z, shape = 0.0113, 0.01445, (100, 100)
-    rows = []
+    rows: list[dict[str, object]] = []
     for count in (10_000, 100_000, 1_000_000):
         x, z = rng.uniform(-half_x, half_x, count), rng.uniform(-half_z, half_z, count)
         y = rng.uniform(-0.002, 0.002, count)
@@ -152,14 +153,14 @@ def bench_binning(seed: int) -> list[dict]:
         points_gel = np.column_stack([x, y, z])
         geometry = GripperGeometry()
         hx, hz, y_near, y_far = crop_bounds(geometry, DepthMapParams())
-        for name, function in (
+        for name, whole_map in (
             ("contact_depth_map", lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4))),
             (
                 "numpy_contact_depth_map",
                 lambda p=points_gel: _numpy_contact_depth_map(p, hx, hz, (y_near, y_far), (100, 100)),
             ),
         ):
-            best, median, cpu = _repeat(function)
+            best, median, cpu = _repeat(whole_map)
             rows.append(
                 {
                     "part": "binning",
@@ -218,7 +219,7 @@ def _sweep_cases(scene_path: str, poses: int, seed: int, drop_effects: list[str]
     cases = []
     for mesh in YCB:
         model = sample_model_cloud(mesh, seed=seed)
-        surface = o3d.io.read_triangle_mesh(str(mesh))
+        surface = o3d.io.read_triangle_mesh(Path(mesh))
         footprint = float(np.max(np.linalg.norm(model.points_m[:, :2], axis=1)))
         for _ in range(poses):
             placed = scene_with_object(scene, mesh, rng, footprint)
@@ -289,7 +290,7 @@ def bench_depthmap(seed: int) -> list[dict]:
     gels = gel_poses_world(tcp, 2 * radius - 0.001, geometry)
     clouds = {"full": model.points_m}
     clouds.update({f"{d:g}_per_cm3": downsample_to_density(model.points_m, d) for d in PAPER_DENSITIES_PER_CM3})
-    rows = []
+    rows: list[dict[str, object]] = []
     for density, points in clouds.items():
         for bins in (50, 100, 200):
             params = DepthMapParams(shape=(bins, bins))

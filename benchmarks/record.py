@@ -69,7 +69,7 @@ def _sensor_messages(rng: np.random.Generator) -> dict[str, Any]:
 
 
 def _publish_load(bus_dir: str, duration_s: float, out: Any) -> None:
-    bus = Bus("sensor_load", Registry(bus_dir))
+    bus = Bus("sensor_load", Registry(Path(bus_dir)))
     messages = _sensor_messages(np.random.default_rng(0))
     publishers = {topic: bus.publisher(topic, type(messages[topic])) for topic in STREAMS}
     for publisher in publishers.values():

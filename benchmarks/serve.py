@@ -205,7 +205,7 @@ def _cut_rates(
     before it (a pass over the whole cloud per gel, ``per_gel`` gels)."""
 
     def batched(device_points: torch.Tensor | None) -> float:
-        cut = [index, np.eye(4), poses, geometry, params]
+        cut = (index, np.eye(4), poses, geometry, params)
         contact_depth_maps(*cut, threads=threads, device_points=device_points)  # compiled and warm
         started = time.perf_counter()
         contact_depth_maps(*cut, threads=threads, device_points=device_points)
@@ -250,7 +250,10 @@ def _served_network(
     """The graph the node serves as it runs it (its ``model`` line: int8 refused falls back to
     fp32), how it shares its threads, and its device; this process set as the node's, so that
     the network and the prior compute here as they do there."""
-    runtime, precision, device = re.search(r"(\w+) (\w+), (\w+)\)$", model).groups()  # type: ignore[union-attr]
+    served_as = re.search(r"(\w+) (\w+), (\w+)\)$", model)
+    if served_as is None:
+        raise ValueError(f"the node's model line {model!r} does not end in '(runtime precision, device)'")
+    runtime, precision, device = served_as.groups()
     split = thread_split(args.threads, device)
     served = (generator, depth_range_m, runtime, precision)
     network = ServedNetwork(
