@@ -24,7 +24,6 @@ import zmq
 import msgs
 from bus.bag import BagWriter, bag_channels, iter_envelopes
 from bus.bag_format import MESSAGE_ENCODING, BagError
-from bus.context import recv_frames
 from bus.pubsub import Bus, Publisher, Subscriber
 from msgs.codec import Envelope
 
@@ -155,15 +154,7 @@ def _take(subscribers: list[Subscriber[Any]], limit: int, stats: RecordStats) ->
     in the order received."""
     batch = []
     for subscriber in subscribers:
-        taken: list[Taken] = []
-        for _ in range(limit):
-            try:
-                frames = recv_frames(subscriber.sock, zmq.NOBLOCK)
-            except zmq.Again:
-                break
-            envelope = subscriber.handle(frames)
-            if envelope is not None:
-                taken.append((frames, envelope))
+        taken: list[Taken] = subscriber.receive_ready_frames(limit)
         if taken:
             stats.received(subscriber.topic, len(taken))
             batch.append(taken)

@@ -280,7 +280,12 @@ class Subscriber(Generic[M]):
     def receive_ready(self, limit: int = SLICE_MESSAGES) -> list[Envelope]:
         """The valid messages among the next ``limit`` waiting, without blocking (for
         executors: what is left waits for the next slice, after the other sockets)."""
-        envelopes = []
+        return [envelope for _, envelope in self.receive_ready_frames(limit)]
+
+    def receive_ready_frames(self, limit: int) -> list[tuple[list[zmq.Frame], Envelope]]:
+        """As :meth:`receive_ready`, each message with the frames it came in (a recorder writes
+        them as they are)."""
+        received = []
         for _ in range(limit):
             try:
                 frames = recv_frames(self.sock, zmq.NOBLOCK)
@@ -288,8 +293,8 @@ class Subscriber(Generic[M]):
                 break
             envelope = self.handle(frames)
             if envelope is not None:
-                envelopes.append(envelope)
-        return envelopes
+                received.append((frames, envelope))
+        return received
 
     def handle(self, frames: list[Any]) -> Envelope | None:
         try:
