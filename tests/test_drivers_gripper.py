@@ -11,6 +11,7 @@ import tty
 import pytest
 import serial
 
+from drivers import DeviceTimeoutError
 from drivers.gripper import GripperError, make_backend
 from drivers.gripper.firmware import GripperFirmware
 from drivers.gripper.protocol import Command, FrameParser, Status, encode_frame, split_response
@@ -186,8 +187,9 @@ def test_gripper_that_never_answers():
     tty.setraw(slave)
     try:
         client = WSG50Gripper(WSG50Config(port=os.ttyname(slave), response_timeout_s=0.05, retries=1))
-        with pytest.raises(GripperError, match="no answer to GET_GRASPING_STATE .* after 2 tries"):
+        with pytest.raises(GripperError, match="no answer to GET_GRASPING_STATE .* after 2 tries") as raised:
             client.connect()
+        assert isinstance(raised.value, DeviceTimeoutError)  # the device contract's deadline error
     finally:
         os.close(master)
         os.close(slave)

@@ -19,12 +19,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from drivers import Device, DeviceError, DeviceNotConnectedError
+from drivers import Device, DeviceError, DeviceNotConnectedError, DeviceTimeoutError
 from msgs import CameraIntrinsics, DepthImage, Header
 
 
 class DepthCameraError(DeviceError):
     """Any failure of a depth camera backend; the message says what is missing and what to do."""
+
+
+class DepthCameraTimeoutError(DepthCameraError, DeviceTimeoutError):
+    """No frame came within the read deadline."""
 
 
 class DepthCameraNotConnectedError(DeviceNotConnectedError, DepthCameraError):

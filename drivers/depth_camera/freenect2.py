@@ -12,7 +12,14 @@ from typing import Any
 import numpy as np
 
 from drivers import requires_connection
-from drivers.depth_camera.base import Calibration, DepthCamera, DepthCameraError, depth_image, load_calibration
+from drivers.depth_camera.base import (
+    Calibration,
+    DepthCamera,
+    DepthCameraError,
+    DepthCameraTimeoutError,
+    depth_image,
+    load_calibration,
+)
 from msgs import DepthImage
 
 PIPELINES = {
@@ -93,14 +100,14 @@ class Freenect2DepthCamera(DepthCamera):
 
     @requires_connection
     def read(self) -> DepthImage:
-        """The next depth frame; DepthCameraError when none comes within ``read_timeout_s``."""
+        """The next depth frame; DepthCameraTimeoutError when none comes within ``read_timeout_s``."""
         calibration = self.calibration
         assert calibration is not None  # requires_connection
         # Poll rather than block: the binding's waitForNewFrame() has no time-out.
         deadline = time.monotonic() + self.config.read_timeout_s
         while not self._listener.hasNewFrame():
             if time.monotonic() > deadline:
-                raise DepthCameraError(
+                raise DepthCameraTimeoutError(
                     f"no depth frame from Kinect {self.config.serial or '(any)'} "
                     f"within {self.config.read_timeout_s} s: was it unplugged?"
                 )

@@ -18,7 +18,14 @@ from openni import openni2
 from openni.utils import InitializationError, OpenNIError
 
 from drivers import requires_connection
-from drivers.depth_camera.base import Calibration, DepthCamera, DepthCameraError, depth_image, load_calibration
+from drivers.depth_camera.base import (
+    Calibration,
+    DepthCamera,
+    DepthCameraError,
+    DepthCameraTimeoutError,
+    depth_image,
+    load_calibration,
+)
 from msgs import DepthImage
 
 
@@ -137,7 +144,7 @@ class OpenNI2DepthCamera(DepthCamera):
 
     @requires_connection
     def read(self) -> DepthImage:
-        """The next depth frame; DepthCameraError when none comes within ``read_timeout_s``."""
+        """The next depth frame; DepthCameraTimeoutError when none comes within ``read_timeout_s``."""
         stream, calibration = self._stream, self.calibration
         assert stream is not None and calibration is not None  # requires_connection
         try:
@@ -147,12 +154,12 @@ class OpenNI2DepthCamera(DepthCamera):
             raise DepthCameraError(f"{self._label} failed after {self._seq} frames: {exc}") from exc
         if frame is None:
             if self.config.oni_file:
-                raise DepthCameraError(
+                raise DepthCameraTimeoutError(
                     f"recording {self.config.oni_file} gave no frame within "
                     f"{self.config.read_timeout_s} s after {self._seq} of its "
                     f"{stream.get_number_of_frames()} frames"
                 )
-            raise DepthCameraError(
+            raise DepthCameraTimeoutError(
                 f"no depth frame from {self._label} within {self.config.read_timeout_s} s "
                 f"after {self._seq} frames: was the camera unplugged?"
             )

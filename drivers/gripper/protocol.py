@@ -14,7 +14,7 @@ import enum
 import struct
 from typing import Callable
 
-from drivers import DeviceError
+from drivers import DeviceError, DeviceTimeoutError
 
 PREAMBLE = b"\xaa\xaa\xaa"
 HEADER_BYTES = len(PREAMBLE) + 3
@@ -26,6 +26,10 @@ MAX_PAYLOAD_BYTES = 64
 
 class GripperError(DeviceError):
     """Any failure of the gripper or of the serial line; the message says what to do."""
+
+
+class GripperTimeoutError(GripperError, DeviceTimeoutError):
+    """The gripper did not answer a command, or finish a motion, within its deadline."""
 
 
 class Command(enum.IntEnum):

@@ -32,6 +32,7 @@ from drivers.gripper.protocol import (
     FrameParser,
     GraspingState,
     GripperError,
+    GripperTimeoutError,
     Status,
     SystemFlag,
     encode_frame,
@@ -349,7 +350,7 @@ class WSG50Gripper(Gripper):
             if motion and attempt == 0 and reply[0] == Status.E_ALREADY_RUNNING:
                 raise GripperError(f"{command.name} refused: another motion is running; stop() it first")
             return reply
-        raise GripperError(
+        raise GripperTimeoutError(
             f"no answer to {command.name} from the gripper on {self.config.port} after "
             f"{self.config.retries + 1} tries of {self.config.response_timeout_s} s: check that it is "
             f"powered, the cable, and the baud rate ({self.config.baudrate}; the WSG default is 115200)"
@@ -371,7 +372,7 @@ class WSG50Gripper(Gripper):
                 if self._stops != stops_before:
                     return Status.E_CMD_ABORTED
                 return _OUTCOME_OF_STATE.get(self._grasping_state(), Status.E_CMD_FAILED)
-        raise GripperError(
+        raise GripperTimeoutError(
             f"{command.name} did not finish within {self.config.motion_timeout_s} s; "
             "the fingers may still be moving: call stop()"
         )
