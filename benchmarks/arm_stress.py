@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     for hogs in loads:
         with cpu_hogs(hogs):
             runs = [_one_run(args) for _ in range(args.runs)]
-        rows.append(_summary(hogs, runs, args.stop_trials))
+        rows.append(_summary(hogs, runs))
     return rows
 
 
@@ -46,6 +46,8 @@ def _one_run(args: argparse.Namespace) -> dict[str, Any]:
     """One `dtx bench arm --json` process: its figures, or how it ended ("hang", "failed")."""
     command = [
         sys.executable,
+        "-X",
+        "faulthandler",  # a hung run's threads are dumped on SIGABRT
         "-m",
         "dtx.cli",
         "bench",
@@ -58,13 +60,11 @@ def _one_run(args: argparse.Namespace) -> dict[str, Any]:
         "--each-stop",
     ]
     started = time.monotonic()
-    process = subprocess.Popen(
-        [sys.executable, "-X", "faulthandler", *command[1:]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         stdout, stderr = process.communicate(timeout=args.run_deadline_s)
     except subprocess.TimeoutExpired:
-        process.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+        process.send_signal(signal.SIGABRT)
         stdout, stderr = process.communicate()
         return {"outcome": "hang", "where": _innermost_frames(stderr), "seconds": time.monotonic() - started}
     if process.returncode != 0:
@@ -84,7 +84,7 @@ def _innermost_frames(faulthandler_dump: str) -> list[str]:
     return frames
 
 
-def _summary(hogs: int, runs: list[dict[str, Any]], trials: int) -> dict[str, Any]:
+def _summary(hogs: int, runs: list[dict[str, Any]]) -> dict[str, Any]:
     finished = [run for run in runs if run["outcome"] == "ok"]
 
     def figures(name: str) -> list[dict[str, Any]]:
@@ -93,12 +93,7 @@ def _summary(hogs: int, runs: list[dict[str, Any]], trials: int) -> dict[str, An
     def stop_count(prefix: str) -> int:
         return sum(int(row["value"]) for run in finished for row in run["rows"] if row["figure"].startswith(prefix))
 
-    escalated = sum(
-        int(row["value"])
-        for run in finished
-        for row in run["rows"]
-        if row["figure"].startswith("stops ending with error code") and not row["figure"].endswith(" none")
-    )
+    escalated = stop_count("stops ending with error code") - stop_count("stops ending with error code none")
     received = [value for row in figures("stop() to controller receiving stopJ") for value in row["each"]]
     at_rest = [value for row in figures("stop() to the arm verified at rest") for value in row["each"]]
     return {
