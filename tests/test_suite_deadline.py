@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,6 +44,8 @@ def test_a_hung_test_fails_and_the_run_goes_on(tmp_path: Path) -> None:
             str(ROOT / "pyproject.toml"),
             "--rootdir",
             str(tmp_path),
+            "--junitxml",
+            str(tmp_path / "report.xml"),
             str(tmp_path),
         ],
         capture_output=True,
@@ -50,4 +53,11 @@ def test_a_hung_test_fails_and_the_run_goes_on(tmp_path: Path) -> None:
         timeout=120,
     )
     assert "2 failed, 1 passed" in run.stdout, run.stdout + run.stderr
-    assert run.stdout.count("Timeout (>1.0s) from pytest-timeout") == 2
+    # The report, not the terminal: how many times a message is printed depends on its width.
+    failures = {
+        case.get("name"): failure.get("message", "")
+        for case in ET.parse(tmp_path / "report.xml").iter("testcase")
+        for failure in case.iter("failure")
+    }
+    assert sorted(failures) == ["test_hangs_sleeping", "test_hangs_waiting_on_a_device"]
+    assert all("Timeout (>1.0s) from pytest-timeout" in m for m in failures.values()), failures
