@@ -228,6 +228,7 @@ def _calibrated(session: Path, out: Path, library_samples: int, seed: int) -> tu
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from models.evaluate import uncertainty_table
     from models.real_presses import real_press_table
     from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
 
@@ -260,6 +261,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     evaluation = json.loads(report)
     (out / "evaluation.json").write_text(json.dumps(evaluation, indent=2) + "\n")
     print("\n" + paper_table(evaluation))
+    if "uncertainty" in evaluation:
+        print("\nthe served uncertainty on the test split\n" + "\n".join(uncertainty_table(evaluation["uncertainty"])))
     print("\n" + real_press_table(evaluation["real_presses"]))
     print(f"\nfigures in {figures}; full results in {out / 'evaluation.json'}")
     return 0

@@ -24,6 +24,7 @@ from models.networks import (
     config_from_dict,
 )
 from models.prior import PhysicsPrior, PriorSpec, checked_pose_sigma_mm
+from models.uncertainty import ServedUncertainty
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -175,5 +176,12 @@ def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[f
         if "prior" not in state:
             raise ModelConfigError(f"{path} corrects a physics prior but does not say which (no 'prior' entry)")
         generator.prior = PhysicsPrior(PriorSpec.from_dict(state["prior"]), config.generator.image_size)
+    generator.serves = state.get("serves", "network")
+    if generator.serves not in ("network", "prior") or (generator.serves == "prior" and not config.generator.prior):
+        raise ModelConfigError(
+            f"{path} serves {generator.serves!r}: a checkpoint serves its network, or the prior it has"
+        )
+    if "uncertainty" in state:
+        generator.uncertainty = ServedUncertainty.from_state(state["uncertainty"])
     low, high = state["depth_range_m"]
     return generator, (float(low), float(high))

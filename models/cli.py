@@ -1,9 +1,10 @@
-"""``dtx train`` and ``dtx evaluate``."""
+"""``dtx train``, ``dtx fit-serving`` and ``dtx evaluate``."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 
@@ -25,7 +26,20 @@ def _train(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, session_pose_sigma_mm=args.session_pose_sigma_mm)
     started = time.monotonic()
     path = train(args.dataset, config, args.out, resume=args.resume, libraries=args.library)
+    if int(os.environ.get("RANK", "0")) == 0:  # under torchrun, one rank fits what is served
+        from models.serving import fit_serving
+
+        fit_serving(path)
     print(f"checkpoint {path} ({time.monotonic() - started:.0f} s)")
+    return 0
+
+
+@exit_1_on(ModelConfigError, DatasetError, OSError)
+def _fit_serving(args: argparse.Namespace) -> int:
+    from models.serving import fit_serving
+
+    figures = fit_serving(args.checkpoint, args.dataset)
+    print(strict_json.dumps(figures, indent=2) if args.json else f"{args.checkpoint} serves the {figures['serves']}")
     return 0
 
 
@@ -86,8 +100,17 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``train`` and ``evaluate`` to the ``dtx`` parser."""
+    """Add ``train``, ``fit-serving`` and ``evaluate`` to the ``dtx`` parser."""
     _add_train(subparsers)
+    fit = subparsers.add_parser(
+        "fit-serving",
+        help="choose what a checkpoint serves (its network or its prior) and fit its uncertainty "
+        "(dtx train does this at its end; for a checkpoint trained before)",
+    )
+    fit.add_argument("checkpoint", help="checkpoint.pt written by dtx train; rewritten in place")
+    fit.add_argument("dataset", nargs="?", help="dataset to fit on (default: the one the checkpoint was trained on)")
+    fit.add_argument("--json", action="store_true", help="print the figures that decided as JSON")
+    fit.set_defaults(func=_fit_serving)
     evaluate = subparsers.add_parser("evaluate", help="the paper's SSIM, baseline and template-matching analysis")
     evaluate.add_argument("checkpoint", help="checkpoint.pt written by dtx train")
     evaluate.add_argument("dataset", nargs="?", help="dataset directory (optional with --real-presses)")

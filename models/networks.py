@@ -150,6 +150,10 @@ class UNetGenerator(nn.Module):
         # The models.prior.PhysicsPrior whose images this generator's input carries
         # (config.prior): set by models.checkpoint.load_generator from the checkpoint, never learned.
         self.prior: Any = None
+        # What the checkpoint serves (models.serving: "network" or "prior") and the
+        # models.uncertainty.ServedUncertainty served beside it (None: absent); set by load_generator.
+        self.serves = "network"
+        self.uncertainty: Any = None
 
     @torch.no_grad()
     def set_background(self, mean_image: torch.Tensor) -> None:

@@ -47,7 +47,7 @@ import numpy as np
 
 from dataset.images import resize_rgb
 from models.errors import ModelConfigError
-from models.evaluate import predict
+from models.evaluate import predict, predict_served, served_uncertainty_statistics, uncertainty_table
 from models.networks import UNetGenerator
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
@@ -229,11 +229,12 @@ def evaluate_real_presses(
     cloud = ball_cloud_m(ball_radius_mm)
     depth_maps = np.stack([press_depth_map(g, ball_radius_mm, geometry, params, cloud) for g in geometries])
     empty = np.full((1, *grid), depth_range_m[1], dtype=np.float32)
+    # The press is placed by its annotation, not by a registration: its geometry is exact.
+    model, uncertainty = predict_served(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0)
     images = {
         "truth": np.stack([resize_rgb(f, *grid) for f in presses.frames]),
         "depth_maps_m": depth_maps,
-        # The press is placed by its annotation, not by a registration: its geometry is exact.
-        "model": predict(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0),
+        "model": model,
         "model_empty": np.repeat(predict(generator, empty, depth_range_m, pose_sigma_mm=0.0), n, axis=0),
         "background": np.repeat(resize_rgb(presses.background, *grid)[None], n, axis=0),
         "renderer": _renderer_images(renderer, presses, geometries, grid, mm_per_px, ball_radius_mm),
@@ -244,7 +245,11 @@ def evaluate_real_presses(
     height, width = presses.background.shape[:2]
     scores = _score_presses(images, geometries, others, (height * mm_per_px, width * mm_per_px))
     settings = {"ball_radius_mm": ball_radius_mm, "mm_per_px": mm_per_px, "window_radii": WINDOW_RADII, "seed": seed}
-    return {"n": n, "file": str(path), **settings, **_summary(scores, geometries, presses)}, images
+    summary = _summary(scores, geometries, presses)
+    summary["uncertainty"] = served_uncertainty_statistics(
+        uncertainty, model, images["truth"], 1.0 - np.asarray(scores["full_ssim"]["model"])
+    )
+    return {"n": n, "file": str(path), **settings, **summary}, images
 
 
 def _load_presses(
@@ -401,6 +406,8 @@ def real_press_table(result: dict[str, Any]) -> str:
             f"{result['window_psnr_db'][key]:>8.1f} dB  {result['full_psnr_db'][key]:>6.1f} dB  "
             f"{'—' if location is None else format(location, '.2f'):>21}"
         )
+    if "uncertainty" in result:
+        lines += uncertainty_table(result["uncertainty"])
     return "\n".join(lines)
 
 
