@@ -228,8 +228,8 @@ def _calibrated(session: Path, out: Path, library_samples: int, seed: int) -> tu
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from models.evaluate import uncertainty_table
     from models.real_presses import real_press_table
+    from models.uncertainty import uncertainty_table
     from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
 
     out = Path(args.out)

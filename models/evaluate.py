@@ -23,18 +23,17 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import torch
 from scipy import stats
 
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params, depth_maps_made_beside
-from models.data import network_input, reader_for_model, select_records, to_uint8_rgb
+from models.data import reader_for_model, select_records
 from models.networks import ModelConfigError, UNetGenerator
-from models.serving import served_images
+from models.serving import predict, predict_served
 from models.template_match import template_match
-from models.uncertainty import uncertainty_statistics
+from models.uncertainty import served_uncertainty_statistics, uncertainty_table
 from msgs.progress import Progress
 from perception.density import voxel_size_for_density
 from perception.errors import ImageComparisonError, PerceptionError
@@ -68,49 +67,6 @@ class Predictions:
     depth_crop_m: tuple[float, float, float] | None = None
     # The uncertainty served with each estimate (N x H x W, image levels); None: the checkpoint has none.
     uncertainty: np.ndarray | None = None
-
-
-# Most regions one forward pass of predict takes: as many as the inference node takes in one
-# request (its max_regions), so that evaluation needs no more memory than serving.
-MAX_PREDICT_BATCH = 256
-
-
-def predict(
-    generator: UNetGenerator,
-    depth_maps_m: np.ndarray,
-    depth_range_m: tuple[float, float],
-    batch: int = 64,
-    pose_sigma_mm: float | None = None,
-) -> np.ndarray:
-    """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates: :func:`predict_served`'s images."""
-    return predict_served(generator, depth_maps_m, depth_range_m, batch, pose_sigma_mm)[0]
-
-
-@torch.no_grad()
-def predict_served(
-    generator: UNetGenerator,
-    depth_maps_m: np.ndarray,
-    depth_range_m: tuple[float, float],
-    batch: int = 64,
-    pose_sigma_mm: float | None = None,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """N x H x W depth-maps (m) -> what the checkpoint serves (models.serving: its network's or
-    its prior's image), N x H x W x 3 uint8, and the uncertainty served beside it (N x H x W
-    float32, image levels; None when the checkpoint has none). ``pose_sigma_mm``: the maps'
-    in-plane pose error for a physics prior (None: the model's default, its training session's).
-    ``batch``: regions a forward pass, an integer in [1, MAX_PREDICT_BATCH]; otherwise
-    ModelConfigError."""
-    if not (isinstance(batch, (int, np.integer)) and not isinstance(batch, bool) and 1 <= batch <= MAX_PREDICT_BATCH):
-        raise ModelConfigError(f"batch must be an integer in [1, {MAX_PREDICT_BATCH}], got {batch!r}")
-    generator.eval()
-    x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior, pose_sigma_mm)
-    images, uncertainty = [], []
-    for i in range(0, len(x), batch):
-        estimate = served_images(generator, x[i : i + batch], generator.serves)
-        images.append(to_uint8_rgb(estimate))
-        if generator.uncertainty is not None:
-            uncertainty.append(generator.uncertainty.levels(x[i : i + batch], estimate))
-    return np.concatenate(images), (np.concatenate(uncertainty) if uncertainty else None)
 
 
 def predict_dataset(
@@ -424,33 +380,6 @@ def _full_density_result(predictions: Predictions, baseline_draws: int, template
     return result
 
 
-UNCERTAINTY_ABSENT = "the checkpoint serves no uncertainty (trained before it; dtx fit-serving CHECKPOINT fits one)"
-
-
-def served_uncertainty_statistics(
-    uncertainty: np.ndarray | None, estimate: np.ndarray, truth: np.ndarray, region_dissimilarity: np.ndarray
-) -> dict[str, Any]:
-    """models.uncertainty.uncertainty_statistics of the served uncertainty; ``absent`` with the
-    reason when the checkpoint has none."""
-    if uncertainty is None:
-        return {"absent": UNCERTAINTY_ABSENT}
-    return uncertainty_statistics(uncertainty, estimate, truth, region_dissimilarity)
-
-
-def uncertainty_table(figures: dict[str, Any]) -> list[str]:
-    """The uncertainty's lines of the summary: its correlations and its decile table."""
-    if "absent" in figures:
-        return [f"uncertainty: absent ({figures['absent']})"]
-    lines = [
-        f"{'uncertainty r (pixel/region)':28s}{figures['pearson_pixel']:>13.3f} / {figures['pearson_region']:.3f}"
-        f"   mean u {figures['u_mean_levels']:.2f}, mean e {figures['e_mean_levels']:.2f} levels",
-        f"{'  decile of u':28s}" + "".join(f"{i + 1:>7d}" for i in range(len(figures["deciles"]))),
-        f"{'  mean u (levels)':28s}" + "".join(f"{d['u_mean']:>7.2f}" for d in figures["deciles"]),
-        f"{'  RMS e / mean u':28s}" + "".join(f"{d['ratio']:>7.2f}" for d in figures["deciles"]),
-    ]
-    return lines
-
-
 def _density_reader(
     root: str | os.PathLike[str], depth_range_m: tuple[float, float], density: Sequence[float]
 ) -> DatasetReader:
@@ -542,8 +471,7 @@ def summary_table(result: dict[str, Any]) -> str:
         lines.append("template distance undefined: every template is flat (no correlation to locate)")
     if not result["objects"]:
         lines.append("per-object statistics: no object has 2 pairs")
-    if "uncertainty" in result:
-        lines += uncertainty_table(result["uncertainty"])
+    lines += uncertainty_table(result["uncertainty"]) if "uncertainty" in result else []
     for row in result["density"]:
         paper = row["paper_ssim_mean"]
         lines.append(

@@ -47,8 +47,9 @@ import numpy as np
 
 from dataset.images import resize_rgb
 from models.errors import ModelConfigError
-from models.evaluate import predict, predict_served, served_uncertainty_statistics, uncertainty_table
 from models.networks import UNetGenerator
+from models.serving import predict, predict_served
+from models.uncertainty import served_uncertainty_statistics, uncertainty_table
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
@@ -214,12 +215,7 @@ def evaluate_real_presses(
     grid = (generator.config.image_size, generator.config.image_size)
     n = len(presses.frames)
     geometries = [press_geometry(presses, i, mm_per_px, ball_radius_mm, grid) for i in range(n)]
-    small = [i for i, g in enumerate(geometries) if min(g.window[1] - g.window[0], g.window[3] - g.window[2]) < WINDOW]
-    if small:
-        raise ModelConfigError(
-            f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
-            "(contact radius too small for SSIM)"
-        )
+    _check_windows(path, geometries, grid)
     geometry = scene.gripper_geometry()
     params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m)
     try:
@@ -250,6 +246,16 @@ def evaluate_real_presses(
         uncertainty, model, images["truth"], 1.0 - np.asarray(scores["full_ssim"]["model"])
     )
     return {"n": n, "file": str(path), **settings, **summary}, images
+
+
+def _check_windows(path: str | os.PathLike[str], geometries: list[PressGeometry], grid: tuple[int, int]) -> None:
+    """ModelConfigError naming the presses whose window is too small for SSIM on ``grid``."""
+    small = [i for i, g in enumerate(geometries) if min(g.window[1] - g.window[0], g.window[3] - g.window[2]) < WINDOW]
+    if small:
+        raise ModelConfigError(
+            f"{path}: presses {small} have a window under {WINDOW} px on the {grid} grid "
+            "(contact radius too small for SSIM)"
+        )
 
 
 def _load_presses(

@@ -11,7 +11,8 @@ its end; ``dtx fit-serving CHECKPOINT`` fits them for a checkpoint trained befor
   served and calibrated on the validation split's.
 
 Both are checkpoint entries; a checkpoint without them serves its network, its uncertainty
-absent (never zeros passed off as certain).
+absent (never zeros passed off as certain). :func:`predict_served` answers depth-maps as the
+inference node does, for the evaluations (``dtx evaluate``, the real presses, the reports).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 import torch
 
 from models.checkpoint import load_checkpoint, load_generator, save_atomic
-from models.data import load_pairs, reader_for_model, select_records, to_uint8_rgb
+from models.data import load_pairs, network_input, reader_for_model, select_records, to_uint8_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
 from models.uncertainty import UncertaintyConfig, fit_uncertainty, pixel_error_levels
@@ -57,6 +58,49 @@ def served_images(generator: UNetGenerator, network_input: torch.Tensor, serves:
         raise ModelConfigError(f"serves must be one of {', '.join(SERVES)}, got {serves!r}")
     generator.eval()
     return torch.cat([generator(network_input[i : i + BATCH]) for i in range(0, len(network_input), BATCH)])
+
+
+# Most regions one forward pass of predict takes: as many as the inference node takes in one
+# request (its max_regions), so that evaluation needs no more memory than serving.
+MAX_PREDICT_BATCH = 256
+
+
+def predict(
+    generator: UNetGenerator,
+    depth_maps_m: np.ndarray,
+    depth_range_m: tuple[float, float],
+    batch: int = 64,
+    pose_sigma_mm: float | None = None,
+) -> np.ndarray:
+    """N x H x W depth-maps (m) -> N x H x W x 3 uint8 estimates: :func:`predict_served`'s images."""
+    return predict_served(generator, depth_maps_m, depth_range_m, batch, pose_sigma_mm)[0]
+
+
+@torch.no_grad()
+def predict_served(
+    generator: UNetGenerator,
+    depth_maps_m: np.ndarray,
+    depth_range_m: tuple[float, float],
+    batch: int = 64,
+    pose_sigma_mm: float | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """N x H x W depth-maps (m) -> what the checkpoint serves (``generator.serves``: its
+    network's or its prior's image), N x H x W x 3 uint8, and the uncertainty served beside it (N x H x W
+    float32, image levels; None when the checkpoint has none). ``pose_sigma_mm``: the maps'
+    in-plane pose error for a physics prior (None: the model's default, its training session's).
+    ``batch``: regions a forward pass, an integer in [1, MAX_PREDICT_BATCH]; otherwise
+    ModelConfigError."""
+    if not (isinstance(batch, (int, np.integer)) and not isinstance(batch, bool) and 1 <= batch <= MAX_PREDICT_BATCH):
+        raise ModelConfigError(f"batch must be an integer in [1, {MAX_PREDICT_BATCH}], got {batch!r}")
+    generator.eval()
+    x = network_input(depth_maps_m, depth_range_m, generator.config, generator.prior, pose_sigma_mm)
+    images, uncertainty = [], []
+    for i in range(0, len(x), batch):
+        estimate = served_images(generator, x[i : i + batch], generator.serves)
+        images.append(to_uint8_rgb(estimate))
+        if generator.uncertainty is not None:
+            uncertainty.append(generator.uncertainty.levels(x[i : i + batch], estimate))
+    return np.concatenate(images), (np.concatenate(uncertainty) if uncertainty else None)
 
 
 def choose_served(generator: UNetGenerator, x_val: torch.Tensor, y_val: torch.Tensor) -> tuple[str, dict[str, float]]:

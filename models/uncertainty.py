@@ -231,3 +231,30 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     if len(a) < 2 or np.std(a) == 0 or np.std(b) == 0:
         return float("nan")
     return float(np.corrcoef(a, b)[0, 1])
+
+
+UNCERTAINTY_ABSENT = "the checkpoint serves no uncertainty (trained before it; dtx fit-serving CHECKPOINT fits one)"
+
+
+def served_uncertainty_statistics(
+    uncertainty: np.ndarray | None, estimate: np.ndarray, truth: np.ndarray, region_dissimilarity: np.ndarray
+) -> dict[str, Any]:
+    """models.uncertainty.uncertainty_statistics of the served uncertainty; ``absent`` with the
+    reason when the checkpoint has none."""
+    if uncertainty is None:
+        return {"absent": UNCERTAINTY_ABSENT}
+    return uncertainty_statistics(uncertainty, estimate, truth, region_dissimilarity)
+
+
+def uncertainty_table(figures: dict[str, Any]) -> list[str]:
+    """The uncertainty's lines of the summary: its correlations and its decile table."""
+    if "absent" in figures:
+        return [f"uncertainty: absent ({figures['absent']})"]
+    lines = [
+        f"{'uncertainty r (pixel/region)':28s}{figures['pearson_pixel']:>13.3f} / {figures['pearson_region']:.3f}"
+        f"   mean u {figures['u_mean_levels']:.2f}, mean e {figures['e_mean_levels']:.2f} levels",
+        f"{'  decile of u':28s}" + "".join(f"{i + 1:>7d}" for i in range(len(figures["deciles"]))),
+        f"{'  mean u (levels)':28s}" + "".join(f"{d['u_mean']:>7.2f}" for d in figures["deciles"]),
+        f"{'  RMS e / mean u':28s}" + "".join(f"{d['ratio']:>7.2f}" for d in figures["deciles"]),
+    ]
+    return lines

@@ -32,9 +32,10 @@ from dataset.redepth import depth_map_again, depth_map_params, model_cloud
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.checkpoint import load_generator
 from models.data import network_input, select_records
-from models.evaluate import PAPER_DENSITY_SSIM, contact_ssim, predict
+from models.evaluate import PAPER_DENSITY_SSIM, contact_ssim
 from models.networks import UNetGenerator
 from models.runtime import sampling_copy
+from models.serving import predict
 from perception.density import downsample_to_density
 from perception.pointcloud import VoxelIndex
 from perception.registration import RegistrationParams

@@ -30,10 +30,11 @@ from dataset.records import DatasetError
 from dataset.redepth import depth_map_again
 from dataset.synth import MAX_CONTACT_MAP_SIZE, MAX_OVERSAMPLE, analytic_contact_maps, depth_map_from_surface
 from models.errors import ModelConfigError
-from models.evaluate import MAX_PREDICT_BATCH, predict, psnr_statistics, ssim_statistics
+from models.evaluate import psnr_statistics, ssim_statistics
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import MAX_POSE_SIGMA_MM, PhysicsPrior, PriorSpec, checked_pose_sigma_mm
 from models.real_presses import BALL_RADIUS_RANGE_MM, MAX_BALL_POINTS, ball_cloud_m, evaluate_real_presses
+from models.serving import MAX_PREDICT_BATCH, predict
 from models.template_match import most_deformed_box, template_match
 from msgs.config import ConfigError, config_from_dict
 from nodes.inference import cloud_id

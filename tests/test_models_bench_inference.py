@@ -13,9 +13,9 @@ from dataset.reader import DatasetReader
 from dataset.synth import write_synthetic_dataset
 from models.checkpoint import TrainConfig, load_generator
 from models.data import select_records
-from models.evaluate import predict
 from models.networks import GeneratorConfig, UNetGenerator
 from models.runtime import contact_inputs
+from models.serving import predict
 from models.train import train
 from perception.ssim import ssim_rgb
 

@@ -13,7 +13,6 @@ import torch
 from dataset.contact_library import write_contact_library
 from models.checkpoint import TrainConfig, load_generator
 from models.cli import add_commands
-from models.evaluate import predict
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PhysicsPrior, PriorSpec
 from models.real_presses import (
@@ -23,6 +22,7 @@ from models.real_presses import (
     press_geometry,
     write_real_press_figure,
 )
+from models.serving import predict
 from models.train import train
 from perception.depthmap import DepthMapParams, crop_bounds
 from sim.gelsight import scene_renderer

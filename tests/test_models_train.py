@@ -224,9 +224,9 @@ def test_a_contact_library_joins_the_training_set_and_must_share_the_depth_range
 
 def test_a_generator_with_a_physics_prior_starts_from_the_renderer_and_exports(tmp_path: Path) -> None:
     from dataset.contact_library import write_contact_library
-    from models.evaluate import predict
     from models.prior import PhysicsPrior
     from models.runtime import export_onnx
+    from models.serving import predict
 
     library = write_contact_library(tmp_path / "library", 16, seed=1, scene=REPO / "scenes" / "ycb_three.yaml").root
     config = TrainConfig(
@@ -274,7 +274,7 @@ def test_the_held_l1_leaves_a_pixel_at_its_prior_unless_the_targets_agree(
 
 def test_the_correction_weight_holds_the_generator_to_its_prior(tmp_path: Path) -> None:
     from dataset.contact_library import write_contact_library
-    from models.evaluate import predict
+    from models.serving import predict
 
     library = write_contact_library(tmp_path / "library", 16, seed=1, scene=REPO / "scenes" / "ycb_three.yaml").root
     reader = DatasetReader(library)

@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 from models.checkpoint import TrainConfig, load_generator
 from models.cli import add_commands
 from models.errors import ModelConfigError
-from models.evaluate import UNCERTAINTY_ABSENT, predict_served
 from models.networks import GeneratorConfig
-from models.serving import fit_serving, prior_images, served_images
+from models.serving import fit_serving, predict_served, prior_images, served_images
 from models.train import train
 from models.uncertainty import (
+    UNCERTAINTY_ABSENT,
     Calibration,
     ServedUncertainty,
     UncertaintyConfig,
