@@ -1,12 +1,20 @@
 """The grasp planner's side of ``/inference/estimate``: what would the gel feel here?
 
     with TactileClient() as client:                    # or TactileClient(node.bus) inside a node
-        images, uncertainty = client.estimate(depth_maps, dropout_samples=8)
+        images, uncertainty = client.estimate(depth_maps)
         cloud = Cloud(cloud_world)                     # one object's registered cloud, asked about often
         images, uncertainty = client.estimate_at(cloud, gel_poses, pose_sigma_mm=0.3)
+        if uncertainty is not None:                    # None: a checkpoint without one (absent)
+            region_u = client.last_reply.region_uncertainty  # mean u of each region, image levels
 
 Every server of the name on the bus is used in turn (round robin), local or, with the
 launch file's ``peers:``, remote.
+
+``uncertainty`` (N x H x W float32, image levels 0..255) comes with every reply: per pixel, the
+checkpoint's calibrated estimate of the RMS of |estimate - truth| (the channels' mean); None
+when the checkpoint has none (the reply's ``uncertainty_status`` ``absent``), never zeros.
+``last_reply`` is the whole reply: ``region_uncertainty``, ``serves`` (network | prior),
+``region_status``, ``model``...
 
 ``pose_sigma_mm``: how far off in the gel plane (mm, one sigma) the geometry may be, e.g. the
 registration's uncertainty after a touch calibration; 0 for exact geometry; None for the
@@ -56,26 +64,26 @@ class Cloud:
 
 class TactileClient:
     """Estimated tactile images (N x H x W x 3 uint8) and their per-pixel uncertainty
-    (N x H x W float32, 0..255 units; zeros for one sample) for N candidate regions."""
+    (N x H x W float32, image levels 0..255; None where the checkpoint has none) for N
+    candidate regions."""
 
     def __init__(
         self,
         bus: Bus | None = None,
         timeout_s: float = 10.0,
         retries: int = 0,
-        dropout_samples: int = 1,
         service: str = SERVICE,
     ) -> None:
         self._own_bus = bus is None  # a planner that is a node lends its bus; a script gets its own
         self.bus = bus if bus is not None else Bus("tactile_client")
         # No retry by default: a retried batch may reach another worker and run twice.
-        self.timeout_s, self.retries, self.dropout_samples = timeout_s, retries, dropout_samples
+        self.timeout_s, self.retries = timeout_s, retries
         self.client = self.bus.client(service, TactileEstimateRequest, TactileEstimateReply)
         self.last_reply: TactileEstimateReply | None = None
 
     def estimate(
-        self, depth_maps: np.ndarray, dropout_samples: int | None = None, pose_sigma_mm: float | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
+        self, depth_maps: np.ndarray, *, pose_sigma_mm: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """From depth-maps: N x 100 x 100 metres in the gel frame (a single 100 x 100 map is one region);
         real numbers within float32's range, as they travel (else InferenceError bad_request, as
         the server would answer a NaN or inf; a larger value would overflow the cast)."""
@@ -86,7 +94,6 @@ class TactileClient:
         return self._call(
             TactileEstimateRequest(
                 depth_maps=maps[None] if maps.ndim == 2 else maps,
-                dropout_samples=dropout_samples or self.dropout_samples,
                 pose_sigma_mm=_wire_sigma(pose_sigma_mm),
             )
         )
@@ -95,9 +102,9 @@ class TactileClient:
         self,
         cloud: Cloud | np.ndarray,
         gel_poses: np.ndarray,
-        dropout_samples: int | None = None,
+        *,
         pose_sigma_mm: float | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """From the object's cloud (a ``Cloud``, or P x 3 points in world, metres, sent whole
         each time) and candidate gel poses (N x 4 x 4, gel to world). A gel that reaches no
         point of the cloud gets the no-contact estimate; which ones did is in
@@ -108,7 +115,6 @@ class TactileClient:
         request = functools.partial(
             TactileEstimateRequest,
             gel_poses=poses,
-            dropout_samples=dropout_samples or self.dropout_samples,
             pose_sigma_mm=_wire_sigma(pose_sigma_mm),
         )
         if cloud.id and len(cloud.held_by) >= self.client.server_count():
@@ -120,7 +126,9 @@ class TactileClient:
                 cloud.held_by.clear()  # a worker evicted it or was respawned: the points go again
         return self._call(request(points=cloud.points, cloud_id=cloud.id), cloud)
 
-    def _call(self, request: TactileEstimateRequest, cloud: Cloud | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _call(
+        self, request: TactileEstimateRequest, cloud: Cloud | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         try:
             reply = self.client.call(request, timeout_s=self.timeout_s, retries=self.retries)
         except ServiceCallError as exc:
@@ -130,7 +138,7 @@ class TactileClient:
             if reply.cloud_id != cloud.id:
                 cloud.id, cloud.held_by = reply.cloud_id, set()
             cloud.held_by.add(reply.worker)
-        return reply.images, reply.uncertainty
+        return reply.images, reply.uncertainty if reply.uncertainty_status == "ok" else None
 
     def close(self) -> None:
         self.client.close()

@@ -250,8 +250,10 @@ class SampledDropout(nn.Module):
 
 
 def sampling_copy(generator: UNetGenerator) -> UNetGenerator:
-    """A copy in eval mode whose dropout still samples: several passes give the spread the
-    inference node reports as per-pixel uncertainty."""
+    """A copy in eval mode whose dropout still samples: several passes give the spread that the
+    report's dropout sweep (report/sweeps.py) measures. The inference node no longer serves it
+    (protocol v4): that spread was ~0 and uncorrelated with the error; models.uncertainty serves
+    a calibrated one instead."""
     sampled = copy.deepcopy(generator).eval()
     for block in sampled.modules():
         for name, child in block.named_children():

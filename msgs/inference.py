@@ -18,16 +18,20 @@ class TactileEstimateRequest(Message):
     ``world``), from which the server extracts depth-maps. The cloud is ``points`` (P x 3
     float32/float64, metres in ``world``), or ``cloud_id`` alone: the id a reply gave for a
     cloud sent earlier, which the worker keeps (a worker that no longer holds it answers
-    ``unknown_cloud``: send the points again). ``dropout_samples`` > 1 asks for a per-pixel
-    uncertainty from that many stochastic passes. ``pose_sigma_mm``: how far off in the gel
+    ``unknown_cloud``: send the points again). ``pose_sigma_mm``: how far off in the gel
     plane (mm, one standard deviation per axis) the geometry may be — the registration's
     uncertainty, 0 for exact geometry; negative asks for the checkpoint's default (the
     uncertainty of the session it was trained on). One value for the request: a planner whose
     regions differ in it sends them as separate requests, which the server batches together.
+
+    ``dropout_samples`` is kept only so that a client still asking for dropout samples (the
+    per-pixel spread of stochastic passes, served up to protocol v3; it was ~0 and uncorrelated
+    with the error) is told why it is refused: any value but 1 is ``bad_request``. Every reply
+    carries the calibrated uncertainty with no option (TactileEstimateReply).
     """
 
     SCHEMA = "dtx.inference.TactileEstimateRequest"
-    VERSION = 3
+    VERSION = 4
 
     depth_maps: np.ndarray = empty((0, 100, 100), np.float32)
     points: np.ndarray = empty((0, 3), np.float32)
@@ -39,8 +43,18 @@ class TactileEstimateRequest(Message):
 
 @dataclasses.dataclass
 class TactileEstimateReply(Message):
-    """N x H x W x 3 uint8 estimated tactile images; N x H x W float32 uncertainty (std of
-    the dropout samples in image units, zeros when one sample was asked for).
+    """N x H x W x 3 uint8 estimated tactile images, and their uncertainty.
+
+    ``serves``: what the images are, the checkpoint's choice (or the server's override):
+    ``"network"`` (the generator's image) or ``"prior"`` (the physics prior's image, as the
+    generator draws it with no correction; no network pass runs).
+
+    ``uncertainty`` (N x H x W float32, image levels 0..255): per pixel, a calibrated estimate
+    u of the RMS of e = |estimate - truth| averaged over the three channels (models.uncertainty:
+    in every decile of u, RMS(e) / mean u ~ 1 on the training session's validation split).
+    ``region_uncertainty[i]``: the mean u of region i. ``uncertainty_status``: ``"ok"``, or
+    ``"absent"`` for a checkpoint trained before the uncertainty existed; then ``uncertainty``
+    is empty (0 x H x W) and ``region_uncertainty`` is [] (never zeros passed off as certain).
 
     ``region_status[i]`` is ``"ok"``, or ``"out_of_reach"`` when gel i does not reach the
     cloud (points requests only): a planner asks about many candidate poses at once, and one
@@ -56,10 +70,13 @@ class TactileEstimateReply(Message):
     """
 
     SCHEMA = "dtx.inference.TactileEstimateReply"
-    VERSION = 4
+    VERSION = 5
 
     images: np.ndarray = empty((0, 100, 100, 3), np.uint8)
     uncertainty: np.ndarray = empty((0, 100, 100), np.float32)
+    uncertainty_status: str = "absent"
+    region_uncertainty: list[float] = dataclasses.field(default_factory=list)
+    serves: str = "network"
     model: str = ""
     latency_ms: float = 0.0
     region_status: list[str] = dataclasses.field(default_factory=list)

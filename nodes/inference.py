@@ -18,22 +18,26 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
   reply when the batch is done. A pass's input (its cut, the physics prior's images) is drawn
   while the network runs the passes before; on the CPU each of ``threads`` runs a pass of its
   own side by side, the input drawn on half of them (``thread_split``).
-- ``images``: the deterministic estimate (dropout off). ``uncertainty``: with
-  ``dropout_samples`` = S > 1, the per-pixel standard deviation (0..255 image units, mean of
-  the three channels) of S extra passes with dropout on — pix2pix's noise z; zeros for S = 1.
+- ``images``: what the checkpoint serves (models.serving), or the node's ``serves``: the
+  network's estimate (dropout off), or the physics prior's image, for which no network runs.
+- ``uncertainty``, in every reply: per pixel u (levels 0..255), the checkpoint's calibrated RMS
+  of |estimate - truth| (models.uncertainty) from each pass's input and served estimate, on the
+  node's device; ``region_uncertainty`` each region's mean u. A checkpoint without one: status
+  ``absent``, the array empty (never zeros). ``dropout_samples`` other than 1 is refused.
 - ``pose_sigma_mm``: the in-plane pose uncertainty (mm) of the request's geometry, which a
   model with a physics prior blurs its prior's image by (models.prior): 0 for exact geometry,
   up to ``MAX_POSE_SIGMA_MM``; negative for the checkpoint's default. The reply says which it used.
-- A bad request (shape, dtype, NaN/inf, empty, too many regions, points, points x regions
-  or regions x samples, both or neither input, gel poses that are not rigid transforms, a
-  pose_sigma_mm that is not finite or above the bound) gets an
+- A bad request (shape, dtype, NaN/inf, empty, too many regions, points or points x regions,
+  both or neither input, gel poses that are not rigid transforms, a pose_sigma_mm that is not
+  finite or above the bound, dropout_samples other than 1) gets an
   error reply with code ``bad_request``; a wrong schema is refused by the bus. The node keeps
   serving. A gel that does not reach the cloud is answered per region (``region_status``
   ``out_of_reach``, the empty map's estimate), not by failing the request.
 - Scaling out: start several of these nodes; clients' DEALER sockets round-robin over every
   server of the name (launch/serve.yaml).
 
-Params: ``checkpoint`` (models/train.py format), ``runtime`` (onnxrt | eager), ``precision``
+Params: ``checkpoint`` (models/train.py format), ``serves`` ("": the checkpoint's choice; network or
+prior override it, prior only for a checkpoint with one), ``runtime`` (onnxrt | eager), ``precision``
 (fp32 | bf16 | int8: bf16 with eager only; int8, the encoder's convolutions quantised
 (models.runtime.int8_convolutions), with onnxrt on the CPU only), ``device`` (cpu | cuda | auto:
 ONNX Runtime's CUDA provider or eager PyTorch on the GPU, the physics prior drawn there too
@@ -44,10 +48,10 @@ not start, its status the code ``cuda_unavailable`` and the reason on /log),
 calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads`` (shared
 between the forward passes and the next passes' input: nodes.inference_passes.thread_split),
 ``max_regions``, ``max_points``, ``max_batch`` (regions in one forward pass; 0: the device's
-own, nodes.inference_passes.DEVICE_MAX_BATCH), ``batch_window_ms``, ``max_dropout_samples``,
-``max_sampled_regions``, ``max_point_visits`` (cloud points near the gels, summed over regions:
-the work of cutting the depth-maps), ``index_cache``, ``scene`` (gripper geometry for the points
-path), ``margin_m`` (crop margin, as the patch extractor's).
+own, nodes.inference_passes.DEVICE_MAX_BATCH), ``batch_window_ms``, ``max_point_visits`` (cloud
+points near the gels, summed over regions: the work of cutting the depth-maps), ``index_cache``,
+``scene`` (gripper geometry for the points path), ``margin_m`` (crop margin, as the patch
+extractor's).
 """
 
 from __future__ import annotations
@@ -71,17 +75,12 @@ from models.data import network_input, to_uint8_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
 from models.prior import PhysicsPrior
-from models.runtime import (
-    CudaUnavailable,
-    Runner,
-    int8_ssim_loss,
-    network_runner,
-    resolve_device,
-    sampling_copy,
-)
+from models.runtime import CudaUnavailable, Runner, int8_ssim_loss, network_runner, resolve_device
+from models.serving import prior_images
+from models.uncertainty import ServedUncertainty
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.inference_passes import forward_pass_parts, max_batch_on, thread_split
-from nodes.inference_requests import BadRequest, UnknownCloud, check_params, checked_regions, cloud_id
+from nodes.inference_requests import BadRequest, UnknownCloud, check_params, checked_regions, checked_serves, cloud_id
 from perception.depthmap import DepthMapParams, PlannedCut, contact_depth_maps, plan_contact_cut
 from perception.depthmap_tensor import points_on_device
 from perception.errors import PerceptionError
@@ -107,6 +106,7 @@ class InferenceNode(Node):
     @dataclasses.dataclass
     class Params:
         checkpoint: str = ""
+        serves: str = ""  # "": the checkpoint's choice; network | prior override it
         runtime: str = "onnxrt"  # measured faster than eager on 2 busy cores (dtx bench inference)
         precision: str = "fp32"
         device: str = "auto"
@@ -119,8 +119,6 @@ class InferenceNode(Node):
         max_points: int = 12_000_000  # every YCB model cloud at the 0.1 mm training spacing
         max_batch: int = 0  # regions in one forward pass; 0: the device's own (DEVICE_MAX_BATCH)
         batch_window_ms: float = 2.0
-        max_dropout_samples: int = 16
-        max_sampled_regions: int = 1024  # regions x dropout_samples: bounds the time of one request
         # Points read while cutting, over all regions: ~4 ns each in the compiled pass (~1 s).
         max_point_visits: int = 250_000_000
         index_cache: int = 2  # clouds whose spatial index is kept (a 0.1 mm cloud's: ~100-300 MB)
@@ -136,30 +134,32 @@ class InferenceNode(Node):
         except CudaUnavailable as exc:
             self._refuse_to_start(exc)
         started = time.perf_counter()
+        generator, self.depth_range_m = load_generator(p.checkpoint)
+        self.serves = checked_serves(p, generator)  # network | prior: the checkpoint's, or the override
+        self.config = generator.config
+        self.generator = generator
         torch.set_flush_denormal(True)  # denormal activations make CPU convolutions much slower
         # The prior's images render in chunks on the node's own threads; OpenCV's pool inside
         # each chunk only added threads (2.3 -> 2.0 ms CPU per region, same wall time).
         cv2.setNumThreads(1)
-        generator, self.depth_range_m = load_generator(p.checkpoint)
-        self.config = generator.config
         try:
-            self.precision, self.deterministic, self.sampled = self._runners(generator)
+            self.precision, self.network = self._runner(generator)
         except CudaUnavailable as exc:  # a CUDA provider that could not start (no GPU, no cuDNN)
             if p.device != "auto":
                 self._refuse_to_start(exc)
             self.log.warning("device auto could not use CUDA (%s); serving on the CPU", exc)
             self.device = "cpu"
-            self.precision, self.deterministic, self.sampled = self._runners(generator)
+            self.precision, self.network = self._runner(generator)
         self.prior = self._prior_on_device(generator.prior)
+        self.uncertainty = self._uncertainty_on_device(generator.uncertainty)
         self.max_batch = max_batch_on(self.device, p.max_batch)
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()
         size = self.config.image_size
         self.depth_map_params = DepthMapParams(shape=(size, size), margin_m=p.margin_m, y_range_m=self.depth_range_m)
-        served = f"{p.runtime} {self.precision}, {self.device}"
-        self.model = f"{Path(p.checkpoint).name} (ngf {self.config.ngf}, {served}) on {self.name}"
-        self.forward_passes = 0
+        self.model = self._model_text()
+        self.forward_passes = 0  # passes of the network (none while serving the prior)
         self._clouds: dict[str, _KeptCloud] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
         # Renders the physics prior's images of a pass in chunks, one per input thread (below).
@@ -183,12 +183,25 @@ class InferenceNode(Node):
             self.split.input_threads,
         )
 
-    def _runners(self, generator: UNetGenerator) -> tuple[str, Runner, Runner]:
-        """(the precision served, the deterministic and the sampling runner). int8 is served
-        only where it holds: measured against fp32 first (models.runtime.int8_ssim_loss)."""
+    def _model_text(self) -> str:
+        """What this worker serves, in the replies' ``model`` and the log: checkpoint, runtime, device."""
+        p, ngf = self.params, self.config.ngf
+        if self.network is None:
+            served = f"(ngf {ngf}, {self.device}) serves the prior: no network pass"
+        else:
+            served = f"(ngf {ngf}, {p.runtime} {self.precision}, {self.device}) serves the network"
+        absent = " (its uncertainty absent)" if self.uncertainty is None else ""
+        return f"{Path(p.checkpoint).name} {served}{absent} on {self.name}"
+
+    def _runner(self, generator: UNetGenerator) -> tuple[str, Runner | None]:
+        """(the precision served, the network's runner); ("", None) serving the prior, for which
+        no network runs. int8 is served only where it holds: measured against fp32 first
+        (models.runtime.int8_ssim_loss)."""
         p = self.params
         self.split = thread_split(p.threads, self.device)
         torch.set_num_threads(self.split.lane_threads)
+        if self.serves == "prior":
+            return "", None
 
         def forward(network: UNetGenerator, precision: str) -> Runner:
             threads = self.split.lane_threads
@@ -208,7 +221,7 @@ class InferenceNode(Node):
                 precision, deterministic = "fp32", fp32
             else:
                 self.log.info("int8 holds: %.5f SSIM lost against fp32 (at most %g)", loss, p.int8_max_ssim_loss)
-        return precision, deterministic, forward(sampling_copy(generator), precision)
+        return precision, deterministic
 
     def _refuse_to_start(self, error: CudaUnavailable) -> NoReturn:
         """Stop before serving: the reason on /log, its code this node's last status (its
@@ -285,34 +298,26 @@ class InferenceNode(Node):
         if not ready:
             return
         sigmas = [self._pose_sigma_mm(job.request) for job in ready]
-        inputs, images, point_counts = self._estimates(sources, sigmas)
-        samples = [job.request.dropout_samples for job in ready]
+        images, uncertainty, point_counts = self._estimates(sources, sigmas)
         offsets = np.cumsum([0] + [len(source) for source in sources])
-        sampled = np.zeros((0,))
-        if max(samples) > 1:  # every region of a job asking for S samples S times, all together
-            x = torch.cat(inputs)
-            repeated = [
-                torch.repeat_interleave(x[offsets[i] : offsets[i + 1]], s, dim=0)
-                for i, s in enumerate(samples)
-                if s > 1
-            ]
-            sampled = self._batched(self.sampled, torch.cat(repeated))
-        cursor = 0
         for i, job in enumerate(ready):
-            n, s = offsets[i + 1] - offsets[i], samples[i]
-            uncertainty = np.zeros((n, *images.shape[1:3]), np.float32)
-            if s > 1:
-                draws = (sampled[cursor : cursor + n * s] + 1.0) * 127.5  # image units, as images
-                cursor += n * s
-                uncertainty = draws.reshape(n, s, *draws.shape[1:]).std(axis=1).mean(axis=1).astype(np.float32)
+            rows = slice(offsets[i], offsets[i + 1])
             errors = [
                 f"region {k}: no model point in the contact volume: the gel does not reach the object" if c == 0 else ""
                 for k, c in enumerate(point_counts[i])
             ]
+            if uncertainty is None:  # a checkpoint trained before the uncertainty: absent, never zeros
+                u, status, region_u = np.zeros((0, *images.shape[1:3]), np.float32), "absent", []
+            else:
+                u, status = uncertainty[rows], "ok"
+                region_u = [float(m) for m in u.reshape(len(u), -1).mean(axis=1, dtype=np.float64)]
             job.future.set_result(
                 TactileEstimateReply(
-                    images=images[offsets[i] : offsets[i + 1]],
-                    uncertainty=uncertainty,
+                    images=images[rows],
+                    uncertainty=u,
+                    uncertainty_status=status,
+                    region_uncertainty=region_u,
+                    serves=self.serves,
                     model=self.model,
                     latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
                     region_status=["out_of_reach" if e else "ok" for e in errors],
@@ -326,12 +331,13 @@ class InferenceNode(Node):
 
     def _estimates(
         self, sources: list[np.ndarray | PlannedCut], sigmas: list[float]
-    ) -> tuple[list[torch.Tensor], np.ndarray, list[np.ndarray]]:
-        """(the network's input of each pass, the deterministic images, the points each region's
-        gel met: -1 for a depth-map sent as one) of every region of the requests' ``sources``, in
-        forward passes of at most ``max_batch``. This thread cuts each pass's maps and draws its prior,
-        and hands the pass to the lanes (``thread_split``), which run it while the next pass's
-        input is drawn: on 2 cores the network then has both cores whenever the input leaves
+    ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray]]:
+        """(the served images, their uncertainty u in levels or None where the checkpoint has
+        none, the points each region's gel met: -1 for a depth-map sent as one) of every region
+        of the requests' ``sources``, in passes of at most ``max_batch``. This thread cuts each
+        pass's maps and draws its prior, and hands the pass to the lanes (``thread_split``), which
+        serve it (:meth:`_serve_pass`) while the next pass's input is drawn: on 2 cores the
+        network then has both cores whenever the input leaves
         them (64 regions cut from a cloud, in process: 293 regions/s in turn, 377-404 with the
         input drawn beside one pass at a time, 412-462 in two lanes; docs/measurements.md)."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
@@ -348,13 +354,26 @@ class InferenceNode(Node):
                     maps.append((source[first:stop], sigmas[i]))
             return self._network_input(maps)
 
-        inputs, outputs = [], []
+        outputs = []
         for parts in forward_pass_parts([len(source) for source in sources], self.max_batch):
-            inputs.append(draw(parts))
-            outputs.append(self._lanes.submit(self.deterministic, inputs[-1]))
-            self.forward_passes += 1
-        images = np.concatenate([output.result() for output in outputs])
-        return inputs, to_uint8_rgb(torch.from_numpy(images)), point_counts
+            outputs.append(self._lanes.submit(self._serve_pass, draw(parts)))
+            if self.network is not None:
+                self.forward_passes += 1
+        served = [output.result() for output in outputs]
+        images = to_uint8_rgb(torch.from_numpy(np.concatenate([estimate for estimate, _ in served])))
+        if self.uncertainty is None:
+            return images, None, point_counts
+        return images, np.concatenate([u for _, u in served if u is not None]), point_counts
+
+    def _serve_pass(self, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
+        """One pass, in a lane: the served estimate of network input ``x`` (N x 3 x H x W in
+        [-1, 1]: the network's, or the prior's ``x`` carries) and its u (None: the checkpoint has none)."""
+        if self.network is None:
+            estimate = prior_images(self.generator, x)
+        else:
+            estimate = torch.from_numpy(self.network(x))
+        u = None if self.uncertainty is None else self.uncertainty.levels(x.to(self.uncertainty_device), estimate)
+        return estimate.float().cpu().numpy(), u
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
         """The physics prior drawing where the network computes: on CUDA as batched tensor
@@ -367,6 +386,13 @@ class InferenceNode(Node):
         except ModelConfigError as exc:
             self.log.warning("the physics prior draws on the CPU: %s", exc)
             return prior
+
+    def _uncertainty_on_device(self, uncertainty: ServedUncertainty | None) -> ServedUncertainty | None:
+        """The checkpoint's uncertainty computing on the node's GPU where PyTorch has one (ONNX
+        Runtime's CUDA provider may serve where it has not), else on the CPU."""
+        on_gpu = self.device != "cpu" and torch.cuda.is_available()
+        self.uncertainty_device = self.device if on_gpu else "cpu"
+        return uncertainty.to(self.device) if uncertainty is not None and on_gpu else uncertainty
 
     def _pose_sigma_mm(self, request: TactileEstimateRequest) -> float:
         """The in-plane pose uncertainty (mm) a request's estimate assumes: its own, or the
@@ -467,13 +493,6 @@ class InferenceNode(Node):
                 while len(self._clouds) > self.params.index_cache:
                     del self._clouds[next(iter(self._clouds))]
         return cloud, kept
-
-    def _batched(self, forward: Runner, x: torch.Tensor) -> np.ndarray:
-        """``forward`` of every row of ``x`` in passes of max_batch, side by side in the lanes."""
-        starts = range(0, len(x), self.max_batch)
-        self.forward_passes += len(starts)
-        # Rows of a contiguous tensor: contiguous.
-        return np.concatenate(list(self._lanes.map(lambda start: forward(x[start : start + self.max_batch]), starts)))
 
 
 if __name__ == "__main__":

@@ -17,6 +17,8 @@ from perception.pointcloud import check_transforms
 
 # The precisions each runtime runs (dtx bench inference measures each pair).
 PRECISIONS = {"onnxrt": ("fp32", "int8"), "eager": ("fp32", "bf16")}
+# The node's ``serves``: "" what the checkpoint serves (models.serving), or either, overriding it.
+SERVES = ("", "network", "prior")
 
 
 class BadRequest(ValueError):
@@ -42,19 +44,12 @@ def cloud_id(points: np.ndarray) -> str:
 def checked_regions(request: TactileEstimateRequest, p: Any, size: int) -> int:
     """Number of regions of a well-formed request to a node of parameters ``p``
     (InferenceNode.Params) serving ``size`` x ``size`` maps; BadRequest otherwise."""
-    regions = _checked_inputs(request, p, size)
-    if request.dropout_samples > 1 and regions * request.dropout_samples > p.max_sampled_regions:
+    if request.dropout_samples != 1:
         raise BadRequest(
-            f"too many sampled regions: {regions} regions x {request.dropout_samples} "
-            f"dropout_samples > {p.max_sampled_regions} per request"
+            f"dropout_samples is not served since protocol v4: every reply carries the calibrated "
+            f"uncertainty (uncertainty, region_uncertainty); send 1, got {request.dropout_samples}"
         )
-    return regions
-
-
-def _checked_inputs(request: TactileEstimateRequest, p: Any, size: int) -> int:
     maps, points, poses = request.depth_maps, request.points, request.gel_poses
-    if not 1 <= request.dropout_samples <= p.max_dropout_samples:
-        raise BadRequest(f"dropout_samples must be 1..{p.max_dropout_samples}, got {request.dropout_samples}")
     if not (math.isfinite(request.pose_sigma_mm) and request.pose_sigma_mm <= MAX_POSE_SIGMA_MM):
         raise BadRequest(
             f"pose_sigma_mm must be a finite number of mm <= {MAX_POSE_SIGMA_MM:g} (0: exact geometry; "
@@ -108,6 +103,18 @@ def _check_finite(array: np.ndarray, what: str) -> None:
         raise BadRequest(f"{what} contain NaN or inf (first at index {tuple(int(i) for i in first)})")
 
 
+def checked_serves(p: Any, generator: Any) -> str:
+    """What a node of parameters ``p`` serves of ``generator`` (models.checkpoint.load_generator):
+    its ``serves`` or, for "", the checkpoint's; ValueError for a prior the checkpoint lacks."""
+    serves = str(p.serves or generator.serves)
+    if serves == "prior" and generator.prior is None:
+        raise ValueError(
+            f"serves 'prior': {p.checkpoint} has no physics prior to serve (its generator takes the "
+            "depth-map alone); serve its network"
+        )
+    return serves
+
+
 def check_params(p: Any) -> None:
     """ValueError naming what is wrong with the node's parameters (InferenceNode.Params)."""
     if p.precision not in PRECISIONS.get(p.runtime, ()):
@@ -115,20 +122,16 @@ def check_params(p: Any) -> None:
             f"runtime {p.runtime!r} with precision {p.precision!r} is not offered: "
             f"the runtimes and their precisions are {PRECISIONS}"
         )
-    limits = (
-        p.threads,
-        p.max_regions,
-        p.max_points,
-        p.max_dropout_samples,
-        p.max_sampled_regions,
-        p.max_point_visits,
-        p.index_cache,
-    )
+    limits = (p.threads, p.max_regions, p.max_points, p.max_point_visits, p.index_cache)
     if min(limits) < 1 or p.max_batch < 0 or p.batch_window_ms < 0 or not 0 <= p.int8_max_ssim_loss <= 1:
         raise ValueError(
-            "threads, max_regions, max_points, max_dropout_samples, max_sampled_regions, "
-            "max_point_visits and index_cache must be >= 1, max_batch >= 0 (0: the device's own), "
-            "batch_window_ms >= 0, int8_max_ssim_loss in [0, 1]"
+            "threads, max_regions, max_points, max_point_visits and index_cache must be >= 1, "
+            "max_batch >= 0 (0: the device's own), batch_window_ms >= 0, int8_max_ssim_loss in [0, 1]"
+        )
+    if p.serves not in SERVES:
+        raise ValueError(
+            f"serves must be one of {', '.join(repr(s) for s in SERVES)} ('': what the checkpoint serves), "
+            f"got {p.serves!r}"
         )
     if not p.checkpoint:
         raise ValueError("parameter 'checkpoint' is required (a models/train.py checkpoint.pt)")

@@ -1,6 +1,7 @@
-"""The inference server node in this process: replies, uncertainty, the points path, bad
-requests, and batching across clients. Weights: a tiny untrained generator (ngf 8) saved in
-models/train.py's checkpoint format."""
+"""The inference server node in this process: replies, what a checkpoint serves (its network
+or its prior) and the uncertainty served with it, the points path, bad requests, and batching
+across clients. Weights: a tiny untrained generator (ngf 8) saved in models/train.py's
+checkpoint format, given an untrained uncertainty network where a test needs one."""
 
 from __future__ import annotations
 
@@ -20,9 +21,12 @@ from bus.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from bus.pubsub import Bus
 from bus.registry import Registry
 from bus.services import ServiceCallError
-from models.checkpoint import load_generator
+from models.checkpoint import TrainConfig, load_checkpoint, load_generator, save_atomic
 from models.data import network_input, to_uint8_rgb
+from models.networks import UNetGenerator
 from models.runtime import cuda_missing, onnx_graph, onnx_runner
+from models.serving import prior_images
+from models.uncertainty import Calibration, ServedUncertainty, UncertaintyConfig, UncertaintyNet
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.inference import InferenceNode, cloud_id
 from nodes.inference_passes import ThreadSplit
@@ -33,6 +37,22 @@ from workcell.scene import load_scene
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8)
+
+
+def fit_for_serving(path: Path, serves: str = "", seed: int = 0) -> Path:
+    """The checkpoint at ``path`` with what ``dtx fit-serving`` adds: an uncertainty (an untrained
+    network of width 4, its calibration a scale of 1) and, when given, what it serves."""
+    state = load_checkpoint(path)
+    torch.manual_seed(seed)
+    channels = TrainConfig.from_dict(state["train_config"]).generator.input_channels
+    uncertainty = ServedUncertainty(
+        UncertaintyNet(channels, width=4), Calibration((1.0,), (1.0,)), UncertaintyConfig(width=4)
+    )
+    state["uncertainty"] = uncertainty.to_state()
+    if serves:
+        state["serves"] = serves
+    save_atomic(state, path)
+    return path
 
 
 @contextlib.contextmanager
@@ -61,21 +81,38 @@ def reference(checkpoint: Path, maps: np.ndarray) -> np.ndarray:
         return to_uint8_rgb(generator(network_input(maps, depth_range_m, generator.config, generator.prior)))
 
 
+def served_reference(checkpoint: Path, maps: np.ndarray, serves: str) -> tuple[np.ndarray, np.ndarray]:
+    """What a checkpoint serving ``serves`` answers, computed here: its images (the generator's in
+    eager PyTorch, or the prior's as models.serving draws them) and their uncertainty u."""
+    generator, depth_range_m = load_generator(checkpoint)
+    assert generator.uncertainty is not None
+    with torch.inference_mode():
+        x = network_input(maps, depth_range_m, generator.config, generator.prior)
+        estimate = prior_images(generator, x) if serves == "prior" else generator(x)
+        return to_uint8_rgb(estimate), generator.uncertainty.levels(x, estimate)
+
+
 @pytest.mark.parametrize("runtime", ["onnxrt", "eager"])
-def test_estimates_are_the_generators_and_one_sample_is_deterministic(
+def test_estimates_are_the_generators_and_deterministic_and_an_old_checkpoints_uncertainty_is_absent(
     registry: Registry, checkpoint: Path, runtime: str
 ) -> None:
+    """A checkpoint trained before the uncertainty serves its network and says its uncertainty is
+    absent: an empty array and no region means, never zeros passed off as certain."""
     maps = depth_maps(3, seed=1)
     with serving(registry, checkpoint, runtime=runtime), planner(registry) as client:
         images, uncertainty = client.estimate(maps)
         again, _ = client.estimate(maps)
-        model = client.last_reply.model if client.last_reply else ""
+        reply = client.last_reply
+    assert reply is not None
     assert images.shape == (3, 100, 100, 3) and images.dtype == np.uint8
-    assert uncertainty.shape == (3, 100, 100) and uncertainty.dtype == np.float32 and not uncertainty.any()
+    assert uncertainty is None and reply.uncertainty_status == "absent" and reply.region_uncertainty == []
+    assert reply.uncertainty.shape == (0, 100, 100) and reply.uncertainty.dtype == np.float32
+    assert reply.serves == "network"
     np.testing.assert_array_equal(images, again)
     # ONNX Runtime may round a few pixels the other way.
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
-    assert "tiny.pt" in model and runtime in model
+    assert "tiny.pt" in reply.model and runtime in reply.model
+    assert "serves the network (its uncertainty absent) on inference" in reply.model
 
 
 def test_int8_serves_the_graph_with_the_encoder_quantised(registry: Registry, checkpoint: Path) -> None:
@@ -137,14 +174,82 @@ def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry:
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
 
-def test_dropout_samples_give_an_uncertainty_and_leave_the_image(registry: Registry, checkpoint: Path) -> None:
-    maps = depth_maps(2, seed=2)
-    with serving(registry, checkpoint), planner(registry) as client:
-        single, _ = client.estimate(maps)
-        images, uncertainty = client.estimate(maps, dropout_samples=6)
-    np.testing.assert_array_equal(images, single)
-    assert uncertainty.shape == (2, 100, 100) and (uncertainty >= 0).all()
-    assert (uncertainty > 0).mean() > 0.5  # dropout in the decoder moves most pixels (a little: untrained)
+@pytest.mark.parametrize("prior", [False, True], ids=["plain", "prior"])
+def test_a_checkpoint_with_an_uncertainty_serves_it_in_every_reply(
+    registry: Registry, tmp_path: Path, prior: bool
+) -> None:
+    """No option asked: u per pixel, finite and positive, the checkpoint's own uncertainty of the
+    pass's input and the served estimate (passes of 2: u follows its region across passes), and
+    each region's mean u."""
+    checkpoint = fit_for_serving(write_checkpoint(tmp_path / "fitted.pt", width=8, prior=prior))
+    maps = depth_maps(5, seed=2)
+    with serving(registry, checkpoint, runtime="eager", max_batch=2) as node, planner(registry) as client:
+        images, uncertainty = client.estimate(maps)
+        reply = client.last_reply
+        passes = node.forward_passes
+    assert reply is not None and uncertainty is not None and passes == 3
+    assert reply.uncertainty_status == "ok" and reply.serves == "network" and "uncertainty" not in reply.model
+    assert uncertainty.shape == (5, 100, 100) and uncertainty.dtype == np.float32
+    assert np.isfinite(uncertainty).all() and (uncertainty > 0).all()
+    expected_images, expected_u = served_reference(checkpoint, maps, "network")
+    assert np.abs(images.astype(int) - expected_images).max() <= 1
+    np.testing.assert_allclose(uncertainty, expected_u, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(reply.region_uncertainty, uncertainty.mean(axis=(1, 2)), rtol=1e-5)
+    assert len(reply.region_uncertainty) == 5
+
+
+def test_a_checkpoint_serving_its_prior_never_runs_the_network(
+    registry: Registry, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """serves "prior" (the checkpoint's choice): the prior's image exactly as the generator with no
+    correction draws it, and its uncertainty, with no network built or run."""
+    checkpoint = fit_for_serving(write_checkpoint(tmp_path / "prior.pt", width=8, prior=True), serves="prior")
+    maps = depth_maps(3, seed=3)
+    expected_images, expected_u = served_reference(checkpoint, maps, "prior")
+
+    def no_network(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("a checkpoint serving its prior ran the network")
+
+    monkeypatch.setattr("nodes.inference.network_runner", no_network)
+    monkeypatch.setattr(UNetGenerator, "forward", no_network)
+    monkeypatch.setattr(UNetGenerator, "forward_unchecked", no_network)
+    with serving(registry, checkpoint, threads=2, max_batch=2) as node, planner(registry) as client:
+        images, uncertainty = client.estimate(maps)
+        reply = client.last_reply
+        passes = node.forward_passes
+    assert reply is not None and uncertainty is not None
+    assert passes == 0 and reply.serves == "prior" and "serves the prior: no network pass" in reply.model
+    np.testing.assert_array_equal(images, expected_images)
+    np.testing.assert_allclose(uncertainty, expected_u, rtol=1e-4, atol=1e-4)
+    assert reply.uncertainty_status == "ok" and len(reply.region_uncertainty) == 3
+
+
+def test_the_node_param_serves_overrides_the_checkpoints_choice(registry: Registry, tmp_path: Path) -> None:
+    """A benchmark runs the network and the prior side by side on one checkpoint."""
+    checkpoint = fit_for_serving(write_checkpoint(tmp_path / "prior.pt", width=8, prior=True), serves="prior")
+    maps = depth_maps(2, seed=4)
+    replies = {}
+    for serves in ("network", "prior", ""):
+        with serving(registry, checkpoint, runtime="eager", serves=serves) as node, planner(registry) as client:
+            client.estimate(maps)
+            replies[serves] = (client.last_reply, node.forward_passes)
+    for serves, (reply, passes) in replies.items():
+        assert reply is not None
+        assert reply.serves == (serves or "prior") and (passes > 0) == (serves == "network")
+        expected_images, expected_u = served_reference(checkpoint, maps, reply.serves)
+        assert np.abs(reply.images.astype(int) - expected_images).max() <= (1 if reply.serves == "network" else 0)
+        np.testing.assert_allclose(reply.uncertainty, expected_u, rtol=1e-4, atol=1e-4)
+    assert np.abs(replies["network"][0].images.astype(int) - replies["prior"][0].images).max() > 0
+
+
+@pytest.mark.parametrize(
+    ("serves", "refused"), [("prior", "has no physics prior to serve"), ("both", "serves must be")]
+)
+def test_serving_a_prior_the_checkpoint_lacks_or_anything_else_is_refused_at_start(
+    checkpoint: Path, tmp_path: Path, serves: str, refused: str
+) -> None:
+    with pytest.raises(ValueError, match=refused):
+        InferenceNode("refused", {"checkpoint": str(checkpoint), "serves": serves}, registry=Registry(tmp_path / "bus"))
 
 
 # On a GPU the node cuts a cloud's depth-maps there (perception.depthmap_tensor): the same maps.
@@ -189,9 +294,11 @@ BAD_REQUESTS = [
     (TactileEstimateRequest(depth_maps=_maps(value=np.nan)), "NaN or inf"),
     (TactileEstimateRequest(depth_maps=_maps(value=np.inf)), "NaN or inf"),
     (TactileEstimateRequest(depth_maps=_maps(5)), "too many regions: 5 > 4"),
-    (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=0), "dropout_samples must be 1..3"),
-    (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=4), "dropout_samples must be 1..3"),
-    (TactileEstimateRequest(depth_maps=_maps(3), dropout_samples=3), "too many sampled regions: 3 regions x 3"),
+    (TactileEstimateRequest(depth_maps=_maps(), dropout_samples=2), "dropout_samples is not served since protocol v4"),
+    (
+        TactileEstimateRequest(depth_maps=_maps(), dropout_samples=0),
+        "carries the calibrated uncertainty.*send 1, got 0",
+    ),
     (TactileEstimateRequest(depth_maps=_maps(), points=np.zeros((10, 3)), gel_poses=np.eye(4)[None]), "not both"),
     (TactileEstimateRequest(points=np.zeros((10, 3))), "empty request"),
     (TactileEstimateRequest(cloud_id="ab" * 32), "empty request"),
@@ -236,13 +343,7 @@ def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served
 
 
 def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry, checkpoint: Path) -> None:
-    limits = {
-        "max_regions": 4,
-        "max_points": 1000,
-        "max_dropout_samples": 3,
-        "max_sampled_regions": 8,
-        "max_point_visits": 2000,
-    }
+    limits = {"max_regions": 4, "max_points": 1000, "max_point_visits": 2000}
     with serving(registry, checkpoint, **limits), contextlib.closing(Bus("planner", registry)) as bus:
         raw = bus.client(SERVICE, TactileEstimateRequest, TactileEstimateReply)
         for request, message in BAD_REQUESTS:
@@ -288,10 +389,10 @@ def test_requests_of_two_clients_share_one_forward_pass(registry: Registry, chec
 def test_a_request_larger_than_max_batch_runs_in_several_passes(registry: Registry, checkpoint: Path) -> None:
     maps = depth_maps(5, seed=5)
     with serving(registry, checkpoint, runtime="eager", max_batch=2) as node, planner(registry) as client:
-        images, uncertainty = client.estimate(maps, dropout_samples=2)
+        images, _ = client.estimate(maps)
         passes = node.forward_passes
-    assert passes == 3 + 5  # 5 regions in batches of 2, then 10 sampled regions in batches of 2
-    assert images.shape == (5, 100, 100, 3) and uncertainty.shape == (5, 100, 100)
+    assert passes == 3  # 5 regions in batches of 2
+    assert images.shape == (5, 100, 100, 3)
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_inference_node import planner, serving
+from test_inference_node import fit_for_serving, planner, serving
 
 from benchmarks.serve import depth_maps, write_checkpoint
 from bus.inference_client import SERVICE, InferenceError
@@ -25,6 +25,7 @@ from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.prior import MAX_POSE_SIGMA_MM
 from models.real_presses import evaluate_real_presses
+from models.serving import prior_images
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 
 PRESSES = Path(__file__).resolve().parent.parent / "assets" / "gelsight" / "ball_presses.npz"
@@ -96,6 +97,33 @@ def test_requests_of_different_uncertainty_share_a_forward_pass_and_keep_their_o
     assert passes in expected_passes
     for name, sigma in sigmas.items():
         np.testing.assert_array_equal(replies[name], reference(checkpoint, maps, sigma))
+
+
+def test_a_checkpoint_serving_its_prior_draws_it_at_the_requests_uncertainty(
+    registry: Registry, tmp_path: Path
+) -> None:
+    """serves "prior": the prior's image at the pose_sigma_mm asked (or the checkpoint's default),
+    as models.serving draws it, with its uncertainty and no network pass."""
+    path = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True, pose_sigma_mm=DEFAULT_SIGMA_MM)
+    checkpoint = fit_for_serving(path, serves="prior")
+    maps = depth_maps(2, seed=10)
+    generator, depth_range_m = load_generator(checkpoint)
+
+    def prior_at(sigma: float) -> np.ndarray:
+        x = network_input(maps, depth_range_m, generator.config, generator.prior, sigma)
+        return to_uint8_rgb(prior_images(generator, x))
+
+    with serving(registry, checkpoint, runtime="eager") as node, planner(registry) as client:
+        exact, u_exact = client.estimate(maps, pose_sigma_mm=0.0)
+        assert client.last_reply is not None and client.last_reply.pose_sigma_mm == 0.0
+        default, u_default = client.estimate(maps)
+        assert client.last_reply.pose_sigma_mm == DEFAULT_SIGMA_MM and client.last_reply.serves == "prior"
+        passes = node.forward_passes
+    assert passes == 0
+    np.testing.assert_array_equal(exact, prior_at(0.0))
+    np.testing.assert_array_equal(default, prior_at(DEFAULT_SIGMA_MM))
+    assert np.abs(exact.astype(int) - default).max() > 10
+    assert u_exact is not None and u_default is not None and not np.array_equal(u_exact, u_default)
 
 
 @pytest.mark.parametrize("sigma", [MAX_POSE_SIGMA_MM + 0.5, 1e9])

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_inference_node import fit_for_serving, serving
 
 import msgs
 from benchmarks.serve import depth_maps, write_checkpoint
@@ -63,10 +64,12 @@ def node(*args: str, bus_dir: Path, timeout_s: float = 300) -> dict:
 @pytest.fixture(scope="module")
 def served(node_modules: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Registry]]:
     """launch/serve.yaml's two workers on a bus of their own, serving a model that corrects the
-    physics prior (as the default model does) of depth-maps by default 1 mm off."""
+    physics prior (as the default model does) of depth-maps by default 1 mm off, with an
+    uncertainty (as ``dtx train`` fits one)."""
     bus_dir = Path(tempfile.mkdtemp(prefix="dtxn"))  # ipc paths must stay short
     registry = Registry(bus_dir)
-    checkpoint = write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8, prior=True, pose_sigma_mm=1.0)
+    tiny = write_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt", width=8, prior=True, pose_sigma_mm=1.0)
+    checkpoint = fit_for_serving(tiny)
     launcher = subprocess.Popen(
         [sys.executable, "-m", "dtx.cli", "launch", "launch/serve.yaml", f"checkpoint:={checkpoint}"],
         cwd=ROOT,
@@ -88,18 +91,70 @@ def served(node_modules: Path, tmp_path_factory: pytest.TempPathFactory) -> Iter
         shutil.rmtree(bus_dir, ignore_errors=True)
 
 
+def contact_signal(images: np.ndarray) -> np.ndarray:
+    """planner.mjs's contact signal: each image's mean |pixel - its channel's median|, levels."""
+    pixels = images.astype(np.float64).reshape(len(images), -1, 3)
+    return np.abs(pixels - np.median(pixels, axis=1, keepdims=True)).mean(axis=(1, 2))
+
+
+def assert_ranked(ranking: dict, scores: np.ndarray) -> None:
+    """The planner's order: every region once, best score first (all reachable here)."""
+    np.testing.assert_allclose(ranking["score"], scores, rtol=1e-9, atol=1e-9)
+    assert sorted(ranking["order"]) == list(range(len(scores)))
+    assert list(np.diff(np.asarray(ranking["score"])[ranking["order"]]) <= 0) == [True] * (len(scores) - 1)
+
+
 def test_the_node_planner_gets_the_python_clients_images_byte_for_byte(
     served: tuple[Path, Registry], tmp_path: Path
 ) -> None:
+    """§3 from the page alone: the images byte for byte, the uncertainty and its region means as
+    the Python client gets them, and the candidates ranked by their image less their uncertainty."""
     bus_dir, registry = served
     maps = depth_maps(3, seed=5).astype("<f4")
     (tmp_path / "maps.f32").write_bytes(maps.tobytes())
-    result = node("images", str(tmp_path / "maps.f32"), "3", str(tmp_path / "images.u8"), bus_dir=bus_dir)
+    images_path, uncertainty_path = tmp_path / "images.u8", tmp_path / "u.f32"
+    result = node(
+        "images", str(tmp_path / "maps.f32"), "3", str(images_path), "-1", str(uncertainty_path), bus_dir=bus_dir
+    )
     with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, timeout_s=60.0) as client:
-        images, _ = client.estimate(maps)
+        images, uncertainty = client.estimate(maps)
+        reply = client.last_reply
+    assert reply is not None and uncertainty is not None
     assert result["a"][0] == ["|u1", [3, 100, 100, 3]] and result["region_status"] == ["ok"] * 3
-    assert (tmp_path / "images.u8").read_bytes() == np.ascontiguousarray(images).tobytes()
+    assert images_path.read_bytes() == np.ascontiguousarray(images).tobytes()
     assert result["pose_sigma_mm"] == 1.0  # the checkpoint's default
+    assert (result["uncertainty_status"], result["serves"]) == ("ok", "network")
+    node_u = np.frombuffer(uncertainty_path.read_bytes(), "<f4").reshape(3, 100, 100)
+    np.testing.assert_allclose(node_u, uncertainty, rtol=1e-5)
+    np.testing.assert_allclose(result["region_uncertainty"], reply.region_uncertainty, rtol=1e-5)
+    assert result["ranking"]["by"] == "contact signal - region_uncertainty"
+    assert_ranked(result["ranking"], contact_signal(images) - np.asarray(result["region_uncertainty"]))
+
+
+def test_the_node_planner_ranks_by_the_image_alone_when_the_uncertainty_is_absent(
+    node_modules: Path, registry: Registry, tmp_path: Path
+) -> None:
+    """§3's absent case from the page alone: a checkpoint trained before the uncertainty sends an
+    empty array and no region means, and the planner ranks by the images alone, saying so."""
+    checkpoint = write_checkpoint(tmp_path / "old.pt", width=8)
+    maps = depth_maps(3, seed=7).astype("<f4")
+    (tmp_path / "maps.f32").write_bytes(maps.tobytes())
+    images_path, uncertainty_path = tmp_path / "images.u8", tmp_path / "u.f32"
+    with serving(registry, checkpoint, runtime="eager"):
+        result = node(
+            "images",
+            str(tmp_path / "maps.f32"),
+            "3",
+            str(images_path),
+            "-1",
+            str(uncertainty_path),
+            bus_dir=registry.root,
+        )
+    images = np.frombuffer(images_path.read_bytes(), np.uint8).reshape(3, 100, 100, 3)
+    assert (result["uncertainty_status"], result["region_uncertainty"]) == ("absent", [])
+    assert not uncertainty_path.exists()
+    assert result["ranking"]["by"] == "contact signal (uncertainty absent)"
+    assert_ranked(result["ranking"], contact_signal(images))
 
 
 def test_the_node_planner_says_its_geometry_is_exact_and_gets_the_python_clients_images(
@@ -124,6 +179,8 @@ def test_every_malformed_request_of_the_node_planner_gets_an_error_reply(served:
     unanswered = {name: r for name, r in result["results"].items() if r is None or r["code"] != "bad_request"}
     assert result["variants"] == 28 and result["answered"] == 28, unanswered
     assert result["served_after"]
+    refused = result["dropout_samples_2"]  # §3: a v4 request still asking for dropout samples
+    assert refused["code"] == "bad_request" and "dropout_samples is not served since protocol v4" in refused["text"]
 
 
 def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(

@@ -1,10 +1,13 @@
 // A grasp planner in Node that calls /inference/estimate, written from docs/wire-protocol.md
 // alone: it is the test that the page is enough for a client in another language.
 //
-//   node planner.mjs images MAPS.f32 N OUT.u8 [SIGMA_MM]
+//   node planner.mjs images MAPS.f32 N OUT.u8 [SIGMA_MM [UNCERTAINTY.f32]]
 //                                                depth-maps (N x 100 x 100 <f4) -> images (|u1), their
-//                                                geometry known to SIGMA_MM (§3; default -1: the checkpoint's)
-//   node planner.mjs malformed                   28 broken requests; prints how many got an error reply
+//                                                geometry known to SIGMA_MM (§3; default -1: the checkpoint's);
+//                                                the uncertainty (<f4, §3) -> UNCERTAINTY.f32 when it is
+//                                                not absent; prints the regions ranked (§3 Uncertainty)
+//   node planner.mjs malformed                   28 broken requests; prints how many got an error reply,
+//                                                and the answer to dropout_samples 2 (refused since v4)
 //   node planner.mjs steady COUNT                COUNT requests one after another, retrying by §4;
 //                                                prints one line per answer, then a JSON summary
 //   node planner.mjs cloud POINTS.f32 P POSES.f64 N COUNT OUT.u8
@@ -155,16 +158,17 @@ function sleep(ms) {
 }
 
 function header(q, p, fields, arrays) {
-  return { s: REQUEST, v: 3, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
+  return { s: REQUEST, v: 4, t: BigInt(Date.now()) * 1000000n, q, f: "", p, d: fields, a: arrays };
 }
 
-/** A well-formed request for depth-maps: the frames of §2 and §3. sigmaMm: §3's pose uncertainty. */
-function depthRequest(maps, n, dropout = 1, sigmaMm = -1) {
+/** A well-formed request for depth-maps: the frames of §2 and §3. sigmaMm: §3's pose uncertainty.
+ * dropout_samples is always 1 (§3: any other value is refused; the uncertainty comes anyway). */
+function depthRequest(maps, n, sigmaMm = -1) {
   return (q, p) => [
     Buffer.from(SERVICE),
     pack(header(q, p, {
       depth_maps: { __array__: 0 }, points: { __array__: 1 }, cloud_id: "", gel_poses: { __array__: 2 },
-      dropout_samples: dropout, pose_sigma_mm: sigmaMm,
+      dropout_samples: 1, pose_sigma_mm: sigmaMm,
     }, [["<f4", [n, 100, 100]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]])),
     Buffer.from(maps.buffer, maps.byteOffset, maps.byteLength),
     Buffer.alloc(0),
@@ -191,17 +195,69 @@ function replyArray(reply, field) {
   return reply.buffers[index];
 }
 
-async function images(mapsPath, n, outPath, sigmaMm) {
+function replyShape(reply, field) {
+  return reply.header.a[reply.header.d[field].__array__];
+}
+
+/** How far each region's image departs from the gel at rest, in image levels: the mean absolute
+ * difference of its pixels from their own per-channel median (a contact covers a minority of
+ * the gel). images: N x 100 x 100 x 3 |u1, C order. */
+function contactSignal(images, n) {
+  const pixels = 100 * 100;
+  const signal = [];
+  for (let r = 0; r < n; r++) {
+    let total = 0;
+    for (let c = 0; c < 3; c++) {
+      const values = new Float64Array(pixels);
+      for (let k = 0; k < pixels; k++) values[k] = images[(r * pixels + k) * 3 + c];
+      const sorted = Float64Array.from(values).sort();
+      const median = (sorted[pixels / 2 - 1] + sorted[pixels / 2]) / 2;
+      for (let k = 0; k < pixels; k++) total += Math.abs(values[k] - median);
+    }
+    signal.push(total / (3 * pixels));
+  }
+  return signal;
+}
+
+/** The candidate regions, best first (§3 Uncertainty): each reachable region scored by its
+ * image's contact signal less its region_uncertainty (both image levels: the signal it surely
+ * shows), the out-of-reach ones last. With uncertainty_status "absent" the server has no
+ * uncertainty: the regions are scored by the signal alone and the ranking says so; a region is
+ * never taken as certain. */
+function rankRegions(d, signal) {
+  if (d.uncertainty_status !== "ok" && d.uncertainty_status !== "absent") {
+    throw new Error(`unknown uncertainty_status ${JSON.stringify(d.uncertainty_status)}`);
+  }
+  const ok = d.uncertainty_status === "ok";
+  const score = signal.map((s, i) => (ok ? s - d.region_uncertainty[i] : s));
+  const order = score.map((_, i) => i);
+  const reachable = (i) => (d.region_status[i] === "ok" ? 0 : 1);
+  order.sort((a, b) => reachable(a) - reachable(b) || score[b] - score[a] || a - b);
+  return { order, score, by: ok ? "contact signal - region_uncertainty" : "contact signal (uncertainty absent)" };
+}
+
+async function images(mapsPath, n, outPath, sigmaMm, uncertaintyPath) {
   const planner = new Planner();
   const raw = readFileSync(mapsPath);
   const maps = new Float32Array(raw.buffer, raw.byteOffset, raw.byteLength / 4);
-  const reply = await planner.call(depthRequest(maps, n, 1, sigmaMm));
+  const reply = await planner.call(depthRequest(maps, n, sigmaMm));
   planner.close();
   if (!reply) throw new Error("no reply");
   if (reply.header.s !== "dtx.inference.TactileEstimateReply") throw new Error(JSON.stringify(reply.header.d));
-  writeFileSync(outPath, replyArray(reply, "images"));
-  return { schema: reply.header.s, a: reply.header.a, region_status: reply.header.d.region_status,
-           pose_sigma_mm: reply.header.d.pose_sigma_mm };
+  const d = reply.header.d;
+  const pixels = replyArray(reply, "images");
+  writeFileSync(outPath, pixels);
+  // §3: "ok" carries u for every region; "absent" an empty array and no region means.
+  const [dtype, shape] = replyShape(reply, "uncertainty");
+  const expected = d.uncertainty_status === "ok" ? [n, 100, 100] : [0, 100, 100];
+  const regions = d.uncertainty_status === "ok" ? n : 0;
+  if (dtype !== "<f4" || JSON.stringify(shape) !== JSON.stringify(expected) || d.region_uncertainty.length !== regions) {
+    throw new Error(`uncertainty ${dtype} ${JSON.stringify(shape)} does not fit its status ${d.uncertainty_status}`);
+  }
+  if (uncertaintyPath && d.uncertainty_status === "ok") writeFileSync(uncertaintyPath, replyArray(reply, "uncertainty"));
+  return { schema: reply.header.s, a: reply.header.a, region_status: d.region_status,
+           pose_sigma_mm: d.pose_sigma_mm, serves: d.serves, uncertainty_status: d.uncertainty_status,
+           region_uncertainty: d.region_uncertainty, ranking: rankRegions(d, contactSignal(pixels, n)) };
 }
 
 /** 28 requests, each broken one way (§2, §3); every one must get an error reply. */
@@ -244,8 +300,8 @@ function malformedVariants() {
     "depth-maps of the wrong size": (q, p) => depthRequest(new Float32Array(50 * 50), 1)(q, p).map((f, i) =>
       i === 1 ? pack({ ...unpack(f), a: [["<f4", [1, 50, 50]], ["<f4", [0, 3]], ["<f8", [0, 4, 4]]] }) : f),
     "depth-maps not finite": depthRequest(new Float32Array(100 * 100).fill(NaN), 1),
-    "pose_sigma_mm above 5 mm": depthRequest(maps, 1, 1, 5.5),
-    "pose_sigma_mm not finite": depthRequest(maps, 1, 1, NaN),
+    "pose_sigma_mm above 5 mm": depthRequest(maps, 1, 5.5),
+    "pose_sigma_mm not finite": depthRequest(maps, 1, NaN),
     "pose_sigma_mm a string": edit((h) => { h.d.pose_sigma_mm = "0"; }),
   };
 }
@@ -259,20 +315,30 @@ async function malformed() {
   }
   // The server serves on: a good request after all of them.
   const after = await planner.call(depthRequest(new Float32Array(100 * 100).fill(0.001), 1));
+  // §3: a well-formed v4 request still asking for dropout samples is refused, saying why.
+  const good = depthRequest(new Float32Array(100 * 100).fill(0.001), 1);
+  const dropout = await planner.call((q, p) => {
+    const frames = good(q, p);
+    const h = unpack(frames[1]);
+    h.d.dropout_samples = 2;
+    frames[1] = pack(h);
+    return frames;
+  }, 20000);
   planner.close();
   const variants = Object.keys(results).length;
   const answered = Object.values(results).filter((r) => r && r.schema === "dtx.system.ServiceError" && r.code === "bad_request").length;
-  return { variants, answered, served_after: after?.header.s === "dtx.inference.TactileEstimateReply", results };
+  return { variants, answered, served_after: after?.header.s === "dtx.inference.TactileEstimateReply", results,
+           dropout_samples_2: dropout ? { schema: dropout.header.s, code: dropout.header.d?.code, text: dropout.header.d?.text } : null };
 }
 
 async function steady(count) {
   const planner = new Planner();
-  // Four regions with four dropout samples each: long enough that a kill can land mid-request.
-  const maps = new Float32Array(4 * 100 * 100).fill(0.001);
+  // Sixteen regions: long enough that a kill can land mid-request.
+  const maps = new Float32Array(16 * 100 * 100).fill(0.001);
   let lost = 0;
   const servedBy = {};
   for (let i = 0; i < count; i++) {
-    const reply = await planner.call(depthRequest(maps, 4, 4), 60000);
+    const reply = await planner.call(depthRequest(maps, 16), 60000);
     if (!reply || reply.header.s !== "dtx.inference.TactileEstimateReply") {
       lost++;
     } else {
@@ -329,7 +395,7 @@ async function cloud(pointsPath, p3, posesPath, n, count, outPath) {
 
 const [mode, ...args] = process.argv.slice(2);
 let result;
-if (mode === "images") result = await images(args[0], Number(args[1]), args[2], Number(args[3] ?? -1));
+if (mode === "images") result = await images(args[0], Number(args[1]), args[2], Number(args[3] ?? -1), args[4]);
 else if (mode === "malformed") result = await malformed();
 else if (mode === "steady") result = await steady(Number(args[0]));
 else if (mode === "cloud") result = await cloud(args[0], Number(args[1]), args[2], Number(args[3]), Number(args[4]), args[5]);
