@@ -2,25 +2,30 @@
 process on the very regions the node is asked about (``dtx bench serve --points``): the cut
 (perception.depthmap.contact_depth_maps on the kept index, the node's threads or its GPU), the prior (the
 network's input with the physics prior's images, models.data.network_input), the network (the
-graph the node serves, in its batches, same runtime, precision, threads and device) and the
-encoding of the reply (msgs.codec). The network's own rate here is what the planner's path is
+graph the node serves, in its batches, same runtime, precision, threads and device; the prior's
+image alone where the checkpoint serves the prior), the uncertainty (models.uncertainty, where the
+checkpoint has one) and the encoding of the reply (msgs.codec). The network's own rate here is what the planner's path is
 measured against: the work around it is what separates the two."""
 
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 import torch
 
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
-from models.runtime import Runner
+from models.runtime import Runner, network_runner
+from models.serving import prior_images
 from msgs.codec import encode
 from msgs.inference import TactileEstimateReply
+from nodes.inference_passes import ThreadSplit, thread_split
 from perception.depthmap import DepthMapParams, contact_depth_maps
 from perception.pointcloud import VoxelIndex
 from workcell.kinematics import GripperGeometry
@@ -50,6 +55,41 @@ class ServedNetwork:
     threads: int
 
 
+def served_network(
+    generator: UNetGenerator, depth_range_m: tuple[float, float], model: str, threads: int, max_batch: int
+) -> tuple[ServedNetwork, ThreadSplit, str]:
+    """The graph the node serves as it runs it (its ``model`` line: int8 refused falls back to
+    fp32), how it shares its threads, and its device; this process set as the node's, so that
+    the network and the prior compute here as they do there."""
+    served_as = re.search(r"\(ngf \d+, (?:(\w+) (\w+), )?(\w+)\) serves the (network|prior)", model)
+    if served_as is None:
+        raise ValueError(
+            f"the node's model line {model!r} does not say '(ngf N, [runtime precision, ]device) serves ...'"
+        )
+    runtime, precision, device, serves = served_as.groups()
+    split = thread_split(threads, device)
+    if serves == "prior":  # no network pass: the prior's image is what the input carries
+
+        def prior(x: np.ndarray | torch.Tensor) -> np.ndarray:
+            return prior_images(generator, torch.as_tensor(x)).cpu().numpy()
+
+        network = ServedNetwork(run=prior, lanes=split.lanes, max_batch=max_batch, one_pass=None, threads=1)
+    else:
+        served = (generator, depth_range_m, runtime, precision)
+        network = ServedNetwork(
+            run=network_runner(*served, split.lane_threads, device),
+            lanes=split.lanes,
+            max_batch=max_batch,
+            one_pass=None if split.lanes == 1 else network_runner(*served, threads, device),
+            threads=threads,
+        )
+    if generator.prior is not None and device != "cpu":  # the prior draws where the node's does
+        generator.prior = generator.prior.on(device)
+    torch.set_num_threads(split.lane_threads)
+    cv2.setNumThreads(1)
+    return network, split, device
+
+
 def network_rate(
     run: Runner, x: np.ndarray | torch.Tensor, max_batch: int, repeats: int, lanes: int = 1
 ) -> tuple[float, float, np.ndarray]:
@@ -70,6 +110,23 @@ def network_rate(
             pass
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     return len(x) * repeats / wall, cpu / (len(x) * repeats) * 1e3, outputs
+
+
+def _reply_and_uncertainty(
+    generator: UNetGenerator, x: torch.Tensor, outputs: np.ndarray, repeats: int
+) -> tuple[TactileEstimateReply, dict[str, float]]:
+    """The reply the node sends for the served ``outputs`` of network input ``x``, and the
+    uncertainty's CPU ms per region where the checkpoint has one ({} where it has none)."""
+    images = to_uint8_rgb(torch.from_numpy(outputs))
+    uncertainty = generator.uncertainty
+    if uncertainty is None:
+        return TactileEstimateReply(images=images), {}
+    estimate = torch.from_numpy(outputs)
+    u = uncertainty.levels(x, estimate)
+    region_u = [float(m) for m in u.reshape(len(u), -1).mean(axis=1)]
+    reply = TactileEstimateReply(images=images, uncertainty=u, uncertainty_status="ok", region_uncertainty=region_u)
+    cost = _cpu_ms_per_region(lambda: uncertainty.levels(x, estimate), len(u), repeats)
+    return reply, {"uncertainty_cpu_ms": round(cost, 3)}
 
 
 def stage_costs(
@@ -106,8 +163,7 @@ def stage_costs(
     x = network_input(maps, depth_range_m, generator.config, generator.prior)  # where the prior draws, as the node's
     n = len(poses)
     rate, network_cpu, outputs = network_rate(network.run, x, network.max_batch, repeats, network.lanes)
-    images = to_uint8_rgb(torch.from_numpy(outputs))
-    reply = TactileEstimateReply(images=images, uncertainty=np.zeros(images.shape[:3], np.float32))
+    reply, stages = _reply_and_uncertainty(generator, x, outputs, repeats)
     one_pass_rate, one_pass_cpu = rate, network_cpu
     if network.one_pass is not None:
         lane_threads = torch.get_num_threads()
@@ -117,6 +173,7 @@ def stage_costs(
         finally:
             torch.set_num_threads(lane_threads)
     return {
+        **stages,
         "cut_cpu_ms": round(_cpu_ms_per_region(cut, n, repeats), 3),
         "prior_cpu_ms": round(
             _cpu_ms_per_region(

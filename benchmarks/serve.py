@@ -37,7 +37,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import re
 import signal
 import statistics
 import subprocess
@@ -48,11 +47,11 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-import cv2
 import numpy as np
 import torch
 
-from benchmarks._serve_stages import ServedNetwork, stage_costs
+from benchmarks._serve_forms import FORMS, run_forms
+from benchmarks._serve_stages import served_network, stage_costs
 from bus.inference_client import SERVICE, Cloud, InferenceError, TactileClient
 from bus.pubsub import Bus
 from bus.registry import Registry
@@ -60,9 +59,9 @@ from dataset.synth import analytic_contact_maps
 from models.checkpoint import TrainConfig, load_generator
 from models.networks import GeneratorConfig, UNetGenerator
 from models.prior import PriorSpec
-from models.runtime import DEVICES, CudaUnavailable, network_runner, resolve_device
+from models.runtime import DEVICES, CudaUnavailable, resolve_device
 from nodes.inference import InferenceNode
-from nodes.inference_passes import ThreadSplit, max_batch_on, thread_split
+from nodes.inference_passes import max_batch_on, thread_split
 from perception.depthmap import (
     MODEL_CLOUD_SEED,
     MODEL_POINT_SPACING_M,
@@ -244,32 +243,6 @@ def _request_rate(call: Any, regions: int, requests: int) -> tuple[float, float]
     return round(statistics.median(latencies) * 1e3, 1), round(regions * requests / sum(latencies), 1)
 
 
-def _served_network(
-    generator: UNetGenerator, depth_range_m: tuple[float, float], model: str, args: argparse.Namespace
-) -> tuple[ServedNetwork, ThreadSplit, str]:
-    """The graph the node serves as it runs it (its ``model`` line: int8 refused falls back to
-    fp32), how it shares its threads, and its device; this process set as the node's, so that
-    the network and the prior compute here as they do there."""
-    served_as = re.search(r"(\w+) (\w+), (\w+)\)$", model)
-    if served_as is None:
-        raise ValueError(f"the node's model line {model!r} does not end in '(runtime precision, device)'")
-    runtime, precision, device = served_as.groups()
-    split = thread_split(args.threads, device)
-    served = (generator, depth_range_m, runtime, precision)
-    network = ServedNetwork(
-        run=network_runner(*served, split.lane_threads, device),
-        lanes=split.lanes,
-        max_batch=args.max_batch,
-        one_pass=None if split.lanes == 1 else network_runner(*served, args.threads, device),
-        threads=args.threads,
-    )
-    if generator.prior is not None and device != "cpu":  # the prior draws where the node's does
-        generator.prior = generator.prior.on(device)
-    torch.set_num_threads(split.lane_threads)
-    cv2.setNumThreads(1)
-    return network, split, device
-
-
 def bench_points(
     registry: Registry,
     args: argparse.Namespace,
@@ -280,7 +253,7 @@ def bench_points(
     """The planner's cloud form beside the depth-map form and the network alone, per YCB
     object and pose count, with the stages' costs (benchmarks._serve_stages)."""
     generator, depth_range_m = load_generator(checkpoint)
-    network, split, device = _served_network(generator, depth_range_m, model, args)
+    network, split, device = served_network(generator, depth_range_m, model, args.threads, args.max_batch)
     geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     params = DepthMapParams(y_range_m=depth_range_m)
     rows = []
@@ -340,6 +313,12 @@ def _ratios(row: dict[str, Any], stages: dict[str, float]) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The benchmark; with ``--forms``, once per form of the checkpoint, side by side
+    (benchmarks._serve_forms)."""
+    return run_forms(args, _run_form) if args.forms else _run_form(args, {})
+
+
+def _run_form(args: argparse.Namespace, node_params: dict[str, Any]) -> dict[str, Any]:
     try:
         device = resolve_device(args.device, args.runtime, args.precision)  # the node's own check, before it starts
     except CudaUnavailable as exc:
@@ -350,7 +329,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         bus_dir = Path(tmp) / "bus"
         registry = Registry(bus_dir)
         log_path = Path(tmp) / "server.log"
-        servers = _start_servers(args, checkpoint, bus_dir, log_path)
+        servers = _start_servers(args, checkpoint, bus_dir, log_path, node_params)
         try:
             maps = depth_maps(max(args.regions, 16), args.seed, depth_range_m[1])
             _wait_until_serving(registry, servers, args.workers, log_path)
@@ -408,10 +387,12 @@ def _weights(args: argparse.Namespace, tmp: Path) -> tuple[Path, str, tuple[floa
 
 
 def _start_servers(
-    args: argparse.Namespace, checkpoint: Path, bus_dir: Path, log_path: Path
+    args: argparse.Namespace, checkpoint: Path, bus_dir: Path, log_path: Path, node_params: dict[str, Any]
 ) -> list[subprocess.Popen[bytes]]:
-    """``--workers`` inference nodes on the bus in ``bus_dir``, all logging to ``log_path``."""
+    """``--workers`` inference nodes on the bus in ``bus_dir``, all logging to ``log_path``, with
+    ``node_params`` beside the benchmark's own."""
     params = {
+        **node_params,
         "runtime": args.runtime,
         "precision": args.precision,
         "device": args.device,
@@ -488,3 +469,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--poses", type=int, nargs="+", default=[64, 256], help="gel poses per cloud request")
     parser.add_argument("--objects", type=int, default=len(YCB), help="the first N YCB objects (--points)")
     parser.add_argument("--point-requests", type=int, default=3, help="requests per object and pose count")
+    parser.add_argument(
+        "--forms",
+        nargs="+",
+        choices=FORMS,
+        default=[],
+        help="serve --checkpoint as each of these, side by side in one run: before (as a checkpoint trained "
+        "before the uncertainty: its network alone), network (with the uncertainty), served (its own choice)",
+    )
+    parser.add_argument("--dataset", help="with --forms: each form's accuracy on this dataset's test split")

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from benchmarks.serve import add_arguments, run
 from models.runtime import cuda_missing
@@ -18,7 +20,7 @@ def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -
         parser.parse_args(["--width", "8", "--threads", "1", "--requests", "5", "--regions", "4", "--seconds", "0.3"])
     )
     assert result["weights"] == "fresh generator, width 8 (seeded, untrained)"
-    assert result["model"] == "fresh.pt (ngf 8, onnxrt fp32, cpu)"
+    assert result["model"] == "fresh.pt (ngf 8, onnxrt fp32, cpu) serves the network (its uncertainty absent)"
     assert 0 < result["p50_ms"] <= result["p99_ms"]
     assert result["regions_per_s"] > 0 and result["server_cpu_ms_per_region"] > 0
     assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1}
@@ -68,6 +70,34 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
         ("network_one_pass_cpu_ms", "server_cpu_over_one_pass_network"),
     ):
         assert row[ratio] == round(row["handle_server_cpu_ms_per_region"] / stages[network], 3)
+
+
+def test_serve_benchmark_sets_a_checkpoints_forms_side_by_side(tmp_path: Path) -> None:
+    """--forms serves one checkpoint as trained before the uncertainty (its network alone), as
+    its network with the uncertainty, and as it says (here the prior), each through the node in
+    the same run; the served prior runs no network and its stages say what the uncertainty costs."""
+    from benchmarks.serve import write_checkpoint
+    from models.uncertainty import Calibration, ServedUncertainty, UncertaintyConfig, UncertaintyNet
+
+    checkpoint = write_checkpoint(tmp_path / "fitted.pt", width=8, prior=True)
+    state = torch.load(checkpoint, weights_only=True)
+    uncertainty = ServedUncertainty(UncertaintyNet(4, 4), Calibration((1.0,), (1.0,)), UncertaintyConfig(width=4))
+    torch.save({**state, "serves": "prior", "uncertainty": uncertainty.to_state()}, checkpoint)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    served = f"--checkpoint {checkpoint} --threads 1 --requests 2 --regions 2 --seconds 0.2"
+    asked = "--points --objects 1 --poses 4 --point-requests 1 --forms before network served"
+    result = run(parser.parse_args(f"{served} {asked}".split()))
+    table = result["side_by_side"]
+    assert list(table) == ["before", "network", "served"]
+    assert table["before"]["model"] == "before.pt (ngf 8, onnxrt fp32, cpu) serves the network (its uncertainty absent)"
+    assert table["network"]["model"] == "fitted.pt (ngf 8, onnxrt fp32, cpu) serves the network"
+    assert table["served"]["model"] == "fitted.pt (ngf 8, cpu) serves the prior: no network pass"
+    assert table["before"]["handle_over_before"] == 1.0 and table["served"]["handle_over_before"] > 0
+    (row,) = result["forms"]["served"]["points"]
+    assert row["stage_cpu_ms_per_region"]["uncertainty_cpu_ms"] > 0
+    (row,) = result["forms"]["before"]["points"]
+    assert "uncertainty_cpu_ms" not in row["stage_cpu_ms_per_region"]
 
 
 @pytest.mark.skipif(not cuda_missing("onnxrt"), reason="this machine's ONNX Runtime has CUDA")
