@@ -433,15 +433,18 @@ def plan_contact_cut(
     before any is read): more raises DepthMapError. A gel with no point raises DepthMapError
     naming the region when it is cut, unless ``allow_empty``: then its map is all y_far and its
     point count 0 (a planner's candidate that touches nothing is an answer, not a failed batch).
-    ``device_points``: ``model.points_m`` on a torch device
-    (perception.depthmap_tensor.points_on_device): the maps are cut there, the same maps."""
+    ``device_points``: ``model.points_m`` on a torch device in their own dtype
+    (perception.depthmap_tensor.points_on_device): the maps are cut there, the same maps; another
+    shape or dtype raises DepthMapError."""
     bounds = crop_bounds(geometry, params)
     reach = _reach_m(geometry, bounds)
     gels = np.asarray(gels_to_world, dtype=np.float64)
     if gels.ndim != 3 or gels.shape[1:] != (4, 4) or len(gels) == 0:
         raise DepthMapError(f"gel poses must be (N, 4, 4), N >= 1, got shape {gels.shape}")
-    if device_points is not None and tuple(device_points.shape) != model.points_m.shape:
-        raise DepthMapError(f"device_points {tuple(device_points.shape)} are not the index's {model.points_m.shape}")
+    if device_points is not None:
+        from perception.depthmap_tensor import check_device_points  # noqa: PLC0415 - torch only when asked for
+
+        check_device_points(device_points, model.points_m)
     model_pose = check_transform(model_to_world, "model_to_world")
     model_to_gel = _model_to_gels(model_pose, check_transforms(gels, "gels_to_world"))
     world_to_model = np.linalg.inv(model_pose)

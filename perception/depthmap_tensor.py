@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from perception.binning import bin_edges, region_groups
+from perception.errors import DepthMapError
 
 # Points handled at once: each costs ~150 bytes of temporaries (its index, region, float64
 # coordinates and the gathered transform), so a chunk takes ~1.2 GB of the GPU. Chunks of 2^21
@@ -37,6 +38,30 @@ def points_on_device(points_m: np.ndarray, device: str | torch.device) -> torch.
     if not host.flags.writeable:  # torch shares a NumPy array's memory and may not share a read-only one
         host = host.copy()
     return torch.from_numpy(host).to(device)
+
+
+def check_device_points(device_points: object, points_m: np.ndarray) -> torch.Tensor:
+    """``device_points`` if it can stand for a VoxelIndex's ``points_m`` in the cut: a tensor of
+    their shape and dtype, as :func:`points_on_device` copies them; DepthMapError naming the
+    argument otherwise. Its values are not compared: that would bring every point back.
+
+    Why the dtype: the cut reads each point in the tensor's own dtype, so a float16 copy moves the
+    maps by millimetres and a float32 copy of float64 points is no longer bit for bit the NumPy
+    cut; a wider copy would cut the same maps, but only the index's dtype is the index's points."""
+    if not isinstance(device_points, torch.Tensor):
+        raise DepthMapError(
+            f"device_points must be a torch.Tensor (perception.depthmap_tensor.points_on_device), "
+            f"got {type(device_points).__name__}"
+        )
+    if tuple(device_points.shape) != points_m.shape:
+        raise DepthMapError(f"device_points {tuple(device_points.shape)} are not the index's {points_m.shape}")
+    expected = torch.from_numpy(np.empty(0, points_m.dtype)).dtype
+    if device_points.dtype != expected:
+        raise DepthMapError(
+            f"device_points are {device_points.dtype}, not the index's points' {expected}: "
+            "copy them with perception.depthmap_tensor.points_on_device"
+        )
+    return device_points
 
 
 def depth_maps_on_device(

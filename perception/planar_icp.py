@@ -28,12 +28,14 @@ def planar_icp(
 ) -> tuple[PlanarPose, float, float]:
     """ICP over (yaw, x, y) of a model standing at height ``model_z_m``: the observed points pair
     with their nearest model points within each distance in turn, and a 2-D Kabsch fit on the
-    pairs' x, y moves the model (a turn about z keeps every z). (pose, fitness, RMSE metres)."""
+    pairs' x, y moves the model (a turn about z keeps every z). (pose, fitness, RMSE metres of
+    the returned pose at the last distance)."""
+    if len(distances_m) == 0:
+        raise ValueError("distances_m must hold at least one pairing distance")
     yaw, x_m, y_m = pose
-    fitness = rmse_m = 0.0
     for distance_m in distances_m:
         for _ in range(max_iterations):
-            _, index, paired, fitness, rmse_m = _pairs(observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m)
+            _, index, paired, _, _ = _pairs(observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m)
             if paired.sum() < 3:
                 break
             model_xy, seen_xy = model_points_m[index[paired], :2], observed_m[paired, :2]
@@ -47,7 +49,7 @@ def planar_icp(
             yaw, x_m, y_m = new_yaw, float(new_x_m), float(new_y_m)
             if step_m < 1e-5:
                 break
-    return (yaw, x_m, y_m), fitness, rmse_m
+    return _judged(observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distances_m[-1])
 
 
 def sweep_subset(observed_m: np.ndarray, max_points: int, seed: int) -> np.ndarray:
@@ -117,11 +119,8 @@ def planar_icp_to_plane(
     it lies on, so the model's sampling does not pull a flat face sideways or turn it.
     (pose, fitness, RMSE metres of the point-to-point gaps, as planar_icp reports them)."""
     yaw, x_m, y_m = pose
-    fitness = rmse_m = 0.0
     for _ in range(max_iterations):
-        rotation, index, paired, fitness, rmse_m = _pairs(
-            observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m
-        )
+        rotation, index, paired, _, _ = _pairs(observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m)
         if paired.sum() < 3:
             break
         model_world = model_points_m[index[paired]] @ rotation.T + [x_m, y_m, model_z_m]
@@ -137,7 +136,17 @@ def planar_icp_to_plane(
         yaw, x_m, y_m = yaw + float(step[0]), x_m + float(step[1]), y_m + float(step[2])
         if abs(step[0]) * 0.1 + np.hypot(step[1], step[2]) < 1e-6:
             break
-    return (yaw, x_m, y_m), fitness, rmse_m
+    return _judged(observed_m, model_tree, (yaw, x_m, y_m), model_z_m, distance_m)
+
+
+def _judged(
+    observed_m: np.ndarray, model_tree: cKDTree, pose: PlanarPose, model_z_m: float, distance_m: float
+) -> tuple[PlanarPose, float, float]:
+    """(pose, fitness, RMSE m) of ``pose`` itself. The loops pair the points before each step, so
+    their last figures are those of the pose before the last step; the sweep and the turn judge
+    rank poses by these figures, so each pose returned is paired once more."""
+    _, _, _, fitness, rmse_m = _pairs(observed_m, model_tree, pose, model_z_m, distance_m)
+    return pose, fitness, rmse_m
 
 
 def _pairs(
