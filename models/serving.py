@@ -106,13 +106,15 @@ def predict_served(
 def choose_served(generator: UNetGenerator, x_val: torch.Tensor, y_val: torch.Tensor) -> tuple[str, dict[str, float]]:
     """``network`` where it leads the prior on the validation pairs by more than NETWORK_LEAD_SE
     standard errors of the paired SSIM difference, else ``prior``; and the figures that decided."""
+    if len(y_val) < 2:
+        raise ModelConfigError(f"choosing what is served needs at least 2 validation pairs, got {len(y_val)}")
     if not generator.config.prior:
         return "network", {}
     truth = to_uint8_rgb(y_val)
     network = ssim_rgb(truth, to_uint8_rgb(served_images(generator, x_val, "network")))
     prior = ssim_rgb(truth, to_uint8_rgb(prior_images(generator, x_val)))
     lead = network - prior
-    se = float(lead.std(ddof=1) / np.sqrt(len(lead))) if len(lead) > 1 else float("inf")
+    se = float(lead.std(ddof=1) / np.sqrt(len(lead)))
     figures = {
         "val_ssim_network": float(network.mean()),
         "val_ssim_prior": float(prior.mean()),

@@ -170,9 +170,16 @@ COMMANDS: dict[str, Callable[[Inputs], list[str]]] = {
     "bench sim": lambda i: ["bench", "sim", "--json", "--frames", "2", "--skip-check"],
 }
 # These need whole collection sessions or a fit (minutes here): tests/test_collection.py,
-# tests/test_touch_calibration.py and tests/test_sim_gelsight_fit.py, which run them anyway, parse
-# each one's output as strictly.
-IN_COLLECTION_TESTS = {"sim ceiling", "bench collect", "bench fuzz", "calibrate touches", "calibrate gelsight"}
+# tests/test_touch_calibration.py, tests/test_sim_gelsight_fit.py and tests/test_models_uncertainty.py
+# (a trained checkpoint and its dataset), which run them anyway, parse each one's output as strictly.
+IN_COLLECTION_TESTS = {
+    "sim ceiling",
+    "bench collect",
+    "bench fuzz",
+    "calibrate touches",
+    "calibrate gelsight",
+    "fit-serving",
+}
 # Commands that print JSON whether asked or not.
 ALWAYS_JSON = {"bag play", "bag record"}
 

@@ -165,7 +165,8 @@ def test_fit_serving_writes_what_is_served_and_its_uncertainty(
     add_commands(parser.add_subparsers())
     args = parser.parse_args(["fit-serving", str(fitted), str(library), "--json"])
     assert args.func(args) == 0
-    figures = json.loads(capsys.readouterr().out)  # the fit's progress goes to stderr
+    # Strict JSON alone on stdout (tests/test_json_output.py): the fit's progress goes to stderr.
+    figures = json.loads(capsys.readouterr().out, parse_constant=_refuse)
     assert figures["serves"] in ("network", "prior")
     generator, depth_range = load_generator(fitted)
     assert generator.serves == figures["serves"] and isinstance(generator.uncertainty, ServedUncertainty)
@@ -187,6 +188,10 @@ def test_fit_serving_writes_what_is_served_and_its_uncertainty(
     torch.save(state, tmp_path / "bad.pt")
     with pytest.raises(ModelConfigError, match="serves 'oracle'"):
         load_generator(tmp_path / "bad.pt")
+
+
+def _refuse(constant: str) -> None:
+    raise AssertionError(f"not strict JSON: {constant}")
 
 
 def test_fit_serving_refuses_a_dataset_it_cannot_fit_on(prior_checkpoint: tuple[Path, Path], tmp_path: Path) -> None:
