@@ -19,7 +19,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from dataset.reader import DatasetReader
-from dataset.records import FINGERS, SampleRecord
+from dataset.records import FINGERS, DatasetError, SampleRecord
 from dataset.redepth import depth_map_again, depth_map_params, model_index, poses_at
 from perception.depthmap import DepthMapParams, crop_bounds
 from perception.pointcloud import transform_points
@@ -127,7 +127,12 @@ def records_cut_at(
 
 def touches_of_grasps(records: list[SampleRecord], name: str, grasps: int) -> list[SampleRecord]:
     """Both fingers' ``records`` of at most ``grasps`` of object ``name``'s grasps (a seeded draw
-    of those that record both fingers' gels: a grasp's cut is centred on both)."""
+    of those that record both fingers' gels: a grasp's cut is centred on both). ``grasps`` an
+    integer >= 0; otherwise DatasetError naming it."""
+    if not (isinstance(grasps, (int, np.integer)) and not isinstance(grasps, bool) and grasps >= 0):
+        huge = isinstance(grasps, int) and grasps.bit_length() > 64  # past 4,300 digits an int has no repr
+        shown = f"an integer of {grasps.bit_length()} bits" if huge else repr(grasps)[:80]
+        raise DatasetError(f"grasps must be an integer >= 0 (how many of {name!r}'s grasps), got {shown}")
     fingers: dict[str, int] = {}
     for record in records:
         if record.object_name == name and record.gel_to_world is not None:

@@ -128,7 +128,11 @@ class PhysicsPrior:
 
         Contract: ``depth_maps_m`` as ``sim.gelsight.render_depth_maps`` takes them (N >= 0 real
         float maps: none give none), ``pose_sigma_mm`` as :func:`checked_pose_sigma_mm`;
-        otherwise ModelConfigError naming the argument, before anything is drawn."""
+        otherwise ModelConfigError naming the argument, before anything is drawn. A NaN bin is
+        an empty one, as models.data.depth_input reads it: nothing there, drawn exactly as +inf
+        and any gap past sim.gelsight.GAP_LIMIT_MM are, here and in the tensor form (the renderer samples
+        each pixel's gap bilinearly, so an empty bin beside a press clears the contact up to a
+        bin from its centre, as +inf does)."""
         sigma_mm = self._sigma_mm(pose_sigma_mm)
         if self._tensor is not None:
             levels = self._levels_on_device(self._tensor, depth_maps_m, sigma_mm)

@@ -20,12 +20,16 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import TextIO, TypeVar
 
+import numpy as np
 from tqdm import tqdm
 
 TERMINAL_ENV = "DTX_TERMINAL"
 MARKS_PER_TASK = 10  # a line at each tenth of the work
 LINE_EVERY_S = 10.0  # and at least this often while the work goes on
 MAX_LINE = 300
+# The largest total: every count up to it is a float exactly, so the rate, share and ETA are
+# figures, never an OverflowError (10**400 steps) or a count rounded away (2**53 + 1 steps).
+MAX_TOTAL = 2**53
 
 T = TypeVar("T")
 
@@ -69,8 +73,13 @@ class Progress:
         bar_on_terminal: bool = True,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        if total < 0 or not 0 <= initial <= total:
-            raise ValueError(f"{what}: progress needs 0 <= initial <= total, got {initial} of {total}")
+        if not (_is_count(total) and total <= MAX_TOTAL):
+            raise ValueError(f"{what}: progress needs a total that is an integer in [0, 2**53], got {_shown(total)}")
+        if not (_is_count(initial) and initial <= total):
+            raise ValueError(
+                f"{what}: progress needs 0 <= initial <= total, got {_shown(initial)} of {total} (integers)"
+            )
+        total, initial = int(total), int(initial)
         self.what, self.total, self.unit, self.done = what, total, unit, initial
         self.enabled = enabled
         self._stream = sys.stderr if stream is None else stream
@@ -143,6 +152,17 @@ class Progress:
             return 1
         tenth = min(done * MARKS_PER_TASK // self.total + 1, MARKS_PER_TASK)
         return -(-self.total * tenth // MARKS_PER_TASK)
+
+
+def _is_count(value: object) -> bool:
+    return bool(isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0)
+
+
+def _shown(value: object) -> str:
+    """``value`` for an error message, bounded (an int past 4,300 digits has no repr at all)."""
+    if isinstance(value, int) and value.bit_length() > 64:
+        return f"an integer of {value.bit_length()} bits"
+    return repr(value)[:80]
 
 
 def track(items: Sequence[T], what: str, unit: str, enabled: bool = True) -> Iterator[T]:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 # Regions in one forward pass where the node's max_batch is 0 (its default), by device. On the
 # CPU the next passes' input is cut and drawn while the network runs, so short passes keep the
 # two in step: 64 regions cut from a cloud, 2 cores, the demo's model, in two lanes: 349-397
@@ -16,8 +18,24 @@ DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 256}
 
 
 def max_batch_on(device: str, asked: int) -> int:
-    """Regions in one forward pass on ``device``: ``asked``, or the device's own for 0."""
-    return asked or DEVICE_MAX_BATCH[device]
+    """Regions in one forward pass on ``device``: ``asked``, or the device's own for 0.
+    ValueError naming ``device`` (one of DEVICE_MAX_BATCH) or ``max_batch`` (an integer >= 0)."""
+    if not (isinstance(device, str) and device in DEVICE_MAX_BATCH):
+        raise ValueError(f"device must be one of {sorted(DEVICE_MAX_BATCH)}, got {_shown(device)}")
+    if not (_is_integer(asked) and asked >= 0):
+        raise ValueError(f"max_batch must be an integer >= 0 (0: the device's own), got {_shown(asked)}")
+    return int(asked) or DEVICE_MAX_BATCH[device]
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _shown(value: object) -> str:
+    """``value`` for an error message, bounded (an int past 4,300 digits has no repr at all)."""
+    if isinstance(value, int) and value.bit_length() > 64:
+        return f"an integer of {value.bit_length()} bits"
+    return repr(value)[:80]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,7 +66,13 @@ def thread_split(threads: int, device: str) -> ThreadSplit:
 def forward_pass_parts(regions: list[int], max_batch: int) -> list[list[tuple[int, int, int]]]:
     """The requests' ``regions`` (a count each) in order, in forward passes of at most
     ``max_batch``: each pass the (request, first, stop) runs it holds (a pass may join two
-    clients' regions, and a request may span passes)."""
+    clients' regions, and a request may span passes). ValueError for a ``max_batch`` that is not
+    an integer >= 1 (no pass would have room: the laying would never end) or a count below 0."""
+    if not (_is_integer(max_batch) and max_batch >= 1):
+        raise ValueError(f"max_batch must be an integer >= 1 (regions in one forward pass), got {_shown(max_batch)}")
+    for request, count in enumerate(regions):
+        if not (_is_integer(count) and count >= 0):
+            raise ValueError(f"regions[{request}] must be a count (an integer >= 0), got {_shown(count)}")
     passes: list[list[tuple[int, int, int]]] = [[]]
     room = max_batch
     for request, count in enumerate(regions):

@@ -44,17 +44,8 @@ def cloud_id(points: np.ndarray) -> str:
 def checked_regions(request: TactileEstimateRequest, p: Any, size: int) -> int:
     """Number of regions of a well-formed request to a node of parameters ``p``
     (InferenceNode.Params) serving ``size`` x ``size`` maps; BadRequest otherwise."""
-    if request.dropout_samples != 1:
-        raise BadRequest(
-            f"dropout_samples is not served since protocol v4: every reply carries the calibrated "
-            f"uncertainty (uncertainty, region_uncertainty); send 1, got {request.dropout_samples}"
-        )
+    _check_fields(request)
     maps, points, poses = request.depth_maps, request.points, request.gel_poses
-    if not (math.isfinite(request.pose_sigma_mm) and request.pose_sigma_mm <= MAX_POSE_SIGMA_MM):
-        raise BadRequest(
-            f"pose_sigma_mm must be a finite number of mm <= {MAX_POSE_SIGMA_MM:g} (0: exact geometry; "
-            f"negative: the checkpoint's default), got {request.pose_sigma_mm}"
-        )
     if maps.size and (points.size or poses.size or request.cloud_id):
         raise BadRequest("give either depth_maps or a cloud (points or cloud_id) with gel_poses, not both")
     if maps.size:
@@ -86,6 +77,51 @@ def checked_regions(request: TactileEstimateRequest, p: Any, size: int) -> int:
     except PerceptionError as exc:
         raise BadRequest(str(exc)) from exc
     return int(poses.shape[0])
+
+
+def _check_fields(request: TactileEstimateRequest) -> None:
+    """BadRequest naming the first field whose type is not the message's, or whose
+    ``dropout_samples`` or ``pose_sigma_mm`` the node does not serve. The codec checks the types
+    of a request off the wire; one handed over in process may hold anything."""
+    for name in ("depth_maps", "points", "gel_poses"):
+        if not isinstance(getattr(request, name), np.ndarray):
+            raise BadRequest(f"{name} must be a numpy array, got {_shown(getattr(request, name))}")
+    if not isinstance(request.cloud_id, str):
+        raise BadRequest(f"cloud_id must be text (the 64 hex digits a reply gave), got {_shown(request.cloud_id)}")
+    samples = request.dropout_samples
+    if not (_is_integer(samples) and samples == 1):
+        raise BadRequest(
+            f"dropout_samples is not served since protocol v4: every reply carries the calibrated "
+            f"uncertainty (uncertainty, region_uncertainty); send 1, got {_shown(samples)} (an integer: no bool, float or text)"
+        )
+    sigma = request.pose_sigma_mm
+    # Ints and floats of at most 64 bits: the reply carries the sigma back, and the codec sends
+    # no long double (its item() is no Python float).
+    real = _is_integer(sigma) or isinstance(sigma, (float, np.float16, np.float32))
+    try:
+        finite = real and math.isfinite(float(sigma))  # an int beyond float64 overflows here
+    except OverflowError:
+        finite = False
+    if not (finite and sigma <= MAX_POSE_SIGMA_MM):
+        raise BadRequest(
+            f"pose_sigma_mm must be a finite number of mm <= {MAX_POSE_SIGMA_MM:g} (0: exact geometry; "
+            f"negative: the checkpoint's default), got {_shown(sigma)}"
+        )
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _shown(value: object) -> str:
+    """``value`` for an error message, in bounded length whatever a client sent."""
+    if isinstance(value, int) and value.bit_length() > 64:
+        return f"an integer of {value.bit_length()} bits"
+    if isinstance(value, str):
+        return repr(value[:40]) + (f" ... ({len(value)} characters)" if len(value) > 40 else "")
+    if value is None or isinstance(value, (int, float, np.number, np.bool_)):
+        return repr(value)
+    return f"a {type(value).__name__}"
 
 
 def _is_cloud_id(text: str) -> bool:
