@@ -200,3 +200,21 @@ def test_fit_serving_refuses_a_dataset_it_cannot_fit_on(prior_checkpoint: tuple[
     with pytest.raises(Exception, match="does not exist|not a dataset|No such"):
         fit_serving(checkpoint, tmp_path / "missing")
     assert checkpoint.read_bytes() == before  # nothing already written is lost
+
+
+def test_dtx_train_ends_with_what_is_served_and_its_uncertainty(
+    prior_checkpoint: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The command make demo runs: its checkpoint serves the uncertainty with no further step."""
+    _, library = prior_checkpoint
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "epochs: 1\nepochs_decay: 0\nbatch_size: 8\nndf: 8\nthreads: 1\nmax_steps: 1\n"
+        "generator: {ngf: 8, prior: true, background: false}\n"
+    )
+    parser = argparse.ArgumentParser()
+    add_commands(parser.add_subparsers())
+    args = parser.parse_args(["train", str(library), "--config", str(config), "--out", str(tmp_path / "run")])
+    assert args.func(args) == 0
+    generator, _ = load_generator(tmp_path / "run" / "checkpoint.pt")
+    assert generator.serves in ("network", "prior") and isinstance(generator.uncertainty, ServedUncertainty)
