@@ -31,12 +31,15 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from perception.errors import PerceptionError
+from perception.pointcloud import principal_spread_m
 from perception.segmentation import plane_to_table
+from workcell.kinematics import KinematicsError, rigid_transform
 
 # What a camera's or an object's correction is held to where nothing pins it: a careful
 # hand-eye calibration and registration are within a few millimetres and a degree.
 _PRIOR_SIGMA_MM = 5.0
 _PRIOR_SIGMA_DEG = 1.0
+_REALS = (int, float, np.integer, np.floating)
 
 
 class TouchCalibrationError(PerceptionError):
@@ -56,6 +59,23 @@ class TouchOffset:
     contact_world_m: np.ndarray
     gel_to_world: np.ndarray
 
+    def __post_init__(self) -> None:
+        # One NaN offset or infinite information would make every pose of the joint fit NaN, so
+        # a touch is checked as it is made, and kept read-only so that it stays as checked.
+        information = _finite_array(self.information_gel, "information_gel", (2, 2))
+        scale = 1e-9 * float(np.abs(information).max())
+        if np.abs(information - information.T).max() > scale or np.linalg.eigvalsh(information)[0] < -scale:
+            raise TouchCalibrationError(f"information_gel must be symmetric and >= 0, got {information.tolist()}")
+        checked = {
+            "offset_gel_mm": _finite_array(self.offset_gel_mm, "offset_gel_mm", (2,)),
+            "information_gel": information,
+            "contact_world_m": _finite_array(self.contact_world_m, "contact_world_m", (3,)),
+            "gel_to_world": _rigid(self.gel_to_world, "gel_to_world"),
+        }
+        for name, array in checked.items():
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
+
 
 def moved_depth_map(
     depth_map_m: np.ndarray, bin_pitch_mm: tuple[float, float], shift_gel_mm: np.ndarray, y_far_m: float
@@ -64,11 +84,18 @@ def moved_depth_map(
     there) as it would be with the object moved by ``shift_gel_mm`` = (x, z, y) mm in the gel
     frame: resampled in the plane (bilinear; bins from beyond the crop read as nothing) and
     ``y`` nearer the gel (deeper) where there is a surface."""
-    shift = np.asarray(shift_gel_mm, dtype=np.float64)
-    pitch_rows, pitch_cols = bin_pitch_mm
+    # A NaN shift or a zero pitch warps every bin off the map: the contact would vanish unsaid.
+    surface = _finite_array(depth_map_m, "depth_map_m", (None, None)).astype(np.float32)
+    if not surface.size:
+        raise TouchCalibrationError(f"depth_map_m must have bins, got shape {surface.shape}")
+    pitch = _finite_array(bin_pitch_mm, "bin_pitch_mm", (2,))
+    if not (pitch > 0).all():
+        raise TouchCalibrationError(f"bin_pitch_mm must be positive, got {pitch.tolist()}")
+    pitch_rows, pitch_cols = pitch
+    shift = _finite_array(shift_gel_mm, "shift_gel_mm", (3,))
+    y_far_m = _real(y_far_m, "y_far_m")
     warp = np.array([[1.0, 0.0, shift[0] / pitch_cols], [0.0, 1.0, shift[1] / pitch_rows]], dtype=np.float32)
-    rows, cols = depth_map_m.shape
-    surface = np.asarray(depth_map_m, dtype=np.float32)
+    rows, cols = surface.shape
     moved = cv2.warpAffine(
         surface, warp, (cols, rows), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float(y_far_m)
     )
@@ -85,8 +112,13 @@ def profiled_fit(
     (Gauss-Newton), from a parabola through the minimum and its neighbours; 0 where the
     minimum sits at the grid's edge in that direction (a contact cut by the field's edge shows
     one side, which moves with depth as much as with place: a flat face pins nothing)."""
-    if ssd.ndim != 3 or ssd.shape != tuple(len(g) for g in grid_mm):
-        raise TouchCalibrationError(f"ssd {ssd.shape} does not match the grid {[len(g) for g in grid_mm]}")
+    grid_mm = _even_grid(grid_mm)
+    ssd = _finite_array(ssd, "ssd", (None, None, None))
+    if ssd.shape != tuple(len(g) for g in grid_mm):
+        raise TouchCalibrationError(f"ssd {ssd.shape} does not match grid_mm's {[len(g) for g in grid_mm]}")
+    if (ssd < 0).any():
+        raise TouchCalibrationError(f"ssd must be sums of squares (>= 0), got a minimum of {ssd.min()}")
+    pixels = _whole(pixels, "pixels")
     profiled = ssd.min(axis=2)
     ix, iz = np.unravel_index(int(np.argmin(profiled)), profiled.shape)
     best_y = grid_mm[2][int(np.argmin(ssd[ix, iz]))]
@@ -110,18 +142,35 @@ def table_levelling(points_world_m: np.ndarray, inlier_m: float = 0.004) -> np.n
     """4 x 4 world-frame transform that lays one camera's table (the largest plane of its cloud
     cropped to the workspace) onto z = 0 by the smallest rotation: a RANSAC plane refined by
     least squares over the points within ``inlier_m`` of it."""
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_world_m, np.float64)))
-    if len(cloud.points) < 100:
-        raise TouchCalibrationError(f"a camera needs >= 100 table points to level it, got {len(cloud.points)}")
+    points = _finite_array(points_world_m, "points_world_m", (None, 3))
+    inlier_m = _real(inlier_m, "inlier_m", positive=True)
+    if len(points) < 100:
+        raise TouchCalibrationError(
+            f"points_world_m: a camera needs >= 100 table points to level it, got {len(points)}"
+        )
+    _spans_plane(points, inlier_m, "points_world_m")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     plane, _ = cloud.segment_plane(inlier_m, 3, 1000, probability=0.9999)
-    points = np.asarray(cloud.points)
     for _ in range(3):
         near = points[np.abs(points @ np.asarray(plane[:3]) + plane[3]) < inlier_m]
+        _spans_plane(near, inlier_m, "points_world_m's table plane (its points within inlier_m)")
         centre = near.mean(axis=0)
         normal = np.linalg.svd(near - centre, full_matrices=False)[2][-1]
         normal = normal if normal[2] > 0 else -normal
         plane = np.append(normal, -normal @ centre)
     return plane_to_table(plane)
+
+
+def _spans_plane(points_m: np.ndarray, inlier_m: float, name: str) -> None:
+    """TouchCalibrationError unless ``points_m`` spread over more than ``inlier_m`` (standard
+    deviation) along two directions: a plane's points lie within ``inlier_m`` of it, so across a
+    narrower strip its tilt about the strip is noise (a line gave a 55 or 90 degree turn)."""
+    spread_m = principal_spread_m(points_m) if len(points_m) else np.zeros(3)
+    if not spread_m[1] > inlier_m:
+        raise TouchCalibrationError(
+            f"{name}: {len(points_m)} points spread {spread_m[1] * 1e3:.3g} mm across their widest line, "
+            f"under inlier_m = {inlier_m * 1e3:g} mm; identical or collinear points have no plane to level"
+        )
 
 
 def pose_error(estimate_to_world: np.ndarray, truth_to_world: np.ndarray) -> tuple[float, float]:
@@ -179,8 +228,16 @@ def solve_cell(
     robustly weighted (Cauchy for touches, Tukey for points, each scaled by its own median). A
     camera alone sees an object from one side (a box's face pins one direction); the touches see
     it from every side they touched; together they pin every camera and object, and the touches
-    tie them to the arm's frame."""
-    cell = _Cell(touches, predicted, views, models)
+    tie them to the arm's frame.
+
+    The corrections turn about the cell's centre (its objects' mean predicted place), not the world
+    origin, whose turns need shifts the prior forbids (a cell 30 m out kept 0.02 of a camera's 0.05
+    degree turn): the fit is the same wherever the cell stands in the world (a site or map frame)."""
+    iterations = _whole(iterations, "iterations")
+    predicted, views = _checked_cell(touches, predicted, views, models)
+    from_cell = np.eye(4)
+    from_cell[:2, 3] = np.mean([pose[:2, 3] for pose in predicted.values()], axis=0)
+    cell = _Cell(touches, predicted, views, models, from_cell)
     state = np.zeros(cell.unknowns)
     # A weak prior (the registration's few millimetres and a degree) holds what nothing pins:
     # a can's turn about its own axis, a box's slide along a face only one camera sees.
@@ -188,12 +245,50 @@ def solve_cell(
     for _ in range(iterations):
         normal, rhs = cell.normal_equations(state)
         state += np.linalg.solve(normal + np.diag(prior), rhs - prior * state)
-    return cell.result(state, normal + np.diag(prior))
+    fitted = cell.result(state, normal + np.diag(prior))
+    to_cell = np.linalg.inv(from_cell)
+    return dataclasses.replace(
+        fitted,
+        cameras={c: from_cell @ correction @ to_cell for c, correction in fitted.cameras.items()},
+        objects={o: from_cell @ pose for o, pose in fitted.objects.items()},
+    )
+
+
+def _checked_cell(
+    touches: dict[str, list[TouchOffset]],
+    predicted: dict[str, np.ndarray],
+    views: dict[str, dict[str, np.ndarray]],
+    models: dict[str, o3d.geometry.TriangleMesh],
+) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
+    """``predicted`` (rigid) and ``views`` (finite N x 3) as float64, once every name the fit
+    reads is known to it; TouchCalibrationError naming the argument otherwise."""
+    if not predicted:
+        raise TouchCalibrationError("predicted names no object: the fit has nothing to place")
+    poses = {o: _rigid(pose, f"predicted[{o!r}]") for o, pose in predicted.items()}
+    missing = [o for o in poses if not isinstance(models.get(o), o3d.geometry.TriangleMesh)]
+    if missing:
+        raise TouchCalibrationError(f"models has no TriangleMesh of {missing}, objects of predicted")
+    for o, own in touches.items():
+        if o not in poses:
+            raise TouchCalibrationError(f"touches names {o!r}, an object predicted has no pose of")
+        for i, touch in enumerate(own):
+            if not isinstance(touch, TouchOffset):
+                raise TouchCalibrationError(f"touches[{o!r}][{i}] must be a TouchOffset, got {type(touch).__name__}")
+    points: dict[str, dict[str, np.ndarray]] = {}
+    for c, seen in views.items():
+        if c in poses:
+            raise TouchCalibrationError(f"views names camera {c!r}, which predicted names an object too")
+        unknown = sorted(set(seen) - set(poses))
+        if unknown:
+            raise TouchCalibrationError(f"views[{c!r}] names {unknown}, objects predicted has no pose of")
+        points[c] = {o: _finite_array(p, f"views[{c!r}][{o!r}]", (None, 3)) for o, p in seen.items()}
+    return poses, points
 
 
 class _Cell:
     """The normal equations of :func:`solve_cell`: cameras first, then objects, 3 unknowns each
-    (yaw rad, x mm, y mm of a planar correction about the world origin)."""
+    (yaw rad, x mm, y mm of a planar correction about the cell's centre, ``cell_to_world``'s
+    origin), every place and pose in the cell's frame."""
 
     def __init__(
         self,
@@ -201,9 +296,12 @@ class _Cell:
         predicted: dict[str, np.ndarray],
         views: dict[str, dict[str, np.ndarray]],
         models: dict[str, o3d.geometry.TriangleMesh],
+        cell_to_world: np.ndarray,
     ) -> None:
         self.names, self.cameras = sorted(predicted), sorted(views)
-        self.predicted, self.views = predicted, views
+        to_cell = np.linalg.inv(cell_to_world)
+        self.predicted = {o: to_cell @ pose for o, pose in predicted.items()}
+        self.views = {c: {o: p + to_cell[:3, 3] for o, p in seen.items()} for c, seen in views.items()}
         self.unknowns = 3 * (len(self.cameras) + len(self.names))
         self.at = {c: 3 * i for i, c in enumerate(self.cameras)}
         self.at.update({o: 3 * (len(self.cameras) + i) for i, o in enumerate(self.names)})
@@ -211,7 +309,7 @@ class _Cell:
         self.offsets = {o: np.array([t.offset_gel_mm for t in own[o]]).reshape(-1, 2) for o in self.names}
         self.jacobians = {
             o: np.array([t.gel_to_world[:3, [0, 2]].T for t in own[o]]).reshape(-1, 2, 3)
-            @ _planar_jacobian(np.array([t.contact_world_m for t in own[o]]).reshape(-1, 3) * 1e3)
+            @ _planar_jacobian((np.array([t.contact_world_m for t in own[o]]).reshape(-1, 3) + to_cell[:3, 3]) * 1e3)
             for o in self.names
         }
         # capped at the median touch of the whole cell: an object whose touches pin little (a
@@ -287,6 +385,59 @@ _POINT_REACH_MM = 5.0
 # Points of one camera's view of one object a cell fit reads at most (a regular draw): its
 # errors (flying pixels, relief) are not independent, so more would only over-weight it.
 _MAX_VIEW_POINTS = 3000
+
+
+def _finite_array(value: object, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` (None: any length there), every entry finite,
+    or TouchCalibrationError naming it."""
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as err:
+        raise TouchCalibrationError(f"{name} must be an array of numbers: {err}") from None
+    if raw.dtype.kind not in "biuf":  # complex would be cast, text parsed
+        raise TouchCalibrationError(f"{name} must be real numbers, got {raw.dtype}")
+    if raw.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, raw.shape)):
+        wanted = " x ".join("N" if n is None else str(n) for n in shape)
+        raise TouchCalibrationError(f"{name} must be {wanted}, got shape {raw.shape}")
+    array = raw.astype(np.float64)
+    if not np.isfinite(array).all():
+        raise TouchCalibrationError(f"{name} must be finite, got {np.count_nonzero(~np.isfinite(array))} NaN or inf")
+    return array
+
+
+def _rigid(value: np.ndarray, name: str) -> np.ndarray:
+    try:
+        return rigid_transform(value, name)
+    except KinematicsError as err:
+        raise TouchCalibrationError(str(err)) from None
+
+
+def _real(value: object, name: str, positive: bool = False) -> float:
+    """``value`` as a finite float (and > 0 with ``positive``), or TouchCalibrationError."""
+    number = float(value) if isinstance(value, _REALS) and not isinstance(value, bool) else np.nan
+    if not (np.isfinite(number) and (number > 0 or not positive)):
+        raise TouchCalibrationError(f"{name} must be a finite{' positive' if positive else ''} number, got {value!r}")
+    return number
+
+
+def _whole(value: object, name: str) -> int:
+    """``value`` as an int >= 1, or TouchCalibrationError naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise TouchCalibrationError(f"{name} must be a whole number >= 1, got {value!r}")
+    return int(value)
+
+
+def _even_grid(grid_mm: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three axes of a profiled fit's grid, each finite and rising by one step (the
+    parabola through a minimum and its neighbours assumes it), or TouchCalibrationError."""
+    if not isinstance(grid_mm, (tuple, list)) or len(grid_mm) != 3:
+        raise TouchCalibrationError(f"grid_mm must be three axes (x, z, y), got {grid_mm!r}")
+    axes = tuple(_finite_array(g, f"grid_mm[{i}]", (None,)) for i, g in enumerate(grid_mm))
+    for i, axis in enumerate(axes):
+        steps = np.diff(axis)
+        if not len(axis) or (len(steps) and not (steps[0] > 0 and np.allclose(steps, steps[0], rtol=1e-6, atol=0.0))):
+            raise TouchCalibrationError(f"grid_mm[{i}] must rise by one step, got {axis.tolist()}")
+    return axes[0], axes[1], axes[2]
 
 
 def _information_cap(touches: list[TouchOffset]) -> float:
