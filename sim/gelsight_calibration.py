@@ -2,6 +2,10 @@
 per slope bin, a polynomial in pixel position giving the colour change, and the sensor's
 no-contact frame, read from a calibration directory and checked (every problem is a
 :class:`GelSightRenderError`). The renderer (``sim.gelsight``) shades with it.
+
+A calibration directory is trusted no more than any file: each array's .npy header is read and
+checked before its data (a small file claiming a huge array is refused, not allocated), and the
+parameters file is read within a size.
 """
 
 from __future__ import annotations
@@ -10,6 +14,8 @@ import dataclasses
 import functools
 import json
 import math
+import zipfile
+import zlib
 from pathlib import Path
 
 import cv2
@@ -36,6 +42,12 @@ PARAMETER_NAMES = (
 # The calibration's slope bins are split in this many, interpolated (a finer split changes
 # the gelsight-check SSIMs by less than 0.001).
 BIN_REFINEMENT = 2
+# A file's slope bins (Taxim's n, the range's end point included): at least one bin and its end,
+# at most 256 (the shipped file has 80; the refined table then stays under 20 MB).
+TABLE_BINS_RANGE = (2, 256)
+# The no-contact frame's sides, as the renderer's images (sim.gelsight.GelSightConfig).
+BACKGROUND_PX_RANGE = (3, 4096)
+MAX_PARAMETERS_BYTES = 64 * 1024  # a few names and numbers; more is not a parameters file
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +64,22 @@ class PolyCalibration:
     coeffs: np.ndarray  # (n_bins, n_bins, 3, 6) float32
     background: np.ndarray  # native_shape + (3,) uint8
 
+    def __post_init__(self) -> None:
+        coeffs = self.coeffs
+        if not (
+            isinstance(coeffs, np.ndarray)
+            and coeffs.ndim == 4
+            and coeffs.shape[0] == coeffs.shape[1] >= 1
+            and coeffs.shape[2:] == (3, 6)
+            and coeffs.dtype.kind == "f"
+            and np.all(np.isfinite(coeffs))
+        ):
+            raise GelSightRenderError(
+                f"PolyCalibration.coeffs must be a finite (n, n, 3, 6) float array, got "
+                f"{getattr(coeffs, 'shape', type(coeffs).__name__)} {getattr(coeffs, 'dtype', '')}"
+            )
+        _check_background(self.background, "PolyCalibration.background")
+
     @property
     def n_bins(self) -> int:
         return self.coeffs.shape[0]
@@ -59,6 +87,22 @@ class PolyCalibration:
     @property
     def native_shape(self) -> tuple[int, int]:
         return self.background.shape[0], self.background.shape[1]
+
+
+def _check_background(background: object, name: str) -> None:
+    low, high = BACKGROUND_PX_RANGE
+    if not (
+        isinstance(background, np.ndarray)
+        and background.dtype == np.uint8
+        and background.ndim == 3
+        and background.shape[2] == 3
+        and low <= min(background.shape[:2])
+        and max(background.shape[:2]) <= high
+    ):
+        raise GelSightRenderError(
+            f"{name} must be an H x W x 3 uint8 frame, H and W in [{low}, {high}], got "
+            f"{getattr(background, 'shape', type(background).__name__)} {getattr(background, 'dtype', '')}"
+        )
 
 
 def _repo_path(path: str | Path) -> Path:
@@ -81,8 +125,14 @@ def renderer_parameters(calibration_dir: str | Path) -> dict[str, float]:
     if not path.is_file():
         return {}
     try:
-        values = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
+        if path.stat().st_size > MAX_PARAMETERS_BYTES:
+            raise GelSightRenderError(f"{path}: more than {MAX_PARAMETERS_BYTES} bytes: not a parameters file")
+        # Every number as a float, which is what the renderer takes: an integer of 400 digits is then
+        # inf (refused below), not an int no float can hold.
+        values = json.loads(path.read_text(), parse_int=float)
+    except GelSightRenderError:
+        raise
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: arrays nested thousands deep
         raise GelSightRenderError(f"{path}: not readable JSON ({exc})") from exc
     if not isinstance(values, dict) or set(values) - set(PARAMETER_NAMES):
         raise GelSightRenderError(f"{path}: must map some of {list(PARAMETER_NAMES)} to numbers, got {values!r}")
@@ -99,31 +149,76 @@ def _load_calibration(directory_name: str) -> PolyCalibration:
     for path in (poly_path, bg_path):
         if not path.is_file():
             raise GelSightRenderError(f"GelSight calibration file missing: {path}")
-    with np.load(poly_path) as poly:
-        missing = sorted({"bins", "grad_r", "grad_g", "grad_b"} - set(poly.files))
-        if missing:
-            raise GelSightRenderError(f"{poly_path}: missing keys {missing}")
-        n = int(poly["bins"])
-        tables = [np.asarray(poly[k], np.float64) for k in ("grad_r", "grad_g", "grad_b")]
-    for table in tables:
-        if table.shape != (n, n, 6) or not np.all(np.isfinite(table)):
-            raise GelSightRenderError(
-                f"{poly_path}: each grad_* must be a finite ({n}, {n}, 6) array, got shape {table.shape}"
-            )
-    with np.load(bg_path) as data:
-        if "background" not in data.files:
-            raise GelSightRenderError(f"{bg_path}: missing key 'background'")
-        background = np.asarray(data["background"])
-    if background.ndim != 3 or background.shape[2] != 3 or background.dtype != np.uint8:
-        raise GelSightRenderError(
-            f"{bg_path}: background must be HxWx3 uint8, got {background.shape} {background.dtype}"
-        )
-    return calibration_from_tables(np.stack(tables, axis=2), background)
+    low, high = TABLE_BINS_RANGE
+    bins = read_npz_arrays(poly_path, {"bins": 1})["bins"]
+    if bins.shape != () or bins.dtype.kind not in "iu" or not low <= int(bins) <= high:
+        raise GelSightRenderError(f"{poly_path}: bins must be an integer in [{low}, {high}], got {bins!r:.60}")
+    n = int(bins)
+    tables = read_npz_arrays(poly_path, dict.fromkeys(("grad_r", "grad_g", "grad_b"), n * n * 6))
+    for name, table in tables.items():
+        if table.shape != (n, n, 6):
+            raise GelSightRenderError(f"{poly_path}: {name} must be an ({n}, {n}, 6) array, got shape {table.shape}")
+    side = BACKGROUND_PX_RANGE[1]
+    background = read_npz_arrays(bg_path, {"background": side * side * 3})["background"]
+    stacked = np.stack([tables[name] for name in ("grad_r", "grad_g", "grad_b")], axis=2)
+    try:
+        return calibration_from_tables(stacked, background)
+    except GelSightRenderError as exc:
+        raise GelSightRenderError(f"{directory}: {exc}") from exc
+
+
+def read_npz_arrays(path: Path, most_elements: dict[str, int]) -> dict[str, np.ndarray]:
+    """The arrays ``most_elements`` names from the .npz at ``path``, each .npy header read before
+    its data: GelSightRenderError for a file that is not a readable .npz, a missing key, an object
+    array or one of more elements than its entry."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            missing = sorted(key for key in most_elements if f"{key}.npy" not in archive.namelist())
+            if missing:
+                raise GelSightRenderError(f"missing keys {missing}")
+            return {key: _read_member(archive, key, most) for key, most in most_elements.items()}
+    except GelSightRenderError as exc:
+        raise GelSightRenderError(f"{path}: {exc}") from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError) as exc:
+        raise GelSightRenderError(f"{path}: not a readable .npz file ({exc})") from exc
+
+
+def _read_member(archive: zipfile.ZipFile, key: str, most_elements: int) -> np.ndarray:
+    headers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with archive.open(f"{key}.npy") as member:
+        version = np.lib.format.read_magic(member)
+        if version not in headers:
+            raise GelSightRenderError(f"{key}: .npy format version {version} is not one this reader takes")
+        shape, _, dtype = headers[version](member, max_header_size=4096)
+    if dtype.hasobject or math.prod(shape) > most_elements:
+        what = "an object array" if dtype.hasobject else f"more than {most_elements} numbers"
+        raise GelSightRenderError(f"{key}: its header says {shape} {dtype}, {what}")
+    with archive.open(f"{key}.npy") as member:
+        return np.asarray(np.lib.format.read_array(member, allow_pickle=False, max_header_size=4096))
 
 
 def calibration_from_tables(tables: np.ndarray, background: np.ndarray) -> PolyCalibration:
     """The calibration the renderer shades with, from the tables as the file stores them
-    ((n, n, 3, 6): magnitude bin, direction bin, channel, coefficient) and the no-contact frame."""
+    ((n, n, 3, 6): magnitude bin, direction bin, channel, coefficient) and the no-contact frame.
+
+    Contract: ``tables`` a finite real (n, n, 3, 6) array, n in TABLE_BINS_RANGE; ``background`` as
+    :class:`PolyCalibration` takes it; otherwise GelSightRenderError naming the argument."""
+    low, high = TABLE_BINS_RANGE
+    real = isinstance(tables, np.ndarray) and tables.dtype.kind in "iuf"
+    if not (
+        real
+        and tables.ndim == 4
+        and tables.shape[0] == tables.shape[1]
+        and low <= tables.shape[0] <= high
+        and tables.shape[2:] == (3, 6)
+    ):
+        raise GelSightRenderError(
+            f"tables must be a real (n, n, 3, 6) array, n in [{low}, {high}], got "
+            f"{getattr(tables, 'shape', type(tables).__name__)} {getattr(tables, 'dtype', '')}"
+        )
+    if not np.all(np.isfinite(tables)):
+        raise GelSightRenderError(f"tables must be finite, got {np.count_nonzero(~np.isfinite(tables))} NaN or inf")
+    _check_background(background, "background")
     n = tables.shape[0]
     # Taxim's n bins are n - 1 bins of width range / (n - 1) plus one for the range's end
     # point alone; keep the n - 1 (the end point falls in the last of them).

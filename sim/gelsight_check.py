@@ -23,15 +23,13 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from perception.ssim import ssim_rgb
+from perception.ssim import WINDOW, ssim_rgb
 from sim.gelsight import MAX_LENGTH_MM, GelSightConfig, GelSightRenderer, GelSightRenderError
 from sim.gelsight_calibration import renderer_parameters
-from sim.press_annotation import find_checked_presses
+from sim.press_annotation import BALL_RADIUS_RANGE_MM, MM_PER_PX_RANGE, checked_number, find_checked_presses
 
 BALL_RADIUS_MM = 2.0
 FILE_MM_PER_PX = 0.1245
-MM_PER_PX_RANGE = (1e-3, 10.0)
-BALL_RADIUS_RANGE_MM = (0.1, 50.0)
 CROP_PX = 48  # the touch crop on the shipped 120 x 160 frames: 6 mm of gel
 CROP_MM = CROP_PX * FILE_MM_PER_PX
 N_RANDOM_FRAMES = 15
@@ -204,16 +202,58 @@ def ball_gap_map(
 
 
 def crop_px(mm_per_px: float) -> int:
-    """The side of the touch crop at ``mm_per_px``: the same CROP_MM of gel at any frame size."""
-    return max(16, round(CROP_MM / mm_per_px))
+    """The side of the touch crop at ``mm_per_px`` (in MM_PER_PX_RANGE, else GelSightRenderError):
+    the same CROP_MM of gel at any frame size."""
+    return max(16, round(CROP_MM / checked_number("mm_per_px", mm_per_px, *MM_PER_PX_RANGE)))
 
 
 def touch_crop(image: np.ndarray, center_xy_px: Sequence[float], size: int) -> np.ndarray:
-    """The size x size window centred on the touch, shifted inside the frame at its edges."""
+    """The size x size window centred on the touch, shifted inside the frame at its edges.
+
+    Contract: ``image`` at least 2-D, ``size`` an integer from 1 to its height and width (a larger
+    window has no place in it), ``center_xy_px`` two finite numbers; otherwise GelSightRenderError
+    naming the argument."""
+    if not isinstance(image, np.ndarray) or image.ndim < 2:
+        raise GelSightRenderError(f"image must be an H x W (x C) array, got {getattr(image, 'shape', type(image))}")
     h, w = image.shape[:2]
-    x0 = int(np.clip(round(center_xy_px[0]) - size // 2, 0, w - size))
-    y0 = int(np.clip(round(center_xy_px[1]) - size // 2, 0, h - size))
+    if isinstance(size, (bool, np.bool_)) or not isinstance(size, (int, np.integer)) or not 1 <= size <= min(h, w):
+        raise GelSightRenderError(f"size must be an integer from 1 to the image's {h} x {w}, got {size!r}")
+    x, y = _checked_centre(center_xy_px)
+    x0 = int(np.clip(round(x) - size // 2, 0, w - size))
+    y0 = int(np.clip(round(y) - size // 2, 0, h - size))
     return image[y0 : y0 + size, x0 : x0 + size]
+
+
+def _real_array(value: object) -> np.ndarray:
+    """``value`` as an array when it is a sequence of real numbers (an empty array otherwise, which no
+    contract's shape takes)."""
+    try:
+        array = np.asarray(value) if isinstance(value, (Sequence, np.ndarray)) else np.zeros(0)
+    except (TypeError, ValueError):  # a ragged sequence
+        return np.zeros(0)
+    return array if array.dtype.kind in "iuf" else np.zeros(0)
+
+
+def _checked_centre(center_xy_px: object) -> tuple[float, float]:
+    centre = _real_array(center_xy_px)
+    if centre.shape != (2,) or not np.all(np.isfinite(centre)):
+        raise GelSightRenderError(f"center_xy_px must be two finite numbers (x, y px), got {center_xy_px!r}")
+    return float(centre[0]), float(centre[1])
+
+
+def _stacked(name: str, images: Sequence[np.ndarray] | np.ndarray) -> np.ndarray:
+    """``images`` as one N x H x W x 3 uint8 array, H and W at least SSIM's window."""
+    try:
+        # list(): np.stack takes a sequence of arrays; an N x ... array is one, row by row.
+        stack = np.stack(list(images)) if len(images) else np.zeros((0, WINDOW, WINDOW, 3), np.uint8)
+    except (TypeError, ValueError) as exc:
+        raise GelSightRenderError(f"{name} must be H x W x 3 uint8 images of one size ({exc})") from exc
+    if stack.ndim != 4 or stack.shape[3] != 3 or stack.dtype != np.uint8 or min(stack.shape[1:3]) < WINDOW:
+        raise GelSightRenderError(
+            f"{name} must be H x W x 3 uint8 images, H and W at least {WINDOW} (SSIM's window), "
+            f"got {stack.shape} {stack.dtype}"
+        )
+    return stack
 
 
 def press_ssim(
@@ -223,13 +263,25 @@ def press_ssim(
     mm_per_px: float,
 ) -> dict[str, np.ndarray]:
     """SSIM of each image against its real frame: the touch crop (:func:`crop_px` at
-    ``mm_per_px``, around each centre) and the full frame, one batch each (SSIM's set-up costs
-    more than a frame)."""
+    ``mm_per_px``, around each centre; a frame narrower than that crop gives a square of its
+    smaller side) and the full frame, one batch each (SSIM's set-up costs more than a frame).
+
+    Contract: ``images`` and ``frames`` N >= 0 H x W x 3 uint8 images of one size (H, W >= SSIM's
+    window), ``centers_xy_px`` N x 2 finite, ``mm_per_px`` in MM_PER_PX_RANGE; otherwise
+    GelSightRenderError naming the argument."""
     size = crop_px(mm_per_px)
-    # list(): np.stack takes a sequence of arrays; an N x ... array is one, row by row.
-    image_stack, frame_stack = np.stack(list(images)), np.stack(list(frames))
-    crops = np.stack([touch_crop(i, c, size) for i, c in zip(image_stack, centers_xy_px)])
-    real_crops = np.stack([touch_crop(r, c, size) for r, c in zip(frame_stack, centers_xy_px)])
+    image_stack, frame_stack = _stacked("images", images), _stacked("frames", frames)
+    centres, n = _real_array(centers_xy_px), len(frame_stack)
+    if image_stack.shape != frame_stack.shape or centres.shape != (n, 2) or not np.all(np.isfinite(centres)):
+        raise GelSightRenderError(
+            f"images, frames and centers_xy_px must be N images of one size and N x 2 finite centres, got "
+            f"{image_stack.shape}, {frame_stack.shape} and {centres.shape} {centres.dtype}"
+        )
+    if not n:
+        return {"crop": np.zeros(0), "full": np.zeros(0)}
+    size = min(size, *frame_stack.shape[1:3])
+    crops = np.stack([touch_crop(i, c, size) for i, c in zip(image_stack, centres)])
+    real_crops = np.stack([touch_crop(r, c, size) for r, c in zip(frame_stack, centres)])
     return {"crop": ssim_rgb(crops, real_crops), "full": ssim_rgb(image_stack, frame_stack)}
 
 

@@ -20,7 +20,9 @@ Yuan, RA-L 2022, assets/gelsight/ATTRIBUTION.md), fitted in the form the rendere
    smoothing) by Nelder-Mead on the mean crop + full-frame SSIM of the fitted presses, the table
    fitted again at every step (SSIM is not differentiable through the bin look-up).
 
-Plain functions on arrays; lengths in mm, positions in pixels (x column, y row).
+Plain functions on arrays; lengths in mm, positions in pixels (x column, y row). Presses are
+checked where they enter (:class:`Presses`), the rest where each public function takes it; bad
+input is a GelSightRenderError naming the argument.
 """
 
 from __future__ import annotations
@@ -35,10 +37,11 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import minimize
 
-from sim.gelsight import GelSightConfig, GelSightRenderer, gel_surface_depth_mm, indentation_mm
+from sim.gelsight import MAX_LENGTH_MM, GelSightConfig, GelSightRenderer, gel_surface_depth_mm, indentation_mm
 from sim.gelsight_calibration import PolyCalibration, calibration_from_tables
 from sim.gelsight_check import ball_gap_map, press_depth_mm, press_ssim
 from sim.gelsight_effects import GelSightRenderError
+from sim.press_annotation import BALL_RADIUS_RANGE_MM, MM_PER_PX_RANGE, checked_frames, checked_number
 
 N_BINS = 60  # slope magnitude bins over [0, pi/2) and direction bins over [-pi, pi)
 BIN_SMOOTHING = 1.0  # sigma, in bins, of the sharing between neighbouring bins
@@ -48,6 +51,8 @@ FAR_RADII = 2.5  # a pixel this many ball radii from a press is untouched by it
 NEAR_RADII = 2.0  # pixels this many ball radii from a press carry its shading
 FITTED = ("spreading_length_mm", "optical_blur_mm", "compression_saturation_mm", "background_smoothing_mm")
 FIT_EVALUATIONS = 40
+# The most renderings one fit may take: 25 times the default, an hour or more on the largest frames.
+MAX_FIT_EVALUATIONS = 1000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +155,15 @@ def fit_tables(
 ) -> np.ndarray:
     """The shading tables ((N_BINS + 1)^2 x 3 x 6, the file's layout: polynomial coefficients in
     pixel position, 8-bit levels) that best explain ``colour_changes`` (frame minus background,
-    HxWx3) from the gel surfaces ``gel_depths_mm`` (HxW), on the pixels of ``near_masks``."""
+    HxWx3) from the gel surfaces ``gel_depths_mm`` (HxW), on the pixels of ``near_masks``.
+
+    Contract: one or more presses, each an HxW finite float depth, an HxWx3 real change and an HxW
+    bool mask of one size; ``mm_per_px`` in MM_PER_PX_RANGE, ``compression_saturation_mm`` finite > 0
+    (at most MAX_LENGTH_MM, the renderer's longest length); otherwise GelSightRenderError naming the argument."""
+    _check_table_input(gel_depths_mm, colour_changes, near_masks)
+    checked_number("mm_per_px", mm_per_px, *MM_PER_PX_RANGE)
+    if not 0 < checked_number("compression_saturation_mm", compression_saturation_mm, 0.0, MAX_LENGTH_MM):
+        raise GelSightRenderError(f"compression_saturation_mm must be > 0 mm, got {compression_saturation_mm!r}")
     shape = gel_depths_mm[0].shape
     terms, scale = _position_terms(shape)
     mag_step, dir_step = 0.5 * math.pi / N_BINS, 2.0 * math.pi / N_BINS
@@ -191,10 +204,36 @@ def fit_tables(
     return np.pad(coeffs, ((0, 1), (0, 1), (0, 0), (0, 0)), mode="edge").astype(np.float32)
 
 
+def _check_table_input(
+    gel_depths_mm: Sequence[np.ndarray], colour_changes: Sequence[np.ndarray], near_masks: Sequence[np.ndarray]
+) -> None:
+    n = len(gel_depths_mm)
+    if n == 0 or len(colour_changes) != n or len(near_masks) != n:
+        raise GelSightRenderError(
+            "gel_depths_mm, colour_changes and near_masks must hold one or more presses each, as many, got "
+            f"{n}, {len(colour_changes)} and {len(near_masks)}"
+        )
+    shape = np.shape(gel_depths_mm[0])
+    for depth, change, near in zip(gel_depths_mm, colour_changes, near_masks):
+        if not (isinstance(depth, np.ndarray) and depth.ndim == 2 and depth.shape == shape):
+            raise GelSightRenderError(f"gel_depths_mm must be H x W arrays of one size, got {np.shape(depth)}")
+        if depth.dtype.kind != "f" or not np.all(np.isfinite(depth)):
+            raise GelSightRenderError(f"gel_depths_mm must be finite floats, got {depth.dtype} with NaN or inf")
+        if not (isinstance(change, np.ndarray) and change.shape == shape + (3,) and change.dtype.kind in "iuf"):
+            raise GelSightRenderError(f"colour_changes must be {shape + (3,)} real arrays, got {np.shape(change)}")
+        if not (isinstance(near, np.ndarray) and near.shape == shape and near.dtype == bool):
+            raise GelSightRenderError(f"near_masks must be {shape} bool arrays, got {np.shape(near)}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Presses:
     """Ball presses of one sensor: frames (N x H x W x 3 uint8), its no-contact frame, each press's
-    centre (N x 2, x column and y row, px) and contact radius (N, px), the frame's scale and the ball's radius."""
+    centre (N x 2, x column and y row, px) and contact radius (N, px), the frame's scale and the ball's radius.
+
+    Contract, checked on construction: frames and background as
+    ``sim.press_annotation.checked_frames`` takes them (N >= 0); centres N x 2 finite, inside the
+    frame; radii N finite > 0 px; ``mm_per_px`` in MM_PER_PX_RANGE and ``ball_radius_mm`` in
+    BALL_RADIUS_RANGE_MM. Otherwise GelSightRenderError naming the field."""
 
     frames: np.ndarray
     background: np.ndarray
@@ -202,6 +241,24 @@ class Presses:
     radii_px: np.ndarray
     mm_per_px: float
     ball_radius_mm: float
+
+    def __post_init__(self) -> None:
+        checked_frames(self.frames, self.background)
+        n, (h, w) = len(self.frames), self.background.shape[:2]
+        centers, radii = self.centers_xy_px, self.radii_px
+        if not (isinstance(centers, np.ndarray) and centers.shape == (n, 2) and centers.dtype.kind in "iuf"):
+            raise GelSightRenderError(f"centers_xy_px must be {n} x 2 numbers, got {np.shape(centers)}")
+        inside = (centers[:, 0] >= 0) & (centers[:, 0] <= w - 1) & (centers[:, 1] >= 0) & (centers[:, 1] <= h - 1)
+        if not inside.all():  # NaN is not inside either
+            raise GelSightRenderError(
+                f"centers_xy_px must lie in the {w} x {h} frame, presses {np.flatnonzero(~inside).tolist()} do not"
+            )
+        if not (isinstance(radii, np.ndarray) and radii.shape == (n,) and radii.dtype.kind in "iuf"):
+            raise GelSightRenderError(f"radii_px must be {n} numbers, got {np.shape(radii)}")
+        if not np.all((radii > 0) & (radii < np.inf)):
+            raise GelSightRenderError(f"radii_px must be finite > 0 px, got {radii[~((radii > 0) & (radii < np.inf))]}")
+        checked_number("mm_per_px", self.mm_per_px, *MM_PER_PX_RANGE)
+        checked_number("ball_radius_mm", self.ball_radius_mm, *BALL_RADIUS_RANGE_MM)
 
     def subset(self, indices: Sequence[int]) -> Presses:
         keep = list(indices)
@@ -228,8 +285,19 @@ def _smoothed(background: np.ndarray, sigma_px: float) -> np.ndarray:
     return cv2.GaussianBlur(background.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
 
 
+def _require_presses(presses: Presses) -> None:
+    if not isinstance(presses, Presses) or not len(presses.frames):
+        got = f"{len(presses.frames)}" if isinstance(presses, Presses) else type(presses).__name__
+        raise GelSightRenderError(f"presses must be Presses holding one or more presses, got {got}")
+
+
 def fit_with_parameters(presses: Presses, parameters: dict[str, float]) -> PressFit:
-    """The background and the tables fitted to ``presses`` with the renderer's ``parameters`` fixed."""
+    """The background and the tables fitted to ``presses`` (one or more) with the renderer's
+    ``parameters`` fixed: some of FITTED, by name, each in GelSightConfig's range; otherwise
+    GelSightRenderError naming the argument."""
+    _require_presses(presses)
+    if not isinstance(parameters, dict) or not set(parameters) <= set(FITTED):
+        raise GelSightRenderError(f"parameters must map some of {list(FITTED)} to numbers, got {parameters!r:.120}")
     background = np.rint(
         np.clip(
             fit_background(presses.frames, presses.background, presses.centers_xy_px, presses.ball_radius_px), 0, 255
@@ -274,7 +342,17 @@ def press_scores(images: Sequence[np.ndarray], presses: Presses) -> dict[str, li
 def fit_presses(presses: Presses, evaluations: int | None = None) -> PressFit:
     """The photometric model and the renderer's parameters that best render ``presses``
     (the mean of crop and full-frame SSIM), searched in log space from the renderer's defaults
-    in ``evaluations`` renderings of them (default FIT_EVALUATIONS)."""
+    in ``evaluations`` renderings of them (default FIT_EVALUATIONS; 0: no search, the defaults').
+
+    Contract: ``presses`` one or more; ``evaluations`` None or an integer in [0,
+    MAX_FIT_EVALUATIONS]; otherwise GelSightRenderError naming the argument."""
+    _require_presses(presses)
+    if evaluations is None:
+        evaluations = FIT_EVALUATIONS
+    if isinstance(evaluations, (bool, np.bool_)) or not isinstance(evaluations, (int, np.integer)):
+        raise GelSightRenderError(f"evaluations must be an integer, got {evaluations!r:.40}")
+    if not 0 <= evaluations <= MAX_FIT_EVALUATIONS:
+        raise GelSightRenderError(f"evaluations must be in [0, {MAX_FIT_EVALUATIONS}], got {evaluations!r:.40}")
     default = GelSightConfig()
     start = np.log([getattr(default, name) for name in FITTED])
 
@@ -289,11 +367,10 @@ def fit_presses(presses: Presses, evaluations: int | None = None) -> PressFit:
         scores = press_scores(render_fit(fit, presses), presses)
         return -float(np.mean(scores["crop"]) + np.mean(scores["full"])) / 2.0
 
+    if evaluations == 0:
+        return fit_at(start)
     simplex = np.vstack([start] + [start + 0.4 * np.eye(len(FITTED))[k] for k in range(len(FITTED))])
     result = minimize(
-        loss,
-        start,
-        method="Nelder-Mead",
-        options={"maxfev": evaluations or FIT_EVALUATIONS, "initial_simplex": simplex, "xatol": 0.02},
+        loss, start, method="Nelder-Mead", options={"maxfev": evaluations, "initial_simplex": simplex, "xatol": 0.02}
     )
     return fit_at(result.x)
