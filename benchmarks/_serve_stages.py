@@ -67,7 +67,7 @@ def served_network(
             f"the node's model line {model!r} does not say '(ngf N, [runtime precision, ]device) serves ...'"
         )
     runtime, precision, device, serves = served_as.groups()
-    split = thread_split(threads, device)
+    split = thread_split(threads, device, network=serves == "network")
     if serves == "prior":  # no network pass: the prior's image is what the input carries
 
         def prior(x: np.ndarray | torch.Tensor) -> np.ndarray:

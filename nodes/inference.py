@@ -198,7 +198,7 @@ class InferenceNode(Node):
         no network runs. int8 is served only where it holds: measured against fp32 first
         (models.runtime.int8_ssim_loss)."""
         p = self.params
-        self.split = thread_split(p.threads, self.device)
+        self.split = thread_split(p.threads, self.device, network=self.serves == "network")
         torch.set_num_threads(self.split.lane_threads)
         if self.serves == "prior":
             return "", None

@@ -49,17 +49,20 @@ class ThreadSplit:
     input_threads: int
 
 
-def thread_split(threads: int, device: str) -> ThreadSplit:
+def thread_split(threads: int, device: str, network: bool = True) -> ThreadSplit:
     """The node's threads on ``device``. On the CPU the network is cheapest a region on one
     thread (2.2 ms CPU against 2.8 on two, the demo's model, passes of 8), so each core runs a
     pass of its own: alone, two such lanes ran 861-898 regions/s where one pass on both cores ran
     531-566. The input (cut 0.8 ms a region, prior 0.55) is drawn meanwhile on half of them:
     one thread draws the prior's images, whose many short NumPy calls do not run two at a time
     (2 cores, through the bus: cloud form 349-397 regions/s at 64 poses against 318-365 with one
-    pass at a time, depth-maps 449-541 against 333-384; docs/measurements.md). On a GPU one pass
-    at a time, the host's threads for the input."""
+    pass at a time, depth-maps 449-541 against 333-384; docs/measurements.md). Serving the prior
+    (``network`` false), a pass is the uncertainty alone, a tenth of the input's work: the input
+    is drawn on every thread. On a GPU one pass at a time, the host's threads for the input."""
     if device == "cpu":
-        return ThreadSplit(lanes=threads, lane_threads=1, input_threads=max(1, threads // 2))
+        return ThreadSplit(
+            lanes=threads, lane_threads=1, input_threads=threads if not network else max(1, threads // 2)
+        )
     return ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads)
 
 
