@@ -17,7 +17,8 @@ import torch
 
 from models.checkpoint import load_generator
 from models.evaluate import contact_ssim_statistics, predict_dataset, ssim_statistics
-from models.uncertainty import uncertainty_statistics
+from models.serving import SERVING_ENTRIES
+from models.uncertainty import served_uncertainty_statistics
 
 # What a checkpoint can be served as, side by side in one run (``--forms``): ``before``, the
 # checkpoint as one trained before issue 49 serves it (its network, no uncertainty: its serving
@@ -36,7 +37,7 @@ def run_forms(
     with tempfile.TemporaryDirectory(prefix="dtxforms") as tmp:
         state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
         before = Path(tmp) / "before.pt"
-        torch.save({k: v for k, v in state.items() if k not in ("serves", "serving_figures", "uncertainty")}, before)
+        torch.save({k: v for k, v in state.items() if k not in SERVING_ENTRIES}, before)
         for form in args.forms:
             checkpoint = str(before) if form == "before" else args.checkpoint
             params = {"serves": "network"} if form == "network" else {}
@@ -62,12 +63,11 @@ def _form_accuracy(checkpoint: Path, serves: str, dataset: str) -> dict[str, Any
         "dissimilarity_ratio": round(whole["dissimilarity_ratio"], 5),
         "contact_dissimilarity_ratio": round(contact.get("dissimilarity_ratio", float("nan")), 5),
     }
-    if predictions.uncertainty is not None:
-        figures = uncertainty_statistics(
-            predictions.uncertainty, predictions.estimate, predictions.truth, 1.0 - np.asarray(whole["ssim_model"])
-        )
-        accuracy |= {k: figures[k] for k in ("pearson_pixel", "pearson_region", "decile_ratio_min", "decile_ratio_max")}
-    return accuracy
+    figures = served_uncertainty_statistics(
+        predictions.uncertainty, predictions.estimate, predictions.truth, 1.0 - np.asarray(whole["ssim_model"])
+    )
+    kept = ("pearson_pixel", "pearson_region", "decile_ratio_min", "decile_ratio_max")
+    return accuracy | {k: figures[k] for k in kept if k in figures}
 
 
 def _side_by_side(forms: dict[str, Any]) -> dict[str, Any]:

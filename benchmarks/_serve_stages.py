@@ -56,17 +56,20 @@ class ServedNetwork:
 
 
 def served_network(
-    generator: UNetGenerator, depth_range_m: tuple[float, float], model: str, threads: int, max_batch: int
+    generator: UNetGenerator,
+    depth_range_m: tuple[float, float],
+    model: str,
+    serves: str,
+    threads: int,
+    max_batch: int,
 ) -> tuple[ServedNetwork, ThreadSplit, str]:
-    """The graph the node serves as it runs it (its ``model`` line: int8 refused falls back to
-    fp32), how it shares its threads, and its device; this process set as the node's, so that
-    the network and the prior compute here as they do there."""
-    served_as = re.search(r"\(ngf \d+, (?:(\w+) (\w+), )?(\w+)\) serves the (network|prior)", model)
+    """The graph the node serves as it runs it (its replies' ``serves``, and its ``model`` line:
+    int8 refused falls back to fp32), how it shares its threads, and its device; this process set
+    as the node's, so that the network and the prior compute here as they do there."""
+    served_as = re.search(r"\(ngf \d+, (?:(\w+) (\w+), )?(\w+)\)", model)
     if served_as is None:
-        raise ValueError(
-            f"the node's model line {model!r} does not say '(ngf N, [runtime precision, ]device) serves ...'"
-        )
-    runtime, precision, device, serves = served_as.groups()
+        raise ValueError(f"the node's model line {model!r} does not say '(ngf N, [runtime precision, ]device)'")
+    runtime, precision, device = served_as.groups()
     split = thread_split(threads, device, network=serves == "network")
     if serves == "prior":  # no network pass: the prior's image is what the input carries
 

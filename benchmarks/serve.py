@@ -248,12 +248,13 @@ def bench_points(
     args: argparse.Namespace,
     checkpoint: Path,
     model: str,
+    serves: str,
     servers: list[subprocess.Popen[bytes]],
 ) -> list[dict]:
     """The planner's cloud form beside the depth-map form and the network alone, per YCB
     object and pose count, with the stages' costs (benchmarks._serve_stages)."""
     generator, depth_range_m = load_generator(checkpoint)
-    network, split, device = served_network(generator, depth_range_m, model, args.threads, args.max_batch)
+    network, split, device = served_network(generator, depth_range_m, model, serves, args.threads, args.max_batch)
     geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
     params = DepthMapParams(y_range_m=depth_range_m)
     rows = []
@@ -333,13 +334,13 @@ def _run_form(args: argparse.Namespace, node_params: dict[str, Any]) -> dict[str
         try:
             maps = depth_maps(max(args.regions, 16), args.seed, depth_range_m[1])
             _wait_until_serving(registry, servers, args.workers, log_path)
-            model, latencies = _latencies_ms(registry, len(servers), maps, args.requests)
+            model, serves, latencies = _latencies_ms(registry, len(servers), maps, args.requests)
             cpu_before = sum(_cpu_seconds(server.pid) for server in servers)
             throughput, served = _throughput(registry, maps[: args.regions], args.clients, args.seconds)
             # On a shared machine the wall-clock rate depends on the neighbours; the servers'
             # own CPU time per region much less (2 free cores serve at most 2 / that).
             cpu_per_region = (sum(_cpu_seconds(server.pid) for server in servers) - cpu_before) / served
-            points = bench_points(registry, args, checkpoint, model, servers) if args.points else None
+            points = bench_points(registry, args, checkpoint, model, serves, servers) if args.points else None
             prior_ms = _prior_cpu_ms_per_region(checkpoint, maps)
         finally:
             _stop_servers(servers)
@@ -353,7 +354,8 @@ def _run_form(args: argparse.Namespace, node_params: dict[str, Any]) -> dict[str
         "threads_per_worker": args.threads,
         # How each worker shares them (nodes.inference_passes.thread_split); the network alone
         # in the points rows runs as the node runs it, and one pass at a time on all of them.
-        "thread_split": dataclasses.asdict(thread_split(args.threads, device, network="serves the prior" not in model)),
+        "serves": serves,
+        "thread_split": dataclasses.asdict(thread_split(args.threads, device, network=serves == "network")),
         "p50_ms": round(statistics.median(latencies), 2),
         "p99_ms": round(float(np.percentile(latencies, 99)), 2),
         "regions_per_s": round(throughput, 1),
@@ -419,19 +421,21 @@ def _wait_until_serving(
         time.sleep(0.1)
 
 
-def _latencies_ms(registry: Registry, workers: int, maps: np.ndarray, requests: int) -> tuple[str, list[float]]:
-    """(the model the nodes serve, ms from call to decoded reply of ``requests`` one-region
-    requests one after another), after one warm-up request per worker."""
+def _latencies_ms(registry: Registry, workers: int, maps: np.ndarray, requests: int) -> tuple[str, str, list[float]]:
+    """(the model the nodes serve, what they serve of it (network | prior), ms from call to
+    decoded reply of ``requests`` one-region requests one after another), after one warm-up
+    request per worker."""
     with contextlib.closing(Bus("planner", registry)) as bus, TactileClient(bus, 120.0) as client:
         for _ in range(workers):
             client.estimate(maps[:1])  # warm-up: lazy allocations in every worker
         model = client.last_reply.model.rsplit(" on ", 1)[0] if client.last_reply else ""
+        serves = client.last_reply.serves if client.last_reply else ""
         latencies = []
         for i in range(requests):
             started = time.perf_counter()
             client.estimate(maps[i % len(maps)])
             latencies.append((time.perf_counter() - started) * 1e3)
-    return model, latencies
+    return model, serves, latencies
 
 
 def _stop_servers(servers: list[subprocess.Popen[bytes]]) -> None:

@@ -27,6 +27,8 @@ from models.prior import PhysicsPrior, PriorSpec, checked_pose_sigma_mm
 from models.uncertainty import ServedUncertainty
 
 CHECKPOINT = "checkpoint.pt"
+# What a checkpoint can serve (models.serving): its generator's image, or its physics prior's.
+SERVES = ("network", "prior")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,7 +179,7 @@ def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[f
             raise ModelConfigError(f"{path} corrects a physics prior but does not say which (no 'prior' entry)")
         generator.prior = PhysicsPrior(PriorSpec.from_dict(state["prior"]), config.generator.image_size)
     generator.serves = state.get("serves", "network")
-    if generator.serves not in ("network", "prior") or (generator.serves == "prior" and not config.generator.prior):
+    if generator.serves not in SERVES or (generator.serves == "prior" and not config.generator.prior):
         raise ModelConfigError(
             f"{path} serves {generator.serves!r}: a checkpoint serves its network, or the prior it has"
         )

@@ -26,14 +26,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from models.checkpoint import load_checkpoint, load_generator, save_atomic
+from models.checkpoint import SERVES, load_checkpoint, load_generator, save_atomic
 from models.data import load_pairs, network_input, reader_for_model, select_records, to_uint8_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
 from models.uncertainty import UncertaintyConfig, fit_uncertainty, pixel_error_levels
 from perception.ssim import ssim_rgb
 
-SERVES = ("network", "prior")
+# The checkpoint entries fit_serving writes: without them a checkpoint is one trained before.
+SERVING_ENTRIES = ("serves", "serving_figures", "uncertainty")
 # How many standard errors of the paired SSIM difference the network must lead the prior by on
 # the validation split to be served.
 NETWORK_LEAD_SE = 2.0
@@ -103,16 +104,21 @@ def predict_served(
     return np.concatenate(images), (np.concatenate(uncertainty) if uncertainty else None)
 
 
-def choose_served(generator: UNetGenerator, x_val: torch.Tensor, y_val: torch.Tensor) -> tuple[str, dict[str, float]]:
+def choose_served(
+    generator: UNetGenerator, x_val: torch.Tensor, y_val: torch.Tensor
+) -> tuple[str, dict[str, float], torch.Tensor]:
     """``network`` where it leads the prior on the validation pairs by more than NETWORK_LEAD_SE
-    standard errors of the paired SSIM difference, else ``prior``; and the figures that decided."""
+    standard errors of the paired SSIM difference, else ``prior``; the figures that decided; and
+    the chosen form's images of the validation pairs."""
     if len(y_val) < 2:
         raise ModelConfigError(f"choosing what is served needs at least 2 validation pairs, got {len(y_val)}")
+    network_images = served_images(generator, x_val, "network")
     if not generator.config.prior:
-        return "network", {}
+        return "network", {}, network_images
+    prior_images_val = prior_images(generator, x_val)
     truth = to_uint8_rgb(y_val)
-    network = ssim_rgb(truth, to_uint8_rgb(served_images(generator, x_val, "network")))
-    prior = ssim_rgb(truth, to_uint8_rgb(prior_images(generator, x_val)))
+    network = ssim_rgb(truth, to_uint8_rgb(network_images))
+    prior = ssim_rgb(truth, to_uint8_rgb(prior_images_val))
     lead = network - prior
     se = float(lead.std(ddof=1) / np.sqrt(len(lead)))
     figures = {
@@ -121,7 +127,9 @@ def choose_served(generator: UNetGenerator, x_val: torch.Tensor, y_val: torch.Te
         "network_lead": float(lead.mean()),
         "network_lead_se": se,
     }
-    return ("network" if lead.mean() > NETWORK_LEAD_SE * se else "prior"), figures
+    if lead.mean() > NETWORK_LEAD_SE * se:
+        return "network", figures, network_images
+    return "prior", figures, prior_images_val
 
 
 def fit_serving(
@@ -144,17 +152,14 @@ def fit_serving(
     hold_out = state["train_config"].get("hold_out_object", "")
     x_train, y_train = load_pairs(reader, select_records(reader, "train", hold_out), generator.config, generator.prior)
     x_val, y_val = load_pairs(reader, select_records(reader, "val", hold_out), generator.config, generator.prior)
-    serves, figures = choose_served(generator, x_val, y_val)
+    serves, figures, estimate_val = choose_served(generator, x_val, y_val)
     log(f"serves the {serves}: {', '.join(f'{k} {v:.4f}' for k, v in figures.items())}")
     estimate_train = served_images(generator, x_train, serves)
-    estimate_val = served_images(generator, x_val, serves)
     error_train = pixel_error_levels(to_uint8_rgb(estimate_train), to_uint8_rgb(y_train))
     error_val = pixel_error_levels(to_uint8_rgb(estimate_val), to_uint8_rgb(y_val))
     uncertainty = fit_uncertainty(
         x_train, estimate_train, torch.from_numpy(error_train), x_val, estimate_val, error_val, config, log
     )
-    state["serves"] = serves
-    state["serving_figures"] = figures
-    state["uncertainty"] = uncertainty.to_state()
+    state |= {"serves": serves, "serving_figures": figures, "uncertainty": uncertainty.to_state()}
     save_atomic(state, path)
     return {"serves": serves, **figures}

@@ -130,8 +130,10 @@ class ServedUncertainty:
 
     @torch.inference_mode()
     def levels(self, network_input: torch.Tensor, estimate: torch.Tensor) -> np.ndarray:
-        """N x H x W float32 u, image levels, for the estimate (N x 3 x H x W, [-1, 1]) of ``network_input``."""
-        raw = self.net(network_input.float(), estimate.float().to(network_input.device)).cpu().numpy()
+        """N x H x W float32 u, image levels, for the estimate (N x 3 x H x W, [-1, 1]) of
+        ``network_input``, computed where this uncertainty's network is (:meth:`to`)."""
+        device = next(self.net.parameters()).device
+        raw = self.net(network_input.float().to(device), estimate.float().to(device)).cpu().numpy()
         return self.calibration.apply(raw)
 
     def to_state(self) -> dict[str, Any]:

@@ -372,7 +372,7 @@ class InferenceNode(Node):
             estimate = prior_images(self.generator, x)
         else:
             estimate = torch.from_numpy(self.network(x))
-        u = None if self.uncertainty is None else self.uncertainty.levels(x.to(self.uncertainty_device), estimate)
+        u = None if self.uncertainty is None else self.uncertainty.levels(x, estimate)
         return estimate.float().cpu().numpy(), u
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
@@ -391,7 +391,6 @@ class InferenceNode(Node):
         """The checkpoint's uncertainty computing on the node's GPU where PyTorch has one (ONNX
         Runtime's CUDA provider may serve where it has not), else on the CPU."""
         on_gpu = self.device != "cpu" and torch.cuda.is_available()
-        self.uncertainty_device = self.device if on_gpu else "cpu"
         return uncertainty.to(self.device) if uncertainty is not None and on_gpu else uncertainty
 
     def _pose_sigma_mm(self, request: TactileEstimateRequest) -> float:

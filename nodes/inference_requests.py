@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from models.checkpoint import SERVES as CHECKPOINT_SERVES
 from models.prior import MAX_POSE_SIGMA_MM
 from msgs.inference import TactileEstimateRequest
 from msgs.system import ErrorCode
@@ -18,7 +19,7 @@ from perception.pointcloud import check_transforms
 # The precisions each runtime runs (dtx bench inference measures each pair).
 PRECISIONS = {"onnxrt": ("fp32", "int8"), "eager": ("fp32", "bf16")}
 # The node's ``serves``: "" what the checkpoint serves (models.serving), or either, overriding it.
-SERVES = ("", "network", "prior")
+SERVES = ("", *CHECKPOINT_SERVES)  # "": what the checkpoint serves
 
 
 class BadRequest(ValueError):
