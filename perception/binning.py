@@ -44,9 +44,14 @@ def _bin_chunk(
     z_edges: np.ndarray,
     flat: np.ndarray,
     min_y: np.ndarray,
+    at_x: np.ndarray,
+    at_z: np.ndarray,
+    places: bool,
 ) -> None:
     """min_y[bin] = min(min_y[bin], y) for the first ``count`` (<= _CHUNK) points, all inside the
-    crop (one outside lands in an edge bin, never out of bounds). The scaled floor is exact
+    crop (one outside lands in an edge bin, never out of bounds); with ``places``, (at_x, at_z)[bin]
+    the x, z of that front-most point (the least y, ties by the least x, then z: the same point in
+    any order of the points, perception.surface). The scaled floor is exact
     unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds keeps
     bins wide): only chunks holding such a value are compared with the edge arrays, which keeps
     the rule exact at full speed."""
@@ -65,8 +70,14 @@ def _bin_chunk(
             flat[i] = _exact_bin(z[i], int((z[i] + half_z) * scale_z), z_edges) * cols + _exact_bin(
                 x[i], int((x[i] + half_x) * scale_x), x_edges
             )
-    for i in range(count):
-        min_y[flat[i]] = min(min_y[flat[i]], y[i])
+    if places:
+        for i in range(count):
+            b = flat[i]
+            if y[i] < min_y[b] or (y[i] == min_y[b] and (x[i] < at_x[b] or (x[i] == at_x[b] and z[i] < at_z[b]))):
+                min_y[b], at_x[b], at_z[b] = y[i], x[i], z[i]
+    else:
+        for i in range(count):
+            min_y[flat[i]] = min(min_y[flat[i]], y[i])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -85,7 +96,19 @@ def _min_y_kernel(
     for start in range(0, y.shape[0], _CHUNK):
         stop = min(start + _CHUNK, y.shape[0])
         _bin_chunk(
-            x[start:stop], z[start:stop], y[start:stop], stop - start, half_x, half_z, x_edges, z_edges, flat, min_y
+            x[start:stop],
+            z[start:stop],
+            y[start:stop],
+            stop - start,
+            half_x,
+            half_z,
+            x_edges,
+            z_edges,
+            flat,
+            min_y,
+            min_y,
+            min_y,
+            False,
         )
 
 
@@ -101,17 +124,19 @@ def cut_kernel(
     z_edges: np.ndarray,
     min_y: np.ndarray,
     counts: np.ndarray,
+    at_x: np.ndarray,
+    at_z: np.ndarray,
+    places: bool,
 ) -> None:
     """Transform, crop and bin in one pass, for every region k: the points of runs
-    runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] (3 x 4, float64), kept when
-    inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive), binned into min_y[k]
-    (rows * cols, prefilled +inf); counts[k] = points kept.
+    runs[k]..runs[k+1] of (starts, ends) through model_to_gel[k] (3 x 4, float64), kept inside
+    ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive), binned into min_y[k] (rows * cols,
+    +inf) and, with ``places``, at_x[k], at_z[k] (:func:`_bin_chunk`); counts[k] = points kept.
 
-    Why a kernel: NumPy needs a dozen passes over the points (three dot products, masks, a
-    gather, two bin indices, np.minimum.at) where one pass reads each point once, and no library
-    function crops and min-reduces by bin (benchmarks/perception.py measures both). Arithmetic
-    is float64 whatever the points' dtype, so far from the origin nothing is lost (the transform
-    is composed in float64 beforehand). Kept points are compacted without a branch."""
+    Why a kernel: NumPy needs a dozen passes over the points (dot products, masks, a gather, bin
+    indices, np.minimum.at) where one pass reads each point once, and no library crops and
+    min-reduces by bin (benchmarks/perception.py measures both). Arithmetic is float64 (the
+    transform composed in float64), so nothing is lost far from the origin; no branch compacts."""
     half_x, half_z, y_near, y_far = bounds[0], bounds[1], bounds[2], bounds[3]
     kept_x, kept_z, kept_y = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK)
     flat = np.empty(_CHUNK, np.int64)
@@ -132,7 +157,21 @@ def cut_kernel(
                     kept_x[m], kept_z[m], kept_y[m] = x, z, y
                     m += (y >= y_near) & (y <= y_far) & (abs(x) <= half_x) & (abs(z) <= half_z)
                 kept += m
-                _bin_chunk(kept_x, kept_z, kept_y, m, half_x, half_z, x_edges, z_edges, flat, min_y[k])
+                _bin_chunk(
+                    kept_x,
+                    kept_z,
+                    kept_y,
+                    m,
+                    half_x,
+                    half_z,
+                    x_edges,
+                    z_edges,
+                    flat,
+                    min_y[k],
+                    at_x[k],
+                    at_z[k],
+                    places,
+                )
         counts[k] = kept
 
 

@@ -14,13 +14,16 @@ Bins: the x-z rectangle is split into ``shape = (rows, cols)`` equal bins, rows 
 columns along gel x — the image a camera would take looking at the gel from the object side
 (its optical z along -y, x right, z down). The bin edges are ``linspace(-half, half, n + 1)``
 (float64) on each axis; bin i holds [edge_i, edge_i+1), and points on the far crop edge belong
-to the last bin, so every cropped point lands in exactly one bin. The value of a bin is the
-minimum y of its points.
+to the last bin, so every cropped point lands in exactly one bin. What a bin holds is
+``DepthMapParams.method`` (perception.surface): by default the object's surface at the bin's
+centre (a plane through the front-most points of the bin and its neighbours), or the paper's
+minimum y of its points (``nearest_point``, configs/paper.yaml).
 
-Empty bins: a bin with no points holds y_far, the far limit of the crop ("no surface within
-reach") — the same value normalisation gives an empty bin, so the map, its normalised form and
-the DepthMap message agree. ``occupied`` tells real y_far values from empty ones. A patch with
-no point at all has no right answer and raises DepthMapError.
+Empty bins: a bin whose surface is unknown (no points, and none around it that say where the
+surface continues; or, nearest_point, no points) holds y_far, the far limit of the crop ("no
+surface within reach") — the same value normalisation gives an empty bin, so the map, its
+normalised form and the DepthMap message agree. ``occupied`` tells real y_far values from empty
+ones. A patch with no point at all has no right answer and raises DepthMapError.
 
 Model density: a 100 x 100 map of a GelSight's sensed area plus 2 mm has 0.24 x 0.19 mm bins,
 so the model cloud must be sampled finer than that (MODEL_POINT_SPACING_M, 0.1 mm: ~1 % of bins
@@ -32,7 +35,8 @@ model_to_world and gel_to_world, so a scene far from the world origin loses noth
 points are read as they are (half the memory traffic) and computed with in float64.
 
 Speed: one compiled pass (numba, :mod:`perception.binning`) transforms, crops and bins (~130 M
-points/s against ~27 for the same steps in NumPy, ``dtx bench perception --only binning``);
+points/s against ~27 for the same steps in NumPy, ``dtx bench perception --only binning``), then
+one compiled pass over the bins for the surface;
 :func:`contact_depth_maps` cuts many gels' maps from one indexed cloud, reading only the cells
 within each crop's reach.
 """
@@ -49,6 +53,7 @@ from perception.binning import bin_edges, cut_kernel, region_groups
 from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, check_transforms
+from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps, surface_maps
 from workcell.kinematics import GripperGeometry
 
 if TYPE_CHECKING:
@@ -72,18 +77,23 @@ class DepthMapParams:
     margin_m: float = 0.002  # added to each side of the gel in x and z
     # Default y range: one elastomer thickness in front of the gel to full indentation behind it.
     y_range_m: tuple[float, float] | None = None  # (y_near, y_far); None: (-t, +t), t = elastomer
-    # An empty bin with at least this many occupied neighbours (of 8) is a gap in a sampled
-    # surface, not free space: it takes the nearest surface of its neighbours. 0: leave gaps.
+    # Nearest-point maps: an empty bin with at least this many occupied neighbours (of 8) is a gap
+    # in a sampled surface, not free space: it takes the nearest surface of its neighbours. 0:
+    # leave gaps. (Surface maps fill gaps by their own rule, perception.surface.)
     # The default fills the ~10 % of bins a 0.2 mm model cloud leaves empty in 0.2 mm bins, and
     # is what training data and served requests share.
     fill_gaps_min_neighbours: int = 5
+    # What a bin holds (perception.surface): "surface", the object's surface at the bin's centre;
+    # "nearest_point", the paper's nearest point in the bin (a checkpoint names the one it was
+    # trained on, and one trained before names none: nearest_point).
+    method: str = "surface"
 
 
 @dataclasses.dataclass
 class ContactPatch:
-    depth_map_m: np.ndarray  # (rows, cols) float32, min y per bin, empty bins = y_far
+    depth_map_m: np.ndarray  # (rows, cols) float32, y per bin by params.method, empty bins = y_far
     normalised: np.ndarray  # (rows, cols) float32 in [-1, 1] (perception.normalisation)
-    occupied: np.ndarray  # (rows, cols) bool, the bin holds at least one point
+    occupied: np.ndarray  # (rows, cols) bool: the surface is known (nearest_point: the bin holds a point)
     crop_m: tuple[float, float, float]  # full crop extent along gel x, y, z
     y_range_m: tuple[float, float]
     point_count: int
@@ -131,6 +141,8 @@ def crop_bounds(geometry: GripperGeometry, params: DepthMapParams) -> tuple[floa
         raise DepthMapError(f"bin shape {params.shape} has {rows * cols} bins, more than {MAX_DEPTH_MAP_BINS}")
     if params.fill_gaps_min_neighbours > 8:
         raise DepthMapError(f"min_neighbours must be in 1..8, got {params.fill_gaps_min_neighbours}")
+    if params.method not in DEPTH_MAP_METHODS:
+        raise DepthMapError(f"depth-map method must be one of {', '.join(DEPTH_MAP_METHODS)}, got {params.method!r}")
     return half_x, half_z, float(y_near), float(y_far)
 
 
@@ -157,7 +169,7 @@ class ContactPatches:
     """N regions' depth-maps, cut from one model cloud in one pass (:func:`contact_depth_maps`)."""
 
     depth_maps_m: np.ndarray  # (N, rows, cols) float32, as ContactPatch.depth_map_m
-    occupied: np.ndarray  # (N, rows, cols) bool
+    occupied: np.ndarray  # (N, rows, cols) bool, as ContactPatch.occupied
     point_counts: np.ndarray  # (N,) int64, points in each region's crop
     crop_m: tuple[float, float, float]
     y_range_m: tuple[float, float]
@@ -195,12 +207,15 @@ def _min_y_per_region(
     bounds: tuple[float, float, float, float],
     shape: tuple[int, int],
     threads: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The kernel's (min_y: regions x bins, +inf where empty; points kept per region), its
-    regions cut on up to ``threads`` threads in groups of about equal work."""
+    places: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kernel's (min_y: regions x bins, +inf where empty; the x and z of each bin's
+    front-most point where ``places``, else min_y again; points kept per region), its regions cut
+    on up to ``threads`` threads in groups of about equal work."""
     rows, cols = shape
     regions = model_to_gel.shape[0]
     min_y = np.full((regions, rows * cols), np.inf)
+    at_x, at_z = (np.zeros_like(min_y), np.zeros_like(min_y)) if places else (min_y, min_y)
     counts = np.zeros(regions, np.int64)
     transforms = np.ascontiguousarray(model_to_gel[:, :3, :], dtype=np.float64)
     crop = np.array(bounds, np.float64)
@@ -220,6 +235,9 @@ def _min_y_per_region(
             z_edges,
             min_y[first:stop],
             counts[first:stop],
+            at_x[first:stop],
+            at_z[first:stop],
+            places,
         )
 
     groups = region_groups(reads.ends - reads.starts, reads.runs, threads)
@@ -229,7 +247,7 @@ def _min_y_per_region(
         with ThreadPoolExecutor(len(groups)) as pool:
             for future in [pool.submit(cut_regions, first, stop) for first, stop in groups]:
                 future.result()
-    return min_y, counts
+    return min_y, at_x, at_z, counts
 
 
 def _maps(
@@ -239,19 +257,26 @@ def _maps(
     params: DepthMapParams,
     threads: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(depth-maps float32 m with the empty-bin policy and gap filling, occupied, points kept
-    per region) of every region: the compiled kernel on ``threads`` threads, or all of it on
-    the device of ``reads.device_points`` (the same arrays)."""
+    """(depth-maps float32 m by ``params.method`` (perception.surface), occupied, points kept
+    per region) of every region: the compiled kernel on ``threads`` threads, or the binning on
+    the device of ``reads.device_points`` (the same arrays). ``occupied``: the bin holds a point
+    (nearest_point), or its surface is known (surface)."""
     shape = (int(params.shape[0]), int(params.shape[1]))
+    surface = params.method == "surface"
     fill = max(params.fill_gaps_min_neighbours, 0)  # 0 or less: no gap filling
     if reads.device_points is not None:
-        from perception.depthmap_tensor import depth_maps_on_device  # noqa: PLC0415 - torch only when asked for
+        from perception import depthmap_tensor  # noqa: PLC0415 - torch only when asked for
 
-        return depth_maps_on_device(
-            reads.device_points, reads.starts, reads.ends, reads.runs, model_to_gel, bounds, shape, fill
-        )
-    min_y, counts = _min_y_per_region(reads, model_to_gel, bounds, shape, threads)
+        device_args = (reads.device_points, reads.starts, reads.ends, reads.runs, model_to_gel, bounds, shape)
+        if not surface:
+            return depthmap_tensor.depth_maps_on_device(*device_args, fill)
+        min_y, at_x, at_z, counts = depthmap_tensor.front_points_on_device(*device_args)
+    else:
+        min_y, at_x, at_z, counts = _min_y_per_region(reads, model_to_gel, bounds, shape, threads, surface)
     min_y = min_y.reshape(-1, *shape)
+    if surface:
+        depth_maps_m, known = surface_maps(min_y, at_x.reshape(min_y.shape), at_z.reshape(min_y.shape), bounds, threads)
+        return depth_maps_m, known, counts
     occupied = np.isfinite(min_y)
     depth_maps_m = np.where(occupied, min_y, bounds[3]).astype(np.float32)
     if fill:
@@ -458,28 +483,3 @@ def plan_contact_cut(
         raise DepthMapError(f"too much work: {visits} model points near {len(gels)} gels > {max_point_visits}")
     reads = _Reads(model.points_m, starts, ends, runs, device_points)
     return PlannedCut(reads, model_to_gel, bounds, params, allow_empty)
-
-
-def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighbours: int) -> np.ndarray:
-    """Empty bins inside a sampled surface (at least ``min_neighbours`` of their 8 neighbours
-    occupied) take the nearest (minimum y) of their occupied neighbours; others are unchanged.
-    ``depth_map_m`` is one map (rows, cols) or a stack (..., rows, cols), each map on its own.
-    The 3 x 3 neighbourhoods are sums and minima of nine shifted views of the padded maps: a few
-    passes over small arrays, ~5x faster than scipy.ndimage's generic filters on 100 x 100."""
-    if not 1 <= min_neighbours <= 8:
-        raise DepthMapError(f"min_neighbours must be in 1..8, got {min_neighbours}")
-    rows, cols = occupied.shape[-2:]
-    padded = (*occupied.shape[:-2], rows + 2, cols + 2)  # a border of empty bins
-    flags = np.zeros(padded, np.uint8)
-    flags[..., 1:-1, 1:-1] = occupied
-    surface = np.full(padded, np.inf, np.float32)
-    np.copyto(surface[..., 1:-1, 1:-1], depth_map_m, where=occupied)
-    neighbours = np.zeros(occupied.shape, np.uint8)
-    nearest = np.full(occupied.shape, np.inf, np.float32)
-    for dr in range(3):
-        for dc in range(3):
-            if (dr, dc) != (1, 1):
-                neighbours += flags[..., dr : dr + rows, dc : dc + cols]
-                np.minimum(nearest, surface[..., dr : dr + rows, dc : dc + cols], out=nearest)
-    gaps = ~occupied & (neighbours >= min_neighbours)
-    return np.where(gaps, nearest, depth_map_m).astype(np.float32)

@@ -81,12 +81,46 @@ def depth_maps_on_device(
     sampling gaps filled (``fill_min_neighbours`` 1..8; 0: none) as
     perception.depthmap.fill_sampling_gaps fills them. Returns (depth-maps (regions, rows, cols)
     float32 m, occupied bool, points kept per region int64)."""
-    min_y, counts = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, shape)
+    min_y, counts, _ = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, shape, keep_points=False)
     occupied = torch.isfinite(min_y)
     depth_maps = torch.where(occupied, min_y, bounds[3]).to(torch.float32)
     if fill_min_neighbours:
         depth_maps = _filled(depth_maps, occupied, fill_min_neighbours)
     return depth_maps.cpu().numpy(), occupied.cpu().numpy(), counts.cpu().numpy()
+
+
+def front_points_on_device(
+    points: torch.Tensor,
+    starts: np.ndarray,
+    ends: np.ndarray,
+    runs: np.ndarray,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    shape: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """perception.binning.cut_kernel with places, on ``points``' device (arguments as
+    :func:`depth_maps_on_device`'s): (min_y, at_x, at_z: (regions, rows * cols) float64, the gel
+    y, x, z of each bin's front-most point (the least y, ties by the least x, then z), +inf y and
+    0 x, z where empty; points kept per region int64), for perception.surface.surface_maps."""
+    regions = model_to_gel.shape[0]
+    min_y, counts, kept = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, shape, keep_points=True)
+    min_y = min_y.reshape(-1)
+    at_x, at_z = torch.zeros_like(min_y), torch.zeros_like(min_y)
+    if kept:
+        bins, x, y, z = (torch.cat(parts) for parts in zip(*kept))
+        # Ties are broken by minima too, so the point kept does not depend on the points' order.
+        front = y == min_y[bins]
+        least_x = torch.full_like(min_y, torch.inf).scatter_reduce_(0, bins[front], x[front], reduce="amin")
+        front &= x == least_x[bins]
+        least_z = torch.full_like(min_y, torch.inf).scatter_reduce_(0, bins[front], z[front], reduce="amin")
+        occupied = torch.isfinite(min_y)
+        at_x, at_z = torch.where(occupied, least_x, 0.0), torch.where(occupied, least_z, 0.0)
+    return (
+        min_y.view(regions, -1).cpu().numpy(),
+        at_x.view(regions, -1).cpu().numpy(),
+        at_z.view(regions, -1).cpu().numpy(),
+        counts.cpu().numpy(),
+    )
 
 
 def _filled(depth_maps: torch.Tensor, occupied: torch.Tensor, min_neighbours: int) -> torch.Tensor:
@@ -114,9 +148,11 @@ def _min_y_per_region(
     model_to_gel: np.ndarray,
     bounds: tuple[float, float, float, float],
     shape: tuple[int, int],
-) -> tuple[torch.Tensor, torch.Tensor]:
+    keep_points: bool,
+) -> tuple[torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, ...]]]:
     """perception.binning.cut_kernel on ``points``' device: (min_y (regions, rows, cols)
-    float64, +inf where empty; points kept per region, int64), as the kernel's."""
+    float64, +inf where empty; points kept per region, int64), as the kernel's; with ``keep_points``,
+    each chunk's kept points (flat bin, x, y, z), else none."""
     rows, cols = shape
     regions = model_to_gel.shape[0]
     device = points.device
@@ -131,6 +167,7 @@ def _min_y_per_region(
     z_edges = torch.from_numpy(bin_edges(half_z, rows)).to(device)
     min_y = torch.full((regions * rows * cols,), torch.inf, dtype=torch.float64, device=device)
     counts = torch.zeros(regions, dtype=torch.int64, device=device)
+    kept: list[tuple[torch.Tensor, ...]] = []
     chunks = max(1, -(-int(lengths.sum()) // CHUNK_POINTS))
     for first, stop in region_groups(lengths, np.arange(len(lengths) + 1), chunks):  # each run a "region"
         total = int(lengths[first:stop].sum())
@@ -152,6 +189,9 @@ def _min_y_per_region(
         # Bin i holds [edge_i, edge_i+1); the far edge belongs to the last bin.
         col = (torch.searchsorted(x_edges, x, right=True) - 1).clamp_(0, cols - 1)
         row = (torch.searchsorted(z_edges, z, right=True) - 1).clamp_(0, rows - 1)
-        min_y.scatter_reduce_(0, region * (rows * cols) + row * cols + col, y, reduce="amin")
+        flat = region * (rows * cols) + row * cols + col
+        min_y.scatter_reduce_(0, flat, y, reduce="amin")
         counts += torch.bincount(region, minlength=regions)
-    return min_y.view(regions, rows, cols), counts
+        if keep_points:
+            kept.append((flat, x, y, z))
+    return min_y.view(regions, rows, cols), counts, kept

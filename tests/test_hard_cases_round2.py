@@ -371,8 +371,11 @@ def slab() -> VoxelIndex:
     return VoxelIndex(np.column_stack([x.ravel(), np.full(x.size, 0.0002), z.ravel()]))
 
 
-def test_depth_map_again_with_default_params_reaches_or_says_nothing_is_within_reach(slab: VoxelIndex) -> None:
-    geometry, params = GripperGeometry(), DepthMapParams(shape=(16, 16))
+@pytest.mark.parametrize("method", ["surface", "nearest_point"])
+def test_depth_map_again_with_default_params_reaches_or_says_nothing_is_within_reach(
+    slab: VoxelIndex, method: str
+) -> None:
+    geometry, params = GripperGeometry(), DepthMapParams(shape=(16, 16), method=method)
     thickness = geometry.elastomer_thickness_m
     far = np.eye(4)
     far[1, 3] = 1.0

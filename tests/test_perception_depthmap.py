@@ -1,4 +1,9 @@
-"""Contact depth-maps: binning rules, empty-bin policy, normalisation, and the hard cases."""
+"""Contact depth-maps: binning rules, empty-bin policy, normalisation, and the hard cases.
+
+Tests of the nearest-point rule (the minimum y of a bin's points, bin edges, gap filling, the
+plain NumPy reference) pin ``method="nearest_point"``; claims that hold for both rules run over
+both (METHODS); contracts and errors use the default (the surface rule, perception.surface, whose
+own tests are tests/test_surface_depthmap.py)."""
 
 from __future__ import annotations
 
@@ -17,10 +22,14 @@ from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError, PerceptionError
 from perception.gripper_centring import centre_between_gels
 from perception.normalisation import denormalise_depth_map
+from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 
 GEOMETRY = GripperGeometry()
-SMALL = DepthMapParams(shape=(4, 5), margin_m=0.0)  # bins of 4.98 mm (z) x 3.72 mm (x)
+METHODS = list(DEPTH_MAP_METHODS)
+NEAREST = "nearest_point"
+# Bins of 4.98 mm (z) x 3.72 mm (x), the nearest-point rule: a bin holds its points' minimum y.
+SMALL = DepthMapParams(shape=(4, 5), margin_m=0.0, method=NEAREST)
 HALF_X, HALF_Z = 0.5 * GEOMETRY.gel_size_m[0], 0.5 * GEOMETRY.gel_size_m[1]
 T = GEOMETRY.elastomer_thickness_m
 
@@ -56,13 +65,16 @@ def reference_min_y(points, half_x, half_z, y_range, shape):
     return out
 
 
-def check_clean(patch):
+def check_clean(patch, method=NEAREST):
     for array in (patch.depth_map_m, patch.normalised):
         assert array.dtype == np.float32
         assert np.all(np.isfinite(array))
     assert np.all(patch.normalised >= -1) and np.all(patch.normalised <= 1)
     y_near, y_far = patch.y_range_m
     assert np.all(patch.depth_map_m >= np.float32(y_near)) and np.all(patch.depth_map_m <= np.float32(y_far))
+    if method == "surface":  # a bin whose surface is not known reads y_far
+        assert np.all(patch.depth_map_m[~patch.occupied] == np.float32(y_far))
+        return
     # An empty bin reads y_far unless it is a gap inside a sampled surface, filled from its
     # occupied neighbours (at least DepthMapParams.fill_gaps_min_neighbours of 8).
     neighbours = ndimage.convolve(patch.occupied.astype(int), np.ones((3, 3), int), mode="constant") - patch.occupied
@@ -91,7 +103,8 @@ def test_points_exactly_on_bin_edges_go_to_the_upper_bin_and_far_edge_to_the_las
     assert patch.occupied[2, 1] and patch.occupied[3, 4] and patch.occupied[0, 0]
 
 
-def test_crop_boundary_is_inclusive_and_just_outside_is_dropped():
+@pytest.mark.parametrize("method", METHODS)
+def test_crop_boundary_is_inclusive_and_just_outside_is_dropped(method):
     on = [[HALF_X, T, HALF_Z], [-HALF_X, -T, -HALF_Z]]
     outside = [
         [np.nextafter(HALF_X, 1.0), 0.0, 0.0],
@@ -99,42 +112,44 @@ def test_crop_boundary_is_inclusive_and_just_outside_is_dropped():
         [0.0, np.nextafter(-T, -1.0), 0.0],
         [0.0, 0.0, np.nextafter(-HALF_Z, -1.0)],
     ]
-    patch = depth_map(on + outside)
-    check_clean(patch)
+    patch = depth_map(on + outside, dataclasses.replace(SMALL, method=method))
+    check_clean(patch, method)
     assert patch.point_count == 2
     assert patch.depth_map_m[3, 4] == np.float32(T) and patch.occupied[3, 4]
     assert patch.depth_map_m[0, 0] == np.float32(-T)
 
 
-def test_every_point_in_one_bin_and_duplicates():
+@pytest.mark.parametrize("method", METHODS)
+def test_every_point_in_one_bin_and_duplicates(method):
     rng = np.random.default_rng(0)
     points = np.column_stack(
         [rng.uniform(0.0001, 0.001, 500), rng.uniform(-T, T, 500), rng.uniform(0.0001, 0.004, 500)]
     )
     points = np.concatenate([points, points])  # every point twice
-    patch = depth_map(points)
-    check_clean(patch)
+    patch = depth_map(points, dataclasses.replace(SMALL, method=method))
+    check_clean(patch, method)
     assert patch.occupied.sum() == 1 and patch.point_count == 1000
     assert patch.depth_map_m[patch.occupied][0] == np.float32(points[:, 1].min())
 
 
-def test_one_point():
-    patch = depth_map([[0.0, 0.0003, 0.0]])
-    check_clean(patch)
+@pytest.mark.parametrize("method", METHODS)
+def test_one_point(method):
+    patch = depth_map([[0.0, 0.0003, 0.0]], dataclasses.replace(SMALL, method=method))
+    check_clean(patch, method)
     assert patch.occupied.sum() == 1 and patch.depth_map_m[patch.occupied][0] == np.float32(0.0003)
 
 
 def test_empty_patch_is_an_error_not_a_flat_map():
     with pytest.raises(DepthMapError, match="no model point in the contact volume"):
-        depth_map([[0.0, 0.01, 0.0]])
+        depth_map([[0.0, 0.01, 0.0]], DepthMapParams())
     with pytest.raises(DepthMapError, match="no model point"):
-        depth_map(np.zeros((0, 3)))
+        depth_map(np.zeros((0, 3)), DepthMapParams())
 
 
 @pytest.mark.parametrize("bad", [[[np.nan, 0, 0]], [[0, np.inf, 0]], [[0, 0, -np.inf]]])
 def test_nan_or_inf_model_points_are_refused(bad):
     with pytest.raises(DepthMapError, match="NaN or inf"):
-        depth_map(bad)
+        depth_map(bad, DepthMapParams())
 
 
 @pytest.mark.parametrize("y_range", [(0.001, 0.001), (0.002, -0.002), (0.0, np.nan), (1.0, 1.0 + 1e-12)])
@@ -148,7 +163,7 @@ def test_bin_size_below_float32_resolution_is_refused():
     with pytest.raises(DepthMapError, match="below float32 resolution"):
         depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10**7), margin_m=0.0))
     patch = depth_map([[0.0, 0.0, 0.0]], DepthMapParams(shape=(4, 10**5), margin_m=0.0))  # 0.19 um bins
-    check_clean(patch)
+    check_clean(patch, "surface")
 
 
 def test_bad_shapes_are_refused():
@@ -159,25 +174,28 @@ def test_bad_shapes_are_refused():
         depth_map([[0.0, 0.0, 0.0]], DepthMapParams(margin_m=-0.05))
 
 
-def test_scene_a_kilometre_from_the_origin_gives_the_same_map():
+@pytest.mark.parametrize("method", METHODS)
+def test_scene_a_kilometre_from_the_origin_gives_the_same_map(method):
     """Model and gel poses near (1 km, 1 km, 0): float32 world coordinates would be 61 um apart,
     but the map is computed through one float64 model-to-gel transform."""
     rng = np.random.default_rng(1)
     points_model = np.column_stack(
         [rng.uniform(-0.012, 0.012, 2000), rng.uniform(-0.0015, 0.0015, 2000), rng.uniform(-0.015, 0.015, 2000)]
     )
-    near = depth_map(points_model, DepthMapParams())
+    params = DepthMapParams(method=method)
+    near = depth_map(points_model, params)
     shift = np.eye(4)
     shift[:3, 3] = [1000.0, 1000.0, 0.0]
     rotation = np.eye(4)
     rotation[:3, :3] = Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix()
-    far = depth_map(points_model, DepthMapParams(), gel_to_world=shift @ rotation, model_to_world=shift @ rotation)
-    check_clean(far)
+    far = depth_map(points_model, params, gel_to_world=shift @ rotation, model_to_world=shift @ rotation)
+    check_clean(far, method)
     np.testing.assert_array_equal(near.occupied, far.occupied)
     np.testing.assert_allclose(far.depth_map_m, near.depth_map_m, atol=1e-9)
 
 
-def test_gel_frame_from_kinematics_sees_the_object_it_grasps():
+@pytest.mark.parametrize("method", METHODS)
+def test_gel_frame_from_kinematics_sees_the_object_it_grasps(method):
     """A 40 mm cube at the origin, grasped at its centre with both gels 1 mm inside its faces."""
     grid = np.linspace(-0.02, 0.02, 201)
     a, b = np.meshgrid(grid, grid)
@@ -186,19 +204,20 @@ def test_gel_frame_from_kinematics_sees_the_object_it_grasps():
     cube = np.concatenate(faces)
     tcp = grasp_to_tcp_pose(0.0, 0.0, GEOMETRY.tcp_to_gel_centre_m, 0.0)
     for finger, gel_to_world in gel_poses_world(tcp, 0.038, GEOMETRY).items():
-        patch = contact_depth_map(cube, np.eye(4), gel_to_world, GEOMETRY, DepthMapParams(shape=(20, 20)))
-        check_clean(patch)
+        patch = contact_depth_map(cube, np.eye(4), gel_to_world, GEOMETRY, DepthMapParams((20, 20), method=method))
+        check_clean(patch, method)
         assert patch.occupied.all(), finger
         np.testing.assert_allclose(patch.depth_map_m, -0.001, atol=1e-7)
 
 
-def test_grasp_at_the_object_edge_with_few_points():
+@pytest.mark.parametrize("method", METHODS)
+def test_grasp_at_the_object_edge_with_few_points(method):
     """Only a corner of the surface reaches the crop: the rest of the map reads 'far'."""
     points = np.array(
         [[HALF_X - 0.0001, 0.0002, HALF_Z - 0.0001], [HALF_X, -0.0001, HALF_Z], [HALF_X + 0.005, -0.0005, 0.0]]
     )  # last one outside the crop
-    patch = depth_map(points, DepthMapParams(shape=(100, 100), margin_m=0.0))
-    check_clean(patch)
+    patch = depth_map(points, DepthMapParams(shape=(100, 100), margin_m=0.0, method=method))
+    check_clean(patch, method)
     assert patch.point_count == 2 and patch.occupied.sum() == 1
     assert patch.depth_map_m[99, 99] == np.float32(-0.0001)
 
@@ -239,7 +258,7 @@ special = st.sampled_from([-HALF_X, HALF_X, -HALF_Z, HALF_Z, -T, T, 0.0, np.lins
 )
 def test_property_matches_brute_force_and_stays_finite(points, shape):
     points = np.array(points, dtype=np.float64)
-    params = DepthMapParams(shape=shape, margin_m=0.0)
+    params = DepthMapParams(shape=shape, margin_m=0.0, method=NEAREST)
     expected = reference_min_y(points, HALF_X, HALF_Z, (-T, T), shape)
     if np.all(np.isnan(expected)):
         with pytest.raises(DepthMapError):
@@ -270,8 +289,6 @@ def test_property_min_y_per_bin_equals_sorting_reference(n, rows, cols, seed):
 
 
 def test_sampling_gaps_inside_a_surface_are_filled_and_free_space_is_not() -> None:
-    from perception.depthmap import fill_sampling_gaps
-
     depth = np.full((6, 6), 0.002, np.float32)
     occupied = np.zeros((6, 6), bool)
     occupied[:, :3] = True
@@ -295,10 +312,12 @@ def test_crop_covers_the_sensed_area_plus_margin():
     assert (half_x, half_z) == pytest.approx((HALF_X + 0.002, HALF_Z + 0.002))
 
 
-def test_sampling_gaps_are_filled_but_free_space_is_not():
+@pytest.mark.parametrize("method", METHODS)
+def test_sampling_gaps_are_filled_but_free_space_is_not(method):
     """A plane sampled with a few bins missing: the holes take the plane's y; bins beyond the
-    sampled edge stay y_far."""
-    params = DepthMapParams(shape=(10, 10), margin_m=0.0)
+    sampled edge stay y_far. Nearest point: the holes stay unoccupied (filled from their
+    neighbours, and not at all with gap filling off); surface: the plane is known there."""
+    params = DepthMapParams(shape=(10, 10), margin_m=0.0, method=method)
     x_edges = np.linspace(-HALF_X, HALF_X, 11)
     z_edges = np.linspace(-HALF_Z, HALF_Z, 11)
     centres = [
@@ -309,10 +328,15 @@ def test_sampling_gaps_are_filled_but_free_space_is_not():
     ]
     points = np.array([[x, -0.0005, z] for x, z in centres])
     patch = depth_map(points, params)
-    check_clean(patch)
+    check_clean(patch, method)
     assert patch.depth_map_m[3, 2] == np.float32(-0.0005) and patch.depth_map_m[6, 1] == np.float32(-0.0005)
-    assert not patch.occupied[3, 2]
     assert np.all(patch.depth_map_m[:, 6:] == np.float32(patch.y_range_m[1]))
+    assert not patch.occupied[:, 6:].any()
+    if method == "surface":
+        assert patch.occupied[3, 2] and patch.occupied[6, 1] and patch.occupied[:, :5].all()
+        np.testing.assert_array_equal(patch.depth_map_m[:, :5], np.float32(-0.0005))
+        return
+    assert not patch.occupied[3, 2]
     exact = depth_map(points, dataclasses.replace(params, fill_gaps_min_neighbours=0))
     assert exact.depth_map_m[3, 2] == np.float32(exact.y_range_m[1])
 
@@ -368,7 +392,7 @@ def test_centring_leaves_the_pose_when_a_gel_faces_nothing():
 
 def numpy_reference_map(points_model, model_to_world, gel_to_world, params):
     """The plain NumPy pipeline (float64 transform, masks, np.searchsorted on the edges,
-    np.minimum.at), with the module's rules, before gap filling."""
+    np.minimum.at), with the module's nearest-point rules, before gap filling."""
     half_x, half_z, y_near, y_far = crop_bounds(GEOMETRY, params)
     model_to_gel = np.linalg.inv(gel_to_world) @ model_to_world
     gel = np.asarray(points_model, np.float64) @ model_to_gel[:3, :3].T + model_to_gel[:3, 3]
@@ -398,13 +422,14 @@ def random_pose(rng, offset_m):
     cell=st.sampled_from([0.001, 0.005, 0.05]),
     shape=st.tuples(st.integers(1, 40), st.integers(1, 40)),
     threads=st.integers(1, 3),
+    method=st.sampled_from(METHODS),
 )
 def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(
-    seed, regions, offset, dtype, cell, shape, threads
+    seed, regions, offset, dtype, cell, shape, threads, method
 ):
     """Gels anywhere around a cloud of a few mm (and a km from the origin): the indexed batch,
-    cut on any number of threads, gives each gel exactly contact_depth_map's map, and both the
-    plain NumPy pipeline's."""
+    cut on any number of threads, gives each gel exactly contact_depth_map's map (either rule),
+    and with the nearest-point rule both the plain NumPy pipeline's."""
     from perception.depthmap import contact_depth_maps
     from perception.pointcloud import VoxelIndex
 
@@ -412,7 +437,7 @@ def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(
     points = rng.uniform(-0.015, 0.015, (3000, 3)).astype(dtype)
     model_to_world = random_pose(rng, offset)
     gels = np.stack([model_to_world @ random_pose(rng, 0.0) for _ in range(regions)])
-    params = DepthMapParams(shape=shape, fill_gaps_min_neighbours=0)
+    params = DepthMapParams(shape=shape, fill_gaps_min_neighbours=0, method=method)
     try:
         singles = [contact_depth_map(points, model_to_world, gel, GEOMETRY, params) for gel in gels]
     except DepthMapError:
@@ -424,6 +449,8 @@ def test_property_batched_maps_equal_one_map_per_gel_and_the_numpy_reference(
         np.testing.assert_array_equal(batch.depth_maps_m[i], single.depth_map_m)
         np.testing.assert_array_equal(batch.occupied[i], single.occupied)
         assert batch.point_counts[i] == single.point_count
+        if method != NEAREST:
+            continue
         reference = numpy_reference_map(points, model_to_world, gels[i], params)
         np.testing.assert_array_equal(single.occupied, np.isfinite(reference))
         np.testing.assert_allclose(single.depth_map_m[single.occupied], reference[single.occupied], rtol=0, atol=1e-9)
@@ -441,14 +468,17 @@ def test_region_groups_split_the_points_to_read_evenly_and_cover_every_region_on
     assert region_groups(np.zeros(5, np.int64), runs, 2) == [(0, 5)]  # nothing to read
 
 
-def test_float32_points_give_the_map_of_their_float64_values():
+@pytest.mark.parametrize("method", METHODS)
+def test_float32_points_give_the_map_of_their_float64_values(method):
     rng = np.random.default_rng(5)
     points = rng.uniform(-0.012, 0.012, (20000, 3)).astype(np.float32)
     gel = random_pose(rng, 0.0)
     wide, narrow = (
-        contact_depth_map(p, np.eye(4), gel, GEOMETRY, DepthMapParams()) for p in (points.astype(np.float64), points)
+        contact_depth_map(p, np.eye(4), gel, GEOMETRY, DepthMapParams(method=method))
+        for p in (points.astype(np.float64), points)
     )
     np.testing.assert_array_equal(wide.depth_map_m, narrow.depth_map_m)
+    np.testing.assert_array_equal(wide.occupied, narrow.occupied)
 
 
 def test_batched_maps_name_the_region_that_misses_and_bound_the_work():
@@ -481,8 +511,6 @@ def test_batched_maps_name_the_region_that_misses_and_bound_the_work():
 )
 def test_property_gap_filling_equals_scipy_filters(seed, stack, rows, cols, min_neighbours, density):
     """The shifted-view neighbourhoods equal scipy.ndimage's 3 x 3 count and minimum, map by map."""
-    from perception.depthmap import fill_sampling_gaps
-
     rng = np.random.default_rng(seed)
     shape = (stack, rows, cols) if stack else (rows, cols)
     occupied = rng.random(shape) < density
@@ -512,8 +540,9 @@ def test_min_y_per_bin_keeps_values_outside_the_crop_in_the_edge_bins():
     run=st.tuples(st.integers(0, 8), st.integers(1, 9)),
     threads=st.integers(1, 3),
     on_device=st.booleans(),
+    method=st.sampled_from(METHODS),
 )
-def test_property_any_run_of_a_planned_cut_is_the_whole_cuts_maps(seed, regions, run, threads, on_device):
+def test_property_any_run_of_a_planned_cut_is_the_whole_cuts_maps(seed, regions, run, threads, on_device, method):
     """A planned cut cut region run by region run (a request pass by pass, nodes.inference),
     on the compiled pass or the tensor one: each run's maps, occupancy and counts are the whole
     cut's rows; a gel that misses is named by its place in the whole cut."""
@@ -525,9 +554,8 @@ def test_property_any_run_of_a_planned_cut_is_the_whole_cuts_maps(seed, regions,
     index = VoxelIndex(rng.uniform(-0.015, 0.015, (3000, 3)))
     gels = np.stack([random_pose(rng, 0.0) for _ in range(regions)])
     device_points = points_on_device(index.points_m, "cpu") if on_device else None
-    plan = plan_contact_cut(
-        index, np.eye(4), gels, GEOMETRY, DepthMapParams(), allow_empty=True, device_points=device_points
-    )
+    params = DepthMapParams(method=method)
+    plan = plan_contact_cut(index, np.eye(4), gels, GEOMETRY, params, allow_empty=True, device_points=device_points)
     first, stop = min(run[0], regions - 1), min(max(run), regions)
     stop = max(stop, first + 1)
     whole, part = plan.cut(threads=threads), plan.cut(first, stop, threads=threads)
@@ -536,7 +564,7 @@ def test_property_any_run_of_a_planned_cut_is_the_whole_cuts_maps(seed, regions,
     np.testing.assert_array_equal(part.point_counts, whole.point_counts[first:stop])
     missing = np.flatnonzero(whole.point_counts[first:stop] == 0)
     if missing.size:
-        strict = plan_contact_cut(index, np.eye(4), gels, GEOMETRY, DepthMapParams(), device_points=device_points)
+        strict = plan_contact_cut(index, np.eye(4), gels, GEOMETRY, params, device_points=device_points)
         with pytest.raises(DepthMapError, match=f"region {first + missing[0]}: no model point"):
             strict.cut(first, stop)
 

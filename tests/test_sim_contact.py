@@ -154,13 +154,14 @@ def test_sphere_contact_point_press() -> None:
     assert c.width_m == pytest.approx(0.08 - 2 * f.indentation_mm * 1e-3, abs=1e-6)
 
 
-def test_depth_map_of_a_grasp_lines_up_with_what_the_gel_feels() -> None:
+@pytest.mark.parametrize("method", ["nearest_point", "surface"])
+def test_depth_map_of_a_grasp_lines_up_with_what_the_gel_feels(method: str) -> None:
     """What the patch extractor computes from the object's model and the gripper's reading
     (symmetric gels at the held width, model centred between them) is, bin for bin, the gel
     gap the simulated GelSight renders from: same frame, same orientation, same place."""
     w = make_world(CYL)
     geometry = w.scene.gripper_geometry()
-    params = DepthMapParams(shape=(60, 80), margin_m=0.002, y_range_m=(-0.005, 0.01))
+    params = DepthMapParams(shape=(60, 80), margin_m=0.002, y_range_m=(-0.005, 0.01), method=method)
     half_x, half_z, _, y_far = crop_bounds(geometry, params)
     # The cylinder's side where the gels can reach it, on a 0.1 mm grid.
     theta, z = np.meshgrid(np.arange(0, 2 * np.pi, 1e-4 / 0.03), np.arange(0.03, 0.07, 1e-4))
@@ -176,8 +177,14 @@ def test_depth_map_of_a_grasp_lines_up_with_what_the_gel_feels() -> None:
         depth_mm = contact_depth_map(model, centred, gels[finger], geometry, params).depth_map_m * 1e3
         pressed = gap_mm < 0
         assert 0.1 < pressed.mean() < 0.6
-        # A bin holds the minimum over its width, the gap map the value at its centre: they may
-        # disagree on the bins the contact's edge crosses, and by a slope times half a bin.
+        # A nearest-point bin holds the minimum over its width, the gap map the value at its
+        # centre: they may disagree on the bins the contact's edge crosses, and by a slope times
+        # half a bin (measured: 1.2 % of bins, median 8 um, at most 90 um).
         assert np.mean((depth_mm < 0) != pressed) < 0.03
         assert np.median(np.abs(depth_mm[pressed] - gap_mm[pressed])) < 0.02
         assert np.all(depth_mm[np.isinf(gap_mm)] == np.float32(y_far * 1e3))
+        if method == "surface":  # the surface at the bin's centre, as the gap map (measured: 0 %, 0.9, 3.2 um)
+            seen = np.isfinite(gap_mm)
+            assert np.mean((depth_mm < 0) != pressed) < 0.005
+            assert np.median(np.abs(depth_mm[pressed] - gap_mm[pressed])) < 0.003
+            assert np.abs(depth_mm[seen] - gap_mm[seen]).max() < 0.01

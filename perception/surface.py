@@ -1,0 +1,357 @@
+"""What a depth-map bin holds, from the points binned into it (:mod:`perception.depthmap`).
+
+Two rules, chosen per checkpoint (``DepthMapParams.method``):
+
+- ``"nearest_point"`` (the paper's, §III-B.3): a bin holds the minimum gel y of its points; an
+  empty bin with enough occupied neighbours is a sampling gap and takes their minimum
+  (:func:`fill_sampling_gaps`). At a steep wall a bin holds the rim's nearest point wherever in
+  the bin it lies, so the rim reads up to a bin wider than it is, and a cloud sparser than the bins
+  leaves most bins empty (y_far: no surface), which the renderer draws as a field of spikes.
+- ``"surface"``: a bin holds where the surface is at the bin's centre, along the gel normal
+  (:func:`surface_maps`). Each bin's front-most point (the kernel's sample: the least y, ties by
+  x then z, so every path picks the same one) is a sample of the surface seen from the gel; the
+  value at a bin centre is a least-squares plane through the samples of the 3 x 3 bins around
+  it, evaluated at the centre. A sample is used only where it continues the surface of the bin's
+  own sample (or of the front-most one around an empty bin; a height step steeper than
+  ``MAX_SLOPE`` is another surface: a wall's foot, a back face) and where the plane fits it (while
+  one is off by more than half a bin, the sample farthest in height from the bin's own goes: the
+  far face of a step). An empty bin is answered only from samples around its centre (within their convex
+  hull: interpolation, never extrapolation); an occupied bin's plane may reach the half bin to
+  its centre, and where no plane fits it holds its nearest point. A bin no level can answer is
+  left empty (y_far) and not ``known``.
+
+Sparse clouds: the samples are pooled into cells of 2, 4, 8 ... bins (the front-most of each
+cell), and a bin the finer levels left empty is answered by the planes of coarser cells, up to
+one level above the cloud's own spacing (the first level at which most occupied cells have
+occupied cells beside them): a gap of the cloud's sampling is filled, a hole much wider than the
+spacing (a mug's opening, the space beside an edge) is not.
+
+Why by hand: a moving-least-squares surface over binned samples with these rules is no library's
+function (Open3D and PCL fit surfaces to whole clouds, at seconds a cloud); this is one compiled
+pass per level over each map's bins, on the threads that cut the maps.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+import numpy as np
+
+from perception.errors import DepthMapError
+
+DEPTH_MAP_METHODS = ("surface", "nearest_point")
+# Steepest height change, |dy| / horizontal distance, between samples of one surface (75°): a
+# steeper step between two samples is a wall between two surfaces, not one surface.
+MAX_SLOPE = 3.7
+# A plane is kept only where it fits every sample it stands on to this fraction of the cells'
+# size (half a bin, ~0.12 mm, at the finest level: a 6 mm sphere's curvature over three bins at
+# 45 deg is a quarter of that); else samples are dropped, the farthest in height first.
+RESIDUAL_FRACTION = 0.5
+# A plane needs at least this many samples, and samples spread in two directions: the smaller
+# eigenvalue of their spread at least this fraction of the larger one's (not on one line).
+_MIN_SAMPLES = 3
+_MIN_SPREAD_RATIO = 1e-3
+
+
+@numba.njit(cache=True, nogil=True)
+def _front(y: float, x: float, z: float, by: float, bx: float, bz: float) -> bool:
+    """(y, x, z) before (by, bx, bz): the least y, ties by x, then z (an order every path keeps)."""
+    return y < by or (y == by and (x < bx or (x == bx and z < bz)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _pooled(sy: np.ndarray, sx: np.ndarray, sz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The front-most sample of each 2 x 2 cell of (rows, cols) sample grids (+inf y: none)."""
+    rows, cols = sy.shape
+    out_rows, out_cols = (rows + 1) // 2, (cols + 1) // 2
+    py = np.full((out_rows, out_cols), np.inf)
+    px = np.zeros((out_rows, out_cols))
+    pz = np.zeros((out_rows, out_cols))
+    for r in range(rows):
+        for c in range(cols):
+            if np.isfinite(sy[r, c]) and _front(
+                sy[r, c], sx[r, c], sz[r, c], py[r // 2, c // 2], px[r // 2, c // 2], pz[r // 2, c // 2]
+            ):
+                py[r // 2, c // 2], px[r // 2, c // 2], pz[r // 2, c // 2] = sy[r, c], sx[r, c], sz[r, c]
+    return py, px, pz
+
+
+@numba.njit(cache=True, nogil=True)
+def _anchor(sy: np.ndarray, sx: np.ndarray, sz: np.ndarray, cell_r: int, cell_c: int) -> tuple[float, float, float]:
+    """The sample whose surface a plane at (cell_r, cell_c) continues: the cell's own, or the
+    front-most of the 3 x 3 cells around it where it has none (+inf y: none)."""
+    ay, ax, az = sy[cell_r, cell_c], sx[cell_r, cell_c], sz[cell_r, cell_c]
+    if not np.isfinite(ay):
+        for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
+            for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
+                if np.isfinite(sy[r, c]) and _front(sy[r, c], sx[r, c], sz[r, c], ay, ax, az):
+                    ay, ax, az = sy[r, c], sx[r, c], sz[r, c]
+    return ay, ax, az
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane_at(
+    sy: np.ndarray,
+    sx: np.ndarray,
+    sz: np.ndarray,
+    cell_r: int,
+    cell_c: int,
+    centre_x: float,
+    centre_z: float,
+    tolerance: float,
+    inside: bool,
+    kept: np.ndarray,
+) -> float:
+    """The surface's y at (centre_x, centre_z) from the samples of the 3 x 3 cells around
+    (cell_r, cell_c), or NaN where they cannot say. Kept: the samples continuing the
+    :func:`_anchor`'s surface (a height change within MAX_SLOPE times their distance plus
+    ``tolerance``, the cells' size), then those the plane through them fits, dropping the one
+    farthest in height from the anchor while one is off by over RESIDUAL_FRACTION of ``tolerance``
+    (the far face of a step); at
+    least three, not on one line, and with ``inside`` around the centre (:func:`_surrounds`).
+    ``kept``: (3, 9) scratch for their offsets from the centre and the anchor."""
+    ay, ax, az = _anchor(sy, sx, sz, cell_r, cell_c)
+    if not np.isfinite(ay):
+        return np.nan
+    slope2, n = MAX_SLOPE * MAX_SLOPE, 0
+    for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
+        for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
+            dy = sy[r, c] - ay
+            step = abs(dy) - tolerance
+            if dy < np.inf and not (
+                step > 0.0 and step * step > slope2 * ((sx[r, c] - ax) ** 2 + (sz[r, c] - az) ** 2)
+            ):
+                kept[0, n], kept[1, n], kept[2, n] = sx[r, c] - centre_x, sz[r, c] - centre_z, dy
+                n += 1
+    while n >= _MIN_SAMPLES:
+        height, slope_x, slope_z = _plane(kept, n)
+        if not np.isfinite(height):
+            return np.nan
+        worst, farthest, farthest_at = 0.0, -1.0, 0
+        for i in range(n):
+            worst = max(worst, abs(kept[2, i] - height - slope_x * kept[0, i] - slope_z * kept[1, i]))
+            if abs(kept[2, i]) > farthest:
+                farthest, farthest_at = abs(kept[2, i]), i
+        if worst <= RESIDUAL_FRACTION * tolerance:
+            return ay + height if not inside or _surrounds(kept, n) else np.nan
+        # Off the plane: the sample farthest in height from the anchor's goes (a step's far face).
+        n -= 1
+        kept[:, farthest_at] = kept[:, n]
+    return np.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane(kept: np.ndarray, n: int) -> tuple[float, float, float]:
+    """The least-squares plane y = h + gx dx + gz dz through the first ``n`` (dx, dz, y) columns
+    of ``kept``: (h, gx, gz), h NaN where they lie on one line. Raw moments about the centre: the
+    offsets are a few bins, so float64 loses nothing at these scales."""
+    sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for i in range(n):
+        dx, dz, dy = kept[0, i], kept[1, i], kept[2, i]
+        sum_x += dx
+        sum_z += dz
+        sum_y += dy
+        sum_xx += dx * dx
+        sum_xz += dx * dz
+        sum_zz += dz * dz
+        sum_xy += dx * dy
+        sum_zy += dz * dy
+    mx, mz, my = sum_x / n, sum_z / n, sum_y / n
+    cxx, cxz, czz = sum_xx - mx * sum_x, sum_xz - mx * sum_z, sum_zz - mz * sum_z
+    cxy, czy = sum_xy - mx * sum_y, sum_zy - mz * sum_y
+    det = cxx * czz - cxz * cxz
+    trace = cxx + czz
+    if not det > _MIN_SPREAD_RATIO * trace * trace:
+        return np.nan, 0.0, 0.0
+    slope_x = (cxy * czz - czy * cxz) / det
+    slope_z = (czy * cxx - cxy * cxz) / det
+    return my - slope_x * mx - slope_z * mz, slope_x, slope_z
+
+
+@numba.njit(cache=True, nogil=True)
+def _surrounds(kept: np.ndarray, n: int) -> bool:
+    """Whether the centre (0, 0) lies within the convex hull of the first ``n`` (dx, dz) columns
+    of ``kept``: no line through it has every sample on one side (such a line can be turned until
+    it meets a sample, so the lines through the samples are the ones to try)."""
+    for i in range(n):
+        if kept[0, i] == 0.0 and kept[1, i] == 0.0:
+            return True
+    for i in range(n):
+        low, high = np.inf, -np.inf
+        for j in range(n):
+            cross = kept[0, i] * kept[1, j] - kept[1, i] * kept[0, j]
+            low, high = min(low, cross), max(high, cross)
+        if low >= 0.0 or high <= 0.0:
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _knit(sy: np.ndarray) -> bool:
+    """Whether the samples of a level are the cloud's own spacing: most occupied cells have at
+    least two occupied cells beside them (of four), as a sampled surface's do and a sparse
+    cloud's scattered samples do not."""
+    rows, cols = sy.shape
+    occupied, knit = 0, 0
+    for r in range(rows):
+        for c in range(cols):
+            if sy[r, c] < np.inf:
+                occupied += 1
+                beside = (r > 0 and sy[r - 1, c] < np.inf) + (r + 1 < rows and sy[r + 1, c] < np.inf)
+                beside += (c > 0 and sy[r, c - 1] < np.inf) + (c + 1 < cols and sy[r, c + 1] < np.inf)
+                knit += beside >= 2
+    return 2 * knit >= occupied
+
+
+@numba.njit(cache=True, nogil=True)
+def _surface_map(
+    sy: np.ndarray,
+    sx: np.ndarray,
+    sz: np.ndarray,
+    x_centres: np.ndarray,
+    z_centres: np.ndarray,
+    y_near: float,
+    y_far: float,
+    out: np.ndarray,
+    known: np.ndarray,
+) -> None:
+    """One map's surface (module docstring): ``out`` (rows, cols) y at the bin centres, clamped to
+    [y_near, y_far], y_far and ``known`` False where no level can say. Levels are answered up to
+    one above the first whose samples are knit (:func:`_knit`): the cloud's own spacing."""
+    rows, cols = sy.shape
+    bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
+    out[:, :] = y_far
+    known[:, :] = False
+    kept = np.empty((3, 9))
+    level_y, level_x, level_z = sy, sx, sz
+    unknown, knit_level, level = rows * cols, -1, 0
+    while unknown and (knit_level < 0 or level <= knit_level + 1):
+        if level > 0:
+            if level_y.shape[0] == 1 and level_y.shape[1] == 1:
+                break
+            level_y, level_x, level_z = _pooled(level_y, level_x, level_z)
+        if knit_level < 0 and _knit(level_y):
+            knit_level = level
+        tolerance = (bin_size if bin_size > 0.0 else 1.0) * (1 << level)
+        for r in range(rows):
+            for c in range(cols):
+                if known[r, c]:
+                    continue
+                # A bin's own points put its centre within half a bin of the samples: its plane may
+                # reach that far beyond them (the crop's faces, a rim); an empty bin's may not.
+                own = level == 0 and sy[r, c] < np.inf
+                y = _plane_at(
+                    level_y,
+                    level_x,
+                    level_z,
+                    r >> level,
+                    c >> level,
+                    x_centres[c],
+                    z_centres[r],
+                    tolerance,
+                    not own,
+                    kept,
+                )
+                if own and not np.isfinite(y):
+                    y = sy[r, c]  # the bin's own nearest point where no plane can be fitted
+                if np.isfinite(y):
+                    out[r, c] = min(max(y, y_near), y_far)
+                    known[r, c] = True
+                    unknown -= 1
+        level += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def surface_maps_kernel(
+    sample_y: np.ndarray,
+    sample_x: np.ndarray,
+    sample_z: np.ndarray,
+    x_centres: np.ndarray,
+    z_centres: np.ndarray,
+    y_near: float,
+    y_far: float,
+    out: np.ndarray,
+    known: np.ndarray,
+) -> None:
+    """:func:`_surface_map` for each of (regions, rows, cols) sample grids, in place."""
+    for k in range(sample_y.shape[0]):
+        _surface_map(sample_y[k], sample_x[k], sample_z[k], x_centres, z_centres, y_near, y_far, out[k], known[k])
+
+
+def bin_centres(half_m: float, count: int) -> np.ndarray:
+    """The ``count`` float64 centres of equal bins over [-half_m, half_m] (their edges'
+    midpoints, perception.binning.bin_edges)."""
+    edges = np.linspace(-half_m, half_m, count + 1)
+    return 0.5 * (edges[:-1] + edges[1:])
+
+
+def surface_maps(
+    sample_y_m: np.ndarray,
+    sample_x_m: np.ndarray,
+    sample_z_m: np.ndarray,
+    bounds: tuple[float, float, float, float],
+    threads: int = 1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The surface's gel y at each bin centre (module docstring) from each bin's front-most point
+    (gel frame, metres; (regions, rows, cols) float64, y +inf where the bin holds no point), in
+    the crop ``bounds`` = (half_x, half_z, y_near, y_far), the regions shared among up to
+    ``threads`` threads. Returns (depth-maps float32 m, y_far where unknown; known bool)."""
+    half_x, half_z, y_near, y_far = bounds
+    sample_y = np.ascontiguousarray(sample_y_m, np.float64)
+    if sample_y.ndim != 3 or sample_x_m.shape != sample_y.shape or sample_z_m.shape != sample_y.shape:
+        raise DepthMapError(f"samples must be three (regions, rows, cols) grids, got {sample_y.shape}")
+    regions, rows, cols = sample_y.shape
+    out = np.empty(sample_y.shape)
+    known = np.empty(sample_y.shape, np.bool_)
+    sample_x = np.ascontiguousarray(sample_x_m, np.float64)
+    sample_z = np.ascontiguousarray(sample_z_m, np.float64)
+    x_centres, z_centres = bin_centres(half_x, cols), bin_centres(half_z, rows)
+
+    def answer(first: int, stop: int) -> None:
+        surface_maps_kernel(
+            sample_y[first:stop],
+            sample_x[first:stop],
+            sample_z[first:stop],
+            x_centres,
+            z_centres,
+            float(y_near),
+            float(y_far),
+            out[first:stop],
+            known[first:stop],
+        )
+
+    edges = np.linspace(0, regions, min(max(threads, 1), regions) + 1).astype(int)
+    if len(edges) <= 2:
+        answer(0, regions)
+    else:  # the kernel releases the GIL: each share of the regions on its own core
+        with ThreadPoolExecutor(len(edges) - 1) as pool:
+            for future in [pool.submit(answer, a, b) for a, b in zip(edges[:-1], edges[1:])]:
+                future.result()
+    return out.astype(np.float32), known
+
+
+def fill_sampling_gaps(depth_map_m: np.ndarray, occupied: np.ndarray, min_neighbours: int) -> np.ndarray:
+    """The nearest-point rule's gaps: empty bins inside a sampled surface (at least
+    ``min_neighbours`` of their 8 neighbours occupied) take the nearest (minimum y) of their
+    occupied neighbours; others are unchanged. ``depth_map_m`` is one map (rows, cols) or a
+    stack (..., rows, cols), each map on its own. The 3 x 3 neighbourhoods are sums and minima of
+    nine shifted views of the padded maps: a few passes over small arrays, ~5x faster than
+    scipy.ndimage's generic filters on 100 x 100."""
+    if not 1 <= min_neighbours <= 8:
+        raise DepthMapError(f"min_neighbours must be in 1..8, got {min_neighbours}")
+    rows, cols = occupied.shape[-2:]
+    padded = (*occupied.shape[:-2], rows + 2, cols + 2)  # a border of empty bins
+    flags = np.zeros(padded, np.uint8)
+    flags[..., 1:-1, 1:-1] = occupied
+    surface = np.full(padded, np.inf, np.float32)
+    np.copyto(surface[..., 1:-1, 1:-1], depth_map_m, where=occupied)
+    neighbours = np.zeros(occupied.shape, np.uint8)
+    nearest = np.full(occupied.shape, np.inf, np.float32)
+    for dr in range(3):
+        for dc in range(3):
+            if (dr, dc) != (1, 1):
+                neighbours += flags[..., dr : dr + rows, dc : dc + cols]
+                np.minimum(nearest, surface[..., dr : dr + rows, dc : dc + cols], out=nearest)
+    gaps = ~occupied & (neighbours >= min_neighbours)
+    return np.where(gaps, nearest, depth_map_m).astype(np.float32)
