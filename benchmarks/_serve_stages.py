@@ -28,6 +28,7 @@ from msgs.inference import TactileEstimateReply
 from nodes.inference_passes import ThreadSplit, thread_split
 from perception.depthmap import DepthMapParams, contact_depth_maps
 from perception.pointcloud import VoxelIndex
+from perception.surface import DEPTH_MAP_METHODS
 from workcell.kinematics import GripperGeometry
 
 
@@ -132,6 +133,27 @@ def _reply_and_uncertainty(
     return reply, {"uncertainty_cpu_ms": round(cost, 3)}
 
 
+def _cut_cpu_ms_by_method(
+    index: VoxelIndex,
+    poses: np.ndarray,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+    threads: int,
+    device_points: torch.Tensor | None,
+    repeats: int,
+) -> dict[str, float]:
+    """Each bin rule's cut (perception.surface), CPU ms a region, beside the served one's in the
+    same run: what the surface costs over the nearest point."""
+
+    def cut_by(method: str) -> Callable[[], object]:
+        other = dataclasses.replace(params, method=method)
+        return lambda: contact_depth_maps(
+            index, np.eye(4), poses, geometry, other, allow_empty=True, threads=threads, device_points=device_points
+        )
+
+    return {f"cut_{m}_cpu_ms": round(_cpu_ms_per_region(cut_by(m), len(poses), repeats), 3) for m in DEPTH_MAP_METHODS}
+
+
 def stage_costs(
     index: VoxelIndex,
     device_points: torch.Tensor | None,
@@ -175,9 +197,11 @@ def stage_costs(
             one_pass_rate, one_pass_cpu, _ = network_rate(network.one_pass, x, network.max_batch, repeats)
         finally:
             torch.set_num_threads(lane_threads)
+
     return {
         **stages,
         "cut_cpu_ms": round(_cpu_ms_per_region(cut, n, repeats), 3),
+        **_cut_cpu_ms_by_method(index, poses, geometry, params, input_threads, device_points, repeats),
         "prior_cpu_ms": round(
             _cpu_ms_per_region(
                 lambda: network_input(maps, depth_range_m, generator.config, generator.prior), n, repeats

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import time
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import open3d as o3d
 
 from perception.binning import min_y_per_bin
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
-from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds, fill_sampling_gaps
+from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import PerceptionError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import depth_images_to_world
@@ -32,6 +33,7 @@ from perception.registration import (
     sample_model_cloud,
 )
 from perception.segmentation import segment_object, segmentation_params_for
+from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps
 from sim.registration_check import register_check, render_depth_images, scene_with_object
 from sim.world import SimWorld
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
@@ -149,12 +151,18 @@ def bench_binning(seed: int) -> list[dict]:
                 }
             )
         # The whole contact depth-map (transform, crop, bin, fill gaps, normalise): ours, and the
-        # same steps in plain NumPy with the transform left out (the points are in the gel frame).
+        # same steps in plain NumPy with the transform left out (the points are in the gel frame);
+        # beside them ours with the surface rule (perception.surface) instead of the nearest point.
         points_gel = np.column_stack([x, y, z])
         geometry = GripperGeometry()
         hx, hz, y_near, y_far = crop_bounds(geometry, DepthMapParams())
+        nearest, surface = DepthMapParams(method="nearest_point"), DepthMapParams(method="surface")
         for name, whole_map in (
-            ("contact_depth_map", lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4))),
+            ("contact_depth_map", lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4), params=nearest)),
+            (
+                "contact_depth_map_surface",
+                lambda p=points_gel: contact_depth_map(p, np.eye(4), np.eye(4), params=surface),
+            ),
             (
                 "numpy_contact_depth_map",
                 lambda p=points_gel: _numpy_contact_depth_map(p, hx, hz, (y_near, y_far), (100, 100)),
@@ -291,37 +299,36 @@ def bench_depthmap(seed: int) -> list[dict]:
     clouds = {"full": model.points_m}
     clouds.update({f"{d:g}_per_cm3": downsample_to_density(model.points_m, d) for d in PAPER_DENSITIES_PER_CM3})
     rows: list[dict[str, object]] = []
-    for density, points in clouds.items():
-        for bins in (50, 100, 200):
-            params = DepthMapParams(shape=(bins, bins))
-            try:
-                patch = contact_depth_map(points, np.eye(4), gels["left"], geometry, params)
-            except PerceptionError as exc:
-                rows.append(
-                    {
-                        "part": "depthmap",
-                        "density": density,
-                        "bins": bins,
-                        "model_points": len(points),
-                        "error": str(exc),
-                    }
-                )
-                continue
-            _, median, cpu = _repeat(
-                lambda p=points, q=params: contact_depth_map(p, np.eye(4), gels["left"], geometry, q)
-            )
+    for (density, points), bins, method in itertools.product(clouds.items(), (50, 100, 200), DEPTH_MAP_METHODS):
+        params = DepthMapParams(shape=(bins, bins), method=method)
+        try:
+            patch = contact_depth_map(points, np.eye(4), gels["left"], geometry, params)
+        except PerceptionError as exc:
             rows.append(
                 {
                     "part": "depthmap",
                     "density": density,
                     "bins": bins,
+                    "method": method,
                     "model_points": len(points),
-                    "patch_points": patch.point_count,
-                    "occupied": round(float(patch.occupied.mean()), 3),
-                    "ms_median": round(median * 1e3, 3),
-                    "cpu_ms_median": round(cpu * 1e3, 3),
+                    "error": str(exc),
                 }
             )
+            continue
+        _, median, cpu = _repeat(lambda p=points, q=params: contact_depth_map(p, np.eye(4), gels["left"], geometry, q))
+        rows.append(
+            {
+                "part": "depthmap",
+                "density": density,
+                "bins": bins,
+                "method": method,
+                "model_points": len(points),
+                "patch_points": patch.point_count,
+                "occupied": round(float(patch.occupied.mean()), 3),
+                "ms_median": round(median * 1e3, 3),
+                "cpu_ms_median": round(cpu * 1e3, 3),
+            }
+        )
     return rows
 
 

@@ -102,6 +102,7 @@ def write_checkpoint(
             "generator": UNetGenerator(config.generator).state_dict(),
             "train_config": config.to_dict(),
             "depth_range_m": list(depth_range_m),
+            "depth_map_method": "surface",  # as a model trained today
             **({"prior": dataclasses.replace(SESSION_PRIOR, pose_sigma_mm=pose_sigma_mm).to_dict()} if prior else {}),
         },
         path,
@@ -256,7 +257,7 @@ def bench_points(
     generator, depth_range_m = load_generator(checkpoint)
     network, split, device = served_network(generator, depth_range_m, model, serves, args.threads, args.max_batch)
     geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()  # as the server's
-    params = DepthMapParams(y_range_m=depth_range_m)
+    params = DepthMapParams(y_range_m=depth_range_m, method=generator.depth_map_method)  # as the server cuts
     rows = []
     with contextlib.closing(Bus("planner_points", registry)) as bus, TactileClient(bus, 300.0) as client:
         for mesh in YCB[: args.objects]:

@@ -22,7 +22,7 @@ import struct
 import time
 import typing
 from array import array
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -402,11 +402,13 @@ def bag_channels(path: str | Path) -> dict[str, tuple[str, str]]:
     return {topic: (entry["schema"], entry["encoding"]) for topic, entry in bag_info(path).topics.items()}
 
 
-def iter_envelopes(path: str | Path) -> Iterator[tuple[int, Envelope]]:
-    """(log time ns, decoded dtx message) for every dtx message of the bag, in file order."""
+def iter_envelopes(path: str | Path, topics: Collection[str] | None = None) -> Iterator[tuple[int, Envelope]]:
+    """(log time ns, decoded dtx message) for every dtx message of the bag, in file order; of
+    ``topics`` only, where given (the others are not decoded: a bag recorded by an older build
+    still gives the topics whose messages this one reads)."""
     records, _ = read_records(path)
     for number, record in enumerate(records, start=1):
-        if record.message_encoding == MESSAGE_ENCODING:
+        if record.message_encoding == MESSAGE_ENCODING and (topics is None or record.topic in topics):
             try:
                 envelope = decode(unpack_frames(record.topic, record.data))
             except MessageError as exc:

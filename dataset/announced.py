@@ -7,13 +7,21 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import msgs
-from dataset.records import DatasetInfo, code_version
+from dataset.records import DatasetError, DatasetInfo, code_version
 from dataset.writer import DatasetWriter
+from perception.surface import DEPTH_MAP_METHODS
 
 
 def write_samples(writer: DatasetWriter, samples: Sequence[msgs.DatasetSample]) -> None:
     """Announced samples into the dataset, landing together (a grasp's two fingers: both or
-    neither); the collector and the replay share this."""
+    neither); the collector and the replay share this. A sample whose map another rule made
+    than the dataset's (a session resumed with another ``depth_map_method``) is refused."""
+    others = sorted({s.depth_map_method for s in samples} - {writer.info.depth_map_method})
+    if others:
+        raise DatasetError(
+            f"{writer.root} holds {writer.info.depth_map_method} depth-maps, not {', '.join(others)} ones: "
+            f"continue it with depth_map_method {writer.info.depth_map_method}, or write another dataset"
+        )
     writer.write_together(
         [
             writer.encode(
@@ -37,7 +45,12 @@ def write_samples(writer: DatasetWriter, samples: Sequence[msgs.DatasetSample]) 
 
 
 def dataset_info(sample: msgs.DatasetSample) -> DatasetInfo:
-    """The dataset-wide facts an announced sample carries."""
+    """The dataset-wide facts an announced sample carries, its depth-map rule among them."""
+    if sample.depth_map_method not in DEPTH_MAP_METHODS:
+        raise DatasetError(
+            f"sample {sample.sample_id!r}: depth_map_method must be one of {', '.join(DEPTH_MAP_METHODS)}, "
+            f"got {sample.depth_map_method!r}"
+        )
     height, width = sample.tactile_image.shape[:2]
     return DatasetInfo(
         image_height=height,
@@ -48,4 +61,5 @@ def dataset_info(sample: msgs.DatasetSample) -> DatasetInfo:
         code_version=code_version(),
         split_seed=sample.split_seed,
         depth_crop_m=(sample.depth_crop_m[0], sample.depth_crop_m[1], sample.depth_crop_m[2]),
+        depth_map_method=sample.depth_map_method,
     )

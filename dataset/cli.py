@@ -10,6 +10,7 @@ from dataset.export import export_pix2pix
 from dataset.records import DatasetError
 from dtx.errors import exit_1_on
 from perception.errors import PerceptionError
+from perception.surface import DEPTH_MAP_METHODS
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -48,7 +49,13 @@ def _library(args: argparse.Namespace) -> int:
 
     try:
         writer = write_contact_library(
-            args.out, args.samples, args.seed, args.scene, tuple(args.depth_range_m), progress=True
+            args.out,
+            args.samples,
+            args.seed,
+            args.scene,
+            tuple(args.depth_range_m),
+            progress=True,
+            method=args.depth_map,
         )
     except (SceneError, DepthMapError) as err:  # the scene or the depth range given: the caller's input
         print(f"error: {err}", file=sys.stderr)
@@ -91,11 +98,12 @@ def _redepth(args: argparse.Namespace) -> int:
                 parts.append(f"ADD-S {row['add_s_mm']:.3f} mm against the scene's truth")
             print(f"{name}: {'; '.join(parts)}")
     for density, writer in redepth_datasets(
-        args.dir, targets, args.bins, registered=registered, jobs=args.jobs
+        args.dir, targets, args.bins, registered=registered, jobs=args.jobs, method=args.depth_map
     ).items():
         print(
             f"{writer.root}: {len(writer)} samples, depth-maps at {'full density' if density is None else f'{density:g} points/cm³'}"
             + ("" if args.bins is None else f", {args.bins} x {args.bins} bins")
+            + f", {writer.info.depth_map_method} bins"
         )
     return 0
 
@@ -161,6 +169,13 @@ def _add_library(commands: argparse._SubParsersAction) -> None:
         metavar=("NEAR", "FAR"),
         help="depth-map range, as the sessions it trains beside (default -0.005 0.01)",
     )
+    library.add_argument(
+        "--depth-map",
+        choices=DEPTH_MAP_METHODS,
+        default="surface",
+        help="what a bin holds, as the sessions it trains beside: the object's surface at its centre (default), "
+        "or the paper's nearest point",
+    )
     library.set_defaults(func=_library)
 
 
@@ -181,6 +196,12 @@ def _add_redepth(commands: argparse._SubParsersAction) -> None:
     redepth.add_argument("--out", help="output directory for one density (or, without --density, full density)")
     redepth.add_argument(
         "--bins", type=int, help="bins per side (default: the source's); tactile images are resized to match"
+    )
+    redepth.add_argument(
+        "--depth-map",
+        choices=DEPTH_MAP_METHODS,
+        help="what a bin holds: the object's surface at its centre, or the paper's nearest point (default: the "
+        "source's)",
     )
     redepth.add_argument(
         "--calibration",

@@ -175,16 +175,17 @@ def write_contact_library(
     margin_m: float = 0.002,
     size: int = 100,
     progress: bool = False,
+    method: str = "surface",
 ) -> DatasetWriter:
     """Write ``samples`` library pairs to ``out`` (two per "grasp", as a session's fingers), the
-    families in turn. Resumes: samples already present are drawn again identically and skipped."""
+    families in turn, bins by ``method`` (perception.surface); resumed, drawing the same again."""
     if samples <= 0:
         raise DatasetError(f"--samples must be positive, got {samples}")
     # The scene as named (a repository path travels with a checkpoint that records it).
     scene_name = str(scene) if isinstance(scene, (str, os.PathLike)) else scene.path
     scene = resolve_effects(load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene)
     geometry = scene.gripper_geometry()
-    params = DepthMapParams(shape=(size, size), margin_m=margin_m, y_range_m=depth_range_m)
+    params = DepthMapParams(shape=(size, size), margin_m=margin_m, y_range_m=depth_range_m, method=method)
     half_x, half_z, y_near, y_far = crop_bounds(geometry, params)
     renderer = scene_renderer(scene, effects=True, rng=np.random.default_rng([seed, 1]))
     background = resize_rgb(renderer.background(), size, size)
@@ -197,6 +198,7 @@ def write_contact_library(
         code_version=code_version(),
         split_seed=seed,
         depth_crop_m=(2 * half_x, y_far - y_near, 2 * half_z),
+        depth_map_method=method,
     )
     writer = DatasetWriter(out, info)
     for index in track(range(samples), "contact library", "pairs", enabled=progress):

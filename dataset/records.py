@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from perception.surface import DEPTH_MAP_METHODS
+
 FORMAT_NAME = "dtx-tactile-dataset"
 FORMAT_VERSION = 1
 FINGERS = ("left", "right")
@@ -50,6 +52,9 @@ class DatasetInfo:
     # The depth-maps' crop volume (x, y, z extent in the gel frame, m); None where unknown
     # (datasets not made from a model, e.g. the synthetic ones).
     depth_crop_m: tuple[float, float, float] | None = None
+    # What a depth-map bin holds (perception.surface.DEPTH_MAP_METHODS): a dataset written before
+    # the surface rule names none, and its maps are the paper's nearest points.
+    depth_map_method: str = "nearest_point"
 
     def to_json(self) -> dict[str, Any]:
         data = {
@@ -62,6 +67,7 @@ class DatasetInfo:
             "effects": list(self.effects),
             "code_version": self.code_version,
             "split_seed": self.split_seed,
+            "depth_map_method": self.depth_map_method,
         }
         if self.depth_crop_m is not None:
             data["depth_crop_m"] = list(self.depth_crop_m)
@@ -86,6 +92,7 @@ class DatasetInfo:
                 code_version=str(data["code_version"]),
                 split_seed=int(data["split_seed"]),
                 depth_crop_m=None if "depth_crop_m" not in data else tuple(float(v) for v in data["depth_crop_m"]),  # type: ignore[arg-type]
+                depth_map_method=str(data.get("depth_map_method", "nearest_point")),
             )
         except (KeyError, TypeError, IndexError, ValueError) as err:
             raise DatasetError(f"dataset.json: missing or malformed field ({err!r})") from err
@@ -93,6 +100,11 @@ class DatasetInfo:
             len(info.depth_crop_m) != 3 or not all(np.isfinite(v) and v > 0 for v in info.depth_crop_m)
         ):
             raise DatasetError(f"dataset.json: depth_crop_m must be 3 positive extents (m), got {info.depth_crop_m}")
+        if info.depth_map_method not in DEPTH_MAP_METHODS:
+            raise DatasetError(
+                f"dataset.json: depth_map_method must be one of {', '.join(DEPTH_MAP_METHODS)}, "
+                f"got {info.depth_map_method!r}"
+            )
         if not (0 < info.image_height <= MAX_IMAGE_SIDE and 0 < info.image_width <= MAX_IMAGE_SIDE):
             raise DatasetError(
                 f"dataset.json: image size must be 1-{MAX_IMAGE_SIDE} pixels a side, got "

@@ -42,6 +42,7 @@ from perception.errors import OutOfReachError
 from perception.gripper_centring import centre_between_gels
 from perception.pointcloud import VoxelIndex, check_transform, transform_points
 from perception.registration import sample_model_cloud
+from perception.surface import DEPTH_MAP_METHODS
 from workcell.kinematics import GripperGeometry
 from workcell.scene import Scene, SceneError, load_scene
 
@@ -66,7 +67,8 @@ def depth_map_params(reader: DatasetReader) -> tuple[DepthMapParams, Scene]:
             f"({sensed_x}, {sensed_z}) m with one margin"
         )
     shape = reader.load(reader.records[0], verify=False).depth_map_m.shape
-    return DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m), scene
+    params = DepthMapParams(shape=shape, margin_m=margin_x, y_range_m=info.depth_range_m, method=info.depth_map_method)
+    return params, scene
 
 
 def model_cloud(scene: Scene, object_name: str, points_per_cm3: float | None = None) -> np.ndarray:
@@ -123,9 +125,10 @@ def redepth_dataset(
     bins: int | None = None,
     progress: bool = True,
     registered: dict[str, np.ndarray] | None = None,
+    method: str | None = None,
 ) -> DatasetWriter:
     """:func:`redepth_datasets` with one target: ``out`` at ``points_per_cm3``."""
-    return redepth_datasets(source, {points_per_cm3: out}, bins, progress, registered)[points_per_cm3]
+    return redepth_datasets(source, {points_per_cm3: out}, bins, progress, registered, method=method)[points_per_cm3]
 
 
 def redepth_datasets(
@@ -135,11 +138,13 @@ def redepth_datasets(
     progress: bool = True,
     registered: dict[str, np.ndarray] | None = None,
     jobs: int = 1,
+    method: str | None = None,
 ) -> dict[float | None, DatasetWriter]:
     """Write each target directory: ``source`` with every depth-map made again from the model
     cloud (the patch extractor's: MODEL_POINT_SPACING_M apart, seed MODEL_CLOUD_SEED),
     voxel-thinned to the target's points/cm³ unless None, over ``bins`` x ``bins`` bins of the
-    same crop unless None (the source's bins). One pass over ``source``: each sample is read
+    same crop unless None (the source's bins), each bin holding what ``method`` says
+    (perception.surface; None: the source's). One pass over ``source``: each sample is read
     once for every target. A map whose thinned cloud leaves the crop empty holds y_far
     everywhere ("nothing within reach"), as an empty bin does. A target that already holds
     samples is resumed.
@@ -154,7 +159,7 @@ def redepth_datasets(
         raise DatasetError(f"jobs must be a whole number >= 1, got {jobs!r}")
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
-    params, info = _with_bins(params, reader.info, bins)
+    params, info = _with_settings(params, reader.info, bins, method)
     missing = [r.sample_id for r in reader.records if r.model_to_gel is None]
     if missing:
         raise DatasetError(f"{reader.root}: {len(missing)} samples (e.g. {missing[0]}) record no model_to_gel")
@@ -164,7 +169,9 @@ def redepth_datasets(
     workers = min(jobs, len(targets))
     shares = [dict(list(targets.items())[i::workers]) for i in range(workers)]
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        for done in [pool.submit(_one_pass_in_process, source, bins, share, progress, poses) for share in shares]:
+        for done in [
+            pool.submit(_one_pass_in_process, source, bins, method, share, progress, poses) for share in shares
+        ]:
             done.result()
     return {density: DatasetWriter(out, info) for density, out in targets.items()}
 
@@ -217,6 +224,7 @@ def _record_map_again(
 def _one_pass_in_process(
     source: str | os.PathLike[str],
     bins: int | None,
+    method: str | None,
     targets: Mapping[float | None, str | os.PathLike[str]],
     progress: bool,
     poses: PosesBySample,
@@ -224,7 +232,7 @@ def _one_pass_in_process(
     """:func:`_one_pass` in a process of its own: the poses are the parent's, centred once."""
     reader = DatasetReader(source)
     params, scene = depth_map_params(reader)
-    params, info = _with_bins(params, reader.info, bins)
+    params, info = _with_settings(params, reader.info, bins, method)
     _one_pass(reader, scene, params, info, targets, progress, poses)
 
 
@@ -291,8 +299,15 @@ def _kept_fields(sample: Sample, shape: tuple[int, int], model_to_gel: Any, mode
     )
 
 
-def _with_bins(params: DepthMapParams, info: DatasetInfo, bins: int | None) -> tuple[DepthMapParams, DatasetInfo]:
-    """The depth-map settings and dataset facts at ``bins`` x ``bins`` bins (None: as they are)."""
+def _with_settings(
+    params: DepthMapParams, info: DatasetInfo, bins: int | None, method: str | None
+) -> tuple[DepthMapParams, DatasetInfo]:
+    """The depth-map settings and dataset facts at ``bins`` x ``bins`` bins and by ``method``
+    (None: as they are)."""
+    if method is not None:
+        if method not in DEPTH_MAP_METHODS:
+            raise DatasetError(f"depth-map method must be one of {', '.join(DEPTH_MAP_METHODS)}, got {method!r}")
+        params, info = dataclasses.replace(params, method=method), dataclasses.replace(info, depth_map_method=method)
     if bins is None:
         return params, info
     if not (isinstance(bins, int) and 8 <= bins <= 1024):

@@ -122,7 +122,7 @@ def registration_frames(session: str | os.PathLike[str]) -> dict[str, list[msgs.
         raise DatasetError(f"{session} has no session bag (session.mcap): its camera frames are needed")
     for bag in bags:
         try:
-            for _, envelope in iter_envelopes(bag):
+            for _, envelope in iter_envelopes(bag, {REGISTRATION_FRAMES_TOPIC}):
                 if envelope.topic == REGISTRATION_FRAMES_TOPIC and isinstance(envelope.message, msgs.DepthImage):
                     frames.setdefault(envelope.message.header.frame_id, []).append(envelope.message)
         except BagError as err:

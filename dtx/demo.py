@@ -181,8 +181,17 @@ def _density_rows(density: list[dict]) -> list[Row]:
             )
         )
         if "contact_ssim_mean" in row:
+            against_empty = ""
+            if "contact_p_better_than_empty" in row:
+                against_empty = (
+                    f" (empty map {row['empty_contact_ssim_mean']:.4f}, p {row['contact_p_better_than_empty']:.1e})"
+                )
             rows.append(
-                ("  on contact windows only", f"{row['contact_ssim_mean']:.4f} ± {row['contact_ssim_se']:.4f}", "")
+                (
+                    "  on contact windows only",
+                    f"{row['contact_ssim_mean']:.4f} ± {row['contact_ssim_se']:.4f}{against_empty}",
+                    "",
+                )
             )
     return rows
 

@@ -25,6 +25,7 @@ from models.networks import (
 )
 from models.prior import PhysicsPrior, PriorSpec, checked_pose_sigma_mm
 from models.uncertainty import ServedUncertainty
+from perception.surface import DEPTH_MAP_METHODS
 
 CHECKPOINT = "checkpoint.pt"
 # What a checkpoint can serve (models.serving): its generator's image, or its physics prior's.
@@ -72,6 +73,10 @@ class TrainConfig:
     # uniformly in the range (seeded by ``seed``), with its prior rendered at that sigma
     # (models.data.load_library). []: library pairs exact, their prior sharp.
     library_pose_sigma_range_mm: tuple[float, ...] = ()
+    # What the training depth-maps' bins must hold (perception.surface.DEPTH_MAP_METHODS), checked
+    # against the dataset's; "": whatever it holds. The checkpoint records the dataset's, and
+    # what it is served is cut by it.
+    depth_map: str = ""
     generator: GeneratorConfig = GeneratorConfig()
 
     def validate(self) -> "TrainConfig":
@@ -92,6 +97,10 @@ class TrainConfig:
             raise ModelConfigError("correction_weight needs a generator with a physics prior (prior: true)")
         checked_pose_sigma_mm(self.session_pose_sigma_mm, "session_pose_sigma_mm")
         self._check_library_pose_sigma_range()
+        if self.depth_map and self.depth_map not in DEPTH_MAP_METHODS:
+            raise ModelConfigError(
+                f"depth_map must be one of {', '.join(DEPTH_MAP_METHODS)} (or '' for the dataset's), got {self.depth_map!r}"
+            )
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):
@@ -185,5 +194,9 @@ def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[f
         )
     if "uncertainty" in state:
         generator.uncertainty = ServedUncertainty.from_state(state["uncertainty"])
+    # A checkpoint trained before the surface rule names no method: its maps were nearest points.
+    generator.depth_map_method = str(state.get("depth_map_method", "nearest_point"))
+    if generator.depth_map_method not in DEPTH_MAP_METHODS:
+        raise ModelConfigError(f"{path} was trained on {generator.depth_map_method!r} depth-maps, which no cut makes")
     low, high = state["depth_range_m"]
     return generator, (float(low), float(high))

@@ -175,6 +175,11 @@ def load_library(
     parts = []
     for library in libraries:
         reader = DatasetReader(library)
+        if reader.info.depth_map_method != session.info.depth_map_method:
+            raise ModelConfigError(
+                f"library {library} holds {reader.info.depth_map_method} depth-maps, the dataset "
+                f"{session.info.depth_map_method} ones: make it with the session's (dtx dataset library --depth-map)"
+            )
         for name in ("depth_range_m", "depth_crop_m"):
             mine, theirs = getattr(reader.info, name), getattr(session.info, name)
             if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):

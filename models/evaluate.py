@@ -343,9 +343,10 @@ def evaluate(
         shown.update()
         result["density"] = []
         full_contact = contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
+        empty_contact = _empty_map_contact(generator, depth_range_m, predictions) if density else None
         for points_per_cm3, depth in density_maps.items():
             estimate = predict(generator, depth.result(), depth_range_m)
-            result["density"].append(_density_row(points_per_cm3, predictions, estimate, full_contact))
+            result["density"].append(_density_row(points_per_cm3, predictions, estimate, full_contact, empty_contact))
             shown.note(f"last: {points_per_cm3:g} points/cm³")
             shown.update()
     shown.close()
@@ -396,12 +397,22 @@ def _density_reader(
     return reader
 
 
+def _empty_map_contact(
+    generator: UNetGenerator, depth_range_m: tuple[float, float], predictions: Predictions
+) -> np.ndarray:
+    """The contact-window SSIM of an empty map's estimate (no surface in reach) on each pair: the
+    reference a thinned cloud must beat."""
+    empty_map = np.full((1, *predictions.truth.shape[1:3]), depth_range_m[1], np.float32)
+    empty = np.repeat(predict(generator, empty_map, depth_range_m), len(predictions.truth), axis=0)
+    return contact_ssim(predictions.truth, predictions.truth_deformation, empty)
+
+
 def _density_row(
-    points_per_cm3: float, full: Predictions, estimate: np.ndarray, full_contact: np.ndarray
+    points_per_cm3: float, full: Predictions, estimate: np.ndarray, full_contact: np.ndarray, empty: np.ndarray | None
 ) -> dict[str, Any]:
     """The density table's row for ``estimate``, the estimates of ``full``'s pairs from their
     depth-maps at ``points_per_cm3``; the full cloud's contact-window SSIM (``full_contact``) for
-    the test of what the density costs."""
+    the test of what the density costs, an empty map's (``empty``) for what the cloud is worth."""
     mean, se = _mean_se(ssim_rgb(full.truth, estimate))
     psnr_mean, psnr_se = _mean_se(psnr_rgb(full.truth, estimate))
     row = {
@@ -419,6 +430,10 @@ def _density_row(
         # contact windows (one-sided Wilcoxon).
         if np.any(contact != full_contact):
             row["contact_p_full_better"] = float(stats.wilcoxon(full_contact, contact, alternative="greater").pvalue)
+        if empty is not None:  # what the thinned cloud is worth: its estimates better than an empty map's
+            row["empty_contact_ssim_mean"] = float(np.mean(empty))
+            if np.any(contact != empty):
+                row["contact_p_better_than_empty"] = float(stats.wilcoxon(contact, empty, alternative="greater").pvalue)
     return row
 
 

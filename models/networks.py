@@ -154,6 +154,8 @@ class UNetGenerator(nn.Module):
         # models.uncertainty.ServedUncertainty served beside it (None: absent); set by load_generator.
         self.serves = "network"
         self.uncertainty: Any = None
+        # What its input's bins hold (perception.surface.DEPTH_MAP_METHODS); set by load_generator.
+        self.depth_map_method = "surface"
 
     @torch.no_grad()
     def set_background(self, mean_image: torch.Tensor) -> None:

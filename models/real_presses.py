@@ -217,7 +217,7 @@ def evaluate_real_presses(
     geometries = [press_geometry(presses, i, mm_per_px, ball_radius_mm, grid) for i in range(n)]
     _check_windows(path, geometries, grid)
     geometry = scene.gripper_geometry()
-    params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m)
+    params = DepthMapParams(shape=grid, margin_m=margin_m, y_range_m=depth_range_m, method=generator.depth_map_method)
     try:
         crop_bounds(geometry, params)
     except DepthMapError as err:

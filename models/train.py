@@ -191,6 +191,9 @@ def _load_data(
     """Train and validation inputs and targets on the device, and the checkpoint's record of
     the data (depth range, dataset, libraries, physics prior)."""
     reader = DatasetReader(dataset)
+    if config.depth_map and config.depth_map != reader.info.depth_map_method:
+        held, wanted = reader.info.depth_map_method, config.depth_map
+        raise ModelConfigError(f"{dataset} holds {held} depth-maps, the config asks for {wanted}: dtx dataset redepth")
     prior = session_prior(reader, config.generator, config.session_pose_sigma_mm)
     x_train, y_train = load_pairs(
         reader, select_records(reader, "train", config.hold_out_object), config.generator, prior
@@ -201,6 +204,7 @@ def _load_data(
         x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
     meta = {
         "depth_range_m": list(reader.info.depth_range_m),
+        "depth_map_method": reader.info.depth_map_method,
         "dataset": str(Path(dataset).resolve()),
         "libraries": [str(Path(library).resolve()) for library in libraries],
         **({"prior": prior.spec.to_dict()} if prior is not None else {}),

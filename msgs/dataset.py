@@ -12,10 +12,12 @@ from msgs.base import Message, empty
 @dataclasses.dataclass
 class DatasetSample(Message):
     """Everything one dataset sample holds, as the collector wrote it: a session bag can
-    rebuild the dataset from these alone (``launch/replay.yaml``)."""
+    rebuild the dataset from these alone (``launch/replay.yaml``). ``depth_map_method`` is the
+    rule that made ``depth_map_m`` (``msgs.DepthMap.method``: ``"surface"`` or
+    ``"nearest_point"``)."""
 
     SCHEMA = "dtx.dataset.DatasetSample"
-    VERSION = 3
+    VERSION = 4
 
     sample_id: str = ""
     object_name: str = ""
@@ -35,3 +37,4 @@ class DatasetSample(Message):
     scene: str = ""
     effects: list[str] = dataclasses.field(default_factory=list)
     split_seed: int = 0
+    depth_map_method: str = ""  # the rule that made depth_map_m (msgs.DepthMap.method)

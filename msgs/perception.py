@@ -13,9 +13,13 @@ from msgs.base import Message, empty
 class DepthMap(Message):
     """Contact depth-map of one finger in frame ``gel_<finger>``.
 
-    ``depth_map_m`` is m x k float32: for each x-z bin the minimum y (metres) of the model
-    points in the crop volume (y > 0 not touching, y < 0 indenting); empty bins hold the far
-    end of ``y_range_m`` (y_near, y_far), which is also the range normalised for learning.
+    ``depth_map_m`` is m x k float32: for each x-z bin a gel y (metres; y > 0 not touching,
+    y < 0 indenting) of the model points in the crop volume, by ``method``, the rule the map
+    was cut with (``perception.depthmap.DepthMapParams.method``, one of
+    ``perception.surface.DEPTH_MAP_METHODS``): ``"surface"``, where the object's surface is
+    at the bin centre; ``"nearest_point"`` (the paper's rule), the minimum y of the bin's
+    points. Empty bins hold the far end of ``y_range_m`` (y_near, y_far), which is also the
+    range normalised for learning.
     ``crop_m`` is the crop volume's extent (x, y, z) in metres. ``model_to_gel`` (4x4) places
     the object's model cloud in this gel's frame as the map was made from it: with the model,
     a map can be made again (other densities, other bins). ``gel_to_world`` (4x4) is the gel's
@@ -25,7 +29,7 @@ class DepthMap(Message):
     """
 
     SCHEMA = "dtx.perception.DepthMap"
-    VERSION = 3
+    VERSION = 4
 
     depth_map_m: np.ndarray = empty((0, 0), np.float32)
     finger: str = ""
@@ -35,6 +39,7 @@ class DepthMap(Message):
     model_to_gel: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     gel_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     model_to_world: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    method: str = ""
 
 
 @dataclasses.dataclass

@@ -279,10 +279,8 @@ class CollectorNode(Node):
         p = self.params
         rng = np.random.default_rng([p.seed, grasp_id, attempt])
         theta = rng.uniform(-np.pi, np.pi)
-        along_gel, along_closing = (
-            rng.uniform(-p.offset_xy_m, p.offset_xy_m),
-            rng.uniform(-p.offset_closing_m, p.offset_closing_m),
-        )
+        along_gel = rng.uniform(-p.offset_xy_m, p.offset_xy_m)
+        along_closing = rng.uniform(-p.offset_closing_m, p.offset_closing_m)
         closing_axis = np.array([-np.sin(theta), np.cos(theta)])  # tool y after the turn about world z
         gel_axis = np.array([np.cos(theta), np.sin(theta)])
         x, y = centroid[:2] + along_gel * gel_axis + along_closing * closing_axis
@@ -407,19 +405,7 @@ class CollectorNode(Node):
         """Both fingers' pairs into the dataset in one write (both land or neither), then
         announce them on ``/collector/sample``."""
         if self.writer is None:
-            p, first = self.params, depth_maps["left"]
-            self.writer = self.open_writer(
-                DatasetInfo(
-                    image_height=100,
-                    image_width=100,
-                    depth_range_m=(first.y_range_m[0], first.y_range_m[1]),
-                    scene=p.scene,
-                    effects=tuple(e.name for e in self.scene.effects),
-                    code_version=code_version(),
-                    split_seed=p.seed,
-                    depth_crop_m=(first.crop_m[0], first.crop_m[1], first.crop_m[2]),
-                )
-            )
+            self.writer = self.open_writer(self.new_dataset_info(depth_maps["left"]))
         info = self.writer.info
         size = (info.image_height, info.image_width)
         samples = []
@@ -446,6 +432,7 @@ class CollectorNode(Node):
                     scene=info.scene,
                     effects=list(info.effects),
                     split_seed=info.split_seed,
+                    depth_map_method=depth_map.method,
                 )
             )
         try:
@@ -455,6 +442,19 @@ class CollectorNode(Node):
         self.stats.pairs_written += len(samples)
         for sample in samples:
             self.samples.publish(sample)
+
+    def new_dataset_info(self, first: msgs.DepthMap) -> DatasetInfo:  # the first pair's map: range, crop, rule
+        return DatasetInfo(
+            image_height=100,
+            image_width=100,
+            depth_range_m=(first.y_range_m[0], first.y_range_m[1]),
+            scene=self.params.scene,
+            effects=tuple(e.name for e in self.scene.effects),
+            code_version=code_version(),
+            split_seed=self.params.seed,
+            depth_crop_m=(first.crop_m[0], first.crop_m[1], first.crop_m[2]),
+            depth_map_method=first.method,
+        )
 
     def open_writer(self, info: DatasetInfo | None = None) -> DatasetWriter:
         """The dataset, opened (resumed when ``info`` is None); a disk error ends the session."""

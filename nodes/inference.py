@@ -157,7 +157,8 @@ class InferenceNode(Node):
 
         self.geometry = load_scene(p.scene).gripper_geometry()
         size = self.config.image_size
-        self.depth_map_params = DepthMapParams(shape=(size, size), margin_m=p.margin_m, y_range_m=self.depth_range_m)
+        method = generator.depth_map_method  # a cloud is cut by the rule the checkpoint was trained on
+        self.depth_map_params = DepthMapParams((size, size), p.margin_m, self.depth_range_m, method=method)
         self.model = self._model_text()
         self.forward_passes = 0  # passes of the network (none while serving the prior)
         self._clouds: dict[str, _KeptCloud] = {}  # cloud id -> its index, least recently used first

@@ -16,7 +16,8 @@
 
 Params: ``scene`` (which objects exist, their meshes and nominal places, the gripper
 geometry — for the lab, a scene file describing the real table), ``cameras`` (depth topics),
-``depth_map_rows``/``depth_map_cols``, ``margin_m``, ``seed``.
+``depth_map_rows``/``depth_map_cols``, ``margin_m``, ``depth_map_method`` (what a bin holds:
+``surface`` or ``nearest_point``, perception.surface), ``seed``.
 """
 
 from __future__ import annotations
@@ -78,6 +79,9 @@ class PatchExtractorNode(Node):
         margin_m: float = 0.002
         y_range_m: list = dataclasses.field(default_factory=lambda: [-0.005, 0.010])
         fill_gaps_min_neighbours: int = DepthMapParams.fill_gaps_min_neighbours
+        # What a bin holds (perception.surface.DEPTH_MAP_METHODS): "surface", the object's surface
+        # at the bin centre; "nearest_point", the paper's nearest point. Each DepthMap says which.
+        depth_map_method: str = "surface"
         centre_between_gels: bool = True
         seed: int = 0
 
@@ -90,6 +94,7 @@ class PatchExtractorNode(Node):
             margin_m=self.params.margin_m,
             y_range_m=(self.params.y_range_m[0], self.params.y_range_m[1]),
             fill_gaps_min_neighbours=self.params.fill_gaps_min_neighbours,
+            method=self.params.depth_map_method,
         )
         self.reach_m = crop_reach_m(self.geometry, self.depth_map_params)
         self.latest: dict[str, msgs.DepthImage] = {}
@@ -195,6 +200,7 @@ class PatchExtractorNode(Node):
                 model_to_gel=np.linalg.inv(gel_to_world) @ model_to_world,
                 gel_to_world=gel_to_world,
                 model_to_world=registered.model_to_world,
+                method=self.depth_map_params.method,
             )
             self.depth_maps.publish(maps[finger])
         return msgs.PatchReply(left=maps["left"], right=maps["right"])

@@ -281,3 +281,24 @@ def test_a_samples_contact_depth_map_is_a_foxglove_image_in_its_gel_frame(tmp_pa
     np.testing.assert_array_equal(
         np.frombuffer(image.data, np.float32).reshape(image.height, image.step // 4), depth_map
     )
+
+
+def test_a_bag_of_an_older_build_still_gives_the_topics_this_one_reads(tmp_path: Path) -> None:
+    """A message of a version this build cannot decode (a session recorded before the DepthMap
+    grew its method) fails a read of every topic, naming it, and is skipped, not decoded, when
+    only other topics are asked for (the touch calibration reads an old session's camera frames)."""
+    path = tmp_path / "old.mcap"
+    writer = BagWriter(path)
+    for topic, message in sample_messages():
+        frames = encode(topic, message, "test")
+        writer.write(decode(frames), frames, log_time_ns=message.header.stamp_ns)
+    depth_map = msgs.DepthMap(header=msgs.Header(stamp_ns=5_000), depth_map_m=np.zeros((2, 2), np.float32))
+    frames = encode("/perception/depth_map", depth_map, "test")
+    header = msgpack.unpackb(frames[1], raw=False)
+    old = [frames[0], msgpack.packb({**header, "v": msgs.DepthMap.VERSION - 1}), *frames[2:]]
+    writer.write(decode(frames), old, log_time_ns=5_000)
+    writer.close()
+    with pytest.raises(BagError, match=r"/perception/depth_map.*version"):
+        list(iter_envelopes(path))
+    read = [(e.topic, type(e.message)) for _, e in iter_envelopes(path, {"/camera/left/depth", "/cloud"})]
+    assert read == [("/camera/left/depth", msgs.DepthImage), ("/cloud", msgs.PointCloud)]

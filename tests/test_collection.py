@@ -17,15 +17,18 @@ import numpy as np
 import pytest
 import torch
 
+import msgs
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
 from bus.bag import bag_info, iter_envelopes
+from dataset.announced import dataset_info, write_samples
 from dataset.check import check_dataset, content_checksum
 from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import DatasetError
 from dataset.redepth import depth_maps_at_density, redepth_dataset, redepth_datasets
 from dataset.synth import write_synthetic_dataset
+from dataset.writer import DatasetWriter
 from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS, evaluate, predict_dataset
 from models.networks import GeneratorConfig, UNetGenerator
@@ -186,22 +189,58 @@ def test_replaying_the_shipped_bag_twice_gives_identical_datasets(tmp_path: Path
     report = check_dataset(tmp_path / "a")
     assert report.ok and report.samples == 8
     assert tree_digest(tmp_path / "a") == tree_digest(tmp_path / "b")
+    # The bag's samples say which rule made their maps, and so does the dataset rebuilt from them.
+    announced = [e.message for _, e in iter_envelopes(SMALL_BAG) if isinstance(e.message, msgs.DatasetSample)]
+    assert len(announced) == 8 and {s.depth_map_method for s in announced} == {"surface"}
+    assert DatasetReader(tmp_path / "a").info.depth_map_method == "surface"
 
 
-def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> None:
-    """A collected dataset records each model's pose in the gel frame: at full density the
-    depth-maps come back bit for bit; thinned to the paper's densities they hold fewer points."""
-    assert replay(SMALL_BAG, tmp_path / "collected").returncode == 0
-    collected = DatasetReader(tmp_path / "collected")
-    again = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "again", progress=False).root)
-    sparse = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "sparse", 10.0, progress=False).root)
+def test_an_announced_sample_names_its_datasets_depth_map_rule(tmp_path: Path) -> None:
+    """The replay's dataset.json takes the rule from the samples; a sample naming none (or an
+    unknown one) would write a dataset.json no reader accepts, and one of another rule than its
+    dataset's (a session resumed with another rule) would make it misname its maps: both refused."""
+    sample = msgs.DatasetSample(
+        sample_id="g00000_left",
+        tactile_image=np.zeros((100, 100, 3), np.uint8),
+        depth_range_m=[-0.005, 0.01],
+        depth_crop_m=[0.024, 0.015, 0.019],
+        depth_map_method="nearest_point",
+    )
+    writer = DatasetWriter(tmp_path / "nearest", dataset_info(sample))
+    assert writer.info.depth_map_method == "nearest_point"
+    sample.depth_map_method = "surface"
+    with pytest.raises(DatasetError, match="holds nearest_point depth-maps, not surface ones"):
+        write_samples(writer, [sample])
+    assert len(writer) == 0
+    for bad in ("", "median"):
+        sample.depth_map_method = bad
+        with pytest.raises(DatasetError, match="depth_map_method must be one of"):
+            dataset_info(sample)
+
+
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped bag's dataset (surface maps), for the tests that make its maps again."""
+    out = tmp_path_factory.mktemp("replayed") / "collected"
+    assert replay(SMALL_BAG, out).returncode == 0
+    return out
+
+
+def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path, replayed: Path) -> None:
+    """A collected dataset records each model's pose in the gel frame and its maps' rule
+    (surface): at full density the depth-maps come back bit for bit; thinned to the paper's
+    densities they hold fewer points (a surface spans the gaps of its sampling, so not few)."""
+    collected = DatasetReader(replayed)
+    assert collected.info.depth_map_method == "surface"
+    again = DatasetReader(redepth_dataset(replayed, tmp_path / "again", progress=False).root)
+    sparse = DatasetReader(redepth_dataset(replayed, tmp_path / "sparse", 10.0, progress=False).root)
     y_far = np.float32(collected.info.depth_range_m[1])
     for record in collected.records:
         original = collected.load(record)
         np.testing.assert_array_equal(again.load(record.sample_id).depth_map_m, original.depth_map_m)
         np.testing.assert_array_equal(sparse.load(record.sample_id).tactile_rgb, original.tactile_rgb)
         thinned = sparse.load(record.sample_id).depth_map_m
-        assert np.count_nonzero(thinned != y_far) < 0.1 * np.count_nonzero(original.depth_map_m != y_far)
+        assert np.count_nonzero(thinned != y_far) < np.count_nonzero(original.depth_map_m != y_far)
     assert sparse.info == collected.info and [r.sample_id for r in sparse.records] == [
         r.sample_id for r in collected.records
     ]
@@ -219,27 +258,50 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path) -> 
     assert result["density"][0]["ssim_mean"] == pytest.approx(ssim_rgb(on_dataset.truth, on_dataset.estimate).mean())
     # Both densities in one pass each, shared out between two processes: the same files.
     shared = redepth_datasets(
-        tmp_path / "collected", {None: tmp_path / "shared_full", 10.0: tmp_path / "shared_10"}, progress=False, jobs=2
+        replayed, {None: tmp_path / "shared_full", 10.0: tmp_path / "shared_10"}, progress=False, jobs=2
     )
     for density, alone in ((None, again), (10.0, sparse)):
         assert tree_digest(shared[density].root) == tree_digest(alone.root), density
     with pytest.raises(DatasetError, match="jobs must be"):
-        redepth_datasets(tmp_path / "collected", {10.0: tmp_path / "nojobs"}, progress=False, jobs=0)
-    coarse = DatasetReader(redepth_dataset(tmp_path / "collected", tmp_path / "coarse", bins=50, progress=False).root)
+        redepth_datasets(replayed, {10.0: tmp_path / "nojobs"}, progress=False, jobs=0)
+    coarse = DatasetReader(redepth_dataset(replayed, tmp_path / "coarse", bins=50, progress=False).root)
     assert (coarse.info.image_height, coarse.info.image_width) == (50, 50)
+    assert coarse.info.depth_map_method == "surface"
     for record in collected.records:
         full, half = collected.load(record), coarse.load(record.sample_id)
         assert half.depth_map_m.shape == (50, 50) and half.tactile_rgb.shape == (50, 50, 3)
-        # One 50-bin holds the points of 2 x 2 100-bins: its minimum is theirs, but where gap
-        # filling made a bin up at one size and not at the other.
-        block_min = full.depth_map_m.reshape(50, 2, 50, 2).min(axis=(1, 3))
-        assert np.mean(np.isclose(half.depth_map_m, block_min, atol=1e-6)) > 0.95
+        # One 50-bin's centre is the corner of 2 x 2 100-bins: where it and they all hold the
+        # surface, it is the mean of theirs (a smooth surface, within 20 um), but at edges and steps.
+        blocks = full.depth_map_m.reshape(50, 2, 50, 2)
+        surface = (half.depth_map_m != y_far) & (blocks != y_far).all(axis=(1, 3))
+        assert np.mean(np.isclose(half.depth_map_m, blocks.mean(axis=(1, 3)), atol=2e-5)[surface]) > 0.95
     for bad in (0, 7, 2000, 50.5):
         with pytest.raises(DatasetError, match="bins must be"):
-            redepth_dataset(tmp_path / "collected", tmp_path / f"bad{bad}", bins=bad, progress=False)
+            redepth_dataset(replayed, tmp_path / f"bad{bad}", bins=bad, progress=False)
     write_synthetic_dataset(tmp_path / "synthetic", 2, seed=0, progress=False)
     with pytest.raises(DatasetError, match="records no depth-map crop"):
         redepth_dataset(tmp_path / "synthetic", tmp_path / "x", 10.0, progress=False)
+
+
+def test_nearest_point_maps_made_again_from_a_surface_dataset(tmp_path: Path, replayed: Path) -> None:
+    """The paper's rule from the same recorded poses: the dataset says so; thinned to the paper's
+    densities a map holds a few bins; a 50-bin holds the minimum of its 2 x 2 100-bins."""
+    nearest = {
+        density: DatasetReader(writer.root)
+        for density, writer in redepth_datasets(
+            replayed, {None: tmp_path / "full", 10.0: tmp_path / "thin"}, progress=False, method="nearest_point"
+        ).items()
+    }
+    coarse = DatasetReader(redepth_dataset(tmp_path / "full", tmp_path / "coarse", bins=50, progress=False).root)
+    assert {r.info.depth_map_method for r in (*nearest.values(), coarse)} == {"nearest_point"}
+    y_far = np.float32(nearest[None].info.depth_range_m[1])
+    for record in nearest[None].records:
+        full, thinned = (nearest[d].load(record.sample_id).depth_map_m for d in (None, 10.0))
+        assert np.count_nonzero(thinned != y_far) < 0.1 * np.count_nonzero(full != y_far)
+        # A 50-bin holds the points of 2 x 2 100-bins: its minimum is theirs, but where gap
+        # filling made a bin up at one size and not at the other.
+        block_min = full.reshape(50, 2, 50, 2).min(axis=(1, 3))
+        assert np.mean(np.isclose(coarse.load(record.sample_id).depth_map_m, block_min, atol=1e-6)) > 0.95
 
 
 def test_a_recorded_session_carries_the_transform_tree(tmp_path: Path) -> None:

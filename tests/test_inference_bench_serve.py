@@ -11,6 +11,7 @@ import torch
 
 from benchmarks.serve import add_arguments, run
 from models.runtime import cuda_missing
+from perception.surface import DEPTH_MAP_METHODS
 
 
 def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -> None:
@@ -49,9 +50,11 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
     ):
         assert row[key] > 0
     assert row["handle_server_cpu_ms_per_region"] >= 0  # counted in clock ticks: 4 tiny regions may take none
-    # The stages measured alone on the row's regions, and the targets as ratios of the same run.
+    # The stages measured alone on the row's regions (the cut by each bin rule too, issue 50), and
+    # the targets as ratios of the same run.
     assert set(row["stage_cpu_ms_per_region"]) == {
         "cut_cpu_ms",
+        *(f"cut_{method}_cpu_ms" for method in DEPTH_MAP_METHODS),
         "prior_cpu_ms",
         "network_cpu_ms",
         "encode_cpu_ms",
@@ -108,10 +111,11 @@ def test_serve_benchmark_on_cuda_without_it_stops_with_the_code_before_starting_
         run(parser.parse_args(["--width", "8", "--device", "cuda"]))
 
 
-def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:
+@pytest.mark.parametrize("method", ["surface", "nearest_point"])
+def test_surface_gel_poses_are_rigid_and_touch_the_model(method: str) -> None:
     """Every pose is a rigid gel frame whose +y faces the surface 0.5 mm in: its depth-map
     reaches into the gel (a scanned mesh is not flat, so some points lie deeper), at most 0.5 mm
-    where it sits, the map's centre."""
+    where it sits, the map's centre, by either rule of what a bin holds."""
     from benchmarks.serve import YCB, surface_gel_poses
     from perception.depthmap import DepthMapParams, contact_depth_maps
     from perception.pointcloud import VoxelIndex, check_transform
@@ -123,7 +127,11 @@ def test_surface_gel_poses_are_rigid_and_touch_the_model() -> None:
     for pose in poses:
         check_transform(pose)
     maps = contact_depth_maps(
-        VoxelIndex(cloud.points_m), np.eye(4), poses, GripperGeometry(), DepthMapParams(fill_gaps_min_neighbours=0)
+        VoxelIndex(cloud.points_m),
+        np.eye(4),
+        poses,
+        GripperGeometry(),
+        DepthMapParams(fill_gaps_min_neighbours=0, method=method),
     ).depth_maps_m
     assert np.all(maps.min(axis=(1, 2)) <= -0.0004)
     np.testing.assert_allclose(maps[:, 49:51, 49:51].min(axis=(1, 2)), -0.0005, atol=2e-4)

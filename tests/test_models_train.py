@@ -212,14 +212,23 @@ def test_a_contact_library_joins_the_training_set_and_must_share_the_depth_range
 
     scene = REPO / "scenes" / "ycb_three.yaml"
     library = tmp_path / "library"
-    write_contact_library(library, 8, seed=0, scene=scene, depth_range_m=(-0.0015, 0.0025))
+    # The synthetic dataset's bins hold their nearest point (dataset.synth): the library's must too.
+    write_contact_library(library, 8, seed=0, scene=scene, depth_range_m=(-0.0015, 0.0025), method="nearest_point")
     config = TrainConfig(**{**TINY.__dict__, "max_steps": 2, "contact_weight": 4.0})
     state = load_checkpoint(train(dataset, config, tmp_path / "with", progress=False, libraries=[library]))
     assert state["libraries"] == [str(library.resolve())]
+    assert state["depth_map_method"] == "nearest_point"
     other = tmp_path / "other"
-    write_contact_library(other, 2, seed=0, scene=scene)  # the sessions' default range, not this dataset's
+    write_contact_library(other, 2, seed=0, scene=scene, method="nearest_point")  # the sessions' default range
     with pytest.raises(ModelConfigError, match="depth_range_m"):
         train(dataset, config, tmp_path / "refused", progress=False, libraries=[other])
+    surface = tmp_path / "surface"
+    write_contact_library(surface, 2, seed=0, scene=scene, depth_range_m=(-0.0015, 0.0025))
+    with pytest.raises(ModelConfigError, match="surface depth-maps, the dataset nearest_point"):
+        train(dataset, config, tmp_path / "refused_rule", progress=False, libraries=[surface])
+    paper = TrainConfig(**{**config.__dict__, "depth_map": "surface"})
+    with pytest.raises(ModelConfigError, match="holds nearest_point depth-maps, the config asks for surface"):
+        train(dataset, paper, tmp_path / "refused_config", progress=False)
 
 
 def test_a_generator_with_a_physics_prior_starts_from_the_renderer_and_exports(tmp_path: Path) -> None:
@@ -306,3 +315,24 @@ def test_the_correction_weight_holds_the_generator_to_its_prior(tmp_path: Path) 
             TrainConfig.load(tmp_path / "bad.yaml")
     with pytest.raises(ModelConfigError, match="prior's images"):
         generator_l1(torch.zeros(1, 3, 2, 2), torch.zeros(1, 3, 2, 2), torch.ones(1, 1, 2, 2), None, 0.5)
+
+
+def test_a_checkpoint_names_the_bins_it_was_trained_on_and_an_old_one_reads_as_nearest_point(
+    dataset: Path, tmp_path: Path
+) -> None:
+    """The inference node cuts a planner's cloud by the checkpoint's rule: one trained before the
+    surface rule names none and keeps the paper's nearest point; a rule no cut makes is refused."""
+    path = train(dataset, TINY, tmp_path / "run", progress=False)
+    state = load_checkpoint(path)
+    assert load_generator(path)[0].depth_map_method == state["depth_map_method"] == "nearest_point"
+    for method, expected in (("surface", "surface"), (None, "nearest_point")):
+        changed = {k: v for k, v in state.items() if k != "depth_map_method"}
+        if method is not None:
+            changed["depth_map_method"] = method
+        torch.save(changed, tmp_path / "changed.pt")
+        assert load_generator(tmp_path / "changed.pt")[0].depth_map_method == expected
+    torch.save({**state, "depth_map_method": "voxel_mean"}, tmp_path / "bad.pt")
+    with pytest.raises(ModelConfigError, match="voxel_mean"):
+        load_generator(tmp_path / "bad.pt")
+    with pytest.raises(ModelConfigError, match="depth_map must be one of"):
+        TrainConfig(depth_map="voxel_mean").validate()
