@@ -256,7 +256,12 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path, rep
     result, _ = evaluate(generator, depth_range_m, collected.root, split="all", density=[10.0], progress=False)
     on_dataset = predict_dataset(generator, depth_range_m, sparse.root, split="all")
     assert result["density"][0]["ssim_mean"] == pytest.approx(ssim_rgb(on_dataset.truth, on_dataset.estimate).mean())
-    # Both densities in one pass each, shared out between two processes: the same files.
+
+
+def test_densities_made_again_in_two_processes_are_those_made_in_one(tmp_path: Path, replayed: Path) -> None:
+    """Both densities in one pass each, shared out between two processes: the same files."""
+    again = DatasetReader(redepth_dataset(replayed, tmp_path / "again", progress=False).root)
+    sparse = DatasetReader(redepth_dataset(replayed, tmp_path / "sparse", 10.0, progress=False).root)
     shared = redepth_datasets(
         replayed, {None: tmp_path / "shared_full", 10.0: tmp_path / "shared_10"}, progress=False, jobs=2
     )
@@ -264,6 +269,13 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path, rep
         assert tree_digest(shared[density].root) == tree_digest(alone.root), density
     with pytest.raises(DatasetError, match="jobs must be"):
         redepth_datasets(replayed, {10.0: tmp_path / "nojobs"}, progress=False, jobs=0)
+
+
+def test_surface_maps_made_again_over_other_bins(tmp_path: Path, replayed: Path) -> None:
+    """Over 50 x 50 bins the rule stays the dataset's, and a 50-bin reads the surface its 2 x 2
+    100-bins read; bins the format cannot hold and a dataset made from no model are refused."""
+    collected = DatasetReader(replayed)
+    y_far = np.float32(collected.info.depth_range_m[1])
     coarse = DatasetReader(redepth_dataset(replayed, tmp_path / "coarse", bins=50, progress=False).root)
     assert (coarse.info.image_height, coarse.info.image_width) == (50, 50)
     assert coarse.info.depth_map_method == "surface"
