@@ -301,28 +301,16 @@ def bench_depthmap(seed: int) -> list[dict]:
     rows: list[dict[str, object]] = []
     for (density, points), bins, method in itertools.product(clouds.items(), (50, 100, 200), DEPTH_MAP_METHODS):
         params = DepthMapParams(shape=(bins, bins), method=method)
+        row = {"part": "depthmap", "density": density, "bins": bins, "method": method, "model_points": len(points)}
         try:
             patch = contact_depth_map(points, np.eye(4), gels["left"], geometry, params)
         except PerceptionError as exc:
-            rows.append(
-                {
-                    "part": "depthmap",
-                    "density": density,
-                    "bins": bins,
-                    "method": method,
-                    "model_points": len(points),
-                    "error": str(exc),
-                }
-            )
+            rows.append({**row, "error": str(exc)})
             continue
         _, median, cpu = _repeat(lambda p=points, q=params: contact_depth_map(p, np.eye(4), gels["left"], geometry, q))
         rows.append(
             {
-                "part": "depthmap",
-                "density": density,
-                "bins": bins,
-                "method": method,
-                "model_points": len(points),
+                **row,
                 "patch_points": patch.point_count,
                 "occupied": round(float(patch.occupied.mean()), 3),
                 "ms_median": round(median * 1e3, 3),

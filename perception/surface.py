@@ -262,23 +262,6 @@ def _surface_map(
         level += 1
 
 
-@numba.njit(cache=True, nogil=True)
-def surface_maps_kernel(
-    sample_y: np.ndarray,
-    sample_x: np.ndarray,
-    sample_z: np.ndarray,
-    x_centres: np.ndarray,
-    z_centres: np.ndarray,
-    y_near: float,
-    y_far: float,
-    out: np.ndarray,
-    known: np.ndarray,
-) -> None:
-    """:func:`_surface_map` for each of (regions, rows, cols) sample grids, in place."""
-    for k in range(sample_y.shape[0]):
-        _surface_map(sample_y[k], sample_x[k], sample_z[k], x_centres, z_centres, y_near, y_far, out[k], known[k])
-
-
 def bin_centres(half_m: float, count: int) -> np.ndarray:
     """The ``count`` float64 centres of equal bins over [-half_m, half_m] (their edges'
     midpoints, perception.binning.bin_edges)."""
@@ -309,17 +292,8 @@ def surface_maps(
     x_centres, z_centres = bin_centres(half_x, cols), bin_centres(half_z, rows)
 
     def answer(first: int, stop: int) -> None:
-        surface_maps_kernel(
-            sample_y[first:stop],
-            sample_x[first:stop],
-            sample_z[first:stop],
-            x_centres,
-            z_centres,
-            float(y_near),
-            float(y_far),
-            out[first:stop],
-            known[first:stop],
-        )
+        for k in range(first, stop):
+            _surface_map(sample_y[k], sample_x[k], sample_z[k], x_centres, z_centres, y_near, y_far, out[k], known[k])
 
     edges = np.linspace(0, regions, min(max(threads, 1), regions) + 1).astype(int)
     if len(edges) <= 2:
