@@ -251,7 +251,7 @@ class SampledDropout(nn.Module):
 
 def sampling_copy(generator: UNetGenerator) -> UNetGenerator:
     """A copy in eval mode whose dropout still samples: several passes give the spread that the
-    report's dropout sweep (report/sweeps.py) measures. The inference node no longer serves it
+    report's dropout sweep (report/sweeps/learned.py) measures. The inference node no longer serves it
     (protocol v4): that spread was ~0 and uncorrelated with the error; models.uncertainty serves
     a calibrated one instead."""
     sampled = copy.deepcopy(generator).eval()

@@ -24,8 +24,8 @@ from perception.touch_calibration import (
     solve_cell,
     table_levelling,
 )
-from report.calibration_sweep import calibration_grasps
 from report.plan import QUICK
+from report.sweeps.calibration import calibration_grasps
 from report.workspace import Workspace
 
 REPO = Path(__file__).resolve().parent.parent

@@ -1,0 +1,68 @@
+"""What the report's sweeps share: timing, SSIM against a session's truth, standard errors."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from dataset.images import resize_rgb
+from models.evaluate import contact_ssim
+from models.networks import UNetGenerator
+from models.serving import predict
+from perception.ssim import ssim_rgb
+from report.workspace import REFERENCE_SIZE, SessionTest, epoch_cpu_s
+
+
+def median_ms(function: Callable[[], object], runs: int) -> float:
+    walls = []
+    for _ in range(runs):
+        started = time.perf_counter()
+        function()
+        walls.append((time.perf_counter() - started) * 1e3)
+    return statistics.median(walls)
+
+
+def resize(images: np.ndarray, size: int) -> np.ndarray:
+    return np.stack([resize_rgb(image, size, size) for image in images])
+
+
+def session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarray) -> dict[str, float]:
+    """SSIM of 100 x 100 estimates against the session's test truth on the contact windows
+    (models.evaluate.contact_ssim: the accuracy these sweeps rank by) and over the whole
+    image (the paper's figure, which a no-contact estimate scores well on). ``no_contact`` is
+    the same model's estimate from an empty depth-map: a setting whose estimates do not beat
+    it on the contact windows (one-sided Wilcoxon over the pairs, ``p_vs_no_contact``) gives
+    the model nothing it uses."""
+    contact = contact_ssim(test.truth, test.deformation, estimate)
+    floor = contact_ssim(test.truth, test.deformation, np.repeat(no_contact[None], len(test.truth), axis=0))
+    whole = ssim_rgb(test.truth, estimate)
+    better = stats.wilcoxon(contact, floor, alternative="greater").pvalue if np.any(contact != floor) else 1.0
+    return {
+        "contact_ssim": float(contact.mean()),
+        "contact_ssim_se": standard_error(contact),
+        "contact_pairs": len(contact),
+        "no_contact_ssim": round(float(floor.mean()), 4),
+        "p_vs_no_contact": float(better),
+        "ssim": round(float(whole.mean()), 4),
+        "ssim_se": standard_error(whole),
+    }
+
+
+def no_contact_estimate(generator: UNetGenerator, depth_range: tuple[float, float], size: int) -> np.ndarray:
+    """The model's estimate (resized to 100 x 100) from a depth-map with nothing in reach."""
+    empty = np.full((1, size, size), depth_range[1], np.float32)
+    return resize(predict(generator, empty, depth_range), REFERENCE_SIZE)[0]
+
+
+def epoch_s(model: Path) -> float:
+    """The median epoch's CPU seconds: the first training of a process also pays start-up."""
+    return float(statistics.median(epoch_cpu_s(model)))
+
+
+def standard_error(values: np.ndarray) -> float:
+    return float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else float("nan")
