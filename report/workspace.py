@@ -28,6 +28,7 @@ from dataset.redepth import depth_map_params, redepth_dataset
 from dataset.touch_calibration import REGISTRATION_FRAMES_TOPIC
 from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import select_records
+from models.serving import fit_serving
 from models.train import train
 from report.contacts import Contact, contacts, write_dataset
 from report.plan import Plan
@@ -168,8 +169,11 @@ class Workspace:
 
     def _trained(self, dataset: Path, config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
         """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
-        seconds of each epoch, data loading included). Trained one epoch per call so that each
-        epoch's CPU time is known; an interrupted training resumes from its checkpoint."""
+        seconds of each epoch, data loading included; serving_cpu_s.json: choosing what it
+        serves and fitting its uncertainty). Trained one epoch per call so that each epoch's CPU
+        time is known; an interrupted training resumes from its checkpoint. Then served as ``dtx
+        train`` serves a model (models.serving.fit_serving), so that every figure is the path a
+        planner calls."""
         cpu_log = out / "cpu_s.json"
         checkpoint = out / "checkpoint.pt"
         if checkpoint.exists() and TrainConfig.from_dict(load_checkpoint(checkpoint)["train_config"]) != config:
@@ -187,6 +191,10 @@ class Workspace:
                 cpu_log.write_text(json.dumps(cpu + [round(time.process_time() - started, 2)]))
         finally:
             torch.set_num_threads(threads)  # train() set one thread for the whole process
+        if "serves" not in load_checkpoint(checkpoint):
+            started = time.process_time()
+            fit_serving(checkpoint, log=lambda line: None)
+            (out / "serving_cpu_s.json").write_text(json.dumps(round(time.process_time() - started, 2)))
         return out
 
     @functools.cached_property
