@@ -251,9 +251,9 @@ class SampledDropout(nn.Module):
 
 def sampling_copy(generator: UNetGenerator) -> UNetGenerator:
     """A copy in eval mode whose dropout still samples: several passes give the spread that the
-    report's dropout sweep (report/sweeps/learned.py) measures. The inference node no longer serves it
-    (protocol v4): that spread was ~0 and uncorrelated with the error; models.uncertainty serves
-    a calibrated one instead."""
+    report's uncertainty sweep (report/sweeps/serving.py) sets against the learned uncertainty.
+    The inference node no longer serves it (protocol v4): that spread was ~0 and uncorrelated
+    with the error; models.uncertainty serves a calibrated one instead."""
     sampled = copy.deepcopy(generator).eval()
     for block in sampled.modules():
         for name, child in block.named_children():

@@ -45,7 +45,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", required=True, type=_out_dir, metavar="DIR", help="where report.md, plots, points go")
-    p.add_argument("--quick", action="store_true", help="reduced sweeps for CI (<= 10 min on 2 cores)")
+    p.add_argument("--quick", action="store_true", help="every table at lower counts (<= 30 min on 2 cores)")
     p.add_argument(
         "--reuse", action="store_true", help="take sweeps cached in DIR/cache by the same plan and training config"
     )
@@ -69,9 +69,19 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 def _session_dir(value: str) -> Path:
     path = Path(value)
-    if not (path / "manifest.jsonl").is_file():
-        raise argparse.ArgumentTypeError(f"{value} is not a collected session (no manifest.jsonl)")
+    missing = [name for name in ("manifest.jsonl", "dataset.json") if not (path / name).is_file()]
+    if missing:
+        raise argparse.ArgumentTypeError(f"{value} is not a collected session (no {' or '.join(missing)})")
     return path
+
+
+def _fingerprint(session: Path) -> str:
+    """A collected session named by what it holds (its manifest and dataset.json), not by where it
+    lies: the report and its cache name no path of the machine that made them."""
+    digest = hashlib.sha1()
+    for name in ("dataset.json", "manifest.jsonl"):
+        digest.update((session / name).read_bytes())
+    return digest.hexdigest()[:12]
 
 
 def _cached(path: Path, made_by: dict) -> dict | None:
@@ -95,12 +105,16 @@ def _header(
         "Sweep times: " + "; ".join(timings) + ".",
     ]
     if session is not None:
-        header += ["", f"The session sweeps ran on the collected session {session}, not on one of the plan's size."]
+        header += [
+            "",
+            f"The session sweeps ran on a collected session given with --session (fingerprint "
+            f"{_fingerprint(session)}), not on one of the plan's size.",
+        ]
     if workspace.reused_models:
         header += [
             "",
-            f"Trained models reused from an earlier run in {workspace.root} (their training is not in "
-            f"the times above; its CPU seconds per epoch are in the tables): "
+            f"Trained models reused from an earlier run in this report's work/{workspace.root.name} (their "
+            f"training is not in the times above; its CPU seconds per epoch are in the tables): "
             f"{', '.join(sorted(workspace.reused_models))}.",
         ]
     if plan.name != FULL.name:
@@ -123,16 +137,11 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     from report.workspace import Workspace, training_config
 
     # A given session gets a workspace of its own: its re-cut datasets and trained models are its.
-    work = (
-        plan.name
-        if args.session is None
-        else f"{plan.name}-{hashlib.sha1(str(args.session.resolve()).encode()).hexdigest()[:8]}"
-    )
+    session = None if args.session is None else _fingerprint(args.session)
+    work = plan.name if session is None else f"{plan.name}-{session}"
     workspace = Workspace(args.out / "work" / work, plan, args.session)
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
-    made_by = json.loads(
-        json.dumps({**made_by, "session": None if args.session is None else str(args.session.resolve())})
-    )
+    made_by = json.loads(json.dumps({**made_by, "session": session}))
     cache.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     points, timings, entries = [], [], []

@@ -1,6 +1,6 @@
-"""How much each sweep measures: the full report and the reduced quick one (CI, <= 10 min on
-2 cores). The report lists every field where the two differ, so what --quick left out is
-stated from these values, never written by hand."""
+"""How much each sweep measures: the full report and the reduced quick one (every table at
+lower counts, <= 30 min on 2 cores). The report lists every field where the two differ, so what
+--quick left out is stated from these values, never written by hand."""
 
 from __future__ import annotations
 
@@ -13,12 +13,16 @@ SWEEP_NAMES = (
     "training_length",
     "width",
     "density",
+    "depth_map",
+    "pose_sigma",
     "gelsight_effects",
-    "dropout",
+    "uncertainty",
+    "serving",
     "inference",
     "registration",
     "depth_effects",
     "calibration_grasps",
+    "pipeline",
 )
 
 
@@ -31,6 +35,8 @@ class Plan:
     epochs: int  # constant-rate epochs of every training (then as many decaying)
     densities: tuple[float, ...]  # points/cm³ (paper Table II)
     resolutions: tuple[int, ...]  # depth-map bins per side
+    depth_map_methods: tuple[str, ...]  # what a bin holds (perception.surface.DEPTH_MAP_METHODS)
+    pose_sigmas_mm: tuple[float, ...]  # in-plane pose errors the session model is served with (mm)
     registration_poses: int  # poses per YCB mesh in the registration sweeps
     voxel_mm: tuple[int, ...]
     ransac_iterations: tuple[int, ...]
@@ -63,6 +69,8 @@ FULL = Plan(
     epochs=5,
     densities=(1.0, 10.0, 20.0, 40.0, 80.0),
     resolutions=(50, 100, 200),
+    depth_map_methods=("surface", "nearest_point"),
+    pose_sigmas_mm=(0.0, 0.5, 1.0, 1.5, 2.0, 3.0),
     registration_poses=3,
     voxel_mm=(2, 4, 6, 8, 10),
     ransac_iterations=(1_000, 5_000, 20_000, 100_000),

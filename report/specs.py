@@ -73,6 +73,45 @@ SPECS: dict[str, Spec] = {
         ),
         pipeline_setting="unfiltered",
     ),
+    "depth_map": Spec(
+        "Depth-map rule: the surface against the nearest point",
+        "What should a bin hold: the model's surface through it, or its nearest point (the paper's)? "
+        "(collected session, depth-maps cut again by each rule from the recorded model poses and the "
+        "default model trained on each; SSIM on the contact windows)",
+        "rule",
+        "ms per depth-map",
+        "contact SSIM",
+        True,
+        0.01,
+        (
+            ("contact_ssim_se", "contact s.e."),
+            ("p_vs_no_contact", "p vs empty map"),
+            ("dissimilarity_ratio", "dissimilarity ratio"),
+            ("renderer_ratio", "renderer ratio"),
+            ("training_s_per_epoch", "training CPU s/epoch"),
+            ("ssim", "whole-image SSIM"),
+        ),
+        pipeline_setting="surface",
+    ),
+    "pose_sigma": Spec(
+        "Pose uncertainty told to the model",
+        "What in-plane pose error (pose_sigma_mm) should a planner pass with its depth-maps? (the "
+        "session model serving the test split's maps with its physics prior blurred by each; SSIM "
+        "on the contact windows)",
+        "pose_sigma_mm",
+        "ms per region",
+        "contact SSIM",
+        True,
+        # Every sigma costs the same blur: the most accurate is the advice, not the fastest
+        # within a margin, which timing noise would choose.
+        0.0,
+        (
+            ("contact_ssim_se", "contact s.e."),
+            ("p_vs_no_contact", "p vs empty map"),
+            ("dissimilarity_ratio", "dissimilarity ratio"),
+            ("ssim", "whole-image SSIM"),
+        ),
+    ),
     "registration_voxel": Spec(
         "Registration voxel size",
         "Coarser FPFH voxels: faster, but how much pose error?",
@@ -156,7 +195,8 @@ SPECS: dict[str, Spec] = {
     ),
     "width": Spec(
         "Generator width (trained)",
-        "Does a wider generator estimate better, for its time?",
+        "Does a wider generator's network estimate better, for its time, and better than the physics "
+        "prior alone (no network)?",
         "width",
         "ms per region (eager fp32)",
         "SSIM",
@@ -193,14 +233,42 @@ SPECS: dict[str, Spec] = {
         0.01,
         (("regions_per_s", "regions/s"), ("p50_ms", "p50 ms (1 region)")),
     ),
-    "dropout": Spec(
-        "Dropout samples for the uncertainty",
-        "How many dropout passes make a calibrated uncertainty?",
-        "samples",
-        "ms per region",
-        "r(std, error) per pixel",
+    "uncertainty": Spec(
+        "The uncertainty's method and cost",
+        "Does the learned uncertainty a planner receives predict the served estimate's error better "
+        "than the spread of dropout passes, and what does each add to the time? (collected session, "
+        "the default model through the served path; r per pixel against |estimate - truth|, levels)",
+        "method",
+        "ms per region added",
+        "r(u, error) per pixel",
         True,
         0.05,
-        (("image_r", "r per image"), ("mean_std", "mean std")),
+        (
+            ("region_r", "r(mean u, 1 - SSIM) per region"),
+            ("decile_ratio_min", "RMS e / mean u, lowest decile ratio"),
+            ("decile_ratio_max", "RMS e / mean u, highest decile ratio"),
+            ("u_mean_levels", "mean u (levels)"),
+            ("estimate_ms", "served estimate ms/region"),
+            ("refused", "refused because"),
+        ),
+    ),
+    "serving": Spec(
+        "What serves: the prior alone or the network, with or without the uncertainty",
+        "What does each form a checkpoint could serve cost per region and score? (collected session, "
+        "the default model through the served path from depth-maps, 64 regions a pass; SSIM on the "
+        "contact windows; served: what the checkpoint serves)",
+        "form",
+        "ms per region",
+        "contact SSIM",
+        True,
+        0.01,
+        (
+            ("served", "served"),
+            ("contact_ssim_se", "contact s.e."),
+            ("p_vs_no_contact", "p vs empty map"),
+            ("dissimilarity_ratio", "dissimilarity ratio"),
+            ("regions_per_s", "regions/s"),
+            ("refused", "refused because"),
+        ),
     ),
 }

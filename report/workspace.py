@@ -75,10 +75,14 @@ class Workspace:
     def session(self) -> Path:
         """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
         operator runs (Algorithm 1), ``plan.session_grasps`` grasps, its registrations' camera
-        frames recorded; resumed if interrupted. The given session, when there is one."""
+        frames recorded; resumed if interrupted, left as it is when complete (a resumed run
+        would write its session.json again, with no stage times for the grasps it did not make).
+        The given session, when there is one."""
         if self.given_session is not None:
             return self.given_session
         out = (self.root / "session").resolve()
+        if _grasps_done(out) >= self.plan.session_grasps:
+            return out
         resume = (out / "manifest.jsonl").exists()
         command = collect_sim_command(out, self.plan.session_grasps, self.plan.seed, record=True, resume=resume)
         # The registrations' camera frames, which the touch calibration needs (dtx calibrate touches).
@@ -96,11 +100,13 @@ class Workspace:
             )
         return out
 
-    def session_at(self, bins: int) -> Path:
-        """The session with its depth-maps made again over ``bins`` x ``bins`` bins."""
-        if bins == REFERENCE_SIZE:
-            return self.session  # collected at 100 x 100
-        return redepth_dataset(self.session, self.root / f"session_{bins}", bins=bins, progress=False).root
+    def session_at(self, bins: int, method: str = "surface") -> Path:
+        """The session with its depth-maps made again over ``bins`` x ``bins`` bins, each bin
+        holding what ``method`` says (perception.surface.DEPTH_MAP_METHODS)."""
+        if bins == REFERENCE_SIZE and method == DatasetReader(self.session).info.depth_map_method:
+            return self.session  # collected at 100 x 100 by that rule
+        out = self.root / f"session_{bins}{_method_suffix(method)}"
+        return redepth_dataset(self.session, out, bins=bins, progress=False, method=method).root
 
     @functools.cached_property
     def session_test(self) -> SessionTest:
@@ -138,11 +144,11 @@ class Workspace:
             self.dataset(size), self.config(size, width, registered=False), self.root / f"train_{size}_w{width}"
         )
 
-    def library_at(self, bins: int) -> Path:
+    def library_at(self, bins: int, method: str = "surface") -> Path:
         """``plan.library_samples`` contact-library pairs (dataset.contact_library) in the
-        session's scene, depth range and crop, at ``bins`` x ``bins``: what the default model
-        trains on beside a session (make demo, docs/generalisation.md)."""
-        out = self.root / f"library_{bins}"
+        session's scene, depth range and crop, at ``bins`` x ``bins`` binned by ``method``: what
+        the default model trains on beside a session (make demo, docs/generalisation.md)."""
+        out = self.root / f"library_{bins}{_method_suffix(method)}"
         if (out / "manifest.jsonl").exists() and len(DatasetReader(out).records) >= self.plan.library_samples:
             return out  # made by an earlier run, whose code version its dataset.json keeps
         session = DatasetReader(self.session)
@@ -155,16 +161,22 @@ class Workspace:
             session.info.depth_range_m,  # the session's depth-maps' y range (depth_map_params)
             params.margin_m,
             size=bins,
+            method=method,
         ).root
 
-    def session_model(self, bins: int = REFERENCE_SIZE) -> Path:
+    def session_model(self, bins: int = REFERENCE_SIZE, method: str = "surface") -> Path:
         """The width-16 model trained as the default is (the session with a contact library)
-        at ``bins`` x ``bins``: see :meth:`_trained`."""
+        at ``bins`` x ``bins`` on depth-maps binned by ``method``: see :meth:`_trained`."""
+        config = self.config(bins, 16, registered=True)
+        if method != "surface":
+            # The default's config is left as configs/quick.yaml has it ("": the dataset's rule),
+            # so that models an earlier run trained match it and are kept.
+            config = dataclasses.replace(config, depth_map=method)
         return self._trained(
-            self.session_at(bins),
-            self.config(bins, 16, registered=True),
-            self.root / f"train_session_{bins}",
-            libraries=(self.library_at(bins),),
+            self.session_at(bins, method),
+            config,
+            self.root / f"train_session_{bins}{_method_suffix(method)}",
+            libraries=(self.library_at(bins, method),),
         )
 
     def _trained(self, dataset: Path, config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
@@ -204,6 +216,20 @@ class Workspace:
         records = select_records(reader, "test")
         by_id = {c.sample_id: c for c in self.contacts}
         return [by_id[r.sample_id] for r in records], np.stack([reader.load(r).tactile_rgb for r in records])
+
+
+def _method_suffix(method: str) -> str:
+    """What a directory made by depth-map rule ``method`` adds to its name: nothing for the
+    default rule, so that a workspace made before the rule was a setting is reused."""
+    return "" if method == "surface" else f"_{method}"
+
+
+def _grasps_done(session: Path) -> int:
+    """The grasps a collection session's collector counted (its session.json; 0 before one)."""
+    try:
+        return int(json.loads((session / "session.json").read_text())["stats"]["grasps_done"])
+    except (FileNotFoundError, ValueError, KeyError, TypeError):
+        return 0
 
 
 def epoch_cpu_s(model: Path) -> list[float]:

@@ -8,11 +8,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from report.defaults import default_line, project_default
 from report.pareto import pareto_front, recommend
+from report.pipeline import PIPELINE, pipeline_section
 from report.specs import SPECS, Spec
 
 PARETO_MARK = "◆"
-DEFAULT_MARK = "**default**"
+DEFAULT_MARK = "**recommended**"
+PROJECT_MARK = "✓"
 
 
 def annotate(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -120,8 +123,17 @@ def reason(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
     return text + "." + left_out
 
 
-def table(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
-    header = [spec.setting, spec.accuracy, spec.time, *(title for _, title in spec.extras), "Pareto", "default"]
+def table(spec: Spec, points: Sequence[dict[str, Any]], project: str | None = None) -> str:
+    """The sweep's table; ``project`` is the row label of the project's default setting."""
+    header = [
+        spec.setting,
+        spec.accuracy,
+        spec.time,
+        *(title for _, title in spec.extras),
+        "Pareto",
+        "recommended",
+        "project default",
+    ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for p in points:
         cells = [
@@ -131,6 +143,7 @@ def table(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
             *(_format(p.get(key)) for key, _ in spec.extras),
             PARETO_MARK if p["pareto"] else "",
             DEFAULT_MARK if p["recommended"] else "",
+            PROJECT_MARK if p["setting"] == project else "",
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -175,9 +188,11 @@ def write_report(out: Path, points: Sequence[dict[str, Any]], header: Sequence[s
         "",
         *header,
         "",
+        *pipeline_section(points),
         f"In every table {PARETO_MARK} marks a Pareto-optimal setting (no other setting is both at least as "
-        f"fast and at least as accurate, and better in one) and {DEFAULT_MARK} the recommended one. "
-        "Every measured point is in points.json.",
+        f"fast and at least as accurate, and better in one), {DEFAULT_MARK} the recommended one (the fastest "
+        f"Pareto setting within the table's tolerance of the best) and {PROJECT_MARK} the setting the "
+        "project runs by default. Every measured point is in points.json.",
         "",
     ]
     for sweep, spec in SPECS.items():
@@ -190,14 +205,17 @@ def write_report(out: Path, points: Sequence[dict[str, Any]], header: Sequence[s
             "",
             spec.question,
             "",
-            table(spec, mine),
+            table(spec, mine, project_default(sweep, mine)),
             "",
             "Recommended: " + reason(spec, mine),
+            "",
+            default_line(sweep, mine),
             "",
             f"![{spec.title}]({sweep}.png)",
             "",
         ]
-    (out / "points.json").write_text(dumps(marked))
+    # annotate() keeps only the sweeps of SPECS; the pipeline's rows (no Pareto front) are kept as measured.
+    (out / "points.json").write_text(dumps([*marked, *(p for p in points if p["sweep"] == PIPELINE)]))
     path = out / "report.md"
     path.write_text("\n".join(lines))
     return path

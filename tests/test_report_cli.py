@@ -54,7 +54,7 @@ def test_quick_plan_states_its_reductions() -> None:
     reductions = QUICK.reductions(FULL)
     assert any(r.startswith("samples: 120 (full: 578)") for r in reductions)
     assert FULL.reductions(FULL) == []
-    assert len(set(SWEEP_NAMES)) == len(SWEEP_NAMES) == 10
+    assert len(set(SWEEP_NAMES)) == len(SWEEP_NAMES) >= 12
 
 
 def test_every_named_sweep_exists() -> None:
@@ -83,7 +83,7 @@ def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     assert args.func(args) == 0
     report = (tmp_path / "report.md").read_text()
     assert "density reused (5 s on then)" in report
-    assert "| 1 pts/cm³ | 0.8 | 0.2 |" in report and "**default**" in report
+    assert "| 1 pts/cm³ | 0.8 | 0.2 |" in report and "**recommended**" in report
     assert not (tmp_path / "work").exists()  # nothing was measured
 
 
@@ -110,3 +110,42 @@ def test_only_the_session_models_blur_their_prior_by_the_registration_error(tmp_
     assert session.session_pose_sigma_mm == default.session_pose_sigma_mm
     assert analytic.session_pose_sigma_mm == 0.0  # analytic contacts: exact geometry
     assert dataclasses.replace(analytic, session_pose_sigma_mm=session.session_pose_sigma_mm) == session
+
+
+def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: Path) -> None:
+    """The report and its cache are committed: they name a --session by its fingerprint, and the
+    same session copied elsewhere reuses the same cached sweeps."""
+    from report.cli import _fingerprint
+
+    session = tmp_path / "somewhere" / "session"
+    session.mkdir(parents=True)
+    (session / "manifest.jsonl").write_text('{"sample_id": "a"}\n')
+    (session / "dataset.json").write_text('{"scene": "scenes/ycb_three.yaml"}\n')
+    out = tmp_path / "report"
+    (out / "cache").mkdir(parents=True)
+    made_by = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict()}
+    entry = {**made_by, "session": _fingerprint(session), "seconds": 1.0, "measured_at": "then"}
+    points = [{"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.8}]
+    (out / "cache" / "density.json").write_text(json.dumps({**entry, "points": points}))
+    copy = tmp_path / "elsewhere"
+    copy.mkdir()
+    for name in ("manifest.jsonl", "dataset.json"):
+        (copy / name).write_bytes((session / name).read_bytes())
+    args = _parser().parse_args(
+        [
+            "report",
+            "accuracy-time",
+            "--out",
+            str(out),
+            "--quick",
+            "--reuse",
+            "--only",
+            "density",
+            "--session",
+            str(copy),
+        ]
+    )
+    assert args.func(args) == 0
+    written = (out / "report.md").read_text() + (out / "points.json").read_text()
+    assert "density reused" in written and _fingerprint(session) in written
+    assert str(tmp_path) not in written and "elsewhere" not in written

@@ -1,5 +1,6 @@
-"""report.write on a small fixed set of points: tables carry the Pareto and default marks,
-plots and points.json are written, effects sweeps recommend realism when it matters."""
+"""report.write on a small fixed set of points: tables carry the Pareto, recommended and project
+default marks, plots and points.json are written, effects sweeps recommend realism when it
+matters, and a default the report does not recommend is explained or flagged."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ import json
 import math
 from pathlib import Path
 
-from report.write import DEFAULT_MARK, PARETO_MARK, annotate, dumps, loads, write_report
+from perception.registration import RegistrationParams
+from report.defaults import PROJECT_DEFAULTS, WHY_NOT, default_line, project_default
+from report.specs import SPECS
+from report.write import DEFAULT_MARK, PARETO_MARK, PROJECT_MARK, annotate, dumps, loads, write_report
 
 POINTS = [
     # 1 pts/cm³ is fast and within 0.01 of the best, but its estimates do not beat the model's
@@ -114,3 +118,31 @@ def test_points_round_trip_with_failed_measurements() -> None:
     again = loads(dumps(POINTS))
     assert math.isnan(again[6]["accuracy"])
     assert again[:6] == POINTS[:6]
+
+
+def test_every_table_names_the_projects_default() -> None:
+    assert set(SPECS) <= set(PROJECT_DEFAULTS)
+
+
+def test_the_projects_default_is_marked_and_explained(tmp_path: Path) -> None:
+    """The voxel row the registration runs with by default is marked; it is not the recommended
+    one here and no reason is recorded, so the report says so instead of passing it off."""
+    voxel = f"{RegistrationParams().voxel_size_m * 1e3:g} mm"
+    points = [{**p, "setting": voxel} if p["setting"] == "8 mm" else p for p in POINTS]
+    report = write_report(tmp_path, points, ["Mode: test"]).read_text()
+    rows = _rows(report, "Registration voxel size")
+    assert rows[voxel].endswith(f"| {PROJECT_MARK} |") and not rows["4 mm"].endswith(f"| {PROJECT_MARK} |")
+    assert f"Project default: **{voxel}**, not the recommended **4 mm**: no reason is recorded" in report
+    # The density table's default, unfiltered, is the pipeline's own and here not the recommended.
+    assert "Project default: **unfiltered**, not the recommended **40 pts/cm³**" in report
+
+
+def test_a_default_kept_for_a_reason_says_it_and_a_missing_one_says_not_measured() -> None:
+    marked = annotate([p for p in POINTS if p["sweep"] == "gelsight_effects"])
+    scene = project_default("gelsight_effects", marked)
+    assert scene == "sensor_noise"  # what scenes/ycb_three.yaml calls for
+    assert default_line("gelsight_effects", [*marked, {"setting": scene, "recommended": False}]) == (
+        f"Project default: **{scene}**, not the recommended: {WHY_NOT['gelsight_effects']}."
+    )
+    marked = annotate([p for p in POINTS if p["sweep"] == "registration_voxel" and p["setting"] != "8 mm"])
+    assert "(not among the settings measured here)" in default_line("registration_voxel", marked)

@@ -6,7 +6,6 @@ scene holds the true extrinsics."""
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +16,10 @@ from dataset.redepth import depth_map_again, depth_map_params, model_index, pose
 from dataset.registered_again import register_again
 from dataset.splits import split_records
 from dataset.touch_calibration import calibrate_touches, registration_frames, scene_camera_truth
-from models.evaluate import ssim_statistics
 from perception.touch_calibration import TouchCalibrationError, pose_error
-from report.ceiling import depth_map_images
 from report.specs import Point, point
-from report.workspace import SessionTest, Workspace
-from workcell.scene import Scene
+from report.sweeps.common import renderer_ratio
+from report.workspace import Workspace
 
 
 def _seconds_per_grasp(records: list[SampleRecord]) -> float:
@@ -57,7 +54,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             0.0,
             max(mm for mm, _ in before),
             error_deg=round(max(deg for _, deg in before), 4),
-            **_renderer_ratio(test, scene, reader.info.depth_crop_m, recorded),
+            **renderer_ratio(test, scene, reader.info.depth_crop_m, recorded),
         )
     ]
     for grasps in sorted({min(n, available) for n in ws.plan.calibration_grasps}):
@@ -87,7 +84,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
                 error_deg=round(max(row["error_deg"] for row in cameras), 4),
                 fit_cpu_s=round(fit_s, 1),
                 touches=sum(calibration.object_touches.values()),
-                **_renderer_ratio(test, scene, reader.info.depth_crop_m, maps),
+                **renderer_ratio(test, scene, reader.info.depth_crop_m, maps),
             )
         )
     return points
@@ -96,17 +93,3 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
 def _given_extrinsics(session: Path) -> dict[str, np.ndarray]:
     """Each camera's camera_to_world as the session's registrations used it, by frame id."""
     return {frame: images[-1].camera_to_world for frame, images in registration_frames(session).items()}
-
-
-def _renderer_ratio(
-    test: SessionTest, scene: Scene, depth_crop_m: Sequence[float] | None, depth_maps_m: np.ndarray
-) -> dict[str, float]:
-    """The test split's ``depth_maps_m`` through the GelSight renderer, scored against the
-    session's images as a model is (models.evaluate.ssim_statistics)."""
-    assert depth_crop_m is not None  # a session records its crop (dataset.json)
-    images = depth_map_images(scene, depth_maps_m, depth_crop_m, test.truth.shape[1:3])
-    scores = ssim_statistics(test.truth, images)
-    return {
-        "renderer_ratio": round(float(scores["dissimilarity_ratio"]), 4),
-        "renderer_ssim": round(float(scores["ssim_model_mean"]), 4),
-    }

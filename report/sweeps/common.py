@@ -4,18 +4,20 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
 from dataset.images import resize_rgb
-from models.evaluate import contact_ssim
+from models.evaluate import contact_ssim, ssim_statistics
 from models.networks import UNetGenerator
 from models.serving import predict
 from perception.ssim import ssim_rgb
+from report.ceiling import depth_map_images
 from report.workspace import REFERENCE_SIZE, SessionTest, epoch_cpu_s
+from workcell.scene import Scene
 
 
 def median_ms(function: Callable[[], object], runs: int) -> float:
@@ -53,10 +55,33 @@ def session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarr
     }
 
 
-def no_contact_estimate(generator: UNetGenerator, depth_range: tuple[float, float], size: int) -> np.ndarray:
-    """The model's estimate (resized to 100 x 100) from a depth-map with nothing in reach."""
+def no_contact_estimate(
+    generator: UNetGenerator, depth_range: tuple[float, float], size: int, pose_sigma_mm: float | None = None
+) -> np.ndarray:
+    """The model's estimate (resized to 100 x 100) from a depth-map with nothing in reach,
+    served with ``pose_sigma_mm`` (mm; None: the model's default)."""
     empty = np.full((1, size, size), depth_range[1], np.float32)
-    return resize(predict(generator, empty, depth_range), REFERENCE_SIZE)[0]
+    return resize(predict(generator, empty, depth_range, pose_sigma_mm=pose_sigma_mm), REFERENCE_SIZE)[0]
+
+
+def dissimilarity_ratio(test: SessionTest, estimate: np.ndarray) -> float:
+    """The estimates' mean 1 - SSIM over a random pairing's, against the session's test truth
+    (models.evaluate.ssim_statistics: how ``dtx evaluate`` scores a model; below 1 is better)."""
+    return round(float(ssim_statistics(test.truth, estimate)["dissimilarity_ratio"]), 4)
+
+
+def renderer_ratio(
+    test: SessionTest, scene: Scene, depth_crop_m: Sequence[float] | None, depth_maps_m: np.ndarray
+) -> dict[str, float]:
+    """The test split's ``depth_maps_m`` (m) through the GelSight renderer, scored against the
+    session's images as a model is (models.evaluate.ssim_statistics)."""
+    assert depth_crop_m is not None  # a session records its crop (dataset.json)
+    images = depth_map_images(scene, depth_maps_m, depth_crop_m, test.truth.shape[1:3])
+    scores = ssim_statistics(test.truth, images)
+    return {
+        "renderer_ratio": round(float(scores["dissimilarity_ratio"]), 4),
+        "renderer_ssim": round(float(scores["ssim_model_mean"]), 4),
+    }
 
 
 def epoch_s(model: Path) -> float:

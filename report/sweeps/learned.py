@@ -1,11 +1,11 @@
 """The learned sweeps on the analytic contacts, whose ground truth can be rendered again:
-training length, generator width, GelSight effects, the runtime variants and dropout."""
+training length, generator width (down to the physics prior alone), GelSight effects and the
+runtime variants."""
 
 from __future__ import annotations
 
 import argparse
 import csv
-import time
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +15,12 @@ from benchmarks import inference as inference_bench
 from dataset.reader import DatasetReader
 from dataset.synth import gel_gap_from_surface, gelsight_renderer
 from models.checkpoint import load_generator
-from models.data import network_input, select_records
-from models.runtime import sampling_copy
+from models.data import select_records
 from models.serving import predict
 from perception.ssim import ssim_rgb
 from report.specs import Point, point
 from report.sweeps.common import epoch_s, median_ms, standard_error
+from report.sweeps.serving import serving_as
 from report.workspace import REFERENCE_SIZE, Workspace, epoch_cpu_s
 from sim.gelsight import GelSightRenderer
 from sim.gelsight_effects import EFFECTS as GELSIGHT_EFFECTS
@@ -28,8 +28,10 @@ from sim.gelsight_effects import make_effect
 
 
 def width(ws: Workspace) -> list[Point]:
-    """Generator width (ngf), each trained the same way at 100 x 100 -> test SSIM against the
-    truth, and eager fp32 inference time per region (benchmarks.inference has the runtimes)."""
+    """Generator width (ngf), each trained the same way at 100 x 100, its network served (not
+    the prior a checkpoint may have chosen to serve; no uncertainty) -> test SSIM against the
+    truth, and eager fp32 inference time per region (benchmarks.inference has the runtimes);
+    then the physics prior alone, which every width draws the same and no network computes."""
     _, truth = ws.test
     reader = DatasetReader(ws.dataset(REFERENCE_SIZE))
     depth = np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")])
@@ -37,8 +39,9 @@ def width(ws: Workspace) -> list[Point]:
     for ngf in ws.plan.trained_widths:
         model = ws.model(REFERENCE_SIZE, ngf)
         generator, depth_range = load_generator(model / "checkpoint.pt")
-        ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
-        inference_ms = median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
+        with serving_as(generator, "network", None):
+            ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
+            inference_ms = median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
         points.append(
             point(
                 "width",
@@ -50,7 +53,17 @@ def width(ws: Workspace) -> list[Point]:
                 parameters=sum(p.numel() for p in generator.parameters()),
             )
         )
-    return points
+    return points + [_prior_alone(ws.model(REFERENCE_SIZE, min(ws.plan.trained_widths)), depth, truth)]
+
+
+def _prior_alone(model: Path, depth: np.ndarray, truth: np.ndarray) -> Point:
+    """The width table's floor: the model's physics prior served alone (models.serving.served_images
+    "prior"), timed from the same depth-maps; no weights, nothing trained."""
+    generator, depth_range = load_generator(model / "checkpoint.pt")
+    with serving_as(generator, "prior", None):
+        ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
+        inference_ms = median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
+    return point("width", "prior alone", inference_ms, ssim.mean(), ssim_se=standard_error(ssim), parameters=0)
 
 
 def _val_log(model: Path) -> list[dict[str, float]]:
@@ -107,17 +120,22 @@ def inference(ws: Workspace) -> list[Point]:
     """benchmarks.inference: width x precision x runtime -> SSIM against fp32 eager of the same
     weights, and time per region at batch 16."""
     threads = torch.get_num_threads()
-    args = argparse.Namespace(
-        checkpoint=[],
-        dataset=None,
-        widths=list(ws.plan.widths),
-        precisions=list(ws.plan.precisions),
-        runtimes=list(ws.plan.runtimes),
-        batch=16,
-        seconds=ws.plan.inference_seconds,
-        threads=threads,
-        seed=ws.plan.seed,
-        json=True,
+    # The bench's own parser, so that every option it gains has its default here too.
+    parser = argparse.ArgumentParser()
+    inference_bench.add_arguments(parser)
+    args = parser.parse_args(
+        [
+            "--widths",
+            *map(str, ws.plan.widths),
+            "--precisions",
+            *ws.plan.precisions,
+            "--runtimes",
+            *ws.plan.runtimes,
+            "--batch=16",
+            f"--seconds={ws.plan.inference_seconds}",
+            f"--threads={threads}",
+            f"--seed={ws.plan.seed}",
+        ]
     )
     try:
         rows = inference_bench.run(args)
@@ -134,36 +152,3 @@ def inference(ws: Workspace) -> list[Point]:
         )
         for r in rows
     ]
-
-
-def dropout(ws: Workspace) -> list[Point]:
-    """S dropout passes (nodes.inference's sampling copy) -> per-pixel std; calibration =
-    Pearson r between that std and the deterministic estimate's actual per-pixel error."""
-    items, truth = ws.test
-    generator, depth_range = load_generator(ws.model() / "checkpoint.pt")
-    reader = DatasetReader(ws.dataset(REFERENCE_SIZE))
-    depth = np.stack([reader.load(r).depth_map_m for r in select_records(reader, "test")])
-    error = np.abs(predict(generator, depth, depth_range).astype(np.float32) - truth).mean(axis=-1)
-    sampled = sampling_copy(generator)
-    x = network_input(depth, depth_range, generator.config, generator.prior)
-    points = []
-    for samples in ws.plan.dropout_samples:
-        torch.manual_seed(ws.plan.seed)
-        started = time.perf_counter()
-        with torch.inference_mode():
-            passes = torch.stack([(sampled(x) + 1.0) * 127.5 for _ in range(samples)])
-        std = passes.std(dim=0).mean(dim=1).numpy()
-        ms = (time.perf_counter() - started) * 1e3 / len(items)
-        pixel_r = float(np.corrcoef(std.ravel(), error.ravel())[0, 1])
-        image_r = float(np.corrcoef(std.mean(axis=(1, 2)), error.mean(axis=(1, 2)))[0, 1])
-        points.append(
-            point(
-                "dropout",
-                f"{samples} samples",
-                ms,
-                pixel_r,
-                image_r=round(image_r, 4),
-                mean_std=round(float(std.mean()), 3),
-            )
-        )
-    return points

@@ -1,23 +1,36 @@
 """The sweeps on the report's collected session: how the patch extractor makes depth-maps from
-registered models (resolution, point density), scored on the session's test split."""
+registered models (resolution, point density, the bin rule) and what pose error the served
+model is told of, scored on the session's test split."""
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import statistics
 import time
 
 import numpy as np
 
 from dataset.reader import DatasetReader
-from dataset.redepth import depth_map_again, depth_map_params, model_cloud
+from dataset.redepth import depth_map_again, depth_map_params, model_cloud, model_index
 from models.checkpoint import load_generator
 from models.evaluate import PAPER_DENSITY_SSIM
 from models.serving import predict
 from perception.density import downsample_to_density
+from perception.depthmap import DepthMapParams
 from perception.pointcloud import VoxelIndex
 from report.specs import Point, point
-from report.sweeps.common import epoch_s, median_ms, no_contact_estimate, resize, session_scores
-from report.workspace import REFERENCE_SIZE, Workspace
+from report.sweeps.common import (
+    dissimilarity_ratio,
+    epoch_s,
+    median_ms,
+    no_contact_estimate,
+    renderer_ratio,
+    resize,
+    session_scores,
+)
+from report.workspace import REFERENCE_SIZE, SessionTest, Workspace
+from workcell.kinematics import GripperGeometry
 
 
 def resolution(ws: Workspace) -> list[Point]:
@@ -68,17 +81,13 @@ def density(ws: Workspace) -> list[Point]:
             started = time.perf_counter()
             clouds[name] = VoxelIndex(cloud if value is None else downsample_to_density(cloud, value))
             thinning.append((time.perf_counter() - started) * 1e3)
-        maps, walls = [], []
-        for record in test.records:
-            started = time.perf_counter()
-            maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
-            walls.append((time.perf_counter() - started) * 1e3)
-        scores = session_scores(test, predict(generator, np.stack(maps), depth_range), no_contact)
+        maps, cut_ms = _cut_again(test, clouds, geometry, params)
+        scores = session_scores(test, predict(generator, maps, depth_range), no_contact)
         points.append(
             point(
                 "density",
                 "unfiltered" if value is None else f"{value:g} pts/cm³",
-                statistics.median(walls),
+                cut_ms,
                 scores.pop("contact_ssim"),
                 points_median=int(np.median([len(c.points_m) for c in clouds.values()])),
                 thinning_ms=round(statistics.median(thinning), 3),
@@ -87,3 +96,83 @@ def density(ws: Workspace) -> list[Point]:
             )
         )
     return points
+
+
+def depth_map(ws: Workspace) -> list[Point]:
+    """The session's depth-maps cut again by each rule of ``plan.depth_map_methods``
+    (perception.surface) and the model trained as the default is on each (session and contact
+    library by that rule) -> contact SSIM of its estimates from the test split's maps; time =
+    cutting one depth-map by that rule from the recorded model pose (ms, as the density sweep
+    times it). Beside it the maps through the GelSight renderer and the served estimate's
+    dissimilarity ratio, each scored as ``dtx evaluate`` scores a model."""
+    test = ws.session_test
+    reader = DatasetReader(ws.session)
+    params, scene = depth_map_params(reader)
+    clouds = {name: model_index(scene, name) for name in sorted({r.object_name for r in test.records})}
+    points = []
+    for method in ws.plan.depth_map_methods:
+        model = ws.session_model(REFERENCE_SIZE, method)
+        generator, depth_range = load_generator(model / "checkpoint.pt")
+        maps, cut_ms = _cut_again(test, clouds, scene.gripper_geometry(), dataclasses.replace(params, method=method))
+        estimate = predict(generator, maps, depth_range)
+        scores = session_scores(test, estimate, no_contact_estimate(generator, depth_range, REFERENCE_SIZE))
+        points.append(
+            point(
+                "depth_map",
+                method,
+                cut_ms,
+                scores.pop("contact_ssim"),
+                training_s_per_epoch=round(epoch_s(model), 2),
+                dissimilarity_ratio=dissimilarity_ratio(test, estimate),
+                **renderer_ratio(test, scene, reader.info.depth_crop_m, maps),
+                **scores,
+            )
+        )
+    return points
+
+
+def pose_sigma(ws: Workspace) -> list[Point]:
+    """The session model served with each in-plane pose error ``pose_sigma_mm`` of
+    ``plan.pose_sigmas_mm`` and its own default (its training session's, ``model_default``)
+    that its physics prior is blurred by (models.serving.predict) -> contact SSIM of its
+    estimates from the test split's recorded maps; time = ms per region of the served estimate:
+    what a planner should pass as pose_sigma_mm."""
+    test = ws.session_test
+    generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
+    if generator.prior is None:
+        raise RuntimeError("the session model corrects no physics prior: pose_sigma_mm changes nothing it serves")
+    default = generator.prior.spec.pose_sigma_mm
+    reader = DatasetReader(ws.session)
+    depth = np.stack([reader.load(r).depth_map_m for r in test.records])
+    points = []
+    for sigma in sorted({*ws.plan.pose_sigmas_mm, default}):
+        estimate = predict(generator, depth, depth_range, pose_sigma_mm=sigma)
+        served_ms = median_ms(functools.partial(predict, generator, depth, depth_range, pose_sigma_mm=sigma), 3)
+        no_contact = no_contact_estimate(generator, depth_range, REFERENCE_SIZE, sigma)
+        scores = session_scores(test, estimate, no_contact)
+        points.append(
+            point(
+                "pose_sigma",
+                f"{sigma:g} mm",
+                served_ms / len(depth),
+                scores.pop("contact_ssim"),
+                model_default=sigma == default,
+                dissimilarity_ratio=dissimilarity_ratio(test, estimate),
+                **scores,
+            )
+        )
+    return points
+
+
+def _cut_again(
+    test: SessionTest, clouds: dict[str, VoxelIndex], geometry: GripperGeometry, params: DepthMapParams
+) -> tuple[np.ndarray, float]:
+    """The test split's depth-maps (N x H x W, m) cut again from ``clouds`` (object name ->
+    indexed model cloud) at the recorded model poses with ``params``, and the median ms of one
+    cut (the cloud indexed beforehand, as the patch extractor indexes it once per object)."""
+    maps, walls = [], []
+    for record in test.records:
+        started = time.perf_counter()
+        maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
+        walls.append((time.perf_counter() - started) * 1e3)
+    return np.stack(maps), statistics.median(walls)

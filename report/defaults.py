@@ -1,0 +1,147 @@
+"""The project's own setting in each of the report's tables, read from the code that sets it, so
+that the report says whether its recommendation is the default a lab gets, and why not where it
+is not.
+
+A table's rows are labelled by the sweeps (report.sweeps); each entry here names, in the same
+words, the row the pipeline runs by default. A row flagged by its sweep (``served``: what the
+checkpoint serves; ``model_default``: the model's own value) is that sweep's default."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from models.checkpoint import TrainConfig
+
+# The settings' owners load only when a report is written: `dtx` itself starts without torch
+# or Open3D, and report.cli imports this module through report.write.
+# ruff: noqa: PLC0415
+
+Points = Sequence[dict[str, Any]]
+REPO = Path(__file__).resolve().parent.parent
+
+# The scene the report's registration and effects sweeps run on, and make demo collects in.
+DEFAULT_SCENE = "scenes/ycb_three.yaml"
+
+
+def _default_config() -> TrainConfig:
+    from models.checkpoint import TrainConfig
+
+    return TrainConfig.load(REPO / "configs" / "quick.yaml")
+
+
+def _effects_label(names: Sequence[str], every: Sequence[str]) -> str:
+    """The effects sweeps' row label of a set of effects (report.sweeps)."""
+    if not names:
+        return "none"
+    return "all" if set(names) >= set(every) and len(names) > 1 else names[0]
+
+
+def _scene_effects(every: Sequence[str]) -> str:
+    """What the default scene calls for among ``every`` effect of a kind."""
+    from workcell.scene import load_scene
+
+    listed = sorted({spec.name for spec in load_scene(REPO / DEFAULT_SCENE).effects} & set(every))
+    return _effects_label(listed, every)
+
+
+def _flagged(flag: str) -> Callable[[Points], str | None]:
+    def label(points: Points) -> str | None:
+        return next((p["setting"] for p in points if p.get(flag)), None)
+
+    return label
+
+
+def _most_grasps(points: Points) -> str | None:
+    """``dtx calibrate touches`` uses every grasp of the session unless told --grasps."""
+    counted = [p for p in points if p["setting"].endswith(" grasps")]
+    return max(counted, key=lambda p: int(p["setting"].split()[0]))["setting"] if counted else None
+
+
+def _constant(value: Callable[[], str]) -> Callable[[Points], str | None]:
+    return lambda points: value()
+
+
+def _registration(field: str) -> Any:
+    from perception.registration import RegistrationParams
+
+    return getattr(RegistrationParams(), field)
+
+
+def _depth_map(field: str) -> Any:
+    from perception.depthmap import DepthMapParams
+
+    return getattr(DepthMapParams(), field)
+
+
+def _gelsight_effects() -> str:
+    from sim.gelsight_effects import EFFECTS
+
+    return _scene_effects(list(EFFECTS))
+
+
+def _inference() -> str:
+    from nodes.inference import InferenceNode
+
+    params = InferenceNode.Params()
+    return f"width {_default_config().generator.ngf} {params.precision} {params.runtime}"
+
+
+PROJECT_DEFAULTS: dict[str, Callable[[Points], str | None]] = {
+    "density": _constant(lambda: "unfiltered"),
+    "registration_voxel": _constant(lambda: f"{_registration('voxel_size_m') * 1e3:g} mm"),
+    "registration_ransac": _constant(lambda: f"{_registration('ransac_max_iterations'):,}"),
+    "registration_icp": _constant(lambda: "/".join(f"{d * 1e3:g}" for d in _registration("icp_distances_m")) + " mm"),
+    "resolution": _constant(lambda: "{} x {}".format(*_depth_map("shape"))),
+    "training_length": _constant(lambda: f"{_default_config().epochs + _default_config().epochs_decay} epoch(s)"),
+    "depth_effects": _constant(lambda: "all"),
+    "gelsight_effects": _constant(_gelsight_effects),
+    "width": _constant(lambda: f"width {_default_config().generator.ngf}"),
+    "inference": _constant(_inference),
+    "calibration_grasps": _most_grasps,
+    "depth_map": _constant(lambda: _depth_map("method")),
+    "pose_sigma": _flagged("model_default"),
+    "uncertainty": _constant(lambda: "learned (served)"),
+    "serving": _flagged("served"),
+}
+
+# Where the project keeps a default the report does not recommend, why: a judgement the
+# measurement alone cannot make.
+WHY_NOT: dict[str, str] = {
+    "gelsight_effects": (
+        "a scene simulates only the GelSight effects it calls for (scenes/*.yaml `effects`): the default "
+        "scene's sensor is noisy but has no markers and a steady light; a lab whose sensor shows them "
+        "lists them in its scene, and this table says what a model trained without them loses"
+    ),
+    "depth_effects": (
+        "the default scene calls for every depth effect a Kinect v2 shows; leaving one out would make "
+        "the registration figures ones a real camera does not reach"
+    ),
+}
+
+
+def project_default(sweep: str, points: Points) -> str | None:
+    """The row label of the project's default among ``points`` of ``sweep`` (None: no entry, or
+    the sweep flags none)."""
+    label = PROJECT_DEFAULTS.get(sweep)
+    return None if label is None else label(points)
+
+
+def default_line(sweep: str, points: Points) -> str:
+    """'Project default: ...': the default's row, whether it is the recommended one, and if not why."""
+    default = project_default(sweep, points)
+    chosen = next((p["setting"] for p in points if p.get("recommended")), None)
+    if default is None:
+        return "Project default: none named for this table."
+    measured = "" if any(p["setting"] == default for p in points) else " (not among the settings measured here)"
+    if default == chosen:
+        return f"Project default: **{default}**, the recommended."
+    why = WHY_NOT.get(sweep)
+    if why is not None:
+        return f"Project default: **{default}**{measured}, not the recommended: {why}."
+    return (
+        f"Project default: **{default}**{measured}, not the recommended **{chosen}**: no reason is recorded "
+        "(report/defaults.py WHY_NOT); measure it with the full form before changing the default."
+    )
