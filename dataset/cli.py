@@ -1,12 +1,14 @@
-"""``dtx dataset check | checksum | export-pix2pix | synth | redepth``."""
+"""``dtx dataset check | checksum | export | synth | library | redepth``."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from dataset.check import check_dataset, content_checksum
 from dataset.export import export_pix2pix
+from dataset.out_dir import check_apart, write_directory
 from dataset.records import DatasetError
 from dtx.errors import exit_1_on
 from perception.errors import PerceptionError
@@ -27,8 +29,24 @@ def _checksum(args: argparse.Namespace) -> int:
 
 @exit_1_on(DatasetError, OSError)
 def _export(args: argparse.Namespace) -> int:
-    counts = export_pix2pix(args.dir, args.out)
-    print(f"wrote {sum(counts.values())} A|B images to {args.out}: {counts}")
+    if args.format == "pix2pix":
+        if len(args.sessions) != 1:
+            print("error: --format pix2pix takes one session", file=sys.stderr)
+            return 2
+        check_apart(args.out, args.sessions)
+        counts = write_directory(args.out, args.force, lambda staging: export_pix2pix(args.sessions[0], staging))
+        print(f"wrote {sum(counts.values())} A|B images to {args.out}: {counts}")
+        return 0
+    # A local directory is all the export reads and writes: never ask the Hub (set before the import).
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+    from dataset.hf_export import export_hf
+
+    counts = export_hf(args.sessions, args.out, force=args.force, progress=True)
+    print(
+        f"wrote {sum(counts.values())} pairs of {len(args.sessions)} session(s) to {args.out} in the Hugging Face "
+        f"layout, read back with datasets.load_dataset: {counts}"
+    )
     return 0
 
 
@@ -119,7 +137,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_check_and_export(commands: argparse._SubParsersAction) -> None:
-    """``check``, ``checksum`` and ``export-pix2pix``: each reads one dataset directory."""
+    """``check`` and ``checksum``, each of one dataset directory, and ``export`` of one or more."""
     check = commands.add_parser("check", help="verify every sample; exit 0 only for a sound dataset")
     check.add_argument("dir", help="dataset directory")
     check.set_defaults(func=_check)
@@ -133,9 +151,16 @@ def _add_check_and_export(commands: argparse._SubParsersAction) -> None:
     checksum.add_argument("dir", help="dataset directory")
     checksum.set_defaults(func=_checksum)
 
-    export = commands.add_parser("export-pix2pix", help="write aligned A|B images for the reference pix2pix")
-    export.add_argument("dir", help="dataset directory")
-    export.add_argument("out", help="output directory (train/, val/, test/ are created)")
+    export = commands.add_parser(
+        "export",
+        help="write sessions as a Hugging Face dataset (--format hf: Parquet shards and a dataset card that "
+        "datasets.load_dataset(DIR) reads, splits as dtx's) or as aligned A|B images for the reference pix2pix "
+        "(--format pix2pix: one session, DIR/train, val, test)",
+    )
+    export.add_argument("sessions", nargs="+", metavar="SESSION", help="dataset directories (pix2pix: one)")
+    export.add_argument("--format", required=True, choices=("hf", "pix2pix"), help="the layout to write")
+    export.add_argument("--out", required=True, help="output directory, written beside and renamed into place")
+    export.add_argument("--force", action="store_true", help="replace an existing --out directory")
     export.set_defaults(func=_export)
 
 

@@ -25,7 +25,8 @@ def _train(args: argparse.Namespace) -> int:
     if args.session_pose_sigma_mm is not None:
         config = dataclasses.replace(config, session_pose_sigma_mm=args.session_pose_sigma_mm)
     started = time.monotonic()
-    path = train(args.dataset, config, args.out, resume=args.resume, libraries=args.library)
+    dataset = args.dataset[0] if len(args.dataset) == 1 else args.dataset
+    path = train(dataset, config, args.out, resume=args.resume, libraries=args.library)
     if int(os.environ.get("RANK", "0")) == 0:  # under torchrun, one rank fits what is served
         from models.serving import fit_serving
 
@@ -38,7 +39,7 @@ def _train(args: argparse.Namespace) -> int:
 def _fit_serving(args: argparse.Namespace) -> int:
     from models.serving import fit_serving
 
-    figures = fit_serving(args.checkpoint, args.dataset)
+    figures = fit_serving(args.checkpoint, args.dataset or None)
     print(strict_json.dumps(figures, indent=2) if args.json else f"{args.checkpoint} serves the {figures['serves']}")
     return 0
 
@@ -49,8 +50,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from models.evaluate import evaluate, summary_table
     from models.figures import write_figures
 
-    if args.dataset is None and args.real_presses is None:
-        print("error: give a DATASET, --real-presses FILE.npz, or both", file=sys.stderr)
+    if not args.dataset and args.real_presses is None:
+        print("error: give a DATASET (or several sessions), --real-presses FILE.npz, or both", file=sys.stderr)
         return 2
     generator, depth_range_m = load_generator(args.checkpoint)
     real: dict | None = None
@@ -76,13 +77,16 @@ def _evaluate(args: argparse.Namespace) -> int:
             return 2
         if args.figures:
             write_real_press_figure(real, images, args.figures)
-        if args.dataset is None:  # real presses alone
+        if not args.dataset:  # real presses alone
             print(strict_json.dumps(real, indent=2) if args.json else real_press_table(real))
             return 0
-    result, predictions = evaluate(
+    from models.evaluate_sessions import evaluate_sessions, sessions_table
+
+    several = len(args.dataset) > 1  # one: exactly the evaluation of one dataset
+    result, predictions = (evaluate_sessions if several else evaluate)(
         generator,
         depth_range_m,
-        args.dataset,
+        args.dataset if several else args.dataset[0],
         split=args.split,
         hold_out_object=args.hold_out_object,
         density=args.density,
@@ -95,7 +99,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.json:
         print(strict_json.dumps(result, indent=2))
     else:
-        print(summary_table(result) + ("" if real is None else "\n\n" + real_press_table(real)))
+        table = summary_table(result) + ("\n\n" + sessions_table(result) if several else "")
+        print(table + ("" if real is None else "\n\n" + real_press_table(real)))
     return 0
 
 
@@ -108,12 +113,24 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "(dtx train does this at its end; for a checkpoint trained before)",
     )
     fit.add_argument("checkpoint", help="checkpoint.pt written by dtx train; rewritten in place")
-    fit.add_argument("dataset", nargs="?", help="dataset to fit on (default: the one the checkpoint was trained on)")
+    fit.add_argument(
+        "dataset", nargs="*", help="session(s) to fit on (default: the ones the checkpoint was trained on)"
+    )
     fit.add_argument("--json", action="store_true", help="print the figures that decided as JSON")
     fit.set_defaults(func=_fit_serving)
+    _add_evaluate(subparsers)
+
+
+def _add_evaluate(subparsers: argparse._SubParsersAction) -> None:
+    """``dtx evaluate``."""
     evaluate = subparsers.add_parser("evaluate", help="the paper's SSIM, baseline and template-matching analysis")
     evaluate.add_argument("checkpoint", help="checkpoint.pt written by dtx train")
-    evaluate.add_argument("dataset", nargs="?", help="dataset directory (optional with --real-presses)")
+    evaluate.add_argument(
+        "dataset",
+        nargs="*",
+        help="dataset directory, or several sessions evaluated together and each "
+        "(their joint split, as dtx train made it; optional with --real-presses)",
+    )
     evaluate.add_argument("--json", action="store_true", help="print the full result as JSON")
     evaluate.add_argument("--figures", metavar="DIR", help="write qualitative.png, ssim_bars.png (and density.png)")
     evaluate.add_argument("--split", default="test", choices=("train", "val", "test", "all"))
@@ -158,8 +175,13 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_train(subparsers: argparse._SubParsersAction) -> None:
     """``dtx train``."""
-    train = subparsers.add_parser("train", help="train the cGAN on a dataset's train split")
-    train.add_argument("dataset", help="dataset directory")
+    train = subparsers.add_parser("train", help="train the cGAN on a dataset's train split (or several sessions')")
+    train.add_argument(
+        "dataset",
+        nargs="+",
+        help="dataset directory; several sessions (days of collection) train one model on their "
+        "train splits together, each pair with its own session's calibration and depth-maps",
+    )
     train.add_argument("--config", required=True, help="training config (YAML), e.g. configs/quick.yaml")
     train.add_argument("--out", default="out/train", help="checkpoint and log directory (default: out/train)")
     train.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
@@ -167,7 +189,7 @@ def _add_train(subparsers: argparse._SubParsersAction) -> None:
         "--hold-out-object",
         default="",
         metavar="NAME",
-        help="leave-one-object-out: train without NAME (overrides the config's hold_out_object)",
+        help="leave-one-object-out: train without NAME, in every session (overrides the config's hold_out_object)",
     )
     train.add_argument(
         "--session-pose-sigma-mm",

@@ -158,14 +158,15 @@ def _load_samples(reader: DatasetReader, records: Sequence[SampleRecord] | None)
 
 def load_library(
     libraries: Sequence[str | os.PathLike[str]],
-    session: DatasetReader,
+    session: DatasetReader | Sequence[DatasetReader],
     config: GeneratorConfig,
     prior: PhysicsPrior | None,
     pose_sigma_range_mm: tuple[float, ...] = (),
     seed: int = 0,
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Every sample of each library dataset (dataset.contact_library), as network input and
-    target; refused unless its depth-maps are the session's (range and crop). A library's
+    target; refused unless its depth-maps are the session's (range and crop; of every session,
+    given several). A library's
     geometry is exact: its prior is sharp, unless ``pose_sigma_range_mm`` (low, high) asks for
     the uncertainties a model must answer for; then each pair gets a sigma drawn uniformly in
     it (seeded by ``seed``), its depth-map is moved by an in-plane offset drawn from that sigma's
@@ -175,18 +176,8 @@ def load_library(
     parts = []
     for library in libraries:
         reader = DatasetReader(library)
-        if reader.info.depth_map_method != session.info.depth_map_method:
-            raise ModelConfigError(
-                f"library {library} holds {reader.info.depth_map_method} depth-maps, the dataset "
-                f"{session.info.depth_map_method} ones: make it with the session's (dtx dataset library --depth-map)"
-            )
-        for name in ("depth_range_m", "depth_crop_m"):
-            mine, theirs = getattr(reader.info, name), getattr(session.info, name)
-            if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
-                raise ModelConfigError(
-                    f"library {library} has {name} {mine}, the dataset {theirs}: make it "
-                    "with the session's settings (dtx dataset library --depth-range-m)"
-                )
+        for each in [session] if isinstance(session, DatasetReader) else session:
+            _check_library(library, reader, each)
         maps, images = _load_samples(reader, None)
         sigmas: float | np.ndarray = 0.0  # exact geometry
         if pose_sigma_range_mm:
@@ -195,6 +186,22 @@ def load_library(
     if not parts:
         return None
     return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+
+
+def _check_library(library: str | os.PathLike[str], reader: DatasetReader, session: DatasetReader) -> None:
+    """ModelConfigError unless the library at ``library`` (``reader``) cuts its depth-maps as ``session``."""
+    if reader.info.depth_map_method != session.info.depth_map_method:
+        raise ModelConfigError(
+            f"library {library} holds {reader.info.depth_map_method} depth-maps, the dataset "
+            f"{session.info.depth_map_method} ones: make it with the session's (dtx dataset library --depth-map)"
+        )
+    for name in ("depth_range_m", "depth_crop_m"):
+        mine, theirs = getattr(reader.info, name), getattr(session.info, name)
+        if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
+            raise ModelConfigError(
+                f"library {library} has {name} {mine}, the dataset {theirs}: make it "
+                "with the session's settings (dtx dataset library --depth-range-m)"
+            )
 
 
 def _as_registered(

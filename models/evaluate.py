@@ -17,7 +17,6 @@ The figures (``--figures``) are models.figures'.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -25,13 +24,13 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params, depth_maps_made_beside
 from models.data import reader_for_model, select_records
 from models.networks import ModelConfigError, UNetGenerator
-from models.serving import predict, predict_served
+from models.predictions import Predictions, predict_records
+from models.serving import predict
 from models.template_match import template_match
 from models.uncertainty import served_uncertainty_statistics, uncertainty_table
 from msgs.progress import Progress
@@ -50,25 +49,6 @@ PAPER = {
 PAPER_DENSITY_SSIM: dict[float, float] = {1: 0.8238, 10: 0.8278, 20: 0.8478, 40: 0.8480, 80: 0.8476}
 
 
-@dataclasses.dataclass
-class Predictions:
-    """Ground truth and estimates (N x H x W x 3 uint8) of one evaluated set."""
-
-    sample_ids: list[str]
-    objects: list[str]
-    depth_maps_m: np.ndarray
-    truth: np.ndarray
-    truth_deformation: np.ndarray
-    estimate: np.ndarray
-    # Where each sample's gel was on its object (model in the gel frame), when the dataset
-    # records it; with the scene's meshes the qualitative figure draws the object.
-    model_to_gel: list[np.ndarray | None] = dataclasses.field(default_factory=list)
-    scene: str = ""
-    depth_crop_m: tuple[float, float, float] | None = None
-    # The uncertainty served with each estimate (N x H x W, image levels); None: the checkpoint has none.
-    uncertainty: np.ndarray | None = None
-
-
 def predict_dataset(
     generator: UNetGenerator,
     depth_range_m: tuple[float, float],
@@ -79,23 +59,7 @@ def predict_dataset(
     """Estimates for one split of a dataset (``split="all"``: every sample)."""
     reader = reader_for_model(root, depth_range_m)
     records = evaluated_records(reader, split, hold_out_object)
-    if len(records) < 2:
-        raise ModelConfigError(f"the {split} set of {root} has {len(records)} sample(s); need at least 2")
-    samples = [reader.load(r) for r in records]
-    depth = np.stack([s.depth_map_m for s in samples])
-    estimate, uncertainty = predict_served(generator, depth, depth_range_m)
-    return Predictions(
-        sample_ids=[r.sample_id for r in records],
-        objects=[r.object_name for r in records],
-        depth_maps_m=depth,
-        truth=np.stack([s.tactile_rgb for s in samples]),
-        truth_deformation=np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
-        estimate=estimate,
-        uncertainty=uncertainty,
-        model_to_gel=[None if r.model_to_gel is None else np.array(r.model_to_gel) for r in records],
-        scene=reader.info.scene,
-        depth_crop_m=reader.info.depth_crop_m,
-    )
+    return predict_records(generator, depth_range_m, reader, records, f"the {split} set of {root}")
 
 
 def evaluated_records(reader: DatasetReader, split: str, hold_out_object: str = "") -> list[SampleRecord]:
@@ -338,7 +302,7 @@ def evaluate(
     shown = Progress("evaluate", 1 + len(density), "depth-map sets", enabled=progress)
     with depth_maps_made_beside(root, density_ids, sorted(density)) as density_maps:
         predictions = predict_dataset(generator, depth_range_m, root, split, hold_out_object)
-        result = _full_density_result(predictions, baseline_draws, template_px, seed)
+        result = full_analysis(predictions, baseline_draws, template_px, seed)
         shown.note(f"last: the {split} split")
         shown.update()
         result["density"] = []
@@ -354,7 +318,7 @@ def evaluate(
     return result, predictions
 
 
-def _full_density_result(predictions: Predictions, baseline_draws: int, template_px: int, seed: int) -> dict[str, Any]:
+def full_analysis(predictions: Predictions, baseline_draws: int, template_px: int, seed: int) -> dict[str, Any]:
     """The paper's analysis of ``predictions``: SSIM against the baseline, template match, PSNR,
     and the contact windows' and each object's SSIM."""
     result = ssim_statistics(predictions.truth, predictions.estimate, baseline_draws, seed)

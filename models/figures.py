@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from models.evaluate import PAPER_DENSITY_SSIM, Predictions
+from models.evaluate import PAPER_DENSITY_SSIM
+from models.predictions import Predictions
 from workcell.scene import SceneError, load_scene
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +27,10 @@ import numpy as np
 import torch
 
 from models.checkpoint import SERVES, load_checkpoint, load_generator, save_atomic
-from models.data import load_pairs, network_input, reader_for_model, select_records, to_uint8_rgb
+from models.data import network_input, to_uint8_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
+from models.sessions import checkpoint_sessions, open_sessions, session_pairs, session_paths
 from models.uncertainty import UncertaintyConfig, fit_uncertainty, pixel_error_levels
 from perception.ssim import ssim_rgb
 
@@ -134,24 +135,25 @@ def choose_served(
 
 def fit_serving(
     checkpoint: str | os.PathLike[str],
-    dataset: str | os.PathLike[str] | None = None,
+    dataset: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None = None,
     config: UncertaintyConfig = UncertaintyConfig(),
     log: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
 ) -> dict[str, Any]:
-    """Choose what ``checkpoint`` serves and fit its uncertainty on ``dataset`` (default: the one
-    it was trained on; its train split fits, its validation split chooses and calibrates), and
+    """Choose what ``checkpoint`` serves and fit its uncertainty on ``dataset`` (one session or
+    several; default: the sessions it was trained on, or the single ``dataset`` a checkpoint from
+    before sessions names; their train split fits, their validation split chooses and calibrates), and
     write both into the checkpoint (atomically: a failure leaves it as it was). Returns the
     figures that decided."""
     path = Path(checkpoint)
     state = load_checkpoint(path)
     generator, depth_range_m = load_generator(path)
-    root = dataset if dataset is not None else state.get("dataset", "")
-    if not root:
+    roots = checkpoint_sessions(state) if dataset is None else session_paths(dataset)
+    if not roots:
         raise ModelConfigError(f"{path} does not name its dataset: give the dataset to fit on")
-    reader = reader_for_model(root, depth_range_m)
+    sessions = open_sessions(roots, depth_range_m)
     hold_out = state["train_config"].get("hold_out_object", "")
-    x_train, y_train = load_pairs(reader, select_records(reader, "train", hold_out), generator.config, generator.prior)
-    x_val, y_val = load_pairs(reader, select_records(reader, "val", hold_out), generator.config, generator.prior)
+    x_train, y_train = session_pairs(sessions, "train", hold_out, generator.config, generator.prior)
+    x_val, y_val = session_pairs(sessions, "val", hold_out, generator.config, generator.prior)
     serves, figures, estimate_val = choose_served(generator, x_val, y_val)
     log(f"serves the {serves}: {', '.join(f'{k} {v:.4f}' for k, v in figures.items())}")
     estimate_train = served_images(generator, x_train, serves)

@@ -1,4 +1,4 @@
-"""Training the cGAN (``dtx train DATASET --config CONFIG``).
+"""Training the cGAN (``dtx train SESSION [SESSION ...] --config CONFIG``).
 
 Paper settings by default: vanilla cGAN loss on logits (BCE), L1 weighted by lambda = 100,
 Adam lr 2e-4, betas (0.5, 0.999); the learning rate is constant for ``epochs`` and then
@@ -46,10 +46,9 @@ from torch import nn
 from torch.optim.lr_scheduler import LambdaLR
 from torch.utils.tensorboard import SummaryWriter
 
-from dataset.reader import DatasetReader
 from models.checkpoint import CHECKPOINT, TrainConfig, load_checkpoint, save_atomic
-from models.data import load_library, load_pairs, select_records, session_prior
 from models.networks import ModelConfigError, PatchDiscriminator, UNetGenerator, init_weights
+from models.sessions import PathLike, checkpoint_sessions, load_training_data
 from msgs.progress import Progress
 from perception.ssim import ssim_torch
 
@@ -185,43 +184,16 @@ def lr_schedulers(config: TrainConfig, optimizers: Sequence[torch.optim.Optimize
     return [LambdaLR(optimizer, factor, last_epoch=epoch - 1) for optimizer in optimizers]
 
 
-def _load_data(
-    dataset: str | os.PathLike[str], config: TrainConfig, libraries: Sequence[str | os.PathLike[str]], dist: _Dist
-) -> tuple[tuple[torch.Tensor, ...], dict[str, Any]]:
-    """Train and validation inputs and targets on the device, and the checkpoint's record of
-    the data (depth range, dataset, libraries, physics prior)."""
-    reader = DatasetReader(dataset)
-    if config.depth_map and config.depth_map != reader.info.depth_map_method:
-        held, wanted = reader.info.depth_map_method, config.depth_map
-        raise ModelConfigError(f"{dataset} holds {held} depth-maps, the config asks for {wanted}: dtx dataset redepth")
-    prior = session_prior(reader, config.generator, config.session_pose_sigma_mm)
-    x_train, y_train = load_pairs(
-        reader, select_records(reader, "train", config.hold_out_object), config.generator, prior
-    )
-    x_val, y_val = load_pairs(reader, select_records(reader, "val", config.hold_out_object), config.generator, prior)
-    library = load_library(libraries, reader, config.generator, prior, config.library_pose_sigma_range_mm, config.seed)
-    if library is not None:
-        x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
-    meta = {
-        "depth_range_m": list(reader.info.depth_range_m),
-        "depth_map_method": reader.info.depth_map_method,
-        "dataset": str(Path(dataset).resolve()),
-        "libraries": [str(Path(library).resolve()) for library in libraries],
-        **({"prior": prior.spec.to_dict()} if prior is not None else {}),
-    }
-    return tuple(t.to(dist.device) for t in (x_train, y_train, x_val, y_val)), meta
-
-
 def build_state(
-    dataset: str | os.PathLike[str],
+    dataset: PathLike | Sequence[PathLike],
     config: TrainConfig,
     libraries: Sequence[str | os.PathLike[str]] = (),
     dist: _Dist | None = None,
 ) -> TrainState:
-    """A fresh run: data, seeded and initialised networks, Adam optimisers, their
-    learning-rate schedulers at epoch 0, and the number of steps."""
+    """A fresh run on one session or several (models.sessions): data, seeded and initialised
+    networks, Adam optimisers, their learning-rate schedulers at epoch 0, and the number of steps."""
     dist = dist or _Dist()
-    (x_train, y_train, x_val, y_val), meta = _load_data(dataset, config, libraries, dist)
+    (x_train, y_train, x_val, y_val), meta = load_training_data(dataset, config, libraries, dist.device)
     per_rank = len(x_train) // dist.world
     if per_rank == 0:
         raise ModelConfigError(f"{len(x_train)} training samples cannot be shared by {dist.world} ranks")
@@ -270,6 +242,10 @@ def resume_state(state: TrainState, path: Path) -> None:
         raise ModelConfigError(
             f"{path} was trained with a different config; resume with the same config or train into a new --out"
         )
+    # A checkpoint from before sessions were recorded resumes as it always did.
+    trained_on, given = checkpoint_sessions(checkpoint), checkpoint_sessions(state.meta)
+    if "sessions" in checkpoint and trained_on != given:
+        raise ModelConfigError(f"{path} was trained on {trained_on}; resume on the same sessions, or train a new --out")
     average = state.average
     state.generator.load_state_dict(checkpoint["generator_raw"] if average is not None else checkpoint["generator"])
     if average is not None:
@@ -450,7 +426,7 @@ def save_checkpoint(state: TrainState, path: Path) -> None:
 
 
 def train(
-    dataset: str | os.PathLike[str],
+    dataset: PathLike | Sequence[PathLike],
     config: TrainConfig,
     out: str | os.PathLike[str],
     resume: bool = False,
@@ -459,7 +435,7 @@ def train(
     libraries: Sequence[str | os.PathLike[str]] = (),
 ) -> Path:
     """Train on the dataset's train split (or, with ``hold_out_object``, on the other
-    objects), joined by every sample of the ``libraries`` (contact libraries: they add kinds of
+    objects; given several sessions, on their train splits together: models.sessions), joined by every sample of the ``libraries`` (contact libraries: they add kinds of
     contact, never a session's validation or test pairs); returns the checkpoint path.
     ``stop_after_epochs`` ends this run early (the checkpoint can be resumed) without changing
     the schedule."""

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import os
 import platform
@@ -20,6 +19,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dataset.splits import session_fingerprint
 from report.plan import FULL, QUICK, SWEEP_NAMES, Plan
 from report.write import dumps, loads, write_report
 
@@ -75,15 +75,6 @@ def _session_dir(value: str) -> Path:
     return path
 
 
-def _fingerprint(session: Path) -> str:
-    """A collected session named by what it holds (its manifest and dataset.json), not by where it
-    lies: the report and its cache name no path of the machine that made them."""
-    digest = hashlib.sha1()
-    for name in ("dataset.json", "manifest.jsonl"):
-        digest.update((session / name).read_bytes())
-    return digest.hexdigest()[:12]
-
-
 def _cached(path: Path, made_by: dict) -> dict | None:
     try:
         entry = json.loads(path.read_text())
@@ -108,7 +99,7 @@ def _header(
         header += [
             "",
             f"The session sweeps ran on a collected session given with --session (fingerprint "
-            f"{_fingerprint(session)}), not on one of the plan's size.",
+            f"{session_fingerprint(session)}), not on one of the plan's size.",
         ]
     if workspace.reused_models:
         header += [
@@ -137,7 +128,7 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     from report.workspace import Workspace, training_config
 
     # A given session gets a workspace of its own: its re-cut datasets and trained models are its.
-    session = None if args.session is None else _fingerprint(args.session)
+    session = None if args.session is None else session_fingerprint(args.session)
     work = plan.name if session is None else f"{plan.name}-{session}"
     workspace = Workspace(args.out / "work" / work, plan, args.session)
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}

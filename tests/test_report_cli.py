@@ -115,7 +115,7 @@ def test_only_the_session_models_blur_their_prior_by_the_registration_error(tmp_
 def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: Path) -> None:
     """The report and its cache are committed: they name a --session by its fingerprint, and the
     same session copied elsewhere reuses the same cached sweeps."""
-    from report.cli import _fingerprint
+    from dataset.splits import session_fingerprint
 
     session = tmp_path / "somewhere" / "session"
     session.mkdir(parents=True)
@@ -124,7 +124,7 @@ def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: P
     out = tmp_path / "report"
     (out / "cache").mkdir(parents=True)
     made_by = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict()}
-    entry = {**made_by, "session": _fingerprint(session), "seconds": 1.0, "measured_at": "then"}
+    entry = {**made_by, "session": session_fingerprint(session), "seconds": 1.0, "measured_at": "then"}
     points = [{"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.8}]
     (out / "cache" / "density.json").write_text(json.dumps({**entry, "points": points}))
     copy = tmp_path / "elsewhere"
@@ -147,5 +147,5 @@ def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: P
     )
     assert args.func(args) == 0
     written = (out / "report.md").read_text() + (out / "points.json").read_text()
-    assert "density reused" in written and _fingerprint(session) in written
+    assert "density reused" in written and session_fingerprint(session) in written
     assert str(tmp_path) not in written and "elsewhere" not in written

@@ -1,0 +1,217 @@
+"""The sessions a model learns from: ``dtx train SESSION [SESSION ...]``.
+
+A lab collects a session a day (a dataset directory: a new calibration, sometimes another object
+set or another GelSight); one model learns from all of them. Each pair keeps its own session's
+depth-maps (cut with that session's calibration and crop) and its own tactile image. Sessions
+are mixed only where their pairs mean the same to the network; otherwise the run is refused
+(:func:`open_sessions`):
+
+* the same depth range (the network's input normalisation), image size and depth-map method
+  (what a bin holds);
+* scenes (the GelSight each session saw) may differ, but a session that records none cannot be
+  mixed with sessions of another: nothing says which sensor it saw;
+* a generator with a physics prior renders every pair with the one prior its checkpoint
+  stores and serves: its sessions must share the scene and the depth crop
+  (:func:`check_one_prior`). The prior's pose blur is the config's ``session_pose_sigma_mm``
+  for every session: a dataset records no pose uncertainty of its own.
+
+The splits are dataset.splits.split_sessions' (one session: its own split, exactly as alone).
+The checkpoint records each session (:meth:`Session.entry`: name, path, fingerprint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dataset.reader import DatasetReader
+from dataset.records import SampleRecord
+from dataset.splits import SPLITS, session_fingerprint, split_sessions
+from models.checkpoint import TrainConfig
+from models.data import load_library, load_pairs, select_records, session_prior
+from models.networks import GeneratorConfig, ModelConfigError
+from models.prior import PhysicsPrior
+
+PathLike = str | os.PathLike[str]
+
+
+def session_paths(datasets: PathLike | Sequence[PathLike]) -> list[PathLike]:
+    """One dataset directory or several, as a list; ModelConfigError for none."""
+    paths: list[PathLike] = [datasets] if isinstance(datasets, (str, os.PathLike)) else list(datasets)
+    if not paths:
+        raise ModelConfigError("no session given: name at least one dataset directory")
+    return paths
+
+
+@dataclasses.dataclass(frozen=True)
+class Session:
+    """An opened session: its reader, its name (its directory's, or its path where two share
+    one) and its fingerprint (SHA-256 of dataset.json and the manifest: the data it holds)."""
+
+    reader: DatasetReader
+    name: str
+    fingerprint: str
+
+    def entry(self) -> dict[str, Any]:
+        """What a checkpoint records of this session."""
+        info = self.reader.info
+        return {
+            "name": self.name,
+            "path": str(self.reader.root.resolve()),
+            "fingerprint": self.fingerprint,
+            "samples": len(self.reader.records),
+            "scene": info.scene,
+            "depth_crop_m": None if info.depth_crop_m is None else list(info.depth_crop_m),
+            "split_seed": info.split_seed,
+        }
+
+
+def open_sessions(
+    datasets: PathLike | Sequence[PathLike], depth_range_m: tuple[float, float] | None = None
+) -> list[Session]:
+    """The sessions at ``datasets``, refused (ModelConfigError naming the first that differs)
+    unless they can be mixed (module docstring), and, given ``depth_range_m``, unless they
+    normalise depth as the model was trained."""
+    readers = [DatasetReader(path) for path in session_paths(datasets)]
+    if depth_range_m is not None:
+        for reader in readers:
+            if tuple(reader.info.depth_range_m) != tuple(depth_range_m):
+                raise ModelConfigError(
+                    f"{reader.root} normalises depth with {reader.info.depth_range_m}, "
+                    f"the model was trained with {depth_range_m}"
+                )
+    first = readers[0].info
+    for reader in readers[1:]:
+        info = reader.info
+        for what, mine, theirs in (
+            ("depth range (m)", info.depth_range_m, first.depth_range_m),
+            ("image size", (info.image_height, info.image_width), (first.image_height, first.image_width)),
+            ("depth-map method", info.depth_map_method, first.depth_map_method),
+        ):
+            if tuple(np.atleast_1d(mine)) != tuple(np.atleast_1d(theirs)):
+                raise ModelConfigError(
+                    f"sessions {readers[0].root} and {reader.root} cannot be mixed: {what} {theirs} "
+                    f"against {mine} (make them alike: dtx dataset redepth)"
+                )
+    scenes = {r.info.scene for r in readers}
+    if len(scenes) > 1 and "" in scenes:
+        unnamed = next(r.root for r in readers if not r.info.scene)
+        raise ModelConfigError(
+            f"session {unnamed} records no scene, so nothing says which GelSight it saw: "
+            "it cannot be mixed with sessions of a scene"
+        )
+    names = [r.root.resolve().name for r in readers]
+    if len(set(names)) < len(names):
+        names = [str(r.root.resolve()) for r in readers]
+    return [Session(r, name, session_fingerprint(r.root)) for r, name in zip(readers, names)]
+
+
+def check_one_prior(sessions: Sequence[Session], config: GeneratorConfig) -> None:
+    """A generator with a physics prior: every session must share the first's scene and crop,
+    the one prior its checkpoint stores and serves; ModelConfigError otherwise."""
+    if not config.prior:
+        return
+    first = sessions[0].reader
+    for session in sessions[1:]:
+        info = session.reader.info
+        if info.scene != first.info.scene or info.depth_crop_m != first.info.depth_crop_m:
+            raise ModelConfigError(
+                f"sessions {first.root} and {session.reader.root} have another scene or depth crop "
+                f"({first.info.scene!r} {first.info.depth_crop_m} against {info.scene!r} {info.depth_crop_m}): "
+                "a checkpoint serves one physics prior, so a prior model cannot mix them yet"
+            )
+
+
+def session_records(sessions: Sequence[Session], split: str, hold_out_object: str = "") -> list[list[SampleRecord]]:
+    """Each session's records of ``split`` ("all": every record): one session's own split
+    (models.data.select_records, as alone), several sessions' dataset.splits.split_sessions,
+    ordered by their fingerprints (the order they are given in changes nothing)."""
+    if split == "all":
+        return [s.reader.records for s in sessions]
+    if len(sessions) == 1:
+        return [select_records(sessions[0].reader, split, hold_out_object)]
+    if split not in SPLITS:
+        raise ModelConfigError(f"unknown split {split!r}; known: {sorted(SPLITS)}")
+    splits = split_sessions(
+        [s.reader.records for s in sessions],
+        [s.reader.info.split_seed for s in sessions],
+        hold_out_object,
+        [s.fingerprint for s in sessions],
+    )
+    return [chosen[split] for chosen in splits]
+
+
+def session_pairs(
+    sessions: Sequence[Session],
+    split: str,
+    hold_out_object: str,
+    config: GeneratorConfig,
+    prior: PhysicsPrior | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Network input and target of ``split`` over every session, session by session in the
+    order given (models.data.load_pairs of each session with a record in the split)."""
+    parts = [
+        load_pairs(s.reader, records, config, prior)
+        for s, records in zip(sessions, session_records(sessions, split, hold_out_object))
+        if records or len(sessions) == 1  # one session: load_pairs says that none was selected
+    ]
+    if not parts:
+        raise ModelConfigError(f"no samples of the {split} split in any of the {len(sessions)} sessions")
+    return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+
+
+def load_training_data(
+    datasets: PathLike | Sequence[PathLike],
+    config: TrainConfig,
+    libraries: Sequence[PathLike],
+    device: torch.device,
+) -> tuple[tuple[torch.Tensor, ...], dict[str, Any]]:
+    """Train and validation inputs and targets on ``device``, and the checkpoint's record of
+    the data (depth range, sessions, libraries, physics prior); nothing is written."""
+    sessions = open_sessions(datasets)
+    for session in sessions:
+        reader = session.reader
+        if config.depth_map and config.depth_map != reader.info.depth_map_method:
+            held, wanted = reader.info.depth_map_method, config.depth_map
+            raise ModelConfigError(
+                f"{reader.root} holds {held} depth-maps, the config asks for {wanted}: dtx dataset redepth"
+            )
+    check_one_prior(sessions, config.generator)
+    first = sessions[0].reader
+    prior = session_prior(first, config.generator, config.session_pose_sigma_mm)
+    x_train, y_train = session_pairs(sessions, "train", config.hold_out_object, config.generator, prior)
+    x_val, y_val = session_pairs(sessions, "val", config.hold_out_object, config.generator, prior)
+    library = load_library(
+        libraries,
+        [s.reader for s in sessions],
+        config.generator,
+        prior,
+        config.library_pose_sigma_range_mm,
+        config.seed,
+    )
+    if library is not None:
+        x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
+    meta = {
+        "depth_range_m": list(first.info.depth_range_m),
+        "depth_map_method": first.info.depth_map_method,
+        # One session: its path, as every checkpoint before sessions recorded it.
+        **({"dataset": str(first.root.resolve())} if len(sessions) == 1 else {}),
+        "sessions": [s.entry() for s in sessions],
+        "libraries": [str(Path(library).resolve()) for library in libraries],
+        **({"prior": prior.spec.to_dict()} if prior is not None else {}),
+    }
+    return tuple(t.to(device) for t in (x_train, y_train, x_val, y_val)), meta
+
+
+def checkpoint_sessions(state: dict[str, Any]) -> list[str]:
+    """The session paths a checkpoint was trained on: its ``sessions``, or the single
+    ``dataset`` of a checkpoint trained before sessions; [] where it names none."""
+    if state.get("sessions"):
+        return [str(entry["path"]) for entry in state["sessions"]]
+    return [str(state["dataset"])] if state.get("dataset") else []
