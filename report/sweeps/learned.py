@@ -19,7 +19,7 @@ from models.data import select_records
 from models.serving import predict
 from perception.ssim import ssim_rgb
 from report.specs import Point, point
-from report.sweeps.common import epoch_s, median_ms, standard_error
+from report.sweeps.common import epoch_s, median_cpu_ms, standard_error
 from report.sweeps.serving import serving_as
 from report.workspace import REFERENCE_SIZE, Workspace, epoch_cpu_s
 from sim.gelsight import GelSightRenderer
@@ -41,7 +41,7 @@ def width(ws: Workspace) -> list[Point]:
         generator, depth_range = load_generator(model / "checkpoint.pt")
         with serving_as(generator, "network", None):
             ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
-            inference_ms = median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
+            inference_ms = median_cpu_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
         points.append(
             point(
                 "width",
@@ -62,7 +62,7 @@ def _prior_alone(model: Path, depth: np.ndarray, truth: np.ndarray) -> Point:
     generator, depth_range = load_generator(model / "checkpoint.pt")
     with serving_as(generator, "prior", None):
         ssim = ssim_rgb(truth, predict(generator, depth, depth_range))
-        inference_ms = median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
+        inference_ms = median_cpu_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
     return point("width", "prior alone", inference_ms, ssim.mean(), ssim_se=standard_error(ssim), parameters=0)
 
 
@@ -99,7 +99,7 @@ def gelsight_effects(ws: Workspace) -> list[Point]:
         renderer = GelSightRenderer(
             plain.config, effects=[make_effect(n) for n in names], rng=np.random.default_rng(ws.plan.seed)
         )
-        frame_ms = median_ms(lambda: renderer.render(gaps[0]), 5)
+        frame_ms = median_cpu_ms(lambda: renderer.render(gaps[0]), 5)
         ssim = ssim_rgb(np.stack([renderer.render(g) for g in gaps]), estimate)
         ideal = ssim.mean() if ideal is None else ideal
         setting = "none" if not names else ("all" if len(names) > 1 else names[0])

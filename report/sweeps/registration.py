@@ -9,7 +9,7 @@ from benchmarks.perception import _sweep_cases, _sweep_row
 from benchmarks.sim import DEPTH_EFFECTS
 from perception.registration import RegistrationParams
 from report.specs import Point, point
-from report.sweeps.common import median_ms
+from report.sweeps.common import median_cpu_ms
 from report.workspace import Workspace
 from sim.world import SimWorld
 from workcell.scene import load_scene
@@ -33,7 +33,7 @@ def depth_effects(ws: Workspace) -> list[Point]:
         world = SimWorld(variant, seed=ws.plan.seed)
         camera = world.camera_names()[0]
         world.render_depth(camera)  # the first frame casts every ray and caches it
-        frame_ms = median_ms(lambda: world.render_depth(camera), ws.plan.depth_frames)
+        frame_ms = median_cpu_ms(lambda: world.render_depth(camera), ws.plan.depth_frames)
         cases = _sweep_cases(SCENE, ws.plan.registration_poses, ws.plan.seed, [e for e in every if e not in kept])
         row = _sweep_row(cases, RegistrationParams(), {})
         setting = "none" if not kept else ("all" if len(kept) > 1 else kept[0])
@@ -44,7 +44,7 @@ def depth_effects(ws: Workspace) -> list[Point]:
                 frame_ms,
                 row["add_s_mm_median"],
                 accepted_rate=row["accepted_rate"],
-                registration_ms=row["ms_median"],
+                registration_ms=row["cpu_ms_median"],
             )
         )
     return points
@@ -58,7 +58,7 @@ def _registration_points(sweep: str, cases, settings) -> list[Point]:
             point(
                 sweep,
                 label,
-                row["ms_median"],
+                row["cpu_ms_median"],
                 row["add_s_mm_median"],
                 add_s_mm_p90=row["add_s_mm_p90"],
                 accepted_rate=row["accepted_rate"],

@@ -24,7 +24,7 @@ from models.serving import predict_served, served_images
 from models.uncertainty import LEVELS_PER_TANH_UNIT, UNCERTAINTY_ABSENT, uncertainty_statistics
 from perception.ssim import ssim_rgb
 from report.specs import Point, point
-from report.sweeps.common import dissimilarity_ratio, median_ms, no_contact_estimate, session_scores
+from report.sweeps.common import dissimilarity_ratio, median_cpu_ms, no_contact_estimate, session_scores
 from report.workspace import REFERENCE_SIZE, SessionTest, Workspace
 
 # Regions a forward pass: predict_served's default, as the inference node batches a request.
@@ -80,7 +80,7 @@ def uncertainty(ws: Workspace) -> list[Point]:
     learned = generator.uncertainty
     with serving_as(generator, generator.serves, None):
         estimate = predict_served(generator, depth, depth_range, SERVING_BATCH)[0]
-        estimate_ms = median_ms(lambda: predict_served(generator, depth, depth_range, SERVING_BATCH), TIMED_RUNS)
+        estimate_ms = median_cpu_ms(lambda: predict_served(generator, depth, depth_range, SERVING_BATCH), TIMED_RUNS)
     x = network_input(depth, depth_range, generator.config, generator.prior)
     batches = [slice(i, i + SERVING_BATCH) for i in range(0, len(x), SERVING_BATCH)]
     with torch.inference_mode():
@@ -97,7 +97,7 @@ def uncertainty(ws: Workspace) -> list[Point]:
             levels = predict_served(generator, depth, depth_range, SERVING_BATCH)[1]
         assert levels is not None  # served beside the estimate: the spread was set just above
         with torch.inference_mode():
-            spread_ms = median_ms(lambda: [spread.levels(x[b], im) for b, im in zip(batches, served)], TIMED_RUNS)
+            spread_ms = median_cpu_ms(lambda: [spread.levels(x[b], im) for b, im in zip(batches, served)], TIMED_RUNS)
         figures = uncertainty_statistics(levels, estimate, test.truth, dissimilarity)
         points.append(
             point(
@@ -151,7 +151,7 @@ def _form_point(
         estimate = predict_served(generator, depth, depth_range, SERVING_BATCH)[0]
     except ModelConfigError as err:
         return point("serving", setting, math.nan, None, served=served, refused=str(err))
-    ms = median_ms(lambda: predict_served(generator, depth, depth_range, SERVING_BATCH), TIMED_RUNS) / len(depth)
+    ms = median_cpu_ms(lambda: predict_served(generator, depth, depth_range, SERVING_BATCH), TIMED_RUNS) / len(depth)
     scores = session_scores(test, estimate, no_contact_estimate(generator, depth_range, REFERENCE_SIZE))
     return point(
         "serving",

@@ -23,7 +23,7 @@ from report.specs import Point, point
 from report.sweeps.common import (
     dissimilarity_ratio,
     epoch_s,
-    median_ms,
+    median_cpu_ms,
     no_contact_estimate,
     renderer_ratio,
     resize,
@@ -45,7 +45,7 @@ def resolution(ws: Workspace) -> list[Point]:
         reader = DatasetReader(ws.session_at(size))
         depth = np.stack([reader.load(r.sample_id).depth_map_m for r in test.records])
         estimate = predict(generator, depth, depth_range)
-        inference_ms = median_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
+        inference_ms = median_cpu_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
         scores = session_scores(
             test, resize(estimate, REFERENCE_SIZE), no_contact_estimate(generator, depth_range, size)
         )
@@ -78,9 +78,9 @@ def density(ws: Workspace) -> list[Point]:
     for value in (None, *ws.plan.densities):
         clouds, thinning = {}, []
         for name, cloud in full.items():
-            started = time.perf_counter()
+            started = time.process_time()
             clouds[name] = VoxelIndex(cloud if value is None else downsample_to_density(cloud, value))
-            thinning.append((time.perf_counter() - started) * 1e3)
+            thinning.append((time.process_time() - started) * 1e3)
         maps, cut_ms = _cut_again(test, clouds, geometry, params)
         scores = session_scores(test, predict(generator, maps, depth_range), no_contact)
         points.append(
@@ -147,7 +147,7 @@ def pose_sigma(ws: Workspace) -> list[Point]:
     points = []
     for sigma in sorted({*ws.plan.pose_sigmas_mm, default}):
         estimate = predict(generator, depth, depth_range, pose_sigma_mm=sigma)
-        served_ms = median_ms(functools.partial(predict, generator, depth, depth_range, pose_sigma_mm=sigma), 3)
+        served_ms = median_cpu_ms(functools.partial(predict, generator, depth, depth_range, pose_sigma_mm=sigma), 3)
         no_contact = no_contact_estimate(generator, depth_range, REFERENCE_SIZE, sigma)
         scores = session_scores(test, estimate, no_contact)
         points.append(
@@ -172,7 +172,7 @@ def _cut_again(
     cut (the cloud indexed beforehand, as the patch extractor indexes it once per object)."""
     maps, walls = [], []
     for record in test.records:
-        started = time.perf_counter()
+        started = time.process_time()
         maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
-        walls.append((time.perf_counter() - started) * 1e3)
+        walls.append((time.process_time() - started) * 1e3)
     return np.stack(maps), statistics.median(walls)
