@@ -110,6 +110,17 @@ PROJECT_DEFAULTS: dict[str, Callable[[Points], str | None]] = {
 # Where the project keeps a default the report does not recommend, why: a judgement the
 # measurement alone cannot make.
 WHY_NOT: dict[str, str] = {
+    "density": (
+        "the patch extractor cuts from each object's whole model cloud, indexed once per session, and "
+        "its cut runs beside the GelSight capture (What each second buys), so a thinner cloud saves a "
+        "grasp no time; thinning is for a planner's own clouds, and this table says what it costs them"
+    ),
+    "depth_map": (
+        "the nearest point is as good only on clouds as dense as the pipeline's own: thinned to 10,000 "
+        "points/cm³ its estimate fell below the empty map's on make demo's contact windows (0.739 "
+        "against 0.833) where the surface keeps 0.908, and on unseen objects its ratio was 0.47 "
+        "against 0.4501 (docs/measurements.md, issue 50)"
+    ),
     "gelsight_effects": (
         "a scene simulates only the GelSight effects it calls for (scenes/*.yaml `effects`): the default "
         "scene's sensor is noisy but has no markers and a steady light; a lab whose sensor shows them "

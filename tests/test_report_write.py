@@ -133,8 +133,8 @@ def test_the_projects_default_is_marked_and_explained(tmp_path: Path) -> None:
     rows = _rows(report, "Registration voxel size")
     assert rows[voxel].endswith(f"| {PROJECT_MARK} |") and not rows["4 mm"].endswith(f"| {PROJECT_MARK} |")
     assert f"Project default: **{voxel}**, not the recommended **4 mm**: no reason is recorded" in report
-    # The density table's default, unfiltered, is the pipeline's own and here not the recommended.
-    assert "Project default: **unfiltered**, not the recommended **40 pts/cm³**" in report
+    # The density table's default, unfiltered, is the pipeline's own, kept for a recorded reason.
+    assert f"Project default: **unfiltered**, not the recommended: {WHY_NOT['density']}." in report
 
 
 def test_a_default_kept_for_a_reason_says_it_and_a_missing_one_says_not_measured() -> None:
