@@ -75,6 +75,21 @@ def _session_dir(value: str) -> Path:
     return path
 
 
+def _without_machine_paths(points: list[dict], places: dict[str, str]) -> list[dict]:
+    """``points`` with each of ``places`` (a path on this machine: the report's directory, a given
+    session) named by what it is in every text they hold, such as a refusal's reason: the report
+    and its cache are committed, and read on other machines."""
+
+    def named(value: object) -> object:
+        if not isinstance(value, str):
+            return value
+        for path, name in places.items():
+            value = value.replace(path, name)
+        return value
+
+    return [{key: named(value) for key, value in point.items()} for point in points]
+
+
 def _cached(path: Path, made_by: dict) -> dict | None:
     try:
         entry = json.loads(path.read_text())
@@ -134,6 +149,10 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
     made_by = json.loads(json.dumps({**made_by, "session": session}))
     cache.mkdir(parents=True, exist_ok=True)
+    # Named as the command line names them: --out DIR, --session SESSION.
+    places = {str(args.out.resolve()): "DIR"}
+    if args.session is not None:
+        places = {str(args.session.resolve()): "SESSION", **places}
     started = time.monotonic()
     points, timings, entries = [], [], []
     for name, sweep in SWEEPS.items():
@@ -148,13 +167,13 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
                 **made_by,
                 "seconds": round(time.monotonic() - sweep_started, 1),
                 "measured_at": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-                "points": json.loads(dumps(measured)),
+                "points": json.loads(dumps(_without_machine_paths(measured, places))),
             }
             (cache / f"{name}.json").write_text(json.dumps(entry, indent=1) + "\n")
             timings.append(f"{name} {entry['seconds']:.0f} s")
         else:
             timings.append(f"{name} reused ({entry['seconds']:.0f} s on {entry['measured_at']})")
-        points += loads(json.dumps(entry["points"]))
+        points += loads(json.dumps(_without_machine_paths(entry["points"], places)))
         entries.append(entry)
     elapsed = time.monotonic() - started
     header = _header(plan, elapsed, sum(entry["seconds"] for entry in entries), timings, args.session, workspace)

@@ -113,8 +113,9 @@ def test_only_the_session_models_blur_their_prior_by_the_registration_error(tmp_
 
 
 def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: Path) -> None:
-    """The report and its cache are committed: they name a --session by its fingerprint, and the
-    same session copied elsewhere reuses the same cached sweeps."""
+    """The report and its cache are committed: they name a --session by its fingerprint, the same
+    session copied elsewhere reuses the same cached sweeps, and a text a sweep wrote with a path of
+    the machine in it (a refusal's reason) names it as the command line does."""
     from dataset.splits import session_fingerprint
 
     session = tmp_path / "somewhere" / "session"
@@ -123,12 +124,13 @@ def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: P
     (session / "dataset.json").write_text('{"scene": "scenes/ycb_three.yaml"}\n')
     out = tmp_path / "report"
     (out / "cache").mkdir(parents=True)
-    made_by = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict()}
-    entry = {**made_by, "session": session_fingerprint(session), "seconds": 1.0, "measured_at": "then"}
-    points = [{"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.8}]
-    (out / "cache" / "density.json").write_text(json.dumps({**entry, "points": points}))
     copy = tmp_path / "elsewhere"
     copy.mkdir()
+    made_by = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict()}
+    entry = {**made_by, "session": session_fingerprint(session), "seconds": 1.0, "measured_at": "then"}
+    refusal = f"{copy.resolve()}: too few touches; {(out / 'work').resolve()} kept"
+    points = [{"sweep": "density", "setting": "unfiltered", "time": 1.0, "accuracy": 0.8, "refused": refusal}]
+    (out / "cache" / "density.json").write_text(json.dumps({**entry, "points": points}))
     for name in ("manifest.jsonl", "dataset.json"):
         (copy / name).write_bytes((session / name).read_bytes())
     args = _parser().parse_args(
@@ -149,3 +151,4 @@ def test_a_given_session_is_named_by_what_it_holds_never_by_its_path(tmp_path: P
     written = (out / "report.md").read_text() + (out / "points.json").read_text()
     assert "density reused" in written and session_fingerprint(session) in written
     assert str(tmp_path) not in written and "elsewhere" not in written
+    assert "SESSION: too few touches; DIR/work kept" in written
