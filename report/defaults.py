@@ -121,6 +121,37 @@ WHY_NOT: dict[str, str] = {
         "against 0.833) where the surface keeps 0.908, and on unseen objects its ratio was 0.47 "
         "against 0.4501 (docs/measurements.md, issue 50)"
     ),
+    "resolution": (
+        "the model's image is the tactile image's size (100 x 100, the paper's); a coarser map answers "
+        "at half its resolution, which scores the same here where the registration's pose error blurs "
+        "every contact (the pose uncertainty table: 1 mm), and is not measured on a real press's sharp one"
+    ),
+    "training_length": (
+        "this table trains on the analytic contacts alone; the default trains a session beside a "
+        "contact library in 3 + 3 epochs, as many steps as 5 + 5 of the session alone, chosen on make "
+        "demo's data (configs/quick.yaml)"
+    ),
+    "registration_voxel": (
+        "registration runs once an object a session (the median grasp reuses its pose: What each second "
+        "buys), so the CPU a coarser voxel saves is not a grasp's time; the default keeps the margin "
+        "chosen on thin and flat objects, which this table does not hold"
+    ),
+    "registration_ransac": (
+        "the settings' times differ by less than repeated runs of one do, and registration runs once "
+        "an object a session; the default keeps the margin chosen for harder scenes"
+    ),
+    "registration_icp": (
+        "one 4 mm stage needs the coarse pose already within 4 mm; the two stages recover a coarse pose "
+        "further off, and registration runs once an object a session"
+    ),
+    "serving": (
+        "the uncertainty is what a planner weighs each estimate by (the uncertainty table: its r with "
+        "the error against dropout's), which SSIM cannot value; it is served with every estimate"
+    ),
+    "calibration_grasps": (
+        "touches cost no robot time of their own (each grasp of a session makes two), only the fit's "
+        "CPU; a lab calibrates from every grasp it collected"
+    ),
     "gelsight_effects": (
         "a scene simulates only the GelSight effects it calls for (scenes/*.yaml `effects`): the default "
         "scene's sensor is noisy but has no markers and a steady light; a lab whose sensor shows them "

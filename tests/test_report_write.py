@@ -8,6 +8,8 @@ import json
 import math
 from pathlib import Path
 
+import pytest
+
 from perception.registration import RegistrationParams
 from report.defaults import PROJECT_DEFAULTS, WHY_NOT, default_line, project_default
 from report.specs import SPECS
@@ -122,19 +124,24 @@ def test_points_round_trip_with_failed_measurements() -> None:
 
 def test_every_table_names_the_projects_default() -> None:
     assert set(SPECS) <= set(PROJECT_DEFAULTS)
+    assert set(WHY_NOT) <= set(PROJECT_DEFAULTS)
 
 
-def test_the_projects_default_is_marked_and_explained(tmp_path: Path) -> None:
+def test_the_projects_default_is_marked_and_explained(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The voxel row the registration runs with by default is marked; it is not the recommended
-    one here and no reason is recorded, so the report says so instead of passing it off."""
+    one here, so the report gives the recorded reason, and without one says that none is recorded
+    instead of passing the default off as the recommended."""
     voxel = f"{RegistrationParams().voxel_size_m * 1e3:g} mm"
     points = [{**p, "setting": voxel} if p["setting"] == "8 mm" else p for p in POINTS]
     report = write_report(tmp_path, points, ["Mode: test"]).read_text()
     rows = _rows(report, "Registration voxel size")
     assert rows[voxel].endswith(f"| {PROJECT_MARK} |") and not rows["4 mm"].endswith(f"| {PROJECT_MARK} |")
-    assert f"Project default: **{voxel}**, not the recommended **4 mm**: no reason is recorded" in report
+    assert f"Project default: **{voxel}**, not the recommended: {WHY_NOT['registration_voxel']}." in report
     # The density table's default, unfiltered, is the pipeline's own, kept for a recorded reason.
     assert f"Project default: **unfiltered**, not the recommended: {WHY_NOT['density']}." in report
+    monkeypatch.delitem(WHY_NOT, "registration_voxel")
+    report = write_report(tmp_path, points, ["Mode: test"]).read_text()
+    assert f"Project default: **{voxel}**, not the recommended **4 mm**: no reason is recorded" in report
 
 
 def test_a_default_kept_for_a_reason_says_it_and_a_missing_one_says_not_measured() -> None:
