@@ -144,6 +144,12 @@ WHY_NOT: dict[str, str] = {
         "one 4 mm stage needs the coarse pose already within 4 mm; the two stages recover a coarse pose "
         "further off, and registration runs once an object a session"
     ),
+    "width": (
+        "a checkpoint serves its prior alone wherever its network does not lead it on validation "
+        "(models.serving.choose_served; the serving table: the default model serves its prior); the "
+        "width-16 network is trained beside it, to serve where it measurably helps (a lab's real frames, "
+        "a scene with effects the prior lacks)"
+    ),
     "serving": (
         "the uncertainty is what a planner weighs each estimate by (the uncertainty table: its r with "
         "the error against dropout's), which SSIM cannot value; it is served with every estimate"
