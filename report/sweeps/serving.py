@@ -16,7 +16,7 @@ import torch
 
 from dataset.reader import DatasetReader
 from models.checkpoint import load_generator
-from models.data import network_input
+from models.data import network_input, to_uint8_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
 from models.runtime import sampling_copy
@@ -79,12 +79,13 @@ def uncertainty(ws: Workspace) -> list[Point]:
     depth = session_depth(ws)
     learned = generator.uncertainty
     with serving_as(generator, generator.serves, None):
-        estimate = predict_served(generator, depth, depth_range, SERVING_BATCH)[0]
         estimate_ms = median_cpu_ms(lambda: predict_served(generator, depth, depth_range, SERVING_BATCH), TIMED_RUNS)
     x = network_input(depth, depth_range, generator.config, generator.prior)
     batches = [slice(i, i + SERVING_BATCH) for i in range(0, len(x), SERVING_BATCH)]
     with torch.inference_mode():
         served = [served_images(generator, x[b], generator.serves) for b in batches]
+    # The served estimate as predict_served answers it: the same batches, to uint8 one by one.
+    estimate = np.concatenate([to_uint8_rgb(image) for image in served])
     dissimilarity = 1.0 - ssim_rgb(test.truth, estimate)
     points = []
     if learned is None:
