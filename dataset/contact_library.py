@@ -141,9 +141,13 @@ def library_sample(
     params: DepthMapParams,
     renderer: GelSightRenderer,
     size: tuple[int, int],
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """One (depth-map m, tactile image uint8 at ``size``) pair of ``family``, or None when the
-    drawn surface leaves nothing in the crop (drawn again by the caller)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One (depth-map m, tactile image uint8 at ``size``, model_to_gel) sample of ``family``, or
+    None when the drawn surface leaves nothing in the crop (drawn again by the caller).
+    ``model_to_gel`` (4 x 4, m) places the drawn shape's own origin in the gel frame: where the
+    gel was on that "object", which tells two libraries' contacts apart (dataset.splits'
+    twins). Its in-plane angle is not in it, so the rule may join two contacts that differ only
+    by their angle: more grasps kept to one split than need be, never fewer."""
     half_x, half_z, _, _ = crop_bounds(geometry, params)
     sensed_x_mm, sensed_z_mm = (0.5e3 * e for e in geometry.sensed_extent_m)
     offset = (rng.uniform(-0.8, 0.8) * sensed_x_mm, rng.uniform(-0.8, 0.8) * sensed_z_mm)
@@ -156,14 +160,17 @@ def library_sample(
     if not np.isfinite(lowest):
         return None
     press_mm = rng.uniform(-3.0, -0.1) if rng.uniform() < NO_CONTACT_SHARE else rng.uniform(0.05, 2.0)
-    surface = placed(shape, (0.0, 0.0), -lowest - press_mm)
+    lift_mm = -lowest - press_mm
+    surface = placed(shape, (0.0, 0.0), lift_mm)
     cloud = surface_cloud_m(surface, half_x, half_z, rng)
     try:
         depth_map = contact_depth_map(cloud, np.eye(4), np.eye(4), geometry, params).depth_map_m
     except DepthMapError:  # the crop was checked by the caller: only "no point in the crop" is left
         return None
     gap_mm = gel_gap_from_surface(surface, *renderer.config.shape, renderer.pixel_pitch_mm)
-    return depth_map, resize_rgb(renderer.render(gap_mm), *size)
+    model_to_gel = np.eye(4)
+    model_to_gel[:3, 3] = 1e-3 * np.array([offset[0], lift_mm, offset[1]])
+    return depth_map, resize_rgb(renderer.render(gap_mm), *size), model_to_gel
 
 
 def write_contact_library(
@@ -213,7 +220,7 @@ def write_contact_library(
         pair = None
         while pair is None:
             pair = library_sample(family, rng, geometry, params, renderer, (size, size))
-        depth_map, tactile = pair
+        depth_map, tactile, model_to_gel = pair
         writer.write(
             sample_id=sample_id,
             object_name=family,
@@ -224,5 +231,6 @@ def write_contact_library(
             tactile_diff_rgb=subtract_background(tactile, background),
             depth_map_m=depth_map,
             registration_fitness=1.0,
+            model_to_gel=model_to_gel,
         )
     return writer

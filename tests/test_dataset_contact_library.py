@@ -51,7 +51,7 @@ def test_a_pressed_depth_map_shows_its_contact_where_the_image_does(family: str)
         pair = library_sample(family, np.random.default_rng(seed), geometry, params, renderer, (100, 100))
         if pair is None:
             continue
-        depth_map, image = pair
+        depth_map, image, _ = pair
         pressed = (depth_map < -0.0003) & in_view
         # Nothing within 1 mm of the gel, and 2 mm (8 bins) from anything that is: the gel's
         # spread and a face's edge colour the image around a contact.
@@ -85,3 +85,19 @@ def test_the_command_refuses_a_bad_depth_range_and_writes_nothing(
     )
     assert args.func(args) == 2
     assert "error:" in capsys.readouterr().err and not (tmp_path / "lib").exists()
+
+
+def test_each_contact_records_where_the_gel_was_on_its_shape_so_two_libraries_are_not_all_twins(
+    tmp_path: Path,
+) -> None:
+    """A library's contacts are drawn shapes, not one object at the world's origin: each records
+    its shape's place in the gel frame (model_to_gel), and the twin rule across sessions joins
+    only contacts at the same place on a shape of the same family."""
+    from dataset.splits import twin_grasps
+
+    first, second = (write_contact_library(tmp_path / f"lib{seed}", 40, seed=seed, scene=SCENE) for seed in (0, 1))
+    poses = np.array([r.model_to_gel for r in first.records])
+    assert poses.shape == (40, 4, 4) and np.allclose(poses[:, :3, :3], np.eye(3))
+    assert len({tuple(p[:3, 3].round(6)) for p in poses}) == 40  # every contact somewhere else
+    twins = twin_grasps([first.records, second.records])
+    assert len(twins) < 10  # every contact at the one origin, as before: 268 pairs of 40 and 40
