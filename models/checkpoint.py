@@ -77,6 +77,11 @@ class TrainConfig:
     # against the dataset's; "": whatever it holds. The checkpoint records the dataset's, and
     # what it is served is cut by it.
     depth_map: str = ""
+    # Memory for the training and validation pairs (MiB, models.pairs): pairs are made from the
+    # sessions' files as they are drawn and kept, packed (about 100 KB at 100 x 100 with a prior),
+    # until this is full; the rest are made again each time. 512 holds the demo's 3,240 pairs
+    # (324 MiB), so a session of its size trains as if loaded at once; ten sessions stay in it.
+    pair_cache_mib: float = 512.0
     generator: GeneratorConfig = GeneratorConfig()
 
     def validate(self) -> "TrainConfig":
@@ -101,6 +106,8 @@ class TrainConfig:
             raise ModelConfigError(
                 f"depth_map must be one of {', '.join(DEPTH_MAP_METHODS)} (or '' for the dataset's), got {self.depth_map!r}"
             )
+        if not (np.isfinite(self.pair_cache_mib) and self.pair_cache_mib >= 0):
+            raise ModelConfigError(f"pair_cache_mib must be a finite number of MiB >= 0, got {self.pair_cache_mib}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ModelConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and 0 <= self.beta1 < 1 and 0 <= self.beta2 < 1 and self.lambda_l1 >= 0):

@@ -143,78 +143,17 @@ def load_pairs(
     """Network input (:func:`network_input`) and target (N x C x H x W, N x 3 x H x W) for
     ``records`` (all if None), checksums verified."""
     reader = root if isinstance(root, DatasetReader) else DatasetReader(root)
-    maps, images = _load_samples(reader, records)
+    maps, images = load_samples(reader, records)
     return network_input(maps, reader.info.depth_range_m, config, prior, pose_sigma_mm), image_target(images)
 
 
-def _load_samples(reader: DatasetReader, records: Sequence[SampleRecord] | None) -> tuple[np.ndarray, np.ndarray]:
+def load_samples(reader: DatasetReader, records: Sequence[SampleRecord] | None) -> tuple[np.ndarray, np.ndarray]:
     """Depth-maps (m) and tactile images of ``records`` (all if None), checksums verified."""
     chosen = reader.records if records is None else list(records)
     if not chosen:
         raise ModelConfigError(f"no samples selected from {reader.root}")
     samples = [reader.load(r) for r in chosen]
     return np.stack([s.depth_map_m for s in samples]), np.stack([s.tactile_rgb for s in samples])
-
-
-def load_library(
-    libraries: Sequence[str | os.PathLike[str]],
-    session: DatasetReader | Sequence[DatasetReader],
-    config: GeneratorConfig,
-    prior: PhysicsPrior | None,
-    pose_sigma_range_mm: tuple[float, ...] = (),
-    seed: int = 0,
-) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Every sample of each library dataset (dataset.contact_library), as network input and
-    target; refused unless its depth-maps are the session's (range and crop; of every session,
-    given several). A library's
-    geometry is exact: its prior is sharp, unless ``pose_sigma_range_mm`` (low, high) asks for
-    the uncertainties a model must answer for; then each pair gets a sigma drawn uniformly in
-    it (seeded by ``seed``), its depth-map is moved by an in-plane offset drawn from that sigma's
-    Gaussian (:func:`moved_in_gel_plane`) and its prior is rendered at that sigma: a
-    registration that far off, saying so, with the tactile image of where the contact really was."""
-    rng = np.random.default_rng(seed)
-    parts = []
-    for library in libraries:
-        reader = DatasetReader(library)
-        for each in [session] if isinstance(session, DatasetReader) else session:
-            _check_library(library, reader, each)
-        maps, images = _load_samples(reader, None)
-        sigmas: float | np.ndarray = 0.0  # exact geometry
-        if pose_sigma_range_mm:
-            maps, sigmas = _as_registered(maps, reader, pose_sigma_range_mm, rng)
-        parts.append((network_input(maps, reader.info.depth_range_m, config, prior, sigmas), image_target(images)))
-    if not parts:
-        return None
-    return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
-
-
-def _check_library(library: str | os.PathLike[str], reader: DatasetReader, session: DatasetReader) -> None:
-    """ModelConfigError unless the library at ``library`` (``reader``) cuts its depth-maps as ``session``."""
-    if reader.info.depth_map_method != session.info.depth_map_method:
-        raise ModelConfigError(
-            f"library {library} holds {reader.info.depth_map_method} depth-maps, the dataset "
-            f"{session.info.depth_map_method} ones: make it with the session's (dtx dataset library --depth-map)"
-        )
-    for name in ("depth_range_m", "depth_crop_m"):
-        mine, theirs = getattr(reader.info, name), getattr(session.info, name)
-        if mine is not None and theirs is not None and not np.allclose(mine, theirs, rtol=0, atol=1e-9):
-            raise ModelConfigError(
-                f"library {library} has {name} {mine}, the dataset {theirs}: make it "
-                "with the session's settings (dtx dataset library --depth-range-m)"
-            )
-
-
-def _as_registered(
-    maps: np.ndarray, reader: DatasetReader, sigma_range_mm: tuple[float, ...], rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """A library's exact ``maps``, each as a registration of a sigma drawn uniformly in
-    ``sigma_range_mm`` would have cut it, and those sigmas (mm)."""
-    crop_m = reader.info.depth_crop_m
-    if crop_m is None:
-        raise ModelConfigError(f"{reader.root} does not record its depth crop, which moving its maps needs")
-    sigmas = rng.uniform(sigma_range_mm[0], sigma_range_mm[1], len(maps))
-    offsets_mm = rng.standard_normal((len(maps), 2)) * sigmas[:, None]
-    return moved_in_gel_plane(maps, offsets_mm, crop_m, reader.info.depth_range_m[1]), sigmas
 
 
 def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm: float = 0.0) -> PhysicsPrior | None:

@@ -30,7 +30,8 @@ from models.checkpoint import SERVES, load_checkpoint, load_generator, save_atom
 from models.data import network_input, to_uint8_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
-from models.sessions import checkpoint_sessions, open_sessions, session_pairs, session_paths
+from models.pairs import PairCache, PairSet
+from models.sessions import Session, checkpoint_sessions, open_sessions, session_paths, session_sources
 from models.uncertainty import UncertaintyConfig, fit_uncertainty, pixel_error_levels
 from perception.ssim import ssim_rgb
 
@@ -39,6 +40,11 @@ SERVING_ENTRIES = ("serves", "serving_figures", "uncertainty")
 # How many standard errors of the paired SSIM difference the network must lead the prior by on
 # the validation split to be served.
 NETWORK_LEAD_SE = 2.0
+# The most pairs of each split the fit holds at once (drawn seeded where a lab's sessions have
+# more): a little over the demo's 1,680 and 360, so a demo-size session fits on all of its pairs
+# and ten sessions fit in the same memory.
+FIT_TRAIN_PAIRS = 2048
+FIT_VAL_PAIRS = 1024
 BATCH = 64
 
 
@@ -133,6 +139,14 @@ def choose_served(
     return "prior", figures, prior_images_val
 
 
+def _fit_pairs(
+    sessions: Sequence[Session], split: str, hold_out: str, generator: UNetGenerator, most: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """At most ``most`` pairs of ``split`` over ``sessions`` (seeded), at once."""
+    sources = session_sources(sessions, split, hold_out, generator.config, generator.prior)
+    return PairSet(sources, generator.config.in_channels, PairCache(0)).subset(most, seed=0).tensors()
+
+
 def fit_serving(
     checkpoint: str | os.PathLike[str],
     dataset: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None = None,
@@ -140,10 +154,11 @@ def fit_serving(
     log: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
 ) -> dict[str, Any]:
     """Choose what ``checkpoint`` serves and fit its uncertainty on ``dataset`` (one session or
-    several; default: the sessions it was trained on, or the single ``dataset`` a checkpoint from
-    before sessions names; their train split fits, their validation split chooses and calibrates), and
-    write both into the checkpoint (atomically: a failure leaves it as it was). Returns the
-    figures that decided."""
+        several; default: the sessions it was trained on, or the single ``dataset`` a checkpoint from
+        before sessions names; their train split fits, their validation split chooses and calibrates:
+    at most FIT_TRAIN_PAIRS and FIT_VAL_PAIRS of them, drawn seeded), and
+        write both into the checkpoint (atomically: a failure leaves it as it was). Returns the
+        figures that decided."""
     path = Path(checkpoint)
     state = load_checkpoint(path)
     generator, depth_range_m = load_generator(path)
@@ -152,8 +167,8 @@ def fit_serving(
         raise ModelConfigError(f"{path} does not name its dataset: give the dataset to fit on")
     sessions = open_sessions(roots, depth_range_m)
     hold_out = state["train_config"].get("hold_out_object", "")
-    x_train, y_train = session_pairs(sessions, "train", hold_out, generator.config, generator.prior)
-    x_val, y_val = session_pairs(sessions, "val", hold_out, generator.config, generator.prior)
+    x_train, y_train = _fit_pairs(sessions, "train", hold_out, generator, FIT_TRAIN_PAIRS)
+    x_val, y_val = _fit_pairs(sessions, "val", hold_out, generator, FIT_VAL_PAIRS)
     serves, figures, estimate_val = choose_served(generator, x_val, y_val)
     log(f"serves the {serves}: {', '.join(f'{k} {v:.4f}' for k, v in figures.items())}")
     estimate_train = served_images(generator, x_train, serves)

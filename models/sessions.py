@@ -34,8 +34,9 @@ from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.splits import SPLITS, session_fingerprint, split_sessions
 from models.checkpoint import TrainConfig
-from models.data import load_library, load_pairs, select_records, session_prior
+from models.data import select_records, session_prior
 from models.networks import GeneratorConfig, ModelConfigError
+from models.pairs import PairCache, PairSet, SessionPairs, library_pairs
 from models.prior import PhysicsPrior
 
 PathLike = str | os.PathLike[str]
@@ -147,23 +148,16 @@ def session_records(sessions: Sequence[Session], split: str, hold_out_object: st
     return [chosen[split] for chosen in splits]
 
 
-def session_pairs(
-    sessions: Sequence[Session],
-    split: str,
-    hold_out_object: str,
-    config: GeneratorConfig,
-    prior: PhysicsPrior | None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Network input and target of ``split`` over every session, session by session in the
-    order given (models.data.load_pairs of each session with a record in the split)."""
-    parts = [
-        load_pairs(s.reader, records, config, prior)
-        for s, records in zip(sessions, session_records(sessions, split, hold_out_object))
-        if records or len(sessions) == 1  # one session: load_pairs says that none was selected
-    ]
-    if not parts:
-        raise ModelConfigError(f"no samples of the {split} split in any of the {len(sessions)} sessions")
-    return torch.cat([x for x, _ in parts]), torch.cat([y for _, y in parts])
+def session_sources(
+    sessions: Sequence[Session], split: str, hold_out_object: str, config: GeneratorConfig, prior: PhysicsPrior | None
+) -> list[SessionPairs]:
+    """The pairs of ``split`` in each session that has some, in the order given (models.pairs:
+    made from the files on demand); ModelConfigError where no session has one."""
+    chosen = session_records(sessions, split, hold_out_object)
+    if not any(chosen):
+        where = f"any of the {len(sessions)} sessions" if len(sessions) > 1 else str(sessions[0].reader.root)
+        raise ModelConfigError(f"no samples of the {split} split in {where}")
+    return [SessionPairs(s.reader, records, config, prior) for s, records in zip(sessions, chosen) if records]
 
 
 def load_training_data(
@@ -171,9 +165,10 @@ def load_training_data(
     config: TrainConfig,
     libraries: Sequence[PathLike],
     device: torch.device,
-) -> tuple[tuple[torch.Tensor, ...], dict[str, Any]]:
-    """Train and validation inputs and targets on ``device``, and the checkpoint's record of
-    the data (depth range, sessions, libraries, physics prior); nothing is written."""
+) -> tuple[PairSet, PairSet, dict[str, Any]]:
+    """The train pairs (the sessions' train splits, then every library sample) and validation
+    pairs, streamed onto ``device`` and sharing the config's pair cache, and the checkpoint's
+    record of the data (depth range, sessions, libraries, physics prior); nothing is written."""
     sessions = open_sessions(datasets)
     for session in sessions:
         reader = session.reader
@@ -185,9 +180,7 @@ def load_training_data(
     check_one_prior(sessions, config.generator)
     first = sessions[0].reader
     prior = session_prior(first, config.generator, config.session_pose_sigma_mm)
-    x_train, y_train = session_pairs(sessions, "train", config.hold_out_object, config.generator, prior)
-    x_val, y_val = session_pairs(sessions, "val", config.hold_out_object, config.generator, prior)
-    library = load_library(
+    library = library_pairs(
         libraries,
         [s.reader for s in sessions],
         config.generator,
@@ -195,8 +188,11 @@ def load_training_data(
         config.library_pose_sigma_range_mm,
         config.seed,
     )
-    if library is not None:
-        x_train, y_train = torch.cat([x_train, library[0]]), torch.cat([y_train, library[1]])
+    hold_out, channels, cache = config.hold_out_object, config.generator.in_channels, PairCache(config.pair_cache_mib)
+    train = session_sources(sessions, "train", hold_out, config.generator, prior)
+    val = session_sources(sessions, "val", hold_out, config.generator, prior)
+    train_pairs = PairSet([*train, *library], channels, cache, device)
+    val_pairs = PairSet(val, channels, cache, device)
     meta = {
         "depth_range_m": list(first.info.depth_range_m),
         "depth_map_method": first.info.depth_map_method,
@@ -206,7 +202,7 @@ def load_training_data(
         "libraries": [str(Path(library).resolve()) for library in libraries],
         **({"prior": prior.spec.to_dict()} if prior is not None else {}),
     }
-    return tuple(t.to(device) for t in (x_train, y_train, x_val, y_val)), meta
+    return train_pairs, val_pairs, meta
 
 
 def checkpoint_sessions(state: dict[str, Any]) -> list[str]:

@@ -17,7 +17,8 @@ weights, and a resumed run continues exactly where the checkpoint left off.
 
 Runs unchanged under ``torchrun``: with WORLD_SIZE > 1 it joins the process group (NCCL on
 CUDA, gloo on CPU), wraps both networks in DistributedDataParallel and gives each rank every
-WORLD_SIZE-th sample of the epoch's permutation; rank 0 alone logs and saves. BatchNorm
+WORLD_SIZE-th sample of the epoch's permutation, made from the sessions' files as its batches
+draw them (models.pairs: no rank loads every session); rank 0 alone logs and saves. BatchNorm
 statistics stay per rank, as in pix2pix.
 
 Outputs in ``--out``: ``checkpoint.pt`` (state dicts of the networks, optimisers and
@@ -48,6 +49,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from models.checkpoint import CHECKPOINT, TrainConfig, load_checkpoint, save_atomic
 from models.networks import ModelConfigError, PatchDiscriminator, UNetGenerator, init_weights
+from models.pairs import PairSet
 from models.sessions import PathLike, checkpoint_sessions, load_training_data
 from msgs.progress import Progress
 from perception.ssim import ssim_torch
@@ -116,14 +118,14 @@ def _append_csv(path: Path, header: list[str], row: list[Any]) -> None:
 
 
 @torch.no_grad()
-def _validate(generator: nn.Module, x: torch.Tensor, y: torch.Tensor, batch: int = 32) -> tuple[float, float]:
+def _validate(generator: nn.Module, pairs: PairSet, batch: int = 32) -> tuple[float, float]:
     """Mean L1 (in [-1, 1] image units) and mean SSIM (0..255 images) of eval-mode output."""
     was_training = generator.training
     generator.eval()
     l1, ssim = [], []
-    for start in range(0, len(x), batch):
-        fake = generator(x[start : start + batch])
-        real = y[start : start + batch]
+    for chunk in pairs.chunks(batch):
+        x, real = pairs.batch(chunk)
+        fake = generator(x)
         l1.append((fake - real).abs().mean(dim=(1, 2, 3)))
         ssim.append(
             ssim_torch(((fake + 1) * 127.5).round().clamp(0, 255).double(), ((real + 1) * 127.5).round().double())
@@ -136,7 +138,7 @@ def _validate(generator: nn.Module, x: torch.Tensor, y: torch.Tensor, batch: int
 class TrainState:
     """A training run: the networks (``generator`` and ``discriminator`` are wrapped in
     DistributedDataParallel once training starts on several ranks), their optimisers and
-    learning-rate schedulers, this rank's data and the schedule; ``epoch`` is the next epoch to
+    learning-rate schedulers, the data (streamed: models.pairs) and the schedule; ``epoch`` is the next epoch to
     run and ``step`` the optimiser steps taken. ``meta`` is what every checkpoint records
     about the data."""
 
@@ -148,11 +150,9 @@ class TrainState:
     opt_g: torch.optim.Optimizer
     opt_d: torch.optim.Optimizer
     schedulers: list[LambdaLR]  # one per optimiser: generator's, discriminator's
-    x_train: torch.Tensor
-    y_train: torch.Tensor
-    x_val: torch.Tensor
-    y_val: torch.Tensor
-    mean_image: torch.Tensor
+    train: PairSet
+    val: PairSet
+    mean_image: torch.Tensor | None  # the mean training target, where the config uses it
     per_rank: int  # training samples of each rank per epoch
     total_steps: int
     meta: dict[str, Any]
@@ -193,10 +193,10 @@ def build_state(
     """A fresh run on one session or several (models.sessions): data, seeded and initialised
     networks, Adam optimisers, their learning-rate schedulers at epoch 0, and the number of steps."""
     dist = dist or _Dist()
-    (x_train, y_train, x_val, y_val), meta = load_training_data(dataset, config, libraries, dist.device)
-    per_rank = len(x_train) // dist.world
+    train_pairs, val_pairs, meta = load_training_data(dataset, config, libraries, dist.device)
+    per_rank = len(train_pairs) // dist.world
     if per_rank == 0:
-        raise ModelConfigError(f"{len(x_train)} training samples cannot be shared by {dist.world} ranks")
+        raise ModelConfigError(f"{len(train_pairs)} training samples cannot be shared by {dist.world} ranks")
     total_steps = (config.epochs + config.epochs_decay) * -(-per_rank // config.batch_size)
     if config.max_steps:
         total_steps = min(total_steps, config.max_steps)
@@ -206,8 +206,9 @@ def build_state(
     discriminator = PatchDiscriminator(config.discriminator).to(dist.device)
     init_weights(generator)
     init_weights(discriminator)
-    mean_image = y_train.mean(dim=0)
-    if config.generator.background:
+    # A pass over every training target, so only where the background or the contact weights need it.
+    mean_image = train_pairs.mean_target() if config.generator.background or config.contact_weight else None
+    if mean_image is not None and config.generator.background:
         generator.set_background(mean_image)
     average = copy.deepcopy(generator).requires_grad_(False) if config.ema_decay else None
     betas = (config.beta1, config.beta2)
@@ -222,10 +223,8 @@ def build_state(
         opt_g=opt_g,
         opt_d=opt_d,
         schedulers=lr_schedulers(config, (opt_g, opt_d)),
-        x_train=x_train,
-        y_train=y_train,
-        x_val=x_val,
-        y_val=y_val,
+        train=train_pairs,
+        val=val_pairs,
         mean_image=mean_image,
         per_rank=per_rank,
         total_steps=total_steps,
@@ -323,7 +322,12 @@ def train_step(state: TrainState, batch: tuple[torch.Tensor, torch.Tensor]) -> d
     state.opt_g.zero_grad(set_to_none=True)
     pred = _unwrap(state.discriminator)(x, fake)
     loss_g_gan = bce(pred, torch.ones_like(pred))
-    weights = contact_weights(y, state.mean_image, config.contact_weight)  # all 1: the paper's L1
+    # All 1 without contact weights: the paper's L1.
+    weights = (
+        torch.ones_like(y[:, :1])
+        if state.mean_image is None
+        else contact_weights(y, state.mean_image, config.contact_weight)
+    )
     prior = x[:, config.generator.in_channels :] if config.generator.prior else None
     loss_g_l1 = generator_l1(fake, y, weights, prior, config.correction_weight)
     (loss_g_gan + config.lambda_l1 * loss_g_l1).backward()
@@ -338,8 +342,8 @@ def _epoch_batches(state: TrainState, epoch: int) -> Iterator[torch.Tensor]:
     """This rank's sample indices of ``epoch``, batch by batch: a permutation seeded by the seed
     and the epoch, of which each rank takes every world-th sample."""
     config, dist = state.config, state.dist
-    order = torch.randperm(len(state.x_train), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
-    mine = order[: state.per_rank * dist.world][dist.rank :: dist.world].to(dist.device)
+    order = torch.randperm(len(state.train), generator=torch.Generator().manual_seed(config.seed * 100003 + epoch))
+    mine = order[: state.per_rank * dist.world][dist.rank :: dist.world]
     for start in range(0, state.per_rank, config.batch_size):
         yield mine[start : start + config.batch_size]
 
@@ -382,11 +386,11 @@ class TrainLog:
                 self.board.add_scalar(f"train/{name}", value, step)
             self.board.add_scalar("train/lr", lr, step)
 
-    def validation(self, epoch: int, step: int, generator: nn.Module, x_val: torch.Tensor, y_val: torch.Tensor) -> None:
-        """Validate ``generator`` after ``epoch``; rank 0 alone calls this."""
+    def validation(self, epoch: int, step: int, generator: nn.Module, pairs: PairSet) -> None:
+        """Validate ``generator`` on ``pairs`` after ``epoch``; rank 0 alone calls this."""
         if self.board is None:
             raise RuntimeError("TrainLog.validation is rank 0's: this rank writes no logs")
-        val_l1, val_ssim = _validate(generator, x_val, y_val)
+        val_l1, val_ssim = _validate(generator, pairs)
         _append_csv(
             self.out_dir / "val_log.csv",
             ["epoch", "step", "val_l1", "val_ssim", "wall_s"],
@@ -459,14 +463,14 @@ def train(
             for index in _epoch_batches(state, epoch):
                 if state.step >= state.total_steps:
                     break
-                losses = train_step(state, (state.x_train[index], state.y_train[index]))
+                losses = train_step(state, state.train.batch(index))
                 state.step += 1
                 log.losses(epoch, state.step, state.opt_g.param_groups[0]["lr"], losses)
             state.epoch = epoch + 1
             for scheduler in state.schedulers:
                 scheduler.step()
             if dist.rank == 0:
-                log.validation(epoch, state.step, state.served, state.x_val, state.y_val)
+                log.validation(epoch, state.step, state.served, state.val)
                 save_checkpoint(state, checkpoint_path)
         log.close()
         return checkpoint_path

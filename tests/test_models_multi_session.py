@@ -72,7 +72,8 @@ def test_one_session_selects_exactly_the_pairs_it_did_before(sessions: dict[str,
         for finger in ("left", "right")
     ]
     assert ids == {split: [r.sample_id for r in select_records(reader, split)] for split in SPLITS}
-    (x_train, y_train, x_val, y_val), meta = load_training_data(sessions["day1"], TINY, (), torch.device("cpu"))
+    train_pairs, _, meta = load_training_data(sessions["day1"], TINY, (), torch.device("cpu"))
+    x_train, y_train = train_pairs.tensors()
     expected = load_pairs(reader, select_records(reader, "train"), TINY.generator)
     assert torch.equal(x_train, expected[0]) and torch.equal(y_train, expected[1])
     assert meta["dataset"] == str(sessions["day1"].resolve()) and len(meta["sessions"]) == 1
@@ -81,9 +82,8 @@ def test_one_session_selects_exactly_the_pairs_it_did_before(sessions: dict[str,
 def test_two_sessions_train_on_the_union_of_their_train_splits(sessions: dict[str, Path], tmp_path: Path) -> None:
     day1, day2 = DatasetReader(sessions["day1"]), DatasetReader(sessions["day2"])
     assert not twin_grasps([day1.records, day2.records])  # other grasps: each keeps its own split
-    (x_train, y_train, _, _), meta = load_training_data(
-        [sessions["day1"], sessions["day2"]], TINY, (), torch.device("cpu")
-    )
+    train_pairs, _, meta = load_training_data([sessions["day1"], sessions["day2"]], TINY, (), torch.device("cpu"))
+    x_train, y_train = train_pairs.tensors()
     parts = [load_pairs(r, select_records(r, "train"), TINY.generator) for r in (day1, day2)]
     assert torch.equal(x_train, torch.cat([p[0] for p in parts])) and torch.equal(
         y_train, torch.cat([p[1] for p in parts])

@@ -13,8 +13,9 @@ import torch
 from dataset.contact_library import write_contact_library
 from dataset.reader import DatasetReader
 from models.checkpoint import TrainConfig, load_checkpoint, load_generator
-from models.data import load_library, moved_in_gel_plane, session_prior
+from models.data import moved_in_gel_plane, session_prior
 from models.networks import GeneratorConfig, ModelConfigError
+from models.pairs import PairCache, PairSet, library_pairs
 from models.train import train
 from perception.normalisation import denormalise_depth_map
 
@@ -42,9 +43,8 @@ def test_a_map_moves_by_whole_bins_of_its_crop_and_what_leaves_the_crop_is_gone(
 
 def _library_inputs(library: Path, sigma_range_mm: tuple[float, ...], seed: int = 0) -> torch.Tensor:
     reader = DatasetReader(library)
-    loaded = load_library([library], reader, PRIOR, session_prior(reader, PRIOR), sigma_range_mm, seed)
-    assert loaded is not None
-    return loaded[0]
+    sources = library_pairs([library], [reader], PRIOR, session_prior(reader, PRIOR), sigma_range_mm, seed)
+    return PairSet(sources, PRIOR.in_channels, PairCache(0)).tensors()[0]
 
 
 def _shift_bins(
