@@ -11,8 +11,8 @@ are mixed only where their pairs mean the same to the network; otherwise the run
 * scenes (the GelSight each session saw) may differ, but a session that records none cannot be
   mixed with sessions of another: nothing says which sensor it saw;
 * a generator with a physics prior renders every pair with the one prior its checkpoint
-  stores and serves: its sessions must share the scene and the depth crop
-  (:func:`check_one_prior`). The prior's pose blur is the config's ``session_pose_sigma_mm``
+  stores and serves: its sessions must share the depth crop and the GelSight as the prior
+  draws it, whatever objects their scenes hold (:func:`check_one_prior`). The prior's pose blur is the config's ``session_pose_sigma_mm``
   for every session: a dataset records no pose uncertainty of its own.
 
 The splits are dataset.splits.split_sessions' (one session: its own split, exactly as alone).
@@ -37,7 +37,7 @@ from models.checkpoint import TrainConfig
 from models.data import select_records, session_prior
 from models.networks import GeneratorConfig, ModelConfigError
 from models.pairs import PairCache, PairSet, SessionPairs, library_pairs
-from models.prior import PhysicsPrior
+from models.prior import PhysicsPrior, PriorSpec
 
 PathLike = str | os.PathLike[str]
 
@@ -114,19 +114,37 @@ def open_sessions(
 
 
 def check_one_prior(sessions: Sequence[Session], config: GeneratorConfig) -> None:
-    """A generator with a physics prior: every session must share the first's scene and crop,
-    the one prior its checkpoint stores and serves; ModelConfigError otherwise."""
+    """A generator with a physics prior: every session must share the first's depth crop and
+    its GelSight as the prior draws it (the scene's renderer without effects: the objects may
+    differ), the one prior its checkpoint stores (the first session's scene) and serves;
+    ModelConfigError otherwise."""
     if not config.prior:
         return
-    first = sessions[0].reader
+    first = sessions[0].reader.info
     for session in sessions[1:]:
         info = session.reader.info
-        if info.scene != first.info.scene or info.depth_crop_m != first.info.depth_crop_m:
-            raise ModelConfigError(
-                f"sessions {first.root} and {session.reader.root} have another scene or depth crop "
-                f"({first.info.scene!r} {first.info.depth_crop_m} against {info.scene!r} {info.depth_crop_m}): "
-                "a checkpoint serves one physics prior, so a prior model cannot mix them yet"
+        if first.depth_crop_m is None or info.depth_crop_m is None or info.scene == first.scene:
+            same = info.depth_crop_m == first.depth_crop_m
+        else:
+            same = np.allclose(info.depth_crop_m, first.depth_crop_m, rtol=0, atol=1e-9) and _same_gelsight(
+                first.scene, info.scene, config.image_size
             )
+        if not same:
+            raise ModelConfigError(
+                f"sessions {sessions[0].reader.root} and {session.reader.root} have another GelSight or depth crop "
+                f"({first.scene!r} {first.depth_crop_m} against {info.scene!r} {info.depth_crop_m}): "
+                "a checkpoint serves one physics prior, so a prior model cannot mix them"
+            )
+
+
+def _same_gelsight(scene: str, other: str, size: int) -> bool:
+    """Whether two scenes' GelSights draw the same prior (models.prior); False where either
+    scene cannot be read."""
+    try:
+        mine, theirs = (PhysicsPrior(PriorSpec(s, (1.0, 1.0, 1.0)), size).renderer for s in (scene, other))
+    except ModelConfigError:
+        return False
+    return repr(mine.config) == repr(theirs.config)
 
 
 def session_records(sessions: Sequence[Session], split: str, hold_out_object: str = "") -> list[list[SampleRecord]]:

@@ -224,10 +224,29 @@ def test_an_old_single_dataset_checkpoint_still_serves_and_evaluates(
     assert json.loads(capsys.readouterr().out)["n"] == 4 and "sessions" not in load_checkpoint(path)
 
 
-def test_a_prior_model_refuses_sessions_of_another_scene(sessions: dict[str, Path]) -> None:
-    """A checkpoint stores and serves one physics prior: sessions of two scenes cannot share it."""
+def test_a_prior_model_mixes_scenes_of_one_gelsight_and_refuses_another(
+    sessions: dict[str, Path], tmp_path: Path
+) -> None:
+    """A checkpoint stores and serves one physics prior: sessions whose scenes hold other objects
+    with the same GelSight share it; another GelSight, or a scene nothing can read, cannot."""
+    from dataset.contact_library import write_contact_library
     from models.errors import ModelConfigError
 
     config = dataclasses.replace(TINY, generator=GeneratorConfig(ngf=8, prior=True, background=False))
-    with pytest.raises(ModelConfigError, match="one physics prior"):
+    with pytest.raises(ModelConfigError, match="does not record its scene and depth crop"):
         load_training_data([sessions["day1"], sessions["day2"]], config, (), torch.device("cpu"))
+    scenes = Path(__file__).resolve().parent.parent / "scenes"
+    other = tmp_path / "other_gelsight.yaml"
+    other.write_text(
+        (scenes / "ycb_three.yaml").read_text().replace("elastomer_thickness_mm: 2.0", "elastomer_thickness_mm: 2.5")
+    )
+    roots = {
+        name: write_contact_library(tmp_path / name, 8, seed=i, scene=str(scene)).root
+        for i, (name, scene) in enumerate(
+            (("three", scenes / "ycb_three.yaml"), ("unseen", scenes / "ycb_unseen.yaml"), ("other", other))
+        )
+    }
+    train_pairs, _, meta = load_training_data([roots["three"], roots["unseen"]], config, (), torch.device("cpu"))
+    assert len(train_pairs) > 0 and meta["prior"]["scene"].endswith("ycb_three.yaml")
+    with pytest.raises(ModelConfigError, match="another GelSight or depth crop.*one physics prior"):
+        load_training_data([roots["three"], roots["other"]], config, (), torch.device("cpu"))
