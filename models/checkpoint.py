@@ -67,6 +67,11 @@ class TrainConfig:
     # (models.prior), a library pair's the sharp image of its exact geometry. Stored in the
     # checkpoint as the prior's default for what it is asked; 0: every prior image sharp.
     session_pose_sigma_mm: float = 0.0
+    # Each session's own pose error (mm), one a session in the order they are given, where a lab's
+    # sessions differ (one redepthed with a touch calibration, one not): its pairs' prior is
+    # blurred by it. (): session_pose_sigma_mm for every session. The served default stays
+    # session_pose_sigma_mm.
+    session_pose_sigmas_mm: tuple[float, ...] = ()
     # The pose uncertainties (mm, [low, high]) the model learns to answer for, so that one
     # checkpoint serves any pose_sigma_mm a planner asks in them (the inference protocol): each
     # library pair, exact geometry, is moved in the gel plane by an offset of a sigma drawn
@@ -101,6 +106,10 @@ class TrainConfig:
         if self.correction_weight and not self.generator.prior:
             raise ModelConfigError("correction_weight needs a generator with a physics prior (prior: true)")
         checked_pose_sigma_mm(self.session_pose_sigma_mm, "session_pose_sigma_mm")
+        for sigma in self.session_pose_sigmas_mm:
+            checked_pose_sigma_mm(sigma, "session_pose_sigmas_mm")
+        if self.session_pose_sigmas_mm and not self.generator.prior:
+            raise ModelConfigError("session_pose_sigmas_mm needs a generator with a physics prior (prior: true)")
         self._check_library_pose_sigma_range()
         if self.depth_map and self.depth_map not in DEPTH_MAP_METHODS:
             raise ModelConfigError(

@@ -22,8 +22,15 @@ def _train(args: argparse.Namespace) -> int:
     config = TrainConfig.load(args.config)
     if args.hold_out_object:
         config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
-    if args.session_pose_sigma_mm is not None:
-        config = dataclasses.replace(config, session_pose_sigma_mm=args.session_pose_sigma_mm)
+    sigmas = args.session_pose_sigma_mm
+    if sigmas and len(sigmas) not in (1, len(args.dataset)):
+        raise ModelConfigError(
+            f"--session-pose-sigma-mm takes one value or one a session ({len(args.dataset)}), got {len(sigmas)}"
+        )
+    if sigmas:  # the first is the served default; several: each session's own
+        config = dataclasses.replace(
+            config, session_pose_sigma_mm=sigmas[0], session_pose_sigmas_mm=tuple(sigmas) if len(sigmas) > 1 else ()
+        ).validate()
     started = time.monotonic()
     dataset = args.dataset[0] if len(args.dataset) == 1 else args.dataset
     path = train(dataset, config, args.out, resume=args.resume, libraries=args.library)
@@ -194,9 +201,11 @@ def _add_train(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument(
         "--session-pose-sigma-mm",
         type=float,
+        nargs="+",
         metavar="MM",
-        help="the session's in-plane pose uncertainty its prior is blurred by (overrides the config's "
-        "session_pose_sigma_mm): smaller for a session redepthed with a touch calibration",
+        help="the sessions' in-plane pose uncertainty their prior is blurred by, one for all or one a "
+        "session (overrides the config's session_pose_sigma_mm; the first is the served default): "
+        "smaller for a session redepthed with a touch calibration",
     )
     train.add_argument(
         "--library",

@@ -45,19 +45,22 @@ class PairSource(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class SessionPairs:
-    """A session's ``records``, each depth-map's prior blurred by the prior's default pose error."""
+    """A session's ``records``, each depth-map's prior blurred by the session's pose error
+    ``pose_sigma_mm`` (None: the prior's default)."""
 
     reader: DatasetReader
     records: Sequence[SampleRecord]
     config: GeneratorConfig
     prior: PhysicsPrior | None
+    pose_sigma_mm: float | None = None
 
     def __len__(self) -> int:
         return len(self.records)
 
     def make(self, indices: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         maps, images = load_samples(self.reader, [self.records[i] for i in indices])
-        return network_input(maps, self.reader.info.depth_range_m, self.config, self.prior), image_target(images)
+        x = network_input(maps, self.reader.info.depth_range_m, self.config, self.prior, self.pose_sigma_mm)
+        return x, image_target(images)
 
 
 @dataclasses.dataclass(frozen=True)

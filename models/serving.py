@@ -140,10 +140,15 @@ def choose_served(
 
 
 def _fit_pairs(
-    sessions: Sequence[Session], split: str, hold_out: str, generator: UNetGenerator, most: int
+    sessions: Sequence[Session],
+    split: str,
+    hold_out: str,
+    generator: UNetGenerator,
+    most: int,
+    pose_sigmas_mm: Sequence[float | None],
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """At most ``most`` pairs of ``split`` over ``sessions`` (seeded), at once."""
-    sources = session_sources(sessions, split, hold_out, generator.config, generator.prior)
+    sources = session_sources(sessions, split, hold_out, generator.config, generator.prior, pose_sigmas_mm)
     return PairSet(sources, generator.config.in_channels, PairCache(0)).subset(most, seed=0).tensors()
 
 
@@ -167,8 +172,10 @@ def fit_serving(
         raise ModelConfigError(f"{path} does not name its dataset: give the dataset to fit on")
     sessions = open_sessions(roots, depth_range_m)
     hold_out = state["train_config"].get("hold_out_object", "")
-    x_train, y_train = _fit_pairs(sessions, "train", hold_out, generator, FIT_TRAIN_PAIRS)
-    x_val, y_val = _fit_pairs(sessions, "val", hold_out, generator, FIT_VAL_PAIRS)
+    # The sessions it was trained on, each with the pose error its prior was blurred by.
+    sigmas = [entry.get("pose_sigma_mm") for entry in state.get("sessions", [])] if dataset is None else []
+    x_train, y_train = _fit_pairs(sessions, "train", hold_out, generator, FIT_TRAIN_PAIRS, sigmas)
+    x_val, y_val = _fit_pairs(sessions, "val", hold_out, generator, FIT_VAL_PAIRS, sigmas)
     serves, figures, estimate_val = choose_served(generator, x_val, y_val)
     log(f"serves the {serves}: {', '.join(f'{k} {v:.4f}' for k, v in figures.items())}")
     estimate_train = served_images(generator, x_train, serves)

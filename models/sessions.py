@@ -12,8 +12,9 @@ are mixed only where their pairs mean the same to the network; otherwise the run
   mixed with sessions of another: nothing says which sensor it saw;
 * a generator with a physics prior renders every pair with the one prior its checkpoint
   stores and serves: its sessions must share the depth crop and the GelSight as the prior
-  draws it, whatever objects their scenes hold (:func:`check_one_prior`). The prior's pose blur is the config's ``session_pose_sigma_mm``
-  for every session: a dataset records no pose uncertainty of its own.
+  draws it, whatever objects their scenes hold (:func:`check_one_prior`). Each session's
+  prior is blurred by its own pose error (the config's ``session_pose_sigmas_mm``, one a
+  session, or ``session_pose_sigma_mm`` for all: a dataset records none of its own).
 
 The splits are dataset.splits.split_sessions' (one session: its own split, exactly as alone).
 The checkpoint records each session (:meth:`Session.entry`: name, path, fingerprint).
@@ -59,8 +60,8 @@ class Session:
     name: str
     fingerprint: str
 
-    def entry(self) -> dict[str, Any]:
-        """What a checkpoint records of this session."""
+    def entry(self, pose_sigma_mm: float | None = None) -> dict[str, Any]:
+        """What a checkpoint records of this session (with the pose error its prior was blurred by)."""
         info = self.reader.info
         return {
             "name": self.name,
@@ -70,6 +71,7 @@ class Session:
             "scene": info.scene,
             "depth_crop_m": None if info.depth_crop_m is None else list(info.depth_crop_m),
             "split_seed": info.split_seed,
+            **({} if pose_sigma_mm is None else {"pose_sigma_mm": pose_sigma_mm}),
         }
 
 
@@ -167,15 +169,28 @@ def session_records(sessions: Sequence[Session], split: str, hold_out_object: st
 
 
 def session_sources(
-    sessions: Sequence[Session], split: str, hold_out_object: str, config: GeneratorConfig, prior: PhysicsPrior | None
+    sessions: Sequence[Session],
+    split: str,
+    hold_out_object: str,
+    config: GeneratorConfig,
+    prior: PhysicsPrior | None,
+    pose_sigmas_mm: Sequence[float | None] = (),
 ) -> list[SessionPairs]:
     """The pairs of ``split`` in each session that has some, in the order given (models.pairs:
-    made from the files on demand); ModelConfigError where no session has one."""
+    made from the files on demand), each session's prior blurred by its ``pose_sigmas_mm``
+    (one a session; none given: the prior's default); ModelConfigError where no session has one."""
     chosen = session_records(sessions, split, hold_out_object)
     if not any(chosen):
         where = f"any of the {len(sessions)} sessions" if len(sessions) > 1 else str(sessions[0].reader.root)
         raise ModelConfigError(f"no samples of the {split} split in {where}")
-    return [SessionPairs(s.reader, records, config, prior) for s, records in zip(sessions, chosen) if records]
+    sigmas = list(pose_sigmas_mm) or [None] * len(sessions)
+    if len(sigmas) != len(sessions):
+        raise ModelConfigError(f"{len(sigmas)} pose uncertainties given for {len(sessions)} sessions: give one a session")
+    return [
+        SessionPairs(s.reader, records, config, prior, sigma)
+        for s, records, sigma in zip(sessions, chosen, sigmas)
+        if records
+    ]
 
 
 def load_training_data(
@@ -207,8 +222,9 @@ def load_training_data(
         config.seed,
     )
     hold_out, channels, cache = config.hold_out_object, config.generator.in_channels, PairCache(config.pair_cache_mib)
-    train = session_sources(sessions, "train", hold_out, config.generator, prior)
-    val = session_sources(sessions, "val", hold_out, config.generator, prior)
+    sigmas = config.session_pose_sigmas_mm
+    train = session_sources(sessions, "train", hold_out, config.generator, prior, sigmas)
+    val = session_sources(sessions, "val", hold_out, config.generator, prior, sigmas)
     train_pairs = PairSet([*train, *library], channels, cache, device)
     val_pairs = PairSet(val, channels, cache, device)
     meta = {
@@ -216,7 +232,7 @@ def load_training_data(
         "depth_map_method": first.info.depth_map_method,
         # One session: its path, as every checkpoint before sessions recorded it.
         **({"dataset": str(first.root.resolve())} if len(sessions) == 1 else {}),
-        "sessions": [s.entry() for s in sessions],
+        "sessions": [s.entry(sigma) for s, sigma in zip(sessions, sigmas or [None] * len(sessions))],
         "libraries": [str(Path(library).resolve()) for library in libraries],
         **({"prior": prior.spec.to_dict()} if prior is not None else {}),
     }

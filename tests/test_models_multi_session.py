@@ -177,6 +177,26 @@ def test_sessions_that_cannot_be_mixed_are_refused_with_nothing_written(
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("sigmas", "says"),
+    [
+        (["0.1", "0.2", "0.3"], "one value or one a session (2), got 3"),
+        (["0.1", "nan"], "session_pose_sigmas_mm must be a finite number"),
+        (["0.1", "0.2"], "session_pose_sigmas_mm needs a generator with a physics prior"),
+    ],
+)
+def test_pose_uncertainties_that_do_not_fit_the_sessions_are_refused_with_nothing_written(
+    sessions: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], sigmas: list[str], says: str
+) -> None:
+    out = tmp_path / "run"
+    day1, day2 = str(sessions["day1"]), str(sessions["day2"])
+    argv = ["train", day1, day2, "--config", _config(tmp_path), "--out", str(out), "--session-pose-sigma-mm", *sigmas]
+    assert _cli(*argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and says in err
+    assert not out.exists()
+
+
 @pytest.fixture(scope="module")
 def two_day_checkpoint(sessions: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
     config = dataclasses.replace(TINY, hold_out_object="box")

@@ -16,6 +16,7 @@ from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import load_pairs, session_prior
 from models.networks import GeneratorConfig, ModelConfigError
 from models.pairs import PairCache, PairSet, SessionPairs, library_pairs
+from models.sessions import load_training_data, open_sessions, session_records
 from models.train import _Dist, _epoch_batches, build_state, train
 
 REPO = Path(__file__).resolve().parent.parent
@@ -152,3 +153,25 @@ def test_indices_outside_the_set_are_refused(session: Path) -> None:
         pairs.batch([0, len(pairs)])
     with pytest.raises(IndexError):
         pairs.batch([-1])
+
+
+def test_each_session_keeps_its_own_pose_uncertainty(session: Path, tmp_path: Path) -> None:
+    """Two sessions of one scene, one redepthed with a touch calibration and one not: each
+    session's pairs get the prior blurred by its own pose error, and the checkpoint says which."""
+    other = write_contact_library(tmp_path / "other", 12, seed=9, scene=SCENE).root
+    config = dataclasses.replace(TINY, session_pose_sigmas_mm=(0.0, 2.0))
+    train_pairs, _, meta = load_training_data([session, other], config, (), torch.device("cpu"))
+    readers = [DatasetReader(root) for root in (session, other)]
+    chosen = session_records(open_sessions([session, other]), "train")
+    expected = [
+        load_pairs(reader, records, PRIOR, session_prior(reader, PRIOR, sigma))[0]
+        for reader, records, sigma in zip(readers, chosen, (0.0, 2.0))
+    ]
+    assert torch.equal(train_pairs.tensors()[0], torch.cat(expected))
+    assert [entry["pose_sigma_mm"] for entry in meta["sessions"]] == [0.0, 2.0]
+    with pytest.raises(ModelConfigError, match="3 pose uncertainties given for 2 sessions"):
+        load_training_data(
+            [session, other], dataclasses.replace(TINY, session_pose_sigmas_mm=(0.0, 1.0, 2.0)), (), torch.device("cpu")
+        )
+    with pytest.raises(ModelConfigError, match="session_pose_sigmas_mm must be a finite number"):
+        dataclasses.replace(TINY, session_pose_sigmas_mm=(0.0, -1.0)).validate()
