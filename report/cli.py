@@ -91,11 +91,20 @@ def _without_machine_paths(points: list[dict], places: dict[str, str]) -> list[d
 
 
 def _cached(path: Path, made_by: dict) -> dict | None:
+    """The sweep cached at ``path`` if ``made_by`` made it: the same plan and session, and the same
+    training config as read (a field added since, at its default, is the same config)."""
+    from models.checkpoint import TrainConfig
+    from models.errors import ModelConfigError
+
     try:
         entry = json.loads(path.read_text())
-    except (OSError, ValueError):
+        same_config = TrainConfig.from_dict(entry["training_config"]) == TrainConfig.from_dict(
+            made_by["training_config"]
+        )
+    except (OSError, ValueError, KeyError, TypeError, ModelConfigError):
         return None
-    return entry if all(entry.get(key) == value for key, value in made_by.items()) else None
+    same = all(entry.get(key) == value for key, value in made_by.items() if key != "training_config")
+    return entry if same and same_config else None
 
 
 def _header(

@@ -95,6 +95,11 @@ def test_a_cached_sweep_counts_only_for_the_plan_and_training_config_that_made_i
     assert _cached(path, made_by) is not None
     assert _cached(path, {**made_by, "plan": json.loads(json.dumps(dataclasses.asdict(FULL)))}) is None
     assert _cached(path, {**made_by, "training_config": {**config, "lambda_l1": config["lambda_l1"] / 10}}) is None
+    # A config field added since, at its default, is the same config; at another value it is not.
+    older = {key: value for key, value in made_by["training_config"].items() if key != "pair_cache_mib"}
+    path.write_text(json.dumps({**made_by, "training_config": older, "seconds": 1.0, "points": []}))
+    assert _cached(path, made_by) is not None
+    assert _cached(path, {**made_by, "training_config": {**config, "pair_cache_mib": 64.0}}) is None
     path.write_text(json.dumps({"plan": made_by["plan"], "seconds": 1.0, "points": []}))  # made before the key
     assert _cached(path, made_by) is None
     path.write_text("{not json")
