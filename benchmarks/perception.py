@@ -219,8 +219,11 @@ def bench_registration(scene_path: str, trials: int, seed: int, drop_effects: li
     return [{"part": "registration", "mesh": stem, **row} for stem, row in report.items()]
 
 
-def _sweep_cases(scene_path: str, poses: int, seed: int, drop_effects: list[str]):
-    """Segmented clusters (with ground truth) of each mesh at a few random poses, made once."""
+def _sweep_cases(
+    scene_path: str, poses: int, seed: int, drop_effects: list[str], calibration: dict[str, np.ndarray] | None = None
+):
+    """Segmented clusters (with ground truth) of each mesh at a few random poses, made once;
+    with ``calibration`` (camera name -> camera_to_world) the cameras report those extrinsics."""
     scene = load_scene(scene_path)
     scene = dataclasses.replace(scene, effects=[e for e in scene.effects if e.name not in drop_effects])
     rng = np.random.default_rng(seed)
@@ -232,7 +235,7 @@ def _sweep_cases(scene_path: str, poses: int, seed: int, drop_effects: list[str]
         for _ in range(poses):
             placed = scene_with_object(scene, mesh, rng, footprint)
             world = SimWorld(placed, seed=int(rng.integers(2**31)))
-            clouds = depth_images_to_world(render_depth_images(world, placed))
+            clouds = depth_images_to_world(render_depth_images(world, placed, calibration))
             observed = segment_object(clouds, segmentation_params_for(placed)).points_world_m
             cases.append((Path(mesh).stem, model, surface, observed, world.object_to_world[0]))
     return cases

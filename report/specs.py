@@ -21,6 +21,16 @@ def point(sweep: str, setting: str, time_value: float, accuracy: float | None, *
     }
 
 
+# The registration tables' columns beside the given cameras' ADD-S: the same registrations with
+# the cameras as the session's touch calibration corrected them (report.sweeps.registration).
+REGISTRATION_EXTRAS = (
+    ("add_s_mm_p90", "ADD-S p90"),
+    ("accepted_rate", "accepted"),
+    ("add_s_mm_calibrated", "ADD-S touch-calibrated"),
+    ("add_s_mm_p90_calibrated", "p90 touch-calibrated"),
+)
+
+
 @dataclasses.dataclass(frozen=True)
 class Spec:
     title: str
@@ -120,7 +130,7 @@ SPECS: dict[str, Spec] = {
         "ADD-S median (mm)",
         False,
         0.5,
-        (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted")),
+        REGISTRATION_EXTRAS,
     ),
     "registration_ransac": Spec(
         "RANSAC iterations",
@@ -130,7 +140,7 @@ SPECS: dict[str, Spec] = {
         "ADD-S median (mm)",
         False,
         0.5,
-        (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted")),
+        REGISTRATION_EXTRAS,
     ),
     "registration_icp": Spec(
         "ICP distance stages",
@@ -140,7 +150,7 @@ SPECS: dict[str, Spec] = {
         "ADD-S median (mm)",
         False,
         0.5,
-        (("add_s_mm_p90", "ADD-S p90"), ("accepted_rate", "accepted")),
+        REGISTRATION_EXTRAS,
     ),
     "resolution": Spec(
         "Depth-map resolution",
@@ -218,6 +228,7 @@ SPECS: dict[str, Spec] = {
         (
             ("error_deg", "error deg"),
             ("touches", "touches"),
+            ("touches_per_object", "touches per object"),
             ("renderer_ratio", "renderer ratio"),
             ("fit_cpu_s", "fit CPU s"),
             ("refused", "refused because"),

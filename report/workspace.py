@@ -25,7 +25,7 @@ from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params, redepth_dataset
-from dataset.touch_calibration import REGISTRATION_FRAMES_TOPIC
+from dataset.touch_calibration import REGISTRATION_FRAMES_TOPIC, TouchCalibration, calibrate_touches
 from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import select_records
 from models.serving import fit_serving
@@ -99,6 +99,15 @@ class Workspace:
                 f"the collection session for the report failed (exit {result.returncode}): dtx {' '.join(command[3:])}"
             )
         return out
+
+    @functools.cached_property
+    def touch_calibration(self) -> tuple[TouchCalibration, float]:
+        """``dtx calibrate touches`` on the whole session, and the CPU s it took (made once a
+        run: the pipeline's table times it, the registration tables register with it);
+        perception.touch_calibration.TouchCalibrationError where its touches cannot."""
+        started = time.process_time()
+        calibration = calibrate_touches(self.session)
+        return calibration, time.process_time() - started
 
     def session_at(self, bins: int, method: str = "surface") -> Path:
         """The session with its depth-maps made again over ``bins`` x ``bins`` bins, each bin

@@ -84,6 +84,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
                 error_deg=round(max(row["error_deg"] for row in cameras), 4),
                 fit_cpu_s=round(fit_s, 1),
                 touches=sum(calibration.object_touches.values()),
+                touches_per_object=", ".join(f"{name} {n}" for name, n in sorted(calibration.object_touches.items())),
                 **renderer_ratio(test, scene, reader.info.depth_crop_m, maps),
             )
         )

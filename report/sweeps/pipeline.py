@@ -5,9 +5,7 @@ grasp, of a session and of a planner's region costs, and the figure each buys.""
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
 import cv2
 import numpy as np
@@ -18,7 +16,7 @@ from dataset.check import check_dataset
 from dataset.reader import DatasetReader
 from dataset.redepth import depth_map_params, model_index, poses_at
 from dataset.registered_again import placement_report
-from dataset.touch_calibration import calibrate_touches, scene_camera_truth
+from dataset.touch_calibration import scene_camera_truth
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.networks import UNetGenerator
@@ -33,7 +31,6 @@ from report.sweeps.calibration import _given_extrinsics, _seconds_per_grasp
 from report.sweeps.common import dissimilarity_ratio, renderer_ratio
 from report.workspace import Workspace, epoch_cpu_s
 
-T = TypeVar("T")
 # Timing repeats of each region stage (the best is kept: the least disturbed on a shared machine).
 REPEATS = 3
 MAX_BATCH = 16  # regions a forward pass, as the inference node's default
@@ -78,13 +75,6 @@ def grasp_stages(ws: Workspace) -> list[Point]:
     return [*grasp_points(summary, figures), whole]
 
 
-def _cpu_s(work: Callable[[], T]) -> tuple[T, float]:
-    """``work``'s result and this process's CPU seconds on it."""
-    started = time.process_time()
-    result = work()
-    return result, time.process_time() - started
-
-
 def touch_calibration(ws: Workspace) -> list[Point]:
     """``dtx calibrate touches`` on the whole session: its CPU s, and the worse camera's error
     (mm) against the scene's truth after it, beside the error before (the given extrinsics)."""
@@ -97,7 +87,7 @@ def touch_calibration(ws: Workspace) -> list[Point]:
         pose_error(np.asarray(world), truth[frame])[0] for frame, world in _given_extrinsics(ws.session).items()
     )
     try:
-        calibration, cpu_s = _cpu_s(lambda: calibrate_touches(ws.session))
+        calibration, cpu_s = ws.touch_calibration
     except TouchCalibrationError as err:
         return [point(PIPELINE, name, float("nan"), None, **extra, refused=str(err))]
     after = max(row["error_mm"] for row in calibration.report(truth)["cameras"].values())
