@@ -185,7 +185,9 @@ def session_sources(
         raise ModelConfigError(f"no samples of the {split} split in {where}")
     sigmas = list(pose_sigmas_mm) or [None] * len(sessions)
     if len(sigmas) != len(sessions):
-        raise ModelConfigError(f"{len(sigmas)} pose uncertainties given for {len(sessions)} sessions: give one a session")
+        raise ModelConfigError(
+            f"{len(sigmas)} pose uncertainties given for {len(sessions)} sessions: give one a session"
+        )
     return [
         SessionPairs(s.reader, records, config, prior, sigma)
         for s, records, sigma in zip(sessions, chosen, sigmas)
