@@ -10,7 +10,9 @@ scene, which a model with a physics prior can mix) and kept there for the next r
 Each row is ``dtx train`` as a user runs it, in its own process, with ``--config`` (default
 configs/quick.yaml) cut to one epoch without decay: the process's peak resident memory
 (``wait4``'s ru_maxrss), its CPU and wall time (the uncertainty's fit at the end included),
-and ``epoch_s``: the epoch's wall time, validation included (val_log.csv), per training pair too.
+``epoch_s``: the epoch's wall time, validation included (val_log.csv; with ``--max-steps``, the
+part of it trained), and ``ms_per_pair``: that over the pairs it trained. A ``--max-steps`` past
+what fills the cache (``pair_cache_mib`` / ~100 KB a pair, 4 a step) shows the peak of the whole.
 ``pair_cache_mib`` (models.pairs) bounds what training keeps; ``--pair-cache-mib`` overrides it.
 """
 
@@ -67,7 +69,7 @@ def one_epoch_config(path: str, out: Path, cache_mib: float | None, max_steps: i
     return out
 
 
-def train_run(sessions: list[Path], config: Path, out: Path) -> dict[str, Any]:
+def train_run(sessions: list[Path], config: Path, out: Path, batch_size: int) -> dict[str, Any]:
     """``dtx train SESSIONS --config CONFIG --out OUT`` in its own process, measured."""
     command = [
         sys.executable,
@@ -100,9 +102,10 @@ def train_run(sessions: list[Path], config: Path, out: Path) -> dict[str, Any]:
         "pairs": sum(len(s.reader.records) for s in opened),
         "train_pairs": train_pairs,
         "steps": int(epoch["step"]),
+        "pairs_trained": min(int(epoch["step"]) * batch_size, train_pairs),
         "peak_mib": round(usage.ru_maxrss / 1024, 1),
         "epoch_s": float(epoch["wall_s"]),
-        "epoch_ms_per_pair": round(1e3 * float(epoch["wall_s"]) / train_pairs, 2),
+        "ms_per_pair": round(1e3 * float(epoch["wall_s"]) / min(int(epoch["step"]) * batch_size, train_pairs), 2),
         "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
         "wall_s": round(time.monotonic() - started, 1),
     }
@@ -111,11 +114,17 @@ def train_run(sessions: list[Path], config: Path, out: Path) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> list[dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="dtxbenchtrain") as tmp:
         config = one_epoch_config(args.config, Path(tmp) / "config.yaml", args.pair_cache_mib, args.max_steps)
-        cache_mib = TrainConfig.load(config).pair_cache_mib
+        trained = TrainConfig.load(config)
         sessions = [Path(s) for s in args.session] or synthesised_sessions(
             Path(args.work), args.synth, args.pairs, args.scene
         )
-        rows = [train_run(chosen, config, Path(tmp) / f"run{len(chosen)}") for chosen in (sessions[:1], sessions)]
+        rows = [
+            train_run(chosen, config, Path(tmp) / f"run{len(chosen)}", trained.batch_size)
+            for chosen in (sessions[:1], sessions)
+        ]
     for row in rows:
-        row |= {"peak_over_one_mib": round(row["peak_mib"] - rows[0]["peak_mib"], 1), "pair_cache_mib": cache_mib}
+        row |= {
+            "peak_over_one_mib": round(row["peak_mib"] - rows[0]["peak_mib"], 1),
+            "pair_cache_mib": trained.pair_cache_mib,
+        }
     return rows
