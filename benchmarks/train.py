@@ -31,6 +31,7 @@ from typing import Any
 import yaml
 
 from dataset.contact_library import write_contact_library
+from dataset.reader import DatasetReader
 from models.checkpoint import TrainConfig
 from models.sessions import open_sessions, session_records
 
@@ -49,12 +50,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def synthesised_sessions(work: Path, count: int, pairs: int, scene: str) -> list[Path]:
-    """``count`` sessions of ``pairs`` pairs in ``work`` (made where missing, resumed where cut short)."""
+    """``count`` sessions of ``pairs`` pairs in ``work``: made where missing, resumed where cut
+    short, and a complete one taken as it is (whatever code made it)."""
     roots = []
     for seed in range(count):
         root = work / f"session{seed:02d}"
         print(f"session {seed + 1}/{count}: {root}", file=sys.stderr, flush=True)
-        write_contact_library(root, pairs, seed=seed, scene=scene, progress=True)
+        if not ((root / "dataset.json").exists() and len(DatasetReader(root).records) == pairs):
+            write_contact_library(root, pairs, seed=seed, scene=scene, progress=True)
         roots.append(root)
     return roots
 
