@@ -112,10 +112,17 @@ def _header(
 ) -> list[str]:
     """The report's opening lines: the mode, the machine, the times, and what was not measured
     as the full plan measures it."""
+    reused = sum(" reused (" in timing for timing in timings)
+    measured = len(timings) - reused
     header = [
         f"Mode: **{plan.name}**, seed {plan.seed}; this run took **{elapsed_s / 60:.1f} min** of wall time on "
-        f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}); "
-        f"measuring every sweep shown took **{measured_s / 60:.1f} min**.",
+        f"{os.cpu_count()} cores ({platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())})"
+        + (
+            f", measuring {measured} of the {len(timings)} sweeps (the others cached by an earlier run)"
+            if reused
+            else ""
+        )
+        + f"; measuring every sweep shown took **{measured_s / 60:.1f} min**.",
         "",
         "Sweep times: " + "; ".join(timings) + ".",
     ]

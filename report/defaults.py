@@ -133,16 +133,18 @@ WHY_NOT: dict[str, str] = {
     ),
     "registration_voxel": (
         "registration runs once an object a session (the median grasp reuses its pose: What each second "
-        "buys), so the CPU a coarser voxel saves is not a grasp's time; the default keeps the margin "
-        "chosen on thin and flat objects, which this table does not hold"
+        "buys), so the CPU a coarser voxel saves is not a grasp's time; with the touch-calibrated cameras "
+        "(the calibrated columns) the coarsest voxel is the one that loses accuracy; the default keeps the "
+        "margin chosen on thin and flat objects, which this table does not hold"
     ),
     "registration_ransac": (
         "the settings' times differ by less than repeated runs of one do, and registration runs once "
         "an object a session; the default keeps the margin chosen for harder scenes"
     ),
     "registration_icp": (
-        "one 4 mm stage needs the coarse pose already within 4 mm; the two stages recover a coarse pose "
-        "further off, and registration runs once an object a session"
+        "one 4 mm stage needs the coarse pose already within 4 mm (with touch-calibrated cameras its p90 "
+        "shows the poses it misses); the two stages recover a coarse pose further off, and registration "
+        "runs once an object a session"
     ),
     "width": (
         "a checkpoint serves its prior alone wherever its network does not lead it on validation "

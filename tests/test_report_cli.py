@@ -83,6 +83,7 @@ def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     assert args.func(args) == 0
     report = (tmp_path / "report.md").read_text()
     assert "density reused (5 s on then)" in report
+    assert "measuring 0 of the 1 sweeps (the others cached by an earlier run)" in report
     assert "| 1 pts/cm³ | 0.8 | 0.2 |" in report and "**recommended**" in report
     assert not (tmp_path / "work").exists()  # nothing was measured
 
