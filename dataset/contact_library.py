@@ -173,6 +173,20 @@ def library_sample(
     return depth_map, resize_rgb(renderer.render(gap_mm), *size), model_to_gel
 
 
+def _drawn(
+    family: str,
+    rng: np.random.Generator,
+    geometry: GripperGeometry,
+    params: DepthMapParams,
+    renderer: GelSightRenderer,
+    size: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`library_sample` of ``family``, drawn again until its surface leaves something in the crop."""
+    while (sample := library_sample(family, rng, geometry, params, renderer, (size, size))) is None:
+        pass
+    return sample
+
+
 def write_contact_library(
     out: str | os.PathLike[str],
     samples: int,
@@ -217,10 +231,7 @@ def write_contact_library(
         # One generator per sample: a resumed run draws exactly the same pairs.
         rng = np.random.default_rng([seed, index])
         renderer.rng = rng  # the sensor noise too: a resumed run renders the same image
-        pair = None
-        while pair is None:
-            pair = library_sample(family, rng, geometry, params, renderer, (size, size))
-        depth_map, tactile, model_to_gel = pair
+        depth_map, tactile, model_to_gel = _drawn(family, rng, geometry, params, renderer, size)
         writer.write(
             sample_id=sample_id,
             object_name=family,

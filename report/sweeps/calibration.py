@@ -15,7 +15,7 @@ from dataset.records import SampleRecord
 from dataset.redepth import depth_map_again, depth_map_params, model_index, poses_at
 from dataset.registered_again import register_again
 from dataset.splits import split_records
-from dataset.touch_calibration import calibrate_touches, registration_frames, scene_camera_truth
+from dataset.touch_calibration import TouchCalibration, calibrate_touches, registration_frames, scene_camera_truth
 from perception.touch_calibration import TouchCalibrationError, pose_error
 from report.specs import Point, point
 from report.sweeps.common import renderer_ratio
@@ -66,15 +66,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             continue
         fit_s = time.process_time() - started
         cameras = calibration.report(truth)["cameras"].values()
-        # The cameras' own share: placed by all the session's touches, the objects hide it.
-        registered = register_again(ws.session, list(calibration.calibrated.values()), by_touches=False)
-        poses = poses_at(test.records, registered, scene, params)
-        maps = np.stack(
-            [
-                depth_map_again(clouds[r.object_name], poses[r.sample_id][0], scene.gripper_geometry(), params)
-                for r in test.records
-            ]
-        )
+        maps = _test_maps_with(ws, calibration, clouds)
         points.append(
             point(
                 "calibration_grasps",
@@ -89,6 +81,22 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             )
         )
     return points
+
+
+def _test_maps_with(ws: Workspace, calibration: TouchCalibration, clouds: dict) -> np.ndarray:
+    """The session's test depth-maps cut again with the objects registered by ``calibration``'s
+    cameras alone (placed by all the session's touches, the objects would hide the cameras' share)."""
+    reader = DatasetReader(ws.session)
+    params, scene = depth_map_params(reader)
+    registered = register_again(ws.session, list(calibration.calibrated.values()), by_touches=False)
+    poses = poses_at(ws.session_test.records, registered, scene, params)
+    geometry = scene.gripper_geometry()
+    return np.stack(
+        [
+            depth_map_again(clouds[r.object_name], poses[r.sample_id][0], geometry, params)
+            for r in ws.session_test.records
+        ]
+    )
 
 
 def _given_extrinsics(session: Path) -> dict[str, np.ndarray]:
