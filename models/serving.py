@@ -41,10 +41,11 @@ SERVING_ENTRIES = ("serves", "serving_figures", "uncertainty")
 # the validation split to be served.
 NETWORK_LEAD_SE = 2.0
 # The most pairs of each split the fit holds at once (drawn seeded where a lab's sessions have
-# more): a little over the demo's 1,680 and 360, so a demo-size session fits on all of its pairs
-# and ten sessions fit in the same memory.
-FIT_TRAIN_PAIRS = 2048
-FIT_VAL_PAIRS = 1024
+# more): a demo-size session's train and validation splits, so such a session fits on all of its
+# pairs and ten sessions in the same memory (at 2,048 and 1,024, ten sessions' dtx train peaked
+# 1,146 MiB above one's: dtx bench train).
+FIT_TRAIN_PAIRS = 1680
+FIT_VAL_PAIRS = 360
 BATCH = 64
 
 
