@@ -63,6 +63,14 @@ class Inputs:
         path = self.root / "fresh.pt"
         return path if path.exists() else write_checkpoint(path, width=8)
 
+    def tiny_training_config(self) -> Path:
+        path = self.root / "tiny.yaml"
+        path.write_text(
+            "epochs: 1\nepochs_decay: 0\nbatch_size: 2\nndf: 8\nthreads: 1\n"
+            "generator: {ngf: 8, prior: true, background: false}\n"
+        )
+        return path
+
     def presses(self) -> Path:
         from sim.gelsight_check import load_ball_presses
 
@@ -168,6 +176,21 @@ COMMANDS: dict[str, Callable[[Inputs], list[str]]] = {
         "0.2",
     ],
     "bench sim": lambda i: ["bench", "sim", "--json", "--frames", "2", "--skip-check"],
+    "bench train": lambda i: [
+        "bench",
+        "train",
+        "--json",
+        "--synth",
+        "1",
+        "--pairs",
+        "20",
+        "--work",
+        str(i.root / "bench_train"),
+        "--config",
+        str(i.tiny_training_config()),
+        "--max-steps",
+        "1",
+    ],
 }
 # These need whole collection sessions or a fit (minutes here): tests/test_collection.py,
 # tests/test_touch_calibration.py, tests/test_sim_gelsight_fit.py and tests/test_models_uncertainty.py
