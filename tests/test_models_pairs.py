@@ -4,6 +4,7 @@ at once, in memory bounded by the stated cache, each rank reading only its own s
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,14 +15,14 @@ from dataset.contact_library import write_contact_library
 from dataset.reader import DatasetReader
 from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import load_pairs, session_prior
-from models.networks import GeneratorConfig, ModelConfigError
+from models.networks import ModelConfigError
 from models.pairs import PairCache, PairSet, SessionPairs, library_pairs
 from models.sessions import load_training_data, open_sessions, session_records
 from models.train import _Dist, _epoch_batches, build_state, train
 
-REPO = Path(__file__).resolve().parent.parent
-SCENE = str(REPO / "scenes" / "ycb_three.yaml")
-PRIOR = GeneratorConfig(ngf=8, prior=True, background=False)
+sys.path.insert(0, str(Path(__file__).parent))
+from test_models_pose_sigma_range import PRIOR, SCENE  # the tiny prior generator and its scene
+
 TINY = TrainConfig(epochs=2, epochs_decay=0, batch_size=4, ndf=8, threads=1, session_pose_sigma_mm=1.0, generator=PRIOR)
 
 
