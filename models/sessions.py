@@ -38,7 +38,9 @@ from models.checkpoint import TrainConfig
 from models.data import select_records, session_prior
 from models.networks import GeneratorConfig, ModelConfigError
 from models.pairs import PairCache, PairSet, SessionPairs, library_pairs
-from models.prior import PhysicsPrior, PriorSpec
+from models.prior import PhysicsPrior
+from sim.gelsight import scene_renderer
+from workcell.scene import SceneError, load_scene
 
 PathLike = str | os.PathLike[str]
 
@@ -143,8 +145,8 @@ def _same_gelsight(scene: str, other: str, size: int) -> bool:
     """Whether two scenes' GelSights draw the same prior (models.prior); False where either
     scene cannot be read."""
     try:
-        mine, theirs = (PhysicsPrior(PriorSpec(s, (1.0, 1.0, 1.0)), size).renderer for s in (scene, other))
-    except ModelConfigError:
+        mine, theirs = (scene_renderer(load_scene(s), size=(size, size), effects=False) for s in (scene, other))
+    except (SceneError, OSError):
         return False
     return repr(mine.config) == repr(theirs.config)
 
