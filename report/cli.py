@@ -1,5 +1,6 @@
-"""``dtx report accuracy-time --out DIR [--quick] [--reuse] [--session DIR]``: what accuracy costs
-in time, across the pipeline, in DIR/report.md with a plot per sweep and DIR/points.json.
+"""``dtx report accuracy-time --out DIR [--quick] [--reuse] [--session DIR [DIR ...]]``: what
+accuracy costs in time, across the pipeline, in DIR/report.md with a plot per sweep and
+DIR/points.json.
 
 Each sweep's points are cached in DIR/cache/<sweep>.json with the plan and the training
 config (configs/quick.yaml) that made them; --reuse takes a cached sweep made by the same plan
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import platform
@@ -59,12 +61,22 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--session",
         type=_session_dir,
+        nargs="+",
+        default=[],
         metavar="DIR",
-        help="measure the session sweeps (density, resolution, calibration_grasps) on this collected "
-        "simulated session, e.g. make demo's out/demo/session, instead of collecting the plan's grasps",
+        help="measure the session sweeps on these collected simulated sessions, e.g. make demo's "
+        "out/demo/session_calibrated, instead of collecting the plan's grasps: their models train on all "
+        "of them and are scored on each one's test split and the whole; the pipeline, registration and "
+        "calibration tables measure the first",
     )
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=run_accuracy_time)
+
+
+def _short(sessions: str) -> str:
+    """A workspace's name for the sessions' fingerprints joined by "+": one session's own
+    fingerprint (as before sessions were several), a digest of several."""
+    return sessions if "+" not in sessions else hashlib.sha256(sessions.encode()).hexdigest()[:16]
 
 
 def _session_dir(value: str) -> Path:
@@ -83,7 +95,7 @@ def _without_machine_paths(points: list[dict], places: dict[str, str]) -> list[d
     def named(value: object) -> object:
         if not isinstance(value, str):
             return value
-        for path, name in places.items():
+        for path, name in sorted(places.items(), key=lambda place: -len(place[0])):  # /s10 before /s1
             value = value.replace(path, name)
         return value
 
@@ -108,7 +120,7 @@ def _cached(path: Path, made_by: dict) -> dict | None:
 
 
 def _header(
-    plan: Plan, elapsed_s: float, measured_s: float, timings: list[str], session: Path | None, workspace: Workspace
+    plan: Plan, elapsed_s: float, measured_s: float, timings: list[str], sessions: list[Path], workspace: Workspace
 ) -> list[str]:
     """The report's opening lines: the mode, the machine, the times, and what was not measured
     as the full plan measures it."""
@@ -126,11 +138,19 @@ def _header(
         "",
         "Sweep times: " + "; ".join(timings) + ".",
     ]
-    if session is not None:
+    if len(sessions) == 1:
         header += [
             "",
             f"The session sweeps ran on a collected session given with --session (fingerprint "
-            f"{session_fingerprint(session)}), not on one of the plan's size.",
+            f"{session_fingerprint(sessions[0])}), not on one of the plan's size.",
+        ]
+    elif sessions:
+        header += [
+            "",
+            f"The session sweeps ran on {len(sessions)} collected sessions given with --session (fingerprints "
+            f"{', '.join(session_fingerprint(s) for s in sessions)}): their models trained on all of them, "
+            "scored on the test splits together, each session's contact SSIM beside in that order; the "
+            "pipeline, registration and calibration tables measure the first session's collection.",
         ]
     if workspace.reused_models:
         header += [
@@ -158,17 +178,20 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     from report.sweeps import SWEEPS
     from report.workspace import Workspace, training_config
 
-    # A given session gets a workspace of its own: its re-cut datasets and trained models are its.
-    session = None if args.session is None else session_fingerprint(args.session)
-    work = plan.name if session is None else f"{plan.name}-{session}"
+    fingerprints = [session_fingerprint(session) for session in args.session]
+    if len(set(fingerprints)) < len(fingerprints):
+        print("dtx report: error: --session: the same session given twice", file=sys.stderr)
+        return 2
+    # Given sessions get a workspace of their own: their re-cut datasets and trained models are theirs.
+    session = "+".join(fingerprints) or None
+    work = plan.name if session is None else f"{plan.name}-{_short(session)}"
     workspace = Workspace(args.out / "work" / work, plan, args.session)
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
     made_by = json.loads(json.dumps({**made_by, "session": session}))
     cache.mkdir(parents=True, exist_ok=True)
-    # Named as the command line names them: --out DIR, --session SESSION.
-    places = {str(args.out.resolve()): "DIR"}
-    if args.session is not None:
-        places = {str(args.session.resolve()): "SESSION", **places}
+    # Named as the command line names them: --out DIR, --session SESSION (SESSION1, SESSION2 ... for several).
+    names = ["SESSION"] if len(args.session) == 1 else [f"SESSION{i + 1}" for i in range(len(args.session))]
+    places = {**{str(s.resolve()): name for s, name in zip(args.session, names)}, str(args.out.resolve()): "DIR"}
     started = time.monotonic()
     points, timings, entries = [], [], []
     for name, sweep in SWEEPS.items():

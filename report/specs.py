@@ -21,6 +21,11 @@ def point(sweep: str, setting: str, time_value: float, accuracy: float | None, *
     }
 
 
+# Of several sessions (dtx report accuracy-time --session A B), each one's contact SSIM, in
+# that order (report.sweeps.common.session_scores): a column only where a sweep ran on several.
+PER_SESSION = "contact_ssim_per_session"
+PER_SESSION_EXTRA = (PER_SESSION, "contact SSIM per session")
+
 # The registration tables' columns beside the given cameras' ADD-S: the same registrations with
 # the cameras as the session's touch calibration corrected them (report.sweeps.registration).
 REGISTRATION_EXTRAS = (
@@ -77,6 +82,7 @@ SPECS: dict[str, Spec] = {
             ("points_median", "model points"),
             ("thinning_ms", "thinning + index CPU ms (once per cloud)"),
             ("contact_ssim_se", "contact s.e."),
+            PER_SESSION_EXTRA,
             ("p_vs_no_contact", "p vs empty map"),
             ("ssim", "whole-image SSIM"),
             ("paper_ssim", "paper SSIM"),
@@ -95,6 +101,7 @@ SPECS: dict[str, Spec] = {
         0.01,
         (
             ("contact_ssim_se", "contact s.e."),
+            PER_SESSION_EXTRA,
             ("p_vs_no_contact", "p vs empty map"),
             ("dissimilarity_ratio", "dissimilarity ratio"),
             ("renderer_ratio", "renderer ratio"),
@@ -117,6 +124,7 @@ SPECS: dict[str, Spec] = {
         0.0,
         (
             ("contact_ssim_se", "contact s.e."),
+            PER_SESSION_EXTRA,
             ("p_vs_no_contact", "p vs empty map"),
             ("dissimilarity_ratio", "dissimilarity ratio"),
             ("ssim", "whole-image SSIM"),
@@ -165,6 +173,7 @@ SPECS: dict[str, Spec] = {
         (
             ("inference_ms_per_region", "inference ms/region"),
             ("contact_ssim_se", "contact s.e."),
+            PER_SESSION_EXTRA,
             ("p_vs_no_contact", "p vs empty map"),
             ("ssim", "whole-image SSIM"),
         ),
@@ -276,6 +285,7 @@ SPECS: dict[str, Spec] = {
         (
             ("served", "served"),
             ("contact_ssim_se", "contact s.e."),
+            PER_SESSION_EXTRA,
             ("p_vs_no_contact", "p vs empty map"),
             ("dissimilarity_ratio", "dissimilarity ratio"),
             ("regions_per_s", "regions per CPU s"),

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -39,11 +40,25 @@ REFERENCE_SIZE = 100  # the paper's depth-map and image size: every SSIM is take
 
 @dataclasses.dataclass(frozen=True)
 class SessionTest:
-    """The collected session's test split: records and 100 x 100 ground truth."""
+    """The sessions' test splits, one after another: records and 100 x 100 ground truth."""
 
     records: list[SampleRecord]
     truth: np.ndarray  # N x 100 x 100 x 3 uint8
     deformation: np.ndarray  # N x 100 x 100, summed |change| from the no-contact image (levels)
+    session_of: np.ndarray  # N ints: which of the workspace's sessions each record is of
+
+    def part(self, session: int) -> SessionTest:
+        """The records of the workspace's ``session``-th session alone."""
+        rows = np.flatnonzero(self.session_of == session)
+        return SessionTest(
+            [self.records[i] for i in rows], self.truth[rows], self.deformation[rows], self.session_of[rows]
+        )
+
+    def depth_maps(self, datasets: Sequence[Path]) -> np.ndarray:
+        """The records' depth-maps (N x H x W, m) read from ``datasets``, one a session in the
+        workspace's order (the sessions themselves, or their maps made again: session_at)."""
+        readers = [DatasetReader(dataset) for dataset in datasets]
+        return np.stack([readers[s].load(r.sample_id).depth_map_m for r, s in zip(self.records, self.session_of)])
 
 
 def training_config() -> TrainConfig:
@@ -56,12 +71,13 @@ class Workspace:
     """Datasets and trained models under ``root``, made on first use and kept, so a rerun or
     a sweep that needs a model another sweep trained does not train it again."""
 
-    def __init__(self, root: Path, plan: Plan, session: Path | None = None) -> None:
-        """``session``: a collected simulated session the session sweeps use instead of one
-        collected here (make demo's is larger than any plan's, so its p-values mean more)."""
+    def __init__(self, root: Path, plan: Plan, sessions: Sequence[Path] = ()) -> None:
+        """``sessions``: collected simulated sessions the session sweeps use instead of one
+        collected here (make demo's is larger than any plan's, so its p-values mean more; a lab's
+        several days train one model, as ``dtx train A B`` does)."""
         self.root = root
         self.plan = plan
-        self.given_session = session
+        self.given_sessions = tuple(sessions)
         self.reused_models: set[str] = set()  # trained by an earlier run: not in this run's time
 
     @functools.cached_property
@@ -72,14 +88,22 @@ class Workspace:
         return write_dataset(self.root / f"data_{size}", self.contacts, size, self.plan.seed)
 
     @functools.cached_property
+    def sessions(self) -> tuple[Path, ...]:
+        """The sessions the session sweeps' models train on together and are scored on: the
+        given ones, else one collected here (:meth:`_collected`)."""
+        return self.given_sessions or (self._collected(),)
+
+    @property
     def session(self) -> Path:
+        """The first of :attr:`sessions`: the one collection whose stages the pipeline,
+        registration and touch-calibration sweeps measure."""
+        return self.sessions[0]
+
+    def _collected(self) -> Path:
         """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
         operator runs (Algorithm 1), ``plan.session_grasps`` grasps, its registrations' camera
         frames recorded; resumed if interrupted, left as it is when complete (a resumed run
-        would write its session.json again, with no stage times for the grasps it did not make).
-        The given session, when there is one."""
-        if self.given_session is not None:
-            return self.given_session
+        would write its session.json again, with no stage times for the grasps it did not make)."""
         out = (self.root / "session").resolve()
         if _grasps_done(out) >= self.plan.session_grasps:
             return out
@@ -109,24 +133,40 @@ class Workspace:
         calibration = calibrate_touches(self.session)
         return calibration, time.process_time() - started
 
-    def session_at(self, bins: int, method: str = "surface") -> Path:
-        """The session with its depth-maps made again over ``bins`` x ``bins`` bins, each bin
+    def session_at(self, bins: int, method: str = "surface") -> tuple[Path, ...]:
+        """The sessions with their depth-maps made again over ``bins`` x ``bins`` bins, each bin
         holding what ``method`` says (perception.surface.DEPTH_MAP_METHODS)."""
-        if bins == REFERENCE_SIZE and method == DatasetReader(self.session).info.depth_map_method:
-            return self.session  # collected at 100 x 100 by that rule
-        out = self.root / f"session_{bins}{_method_suffix(method)}"
-        return redepth_dataset(self.session, out, bins=bins, progress=False, method=method).root
+        made = []
+        for index, session in enumerate(self.sessions):
+            if bins == REFERENCE_SIZE and method == DatasetReader(session).info.depth_map_method:
+                made.append(session)  # collected at 100 x 100 by that rule
+                continue
+            # The first session's name as before sessions were several: a workspace made then is reused.
+            name = f"session{'' if index == 0 else index + 1}_{bins}{_method_suffix(method)}"
+            made.append(redepth_dataset(session, self.root / name, bins=bins, progress=False, method=method).root)
+        return tuple(made)
 
     @functools.cached_property
     def session_test(self) -> SessionTest:
-        reader = DatasetReader(self.session)
-        records = select_records(reader, "test")
-        samples = [reader.load(r) for r in records]
+        records, samples, session_of = [], [], []
+        for index, session in enumerate(self.sessions):
+            reader = DatasetReader(session)
+            test = select_records(reader, "test")
+            records += test
+            samples += [reader.load(r) for r in test]
+            session_of += [index] * len(test)
         return SessionTest(
             records,
             np.stack([s.tactile_rgb for s in samples]),
             np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
+            np.array(session_of),
         )
+
+    @functools.cached_property
+    def first_test(self) -> SessionTest:
+        """The first session's test split alone: what the sweeps of its collection (pipeline,
+        touch calibration) score against."""
+        return self.session_test.part(0)
 
     def config(self, size: int, width: int, registered: bool) -> TrainConfig:
         """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``;
@@ -182,13 +222,15 @@ class Workspace:
             # so that models an earlier run trained match it and are kept.
             config = dataclasses.replace(config, depth_map=method)
         return self._trained(
-            self.session_at(bins, method),
+            list(self.session_at(bins, method)),
             config,
             self.root / f"train_session_{bins}{_method_suffix(method)}",
             libraries=(self.library_at(bins, method),),
         )
 
-    def _trained(self, dataset: Path, config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()) -> Path:
+    def _trained(
+        self, dataset: Path | list[Path], config: TrainConfig, out: Path, libraries: tuple[Path, ...] = ()
+    ) -> Path:
         """The trained model's directory (checkpoint.pt, val_log.csv, cpu_s.json: process CPU
         seconds of each epoch, data loading included; serving_cpu_s.json: choosing what it
         serves and fitting its uncertainty). Trained one epoch per call so that each epoch's CPU

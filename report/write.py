@@ -124,12 +124,14 @@ def reason(spec: Spec, points: Sequence[dict[str, Any]]) -> str:
 
 
 def table(spec: Spec, points: Sequence[dict[str, Any]], project: str | None = None) -> str:
-    """The sweep's table; ``project`` is the row label of the project's default setting."""
+    """The sweep's table; ``project`` is the row label of the project's default setting. An extra
+    no point has (one a sweep gives only in some runs: PER_SESSION) is no column."""
+    extras = [(key, title) for key, title in spec.extras if any(key in p for p in points)]
     header = [
         spec.setting,
         spec.accuracy,
         spec.time,
-        *(title for _, title in spec.extras),
+        *(title for _, title in extras),
         "Pareto",
         "recommended",
         "project default",
@@ -140,7 +142,7 @@ def table(spec: Spec, points: Sequence[dict[str, Any]], project: str | None = No
             p["setting"],
             _format(p["accuracy"]),
             _format(p["time"]),
-            *(_format(p.get(key)) for key, _ in spec.extras),
+            *(_format(p.get(key)) for key, _ in extras),
             PARETO_MARK if p["pareto"] else "",
             DEFAULT_MARK if p["recommended"] else "",
             PROJECT_MARK if p["setting"] == project else "",

@@ -45,7 +45,7 @@ class TinyWorkspace(Workspace):
 def workspace(tmp_path_factory: pytest.TempPathFactory) -> TinyWorkspace:
     tmp = tmp_path_factory.mktemp("serving_sweeps")
     session = write_contact_library(tmp / "session", 40, seed=3, scene=REPO / "scenes" / "ycb_three.yaml").root
-    ws = TinyWorkspace(tmp / "work", TINY, session=session)
+    ws = TinyWorkspace(tmp / "work", TINY, [session])
     ws.session_model()
     return ws
 
@@ -99,7 +99,7 @@ def test_a_checkpoint_without_uncertainty_is_refused_with_the_reason_not_scored_
     state = torch.load(checkpoint, weights_only=True)
     del state["uncertainty"]  # as a checkpoint that serves what it chose, trained before the uncertainty
     torch.save(state, checkpoint)
-    before = TinyWorkspace(root, TINY, session=workspace.given_session)
+    before = TinyWorkspace(root, TINY, workspace.sessions)
     learned = next(p for p in uncertainty(before) if p["setting"] == "learned (served)")
     assert math.isnan(learned["accuracy"]) and learned["refused"] == UNCERTAINTY_ABSENT
     assert not any(k in learned for k in ("region_r", "u_mean_levels"))

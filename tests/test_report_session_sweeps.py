@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 from dataset.reader import DatasetReader
+from dataset.redepth import model_index
 from models.checkpoint import TrainConfig, load_checkpoint, load_generator
 from models.evaluate import contact_ssim
 from models.serving import predict
 from report.plan import QUICK
 from report.specs import Point
-from report.sweeps.session import depth_map, pose_sigma
+from report.sweeps.session import _cut_again, _cutters, _objects, depth_map, pose_sigma
 from report.workspace import REFERENCE_SIZE, Workspace
 
 REPO = Path(__file__).resolve().parent.parent
@@ -50,7 +51,7 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Workspace:
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     plan = dataclasses.replace(QUICK, epochs=1, library_samples=8, pose_sigmas_mm=POSE_SIGMAS_MM)
-    return Workspace(root / "work", plan, session)
+    return Workspace(root / "work", plan, [session])
 
 
 @pytest.fixture(scope="module")
@@ -87,12 +88,12 @@ def test_the_nearest_point_model_trains_on_its_rule_and_the_default_keeps_its_pl
     surface = workspace.session_model()
     assert surface == workspace.root / f"train_session_{REFERENCE_SIZE}"
     assert load_checkpoint(surface / "checkpoint.pt")["depth_map_method"] == "surface"
-    assert workspace.session_at(REFERENCE_SIZE) == workspace.session
+    assert workspace.session_at(REFERENCE_SIZE) == (workspace.session,)
     assert DatasetReader(workspace.library_at(REFERENCE_SIZE)).info.depth_map_method == "surface"
 
 
 def test_the_two_rules_cut_different_maps_of_the_same_contacts(workspace: Workspace, rules: list[Point]) -> None:
-    recut = workspace.session_at(REFERENCE_SIZE, "nearest_point")
+    (recut,) = workspace.session_at(REFERENCE_SIZE, "nearest_point")
     assert DatasetReader(recut).info.depth_map_method == "nearest_point"
     surface, nearest = _test_maps(workspace.session, workspace), _test_maps(recut, workspace)
     assert surface.shape == nearest.shape
@@ -120,3 +121,17 @@ def test_a_sharp_prior_row_is_the_served_estimate_at_zero_scored_directly(
     assert sigmas[0]["accuracy"] == pytest.approx(contact_ssim(test.truth, test.deformation, sharp).mean())
     # The request's sigma reaches the served estimate: the model's default blurs its prior.
     assert not np.array_equal(sharp, predict(generator, depth, depth_range))
+
+
+def test_each_session_is_cut_again_by_its_own_patch_extractors_rule(workspace: Workspace) -> None:
+    """Two sessions whose patch extractors cut by different rules (the collected one and its maps
+    cut again by the nearest point): the sweeps cut each test map again as its own session did,
+    from its own scene's object model at its recorded pose."""
+    (nearest,) = workspace.session_at(REFERENCE_SIZE, "nearest_point")
+    both = Workspace(workspace.root / "both", workspace.plan, [workspace.session, nearest])
+    test = both.session_test
+    assert test.session_of.tolist() == [0] * (len(test.records) // 2) + [1] * (len(test.records) // 2)
+    clouds = {key: model_index(scene, key[1]) for key, scene in _objects(both, test).items()}
+    maps, cut_ms = _cut_again(test, clouds, _cutters(both))
+    assert np.array_equal(maps, test.depth_maps(both.sessions)) and cut_ms > 0
+    assert not np.array_equal(maps[test.session_of == 0], maps[test.session_of == 1])

@@ -446,7 +446,7 @@ def test_the_report_sweep_states_the_given_extrinsics_and_names_what_it_refused(
     reference carries the scene's own offset (ycb_three: 1.5, -1.0, 1.2 mm on the left), and a
     calibration from too few touches is a point without accuracy that says why, not a crash."""
     plan = dataclasses.replace(QUICK, calibration_grasps=(3, 1000))
-    points = calibration_grasps(Workspace(tmp_path, plan, short_session))
+    points = calibration_grasps(Workspace(tmp_path, plan, [short_session]))
     reference, *calibrated = points
     assert reference["setting"].startswith("none")
     assert reference["accuracy"] == pytest.approx(np.linalg.norm([1.5, -1.0, 1.2]), abs=0.5)

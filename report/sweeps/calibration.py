@@ -42,10 +42,10 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
         raise RuntimeError(f"{reader.info.scene} offsets no camera: there is nothing to calibrate")
     pace_s = _seconds_per_grasp(reader.records)
     available = len({r.grasp_key for r in split_records(reader.records, reader.info.split_seed)["train"]})
-    test = ws.session_test
+    test = ws.first_test
     params, scene = depth_map_params(reader)
     clouds = {name: model_index(scene, name) for name in sorted({r.object_name for r in test.records})}
-    recorded = np.stack([reader.load(r).depth_map_m for r in test.records])
+    recorded = test.depth_maps(ws.sessions)
     before = [pose_error(np.asarray(world), truth[frame]) for frame, world in _given_extrinsics(ws.session).items()]
     points = [
         point(
@@ -89,13 +89,10 @@ def _test_maps_with(ws: Workspace, calibration: TouchCalibration, clouds: dict) 
     reader = DatasetReader(ws.session)
     params, scene = depth_map_params(reader)
     registered = register_again(ws.session, list(calibration.calibrated.values()), by_touches=False)
-    poses = poses_at(ws.session_test.records, registered, scene, params)
+    poses = poses_at(ws.first_test.records, registered, scene, params)
     geometry = scene.gripper_geometry()
     return np.stack(
-        [
-            depth_map_again(clouds[r.object_name], poses[r.sample_id][0], geometry, params)
-            for r in ws.session_test.records
-        ]
+        [depth_map_again(clouds[r.object_name], poses[r.sample_id][0], geometry, params) for r in ws.first_test.records]
     )
 
 

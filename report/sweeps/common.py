@@ -6,16 +6,18 @@ import statistics
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from dataset.images import resize_rgb
-from models.evaluate import contact_ssim, ssim_statistics
+from models.evaluate import contact_ssim, contact_windows, ssim_statistics
 from models.networks import UNetGenerator
 from models.serving import predict
 from perception.ssim import ssim_rgb
 from report.ceiling import depth_map_images
+from report.specs import PER_SESSION
 from report.workspace import REFERENCE_SIZE, SessionTest, epoch_cpu_s
 from workcell.scene import Scene
 
@@ -36,18 +38,19 @@ def resize(images: np.ndarray, size: int) -> np.ndarray:
     return np.stack([resize_rgb(image, size, size) for image in images])
 
 
-def session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarray) -> dict[str, float]:
-    """SSIM of 100 x 100 estimates against the session's test truth on the contact windows
+def session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarray) -> dict[str, Any]:
+    """SSIM of 100 x 100 estimates against the sessions' test truth on the contact windows
     (models.evaluate.contact_ssim: the accuracy these sweeps rank by) and over the whole
     image (the paper's figure, which a no-contact estimate scores well on). ``no_contact`` is
     the same model's estimate from an empty depth-map: a setting whose estimates do not beat
     it on the contact windows (one-sided Wilcoxon over the pairs, ``p_vs_no_contact``) gives
-    the model nothing it uses."""
+    the model nothing it uses. Of several sessions, each one's contact SSIM too (PER_SESSION,
+    in the workspace's order)."""
     contact = contact_ssim(test.truth, test.deformation, estimate)
     floor = contact_ssim(test.truth, test.deformation, np.repeat(no_contact[None], len(test.truth), axis=0))
     whole = ssim_rgb(test.truth, estimate)
     better = stats.wilcoxon(contact, floor, alternative="greater").pvalue if np.any(contact != floor) else 1.0
-    return {
+    scores: dict[str, Any] = {
         "contact_ssim": float(contact.mean()),
         "contact_ssim_se": standard_error(contact),
         "contact_pairs": len(contact),
@@ -56,6 +59,11 @@ def session_scores(test: SessionTest, estimate: np.ndarray, no_contact: np.ndarr
         "ssim": round(float(whole.mean()), 4),
         "ssim_se": standard_error(whole),
     }
+    if len(np.unique(test.session_of)) > 1:
+        session_of = test.session_of[contact_windows(test.deformation)[0]]  # of the pairs that show contact
+        of_each = [contact[session_of == s] for s in range(test.session_of.max() + 1)]
+        scores[PER_SESSION] = " / ".join(f"{c.mean():.4f}" if len(c) else "no contact" for c in of_each)
+    return scores
 
 
 def no_contact_estimate(

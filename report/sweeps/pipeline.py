@@ -55,9 +55,7 @@ def grasp_stages(ws: Workspace) -> list[Point]:
     _, scene = depth_map_params(reader)
     figures = {
         "register": float(np.median(add_s)) if add_s else None,  # None: a scene whose poses are not known
-        "depth_maps": renderer_ratio(ws.session_test, scene, reader.info.depth_crop_m, _test_maps(ws))[
-            "renderer_ratio"
-        ],
+        "depth_maps": renderer_ratio(ws.first_test, scene, reader.info.depth_crop_m, _test_maps(ws))["renderer_ratio"],
         "write": float(len(check_dataset(ws.session).problems)),
     }
     # The whole grasp from the dataset's own stamps: a resumed session's session.json times
@@ -95,9 +93,8 @@ def touch_calibration(ws: Workspace) -> list[Point]:
 
 
 def _test_maps(ws: Workspace) -> np.ndarray:
-    """The depth-maps (N x H x W, m) the session recorded for its test split, in its order."""
-    reader = DatasetReader(ws.session)
-    return np.stack([reader.load(r).depth_map_m for r in ws.session_test.records])
+    """The depth-maps (N x H x W, m) the first session recorded for its test split, in its order."""
+    return ws.first_test.depth_maps(ws.sessions)
 
 
 def _training(ws: Workspace) -> Point:
@@ -118,7 +115,7 @@ def _training(ws: Workspace) -> Point:
         serving_s, extra["note"] = 0.0, "epochs only: the serving fit was not timed (no serving_cpu_s.json)"
     seconds = sum(epoch_cpu_s(model)) + serving_s
     return point(
-        PIPELINE, "training (epochs + serving fit)", seconds, dissimilarity_ratio(ws.session_test, served), **extra
+        PIPELINE, "training (epochs + serving fit)", seconds, dissimilarity_ratio(ws.first_test, served), **extra
     )
 
 
@@ -130,7 +127,7 @@ def _regions(ws: Workspace) -> list[Point]:
     generator, depth_range_m = load_generator(ws.session_model() / "checkpoint.pt")
     reader = DatasetReader(ws.session)
     params, scene = depth_map_params(reader)
-    geometry, test = scene.gripper_geometry(), ws.session_test
+    geometry, test = scene.gripper_geometry(), ws.first_test
     threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
     costs, maps = [], np.empty((len(test.records), *test.truth.shape[1:3]), np.float32)
     try:  # served_network sets this process's threads as the node's
@@ -160,7 +157,7 @@ def _region_figures(
     """What each region stage outputs, scored on the session's test truth: the cut's maps through
     the GelSight renderer, the prior's images and the served images (dissimilarity ratios), and the
     served uncertainty's Pearson r with the pixel error (as the uncertainty sweep scores it)."""
-    test = ws.session_test
+    test = ws.first_test
     reader = DatasetReader(ws.session)
     x = network_input(maps, depth_range_m, generator.config, generator.prior)
     served, uncertainty = predict_served(generator, maps, depth_range_m)

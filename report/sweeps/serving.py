@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from dataset.reader import DatasetReader
 from models.checkpoint import load_generator
 from models.data import network_input, to_uint8_rgb
 from models.errors import ModelConfigError
@@ -62,12 +61,6 @@ class DropoutSpread:
         return (passes.std(dim=0).mean(dim=1) * LEVELS_PER_TANH_UNIT).float().numpy()
 
 
-def session_depth(ws: Workspace) -> np.ndarray:
-    """The depth-maps (N x 100 x 100, m) of the session's test split, in ``ws.session_test``'s order."""
-    reader = DatasetReader(ws.session)
-    return np.stack([reader.load(r.sample_id).depth_map_m for r in ws.session_test.records])
-
-
 def uncertainty(ws: Workspace) -> list[Point]:
     """The session model's served estimate and, beside it, its learned uncertainty u (what a
     planner receives) or the spread of S dropout passes -> accuracy = Pearson r(u, e) per pixel,
@@ -76,7 +69,7 @@ def uncertainty(ws: Workspace) -> list[Point]:
     estimates is noise on a loaded machine, even below zero)."""
     test = ws.session_test
     generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
-    depth = session_depth(ws)
+    depth = test.depth_maps(ws.sessions)
     learned = generator.uncertainty
     with serving_as(generator, generator.serves, None):
         estimate_ms = median_cpu_ms(lambda: predict_served(generator, depth, depth_range, SERVING_BATCH), TIMED_RUNS)
@@ -123,7 +116,7 @@ def serving(ws: Workspace) -> list[Point]:
     pass, on torch's current threads. ``served`` marks what the checkpoint serves."""
     test = ws.session_test
     generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
-    depth = session_depth(ws)
+    depth = test.depth_maps(ws.sessions)
     learned = generator.uncertainty
     points = []
     for serves, form in FORMS.items():

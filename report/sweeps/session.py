@@ -8,6 +8,7 @@ import dataclasses
 import functools
 import statistics
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from report.sweeps.common import (
 )
 from report.workspace import REFERENCE_SIZE, SessionTest, Workspace
 from workcell.kinematics import GripperGeometry
+from workcell.scene import Scene
 
 
 def resolution(ws: Workspace) -> list[Point]:
@@ -42,8 +44,7 @@ def resolution(ws: Workspace) -> list[Point]:
     for size in ws.plan.resolutions:
         model = ws.session_model(size)
         generator, depth_range = load_generator(model / "checkpoint.pt")
-        reader = DatasetReader(ws.session_at(size))
-        depth = np.stack([reader.load(r.sample_id).depth_map_m for r in test.records])
+        depth = test.depth_maps(ws.session_at(size))
         estimate = predict(generator, depth, depth_range)
         inference_ms = median_cpu_ms(lambda: predict(generator, depth, depth_range), 3) / len(depth)
         scores = session_scores(
@@ -69,19 +70,18 @@ def density(ws: Workspace) -> list[Point]:
     making one depth-map (the pipeline thins a model cloud once and cuts many depth-maps from
     it, so thinning and indexing are reported beside, not added)."""
     test = ws.session_test
-    params, scene = depth_map_params(DatasetReader(ws.session))
-    geometry = scene.gripper_geometry()
+    cutters = _cutters(ws)
     generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
     no_contact = no_contact_estimate(generator, depth_range, REFERENCE_SIZE)
-    full = {name: model_cloud(scene, name) for name in sorted({r.object_name for r in test.records})}
+    full = {key: model_cloud(scene, key[1]) for key, scene in _objects(ws, test).items()}
     points = []
     for value in (None, *ws.plan.densities):
         clouds, thinning = {}, []
-        for name, cloud in full.items():
+        for key, cloud in full.items():
             started = time.process_time()
-            clouds[name] = VoxelIndex(cloud if value is None else downsample_to_density(cloud, value))
+            clouds[key] = VoxelIndex(cloud if value is None else downsample_to_density(cloud, value))
             thinning.append((time.process_time() - started) * 1e3)
-        maps, cut_ms = _cut_again(test, clouds, geometry, params)
+        maps, cut_ms = _cut_again(test, clouds, cutters)
         scores = session_scores(test, predict(generator, maps, depth_range), no_contact)
         points.append(
             point(
@@ -106,14 +106,15 @@ def depth_map(ws: Workspace) -> list[Point]:
     times it). Beside it the maps through the GelSight renderer and the served estimate's
     dissimilarity ratio, each scored as ``dtx evaluate`` scores a model."""
     test = ws.session_test
+    clouds = {key: model_index(scene, key[1]) for key, scene in _objects(ws, test).items()}
+    # The sessions of one model share its GelSight and depth crop (models.sessions.check_one_prior).
     reader = DatasetReader(ws.session)
-    params, scene = depth_map_params(reader)
-    clouds = {name: model_index(scene, name) for name in sorted({r.object_name for r in test.records})}
+    gelsight_scene = depth_map_params(reader)[1]
     points = []
     for method in ws.plan.depth_map_methods:
         model = ws.session_model(REFERENCE_SIZE, method)
         generator, depth_range = load_generator(model / "checkpoint.pt")
-        maps, cut_ms = _cut_again(test, clouds, scene.gripper_geometry(), dataclasses.replace(params, method=method))
+        maps, cut_ms = _cut_again(test, clouds, _cutters(ws, method))
         estimate = predict(generator, maps, depth_range)
         scores = session_scores(test, estimate, no_contact_estimate(generator, depth_range, REFERENCE_SIZE))
         points.append(
@@ -124,7 +125,7 @@ def depth_map(ws: Workspace) -> list[Point]:
                 scores.pop("contact_ssim"),
                 training_s_per_epoch=round(epoch_s(model), 2),
                 dissimilarity_ratio=dissimilarity_ratio(test, estimate),
-                **renderer_ratio(test, scene, reader.info.depth_crop_m, maps),
+                **renderer_ratio(test, gelsight_scene, reader.info.depth_crop_m, maps),
                 **scores,
             )
         )
@@ -142,8 +143,7 @@ def pose_sigma(ws: Workspace) -> list[Point]:
     if generator.prior is None:
         raise RuntimeError("the session model corrects no physics prior: pose_sigma_mm changes nothing it serves")
     default = generator.prior.spec.pose_sigma_mm
-    reader = DatasetReader(ws.session)
-    depth = np.stack([reader.load(r).depth_map_m for r in test.records])
+    depth = test.depth_maps(ws.sessions)
     points = []
     for sigma in sorted({*ws.plan.pose_sigmas_mm, default}):
         estimate = predict(generator, depth, depth_range, pose_sigma_mm=sigma)
@@ -164,15 +164,52 @@ def pose_sigma(ws: Workspace) -> list[Point]:
     return points
 
 
+class Cutter(NamedTuple):
+    """How a session's patch extractor cut its depth-maps: its scene file (whose models the
+    objects are), gripper and depth-map settings."""
+
+    scene_file: str
+    geometry: GripperGeometry
+    params: DepthMapParams
+
+
+def _cutters(ws: Workspace, method: str | None = None) -> list[Cutter]:
+    """Each session's :class:`Cutter`, in the workspace's order; with ``method``, each cutting by
+    that rule."""
+    cutters = []
+    for session in ws.sessions:
+        reader = DatasetReader(session)
+        params, scene = depth_map_params(reader)
+        params = params if method is None else dataclasses.replace(params, method=method)
+        cutters.append(Cutter(reader.info.scene, scene.gripper_geometry(), params))
+    return cutters
+
+
+def _objects(ws: Workspace, test: SessionTest) -> dict[tuple[str, str], Scene]:
+    """The test split's objects, each once, by (its session's scene file, object name): the scene
+    that holds its model."""
+    scenes: dict[str, Scene] = {}
+    objects = {}
+    for record, session in zip(test.records, test.session_of):
+        reader = DatasetReader(ws.sessions[int(session)])
+        if reader.info.scene not in scenes:
+            scenes[reader.info.scene] = depth_map_params(reader)[1]
+        objects[(reader.info.scene, record.object_name)] = scenes[reader.info.scene]
+    return dict(sorted(objects.items()))
+
+
 def _cut_again(
-    test: SessionTest, clouds: dict[str, VoxelIndex], geometry: GripperGeometry, params: DepthMapParams
+    test: SessionTest, clouds: dict[tuple[str, str], VoxelIndex], cutters: list[Cutter]
 ) -> tuple[np.ndarray, float]:
-    """The test split's depth-maps (N x H x W, m) cut again from ``clouds`` (object name ->
-    indexed model cloud) at the recorded model poses with ``params``, and the median ms of one
-    cut (the cloud indexed beforehand, as the patch extractor indexes it once per object)."""
+    """The test split's depth-maps (N x H x W, m) cut again from ``clouds`` ((scene file, object
+    name) -> indexed model cloud: :func:`_objects`) at the recorded model poses, each by its
+    session's cutter, and the median ms of one cut (the cloud indexed beforehand, as the patch
+    extractor indexes it once per object)."""
     maps, walls = [], []
-    for record in test.records:
+    for record, session in zip(test.records, test.session_of):
+        cutter = cutters[int(session)]
+        cloud = clouds[(cutter.scene_file, record.object_name)]
         started = time.process_time()
-        maps.append(depth_map_again(clouds[record.object_name], np.array(record.model_to_gel), geometry, params))
+        maps.append(depth_map_again(cloud, np.array(record.model_to_gel), cutter.geometry, cutter.params))
         walls.append((time.process_time() - started) * 1e3)
     return np.stack(maps), statistics.median(walls)
