@@ -137,7 +137,8 @@ def check_one_prior(sessions: Sequence[Session], config: GeneratorConfig) -> Non
             raise ModelConfigError(
                 f"sessions {sessions[0].reader.root} and {session.reader.root} have another GelSight or depth crop "
                 f"({first.scene!r} {first.depth_crop_m} against {info.scene!r} {info.depth_crop_m}): "
-                "a checkpoint serves one physics prior, so a prior model cannot mix them"
+                "a checkpoint serves one physics prior, so a prior model cannot mix them: train one model a "
+                "GelSight, or one without a prior on both (prior: false, e.g. configs/variants/session_only.yaml)"
             )
 
 

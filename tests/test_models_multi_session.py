@@ -268,5 +268,9 @@ def test_a_prior_model_mixes_scenes_of_one_gelsight_and_refuses_another(
     }
     train_pairs, _, meta = load_training_data([roots["three"], roots["unseen"]], config, (), torch.device("cpu"))
     assert len(train_pairs) > 0 and meta["prior"]["scene"].endswith("ycb_three.yaml")
-    with pytest.raises(ModelConfigError, match="another GelSight or depth crop.*one physics prior"):
+    with pytest.raises(ModelConfigError, match="another GelSight or depth crop.*one physics prior.*prior: false"):
         load_training_data([roots["three"], roots["other"]], config, (), torch.device("cpu"))
+    # Without a prior nothing a GelSight draws is served: its sessions mix, each pair its own sensor's.
+    session_only = dataclasses.replace(config, generator=GeneratorConfig(ngf=8, prior=False, background=False))
+    train_pairs, _, meta = load_training_data([roots["three"], roots["other"]], session_only, (), torch.device("cpu"))
+    assert len(train_pairs) > 0 and meta.get("prior") is None
