@@ -7,7 +7,7 @@
    (``dtx calibrate touches``), and cut its depth-maps again at those places (``dtx dataset
    redepth --calibration``), the contact library made beside the cut;
    train the cGAN on those with ``configs/quick.yaml``, its prior as sure of the geometry as
-   the calibration allows (CALIBRATED_POSE_SIGMA_MM);
+   the calibration allows (dataset.touch_calibration.CALIBRATED_POSE_SIGMA_MM);
 3. evaluate it like the paper, at the paper's point densities too (the test split's depth-maps
    made again from thinned model clouds), and print the table; figures go to ``OUT/figures``.
 
@@ -27,11 +27,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 REAL_PRESSES = "assets/gelsight/ball_presses.npz"
-# The in-plane pose uncertainty of depth-maps cut with touch-calibrated cameras and the objects
-# placed by the touches (mm): ADD-S 0.01-0.16 mm on the demo's objects. On the same maps and
-# budget, 0.1 against 0.2: test split ratio 0.542 vs 0.551, contact windows 0.510 vs 0.512 (with
-# the cameras alone and no placing, 0.2 had beaten 0.5: 0.574 vs 0.601).
-CALIBRATED_POSE_SIGMA_MM = 0.1
 LIBRARY_SAMPLES = 1200
 # The touch calibration (and a redepth that must place the objects again) shares its touches out
 # among this many processes: one per core of the 2-core machine the demo is sized for.
@@ -237,6 +232,7 @@ def _calibrated(session: Path, out: Path, library_samples: int, seed: int) -> tu
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from dataset.touch_calibration import CALIBRATED_POSE_SIGMA_MM
     from models.real_presses import real_press_table
     from models.uncertainty import uncertainty_table
     from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3

@@ -29,6 +29,11 @@ if TYPE_CHECKING:  # torch and Open3D load only when a sweep runs
     from report.workspace import Workspace
 
 
+# What a sweep's cache names as its session when none is given: the report's own, collected and
+# cut again with its touch calibration (sweeps cached before it was calibrated are not reused).
+CALIBRATED_HERE = "collected here, cut again with its touch calibration"
+
+
 def _out_dir(value: str) -> Path:
     path = Path(value)
     if path.exists() and not path.is_dir():
@@ -138,7 +143,14 @@ def _header(
         "",
         "Sweep times: " + "; ".join(timings) + ".",
     ]
-    if len(sessions) == 1:
+    if not sessions:
+        header += [
+            "",
+            "The session sweeps ran on the report's own session with its depth-maps cut again by its touch "
+            "calibration, as make demo trains (as collected where its touches cannot calibrate: the pipeline "
+            "table says why); the pipeline, registration and calibration tables measure its collection.",
+        ]
+    elif len(sessions) == 1:
         header += [
             "",
             f"The session sweeps ran on a collected session given with --session (fingerprint "
@@ -183,8 +195,8 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
         print("dtx report: error: --session: the same session given twice", file=sys.stderr)
         return 2
     # Given sessions get a workspace of their own: their re-cut datasets and trained models are theirs.
-    session = "+".join(fingerprints) or None
-    work = plan.name if session is None else f"{plan.name}-{_short(session)}"
+    session = "+".join(fingerprints) or CALIBRATED_HERE
+    work = plan.name if session == CALIBRATED_HERE else f"{plan.name}-{_short(session)}"
     workspace = Workspace(args.out / "work" / work, plan, args.session)
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
     made_by = json.loads(json.dumps({**made_by, "session": session}))

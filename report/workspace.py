@@ -26,11 +26,17 @@ from dataset.images import deformation_map
 from dataset.reader import DatasetReader
 from dataset.records import SampleRecord
 from dataset.redepth import depth_map_params, redepth_dataset
-from dataset.touch_calibration import REGISTRATION_FRAMES_TOPIC, TouchCalibration, calibrate_touches
+from dataset.touch_calibration import (
+    CALIBRATED_POSE_SIGMA_MM,
+    REGISTRATION_FRAMES_TOPIC,
+    TouchCalibration,
+    calibrate_touches,
+)
 from models.checkpoint import TrainConfig, load_checkpoint
 from models.data import select_records
 from models.serving import fit_serving
 from models.train import train
+from perception.touch_calibration import TouchCalibrationError
 from report.contacts import Contact, contacts, write_dataset
 from report.plan import Plan
 
@@ -90,14 +96,46 @@ class Workspace:
     @functools.cached_property
     def sessions(self) -> tuple[Path, ...]:
         """The sessions the session sweeps' models train on together and are scored on: the
-        given ones, else one collected here (:meth:`_collected`)."""
-        return self.given_sessions or (self._collected(),)
+        given ones as given, else the one collected here with its depth-maps cut again by its
+        own touch calibration (:meth:`_calibrated`), as ``make demo`` trains on."""
+        if self.given_sessions:
+            return self.given_sessions
+        try:
+            return (self._calibrated(),)
+        except TouchCalibrationError:  # too few touches: the pipeline's table says why
+            return (self.collected,)
+
+    @property
+    def calibrated(self) -> bool:
+        """Whether the session sweeps run on a session this workspace calibrated (:attr:`sessions`)."""
+        return not self.given_sessions and self.session != self.collected
 
     @property
     def session(self) -> Path:
-        """The first of :attr:`sessions`: the one collection whose stages the pipeline,
-        registration and touch-calibration sweeps measure."""
+        """The first of :attr:`sessions`."""
         return self.sessions[0]
+
+    @functools.cached_property
+    def collected(self) -> Path:
+        """The collection whose stages the pipeline, registration and touch-calibration sweeps
+        measure: the first given session, else the one collected here (:meth:`_collected`). Its
+        records are :attr:`session`'s, its depth-maps as its patch extractor cut them."""
+        return self.given_sessions[0] if self.given_sessions else self._collected()
+
+    @property
+    def session_pose_sigma_mm(self) -> float:
+        """The pose error the session models' prior is blurred by: a session calibrated here is
+        left with the touch calibration's (CALIBRATED_POSE_SIGMA_MM, as make demo trains), others
+        with the training config's."""
+        return CALIBRATED_POSE_SIGMA_MM if self.calibrated else training_config().session_pose_sigma_mm
+
+    def _calibrated(self) -> Path:
+        """The collected session's depth-maps cut again with its objects where its touch
+        calibration's joint fit placed them (what ``dtx calibrate touches`` then ``dtx dataset
+        redepth --calibration`` make, make demo's session_calibrated); resumed if torn."""
+        calibration, _ = self.touch_calibration
+        out = self.root / "session_calibrated"
+        return redepth_dataset(self.collected, out, progress=False, registered=calibration.cell.objects).root
 
     def _collected(self) -> Path:
         """A collection session on the simulated scene: launch/collect_sim.yaml, the graph an
@@ -130,7 +168,7 @@ class Workspace:
         run: the pipeline's table times it, the registration tables register with it);
         perception.touch_calibration.TouchCalibrationError where its touches cannot."""
         started = time.process_time()
-        calibration = calibrate_touches(self.session)
+        calibration = calibrate_touches(self.collected)
         return calibration, time.process_time() - started
 
     def session_at(self, bins: int, method: str = "surface") -> tuple[Path, ...]:
@@ -184,7 +222,7 @@ class Workspace:
             epochs_decay=self.plan.epochs,
             generator=generator,
             threads=1,
-            session_pose_sigma_mm=base.session_pose_sigma_mm if registered else 0.0,
+            session_pose_sigma_mm=self.session_pose_sigma_mm if registered else 0.0,
         )
 
     def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:

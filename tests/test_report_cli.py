@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from report.cli import _cached, add_commands
+from report.cli import CALIBRATED_HERE, _cached, add_commands
 from report.plan import FULL, QUICK, SWEEP_NAMES
 from report.workspace import Workspace, training_config
 
@@ -72,6 +72,7 @@ def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     entry = {
         "plan": dataclasses.asdict(QUICK),
         "training_config": training_config().to_dict(),
+        "session": CALIBRATED_HERE,
         "seconds": 5.0,
         "measured_at": "then",
         "points": points,
@@ -108,7 +109,7 @@ def test_a_cached_sweep_counts_only_for_the_plan_and_training_config_that_made_i
 
 
 def test_only_the_session_models_blur_their_prior_by_the_registration_error(tmp_path: Path) -> None:
-    workspace = Workspace(tmp_path, QUICK)
+    workspace = Workspace(tmp_path, QUICK, [tmp_path / "given"])  # given as it is: not calibrated here
     default = training_config()
     assert default.session_pose_sigma_mm > 0
     session = workspace.config(50, 16, registered=True)

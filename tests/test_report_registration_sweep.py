@@ -14,7 +14,7 @@ from benchmarks.perception import _sweep_cases, _sweep_row
 from dataset.touch_calibration import scene_camera_truth
 from perception.registration import RegistrationParams
 from report.plan import QUICK
-from report.workspace import Workspace
+from report.workspace import Workspace, training_config
 
 # The module, which report.sweeps' own name for its registration function hides.
 sweep = importlib.import_module("report.sweeps.registration")
@@ -35,8 +35,11 @@ def test_the_tables_carry_the_calibrated_columns_only_where_the_session_calibrat
     plan = dataclasses.replace(QUICK, session_grasps=10, seed=5, registration_poses=1, voxel_mm=(8,))
     plan = dataclasses.replace(plan, ransac_iterations=(20_000,), icp_distances_mm=((16, 8),))
     ws = Workspace(tmp_path, plan)
-    # Ten grasps are too few touches to calibrate from (the pipeline's table says why).
+    # Ten grasps are too few touches to calibrate from (the pipeline's table says why): the session
+    # sweeps then train on the session as collected, told the training config's pose error.
     assert sweep._touch_calibrated_extrinsics(ws) is None
+    assert ws.sessions == (ws.collected,) and not ws.calibrated
+    assert ws.config(100, 16, registered=True).session_pose_sigma_mm == training_config().session_pose_sigma_mm
     points = sweep.registration(ws)
     assert [p["sweep"] for p in points] == ["registration_voxel", "registration_ransac", "registration_icp"]
     assert all("add_s_mm_calibrated" not in p for p in points)

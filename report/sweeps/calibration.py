@@ -36,7 +36,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
     Beside it, what that geometry allows: the test split's depth-maps cut again with the
     calibration (each object registered again) through the GelSight renderer, scored as ``dtx
     evaluate`` scores a model (the ceiling rung ``dtx sim ceiling`` calls the model's input)."""
-    reader = DatasetReader(ws.session)
+    reader = DatasetReader(ws.collected)
     truth = scene_camera_truth(reader.info.scene)
     if truth is None:
         raise RuntimeError(f"{reader.info.scene} offsets no camera: there is nothing to calibrate")
@@ -45,8 +45,8 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
     test = ws.first_test
     params, scene = depth_map_params(reader)
     clouds = {name: model_index(scene, name) for name in sorted({r.object_name for r in test.records})}
-    recorded = test.depth_maps(ws.sessions)
-    before = [pose_error(np.asarray(world), truth[frame]) for frame, world in _given_extrinsics(ws.session).items()]
+    recorded = test.depth_maps([ws.collected])  # the maps its own cameras gave
+    before = [pose_error(np.asarray(world), truth[frame]) for frame, world in _given_extrinsics(ws.collected).items()]
     points = [
         point(
             "calibration_grasps",
@@ -60,7 +60,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
     for grasps in sorted({min(n, available) for n in ws.plan.calibration_grasps}):
         started = time.process_time()
         try:
-            calibration = calibrate_touches(ws.session, grasps=grasps)
+            calibration = calibrate_touches(ws.collected, grasps=grasps)
         except TouchCalibrationError as err:
             points.append(point("calibration_grasps", f"{grasps} grasps", grasps * pace_s, None, refused=str(err)))
             continue
@@ -86,9 +86,9 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
 def _test_maps_with(ws: Workspace, calibration: TouchCalibration, clouds: dict) -> np.ndarray:
     """The session's test depth-maps cut again with the objects registered by ``calibration``'s
     cameras alone (placed by all the session's touches, the objects would hide the cameras' share)."""
-    reader = DatasetReader(ws.session)
+    reader = DatasetReader(ws.collected)
     params, scene = depth_map_params(reader)
-    registered = register_again(ws.session, list(calibration.calibrated.values()), by_touches=False)
+    registered = register_again(ws.collected, list(calibration.calibrated.values()), by_touches=False)
     poses = poses_at(ws.first_test.records, registered, scene, params)
     geometry = scene.gripper_geometry()
     return np.stack(

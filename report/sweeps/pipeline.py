@@ -47,16 +47,17 @@ def grasp_stages(ws: Workspace) -> list[Point]:
     placements, the renderer ratio of the test split's recorded depth-maps, and the dataset
     check's problem count; then the whole grasp at the session's pace (first to last GelSight
     frame over the grasps between, a pause of a resumed session included)."""
-    summary_file = ws.session / "session.json"
+    summary_file = ws.collected / "session.json"
     summary = json.loads(summary_file.read_text()) if summary_file.exists() else None
-    reader = DatasetReader(ws.session)
+    reader = DatasetReader(ws.collected)
     registered = {r.object_name: np.array(r.model_to_world) for r in reader.records if r.model_to_world is not None}
-    add_s = [row["add_s_mm"] for row in placement_report(ws.session, registered).values() if "add_s_mm" in row]
+    add_s = [row["add_s_mm"] for row in placement_report(ws.collected, registered).values() if "add_s_mm" in row]
     _, scene = depth_map_params(reader)
+    recorded = ws.first_test.depth_maps([ws.collected])  # as its patch extractor cut them
     figures = {
         "register": float(np.median(add_s)) if add_s else None,  # None: a scene whose poses are not known
-        "depth_maps": renderer_ratio(ws.first_test, scene, reader.info.depth_crop_m, _test_maps(ws))["renderer_ratio"],
-        "write": float(len(check_dataset(ws.session).problems)),
+        "depth_maps": renderer_ratio(ws.first_test, scene, reader.info.depth_crop_m, recorded)["renderer_ratio"],
+        "write": float(len(check_dataset(ws.collected).problems)),
     }
     # The whole grasp from the dataset's own stamps: a resumed session's session.json times
     # only the grasps of its last run, and counts its pairs but not its grasps.
@@ -78,11 +79,11 @@ def touch_calibration(ws: Workspace) -> list[Point]:
     (mm) against the scene's truth after it, beside the error before (the given extrinsics)."""
     extra = {"per": SESSION, "unit": "CPU s", "buys": "worse camera's error after (mm)"}
     name = "touch calibration (dtx calibrate touches)"
-    truth = scene_camera_truth(DatasetReader(ws.session).info.scene)
+    truth = scene_camera_truth(DatasetReader(ws.collected).info.scene)
     if truth is None:
         return [point(PIPELINE, name, float("nan"), None, **extra, missing="the scene offsets no camera")]
     before = max(
-        pose_error(np.asarray(world), truth[frame])[0] for frame, world in _given_extrinsics(ws.session).items()
+        pose_error(np.asarray(world), truth[frame])[0] for frame, world in _given_extrinsics(ws.collected).items()
     )
     try:
         calibration, cpu_s = ws.touch_calibration

@@ -84,7 +84,7 @@ def _touch_calibrated_extrinsics(ws: Workspace) -> dict[str, np.ndarray] | None:
     """Each camera of SCENE as the report's session's touch calibration corrected it (camera
     name -> camera_to_world); None where the session saw another scene or its touches cannot
     calibrate (the tables then give the given cameras alone)."""
-    if Path(DatasetReader(ws.session).info.scene).name != Path(SCENE).name:
+    if Path(DatasetReader(ws.collected).info.scene).name != Path(SCENE).name:
         return None
     try:
         calibration, _ = ws.touch_calibration
