@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -146,6 +147,17 @@ class TrainConfig:
         return DiscriminatorConfig(
             in_channels=self.generator.input_channels + self.generator.out_channels, ndf=self.ndf
         )
+
+    def with_session_pose_sigmas(self, sigmas_mm: Sequence[float], sessions: int) -> "TrainConfig":
+        """This config with the sessions' pose errors (mm; ``dtx train --session-pose-sigma-mm``):
+        one for all of ``sessions`` sessions or one a session, the first the served default;
+        ModelConfigError for another count or a bad value."""
+        if len(sigmas_mm) not in (1, sessions):
+            raise ModelConfigError(
+                f"--session-pose-sigma-mm takes one value or one a session ({sessions}), got {len(sigmas_mm)}"
+            )
+        several = tuple(sigmas_mm) if len(sigmas_mm) > 1 else ()
+        return dataclasses.replace(self, session_pose_sigma_mm=sigmas_mm[0], session_pose_sigmas_mm=several).validate()
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

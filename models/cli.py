@@ -22,15 +22,8 @@ def _train(args: argparse.Namespace) -> int:
     config = TrainConfig.load(args.config)
     if args.hold_out_object:
         config = dataclasses.replace(config, hold_out_object=args.hold_out_object)
-    sigmas = args.session_pose_sigma_mm
-    if sigmas and len(sigmas) not in (1, len(args.dataset)):
-        raise ModelConfigError(
-            f"--session-pose-sigma-mm takes one value or one a session ({len(args.dataset)}), got {len(sigmas)}"
-        )
-    if sigmas:  # the first is the served default; several: each session's own
-        config = dataclasses.replace(
-            config, session_pose_sigma_mm=sigmas[0], session_pose_sigmas_mm=tuple(sigmas) if len(sigmas) > 1 else ()
-        ).validate()
+    if args.session_pose_sigma_mm:  # the first is the served default; several: each session's own
+        config = config.with_session_pose_sigmas(args.session_pose_sigma_mm, len(args.dataset))
     started = time.monotonic()
     dataset = args.dataset[0] if len(args.dataset) == 1 else args.dataset
     path = train(dataset, config, args.out, resume=args.resume, libraries=args.library)

@@ -74,6 +74,15 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "of them and are scored on each one's test split and the whole; the pipeline, registration and "
         "calibration tables measure the first",
     )
+    p.add_argument(
+        "--session-pose-sigma-mm",
+        type=float,
+        nargs="+",
+        default=[],
+        metavar="MM",
+        help="the given sessions' pose errors, as dtx train takes them (one for all or one a session; e.g. 0.1 "
+        "for sessions cut again with a touch calibration, as make demo trains); default: the training config's",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=run_accuracy_time)
 
@@ -154,14 +163,14 @@ def _header(
         header += [
             "",
             f"The session sweeps ran on a collected session given with --session (fingerprint "
-            f"{session_fingerprint(sessions[0])}), not on one of the plan's size.",
+            f"{session_fingerprint(sessions[0])}), not on one of the plan's size{_told(workspace)}.",
         ]
     elif sessions:
         header += [
             "",
             f"The session sweeps ran on {len(sessions)} collected sessions given with --session (fingerprints "
-            f"{', '.join(session_fingerprint(s) for s in sessions)}): their models trained on all of them, "
-            "scored on the test splits together, each session's contact SSIM beside in that order; the "
+            f"{', '.join(session_fingerprint(s) for s in sessions)}){_told(workspace)}: their models trained on all "
+            "of them, scored on the test splits together, each session's contact SSIM beside in that order; the "
             "pipeline, registration and calibration tables measure the first session's collection.",
         ]
     if workspace.reused_models:
@@ -181,12 +190,21 @@ def _header(
     return header
 
 
+def _told(workspace: Workspace) -> str:
+    """What the header says of the pose errors the given sessions' models were told."""
+    sigmas = workspace.pose_sigmas_mm
+    return (
+        f", told pose errors of {' / '.join(f'{s:g}' for s in sigmas)} mm (--session-pose-sigma-mm)" if sigmas else ""
+    )
+
+
 def run_accuracy_time(args: argparse.Namespace) -> int:
     plan = dataclasses.replace(QUICK if args.quick else FULL, seed=args.seed)
     cache = args.out / "cache"
     if args.reuse and not cache.is_dir():
         print(f"dtx report: error: --reuse: nothing cached in {cache}", file=sys.stderr)
         return 2
+    from models.errors import ModelConfigError
     from report.sweeps import SWEEPS
     from report.workspace import Workspace, training_config
 
@@ -194,12 +212,23 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     if len(set(fingerprints)) < len(fingerprints):
         print("dtx report: error: --session: the same session given twice", file=sys.stderr)
         return 2
+    sigmas = args.session_pose_sigma_mm
+    try:
+        if sigmas and not args.session:
+            raise ModelConfigError("--session-pose-sigma-mm is for given sessions (the report calibrates its own)")
+        if sigmas:
+            training_config().with_session_pose_sigmas(sigmas, len(args.session))
+    except ModelConfigError as err:
+        print(f"dtx report: error: {err}", file=sys.stderr)
+        return 2
     # Given sessions get a workspace of their own: their re-cut datasets and trained models are theirs.
     session = "+".join(fingerprints) or CALIBRATED_HERE
     work = plan.name if session == CALIBRATED_HERE else f"{plan.name}-{_short(session)}"
-    workspace = Workspace(args.out / "work" / work, plan, args.session)
-    made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict()}
-    made_by = json.loads(json.dumps({**made_by, "session": session}))
+    workspace = Workspace(args.out / "work" / work, plan, args.session, sigmas)
+    made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict(), "session": session}
+    if sigmas:  # only then: sweeps cached before the option still count for the config's pose error
+        made_by["session_pose_sigmas_mm"] = sigmas
+    made_by = json.loads(json.dumps(made_by))
     cache.mkdir(parents=True, exist_ok=True)
     # Named as the command line names them: --out DIR, --session SESSION (SESSION1, SESSION2 ... for several).
     names = ["SESSION"] if len(args.session) == 1 else [f"SESSION{i + 1}" for i in range(len(args.session))]

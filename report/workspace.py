@@ -77,13 +77,18 @@ class Workspace:
     """Datasets and trained models under ``root``, made on first use and kept, so a rerun or
     a sweep that needs a model another sweep trained does not train it again."""
 
-    def __init__(self, root: Path, plan: Plan, sessions: Sequence[Path] = ()) -> None:
+    def __init__(
+        self, root: Path, plan: Plan, sessions: Sequence[Path] = (), pose_sigmas_mm: Sequence[float] = ()
+    ) -> None:
         """``sessions``: collected simulated sessions the session sweeps use instead of one
         collected here (make demo's is larger than any plan's, so its p-values mean more; a lab's
-        several days train one model, as ``dtx train A B`` does)."""
+        several days train one model, as ``dtx train A B`` does), with their pose errors
+        ``pose_sigmas_mm`` as ``dtx train --session-pose-sigma-mm`` takes them (none: the
+        training config's)."""
         self.root = root
         self.plan = plan
         self.given_sessions = tuple(sessions)
+        self.pose_sigmas_mm = tuple(pose_sigmas_mm)
         self.reused_models: set[str] = set()  # trained by an earlier run: not in this run's time
 
     @functools.cached_property
@@ -215,7 +220,7 @@ class Workspace:
         generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
         # One thread: on a shared machine extra OpenMP threads mostly wait for a core, and
         # the CPU seconds a sweep reports are then comparable from run to run.
-        return dataclasses.replace(
+        config = dataclasses.replace(
             base,
             seed=self.plan.seed,
             epochs=self.plan.epochs,
@@ -224,6 +229,9 @@ class Workspace:
             threads=1,
             session_pose_sigma_mm=self.session_pose_sigma_mm if registered else 0.0,
         )
+        if registered and self.pose_sigmas_mm:
+            return config.with_session_pose_sigmas(self.pose_sigmas_mm, len(self.given_sessions))
+        return config
 
     def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:
         """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""

@@ -24,7 +24,7 @@ from models.sessions import checkpoint_sessions
 from report.plan import QUICK
 from report.specs import PER_SESSION, SPECS
 from report.sweeps.session import pose_sigma
-from report.workspace import training_config
+from report.workspace import Workspace, training_config
 from report.write import annotate, table
 
 REPO = Path(__file__).resolve().parent.parent
@@ -82,9 +82,9 @@ def test_each_sessions_contact_ssim_is_its_own_test_splits(workspace: TinyWorksp
     assert "contact SSIM per session" not in table(SPECS["pose_sigma"], annotate([alone]))
 
 
-def _report(out: Path, sessions: list[Path]) -> int:
+def _report(out: Path, sessions: list[Path], *more: str) -> int:
     """``dtx report accuracy-time --quick --reuse --only density --session ...`` into ``out``."""
-    command = ["report", "accuracy-time", "--out", str(out), "--quick", "--reuse", "--only", "density"]
+    command = ["report", "accuracy-time", "--out", str(out), "--quick", "--reuse", "--only", "density", *more]
     args = _parser().parse_args([*command, "--session", *map(str, sessions)])
     return args.func(args)
 
@@ -112,3 +112,38 @@ def test_several_sessions_are_named_by_what_they_hold(sessions: list[Path], tmp_
     written = (out / "report.md").read_text() + (out / "points.json").read_text()
     assert "density reused" in written and "2 collected sessions" in written
     assert "SESSION2 and SESSION1" in written and str(tmp_path) not in written
+
+
+def test_the_given_sessions_pose_errors_reach_their_models_and_the_cache(sessions: list[Path], tmp_path: Path) -> None:
+    workspace = Workspace(tmp_path, QUICK, sessions, (0.1, 1.0))
+    config = workspace.config(100, 16, registered=True)
+    assert config.session_pose_sigma_mm == 0.1 and config.session_pose_sigmas_mm == (0.1, 1.0)
+    assert workspace.config(100, 16, registered=False).session_pose_sigma_mm == 0.0  # analytic contacts: exact
+    out = tmp_path / "report"
+    (out / "cache").mkdir(parents=True)
+    made_by = {"plan": dataclasses.asdict(QUICK), "training_config": training_config().to_dict()}
+    entry = {**made_by, "session": "+".join(session_fingerprint(s) for s in sessions), "seconds": 1.0}
+    entry |= {"session_pose_sigmas_mm": [0.1, 1.0], "measured_at": "then", "points": []}
+    (out / "cache" / "density.json").write_text(json.dumps(entry))
+    assert _report(out, sessions, "--session-pose-sigma-mm", "0.1", "1") == 0
+    written = (out / "report.md").read_text()
+    assert "density reused" in written and "told pose errors of 0.1 / 1 mm" in written
+
+
+@pytest.mark.parametrize(
+    ("given", "sigmas", "says"),
+    [
+        (0, ["0.1"], "for given sessions"),
+        (2, ["0.1", "0.2", "0.3"], "one value or one a session (2), got 3"),
+        (2, ["-1"], "session_pose_sigma_mm"),
+        (2, ["nan"], "session_pose_sigma_mm"),
+    ],
+)
+def test_pose_errors_that_do_not_fit_the_sessions_are_refused_before_any_work(
+    sessions: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], given: int, sigmas: list[str], says: str
+) -> None:
+    command = ["report", "accuracy-time", "--out", str(tmp_path), "--quick", "--session-pose-sigma-mm", *sigmas]
+    args = _parser().parse_args(command + (["--session", *map(str, sessions[:given])] if given else []))
+    assert args.func(args) == 2
+    assert says in capsys.readouterr().err
+    assert not (tmp_path / "work").exists() and not (tmp_path / "cache").exists()
