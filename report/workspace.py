@@ -90,6 +90,7 @@ class Workspace:
         self.given_sessions = tuple(sessions)
         self.pose_sigmas_mm = tuple(pose_sigmas_mm)
         self.reused_models: set[str] = set()  # trained by an earlier run: not in this run's time
+        self.trained_models: set[str] = set()  # trained, or found trained, by this run
 
     @functools.cached_property
     def contacts(self) -> list[Contact]:
@@ -288,8 +289,9 @@ class Workspace:
         if checkpoint.exists() and TrainConfig.from_dict(load_checkpoint(checkpoint)["train_config"]) != config:
             print(f"report: {out.name} was trained with another config; training it again", file=sys.stderr)
             shutil.rmtree(out)
-        if len(epoch_cpu_s(out)) >= 2 * self.plan.epochs:
+        if len(epoch_cpu_s(out)) >= 2 * self.plan.epochs and out.name not in self.trained_models:
             self.reused_models.add(out.name)
+        self.trained_models.add(out.name)
         threads = torch.get_num_threads()
         try:
             while len(epoch_cpu_s(out)) < 2 * self.plan.epochs:

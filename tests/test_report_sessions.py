@@ -147,3 +147,13 @@ def test_pose_errors_that_do_not_fit_the_sessions_are_refused_before_any_work(
     assert args.func(args) == 2
     assert says in capsys.readouterr().err
     assert not (tmp_path / "work").exists() and not (tmp_path / "cache").exists()
+
+
+def test_a_model_is_reused_only_when_an_earlier_run_trained_it(workspace: TinyWorkspace) -> None:
+    """The header lists models an earlier run trained (their training is not in its times): not
+    one this run trained and a later sweep asks for again."""
+    workspace.session_model()
+    assert workspace.reused_models == set()
+    later = TinyWorkspace(workspace.root, workspace.plan, workspace.sessions)
+    later.session_model()
+    assert later.reused_models == {workspace.session_model().name}
