@@ -198,29 +198,39 @@ def _told(workspace: Workspace) -> str:
     )
 
 
+def _sessions_refused(args: argparse.Namespace, fingerprints: list[str]) -> str:
+    """Why the given sessions and their pose errors cannot be measured ("" where they can)."""
+    from models.errors import ModelConfigError
+    from report.workspace import training_config
+
+    if len(set(fingerprints)) < len(fingerprints):
+        return "--session: the same session given twice"
+    sigmas = args.session_pose_sigma_mm
+    if sigmas and not args.session:
+        return "--session-pose-sigma-mm is for given sessions (the report calibrates its own)"
+    try:
+        if sigmas:
+            training_config().with_session_pose_sigmas(sigmas, len(args.session))
+    except ModelConfigError as err:
+        return str(err)
+    return ""
+
+
 def run_accuracy_time(args: argparse.Namespace) -> int:
     plan = dataclasses.replace(QUICK if args.quick else FULL, seed=args.seed)
     cache = args.out / "cache"
     if args.reuse and not cache.is_dir():
         print(f"dtx report: error: --reuse: nothing cached in {cache}", file=sys.stderr)
         return 2
-    from models.errors import ModelConfigError
     from report.sweeps import SWEEPS
     from report.workspace import Workspace, training_config
 
     fingerprints = [session_fingerprint(session) for session in args.session]
-    if len(set(fingerprints)) < len(fingerprints):
-        print("dtx report: error: --session: the same session given twice", file=sys.stderr)
+    refusal = _sessions_refused(args, fingerprints)
+    if refusal:
+        print(f"dtx report: error: {refusal}", file=sys.stderr)
         return 2
     sigmas = args.session_pose_sigma_mm
-    try:
-        if sigmas and not args.session:
-            raise ModelConfigError("--session-pose-sigma-mm is for given sessions (the report calibrates its own)")
-        if sigmas:
-            training_config().with_session_pose_sigmas(sigmas, len(args.session))
-    except ModelConfigError as err:
-        print(f"dtx report: error: {err}", file=sys.stderr)
-        return 2
     # Given sessions get a workspace of their own: their re-cut datasets and trained models are theirs.
     session = "+".join(fingerprints) or CALIBRATED_HERE
     work = plan.name if session == CALIBRATED_HERE else f"{plan.name}-{_short(session)}"
