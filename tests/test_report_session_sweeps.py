@@ -131,7 +131,8 @@ def test_each_session_is_cut_again_by_its_own_patch_extractors_rule(workspace: W
     both = Workspace(workspace.root / "both", workspace.plan, [workspace.session, nearest])
     test = both.session_test
     assert test.session_of.tolist() == [0] * (len(test.records) // 2) + [1] * (len(test.records) // 2)
-    clouds = {key: model_index(scene, key[1]) for key, scene in _objects(both, test).items()}
-    maps, cut_ms = _cut_again(test, clouds, _cutters(both))
+    cutters = _cutters(both)
+    clouds = {key: model_index(scene, key[1]) for key, scene in _objects(test, cutters).items()}
+    maps, cut_ms = _cut_again(test, clouds, cutters)
     assert np.array_equal(maps, test.depth_maps(both.sessions)) and cut_ms > 0
     assert not np.array_equal(maps[test.session_of == 0], maps[test.session_of == 1])

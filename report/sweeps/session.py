@@ -73,7 +73,7 @@ def density(ws: Workspace) -> list[Point]:
     cutters = _cutters(ws)
     generator, depth_range = load_generator(ws.session_model() / "checkpoint.pt")
     no_contact = no_contact_estimate(generator, depth_range, REFERENCE_SIZE)
-    full = {key: model_cloud(scene, key[1]) for key, scene in _objects(ws, test).items()}
+    full = {key: model_cloud(scene, key[1]) for key, scene in _objects(test, cutters).items()}
     points = []
     for value in (None, *ws.plan.densities):
         clouds, thinning = {}, []
@@ -106,15 +106,16 @@ def depth_map(ws: Workspace) -> list[Point]:
     times it). Beside it the maps through the GelSight renderer and the served estimate's
     dissimilarity ratio, each scored as ``dtx evaluate`` scores a model."""
     test = ws.session_test
-    clouds = {key: model_index(scene, key[1]) for key, scene in _objects(ws, test).items()}
+    cutters = _cutters(ws)
+    clouds = {key: model_index(scene, key[1]) for key, scene in _objects(test, cutters).items()}
     # The sessions of one model share its GelSight and depth crop (models.sessions.check_one_prior).
-    reader = DatasetReader(ws.session)
-    gelsight_scene = depth_map_params(reader)[1]
+    depth_crop_m = DatasetReader(ws.session).info.depth_crop_m
     points = []
     for method in ws.plan.depth_map_methods:
         model = ws.session_model(REFERENCE_SIZE, method)
         generator, depth_range = load_generator(model / "checkpoint.pt")
-        maps, cut_ms = _cut_again(test, clouds, _cutters(ws, method))
+        by_rule = [c._replace(params=dataclasses.replace(c.params, method=method)) for c in cutters]
+        maps, cut_ms = _cut_again(test, clouds, by_rule)
         estimate = predict(generator, maps, depth_range)
         scores = session_scores(test, estimate, no_contact_estimate(generator, depth_range, REFERENCE_SIZE))
         points.append(
@@ -125,7 +126,7 @@ def depth_map(ws: Workspace) -> list[Point]:
                 scores.pop("contact_ssim"),
                 training_s_per_epoch=round(epoch_s(model), 2),
                 dissimilarity_ratio=dissimilarity_ratio(test, estimate),
-                **renderer_ratio(test, gelsight_scene, reader.info.depth_crop_m, maps),
+                **renderer_ratio(test, cutters[0].scene, depth_crop_m, maps),
                 **scores,
             )
         )
@@ -165,36 +166,32 @@ def pose_sigma(ws: Workspace) -> list[Point]:
 
 
 class Cutter(NamedTuple):
-    """How a session's patch extractor cut its depth-maps: its scene file (whose models the
-    objects are), gripper and depth-map settings."""
+    """How a session's patch extractor cut its depth-maps: its scene (whose models the objects
+    are) and that scene's file, gripper and depth-map settings."""
 
     scene_file: str
+    scene: Scene
     geometry: GripperGeometry
     params: DepthMapParams
 
 
-def _cutters(ws: Workspace, method: str | None = None) -> list[Cutter]:
-    """Each session's :class:`Cutter`, in the workspace's order; with ``method``, each cutting by
-    that rule."""
+def _cutters(ws: Workspace) -> list[Cutter]:
+    """Each session's :class:`Cutter`, in the workspace's order."""
     cutters = []
     for session in ws.sessions:
         reader = DatasetReader(session)
         params, scene = depth_map_params(reader)
-        params = params if method is None else dataclasses.replace(params, method=method)
-        cutters.append(Cutter(reader.info.scene, scene.gripper_geometry(), params))
+        cutters.append(Cutter(reader.info.scene, scene, scene.gripper_geometry(), params))
     return cutters
 
 
-def _objects(ws: Workspace, test: SessionTest) -> dict[tuple[str, str], Scene]:
+def _objects(test: SessionTest, cutters: list[Cutter]) -> dict[tuple[str, str], Scene]:
     """The test split's objects, each once, by (its session's scene file, object name): the scene
     that holds its model."""
-    scenes: dict[str, Scene] = {}
     objects = {}
     for record, session in zip(test.records, test.session_of):
-        reader = DatasetReader(ws.sessions[int(session)])
-        if reader.info.scene not in scenes:
-            scenes[reader.info.scene] = depth_map_params(reader)[1]
-        objects[(reader.info.scene, record.object_name)] = scenes[reader.info.scene]
+        cutter = cutters[int(session)]
+        objects[(cutter.scene_file, record.object_name)] = cutter.scene
     return dict(sorted(objects.items()))
 
 
