@@ -16,10 +16,12 @@ from dataset.redepth import depth_map_again, depth_map_params, model_index, pose
 from dataset.registered_again import register_again
 from dataset.splits import split_records
 from dataset.touch_calibration import TouchCalibration, calibrate_touches, registration_frames, scene_camera_truth
+from perception.depthmap import DepthMapParams
 from perception.touch_calibration import TouchCalibrationError, pose_error
 from report.specs import Point, point
 from report.sweeps.common import renderer_ratio
 from report.workspace import Workspace
+from workcell.scene import Scene
 
 
 def _seconds_per_grasp(records: list[SampleRecord]) -> float:
@@ -66,7 +68,7 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
             continue
         fit_s = time.process_time() - started
         cameras = calibration.report(truth)["cameras"].values()
-        maps = _test_maps_with(ws, calibration, clouds)
+        maps = _test_maps_with(ws, calibration, clouds, params, scene)
         points.append(
             point(
                 "calibration_grasps",
@@ -83,11 +85,12 @@ def calibration_grasps(ws: Workspace) -> list[Point]:
     return points
 
 
-def _test_maps_with(ws: Workspace, calibration: TouchCalibration, clouds: dict) -> np.ndarray:
-    """The session's test depth-maps cut again with the objects registered by ``calibration``'s
-    cameras alone (placed by all the session's touches, the objects would hide the cameras' share)."""
-    reader = DatasetReader(ws.collected)
-    params, scene = depth_map_params(reader)
+def _test_maps_with(
+    ws: Workspace, calibration: TouchCalibration, clouds: dict, params: DepthMapParams, scene: Scene
+) -> np.ndarray:
+    """The session's test depth-maps cut again (``params``, ``scene``: its patch extractor's) with
+    the objects registered by ``calibration``'s cameras alone (placed by all the session's
+    touches, the objects would hide the cameras' share)."""
     registered = register_again(ws.collected, list(calibration.calibrated.values()), by_touches=False)
     poses = poses_at(ws.first_test.records, registered, scene, params)
     geometry = scene.gripper_geometry()
