@@ -106,10 +106,12 @@ def _without_machine_paths(points: list[dict], places: dict[str, str]) -> list[d
     session) named by what it is in every text they hold, such as a refusal's reason: the report
     and its cache are committed, and read on other machines."""
 
+    longest_first = sorted(places.items(), key=lambda place: -len(place[0]))  # /s10 before /s1
+
     def named(value: object) -> object:
         if not isinstance(value, str):
             return value
-        for path, name in sorted(places.items(), key=lambda place: -len(place[0])):  # /s10 before /s1
+        for path, name in longest_first:
             value = value.replace(path, name)
         return value
 
@@ -165,7 +167,7 @@ def _header(
             f"The session sweeps ran on a collected session given with --session (fingerprint "
             f"{session_fingerprint(sessions[0])}), not on one of the plan's size{_told(workspace)}.",
         ]
-    elif sessions:
+    else:
         header += [
             "",
             f"The session sweeps ran on {len(sessions)} collected sessions given with --session (fingerprints "
@@ -233,7 +235,7 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
     sigmas = args.session_pose_sigma_mm
     # Given sessions get a workspace of their own: their re-cut datasets and trained models are theirs.
     session = "+".join(fingerprints) or CALIBRATED_HERE
-    work = plan.name if session == CALIBRATED_HERE else f"{plan.name}-{_short(session)}"
+    work = f"{plan.name}-{_short(session)}" if args.session else plan.name
     workspace = Workspace(args.out / "work" / work, plan, args.session, sigmas)
     made_by = {"plan": dataclasses.asdict(plan), "training_config": training_config().to_dict(), "session": session}
     if sigmas:  # only then: sweeps cached before the option still count for the config's pose error

@@ -128,13 +128,6 @@ class Workspace:
         records are :attr:`session`'s, its depth-maps as its patch extractor cut them."""
         return self.given_sessions[0] if self.given_sessions else self._collected()
 
-    @property
-    def session_pose_sigma_mm(self) -> float:
-        """The pose error the session models' prior is blurred by: a session calibrated here is
-        left with the touch calibration's (CALIBRATED_POSE_SIGMA_MM, as make demo trains), others
-        with the training config's."""
-        return CALIBRATED_POSE_SIGMA_MM if self.calibrated else training_config().session_pose_sigma_mm
-
     def _calibrated(self) -> Path:
         """The collected session's depth-maps cut again with its objects where its touch
         calibration's joint fit placed them (what ``dtx calibrate touches`` then ``dtx dataset
@@ -215,7 +208,9 @@ class Workspace:
     def config(self, size: int, width: int, registered: bool) -> TrainConfig:
         """configs/quick.yaml with the plan's epochs, at ``size`` x ``size``, generator ``width``;
         the physics prior blurred by the registration's pose error only for a ``registered``
-        (collected) dataset: the analytic contacts' geometry is exact."""
+        (collected) dataset: the analytic contacts' geometry is exact. A session calibrated here
+        is left with the touch calibration's error (CALIBRATED_POSE_SIGMA_MM, as make demo
+        trains), given ones with their ``pose_sigmas_mm`` or else the config's."""
         base = training_config()
         pad = -(-size // 128) * 128  # the U-Net's 7 halvings need a multiple of 128
         generator = dataclasses.replace(base.generator, image_size=size, pad_to=pad, ngf=width)
@@ -228,11 +223,15 @@ class Workspace:
             epochs_decay=self.plan.epochs,
             generator=generator,
             threads=1,
-            session_pose_sigma_mm=self.session_pose_sigma_mm if registered else 0.0,
+            session_pose_sigma_mm=0.0,  # analytic contacts: exact geometry
         )
-        if registered and self.pose_sigmas_mm:
+        if not registered:
+            return config
+        if self.pose_sigmas_mm:
             return config.with_session_pose_sigmas(self.pose_sigmas_mm, len(self.given_sessions))
-        return config
+        return dataclasses.replace(
+            config, session_pose_sigma_mm=CALIBRATED_POSE_SIGMA_MM if self.calibrated else base.session_pose_sigma_mm
+        )
 
     def model(self, size: int = REFERENCE_SIZE, width: int = 16) -> Path:
         """The model trained on the analytic contacts at ``size`` x ``size``: see :meth:`_trained`."""
