@@ -4,12 +4,12 @@ at once, in memory bounded by the stated cache, each rank reading only its own s
 from __future__ import annotations
 
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from test_models_pose_sigma_range import PRIOR, SCENE  # the tiny prior generator and its scene
 
 from dataset.contact_library import write_contact_library
 from dataset.reader import DatasetReader
@@ -19,9 +19,6 @@ from models.networks import ModelConfigError
 from models.pairs import PairCache, PairSet, SessionPairs, library_pairs
 from models.sessions import load_training_data, open_sessions, session_records
 from models.train import _Dist, _epoch_batches, build_state, train
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_models_pose_sigma_range import PRIOR, SCENE  # the tiny prior generator and its scene
 
 TINY = TrainConfig(epochs=2, epochs_decay=0, batch_size=4, ndf=8, threads=1, session_pose_sigma_mm=1.0, generator=PRIOR)
 
