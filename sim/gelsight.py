@@ -39,7 +39,7 @@ import numpy as np
 from sim.effects import effects_of, resolve_effects
 from sim.gelsight_calibration import PolyCalibration, load_calibration, renderer_parameters
 from sim.gelsight_effects import EFFECTS, GelSightRenderError, LightingDrift, Markers, SensorNoise, make_effect
-from sim.gelsight_shading import add_tilted_colour
+from sim.gelsight_shading import colour_change, slope_bin_edges
 from workcell.scene import Scene
 
 __all__ = [
@@ -220,6 +220,8 @@ class ShadingGrid:
     mag_step: float  # a magnitude bin's width, rad of atan(slope)
     dir_step: float  # a direction bin's width, rad
     tilted_tan: np.float32  # below this slope a pixel takes the zero-slope bin: no tilt colour
+    tan_edges: np.ndarray  # the magnitude bins' edges as slopes, n_bins + 1 (sim.gelsight_shading)
+    direction_edges: np.ndarray  # the direction bins' edges as unit vectors, 2 x (n_bins + 1)
 
 
 class GelSightRenderer:
@@ -293,6 +295,7 @@ class GelSightRenderer:
         # The flat pressed gel's colour at each working pixel: fully pressed it adds shading_gain times this.
         flat_colour = terms @ self.calibration.coeffs[0, 0].T
         mag_step = 0.5 * math.pi / n
+        tan_edges, direction_edges = slope_bin_edges(n)
         grid = ShadingGrid(
             shape=shape,
             pitch_mm=pitch_mm,
@@ -306,8 +309,10 @@ class GelSightRenderer:
             mag_step=mag_step,
             dir_step=2.0 * math.pi / n,
             tilted_tan=np.float32(math.tan(mag_step)),
+            tan_edges=tan_edges,
+            direction_edges=direction_edges,
         )
-        for array in (grid.terms, grid.coeffs, grid.flat_colour, grid.flat_change):
+        for array in (grid.terms, grid.coeffs, grid.flat_colour, grid.flat_change, tan_edges, direction_edges):
             array.flags.writeable = False
         return grid
 
@@ -360,27 +365,24 @@ class GelSightRenderer:
         return cv2.resize(grid, (w, h), interpolation=cv2.INTER_LINEAR)
 
     def _colour_change(self, depth: np.ndarray) -> np.ndarray:
-        """Colour change (float32 levels, working grid x 3) of the gel surface ``depth``."""
-        grid = self.grid
-        compression = np.minimum(depth * np.float32(1.0 / self.config.compression_saturation_mm), 1.0)
-        change = grid.flat_change * compression[:, :, None]
-        # Slopes are dimensionless (mm per mm), as the calibration's (pixels per pixel);
-        # Sobel with ksize 1 is the central difference times 2.
+        """Colour change (float32 levels, working grid x 3) of the gel surface ``depth``
+        (sim.gelsight_shading). Slopes are dimensionless (mm per mm), as the calibration's
+        (pixels per pixel)."""
+        grid, config = self.grid, self.config
         row_mm, col_mm = grid.pitch_mm
-        slope_x = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=1, scale=0.5 / col_mm, borderType=cv2.BORDER_REPLICATE)
-        slope_y = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=1, scale=0.5 / row_mm, borderType=cv2.BORDER_REPLICATE)
-        # Only tilted pixels need their polynomial; usually the contact is a small part of the gel.
-        tilted = np.flatnonzero(cv2.magnitude(slope_x, slope_y) >= grid.tilted_tan)
-        if tilted.size:
-            n = grid.n_bins
-            slope_x, slope_y = slope_x.ravel()[tilted], slope_y.ravel()[tilted]
-            magnitude = np.arctan(np.hypot(slope_x, slope_y))
-            direction = np.arctan2(slope_y, slope_x)
-            i_mag = np.minimum((magnitude / grid.mag_step).astype(np.intp), n - 1)
-            i_dir = np.minimum(((direction + math.pi) / grid.dir_step).astype(np.intp), n - 1)
-            gain, bins = np.float32(self.config.shading_gain), i_mag * n + i_dir
-            add_tilted_colour(change.reshape(-1, 3), tilted, bins, grid.coeffs, grid.terms, grid.flat_colour, gain)
-        return change
+        return colour_change(
+            np.ascontiguousarray(depth, np.float32),
+            (np.float32(0.5 / col_mm), np.float32(0.5 / row_mm)),
+            grid.flat_change,
+            np.float32(1.0 / config.compression_saturation_mm),
+            grid.tilted_tan,
+            grid.tan_edges,
+            grid.direction_edges,
+            grid.coeffs,
+            grid.terms,
+            grid.flat_colour,
+            np.float32(config.shading_gain),
+        )
 
 
 def scene_renderer(
