@@ -28,7 +28,10 @@ spacing (a mug's opening, the space beside an edge) is not.
 
 Why by hand: a moving-least-squares surface over binned samples with these rules is no library's
 function (Open3D and PCL fit surfaces to whole clouds, at seconds a cloud); this is one compiled
-pass per level over each map's bins, on the threads that cut the maps.
+pass per level over each map's bins, on the threads that cut the maps. Level 0's occupied bins,
+most of a map, take a fast path: a row at a time in vector instructions, with the general path's
+sums in its order (the same bits), the general path only where their first plane does not fit:
+~0.4 ms a 100 x 100 map on one core, against ~1.2 ms bin by bin.
 """
 
 from __future__ import annotations
@@ -52,6 +55,9 @@ RESIDUAL_FRACTION = 0.5
 # eigenvalue of their spread at least this fraction of the larger one's (not on one line).
 _MIN_SAMPLES = 3
 _MIN_SPREAD_RATIO = 1e-3
+_Grids = tuple[np.ndarray, np.ndarray, np.ndarray]  # a map's or a level's samples: y, x, z
+_Centres = tuple[np.ndarray, np.ndarray]  # the bins' x and z centres
+_Index = int | np.uint64  # the fast path's are np.uint64 (_row_planes)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -91,6 +97,15 @@ def _anchor(sy: np.ndarray, sx: np.ndarray, sz: np.ndarray, cell_r: int, cell_c:
 
 
 @numba.njit(cache=True, nogil=True)
+def _continues(dy: float, dx: float, dz: float, tolerance: float) -> bool:
+    """Whether a sample at (dy, dx, dz) from the anchor continues its surface: a sample (y below
+    +inf) whose height change is within MAX_SLOPE times their distance plus ``tolerance``. With
+    ``&``, not ``and``: a branch would keep :func:`_row_planes` out of vector code."""
+    step = abs(dy) - tolerance
+    return (dy < np.inf) & (not ((step > 0.0) & (step * step > MAX_SLOPE * MAX_SLOPE * (dx**2 + dz**2))))
+
+
+@numba.njit(cache=True, nogil=True)
 def _plane_at(
     sy: np.ndarray,
     sx: np.ndarray,
@@ -114,15 +129,11 @@ def _plane_at(
     ay, ax, az = _anchor(sy, sx, sz, cell_r, cell_c)
     if not np.isfinite(ay):
         return np.nan
-    slope2, n = MAX_SLOPE * MAX_SLOPE, 0
+    n = 0
     for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
         for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
-            dy = sy[r, c] - ay
-            step = abs(dy) - tolerance
-            if dy < np.inf and not (
-                step > 0.0 and step * step > slope2 * ((sx[r, c] - ax) ** 2 + (sz[r, c] - az) ** 2)
-            ):
-                kept[0, n], kept[1, n], kept[2, n] = sx[r, c] - centre_x, sz[r, c] - centre_z, dy
+            if _continues(sy[r, c] - ay, sx[r, c] - ax, sz[r, c] - az, tolerance):
+                kept[0, n], kept[1, n], kept[2, n] = sx[r, c] - centre_x, sz[r, c] - centre_z, sy[r, c] - ay
                 n += 1
     while n >= _MIN_SAMPLES:
         height, slope_x, slope_z = _plane(kept, n)
@@ -205,6 +216,184 @@ def _knit(sy: np.ndarray) -> bool:
 
 
 @numba.njit(cache=True, nogil=True)
+def _moments(
+    sums: tuple[float, ...],
+    sy: np.ndarray,
+    sx: np.ndarray,
+    sz: np.ndarray,
+    i: _Index,
+    j: _Index,
+    anchor: tuple[float, float, float, float, float],
+    tolerance: float,
+) -> tuple[float, ...]:
+    """``sums``: the raw moments of :func:`_plane` and the count, with the sample of bin (i, j)
+    added where it continues the ``anchor``'s surface (ay, ax, az, centre_x, centre_z). A dropped
+    sample adds +0.0, which leaves a sum unchanged to the bit (a sum from +0.0 is never -0.0),
+    so the sums are _plane's; without a branch, as :func:`_continues`."""
+    ay, ax, az, centre_x, centre_z = anchor
+    dy = sy[i, j] - ay
+    keep = _continues(dy, sx[i, j] - ax, sz[i, j] - az, tolerance)
+    dx = sx[i, j] - centre_x if keep else 0.0
+    dz = sz[i, j] - centre_z if keep else 0.0
+    dy = dy if keep else 0.0
+    sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy, n = sums
+    first = (sum_x + dx, sum_z + dz, sum_y + dy, sum_xx + dx * dx, sum_xz + dx * dz, sum_zz + dz * dz)
+    return first + (sum_xy + dx * dy, sum_zy + dz * dy, n + (1.0 if keep else 0.0))
+
+
+@numba.njit(cache=True, nogil=True)
+def _fits(
+    fits: bool,
+    sy: np.ndarray,
+    sx: np.ndarray,
+    sz: np.ndarray,
+    i: _Index,
+    j: _Index,
+    anchor: tuple[float, float, float, float, float],
+    plane: tuple[float, float, float],
+    tolerance: float,
+) -> bool:
+    """``fits``, False where the sample of bin (i, j) continues the ``anchor``'s surface (as in
+    :func:`_moments`) but is off the ``plane`` (height, slope_x, slope_z) by over
+    RESIDUAL_FRACTION of ``tolerance``: :func:`_plane_at`'s test, without a branch."""
+    ay, ax, az, centre_x, centre_z = anchor
+    height, slope_x, slope_z = plane
+    dy, dx, dz = sy[i, j] - ay, sx[i, j] - centre_x, sz[i, j] - centre_z
+    on = abs(dy - height - slope_x * dx - slope_z * dz) <= RESIDUAL_FRACTION * tolerance
+    return fits & (on | (not _continues(dy, sx[i, j] - ax, sz[i, j] - az, tolerance)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_planes(
+    sy: np.ndarray,
+    sx: np.ndarray,
+    sz: np.ndarray,
+    r: np.uint64,
+    centres: tuple[np.ndarray, float],
+    tolerance: float,
+    ys: np.ndarray,
+    fits: np.ndarray,
+) -> None:
+    """The fast path for the occupied bins (r, c + 1) of row ``r`` of samples inside a border of
+    none (+inf y), ``centres`` (x_centres, the row's z; x_centres[c] the bin's x): ``ys[c]`` the y
+    :func:`_plane_at` gives, to the bit (the same sums in the same order, :func:`_plane`'s
+    arithmetic), where ``fits[c]``: its first plane fits every sample it keeps. For vector code,
+    no branch: the 3 x 3 written out, unsigned indices (a possibly negative one is a branch), and
+    the divisors guarded where the bin fails anyway (a division that may raise is a branch)."""
+    x_centres, centre_z = centres
+    one, two = np.uint64(1), np.uint64(2)
+    up, down = r - one, r + one
+    for c in range(np.uint64(sy.shape[1] - 2)):
+        ay = sy[r, c + one]
+        anchor = (ay, sx[r, c + one], sz[r, c + one], x_centres[c], centre_z)
+        # In _plane_at's order (r-major, then c): the same sums to the bit.
+        sums = _moments((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), sy, sx, sz, up, c, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, up, c + one, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, up, c + two, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, r, c, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, r, c + one, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, r, c + two, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, down, c, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, down, c + one, anchor, tolerance)
+        sums = _moments(sums, sy, sx, sz, down, c + two, anchor, tolerance)
+        sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy, n = sums
+        count = n if n > 0.0 else 1.0
+        mx, mz, my = sum_x / count, sum_z / count, sum_y / count
+        cxx, cxz, czz = sum_xx - mx * sum_x, sum_xz - mx * sum_z, sum_zz - mz * sum_z
+        cxy, czy = sum_xy - mx * sum_y, sum_zy - mz * sum_y
+        det = cxx * czz - cxz * cxz
+        trace = cxx + czz
+        divisor = det if det != 0.0 else 1.0
+        slope_x = (cxy * czz - czy * cxz) / divisor
+        slope_z = (czy * cxx - cxy * cxz) / divisor
+        plane = (my - slope_x * mx - slope_z * mz, slope_x, slope_z)
+        ok = (n >= _MIN_SAMPLES) & (det > _MIN_SPREAD_RATIO * trace * trace) & (abs(ay + plane[0]) < np.inf)
+        for i in (up, r, down):
+            ok = _fits(ok, sy, sx, sz, i, c, anchor, plane, tolerance)
+            ok = _fits(ok, sy, sx, sz, i, c + one, anchor, plane, tolerance)
+            ok = _fits(ok, sy, sx, sz, i, c + two, anchor, plane, tolerance)
+        ys[c], fits[c] = ay + plane[0], ok
+
+
+@numba.njit(cache=True, nogil=True)
+def _occupied_planes(
+    samples: _Grids,
+    centres: _Centres,
+    tolerance: float,
+    bounds: tuple[float, float],
+    out: np.ndarray,
+    known: np.ndarray,
+) -> int:
+    """The fast path of level 0 (:func:`_row_planes`), a row at a time: each occupied bin of the
+    ``samples`` (y, x, z) whose first plane fits every sample it keeps (most bins) answered as
+    :func:`_plane_at` would; returns how many. ``bounds``: (y_near, y_far); the bins left are
+    _plane_at's. The samples are copied inside a border of none, which no plane keeps: the
+    border bins' sums are _plane_at's too."""
+    (sy, sx, sz), (x_centres, z_centres) = samples, centres
+    rows, cols = sy.shape
+    py, px, pz = np.full((rows + 2, cols + 2), np.inf), np.zeros((rows + 2, cols + 2)), np.zeros((rows + 2, cols + 2))
+    for r in range(rows):
+        for c in range(cols):
+            py[r + 1, c + 1], px[r + 1, c + 1], pz[r + 1, c + 1] = sy[r, c], sx[r, c], sz[r, c]
+    ys, fits = np.empty(cols), np.empty(cols, np.bool_)
+    answered = 0
+    for r in range(rows):
+        _row_planes(py, px, pz, np.uint64(r + 1), (x_centres, z_centres[r]), tolerance, ys, fits)
+        for c in range(cols):
+            if fits[c]:  # never an empty bin: its y is +inf
+                out[r, c] = min(max(ys[c], bounds[0]), bounds[1])
+                known[r, c] = True
+                answered += 1
+    return answered
+
+
+@numba.njit(cache=True, nogil=True)
+def _answer_level(
+    level_samples: _Grids,
+    level: int,
+    sy: np.ndarray,
+    centres: _Centres,
+    tolerance: float,
+    bounds: tuple[float, float],
+    out: np.ndarray,
+    known: np.ndarray,
+) -> int:
+    """The bins not yet ``known`` answered by :func:`_plane_at` from the cells of ``level`` (the
+    ``level_samples`` (y, x, z), cells of 2**level bins; ``sy`` the bins' own samples); returns
+    how many. ``bounds``: (y_near, y_far), the range ``out`` is clamped to."""
+    (level_y, level_x, level_z), (x_centres, z_centres) = level_samples, centres
+    kept = np.empty((3, 9))
+    answered = 0
+    for r in range(sy.shape[0]):
+        for c in range(sy.shape[1]):
+            # A bin's own points put its centre within half a bin of the samples: its plane may
+            # reach that far beyond them (the crop's faces, a rim); an empty bin's may not.
+            own = level == 0 and sy[r, c] < np.inf
+            if known[r, c] or (not own and _lonely(level_y, r >> level, c >> level)):
+                continue  # no sample around: _plane_at's NaN, at a fraction of the call's cost
+            y = _plane_at(
+                level_y, level_x, level_z, r >> level, c >> level, x_centres[c], z_centres[r], tolerance, not own, kept
+            )
+            if own and not np.isfinite(y):
+                y = sy[r, c]  # the bin's own nearest point where no plane can be fitted
+            if np.isfinite(y):
+                out[r, c] = min(max(y, bounds[0]), bounds[1])
+                known[r, c] = True
+                answered += 1
+    return answered
+
+
+@numba.njit(cache=True, nogil=True)
+def _lonely(sy: np.ndarray, cell_r: int, cell_c: int) -> bool:
+    """Whether none of the 3 x 3 cells around (cell_r, cell_c) holds a sample."""
+    for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
+        for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
+            if sy[r, c] < np.inf:
+                return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
 def _surface_map(
     sy: np.ndarray,
     sx: np.ndarray,
@@ -223,7 +412,6 @@ def _surface_map(
     bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
     out[:, :] = y_far
     known[:, :] = False
-    kept = np.empty((3, 9))
     level_y, level_x, level_z = sy, sx, sz
     unknown, knit_level, level = rows * cols, -1, 0
     while unknown and (knit_level < 0 or level <= knit_level + 1):
@@ -234,31 +422,10 @@ def _surface_map(
         if knit_level < 0 and _knit(level_y):
             knit_level = level
         tolerance = (bin_size if bin_size > 0.0 else 1.0) * (1 << level)
-        for r in range(rows):
-            for c in range(cols):
-                if known[r, c]:
-                    continue
-                # A bin's own points put its centre within half a bin of the samples: its plane may
-                # reach that far beyond them (the crop's faces, a rim); an empty bin's may not.
-                own = level == 0 and sy[r, c] < np.inf
-                y = _plane_at(
-                    level_y,
-                    level_x,
-                    level_z,
-                    r >> level,
-                    c >> level,
-                    x_centres[c],
-                    z_centres[r],
-                    tolerance,
-                    not own,
-                    kept,
-                )
-                if own and not np.isfinite(y):
-                    y = sy[r, c]  # the bin's own nearest point where no plane can be fitted
-                if np.isfinite(y):
-                    out[r, c] = min(max(y, y_near), y_far)
-                    known[r, c] = True
-                    unknown -= 1
+        centres, bounds = (x_centres, z_centres), (y_near, y_far)
+        if level == 0:
+            unknown -= _occupied_planes((sy, sx, sz), centres, tolerance, bounds, out, known)
+        unknown -= _answer_level((level_y, level_x, level_z), level, sy, centres, tolerance, bounds, out, known)
         level += 1
 
 

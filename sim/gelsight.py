@@ -365,9 +365,8 @@ class GelSightRenderer:
         return cv2.resize(grid, (w, h), interpolation=cv2.INTER_LINEAR)
 
     def _colour_change(self, depth: np.ndarray) -> np.ndarray:
-        """Colour change (float32 levels, working grid x 3) of the gel surface ``depth``
-        (sim.gelsight_shading). Slopes are dimensionless (mm per mm), as the calibration's
-        (pixels per pixel)."""
+        """Colour change (float32 levels, working grid x 3) of the gel surface ``depth`` (mm), by
+        sim.gelsight_shading; slopes in mm per mm, as the calibration's in pixels per pixel."""
         grid, config = self.grid, self.config
         row_mm, col_mm = grid.pitch_mm
         return colour_change(
