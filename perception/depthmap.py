@@ -44,7 +44,6 @@ within each crop's reach.
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -54,6 +53,7 @@ from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, check_transforms
 from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps, surface_maps
+from perception.threads import run_shares
 from workcell.kinematics import GripperGeometry
 
 if TYPE_CHECKING:
@@ -240,13 +240,7 @@ def _min_y_per_region(
             places,
         )
 
-    groups = region_groups(reads.ends - reads.starts, reads.runs, threads)
-    if len(groups) == 1:
-        cut_regions(*groups[0])
-    else:  # the kernel releases the GIL: each group is cut on its own core
-        with ThreadPoolExecutor(len(groups)) as pool:
-            for future in [pool.submit(cut_regions, first, stop) for first, stop in groups]:
-                future.result()
+    run_shares(cut_regions, region_groups(reads.ends - reads.starts, reads.runs, threads))
     return min_y, at_x, at_z, counts
 
 

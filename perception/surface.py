@@ -36,12 +36,11 @@ sums in its order (the same bits), the general path only where their first plane
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 
 from perception.errors import DepthMapError
+from perception.threads import run_shares
 
 DEPTH_MAP_METHODS = ("surface", "nearest_point")
 # Steepest height change, |dy| / horizontal distance, between samples of one surface (75°): a
@@ -463,12 +462,7 @@ def surface_maps(
             _surface_map(sample_y[k], sample_x[k], sample_z[k], x_centres, z_centres, y_near, y_far, out[k], known[k])
 
     edges = np.linspace(0, regions, min(max(threads, 1), regions) + 1).astype(int)
-    if len(edges) <= 2:
-        answer(0, regions)
-    else:  # the kernel releases the GIL: each share of the regions on its own core
-        with ThreadPoolExecutor(len(edges) - 1) as pool:
-            for future in [pool.submit(answer, a, b) for a, b in zip(edges[:-1], edges[1:])]:
-                future.result()
+    run_shares(answer, [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a])
     return out.astype(np.float32), known
 
 
