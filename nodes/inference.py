@@ -404,9 +404,9 @@ class InferenceNode(Node):
     def _network_input(self, parts: list[tuple[np.ndarray, float]]) -> torch.Tensor:
         """The network's input for depth-maps whose geometry is known to the sigma (mm) beside
         them. A model with a physics prior needs its image of every map: per-image NumPy and
-        OpenCV, in chunks on the input threads (its ~40 short calls a map each take Python's
-        lock, so two threads draw only ~5 % more than one); on a GPU, drawn there and left there
-        for the network."""
+        OpenCV, in chunks on the input threads (about 25 short calls a map, each taking Python's
+        lock: two threads draw less than twice what one does); on a GPU, drawn there and left
+        there for the network."""
 
         def inputs(part: tuple[np.ndarray, float | None]) -> torch.Tensor:
             chunk, sigma = part
