@@ -325,7 +325,7 @@ def _run_form(args: argparse.Namespace, node_params: dict[str, Any]) -> dict[str
         device = resolve_device(args.device, args.runtime, args.precision)  # the node's own check, before it starts
     except CudaUnavailable as exc:
         raise SystemExit(f"dtx bench serve: {exc.code}: {exc}") from exc
-    args = argparse.Namespace(**{**vars(args), "max_batch": max_batch_on(device, args.max_batch)})
+    max_batch_on(device, args.max_batch)  # a bad width refused before a node starts; 0: the node's own
     with tempfile.TemporaryDirectory(prefix="dtxb") as tmp:
         checkpoint, weights, depth_range_m = _weights(args, Path(tmp))
         bus_dir = Path(tmp) / "bus"
@@ -336,6 +336,10 @@ def _run_form(args: argparse.Namespace, node_params: dict[str, Any]) -> dict[str
             maps = depth_maps(max(args.regions, 16), args.seed, depth_range_m[1])
             _wait_until_serving(registry, servers, args.workers, log_path)
             model, serves, latencies = _latencies_ms(registry, len(servers), maps, args.requests)
+            # The pass width the nodes took (what they serve decides it on the CPU), for the stages.
+            args = argparse.Namespace(
+                **{**vars(args), "max_batch": max_batch_on(device, args.max_batch, network=serves == "network")}
+            )
             cpu_before = sum(_cpu_seconds(server.pid) for server in servers)
             throughput, served = _throughput(registry, maps[: args.regions], args.clients, args.seconds)
             # On a shared machine the wall-clock rate depends on the neighbours; the servers'

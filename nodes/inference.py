@@ -48,7 +48,7 @@ not start, its status the code ``cuda_unavailable`` and the reason on /log),
 calibration's; above this SSIM loss the node serves fp32 and logs why), ``threads`` (shared
 between the forward passes and the next passes' input: nodes.inference_passes.thread_split),
 ``max_regions``, ``max_points``, ``max_batch`` (regions in one forward pass; 0: the device's
-own, nodes.inference_passes.DEVICE_MAX_BATCH), ``batch_window_ms``, ``max_point_visits`` (cloud
+own, nodes.inference_passes.max_batch_on), ``batch_window_ms``, ``max_point_visits`` (cloud
 points near the gels, summed over regions: the work of cutting the depth-maps), ``index_cache``,
 ``scene`` (gripper geometry for the points path), ``margin_m`` (crop margin, as the patch
 extractor's).
@@ -117,7 +117,7 @@ class InferenceNode(Node):
         threads: int = 2
         max_regions: int = 256
         max_points: int = 12_000_000  # every YCB model cloud at the 0.1 mm training spacing
-        max_batch: int = 0  # regions in one forward pass; 0: the device's own (DEVICE_MAX_BATCH)
+        max_batch: int = 0  # regions in one forward pass; 0: the device's own (max_batch_on)
         batch_window_ms: float = 2.0
         # Points read while cutting, over all regions: ~4 ns each in the compiled pass (~1 s).
         max_point_visits: int = 250_000_000
@@ -152,7 +152,7 @@ class InferenceNode(Node):
             self.precision, self.network = self._runner(generator)
         self.prior = self._prior_on_device(generator.prior)
         self.uncertainty = self._uncertainty_on_device(generator.uncertainty)
-        self.max_batch = max_batch_on(self.device, p.max_batch)
+        self.max_batch = max_batch_on(self.device, p.max_batch, network=self.serves == "network")
         from workcell.scene import load_scene  # noqa: PLC0415 - the gripper geometry, as the patch extractor's
 
         self.geometry = load_scene(p.scene).gripper_geometry()

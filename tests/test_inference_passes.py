@@ -6,7 +6,14 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from nodes.inference_passes import ThreadSplit, forward_pass_parts, thread_split
+from nodes.inference_passes import (
+    DEVICE_MAX_BATCH,
+    PRIOR_SERVING_CPU_MAX_BATCH,
+    ThreadSplit,
+    forward_pass_parts,
+    max_batch_on,
+    thread_split,
+)
 
 
 @given(regions=st.lists(st.integers(1, 40), min_size=1, max_size=6), max_batch=st.integers(1, 33))
@@ -25,3 +32,10 @@ def test_on_the_cpu_each_thread_runs_a_pass_and_half_of_them_draw_the_input(thre
         lanes=threads, lane_threads=1, input_threads=max(1, threads // 2)
     )
     assert thread_split(threads, "cuda") == ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads)
+
+
+def test_a_cpu_node_serving_its_prior_takes_longer_passes_unless_told() -> None:
+    assert max_batch_on("cpu", 0) == DEVICE_MAX_BATCH["cpu"] == 8
+    assert max_batch_on("cpu", 0, network=False) == PRIOR_SERVING_CPU_MAX_BATCH == 32
+    assert max_batch_on("cuda", 0, network=False) == max_batch_on("cuda", 0) == DEVICE_MAX_BATCH["cuda"]
+    assert max_batch_on("cpu", 5, network=False) == max_batch_on("cpu", 5) == 5
