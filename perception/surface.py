@@ -154,8 +154,7 @@ def _plane_at(
 @numba.njit(cache=True, nogil=True)
 def _plane(kept: np.ndarray, n: int) -> tuple[float, float, float]:
     """The least-squares plane y = h + gx dx + gz dz through the first ``n`` (dx, dz, y) columns
-    of ``kept``: (h, gx, gz), h NaN where they lie on one line. Raw moments about the centre: the
-    offsets are a few bins, so float64 loses nothing at these scales."""
+    of ``kept``: (h, gx, gz), h NaN where they lie on one line (:func:`_plane_of_moments`)."""
     sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for i in range(n):
         dx, dz, dy = kept[0, i], kept[1, i], kept[2, i]
@@ -167,16 +166,30 @@ def _plane(kept: np.ndarray, n: int) -> tuple[float, float, float]:
         sum_zz += dz * dz
         sum_xy += dx * dy
         sum_zy += dz * dy
-    mx, mz, my = sum_x / n, sum_z / n, sum_y / n
+    height, slope_x, slope_z, spread = _plane_of_moments(
+        (sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy, float(n))
+    )
+    return (height, slope_x, slope_z) if spread else (np.nan, 0.0, 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane_of_moments(sums: tuple[float, ...]) -> tuple[float, float, float, bool]:
+    """The least-squares plane y = h + gx dx + gz dz of raw moments about the centre (sums of dx,
+    dz, y, dx², dx dz, dz², dx y, dz y, and the count): (h, gx, gz, whether the samples spread in
+    two directions, _MIN_SPREAD_RATIO). The offsets are a few bins, so float64 loses nothing at
+    these scales. Without a branch (:func:`_row_planes`): no samples or no spread divide by 1,
+    and such a plane is not kept."""
+    sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy, n = sums
+    count = n if n > 0.0 else 1.0
+    mx, mz, my = sum_x / count, sum_z / count, sum_y / count
     cxx, cxz, czz = sum_xx - mx * sum_x, sum_xz - mx * sum_z, sum_zz - mz * sum_z
     cxy, czy = sum_xy - mx * sum_y, sum_zy - mz * sum_y
     det = cxx * czz - cxz * cxz
     trace = cxx + czz
-    if not det > _MIN_SPREAD_RATIO * trace * trace:
-        return np.nan, 0.0, 0.0
-    slope_x = (cxy * czz - czy * cxz) / det
-    slope_z = (czy * cxx - cxy * cxz) / det
-    return my - slope_x * mx - slope_z * mz, slope_x, slope_z
+    divisor = det if det != 0.0 else 1.0
+    slope_x = (cxy * czz - czy * cxz) / divisor
+    slope_z = (czy * cxx - cxy * cxz) / divisor
+    return my - slope_x * mx - slope_z * mz, slope_x, slope_z, det > _MIN_SPREAD_RATIO * trace * trace
 
 
 @numba.njit(cache=True, nogil=True)
@@ -217,19 +230,17 @@ def _knit(sy: np.ndarray) -> bool:
 @numba.njit(cache=True, nogil=True)
 def _moments(
     sums: tuple[float, ...],
-    sy: np.ndarray,
-    sx: np.ndarray,
-    sz: np.ndarray,
+    samples: _Grids,
     i: _Index,
     j: _Index,
     anchor: tuple[float, float, float, float, float],
     tolerance: float,
 ) -> tuple[float, ...]:
-    """``sums``: the raw moments of :func:`_plane` and the count, with the sample of bin (i, j)
+    """``sums``: the raw moments of :func:`_plane` and the count, with the sample (y, x, z) of bin (i, j)
     added where it continues the ``anchor``'s surface (ay, ax, az, centre_x, centre_z). A dropped
     sample adds +0.0, which leaves a sum unchanged to the bit (a sum from +0.0 is never -0.0),
     so the sums are _plane's; without a branch, as :func:`_continues`."""
-    ay, ax, az, centre_x, centre_z = anchor
+    (sy, sx, sz), (ay, ax, az, centre_x, centre_z) = samples, anchor
     dy = sy[i, j] - ay
     keep = _continues(dy, sx[i, j] - ax, sz[i, j] - az, tolerance)
     dx = sx[i, j] - centre_x if keep else 0.0
@@ -243,9 +254,7 @@ def _moments(
 @numba.njit(cache=True, nogil=True)
 def _fits(
     fits: bool,
-    sy: np.ndarray,
-    sx: np.ndarray,
-    sz: np.ndarray,
+    samples: _Grids,
     i: _Index,
     j: _Index,
     anchor: tuple[float, float, float, float, float],
@@ -255,7 +264,7 @@ def _fits(
     """``fits``, False where the sample of bin (i, j) continues the ``anchor``'s surface (as in
     :func:`_moments`) but is off the ``plane`` (height, slope_x, slope_z) by over
     RESIDUAL_FRACTION of ``tolerance``: :func:`_plane_at`'s test, without a branch."""
-    ay, ax, az, centre_x, centre_z = anchor
+    (sy, sx, sz), (ay, ax, az, centre_x, centre_z) = samples, anchor
     height, slope_x, slope_z = plane
     dy, dx, dz = sy[i, j] - ay, sx[i, j] - centre_x, sz[i, j] - centre_z
     on = abs(dy - height - slope_x * dx - slope_z * dz) <= RESIDUAL_FRACTION * tolerance
@@ -275,43 +284,35 @@ def _row_planes(
 ) -> None:
     """The fast path for the occupied bins (r, c + 1) of row ``r`` of samples inside a border of
     none (+inf y), ``centres`` (x_centres, the row's z; x_centres[c] the bin's x): ``ys[c]`` the y
-    :func:`_plane_at` gives, to the bit (the same sums in the same order, :func:`_plane`'s
-    arithmetic), where ``fits[c]``: its first plane fits every sample it keeps. For vector code,
+    :func:`_plane_at` gives, to the bit (the same sums in the same order, and
+    :func:`_plane_of_moments` as _plane), where ``fits[c]``: its first plane fits every sample it keeps. For vector code,
     no branch: the 3 x 3 written out, unsigned indices (a possibly negative one is a branch), and
     the divisors guarded where the bin fails anyway (a division that may raise is a branch)."""
     x_centres, centre_z = centres
+    samples = (sy, sx, sz)
     one, two = np.uint64(1), np.uint64(2)
     up, down = r - one, r + one
     for c in range(np.uint64(sy.shape[1] - 2)):
         ay = sy[r, c + one]
         anchor = (ay, sx[r, c + one], sz[r, c + one], x_centres[c], centre_z)
         # In _plane_at's order (r-major, then c): the same sums to the bit.
-        sums = _moments((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), sy, sx, sz, up, c, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, up, c + one, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, up, c + two, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, r, c, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, r, c + one, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, r, c + two, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, down, c, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, down, c + one, anchor, tolerance)
-        sums = _moments(sums, sy, sx, sz, down, c + two, anchor, tolerance)
-        sum_x, sum_z, sum_y, sum_xx, sum_xz, sum_zz, sum_xy, sum_zy, n = sums
-        count = n if n > 0.0 else 1.0
-        mx, mz, my = sum_x / count, sum_z / count, sum_y / count
-        cxx, cxz, czz = sum_xx - mx * sum_x, sum_xz - mx * sum_z, sum_zz - mz * sum_z
-        cxy, czy = sum_xy - mx * sum_y, sum_zy - mz * sum_y
-        det = cxx * czz - cxz * cxz
-        trace = cxx + czz
-        divisor = det if det != 0.0 else 1.0
-        slope_x = (cxy * czz - czy * cxz) / divisor
-        slope_z = (czy * cxx - cxy * cxz) / divisor
-        plane = (my - slope_x * mx - slope_z * mz, slope_x, slope_z)
-        ok = (n >= _MIN_SAMPLES) & (det > _MIN_SPREAD_RATIO * trace * trace) & (abs(ay + plane[0]) < np.inf)
+        sums = _moments((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), samples, up, c, anchor, tolerance)
+        sums = _moments(sums, samples, up, c + one, anchor, tolerance)
+        sums = _moments(sums, samples, up, c + two, anchor, tolerance)
+        sums = _moments(sums, samples, r, c, anchor, tolerance)
+        sums = _moments(sums, samples, r, c + one, anchor, tolerance)
+        sums = _moments(sums, samples, r, c + two, anchor, tolerance)
+        sums = _moments(sums, samples, down, c, anchor, tolerance)
+        sums = _moments(sums, samples, down, c + one, anchor, tolerance)
+        sums = _moments(sums, samples, down, c + two, anchor, tolerance)
+        height, slope_x, slope_z, spread = _plane_of_moments(sums)
+        plane = (height, slope_x, slope_z)
+        ok = (sums[8] >= _MIN_SAMPLES) & spread & (abs(ay + height) < np.inf)
         for i in (up, r, down):
-            ok = _fits(ok, sy, sx, sz, i, c, anchor, plane, tolerance)
-            ok = _fits(ok, sy, sx, sz, i, c + one, anchor, plane, tolerance)
-            ok = _fits(ok, sy, sx, sz, i, c + two, anchor, plane, tolerance)
-        ys[c], fits[c] = ay + plane[0], ok
+            ok = _fits(ok, samples, i, c, anchor, plane, tolerance)
+            ok = _fits(ok, samples, i, c + one, anchor, plane, tolerance)
+            ok = _fits(ok, samples, i, c + two, anchor, plane, tolerance)
+        ys[c], fits[c] = ay + height, ok
 
 
 @numba.njit(cache=True, nogil=True)
@@ -462,7 +463,7 @@ def surface_maps(
             _surface_map(sample_y[k], sample_x[k], sample_z[k], x_centres, z_centres, y_near, y_far, out[k], known[k])
 
     edges = np.linspace(0, regions, min(max(threads, 1), regions) + 1).astype(int)
-    run_shares(answer, [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a])
+    run_shares(answer, [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])])
     return out.astype(np.float32), known
 
 
