@@ -294,7 +294,6 @@ class GelSightRenderer:
         terms = np.stack([xx * xx, yy * yy, xx * yy, xx, yy, np.ones_like(xx)], axis=-1).reshape(-1, 6)
         # The flat pressed gel's colour at each working pixel: fully pressed it adds shading_gain times this.
         flat_colour = terms @ self.calibration.coeffs[0, 0].T
-        mag_step = 0.5 * math.pi / n
         tan_edges, direction_edges = slope_bin_edges(n)
         grid = ShadingGrid(
             shape=shape,
@@ -306,9 +305,9 @@ class GelSightRenderer:
             n_bins=n,
             flat_colour=flat_colour,
             flat_change=np.float32(config.shading_gain) * flat_colour.reshape(*shape, 3),
-            mag_step=mag_step,
+            mag_step=0.5 * math.pi / n,
             dir_step=2.0 * math.pi / n,
-            tilted_tan=np.float32(math.tan(mag_step)),
+            tilted_tan=np.float32(tan_edges[1]),  # the first magnitude bin's far edge
             tan_edges=tan_edges,
             direction_edges=direction_edges,
         )
