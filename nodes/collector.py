@@ -477,23 +477,18 @@ class CollectorNode(Node):
 
     def release_and_retreat(self) -> None:
         """Open the fingers and lift; on the way out of any grasp, failed or not."""
+        release = msgs.GripperCommand(
+            action="release", width_m=self.geometry.max_width_m, speed_m_s=self.params.gripper_speed_m_s
+        )
         with self.stage("release"):
-            self._release_and_retreat()
-
-    def _release_and_retreat(self) -> None:
-        try:
-            self.gripper.call(
-                msgs.GripperCommand(
-                    action="release", width_m=self.geometry.max_width_m, speed_m_s=self.params.gripper_speed_m_s
-                ),
-                timeout_s=self.params.call_timeout_s,
-            )
-            if self.last_arm is not None:
-                above = np.array(self.last_arm.tcp_pose, dtype=np.float64)
-                above[2] += self.params.approach_height_m
-                self.arm_to(above)
-        except ServiceCallError as error:
-            self.log.warning("release or retreat failed: %s", error)
+            try:
+                self.gripper.call(release, timeout_s=self.params.call_timeout_s)
+                if self.last_arm is not None:
+                    above = np.array(self.last_arm.tcp_pose, dtype=np.float64)
+                    above[2] += self.params.approach_height_m
+                    self.arm_to(above)
+            except ServiceCallError as error:
+                self.log.warning("release or retreat failed: %s", error)
 
 
 if __name__ == "__main__":
