@@ -63,22 +63,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def collect_sim_command(out: Path, grasps: int, seed: int, record: bool, resume: bool = False) -> list[str]:
-    """``dtx launch launch/collect_sim.yaml`` with the session's arguments, as an operator types it."""
+def collect_sim_command(
+    out: Path, grasps: int, seed: int, record: bool, resume: bool = False, scene: str = ""
+) -> list[str]:
+    """``dtx launch launch/collect_sim.yaml`` with the session's arguments, as an operator types it
+    (``scene``: the launch file's own unless given)."""
     command = [sys.executable, "-m", "dtx.cli", "launch", "launch/collect_sim.yaml"]
     command += [f"out:={out}", f"grasps:={grasps}", f"seed:={seed}", f"record:={'true' if record else 'false'}"]
-    return command + (["resume:=true"] if resume else [])
+    return command + (["resume:=true"] if resume else []) + ([f"scene:={scene}"] if scene else [])
 
 
 def launch_collection(
-    out: Path, grasps: int, seed: int, record: bool, bus_dir: str, capture: bool = True
+    out: Path, grasps: int, seed: int, record: bool, bus_dir: str, capture: bool = True, scene: str = ""
 ) -> subprocess.Popen[str]:
     """``dtx launch launch/collect_sim.yaml`` writing to ``out``, as an operator runs it, on the
     private bus ``bus_dir``; its output (every node's log lines) on a pipe, or discarded without
     ``capture``."""
     env = {**os.environ, "DTX_BUS_DIR": bus_dir, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(
-        collect_sim_command(out, grasps, seed, record),
+        collect_sim_command(out, grasps, seed, record, scene=scene),
         env=env,
         stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
         stderr=subprocess.STDOUT if capture else subprocess.DEVNULL,
@@ -86,10 +89,10 @@ def launch_collection(
     )
 
 
-def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "") -> dict:
+def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "", scene: str = "") -> dict:
     with tempfile.TemporaryDirectory(prefix="dtxc") as bus_dir:
         started = time.monotonic()
-        launcher = launch_collection(out, grasps, seed, record, bus_dir)
+        launcher = launch_collection(out, grasps, seed, record, bus_dir, scene=scene)
         killed = None
         if kill:
             killed = _kill_when_a_third_is_done(Registry(Path(bus_dir)), out, grasps, kill, launcher)
@@ -109,6 +112,7 @@ def run_session(out: Path, grasps: int, seed: int, record: bool, kill: str = "")
         result.update(killed=kill, killed_pid=killed, respawned=f"[launch] {kill} exited with -9; respawning" in output)
     collector_log = [line for line in output.splitlines() if line.startswith("[collector]")]
     result["collector_last_line"] = collector_log[-1] if collector_log else ""
+    result["collector_warnings"] = [line for line in collector_log if " WARNING " in line]
     if launcher.returncode != 0 or not report.ok:
         result["collector_log"] = collector_log[-15:]
     return result

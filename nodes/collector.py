@@ -8,9 +8,9 @@ for the part only within its clamping travel around that width) to the constant 
 wait for both GelSight frames at contact while both fingers' depth-maps are cut (``/perception/patch``),
 write one (tactile image, depth-map) pair per finger while the fingers release and the arm retreats.
 
-Policy for what goes wrong (counted, never a half sample): a grasp whose fingers find
-nothing, or whose gel does not reach the registered model, is retried with a fresh draw,
-up to ``max_attempts``, then skipped. A device or node that fails (a service time-out, a
+Policy for what goes wrong (counted, never a half sample): a draw where an open finger would
+land on the registered model, whose fingers find nothing, or whose gel does not reach the model,
+is retried with a fresh draw, up to ``max_attempts``, then skipped. A device or node that fails (a service time-out, a
 respawned node) makes the collector wait for it and redo the grasp with the same draw. A
 grasp's two pairs land in the dataset together, in one write, once both are in hand; a
 resumed session first drops any lone finger (an append torn by a crash) and redoes that grasp
@@ -47,7 +47,7 @@ from msgs.progress import Progress
 from msgs.system import ErrorCode
 from perception.pointcloud import transform_points
 from perception.registration import sample_model_cloud
-from workcell.kinematics import GRASP_FORCE_N, gel_poses_world, grasp_to_tcp_pose
+from workcell.kinematics import GRASP_FORCE_N, across_the_gels_m, gel_poses_world, grasp_to_tcp_pose
 from workcell.scene import load_scene
 
 FINGERS = ("left", "right")
@@ -81,6 +81,7 @@ class CollectorNode(Node):
         offset_z_m: float = 0.02
         approach_height_m: float = 0.08
         min_gel_height_m: float = 0.006  # lowest edge of the gel above the table
+        finger_clearance_m: float = 0.0  # least room between the model and an open gel's face
         gripper_speed_m_s: float = 0.4
         arm_speed_m_s: float = 0.25
         arm_accel_m_s2: float = 1.2
@@ -291,22 +292,24 @@ class CollectorNode(Node):
     def nominal_width_m(
         self, object_name: str, registered: msgs.RegisterReply, x: float, y: float, z: float, theta: float
     ) -> float:
-        """The registered model's extent across the fingers at the drawn grasp: its points in
-        the gels' band (gel length along the gel axis, gel height about the gel centre)
-        projected on the closing axis. The gripper is told this width, because a WSG detects
-        the part only within its clamping travel around it (the web interface's setting)."""
+        """The registered model's extent across the fingers at the drawn grasp
+        (workcell.kinematics.across_the_gels_m). The gripper is told this width, because a WSG
+        detects the part only within its clamping travel around it (the web interface's setting).
+        A draw where the model reaches an open gel's face (less ``finger_clearance_m``) is refused:
+        coming down, that finger would land on the object."""
         if object_name not in self.model_points:
             mesh = self.scene.mesh(object_name)
             self.model_points[object_name] = sample_model_cloud(mesh, seed=self.params.seed).points_m
         points = transform_points(self.model_points[object_name], registered.model_to_world) - np.array([x, y, z])
-        gel_axis = np.array([np.cos(theta), np.sin(theta)])
-        closing_axis = np.array([-np.sin(theta), np.cos(theta)])
-        gel_length_m, gel_height_m = self.geometry.gel_size_m
-        band = (np.abs(points[:, :2] @ gel_axis) <= gel_length_m / 2) & (np.abs(points[:, 2]) <= gel_height_m / 2)
-        if not np.any(band):
+        across = across_the_gels_m(points, theta, self.geometry)
+        if not across.size:
             raise GraspFailed("the registered model has nothing between the gels at this draw")
-        across = points[band, :2] @ closing_axis
-        return float(min(across.max() - across.min(), self.geometry.max_width_m))
+        reach_mm, open_mm = max(across.max(), -across.min()) * 1e3, self.geometry.max_width_m / 2 * 1e3
+        if reach_mm >= open_mm - self.params.finger_clearance_m * 1e3:
+            raise GraspFailed(
+                f"a finger would land on the object: it reaches {reach_mm:.1f} mm across, the gels {open_mm:.1f}"
+            )
+        return float(across.max() - across.min())
 
     def try_grasp(self, grasp_id: int, attempt: int, object_name: str) -> None:
         p = self.params
@@ -487,6 +490,7 @@ class CollectorNode(Node):
                     above = np.array(self.last_arm.tcp_pose, dtype=np.float64)
                     above[2] += self.params.approach_height_m
                     self.arm_to(above)
+                    self.last_arm = None  # lifted: a draw refused before the arm moves has nothing to lift
             except ServiceCallError as error:
                 self.log.warning("release or retreat failed: %s", error)
 

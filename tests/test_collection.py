@@ -36,6 +36,8 @@ from msgs import strict_json
 from perception.ssim import ssim_rgb
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 from sim.cli import main as sim_cli
+from sim.world import SimWorld
+from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose, pose_to_matrix
 
 SMALL_BAG = Path(__file__).parent / "data" / "session_small.mcap"
 
@@ -110,6 +112,26 @@ def test_the_strict_gripper_finds_every_part_at_its_nominal_width(small_session:
     nominal width; grasping at width 0 found nothing on any object."""
     stats = json.loads((small_session / "session.json").read_text())["stats"]
     assert stats["skipped"] == 0 and stats["failed_draws"] == 0 and stats["grasps_done"] == 8
+
+
+def test_no_grasp_is_written_where_an_open_finger_would_land_on_the_object(tmp_path: Path) -> None:
+    """The unseen scene's cracker box is wider than the open gripper at most turns: the collector
+    refuses those draws before the arm moves, and no grasp it writes is one where the simulated
+    world finds an open finger already inside an object (its own ray cast, sim.grasp_contact),
+    where the gel's image and the depth-map would describe a contact no gripper can make."""
+    result = run_session(tmp_path / "session", grasps=6, seed=0, record=False, scene="scenes/ycb_unseen.yaml")
+    assert result["exit_code"] == 0, result.get("collector_log")
+    stats = result["session"]["stats"]
+    assert stats["failed_draws"] > 0 and stats["grasps_done"] + stats["skipped"] == 6
+    # A refused draw leaves the arm where it is: only a grasp it came down to is lifted from.
+    assert not [line for line in result["collector_warnings"] if "retreat failed" in line]
+    world = SimWorld.from_file("scenes/ycb_unseen.yaml")
+    geometry = world.scene.gripper_geometry()
+    for record in DatasetReader(tmp_path / "session").records:
+        x, y, z, theta = record.grasp_pose
+        tcp = pose_to_matrix(grasp_to_tcp_pose(x, y, z + geometry.tcp_to_gel_centre_m, theta))
+        contact = world.grasp_contact(tcp, GRASP_FORCE_N, gap_fingers=())
+        assert not any(finger.collision for finger in contact.fingers.values()), record.sample_id
 
 
 def test_every_pair_whose_depth_map_presses_shows_the_press(small_session: Path) -> None:

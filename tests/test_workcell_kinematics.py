@@ -8,7 +8,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose, matrix_to_pose, pose_to_matrix
+from workcell.kinematics import (
+    GripperGeometry,
+    across_the_gels_m,
+    gel_poses_world,
+    grasp_to_tcp_pose,
+    matrix_to_pose,
+    pose_to_matrix,
+)
 
 angle = st.floats(-10.0, 10.0, allow_nan=False)
 coordinate = st.floats(-2.0, 2.0, allow_nan=False)
@@ -54,6 +61,26 @@ def test_gels_face_each_other_at_the_gripper_width(width, theta):
     np.testing.assert_allclose(left[:3, 1], -right[:3, 1], atol=1e-12)
     midpoint = 0.5 * (left[:3, 3] + right[:3, 3])
     np.testing.assert_allclose(midpoint, [0.1, -0.2, 0.3 - geometry.tcp_to_gel_centre_m], atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(theta=angle, seed=st.integers(0, 2**32 - 1))
+def test_across_the_gels_is_each_open_gels_distance_to_its_face(theta, seed):
+    """A point in the band sits across at a, so the open gels' faces are W/2 - a and W/2 + a in
+    front of it (gel y, the kinematics' own frames): one at or past half the open width lies
+    behind an open gel's face, where a finger coming down lands on it."""
+    geometry = GripperGeometry()
+    centre = np.array([0.05, -0.1, 0.08])
+    gels = gel_poses_world(grasp_to_tcp_pose(*centre[:2], centre[2] + geometry.tcp_to_gel_centre_m, theta), 0.11)
+    points = np.random.default_rng(seed).uniform(-0.07, 0.07, (400, 3)) * [1, 1, 0.3]
+    across = across_the_gels_m(points, theta, geometry)
+    in_left = (np.linalg.inv(gels["left"]) @ np.c_[points + centre, np.ones(len(points))].T)[:3].T
+    in_right = (np.linalg.inv(gels["right"]) @ np.c_[points + centre, np.ones(len(points))].T)[:3].T
+    length, height = geometry.gel_size_m
+    band = (np.abs(in_left[:, 0]) <= length / 2) & (np.abs(in_left[:, 2]) <= height / 2)
+    assert len(across) == band.sum()
+    in_front = np.sort(np.minimum(in_left[band, 1], in_right[band, 1]))
+    np.testing.assert_allclose(in_front, np.sort(geometry.max_width_m / 2 - np.abs(across)), atol=1e-12)
 
 
 def test_many_composed_small_rotations_stay_orthonormal():

@@ -165,3 +165,18 @@ def gel_poses_world(
         gel_to_tcp[:3, 3] = side * 0.5 * width * tool_y + geometry.tcp_to_gel_centre_m * tool_z
         poses[finger] = tcp_to_world @ gel_to_tcp
     return poses
+
+
+def across_the_gels_m(points_m: np.ndarray, theta_z_rad: float, geometry: GripperGeometry) -> np.ndarray:
+    """Where the object's points that lie in the gels' band sit across the gripper (m along the
+    closing axis, tool y, from the gels' midpoint) for a top-down grasp turned ``theta_z_rad``
+    about world z. ``points_m``: N x 3, world axes, relative to the gels' centre; the band is
+    the gel's length along the gel axis by its height about its centre: what the gels' faces
+    sweep as the open fingers come down. The extent of the result is what the fingers close on;
+    a point at or beyond half the open width lies under an open gel."""
+    points = np.asarray(points_m, dtype=np.float64)
+    gel_axis = np.array([np.cos(theta_z_rad), np.sin(theta_z_rad)])
+    closing_axis = np.array([-np.sin(theta_z_rad), np.cos(theta_z_rad)])
+    gel_length_m, gel_height_m = geometry.gel_size_m
+    band = (np.abs(points[:, :2] @ gel_axis) <= gel_length_m / 2) & (np.abs(points[:, 2]) <= gel_height_m / 2)
+    return points[band, :2] @ closing_axis
