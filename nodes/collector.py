@@ -105,6 +105,8 @@ class CollectorNode(Node):
         if unknown:
             raise ValueError(f"objects {unknown} are not in {p.scene}; it has {meshes}")
         self.geometry = self.scene.gripper_geometry()
+        if not 0.0 <= p.finger_clearance_m < self.geometry.max_width_m / 2:  # NaN fails too
+            raise ValueError(f"finger_clearance_m must be in [0, half the open width) m, got {p.finger_clearance_m!r}")
         out = Path(p.out)
         try:
             out.mkdir(parents=True, exist_ok=True)
@@ -156,12 +158,9 @@ class CollectorNode(Node):
         plan = self.grasp_plan()
         todo = [(g, o) for g, o in plan if not all(self.written(self.sample_id(g, f)) for f in FINGERS)]
         self.stats.grasps_done = len(plan) - len(todo)
+        done = self.stats.grasps_done
         self.log.info(
-            "session: %d grasps of %s into %s (%d already there)",
-            len(plan),
-            self.objects,
-            self.params.out,
-            self.stats.grasps_done,
+            "session: %d grasps of %s into %s (%d already there)", len(plan), self.objects, self.params.out, done
         )
         self.wait_for_nodes()
         self.started = time.monotonic()

@@ -21,6 +21,7 @@ import msgs
 from benchmarks import fuzz
 from benchmarks.collect import run_recorder_kills, run_session
 from bus.bag import bag_info, iter_envelopes
+from bus.registry import Registry
 from dataset.announced import dataset_info, write_samples
 from dataset.check import check_dataset, content_checksum
 from dataset.images import deformation_map
@@ -33,6 +34,7 @@ from models.errors import ModelConfigError
 from models.evaluate import CONTACT_LEVELS, evaluate, predict_dataset
 from models.networks import GeneratorConfig, UNetGenerator
 from msgs import strict_json
+from nodes.collector import CollectorNode
 from perception.ssim import ssim_rgb
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 from sim.cli import main as sim_cli
@@ -132,6 +134,14 @@ def test_no_grasp_is_written_where_an_open_finger_would_land_on_the_object(tmp_p
         tcp = pose_to_matrix(grasp_to_tcp_pose(x, y, z + geometry.tcp_to_gel_centre_m, theta))
         contact = world.grasp_contact(tcp, GRASP_FORCE_N, gap_fingers=())
         assert not any(finger.collision for finger in contact.fingers.values()), record.sample_id
+
+
+@pytest.mark.parametrize("clearance", [-0.001, float("nan"), float("inf"), 0.055])
+def test_a_clearance_no_draw_can_keep_is_refused_before_the_session_starts(tmp_path: Path, clearance: float) -> None:
+    params = {"out": str(tmp_path / "session"), "finger_clearance_m": clearance}
+    with pytest.raises(ValueError, match="finger_clearance_m must be in"):
+        CollectorNode("collector", params, registry=Registry(tmp_path / "bus"))
+    assert not (tmp_path / "session").exists()
 
 
 def test_every_pair_whose_depth_map_presses_shows_the_press(small_session: Path) -> None:
