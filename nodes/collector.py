@@ -303,10 +303,11 @@ class CollectorNode(Node):
         across = across_the_gels_m(points, theta, self.geometry)
         if not across.size:
             raise GraspFailed("the registered model has nothing between the gels at this draw")
-        reach_mm, open_mm = max(across.max(), -across.min()) * 1e3, self.geometry.max_width_m / 2 * 1e3
-        if reach_mm >= open_mm - self.params.finger_clearance_m * 1e3:
+        reach_m, open_m = max(across.max(), -across.min()), self.geometry.max_width_m / 2
+        if reach_m >= open_m - self.params.finger_clearance_m:
             raise GraspFailed(
-                f"a finger would land on the object: it reaches {reach_mm:.1f} mm across, the gels {open_mm:.1f}"
+                f"a finger would land on the object: it reaches {reach_m * 1e3:.1f} mm across, "
+                f"the gels {open_m * 1e3:.1f}"
             )
         return float(across.max() - across.min())
 

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from perception.pointcloud import transform_points
 from workcell.kinematics import (
     GripperGeometry,
     across_the_gels_m,
@@ -74,8 +75,7 @@ def test_across_the_gels_is_each_open_gels_distance_to_its_face(theta, seed):
     gels = gel_poses_world(grasp_to_tcp_pose(*centre[:2], centre[2] + geometry.tcp_to_gel_centre_m, theta), 0.11)
     points = np.random.default_rng(seed).uniform(-0.07, 0.07, (400, 3)) * [1, 1, 0.3]
     across = across_the_gels_m(points, theta, geometry)
-    in_left = (np.linalg.inv(gels["left"]) @ np.c_[points + centre, np.ones(len(points))].T)[:3].T
-    in_right = (np.linalg.inv(gels["right"]) @ np.c_[points + centre, np.ones(len(points))].T)[:3].T
+    in_left, in_right = (transform_points(points + centre, np.linalg.inv(gels[f])) for f in ("left", "right"))
     length, height = geometry.gel_size_m
     band = (np.abs(in_left[:, 0]) <= length / 2) & (np.abs(in_left[:, 2]) <= height / 2)
     assert len(across) == band.sum()
