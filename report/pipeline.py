@@ -36,6 +36,8 @@ GRASP_STAGES: tuple[tuple[str, str, str], ...] = (
 # "register" is a dictionary look-up: the median hides the registration's own time.
 REGISTER_NOTE = "once per object; the median grasp reuses the pose"
 WHOLE_GRASP = "whole grasp (the dataset's pace; stages overlap)"
+# The table's time units: its rows run from minutes of training to microseconds of a region's stage.
+DURATION_UNITS: tuple[tuple[float, str], ...] = ((1.0, "s"), (1e-3, "ms"), (1e-6, "µs"))
 
 
 def grasp_points(summary: Mapping[str, Any] | None, figures: Mapping[str, float | None]) -> list[Point]:
@@ -76,7 +78,8 @@ INTRO = (
 
 def pipeline_section(points: Sequence[Point]) -> list[str]:
     """report.md's lines for the pipeline points among ``points`` (none: no lines): a table of
-    stage, per what, seconds, what it buys and the figure, in the order measured."""
+    stage, per what, its time (report.pipeline._duration), what it buys and the figure, in the order
+    measured."""
     mine = [p for p in points if p["sweep"] == PIPELINE]
     if not mine:
         return []
@@ -85,7 +88,7 @@ def pipeline_section(points: Sequence[Point]) -> list[str]:
         "",
         INTRO,
         "",
-        "| stage | per | seconds | what it buys | figure |",
+        "| stage | per | time | what it buys | figure |",
         "|---|---|---|---|---|",
     ]
     for p in mine:
@@ -93,9 +96,23 @@ def pipeline_section(points: Sequence[Point]) -> list[str]:
         for key in ("note", "missing", "refused"):
             if p.get(key):
                 buys += f" — {'not measured: ' if key != 'note' else ''}{p[key]}"
-        cells = [p["setting"], p.get("per", ""), _figure(p["time"]), buys, _figure(p["accuracy"])]
+        time = _duration(p["time"], p.get("unit", "s"))
+        cells = [p["setting"], p.get("per", ""), time, buys, _figure(p["accuracy"])]
         lines.append("| " + " | ".join(str(cell) for cell in cells) + " |")
     return lines + [""]
+
+
+def _duration(seconds: float | None, unit: str) -> str:
+    """A time in seconds as the table prints it: in the largest of s, ms and µs that keeps it at 1
+    or more (µs below that), 4 significant figures, "CPU" kept where ``unit`` is "CPU s"; a dash
+    where it was not measured."""
+    if seconds is None or math.isnan(seconds):
+        return "–"
+    prefix = unit.removesuffix("s")  # "CPU " or ""
+    if seconds == 0:
+        return f"0 {prefix}s"
+    scale, name = next(((s, n) for s, n in DURATION_UNITS if abs(seconds) >= s), DURATION_UNITS[-1])
+    return f"{seconds / scale:.4g} {prefix}{name}"
 
 
 def _figure(value: float | None) -> str:

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from report.pipeline import GRASP_STAGES, PIPELINE, WHOLE_GRASP, grasp_points, pipeline_section
+from report.pipeline import GRASP_STAGES, PIPELINE, WHOLE_GRASP, _duration, grasp_points, pipeline_section
 from report.plan import QUICK
 from report.specs import point
 from report.sweeps.pipeline import grasp_stages, touch_calibration
@@ -55,14 +55,34 @@ def test_the_section_renders_every_row_with_its_unit_and_figure() -> None:
     assert len(rows) == len(GRASP_STAGES) + 2  # every stage, training, a region stage
     assert rows["writing: both pairs (write)"][1:] == [
         "grasp",
-        "0.02659",
+        "26.59 ms",
         "dataset check problems (0: nothing lost)",
         "0",
     ]
-    assert rows["training (epochs + serving fit)"][1:3] == ["session", "21.3"]
-    assert rows["network"][1:] == ["region", "0.0023", "served image's ratio", "0.52"]
+    assert rows["training (epochs + serving fit)"][1:3] == ["session", "21.3 CPU s"]
+    assert rows["network"][1:] == ["region", "2.3 CPU ms", "served image's ratio", "0.52"]
+    assert rows["cameras + registration (register)"][2] == "0 s"  # the median grasp reuses its pose
     assert rows["arm: approach, fingers opening beside (approach)"][4] == "–"  # buys nothing measured
     assert "reuses the pose" in rows["cameras + registration (register)"][3]
+
+
+@pytest.mark.parametrize(
+    ("seconds", "unit", "shown"),
+    [
+        (437.3, "CPU s", "437.3 CPU s"),
+        (1.0, "s", "1 s"),
+        (0.08743, "s", "87.43 ms"),
+        (1e-5, "s", "10 µs"),
+        (3.095e-8, "CPU s", "0.03095 CPU µs"),
+        (0.0, "s", "0 s"),
+        (math.nan, "s", "–"),
+        (None, "CPU s", "–"),
+    ],
+)
+def test_a_time_is_shown_in_the_largest_unit_that_keeps_it_at_one_or_more(
+    seconds: float | None, unit: str, shown: str
+) -> None:
+    assert _duration(seconds, unit) == shown
 
 
 # None: no session.json; then as a session resumed after its last grasp writes it.
