@@ -122,9 +122,10 @@ WHY_NOT: dict[str, str] = {
         "against 0.4501 (docs/measurements.md, issue 50)"
     ),
     "resolution": (
-        "the model's image is the tactile image's size (100 x 100, the paper's); a coarser map answers "
-        "at half its resolution, which scores the same here where the registration's pose error blurs "
-        "every contact (the pose uncertainty table: 1 mm), and is not measured on a real press's sharp one"
+        "the model's image is the tactile image's size (100 x 100, the paper's); a coarser map answers at "
+        "a fraction of the tactile image's resolution, which scores within the table's tolerance here, "
+        "where what is left of the registration's pose error blurs every simulated contact, and is not "
+        "measured on a real press's sharp one"
     ),
     "training_length": (
         "this table trains on the analytic contacts alone; the default trains a session beside a "
@@ -142,15 +143,22 @@ WHY_NOT: dict[str, str] = {
         "an object a session; the default keeps the margin chosen for harder scenes"
     ),
     "registration_icp": (
-        "one 4 mm stage needs the coarse pose already within 4 mm (with touch-calibrated cameras its p90 "
-        "shows the poses it misses); the two stages recover a coarse pose further off, and registration "
-        "runs once an object a session"
+        "a single stage needs the coarse pose already within its distance (with touch-calibrated cameras "
+        "the p90 column shows the poses a short one misses); the two stages recover a coarse pose further "
+        "off, and registration runs once an object a session"
     ),
     "width": (
         "a checkpoint serves its prior alone wherever its network does not lead it on validation "
         "(models.serving.choose_served; the serving table: the default model serves its prior); the "
         "width-16 network is trained beside it, to serve where it measurably helps (a lab's real frames, "
         "a scene with effects the prior lacks)"
+    ),
+    "inference": (
+        "the default checkpoint serves its prior alone and runs no network (the serving table); for one "
+        "that serves its network, fp32 ONNX Runtime changes no pixel and answers a single region, a "
+        "planner's quickest call, fastest or nearly (the p50 column), on any x86 CPU, where bf16 and "
+        "int8 are fast only on CPUs with their instructions (bf16: AVX-512 BF16 or AMX; int8: VNNI); a "
+        "lab serving a network on such a CPU passes precision:= and runtime:= to launch/serve.yaml"
     ),
     "serving": (
         "the uncertainty is what a planner weighs each estimate by (the uncertainty table: its r with "
