@@ -118,6 +118,30 @@ def _without_machine_paths(points: list[dict], places: dict[str, str]) -> list[d
     return [{key: named(value) for key, value in point.items()} for point in points]
 
 
+# CPU flags (/proc/cpuinfo) that decide what the reduced precisions cost: the inference table's
+# bf16 and int8 rows are fast only where the processor has them.
+VECTOR_FLAGS = ("avx512f", "avx512_bf16", "amx_bf16", "avx512_vnni", "avx_vnni")
+
+
+def machine_description(cpuinfo: str | None = None) -> str:
+    """This machine as a sweep's cache records it: cores, architecture, the processor's model name
+    and which of VECTOR_FLAGS it has (``cpuinfo``: /proc/cpuinfo's text, read where None; a
+    machine without it is described without them)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    flags = set(fields.get("flags", "").split())
+    has = [flag for flag in VECTOR_FLAGS if flag in flags]
+    vector = (", " + " ".join(has)) if has else (", none of " + " ".join(VECTOR_FLAGS) if flags else "")
+    return f"{os.cpu_count()} cores, {platform.machine()}, {fields.get('model name') or 'processor not named'}{vector}"
+
+
 def _cached(path: Path, made_by: dict) -> dict | None:
     """The sweep cached at ``path`` if ``made_by`` made it: the same plan and session, and the same
     training config as read (a field added since, at its default, is the same config)."""
@@ -136,10 +160,18 @@ def _cached(path: Path, made_by: dict) -> dict | None:
 
 
 def _header(
-    plan: Plan, elapsed_s: float, measured_s: float, timings: list[str], sessions: list[Path], workspace: Workspace
+    plan: Plan,
+    elapsed_s: float,
+    entries: list[dict],
+    timings: list[str],
+    sessions: list[Path],
+    workspace: Workspace,
 ) -> list[str]:
-    """The report's opening lines: the mode, the machine, the times, and what was not measured
-    as the full plan measures it."""
+    """The report's opening lines: the mode, the machine, the times, the machines the sweeps
+    (``entries``, as cached) were measured on, and what was not measured as the full plan measures
+    it."""
+    measured_s = sum(entry["seconds"] for entry in entries)
+    machines = {entry.get("machine", "not recorded (a sweep cached before machines were)") for entry in entries}
     reused = sum(" reused (" in timing for timing in timings)
     measured = len(timings) - reused
     header = [
@@ -153,6 +185,8 @@ def _header(
         + f"; measuring every sweep shown took **{measured_s / 60:.1f} min**.",
         "",
         "Sweep times: " + "; ".join(timings) + ".",
+        "",
+        "Measured on: " + "; ".join(sorted(machines)) + ".",
     ]
     if not sessions:
         header += [
@@ -259,6 +293,7 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
                 **made_by,
                 "seconds": round(time.monotonic() - sweep_started, 1),
                 "measured_at": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+                "machine": machine_description(),
                 "points": json.loads(dumps(_without_machine_paths(measured, places))),
             }
             (cache / f"{name}.json").write_text(json.dumps(entry, indent=1) + "\n")
@@ -268,7 +303,7 @@ def run_accuracy_time(args: argparse.Namespace) -> int:
         points += loads(json.dumps(_without_machine_paths(entry["points"], places)))
         entries.append(entry)
     elapsed = time.monotonic() - started
-    header = _header(plan, elapsed, sum(entry["seconds"] for entry in entries), timings, args.session, workspace)
+    header = _header(plan, elapsed, entries, timings, args.session, workspace)
     path = write_report(args.out, points, header)
     print(f"report: {path} ({elapsed:.0f} s)")
     return 0

@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 from pathlib import Path
 
 import pytest
 
-from report.cli import CALIBRATED_HERE, _cached, add_commands
+from report.cli import CALIBRATED_HERE, VECTOR_FLAGS, _cached, add_commands, machine_description
 from report.plan import FULL, QUICK, SWEEP_NAMES
 from report.workspace import Workspace, training_config
 
@@ -87,6 +88,24 @@ def test_reuse_takes_a_cached_sweep_of_the_same_plan(tmp_path: Path) -> None:
     assert "measuring 0 of the 1 sweeps (the others cached by an earlier run)" in report
     assert "| 1 pts/cm³ | 0.8 | 0.2 |" in report and "**recommended**" in report
     assert not (tmp_path / "work").exists()  # nothing was measured
+    assert "Measured on: not recorded (a sweep cached before machines were)." in report
+    entry["machine"] = "2 cores, x86_64, Some CPU, avx512f"
+    (tmp_path / "cache" / "density.json").write_text(json.dumps(entry))
+    assert args.func(args) == 0
+    assert "Measured on: 2 cores, x86_64, Some CPU, avx512f." in (tmp_path / "report.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("cpuinfo", "named"),
+    [
+        ("model name\t: Lab CPU\nflags\t\t: fpu sse avx2 avx512f avx512_vnni\n", ", Lab CPU, avx512f avx512_vnni"),
+        ("model name\t: Old CPU\nflags\t: fpu sse avx2\n", ", Old CPU, none of " + " ".join(VECTOR_FLAGS)),
+        ("", ", processor not named"),  # no /proc/cpuinfo: neither model nor flags claimed
+    ],
+)
+def test_the_machine_is_named_with_the_vector_instructions_precisions_need(cpuinfo: str, named: str) -> None:
+    described = machine_description(cpuinfo)
+    assert described.startswith(f"{os.cpu_count()} cores, ") and described.endswith(named)
 
 
 def test_a_cached_sweep_counts_only_for_the_plan_and_training_config_that_made_it(tmp_path: Path) -> None:
