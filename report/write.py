@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -162,22 +163,38 @@ def plot(spec: Spec, points: Sequence[dict[str, Any]], path: Path) -> None:
     ax.scatter([p["time"] for p in valid], [p["accuracy"] for p in valid], color="grey", label="setting")
     front = sorted((p for p in valid if p["pareto"]), key=lambda p: p["time"])
     ax.plot([p["time"] for p in front], [p["accuracy"] for p in front], "o-", color="tab:blue", label="Pareto front")
-    for p in valid:
-        ax.annotate(p["setting"], (p["time"], p["accuracy"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    for i, p in enumerate(sorted(valid, key=lambda p: p["time"])):
+        # Labels alternate above and below, in order of time: settings of one accuracy sit side by side.
+        offset = (3, 3) if i % 2 == 0 else (3, -9)
+        ax.annotate(p["setting"], (p["time"], p["accuracy"]), fontsize=6, xytext=offset, textcoords="offset points")
         if p["recommended"]:
             ax.scatter(
                 [p["time"]], [p["accuracy"]], s=160, facecolors="none", edgecolors="tab:red", label="recommended"
             )
     times = [p["time"] for p in valid if p["time"] > 0]
-    if times and max(times) / min(times) > 20:
+    if times and max(times) / min(times) > 5:
         ax.set_xscale("log")
+    _span_at_least(ax, [p["accuracy"] for p in valid], spec.tolerance)
     ax.set_xlabel(spec.time)
     ax.set_ylabel(spec.accuracy + ("" if spec.higher_is_better else " (lower is better)"))
-    ax.set_title(spec.title, fontsize=10)
+    ax.set_title(textwrap.fill(spec.title, 60), fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _span_at_least(ax: Any, accuracies: Sequence[float], tolerance: float) -> None:
+    """The accuracy axis spans at least twice the table's tolerance, in plain numbers: settings
+    whose accuracies differ by less than a lab would notice are drawn level, not stretched across
+    the plot by an axis of 1e-8 steps."""
+    ax.ticklabel_format(axis="y", useOffset=False, style="plain")
+    if not accuracies:
+        return
+    low, high = min(accuracies), max(accuracies)
+    if high - low < 2 * tolerance:
+        middle = (low + high) / 2
+        ax.set_ylim(middle - tolerance, middle + tolerance)
 
 
 def write_report(out: Path, points: Sequence[dict[str, Any]], header: Sequence[str]) -> Path:

@@ -13,7 +13,7 @@ import pytest
 from perception.registration import RegistrationParams
 from report.defaults import PROJECT_DEFAULTS, WHY_NOT, default_line, project_default
 from report.specs import SPECS
-from report.write import DEFAULT_MARK, PARETO_MARK, PROJECT_MARK, annotate, dumps, loads, write_report
+from report.write import DEFAULT_MARK, PARETO_MARK, PROJECT_MARK, _span_at_least, annotate, dumps, loads, write_report
 
 POINTS = [
     # 1 pts/cm³ is fast and within 0.01 of the best, but its estimates do not beat the model's
@@ -153,3 +153,31 @@ def test_a_default_kept_for_a_reason_says_it_and_a_missing_one_says_not_measured
     )
     marked = annotate([p for p in POINTS if p["sweep"] == "registration_voxel" and p["setting"] != "8 mm"])
     assert "(not among the settings measured here)" in default_line("registration_voxel", marked)
+
+
+@pytest.mark.parametrize(
+    ("accuracies", "tolerance", "limits"),
+    [
+        ([0.9141037, 0.91410375], 0.01, (0.90410373, 0.92410373)),  # level within 1e-8: drawn level
+        ([0.80, 0.95], 0.01, None),  # a spread wider than the tolerance keeps matplotlib's limits
+    ],
+)
+def test_a_plots_accuracy_axis_spans_the_tables_tolerance_in_plain_numbers(
+    accuracies: list[float], tolerance: float, limits: tuple[float, float] | None
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.scatter([1.0, 2.0], accuracies)
+    _span_at_least(ax, accuracies, tolerance)
+    fig.canvas.draw()
+    low, high = ax.get_ylim()
+    if limits is None:
+        assert low <= min(accuracies) and high >= max(accuracies) and high - low < 0.5
+    else:
+        assert (low, high) == pytest.approx(limits, abs=1e-7)
+    assert ax.yaxis.get_offset_text().get_text() == ""  # no "1e-8 + 9.14e-1" above the axis
+    plt.close(fig)
