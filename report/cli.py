@@ -188,27 +188,7 @@ def _header(
         "",
         "Measured on: " + "; ".join(sorted(machines)) + ".",
     ]
-    if not sessions:
-        header += [
-            "",
-            "The session sweeps ran on the report's own session with its depth-maps cut again by its touch "
-            "calibration, as make demo trains (as collected where its touches cannot calibrate: the pipeline "
-            "table says why); the pipeline, registration and calibration tables measure its collection.",
-        ]
-    elif len(sessions) == 1:
-        header += [
-            "",
-            f"The session sweeps ran on a collected session given with --session (fingerprint "
-            f"{session_fingerprint(sessions[0])}), not on one of the plan's size{_told(workspace)}.",
-        ]
-    else:
-        header += [
-            "",
-            f"The session sweeps ran on {len(sessions)} collected sessions given with --session (fingerprints "
-            f"{', '.join(session_fingerprint(s) for s in sessions)}){_told(workspace)}: their models trained on all "
-            "of them, scored on the test splits together, each session's contact SSIM beside in that order; the "
-            "pipeline, registration and calibration tables measure the first session's collection.",
-        ]
+    header += ["", _sessions_line(sessions, workspace)]
     if workspace.reused_models:
         header += [
             "",
@@ -224,6 +204,27 @@ def _header(
             "errors are noise, so take the defaults from the full report.",
         ]
     return header
+
+
+def _sessions_line(sessions: list[Path], workspace: Workspace) -> str:
+    """The header's line on the sessions the session sweeps ran on: the report's own, or those given."""
+    if not sessions:
+        return (
+            "The session sweeps ran on the report's own session with its depth-maps cut again by its touch "
+            "calibration, as make demo trains (as collected where its touches cannot calibrate: the pipeline "
+            "table says why); the pipeline, registration and calibration tables measure its collection."
+        )
+    if len(sessions) == 1:
+        return (
+            f"The session sweeps ran on a collected session given with --session (fingerprint "
+            f"{session_fingerprint(sessions[0])}), not on one of the plan's size{_told(workspace)}."
+        )
+    return (
+        f"The session sweeps ran on {len(sessions)} collected sessions given with --session (fingerprints "
+        f"{', '.join(session_fingerprint(s) for s in sessions)}){_told(workspace)}: their models trained on all "
+        "of them, scored on the test splits together, each session's contact SSIM beside in that order; the "
+        "pipeline, registration and calibration tables measure the first session's collection."
+    )
 
 
 def _told(workspace: Workspace) -> str:
