@@ -71,7 +71,7 @@ def served_network(
     if served_as is None:
         raise ValueError(f"the node's model line {model!r} does not say '(ngf N, [runtime precision, ]device)'")
     runtime, precision, device = served_as.groups()
-    split = thread_split(threads, device, network=serves == "network")
+    split = thread_split(threads, device)
     if serves == "prior":  # no network pass: the prior's image is what the input carries
 
         def prior(x: np.ndarray | torch.Tensor) -> np.ndarray:

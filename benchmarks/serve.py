@@ -360,7 +360,7 @@ def _run_form(args: argparse.Namespace, node_params: dict[str, Any]) -> dict[str
         # How each worker shares them (nodes.inference_passes.thread_split); the network alone
         # in the points rows runs as the node runs it, and one pass at a time on all of them.
         "serves": serves,
-        "thread_split": dataclasses.asdict(thread_split(args.threads, device, network=serves == "network")),
+        "thread_split": dataclasses.asdict(thread_split(args.threads, device)),
         "p50_ms": round(statistics.median(latencies), 2),
         "p99_ms": round(float(np.percentile(latencies, 99)), 2),
         "regions_per_s": round(throughput, 1),

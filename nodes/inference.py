@@ -15,9 +15,8 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
 - Batching: requests from every client that arrive within ``batch_window_ms`` of the oldest
   waiting one (and all that queued while the previous batch ran) go through the network
   together, in forward passes of at most ``max_batch`` regions; each client gets its own
-  reply when the batch is done. A pass's input (its cut, the physics prior's images) is drawn
-  while the network runs the passes before; on the CPU each of ``threads`` runs a pass of its
-  own side by side, the input drawn on half of them (``thread_split``).
+  reply when the batch is done. On the CPU each of ``threads`` serves whole passes (cut, prior,
+  network, uncertainty); on a GPU a pass's input is drawn while the one before runs.
 - ``images``: what the checkpoint serves (models.serving), or the node's ``serves``: the
   network's estimate (dropout off), or the physics prior's image, for which no network runs.
 - ``uncertainty``, in every reply: per pixel u (levels 0..255), the checkpoint's calibrated RMS
@@ -163,7 +162,7 @@ class InferenceNode(Node):
         self.forward_passes = 0  # passes of the network (none while serving the prior)
         self._clouds: dict[str, _KeptCloud] = {}  # cloud id -> its index, least recently used first
         self._clouds_lock = threading.Lock()  # looked up on the bus thread, filled in the background
-        # Renders the physics prior's images of a pass in chunks, one per input thread (below).
+        # The prior's images in chunks where this thread draws the input (a GPU node's; below).
         self._prior_pool = ThreadPoolExecutor(self.split.input_threads, thread_name_prefix=f"{name}-prior")
         self._lanes = ThreadPoolExecutor(self.split.lanes, thread_name_prefix=f"{name}-pass")  # forward passes
         self._warm_up_cutting()
@@ -172,16 +171,13 @@ class InferenceNode(Node):
         self._flush_queued = False
         self.create_service("/inference/estimate", TactileEstimateRequest, TactileEstimateReply, self.on_estimate)
         self.log.info(
-            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms, %d forward passes side by "
-            "side on %d thread(s) each, %d thread(s) for the next passes' input",
+            "loaded %s in %.2f s: depth range %s m, max batch %d, window %.1f ms, %s",
             self.model,
             time.perf_counter() - started,
             self.depth_range_m,
             self.max_batch,
             p.batch_window_ms,
-            self.split.lanes,
-            self.split.lane_threads,
-            self.split.input_threads,
+            self.split,
         )
 
     def _model_text(self) -> str:
@@ -199,7 +195,7 @@ class InferenceNode(Node):
         no network runs. int8 is served only where it holds: measured against fp32 first
         (models.runtime.int8_ssim_loss)."""
         p = self.params
-        self.split = thread_split(p.threads, self.device, network=self.serves == "network")
+        self.split = thread_split(p.threads, self.device)
         torch.set_num_threads(self.split.lane_threads)
         if self.serves == "prior":
             return "", None
@@ -335,12 +331,9 @@ class InferenceNode(Node):
     ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray]]:
         """(the served images, their uncertainty u in levels or None where the checkpoint has
         none, the points each region's gel met: -1 for a depth-map sent as one) of every region
-        of the requests' ``sources``, in passes of at most ``max_batch``. This thread cuts each
-        pass's maps and draws its prior, and hands the pass to the lanes (``thread_split``), which
-        serve it (:meth:`_serve_pass`) while the next pass's input is drawn: on 2 cores the
-        network then has both cores whenever the input leaves
-        them (64 regions cut from a cloud, in process: 293 regions/s in turn, 377-404 with the
-        input drawn beside one pass at a time, 412-462 in two lanes; docs/measurements.md)."""
+        of the requests' ``sources``, in passes of at most ``max_batch`` spread over the lanes
+        (``thread_split``). On the CPU each lane cuts its pass's maps, draws their prior and serves
+        them; on a GPU this thread draws each pass's input while the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
 
         def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
@@ -355,26 +348,32 @@ class InferenceNode(Node):
                     maps.append((source[first:stop], sigmas[i]))
             return self._network_input(maps)
 
+        def drawn_and_served(parts: list[tuple[int, int, int]]) -> tuple[np.ndarray, np.ndarray | None]:
+            return self._serve_pass(draw(parts))
+
         outputs = []
         for parts in forward_pass_parts([len(source) for source in sources], self.max_batch):
-            outputs.append(self._lanes.submit(self._serve_pass, draw(parts)))
+            if self.split.input_in_lanes:
+                outputs.append(self._lanes.submit(drawn_and_served, parts))
+            else:
+                outputs.append(self._lanes.submit(self._serve_pass, draw(parts)))
             if self.network is not None:
                 self.forward_passes += 1
         served = [output.result() for output in outputs]
-        images = to_uint8_rgb(torch.from_numpy(np.concatenate([estimate for estimate, _ in served])))
+        images = np.concatenate([estimate for estimate, _ in served])
         if self.uncertainty is None:
             return images, None, point_counts
         return images, np.concatenate([u for _, u in served if u is not None]), point_counts
 
     def _serve_pass(self, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
-        """One pass, in a lane: the served estimate of network input ``x`` (N x 3 x H x W in
-        [-1, 1]: the network's, or the prior's ``x`` carries) and its u (None: the checkpoint has none)."""
+        """One pass, in a lane: the served estimate of network input ``x`` (the network's, or the
+        prior's ``x`` carries) as the reply sends it (N x H x W x 3 uint8), and its u or None."""
         if self.network is None:
             estimate = prior_images(self.generator, x)
         else:
             estimate = torch.from_numpy(self.network(x))
         u = None if self.uncertainty is None else self.uncertainty.levels(x, estimate)
-        return estimate.float().cpu().numpy(), u
+        return np.ascontiguousarray(to_uint8_rgb(estimate)), u
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
         """The physics prior drawing where the network computes: on CUDA as batched tensor
@@ -404,9 +403,9 @@ class InferenceNode(Node):
     def _network_input(self, parts: list[tuple[np.ndarray, float]]) -> torch.Tensor:
         """The network's input for depth-maps whose geometry is known to the sigma (mm) beside
         them. A model with a physics prior needs its image of every map: per-image NumPy and
-        OpenCV, in chunks on the input threads (about 25 short calls a map, each taking Python's
-        lock: two threads draw less than twice what one does); on a GPU, drawn there and left
-        there for the network."""
+        OpenCV (about 25 short calls a map, each taking Python's lock), in a CPU node's lane on
+        its thread, else in chunks on the input threads; on a GPU, drawn there and left there for
+        the network."""
 
         def inputs(part: tuple[np.ndarray, float | None]) -> torch.Tensor:
             chunk, sigma = part
@@ -420,6 +419,8 @@ class InferenceNode(Node):
         chunks = [(chunk, s) for m, s in parts for chunk in np.array_split(m, min(threads, len(m)))]
         if len(chunks) == 1:
             return inputs(chunks[0])
+        if self.split.input_in_lanes:
+            return torch.cat([inputs(chunk) for chunk in chunks])
         return torch.cat(list(self._prior_pool.map(inputs, chunks)))
 
     def _regions_of(

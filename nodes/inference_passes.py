@@ -1,5 +1,5 @@
 """How the inference node (nodes.inference) runs a batch: the requests' regions laid into
-forward passes, and its threads shared between the passes and the input of the passes after."""
+forward passes, and its threads shared between the passes and their input."""
 
 from __future__ import annotations
 
@@ -8,16 +8,17 @@ import dataclasses
 import numpy as np
 
 # Regions in one forward pass where the node's max_batch is 0 (its default), by device. On the
-# CPU the next passes' input is cut and drawn while the network runs, so short passes keep the
-# two in step: 64 regions cut from a cloud, 2 cores, the demo's model, in two lanes: 349-397
-# regions/s in passes of 8, 329-354 of 16, 371-390 of 4 (one pass at a time: 335-374 of 8,
+# CPU, measured while the next passes' input was drawn beside the network (before each lane
+# drew its own), short passes kept the two in step: 64 regions cut from a cloud, 2 cores, the
+# demo's model, in two lanes: 349-397 regions/s in passes of 8, 329-354 of 16, 371-390 of 4 (one pass at a time: 335-374 of 8,
 # 263-292 of 32). On a GPU every pass costs kernel launches and a trip back, so a request is one
 # pass: a lent H100, three YCB clouds, 256 poses: 1,565-2,023 regions/s in passes of 256, 1,217-1,770
 # of 64 or 128, 1,243-1,351 of 32 (64 poses: 1,450-1,567 against 958-1,434 of 32).
 DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 256}
-# A node serving the prior on the CPU runs no network: a pass is its uncertainty alone (0.4 ms a
-# region), and longer passes leave its input threads fewer waits: 64 regions cut from a cloud, 2
-# cores, 374-406 regions/s in passes of 32, 380 of 64, 318-332 of 8 (2026-11-29, the same hour).
+# A node serving the prior on the CPU runs no network: a pass is its cut, prior and uncertainty in
+# one lane, and a 64-region request in passes of 32 keeps both of 2 cores' lanes busy: the demo's
+# model, five YCB clouds, 1,077 and 1,153 regions/s in passes of 32, 974 and 1,029 of 16, 605 and
+# 635 of 64 (one lane idle) (`dtx bench serve --points --poses 64 --max-batch N`, 2026-11-29).
 PRIOR_SERVING_CPU_MAX_BATCH = 32
 
 
@@ -46,30 +47,30 @@ def _shown(value: object) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class ThreadSplit:
-    """How an inference node spends its ``threads``: forward passes side by side (``lanes``),
-    each computing on ``lane_threads``, while the batch's own thread cuts and draws the next
-    passes' input on ``input_threads``."""
+    """How an inference node spends its ``threads``: passes side by side (``lanes``), each
+    computing on ``lane_threads``. ``input_in_lanes``: each lane cuts and draws its own pass's
+    input before serving it; else the batch's own thread draws the next passes' input on
+    ``input_threads`` while the lanes serve the passes before."""
 
     lanes: int
     lane_threads: int
     input_threads: int
+    input_in_lanes: bool
 
 
-def thread_split(threads: int, device: str, network: bool = True) -> ThreadSplit:
-    """The node's threads on ``device``. On the CPU the network is cheapest a region on one
-    thread (2.2 ms CPU against 2.8 on two, the demo's model, passes of 8), so each core runs a
-    pass of its own: alone, two such lanes ran 861-898 regions/s where one pass on both cores ran
-    531-566. The input (cut 0.8 ms a region, prior 0.55) is drawn meanwhile on half of them:
-    one thread draws the prior's images, whose many short NumPy calls do not run two at a time
-    (2 cores, through the bus: cloud form 349-397 regions/s at 64 poses against 318-365 with one
-    pass at a time, depth-maps 449-541 against 333-384; docs/measurements.md). Serving the prior
-    (``network`` false), a pass is the uncertainty alone, a tenth of the input's work: the input
-    is drawn on every thread. On a GPU one pass at a time, the host's threads for the input."""
+def thread_split(threads: int, device: str) -> ThreadSplit:
+    """The node's threads on ``device``. On the CPU each thread is a lane that serves whole
+    passes, its cut, prior, network and uncertainty one after another: the network is cheapest a
+    region on one thread (2.2 ms CPU against 2.8 on two, the demo's model, passes of 8; alone, two
+    such lanes ran 861-898 regions/s where one pass on both cores ran 531-566), and the stages'
+    own parallel forms left cores idle between them: the prior's images are many short NumPy
+    and OpenCV calls that hold Python's lock, so two threads drew them barely faster than one,
+    while each lane's cut (compiled, without the lock) runs beside the other lane's prior
+    (docs/measurements.md, 2026-11-29). On a GPU one pass at a time on all the threads, the
+    next passes' input drawn on the host's threads meanwhile."""
     if device == "cpu":
-        return ThreadSplit(
-            lanes=threads, lane_threads=1, input_threads=threads if not network else max(1, threads // 2)
-        )
-    return ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads)
+        return ThreadSplit(lanes=threads, lane_threads=1, input_threads=1, input_in_lanes=True)
+    return ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads, input_in_lanes=False)
 
 
 def forward_pass_parts(regions: list[int], max_batch: int) -> list[list[tuple[int, int, int]]]:

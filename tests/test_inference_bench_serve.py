@@ -24,7 +24,7 @@ def test_serve_benchmark_reports_latency_and_throughput_of_the_named_weights() -
     assert result["model"] == "fresh.pt (ngf 8, onnxrt fp32, cpu) serves the network (its uncertainty absent)"
     assert 0 < result["p50_ms"] <= result["p99_ms"]
     assert result["regions_per_s"] > 0 and result["server_cpu_ms_per_region"] > 0
-    assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1}
+    assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1, "input_in_lanes": True}
 
 
 def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
@@ -37,7 +37,7 @@ def test_serve_benchmark_reports_the_priors_share_and_the_cloud_form() -> None:
     result = run(parser.parse_args(f"{served} {asked}".split()))
     assert result["weights"] == "fresh generator, width 8, physics prior (seeded, untrained)"
     assert 0 < result["prior_cpu_ms_per_region"] and 0 < result["prior_share_of_server_cpu"]
-    assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1}
+    assert result["thread_split"] == {"lanes": 1, "lane_threads": 1, "input_threads": 1, "input_in_lanes": True}
     (row,) = result["points"]
     assert row["poses"] == 4 and row["cloud_points"] > 1_000_000
     for key in (

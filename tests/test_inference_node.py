@@ -159,10 +159,16 @@ def test_passes_default_to_the_devices_width_and_each_thread_runs_a_pass_on_the_
 ) -> None:
     prior = write_checkpoint(tmp_path / "prior.pt", width=8, prior=True)
     with serving(registry, prior, device="cpu", threads=4) as node:
-        assert (node.max_batch, node.split) == (8, ThreadSplit(lanes=4, lane_threads=1, input_threads=2))
+        assert (node.max_batch, node.split) == (
+            8,
+            ThreadSplit(lanes=4, lane_threads=1, input_threads=1, input_in_lanes=True),
+        )
     plain = write_checkpoint(tmp_path / "plain.pt", width=8)
     with serving(registry, plain, device="cpu", threads=4, max_batch=5) as node:
-        assert (node.max_batch, node.split) == (5, ThreadSplit(lanes=4, lane_threads=1, input_threads=2))
+        assert (node.max_batch, node.split) == (
+            5,
+            ThreadSplit(lanes=4, lane_threads=1, input_threads=1, input_in_lanes=True),
+        )
 
 
 def test_a_generator_that_corrects_the_physics_prior_is_served_with_it(registry: Registry, tmp_path: Path) -> None:

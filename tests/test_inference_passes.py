@@ -27,11 +27,13 @@ def test_passes_hold_every_region_once_in_order_and_are_full_but_the_last(region
 
 
 @given(threads=st.integers(1, 64))
-def test_on_the_cpu_each_thread_runs_a_pass_and_half_of_them_draw_the_input(threads: int) -> None:
+def test_on_the_cpu_each_thread_is_a_lane_drawing_its_own_input(threads: int) -> None:
     assert thread_split(threads, "cpu") == ThreadSplit(
-        lanes=threads, lane_threads=1, input_threads=max(1, threads // 2)
+        lanes=threads, lane_threads=1, input_threads=1, input_in_lanes=True
     )
-    assert thread_split(threads, "cuda") == ThreadSplit(lanes=1, lane_threads=threads, input_threads=threads)
+    assert thread_split(threads, "cuda") == ThreadSplit(
+        lanes=1, lane_threads=threads, input_threads=threads, input_in_lanes=False
+    )
 
 
 def test_a_cpu_node_serving_its_prior_takes_longer_passes_unless_told() -> None:
