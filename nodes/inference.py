@@ -331,8 +331,8 @@ class InferenceNode(Node):
     ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray]]:
         """(the served images, their uncertainty u in levels or None where the checkpoint has
         none, the points each region's gel met: -1 for a depth-map sent as one) of every region
-        of the requests' ``sources``, in passes of at most ``max_batch`` spread over the lanes
-        (``thread_split``). On the CPU each lane cuts its pass's maps, draws their prior and serves
+        of the requests' ``sources``, in passes of at most ``max_batch``, at least one a lane
+        where there are regions enough (``thread_split``). On the CPU each lane cuts its pass's maps, draws their prior and serves
         them; on a GPU this thread draws each pass's input while the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
 
@@ -352,7 +352,7 @@ class InferenceNode(Node):
             return self._serve_pass(draw(parts))
 
         outputs = []
-        for parts in forward_pass_parts([len(source) for source in sources], self.max_batch):
+        for parts in forward_pass_parts([len(source) for source in sources], self.max_batch, self.split.lanes):
             if self.split.input_in_lanes:
                 outputs.append(self._lanes.submit(drawn_and_served, parts))
             else:

@@ -99,6 +99,12 @@ def test_passes_of_no_room_are_refused_not_looped_over(max_batch: Any) -> None:
         forward_pass_parts([3, 2], max_batch)
 
 
+@pytest.mark.parametrize("lanes", [0, -1, True, 1.5, None])
+def test_passes_spread_over_no_lanes_are_refused(lanes: Any) -> None:
+    with pytest.raises(ValueError, match="lanes"):
+        forward_pass_parts([3, 2], 4, lanes)
+
+
 def test_a_negative_region_count_is_refused() -> None:
     with pytest.raises(ValueError, match="regions"):
         forward_pass_parts([3, -2], 4)

@@ -402,6 +402,16 @@ def test_a_request_larger_than_max_batch_runs_in_several_passes(registry: Regist
     assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
 
 
+def test_a_request_smaller_than_a_pass_is_spread_over_the_lanes(registry: Registry, checkpoint: Path) -> None:
+    """Two threads: six regions in passes of up to 8 run as two passes of three, one a lane."""
+    maps = depth_maps(6, seed=6)
+    with serving(registry, checkpoint, runtime="eager", threads=2, max_batch=8) as node, planner(registry) as client:
+        images, _ = client.estimate(maps)
+        passes = node.forward_passes
+    assert passes == 2
+    assert np.abs(images.astype(int) - reference(checkpoint, maps)).max() <= 1
+
+
 def test_a_cloud_handle_answers_like_its_points_and_an_evicted_one_is_sent_again(
     registry: Registry, checkpoint: Path
 ) -> None:

@@ -16,14 +16,23 @@ from nodes.inference_passes import (
 )
 
 
-@given(regions=st.lists(st.integers(1, 40), min_size=1, max_size=6), max_batch=st.integers(1, 33))
-def test_passes_hold_every_region_once_in_order_and_are_full_but_the_last(regions: list[int], max_batch: int) -> None:
-    passes = forward_pass_parts(regions, max_batch)
+@given(
+    regions=st.lists(st.integers(1, 40), min_size=1, max_size=6),
+    max_batch=st.integers(1, 33),
+    lanes=st.integers(1, 8),
+)
+def test_passes_hold_every_region_once_in_order_and_are_full_but_the_last(
+    regions: list[int], max_batch: int, lanes: int
+) -> None:
+    passes = forward_pass_parts(regions, max_batch, lanes)
+    width = min(max_batch, -(-sum(regions) // lanes))
     sizes = [sum(stop - first for _, first, stop in parts) for parts in passes]
-    assert all(size == max_batch for size in sizes[:-1]) and 1 <= sizes[-1] <= max_batch
+    assert all(size == width for size in sizes[:-1]) and 1 <= sizes[-1] <= width
     laid = [(request, k) for parts in passes for request, first, stop in parts for k in range(first, stop)]
     assert laid == [(request, k) for request, count in enumerate(regions) for k in range(count)]
     assert all(first < stop for parts in passes for _, first, stop in parts)
+    # No lane idle while another holds two passes, unless max_batch bounds them.
+    assert len(passes) <= lanes or width == max_batch
 
 
 @given(threads=st.integers(1, 64))
