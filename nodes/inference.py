@@ -331,9 +331,10 @@ class InferenceNode(Node):
     ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray]]:
         """(the served images, their uncertainty u in levels or None where the checkpoint has
         none, the points each region's gel met: -1 for a depth-map sent as one) of every region
-        of the requests' ``sources``, in passes of at most ``max_batch``, at least one a lane
-        where there are regions enough (``thread_split``). On the CPU each lane cuts its pass's maps, draws their prior and serves
-        them; on a GPU this thread draws each pass's input while the lane serves the one before."""
+        of the requests' ``sources``, in passes of at most ``max_batch`` spread over the lanes
+        (``forward_pass_parts``, ``thread_split``). On the CPU each lane cuts its pass's maps,
+        draws their prior and serves them; on a GPU this thread draws each pass's input while
+        the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
 
         def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
@@ -403,9 +404,8 @@ class InferenceNode(Node):
     def _network_input(self, parts: list[tuple[np.ndarray, float]]) -> torch.Tensor:
         """The network's input for depth-maps whose geometry is known to the sigma (mm) beside
         them. A model with a physics prior needs its image of every map: per-image NumPy and
-        OpenCV (about 25 short calls a map, each taking Python's lock), in a CPU node's lane on
-        its thread, else in chunks on the input threads; on a GPU, drawn there and left there for
-        the network."""
+        OpenCV (about 25 short calls a map), in a CPU node's lane on its thread, else in chunks
+        on the input threads; on a GPU, drawn there and left there for the network."""
 
         def inputs(part: tuple[np.ndarray, float | None]) -> torch.Tensor:
             chunk, sigma = part

@@ -10,10 +10,11 @@ import numpy as np
 # Regions in one forward pass where the node's max_batch is 0 (its default), by device. On the
 # CPU, measured while the next passes' input was drawn beside the network (before each lane
 # drew its own), short passes kept the two in step: 64 regions cut from a cloud, 2 cores, the
-# demo's model, in two lanes: 349-397 regions/s in passes of 8, 329-354 of 16, 371-390 of 4 (one pass at a time: 335-374 of 8,
-# 263-292 of 32). On a GPU every pass costs kernel launches and a trip back, so a request is one
-# pass: a lent H100, three YCB clouds, 256 poses: 1,565-2,023 regions/s in passes of 256, 1,217-1,770
-# of 64 or 128, 1,243-1,351 of 32 (64 poses: 1,450-1,567 against 958-1,434 of 32).
+# demo's model, in two lanes: 349-397 regions/s in passes of 8, 329-354 of 16, 371-390 of 4
+# (one pass at a time: 335-374 of 8, 263-292 of 32). On a GPU every pass costs kernel launches
+# and a trip back, so a request is one pass: a lent H100, three YCB clouds, 256 poses: 1,565-2,023
+# regions/s in passes of 256, 1,217-1,770 of 64 or 128, 1,243-1,351 of 32 (64 poses: 1,450-1,567
+# against 958-1,434 of 32).
 DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 256}
 # A node serving the prior on the CPU runs no network: a pass is its cut, prior and uncertainty in
 # one lane, and a 64-region request in passes of 32 keeps both of 2 cores' lanes busy: the demo's
@@ -63,10 +64,9 @@ def thread_split(threads: int, device: str) -> ThreadSplit:
     passes, its cut, prior, network and uncertainty one after another: the network is cheapest a
     region on one thread (2.2 ms CPU against 2.8 on two, the demo's model, passes of 8; alone, two
     such lanes ran 861-898 regions/s where one pass on both cores ran 531-566), and the stages'
-    own parallel forms left cores idle between them: the prior's images are many short NumPy
-    and OpenCV calls that hold Python's lock, so two threads drew them barely faster than one,
-    while each lane's cut (compiled, without the lock) runs beside the other lane's prior
-    (docs/measurements.md, 2026-11-29). On a GPU one pass at a time on all the threads, the
+    own parallel forms left cores idle between them (the cut, then the prior, each on both
+    threads, the bus thread laying out the images): one planner's 64-pose request took 68 ms
+    against 59 now (docs/measurements.md, 2026-11-29). On a GPU one pass at a time on all the threads, the
     next passes' input drawn on the host's threads meanwhile."""
     if device == "cpu":
         return ThreadSplit(lanes=threads, lane_threads=1, input_threads=1, input_in_lanes=True)
