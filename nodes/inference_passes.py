@@ -17,9 +17,11 @@ import numpy as np
 # against 958-1,434 of 32).
 DEVICE_MAX_BATCH = {"cpu": 8, "cuda": 256}
 # A node serving the prior on the CPU runs no network: a pass is its cut, prior and uncertainty in
-# one lane, and a 64-region request in passes of 32 keeps both of 2 cores' lanes busy: the demo's
-# model, five YCB clouds, 1,077 and 1,153 regions/s in passes of 32, 974 and 1,029 of 16, 605 and
-# 635 of 64 (one lane idle) (`dtx bench serve --points --poses 64 --max-batch N`, 2026-11-29).
+# one lane. Measured before a small batch was spread over the lanes (forward_pass_parts), a
+# 64-region request ran 1,077 and 1,153 regions/s in passes of 32, 974 and 1,029 of 16, 605 and 635
+# of 64 (one lane idle). Spread, passes of 64 and of 32 lay such a request alike (1,092 and 1,094);
+# at 256 poses 1,074 against 929, within the runs' spread (`dtx bench serve --points --poses 64 256
+# --max-batch N`, 2 cores, the demo's model, 2026-11-29).
 PRIOR_SERVING_CPU_MAX_BATCH = 32
 
 
