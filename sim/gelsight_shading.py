@@ -36,28 +36,34 @@ def _atan_unit(t: float) -> float:
     return t * (0.9998660 + t2 * (-0.3302995 + t2 * (0.1801410 + t2 * (-0.0851330 + t2 * 0.0208351))))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def slope_bin(x: float, y: float, tan_edges: np.ndarray, direction_edges: np.ndarray) -> tuple[int, int]:
-    """The (magnitude, direction) bin of the slope (x, y), not both zero: floor(atan(|(x, y)|) /
-    (pi / 2 / n)) and floor((atan2(y, x) + pi) / (2 pi / n)), each at most n - 1, with the edges of
-    :func:`slope_bin_edges`. The polynomial's guess is at most one bin off; the edges decide."""
-    n = tan_edges.shape[0] - 1
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _slope_angles(x: float, y: float) -> tuple[float, float, float]:
+    """(|(x, y)|, the polynomial's guess of atan of it, of atan2(y, x)) for a slope not both zero:
+    straight-line arithmetic, so that a loop over a row of slopes runs in vector instructions."""
     h = math.sqrt(x * x + y * y)
-    angle = _atan_unit(h) if h <= 1.0 else 0.5 * math.pi - _atan_unit(1.0 / h)
-    i_mag = min(int(angle * (2.0 * n / math.pi)), n - 1)
+    steep = h > 1.0
+    magnitude = _atan_unit(1.0 / h if steep else h)
+    magnitude = 0.5 * math.pi - magnitude if steep else magnitude
+    ax, ay = abs(x), abs(y)
+    direction = _atan_unit(min(ax, ay) / max(ax, ay))
+    direction = 0.5 * math.pi - direction if ay > ax else direction
+    direction = math.pi - direction if x < 0 else direction
+    return h, magnitude, -direction if y < 0 else direction
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _corrected_bins(
+    x: float, y: float, h: float, magnitude: float, direction: float, tan_edges: np.ndarray, direction_edges: np.ndarray
+) -> tuple[int, int]:
+    """The (magnitude, direction) bin of the slope (x, y) from :func:`_slope_angles`' guesses,
+    each at most one bin off: the edges decide."""
+    n = tan_edges.shape[0] - 1
+    i_mag = min(max(int(magnitude * (2.0 * n / math.pi)), 0), n - 1)
     while i_mag > 0 and h < tan_edges[i_mag]:
         i_mag -= 1
     while i_mag < n - 1 and h >= tan_edges[i_mag + 1]:
         i_mag += 1
-    ax, ay = abs(x), abs(y)
-    angle = _atan_unit(min(ax, ay) / max(ax, ay))
-    if ay > ax:
-        angle = 0.5 * math.pi - angle
-    if x < 0:
-        angle = math.pi - angle
-    if y < 0:
-        angle = -angle
-    i_dir = min(max(int((angle + math.pi) * (n / (2.0 * math.pi))), 0), n - 1)
+    i_dir = min(max(int((direction + math.pi) * (n / (2.0 * math.pi))), 0), n - 1)
     # (x, y) lies at or past edge k (counter-clockwise) where the cross product with it is >= 0.
     while i_dir > 0 and direction_edges[0, i_dir] * y - direction_edges[1, i_dir] * x < 0:
         i_dir -= 1
@@ -67,6 +73,15 @@ def slope_bin(x: float, y: float, tan_edges: np.ndarray, direction_edges: np.nda
 
 
 @numba.njit(cache=True, nogil=True)
+def slope_bin(x: float, y: float, tan_edges: np.ndarray, direction_edges: np.ndarray) -> tuple[int, int]:
+    """The (magnitude, direction) bin of the slope (x, y), not both zero: floor(atan(|(x, y)|) /
+    (pi / 2 / n)) and floor((atan2(y, x) + pi) / (2 pi / n)), each at most n - 1, with the edges of
+    :func:`slope_bin_edges`, as :func:`colour_change` bins a row of slopes."""
+    h, magnitude, direction = _slope_angles(x, y)
+    return _corrected_bins(x, y, h, magnitude, direction, tan_edges, direction_edges)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def colour_change(
     depth_mm: np.ndarray,
     slope_scale: tuple[np.float32, np.float32],
@@ -91,17 +106,30 @@ def colour_change(
     rows, cols = depth_mm.shape
     n = tan_edges.shape[0] - 1
     change = np.empty((rows, cols, 3), np.float32)
+    # A row's slopes (a tilted pixel's, else (1, 0): no division by zero), then their angles'
+    # guesses in one loop of vector instructions (error_model numpy: a division raises nothing,
+    # so the loop has no branch to raise it), then each tilted pixel's bin and polynomial:
+    # 0.21 -> 0.14 ms a 100 x 100 image against one loop of all three a pixel.
+    slope_x, slope_y, tilted = np.empty(cols), np.empty(cols), np.empty(cols, np.bool_)
+    h, magnitude, direction = np.empty(cols), np.empty(cols), np.empty(cols)
     for r in range(rows):
         above, below = max(r - 1, 0), min(r + 1, rows - 1)
         for c in range(cols):
             compression = min(depth_mm[r, c] * inv_saturation_mm, np.float32(1.0))
             for k in range(3):
                 change[r, c, k] = flat_change[r, c, k] * compression
-            slope_x = (depth_mm[r, min(c + 1, cols - 1)] - depth_mm[r, max(c - 1, 0)]) * slope_scale[0]
-            slope_y = (depth_mm[below, c] - depth_mm[above, c]) * slope_scale[1]
-            if math.sqrt(slope_x * slope_x + slope_y * slope_y) < tilted_tan:
+            sx = (depth_mm[r, min(c + 1, cols - 1)] - depth_mm[r, max(c - 1, 0)]) * slope_scale[0]
+            sy = (depth_mm[below, c] - depth_mm[above, c]) * slope_scale[1]
+            tilted[c] = math.sqrt(sx * sx + sy * sy) >= tilted_tan
+            slope_x[c], slope_y[c] = (float(sx), float(sy)) if tilted[c] else (1.0, 0.0)
+        for c in range(cols):
+            h[c], magnitude[c], direction[c] = _slope_angles(slope_x[c], slope_y[c])
+        for c in range(cols):
+            if not tilted[c]:
                 continue
-            i_mag, i_dir = slope_bin(float(slope_x), float(slope_y), tan_edges, direction_edges)
+            i_mag, i_dir = _corrected_bins(
+                slope_x[c], slope_y[c], h[c], magnitude[c], direction[c], tan_edges, direction_edges
+            )
             b, pixel = i_mag * n + i_dir, r * cols + c
             for k in range(3):
                 t0 = coeffs[b, k, 0] * terms[pixel, 0]
