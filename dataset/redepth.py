@@ -342,7 +342,13 @@ def poses_at(
             world_to_model = np.linalg.inv(model_to_world)
             near = [dense.within(transform_points(gel[:3, 3][None], world_to_model)[0], reach) for gel in pair.values()]
             centred[record.grasp_key] = centre_between_gels(
-                np.concatenate(near), model_to_world, pair["left"], pair["right"], geometry
+                np.concatenate(near),
+                model_to_world,
+                pair["left"],
+                pair["right"],
+                geometry,
+                scene.gripper.grasp_force_n,
+                scene.gripper.foundation_stiffness_n_per_mm3,
             )
         poses[record.sample_id] = (np.linalg.inv(pair[record.finger]) @ centred[record.grasp_key], model_to_world)
     return poses

@@ -47,7 +47,7 @@ from msgs.progress import Progress
 from msgs.system import ErrorCode
 from perception.pointcloud import transform_points
 from perception.registration import sample_model_cloud
-from workcell.kinematics import GRASP_FORCE_N, across_the_gels_m, gel_poses_world, grasp_to_tcp_pose
+from workcell.kinematics import across_the_gels_m, gel_poses_world, grasp_to_tcp_pose
 from workcell.scene import load_scene
 
 FINGERS = ("left", "right")
@@ -75,7 +75,6 @@ class CollectorNode(Node):
         scene: str = "scenes/ycb_three.yaml"
         objects: list = dataclasses.field(default_factory=list)  # default: every mesh object of the scene
         resume: bool = False
-        force_n: float = GRASP_FORCE_N
         offset_xy_m: float = 0.015
         offset_closing_m: float = 0.003
         offset_z_m: float = 0.02
@@ -330,7 +329,10 @@ class CollectorNode(Node):
             self.grip_seen_ns = 0
             held = self.gripper.call(
                 msgs.GripperCommand(
-                    action="grasp", width_m=nominal_width_m, speed_m_s=p.gripper_speed_m_s, force_n=p.force_n
+                    action="grasp",
+                    width_m=nominal_width_m,
+                    speed_m_s=p.gripper_speed_m_s,
+                    force_n=self.scene.gripper.grasp_force_n,
                 ),
                 timeout_s=p.call_timeout_s,
             )

@@ -4,9 +4,10 @@
   the latest frame of every camera (merged in ``world``), register its complete model cloud
   (FPFH + RANSAC, then point-to-plane ICP) and keep the pose.
 - ``/perception/patch`` (PatchRequest -> PatchReply): both fingers' contact depth-maps of
-  the registered model cloud for the given gel poses, the model first centred between the
-  gels (a grasp pushes a free-standing object there; ``centre_between_gels: false`` for an
-  object that cannot move).
+  the registered model cloud for the given gel poses, the model first placed where the grasp
+  holds it between the gels, each pressed as the scene's grasp force needs
+  (perception.gripper_centring; a grasp pushes a free-standing object there;
+  ``centre_between_gels: false`` for an object that cannot move).
 - Publishes what it extracted (``/perception/object_cloud``, ``/perception/depth_map``, and
   the registered pose as the ``world -> object`` transform on ``/perception/object_pose``) so a
   session bag holds it, and the depth frames each registration used
@@ -179,8 +180,15 @@ class PatchExtractorNode(Node):
             for finger, gel in gels.items()
         }
         if self.params.centre_between_gels:
+            gripper = self.scene.gripper
             model_to_world = centre_between_gels(
-                np.concatenate(list(near.values())), model_to_world, gels["left"], gels["right"], self.geometry
+                np.concatenate(list(near.values())),
+                model_to_world,
+                gels["left"],
+                gels["right"],
+                self.geometry,
+                gripper.grasp_force_n,
+                gripper.foundation_stiffness_n_per_mm3,
             )
         maps = {}
         for finger, gel_to_world in gels.items():

@@ -28,6 +28,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from sim.meshes import SceneObjects
+from workcell.compliance import indentation_for_force_mm
 from workcell.kinematics import gel_poses_world
 from workcell.scene import Scene
 
@@ -170,25 +171,13 @@ class GelContact:
         return gap.reshape(int(size[0]), int(size[1])).astype(np.float32)
 
     def solve_indentation(self, gaps_mm: np.ndarray, cell_area_mm2: float, force_n: float) -> tuple[float, float, bool]:
-        """Rigid approach d (mm) of the object into a Winkler-foundation gel so that
-        ``force = k * cell_area * sum(max(0, d - gap_i))`` with k = E / thickness (N/mm per mm^2
-        of contact area, :attr:`GripperSpec.foundation_stiffness_n_per_mm3`). Returns
-        (d, contact area mm^2, saturated: d hit the elastomer thickness)."""
-        g = np.sort(gaps_mm[np.isfinite(gaps_mm)])
-        if g.size == 0 or force_n <= 0:
-            return 0.0, 0.0, False
-        k = self.scene.gripper.foundation_stiffness_n_per_mm3
-        target = force_n / (k * cell_area_mm2)  # sum of local indentations, mm
-        m = np.arange(1, g.size + 1)
-        d_cand = (target + np.cumsum(g)) / m
-        nxt = np.append(g[1:], np.inf)
-        first = int(np.argmax(d_cand <= nxt))
-        d = float(d_cand[first])
-        thickness_mm = self.scene.gripper.elastomer_thickness_m * 1e3
-        saturated = d > thickness_mm
-        d = min(d, thickness_mm)
-        area = float(np.count_nonzero(g < d) * cell_area_mm2)
-        return d, area, saturated
+        """Rigid approach d (mm) of the object into this scene's gel at ``force_n``
+        (workcell.compliance.indentation_for_force_mm). Returns (d, contact area mm^2,
+        saturated: d hit the elastomer thickness)."""
+        gripper = self.scene.gripper
+        return indentation_for_force_mm(
+            gaps_mm, cell_area_mm2, force_n, gripper.foundation_stiffness_n_per_mm3, gripper.elastomer_thickness_m * 1e3
+        )
 
     def grasp_contact(
         self,

@@ -24,8 +24,10 @@ from perception.gripper_centring import centre_between_gels
 from perception.normalisation import denormalise_depth_map
 from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
+from workcell.parts import GripperSpec
 
 GEOMETRY = GripperGeometry()
+STIFFNESS = GripperSpec().foundation_stiffness_n_per_mm3  # N/mm per mm² of contact
 METHODS = list(DEPTH_MAP_METHODS)
 NEAREST = "nearest_point"
 # Bins of 4.98 mm (z) x 3.72 mm (x), the nearest-point rule: a bin holds its points' minimum y.
@@ -357,8 +359,9 @@ def _box_points(size_m, spacing_m=0.001):
 @settings(max_examples=30, deadline=None)
 @given(offset_m=st.floats(-0.01, 0.01), along_m=st.floats(-0.005, 0.005), yaw=st.floats(-np.pi, np.pi))
 def test_centring_puts_the_object_midway_between_the_gels(offset_m, along_m, yaw):
-    """A 40 mm box held at width 39 mm, registered off-centre along the closing axis: after
-    centring both gels press it 0.5 mm; nothing moves along the gel faces."""
+    """A 40 mm box held at width 39 mm, registered off-centre along the closing axis: its two
+    faces are alike, so at any grasp force both gels press it 0.5 mm; nothing moves along the
+    gel faces."""
     box = _box_points((0.04, 0.04, 0.06))
     tcp = grasp_to_tcp_pose(0.1, -0.05, 0.03 + GEOMETRY.tcp_to_gel_centre_m, yaw)
     gels = gel_poses_world(tcp, 0.039, GEOMETRY)
@@ -368,7 +371,7 @@ def test_centring_puts_the_object_midway_between_the_gels(offset_m, along_m, yaw
     registered[:3, :3] = Rotation.from_euler("z", yaw).as_matrix()
     registered[:3, 3] = [0.1, -0.05, 0.03]
     registered[:3, 3] += offset_m * closing + along_m * along
-    centred = centre_between_gels(box, registered, gels["left"], gels["right"], GEOMETRY)
+    centred = centre_between_gels(box, registered, gels["left"], gels["right"], GEOMETRY, 10.0, STIFFNESS)
     assert centred[:3, :3] == pytest.approx(registered[:3, :3])
     moved = centred[:3, 3] - registered[:3, 3]
     assert moved == pytest.approx(-offset_m * closing, abs=1e-9)
@@ -382,9 +385,26 @@ def test_centring_leaves_the_pose_when_a_gel_faces_nothing():
     gels = gel_poses_world(grasp_to_tcp_pose(0.0, 0.0, 0.01 + GEOMETRY.tcp_to_gel_centre_m, 0.0), 0.03, GEOMETRY)
     far = np.eye(4)
     far[:3, 3] = [0.5, 0.0, 0.01]  # beside the gripper, in front of neither gel
-    assert np.array_equal(centre_between_gels(box, far, gels["left"], gels["right"], GEOMETRY), far)
+    assert np.array_equal(centre_between_gels(box, far, gels["left"], gels["right"], GEOMETRY, 10.0, STIFFNESS), far)
     with pytest.raises(DepthMapError, match="finite"):
-        centre_between_gels(np.array([[0.0, np.nan, 0.0]]), far, gels["left"], gels["right"], GEOMETRY)
+        centre_between_gels(np.array([[0.0, np.nan, 0.0]]), far, gels["left"], gels["right"], GEOMETRY, 10.0, STIFFNESS)
+
+
+@pytest.mark.parametrize(
+    ("force_n", "stiffness", "message"),
+    [
+        (float("nan"), STIFFNESS, "grasp_force_n"),
+        (-1.0, STIFFNESS, "grasp_force_n"),
+        (float("inf"), STIFFNESS, "grasp_force_n"),
+        (10.0, 0.0, "stiffness"),
+        (10.0, float("nan"), "stiffness"),
+    ],
+)
+def test_centring_refuses_a_force_or_stiffness_that_is_no_number(force_n, stiffness, message):
+    box = _box_points((0.04, 0.04, 0.06))
+    gels = gel_poses_world(grasp_to_tcp_pose(0.0, 0.0, 0.03 + GEOMETRY.tcp_to_gel_centre_m, 0.0), 0.039, GEOMETRY)
+    with pytest.raises(DepthMapError, match=message):
+        centre_between_gels(box, np.eye(4), gels["left"], gels["right"], GEOMETRY, force_n, stiffness)
 
 
 # --- the batched, indexed path (contact_depth_maps) and the compiled kernel -----------------------

@@ -171,7 +171,10 @@ def test_depth_map_of_a_grasp_lines_up_with_what_the_gel_feels(method: str) -> N
     tcp = grasp_to_tcp_pose(0.005, 0.0, 0.16 + 0.05, 0.0)  # 5 mm off the axis along the gels
     contact = w.grasp_contact(tcp, 10.0, size=(60, 80), extent_mm=(2e3 * half_z, 2e3 * half_x))
     gels = gel_poses_world(tcp, contact.width_m, geometry)
-    centred = centre_between_gels(model, registered, gels["left"], gels["right"], geometry)
+    gripper = w.scene.gripper
+    centred = centre_between_gels(
+        model, registered, gels["left"], gels["right"], geometry, 10.0, gripper.foundation_stiffness_n_per_mm3
+    )
     for finger in ("left", "right"):
         gap_mm = contact.gap_mm[finger]
         depth_mm = contact_depth_map(model, centred, gels[finger], geometry, params).depth_map_m * 1e3
@@ -188,3 +191,50 @@ def test_depth_map_of_a_grasp_lines_up_with_what_the_gel_feels(method: str) -> N
             assert np.mean((depth_mm < 0) != pressed) < 0.005
             assert np.median(np.abs(depth_mm[pressed] - gap_mm[pressed])) < 0.003
             assert np.abs(depth_mm[seen] - gap_mm[seen]).max() < 0.01
+
+
+def test_an_object_is_placed_where_each_gel_presses_as_its_own_contact_needs() -> None:
+    """A box's face toward one gel, a cylinder's side toward the other, held at 10 N: the world
+    presses the gel on the narrow side three times deeper. Placed by the grasp force, the
+    depth-maps are the gels' gaps on both sides (median within 10 um); placed so that both gels
+    reach equally far (a force of 0, the rule before), each is 0.14 mm off."""
+    box = {"name": "box", "primitive": {"box": [0.06, 0.04, 0.10]}, "pose": {"x_m": 0.0, "y_m": 0.02}}
+    cylinder = {"name": "cyl", "primitive": {"cylinder": [0.03, 0.12]}, "pose": {"x_m": 0.0, "y_m": -0.03}}
+    w = SimWorld(
+        parse_scene(
+            {
+                "workspace": {"min_m": [-0.35, -0.3, 0.0], "max_m": [0.35, 0.3, 0.5]},
+                "objects": [box, cylinder],
+                "cameras": [{"name": "top", "pose": {"position_m": [0, 0, 1.0], "look_at_m": [0, 0, 0]}}],
+            }
+        )
+    )
+    geometry, stiffness = w.scene.gripper_geometry(), w.scene.gripper.foundation_stiffness_n_per_mm3
+    params = DepthMapParams(shape=(60, 80), margin_m=0.002, y_range_m=(-0.005, 0.01), method="surface")
+    half_x, half_z, _, _ = crop_bounds(geometry, params)
+    tcp = grasp_to_tcp_pose(0.0, -0.01, 0.16 + 0.05, 0.0)
+    contact = w.grasp_contact(tcp, 10.0, size=(60, 80), extent_mm=(2e3 * half_z, 2e3 * half_x))
+    presses = {finger: contact.fingers[finger].indentation_mm for finger in ("left", "right")}
+    assert presses["left"] > 2.5 * presses["right"]  # the cylinder's side, the box's face
+    # The two surfaces the gels face, on a 0.1 mm grid: the box's face at y = 40 mm, the cylinder.
+    x, z = np.meshgrid(np.arange(-0.03, 0.03, 1e-4), np.arange(0.03, 0.07, 1e-4))
+    theta, zz = np.meshgrid(np.arange(0, 2 * np.pi, 1e-4 / 0.03), np.arange(0.03, 0.07, 1e-4))
+    model = np.concatenate(
+        [
+            np.column_stack([x.ravel(), np.full(x.size, 0.04), z.ravel()]),
+            np.column_stack([0.03 * np.cos(theta.ravel()), -0.03 + 0.03 * np.sin(theta.ravel()), zz.ravel()]),
+        ]
+    )
+    registered = np.eye(4)
+    registered[1, 3] = 0.004  # registered 4 mm off along the closing axis
+    gels = gel_poses_world(tcp, contact.width_m, geometry)
+    for force_n, within_mm in ((10.0, 0.01), (0.0, None)):
+        centred = centre_between_gels(model, registered, gels["left"], gels["right"], geometry, force_n, stiffness)
+        for finger in ("left", "right"):
+            gap_mm = contact.gap_mm[finger]
+            depth_mm = contact_depth_map(model, centred, gels[finger], geometry, params).depth_map_m * 1e3
+            error_mm = np.median(np.abs(depth_mm[gap_mm < 0] - gap_mm[gap_mm < 0]))
+            if within_mm is None:
+                assert error_mm > 0.1
+            else:
+                assert error_mm < within_mm

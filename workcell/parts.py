@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from workcell.kinematics import GRASP_FORCE_N
+
 RELIEF_KINDS = ("ridges", "knurling", "bumps")
 
 
@@ -68,6 +70,9 @@ class GripperSpec:
     gel_size_m: tuple[float, float] = (0.0186, 0.0249)  # along gel x, gel z
     elastomer_thickness_m: float = 0.002
     gel_youngs_modulus_mpa: float = 0.25
+    # The constant force the gripper closes every grasp with (N): the collector commands it, and
+    # the pipeline places the object between the gels by it (perception.gripper_centring).
+    grasp_force_n: float = GRASP_FORCE_N
 
     @property
     def foundation_stiffness_n_per_mm3(self) -> float:

@@ -411,6 +411,7 @@ _GRIPPER_KEYS = {
     "gel_size_mm": "",
     "elastomer_thickness_mm": "",
     "gel_youngs_modulus_mpa": "",
+    "grasp_force_n": "",
 }
 _GELSIGHT_KEYS = {"image_height": "", "image_width": "", "mm_per_px": "", "calibration_dir": ""}
 
@@ -434,6 +435,8 @@ def _parse_gripper(r: SceneReader, g: Any, s: Any) -> tuple[GripperSpec, GelSigh
         spec.gel_youngs_modulus_mpa = r.number(
             g["gel_youngs_modulus_mpa"], "gripper.gel_youngs_modulus_mpa", 0.01, 10.0, "MPa"
         )
+    if "grasp_force_n" in g:
+        spec.grasp_force_n = r.number(g["grasp_force_n"], "gripper.grasp_force_n", 0.5, 200.0, "N")
     s = r.mapping(s or {}, "gelsight", _GELSIGHT_KEYS)
     gs = GelSightSpec()
     if "image_height" in s:
