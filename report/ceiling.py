@@ -35,7 +35,7 @@ from models.data import select_records
 from models.evaluate import SUMMARY_KEYS, per_object_statistics, ssim_statistics
 from sim.gelsight import GelSightRenderError, render_depth_maps, scene_renderer
 from sim.world import SimWorld
-from workcell.kinematics import GRASP_FORCE_N, grasp_to_tcp_pose
+from workcell.kinematics import grasp_to_tcp_pose
 from workcell.scene import Scene, SceneError, load_scene
 
 # Below this SSIM the "true contact" rung does not reproduce the session's images: the session
@@ -92,14 +92,15 @@ def _scored(truth: np.ndarray, estimate: np.ndarray, objects: list[str], seed: i
 def information_ceiling(
     root: str | os.PathLike[str],
     split: str = "test",
-    force_n: float = GRASP_FORCE_N,
+    force_n: float | None = None,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """The three reference estimates of the module docstring for one split of a simulated
     session, each scored against the session's images like a model (``seed``: the
-    baseline's random draws), overall and per object."""
-    if not (np.isfinite(force_n) and force_n > 0):
+    baseline's random draws), overall and per object; the grasps closed with ``force_n`` (N;
+    None: the scene's ``gripper.grasp_force_n``, which the collector commands)."""
+    if force_n is not None and not (np.isfinite(force_n) and force_n > 0):
         raise CeilingError(f"force_n must be a positive number of newtons, got {force_n}")
     reader = DatasetReader(root)
     records = reader.records if split == "all" else select_records(reader, split)
@@ -109,6 +110,7 @@ def information_ceiling(
         scene = load_scene(reader.info.scene)
     except SceneError as exc:
         raise CeilingError(f"{root} names the scene {reader.info.scene!r}, which cannot be loaded: {exc}") from exc
+    force_n = scene.gripper.grasp_force_n if force_n is None else force_n
     if reader.info.depth_crop_m is None:
         raise CeilingError(f"{root} does not record its depth-maps' crop (dataset.json depth_crop_m)")
     samples = [reader.load(r) for r in records]

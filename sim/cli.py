@@ -53,8 +53,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         "--force-n",
         type=float,
         default=None,
-        help="grasp force of the session in N (a dataset does not record it; default: the "
-        "collector's, workcell.kinematics.GRASP_FORCE_N)",
+        help="grasp force of the session in N (default: its scene's gripper.grasp_force_n, which the "
+        "collector commands)",
     )
     ceiling.add_argument("--seed", type=int, default=0, help="seed of the baseline's random draws (default 0)")
     ceiling.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -94,14 +94,12 @@ def information_ceiling(args: argparse.Namespace) -> int:
     from models.errors import ModelConfigError
     from report.ceiling import CeilingError, format_table
     from report.ceiling import information_ceiling as ceiling
-    from workcell.kinematics import GRASP_FORCE_N
 
-    force_n = GRASP_FORCE_N if args.force_n is None else args.force_n
     try:
         result = ceiling(
             args.dataset,
             args.split,
-            force_n,
+            args.force_n,
             args.seed,
             progress=lambda line: print(f"ceiling: {line}", file=sys.stderr, flush=True),
         )

@@ -31,7 +31,8 @@ class KinematicsError(ValueError):
 # rounding of composed transforms stays ~1e-15; a matrix off by more was not built as a rotation.
 ROTATION_TOLERANCE = 1e-6
 
-# The constant contact force every grasp of a collection closes with (Algorithm 1), in N.
+# The constant contact force every grasp of a collection closes with (Algorithm 1), in N: a
+# scene's gripper.grasp_force_n unless it says otherwise (workcell.parts.GripperSpec).
 GRASP_FORCE_N = 10.0
 
 # Tool z pointing down at the table: a half turn about world x (tool x = world x).
