@@ -43,7 +43,7 @@ def _chunk_bins(
     z_edges: np.ndarray,
     flat: np.ndarray,
 ) -> None:
-    """flat[i] = the bin row * cols + col of each of the first ``count`` (<= _CHUNK) points, all
+    """flat[i] = the bin row * cols + col of each of the first ``count`` points, all
     inside the crop (one outside lands in an edge bin, never out of bounds). The scaled floor is
     exact unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds
     keeps bins wide): only chunks holding such a value are compared with the edge arrays, which
@@ -146,20 +146,23 @@ def cut_kernel(
     min-reduces by bin (benchmarks/perception.py measures both). Arithmetic is float64 (the
     transform composed in float64), so nothing is lost far from the origin; no branch compacts."""
     half_x, half_z, y_near, y_far = bounds[0], bounds[1], bounds[2], bounds[3]
-    kept_x, kept_z, kept_y = np.empty(_CHUNK), np.empty(_CHUNK), np.empty(_CHUNK)
+    # Room for a chunk past a batch not yet binned: the points in the crop are binned _CHUNK or
+    # more at a time (a whole cloud's chunks keep a few points each, and each binning call
+    # passes ten arrays: the kernel of a grasp's cut of a 1.5 M point cloud 4.2 -> 3.8 ms, the
+    # nearest point's 3.7).
+    kept_x, kept_z, kept_y = np.empty(2 * _CHUNK), np.empty(2 * _CHUNK), np.empty(2 * _CHUNK)
     kept = (kept_y, kept_x, kept_z, kept_x.view(np.int64), kept_z.view(np.int64))
     at_x_bits, at_z_bits = at_x.view(np.int64), at_z.view(np.int64)
-    flat = np.empty(_CHUNK, np.int64)
+    flat = np.empty(2 * _CHUNK, np.int64)
     for k in range(model_to_gel.shape[0]):
         # In locals: the compiler cannot prove the stores below leave the transform alone.
         xx, xy, xz, xt = model_to_gel[k, 0, 0], model_to_gel[k, 0, 1], model_to_gel[k, 0, 2], model_to_gel[k, 0, 3]
         yx, yy, yz, yt = model_to_gel[k, 1, 0], model_to_gel[k, 1, 1], model_to_gel[k, 1, 2], model_to_gel[k, 1, 3]
         zx, zy, zz, zt = model_to_gel[k, 2, 0], model_to_gel[k, 2, 1], model_to_gel[k, 2, 2], model_to_gel[k, 2, 3]
         front = (min_y[k], at_x[k], at_z[k], at_x_bits[k], at_z_bits[k])
-        in_crop = 0
+        in_crop, m = 0, 0
         for run in range(runs[k], runs[k + 1]):
             for start in range(starts[run], ends[run], _CHUNK):
-                m = 0
                 for i in range(start, min(start + _CHUNK, ends[run])):
                     px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
                     y = yx * px + yy * py + yz * pz + yt
@@ -167,13 +170,31 @@ def cut_kernel(
                     z = zx * px + zy * py + zz * pz + zt
                     kept_x[m], kept_z[m], kept_y[m] = x, z, y
                     m += (y >= y_near) & (y <= y_far) & (abs(x) <= half_x) & (abs(z) <= half_z)
-                in_crop += m
-                _chunk_bins(kept_x, kept_z, m, half_x, half_z, x_edges, z_edges, flat)
-                if places:
-                    _keep_front_points(kept, m, flat, front)
-                else:
-                    _keep_least_y(kept_y, m, flat, front[0])
-        counts[k] = in_crop
+                if m >= _CHUNK:
+                    _bin_kept(kept, m, bounds, x_edges, z_edges, flat, front, places)
+                    in_crop, m = in_crop + m, 0
+        _bin_kept(kept, m, bounds, x_edges, z_edges, flat, front, places)
+        counts[k] = in_crop + m
+
+
+@numba.njit(cache=True, nogil=True)
+def _bin_kept(
+    kept: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    count: int,
+    bounds: np.ndarray,
+    x_edges: np.ndarray,
+    z_edges: np.ndarray,
+    flat: np.ndarray,
+    front: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    places: bool,
+) -> None:
+    """The first ``count`` points of ``kept`` (:func:`_keep_front_points`) binned into ``front``:
+    each bin's least y and, with ``places``, that point's x and z."""
+    _chunk_bins(kept[1], kept[2], count, bounds[0], bounds[1], x_edges, z_edges, flat)
+    if places:
+        _keep_front_points(kept, count, flat, front)
+    else:
+        _keep_least_y(kept[0], count, flat, front[0])
 
 
 def bin_edges(half_m: float, count: int) -> np.ndarray:
