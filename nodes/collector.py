@@ -327,15 +327,11 @@ class CollectorNode(Node):
             arrived = self.arm_to(tcp)
         with self.stage("close"):
             self.grip_seen_ns = 0
-            held = self.gripper.call(
-                msgs.GripperCommand(
-                    action="grasp",
-                    width_m=nominal_width_m,
-                    speed_m_s=p.gripper_speed_m_s,
-                    force_n=self.scene.gripper.grasp_force_n,
-                ),
-                timeout_s=p.call_timeout_s,
+            force_n = self.scene.gripper.grasp_force_n
+            grasp = msgs.GripperCommand(
+                action="grasp", width_m=nominal_width_m, speed_m_s=p.gripper_speed_m_s, force_n=force_n
             )
+            held = self.gripper.call(grasp, timeout_s=p.call_timeout_s)
         if held.state != "holding":
             raise GraspFailed(f"fingers found nothing ({held.state})")
         # Asked for as the fingers hold, the depth-maps are cut while the gels settle.
