@@ -12,9 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# Points are binned in chunks of this many: the bin indices of a chunk are computed without a
-# branch, and the rare chunk holding a value within rounding of a bin edge is binned again by
-# comparing with the edges (a branch per point, even never taken, made the loop 4x slower).
+# Points are transformed in chunks of this many and binned in batches of at least this many
+# (cut_kernel): the bin indices of a batch are computed without a branch, and the rare batch
+# holding a value within rounding of a bin edge is binned again by comparing with the edges (a
+# branch per point, even never taken, made the loop 4x slower).
 _CHUNK = 256
 
 
@@ -46,7 +47,7 @@ def _chunk_bins(
     """flat[i] = the bin row * cols + col of each of the first ``count`` points, all
     inside the crop (one outside lands in an edge bin, never out of bounds). The scaled floor is
     exact unless a value lies within 1e-6 bin of an edge (rounding is < 1e-9 bin as crop_bounds
-    keeps bins wide): only chunks holding such a value are compared with the edge arrays, which
+    keeps bins wide): only batches holding such a value are compared with the edge arrays, which
     keeps the rule exact at full speed."""
     cols, rows = x_edges.shape[0] - 1, z_edges.shape[0] - 1
     scale_x, scale_z = cols / (2.0 * half_x), rows / (2.0 * half_z)

@@ -9,8 +9,9 @@ own. The patch extractor and ``dtx dataset redepth`` move the registered pose th
 cutting the gels' depth-maps (perception.depthmap).
 
 Placing the object so that both gels reach equally far into it (the rule before, the same as a
-grasp force of 0 here) put each gel up to 0.3 mm off on the demo session, where the bottle's
-and the box's edges press 2 mm against a face's 0.2 (docs/measurements.md, issue 50)."""
+grasp force of 0 here) put each gel 0.06-0.12 mm off at the median on the demo session, 0.3-0.4
+at p90, where the bottle's and the box's edges press 2 mm against a face's 0.2
+(docs/measurements.md, issue 50)."""
 
 from __future__ import annotations
 
