@@ -21,12 +21,8 @@ from perception.binning import min_y_per_bin
 from perception.depthmap import points_for_kernel
 from perception.errors import DepthMapError
 from perception.pointcloud import check_transform
-from workcell.compliance import indentation_for_force_mm
+from workcell.compliance import contact_grid_shape, indentation_for_force_mm
 from workcell.kinematics import GripperGeometry
-
-# The cells (mm) of a gel's face whose nearest model point is its gap: the simulated world's
-# contact grid (sim.grasp_contact), a few of the model cloud's 0.1 mm samples each.
-FACE_CELL_MM = 0.3
 
 
 def centre_between_gels(
@@ -41,7 +37,8 @@ def centre_between_gels(
     """``model_to_world`` moved along the closing axis to where the grasp holds the model.
 
     The gripper width fixes the sum of the two gels' presses; the grasp force splits it. Each
-    gel's gaps (the least gel y of the model points over a FACE_CELL_MM grid of its whole face)
+    gel's gaps (the least gel y of the model points over each cell of its face's contact grid,
+    workcell.compliance.contact_grid_shape: a few of the model cloud's 0.1 mm samples a cell)
     give its first touch and the press that carries ``grasp_force_n`` on a gel of
     ``stiffness_n_per_mm3`` (workcell.compliance; at most the elastomer's thickness), and the
     model moves so that the two presses differ by as much. Nothing moves across the gels. When
@@ -53,9 +50,7 @@ def centre_between_gels(
         raise DepthMapError(f"stiffness_n_per_mm3 must be a finite positive number, got {stiffness_n_per_mm3!r}")
     points = points_for_kernel(points_model_m).astype(np.float64, copy=False)
     model_pose = check_transform(model_to_world, "model_to_world")
-    cells_x, cells_z = (max(2, round(extent_m * 1e3 / FACE_CELL_MM)) for extent_m in geometry.gel_size_m)
-    shape = (cells_z, cells_x)
-    cell_area_mm2 = geometry.gel_size_m[0] * geometry.gel_size_m[1] * 1e6 / (shape[0] * shape[1])
+    shape, cell_area_mm2 = contact_grid_shape(geometry.gel_size_m)
     # Each gel's first-touch gap plus its press (mm): the shift makes the two equal, as it made
     # the two first touches equal before (the presses' difference is split between the gels).
     touch_and_press_mm = []

@@ -28,15 +28,13 @@ import open3d as o3d
 import open3d.core as o3c
 
 from sim.meshes import SceneObjects
-from workcell.compliance import indentation_for_force_mm
+from workcell.compliance import contact_grid_shape, indentation_for_force_mm
 from workcell.kinematics import gel_poses_world
 from workcell.scene import Scene
 
 # How far behind the gel plane gap-map rays start (mm): surfaces up to this deep in the gel
 # are still measured.
 _BACK_OFF_MM = 5.0
-# Grid spacing (mm) over the gel area used to find the first touch and the force balance.
-_CONTACT_GRID_MM = 0.3
 # Open3D tensors are made on the CPU with the dtype of the array they copy.
 _CPU = o3c.Device("CPU:0")
 
@@ -170,15 +168,6 @@ class GelContact:
         gap[inside] = -_BACK_OFF_MM - indentation_mm
         return gap.reshape(int(size[0]), int(size[1])).astype(np.float32)
 
-    def solve_indentation(self, gaps_mm: np.ndarray, cell_area_mm2: float, force_n: float) -> tuple[float, float, bool]:
-        """Rigid approach d (mm) of the object into this scene's gel at ``force_n``
-        (workcell.compliance.indentation_for_force_mm). Returns (d, contact area mm^2,
-        saturated: d hit the elastomer thickness)."""
-        gripper = self.scene.gripper
-        return indentation_for_force_mm(
-            gaps_mm, cell_area_mm2, force_n, gripper.foundation_stiffness_n_per_mm3, gripper.elastomer_thickness_m * 1e3
-        )
-
     def grasp_contact(
         self,
         tcp_pose_world: np.ndarray,
@@ -220,11 +209,10 @@ class GelContact:
     def _contact_grid(self) -> tuple[np.ndarray, np.ndarray, float]:
         """(x, z, cell area mm^2): the grid over the whole gel that finds the first touch and
         balances the force."""
-        gr = self.scene.gripper
-        gx, gz = gr.gel_size_m[0] * 1e3, gr.gel_size_m[1] * 1e3
-        nx, nz = max(2, int(round(gx / _CONTACT_GRID_MM))), max(2, int(round(gz / _CONTACT_GRID_MM)))
-        x, z = gel_grid((nz, nx), (gz, gx))
-        return x, z, (gx / nx) * (gz / nz)
+        gel_size_m = self.scene.gripper.gel_size_m
+        shape, cell_area_mm2 = contact_grid_shape(gel_size_m)
+        x, z = gel_grid(shape, (gel_size_m[1] * 1e3, gel_size_m[0] * 1e3))
+        return x, z, cell_area_mm2
 
     def _close_finger(
         self, finger: str, open_pose: np.ndarray, force_n: float, grid: tuple[np.ndarray, np.ndarray, float]
@@ -242,7 +230,14 @@ class GelContact:
         else:
             travel = float(t[reach].min())
             gap_local = np.where(front, (t - travel) * 1e3, np.inf)
-            d, area, sat = self.solve_indentation(gap_local, cell_area, force_n)
+            gripper = self.scene.gripper
+            d, area, sat = indentation_for_force_mm(
+                gap_local,
+                cell_area,
+                force_n,
+                gripper.foundation_stiffness_n_per_mm3,
+                gripper.elastomer_thickness_m * 1e3,
+            )
             in_contact = True
         # after the first touch the finger keeps closing by d while the gel compresses
         travel = min(travel + d * 1e-3, max_travel) if in_contact else travel

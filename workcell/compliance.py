@@ -12,6 +12,18 @@ from __future__ import annotations
 
 import numpy as np
 
+# Spacing (mm) of the grid over a gel's face on which the first touch and the force balance are
+# found, by the simulated world and by the pipeline alike.
+CONTACT_GRID_MM = 0.3
+
+
+def contact_grid_shape(gel_size_m: tuple[float, float]) -> tuple[tuple[int, int], float]:
+    """((rows along gel z, cols along gel x), cell area mm²) of the CONTACT_GRID_MM grid over a
+    gel face of ``gel_size_m`` (extent along gel x, gel z)."""
+    x_mm, z_mm = gel_size_m[0] * 1e3, gel_size_m[1] * 1e3
+    cols, rows = max(2, round(x_mm / CONTACT_GRID_MM)), max(2, round(z_mm / CONTACT_GRID_MM))
+    return (rows, cols), (x_mm / cols) * (z_mm / rows)
+
 
 def indentation_for_force_mm(
     gaps_mm: np.ndarray, cell_area_mm2: float, force_n: float, stiffness_n_per_mm3: float, thickness_mm: float
