@@ -417,11 +417,9 @@ class InferenceNode(Node):
             return torch.cat([inputs(part) for part in parts])
         threads = self.split.input_threads
         chunks = [(chunk, s) for m, s in parts for chunk in np.array_split(m, min(threads, len(m)))]
-        if len(chunks) == 1:
-            return inputs(chunks[0])
-        if self.split.input_in_lanes:
-            return torch.cat([inputs(chunk) for chunk in chunks])
-        return torch.cat(list(self._prior_pool.map(inputs, chunks)))
+        # A lane draws its own pass on its thread: the pool's one thread would serialise the lanes.
+        drawn = [inputs(c) for c in chunks] if threads == 1 else list(self._prior_pool.map(inputs, chunks))
+        return drawn[0] if len(drawn) == 1 else torch.cat(drawn)
 
     def _regions_of(
         self, request: TactileEstimateRequest, held: _KeptCloud | None
