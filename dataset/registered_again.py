@@ -3,10 +3,13 @@
 touches, which the extractor, registering before the first grasp, could not use:
 
 1. a turn of a near-symmetric object that the cameras cannot tell from the registered one (a
-   box or a bottle turned half round) is offered to the touches, which can tell (:class:`TurnJudge`);
+   box or a bottle turned half round, a can turned any way about its axis) is offered to the
+   touches, whose frames can tell (:class:`TurnJudge`);
 2. each object's place and turn on the table is fitted to its training touches and the cameras'
    points together (``dataset.touch_calibration.fit_cell``, the calibration's own fit), with the
-   cameras as calibrated.
+   cameras as calibrated;
+3. its turn is then set to the fraction of a degree its frames prefer (``TurnJudge.refined``):
+   the touches' places hold a can's turn about its axis to a degree only.
 
 On the demo session, with cameras calibrated from 400 touches an object, the registration took
 the gelatin box and the can half a turn wrong (the box's mesh turned half round lies 0.6 mm from
@@ -40,7 +43,7 @@ from dataset.touch_calibration import (
     offsets_cameras,
     registration_frames,
 )
-from dataset.touches import touch_measure
+from dataset.touches import touch_fitter
 from dataset.turns import TurnJudge, segmented_objects, turns_alike
 from drivers.depth_camera.base import DepthCameraError, load_calibration_of
 from msgs import strict_json
@@ -81,23 +84,24 @@ def register_again(
     reader = DatasetReader(session)
     scene = load_scene(reader.info.scene)
     train = split_records(reader.records, reader.info.split_seed)["train"]
+    registered = {}
+    if not by_touches:
+        for name, prepared, points in segmented_objects(reader, scene, depth_images_to_world(frames)):
+            registered[name] = register_model(prepared, points, seed=reader.info.split_seed).model_to_world
+        return registered
     with contextlib.ExitStack() as processes:
-        judge = TurnJudge(reader, train, touch_measure(processes, reader, jobs)) if by_touches else None
-        registered = {}
+        fitter = touch_fitter(processes, reader, jobs)
+        judge = TurnJudge(reader, train, fitter.residuals)
         for name, prepared, points in segmented_objects(reader, scene, depth_images_to_world(frames)):
             pose = register_model(prepared, points, seed=reader.info.split_seed).model_to_world
-            registered[name] = (
-                pose if judge is None else judge.choose(name, [pose, *turns_alike(prepared, points, pose)])
-            )
-        if judge is None:
-            return registered
+            registered[name] = judge.choose(name, [pose, *turns_alike(prepared, points, pose)])
         views = {f.header.frame_id: camera_views([f], scene, registered)[1] for f in frames}
         try:
-            cell, _, _ = fit_cell(reader, judge.measure, train, registered, views, PLACING_TOUCHES_PER_OBJECT)
+            cell, _, _ = fit_cell(reader, fitter.touches, train, registered, views, PLACING_TOUCHES_PER_OBJECT)
         except TouchCalibrationError as err:
             warnings.warn(f"the objects keep their registered places: {err}", stacklevel=2)
             return registered
-    return cell.objects
+        return {name: judge.refined(name, pose) for name, pose in cell.objects.items()}
 
 
 # What ``dtx calibrate touches`` writes beside the cameras: the objects of the session it was

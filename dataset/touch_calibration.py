@@ -4,12 +4,13 @@ A collected sample holds a touch: the gel's pose from the arm (``gel_to_world``)
 image, and the depth-map cut from the object's registered pose (``model_to_world``). The
 GelSight renderer draws what that depth-map predicts, moved over a grid of places and depths
 (``dataset.touches``); where the frame shows the contact elsewhere in the gel plane, the
-registration is off. A near-symmetric object registered half a turn wrong is first turned the
-way its touches prefer (``dataset.turns``). Each camera's frames of the session (``/perception/registration_frames``
-in the session's bag) level it on the table, and one fit of every camera's and object's place
-and turn on the table to the touches and the cameras' points (``perception.touch_calibration``)
-gives each camera's true extrinsic; a second round reads the touches again against the fitted
-objects.
+registration is off. A near-symmetric object registered half a turn wrong (a can, any turn
+about its axis) is first turned the way its touches' frames prefer (``dataset.turns``). Each
+camera's frames of the session (``/perception/registration_frames`` in the session's bag) level
+it on the table, and one fit of every camera's and object's place and turn on the table to the
+touches and the cameras' points (``perception.touch_calibration``) gives each camera's true
+extrinsic; a second round reads the touches again against the fitted objects, and each object's
+turn is last set to the fraction of a degree its frames prefer (``TurnJudge.refined``).
 
 Only the training split's touches are used, so an evaluation on the session's test split stays
 honest. The result is a calibration directory of ``camera_<name>.yaml`` files in the layout of
@@ -36,7 +37,7 @@ from dataset.reader import DatasetReader
 from dataset.records import DatasetError, SampleRecord
 from dataset.redepth import depth_map_params
 from dataset.splits import split_records
-from dataset.touches import measure_session_touches, touch_measure
+from dataset.touches import measure_session_touches, touch_fitter
 from dataset.turns import TurnJudge, segmented_objects, turns_alike
 from perception.pointcloud import depth_images_to_world, depth_to_points_camera, transform_points
 from perception.registration import sample_model_cloud
@@ -182,13 +183,17 @@ def calibrate_touches(session: str | os.PathLike[str], grasps: int | None = None
         )
     frames = registration_frames(session)
     with contextlib.ExitStack() as processes:
-        measure = touch_measure(processes, reader, jobs)
+        fitter = touch_fitter(processes, reader, jobs)
         newest = [f[-1] for f in frames.values()]
-        predicted = _turns_chosen(reader, scene, train, newest, TurnJudge(reader, train, measure))
+        judge = TurnJudge(reader, train, fitter.residuals)
+        predicted = _turns_chosen(reader, scene, train, newest, judge)
         levelling, views = {}, {}
         for frame_id, camera_frames in sorted(frames.items()):
             levelling[frame_id], views[frame_id] = camera_views(camera_frames[-3:], scene, predicted)
-        cell, touches, no_contact = fit_cell(reader, measure, train, predicted, views, CALIBRATION_TOUCHES_PER_OBJECT)
+        cell, touches, no_contact = fit_cell(
+            reader, fitter.touches, train, predicted, views, CALIBRATION_TOUCHES_PER_OBJECT
+        )
+        cell = dataclasses.replace(cell, objects={n: judge.refined(n, pose) for n, pose in cell.objects.items()})
     corrections = {c: cell.cameras[c] @ levelling[c] for c in frames}
     calibrated = {
         c: dataclasses.replace(frames[c][-1], camera_to_world=corrections[c] @ frames[c][-1].camera_to_world)

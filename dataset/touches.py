@@ -14,7 +14,8 @@ import dataclasses
 import multiprocessing
 import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any
 
 import numpy as np
 
@@ -36,6 +37,9 @@ SEARCH = (
 )
 # A frame whose change from the background stays below this (levels) shows no contact.
 MIN_CONTACT_LEVELS = 8.0
+# The depths (mm, along the gel normal) a pose's prediction of a frame is drawn at before the
+# two are compared: how deep the grasp force pressed each gel is known to about 0.1 mm.
+RESIDUAL_DEPTHS_MM = np.arange(-3, 4) * 0.05
 
 
 class TouchRenderer:
@@ -45,6 +49,7 @@ class TouchRenderer:
 
     def __init__(self, reader: DatasetReader, scene: Scene) -> None:
         self.reader = reader
+        self.cut_params = depth_map_params(reader)[0]
         # A touch is placed by where its contact is: the nearest point of each bin keeps an edge
         # narrower than a bin in contact, where the surface at the bin centres can miss it (on the
         # demo session 347 of the training touches went unplaced that way against 328).
@@ -74,6 +79,27 @@ class TouchRenderer:
             out[i] = ((changes - frame) ** 2).sum(axis=(1, 2, 3))
         return out.reshape(len(cuts), *(len(g) for g in grid))
 
+    def residuals(self, records: list[SampleRecord]) -> np.ndarray:
+        """Each record's frame against the renderer's image of the depth-map the dataset would
+        hold with the object at the record's ``model_to_gel``, at the best of
+        :data:`RESIDUAL_DEPTHS_MM`: the sum of squared differences (levels²), how far the pose
+        predicts what the gel felt, its place in the gel plane included."""
+        if not records:
+            return np.zeros(0)
+        cuts = [
+            depth_map_again(
+                model_index(self.scene, r.object_name), np.array(r.model_to_gel), self.geometry, self.cut_params
+            )
+            for r in records
+        ]
+        frames = np.stack([self._frame(r) for r in records])
+        grid = (np.zeros(1), np.zeros(1), RESIDUAL_DEPTHS_MM)
+        return self._ssd(cuts, frames, np.zeros((len(records), 3)), grid).reshape(len(records), -1).min(axis=1)
+
+    def _frame(self, record: SampleRecord) -> np.ndarray:
+        """A record's tactile change image, levels about no change (H x W x 3, float32)."""
+        return self.reader.load(record).tactile_diff_rgb.astype(np.float32) - 128.0
+
     def touches(self, records: list[SampleRecord]) -> list[TouchOffset | None]:
         """Each record's touch against the prediction cut with the object at the record's
         ``model_to_gel`` (:func:`records_cut_at`); None where the frame shows no contact, or the
@@ -83,7 +109,7 @@ class TouchRenderer:
         for i, record in enumerate(records):
             model_to_gel = np.array(record.model_to_gel)
             cut = depth_map_again(model_index(self.scene, record.object_name), model_to_gel, self.geometry, self.params)
-            frame = self.reader.load(record).tactile_diff_rgb.astype(np.float32) - 128.0
+            frame = self._frame(record)
             weight = np.abs(self._cut_change(cut)).sum(axis=2)
             if float(np.abs(frame).max()) >= MIN_CONTACT_LEVELS and weight.sum() > 0:
                 placed.append(i)
@@ -170,8 +196,9 @@ def measure_session_touches(
 
 
 class TouchPool:
-    """``TouchRenderer.touches`` shared out among ``jobs`` processes, each with a renderer of
-    its own: every touch is fitted alone, so the result is the same as in one process."""
+    """``TouchRenderer.touches`` and ``.residuals`` shared out among ``jobs`` processes, each
+    with a renderer of its own: every touch is fitted alone, so the result is the same as in one
+    process."""
 
     def __init__(self, session: str | os.PathLike[str], jobs: int) -> None:
         self.jobs = jobs
@@ -186,11 +213,19 @@ class TouchPool:
         self.pool.shutdown()
 
     def touches(self, records: list[SampleRecord]) -> list[TouchOffset | None]:
-        shares = [self.pool.submit(_touches_here, records[i :: self.jobs]) for i in range(self.jobs)]
         found: list[TouchOffset | None] = [None] * len(records)
-        for i, share in enumerate(shares):
+        for i, share in enumerate(self._shares(_touches_here, records)):
             found[i :: self.jobs] = share.result()
         return found
+
+    def residuals(self, records: list[SampleRecord]) -> np.ndarray:
+        found = np.zeros(len(records))
+        for i, share in enumerate(self._shares(_residuals_here, records)):
+            found[i :: self.jobs] = share.result()
+        return found
+
+    def _shares(self, work: Callable[[list[SampleRecord]], Any], records: list[SampleRecord]) -> list[Future[Any]]:
+        return [self.pool.submit(work, records[i :: self.jobs]) for i in range(self.jobs)]
 
 
 _RENDERER: TouchRenderer | None = None  # a TouchPool process's own
@@ -202,16 +237,19 @@ def _start_renderer(session: str | os.PathLike[str]) -> None:
     _RENDERER = TouchRenderer(reader, load_scene(reader.info.scene))
 
 
-def touch_measure(
-    processes: contextlib.ExitStack, reader: DatasetReader, jobs: int
-) -> Callable[[list[SampleRecord]], list[TouchOffset | None]]:
-    """A ``TouchRenderer.touches`` of ``reader``'s session, or with ``jobs`` > 1 a
-    ``TouchPool.touches`` whose processes ``processes`` shuts down."""
+def touch_fitter(processes: contextlib.ExitStack, reader: DatasetReader, jobs: int) -> TouchRenderer | TouchPool:
+    """A ``TouchRenderer`` of ``reader``'s session, or with ``jobs`` > 1 a ``TouchPool`` whose
+    processes ``processes`` shuts down."""
     if jobs > 1:
-        return processes.enter_context(TouchPool(reader.root, jobs)).touches
-    return TouchRenderer(reader, load_scene(reader.info.scene)).touches
+        return processes.enter_context(TouchPool(reader.root, jobs))
+    return TouchRenderer(reader, load_scene(reader.info.scene))
 
 
 def _touches_here(records: list[SampleRecord]) -> list[TouchOffset | None]:
     assert _RENDERER is not None  # set by the pool's initializer
     return _RENDERER.touches(records)
+
+
+def _residuals_here(records: list[SampleRecord]) -> np.ndarray:
+    assert _RENDERER is not None  # set by the pool's initializer
+    return _RENDERER.residuals(records)

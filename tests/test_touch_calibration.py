@@ -358,14 +358,41 @@ def test_the_touches_choose_an_objects_true_turn_over_its_half_turn(short_sessio
     half_turn = planar_transform(np.pi, *(1e3 * (centre_world[:2] - [[-1, 0], [0, -1]] @ centre_world[:2])))
     turned = half_turn @ truth
     train = split_records(reader.records, reader.info.split_seed)["train"]
-    judge = TurnJudge(reader, train, TouchRenderer(reader, scene).touches)
+    judge = TurnJudge(reader, train, TouchRenderer(reader, scene).residuals)
     np.testing.assert_array_equal(judge.choose(name, [turned, truth]), truth)
     np.testing.assert_array_equal(judge.choose(name, [truth, turned]), truth)
     np.testing.assert_array_equal(judge.choose(name, [truth]), truth)
 
 
-def test_touches_fitted_in_two_processes_are_those_fitted_in_one(short_session: Path) -> None:
-    """``--jobs``: every touch is fitted alone, so sharing them out changes nothing."""
+def test_the_frames_choose_a_cans_turn_about_its_axis(short_session: Path) -> None:
+    """A can looks alike to the cameras at every turn about its axis; its side, a few tenths of a
+    millimetre out of round, is what its frames tell the turns apart by: a quarter turn loses to
+    the true one, and a placed can 1.5 deg off is turned back to within 0.5 deg (from the ten
+    grasps of this session; 0.04 deg on the demo session)."""
+    from dataset.reader import DatasetReader
+    from dataset.redepth import model_cloud
+    from dataset.splits import split_records
+    from dataset.touches import TouchRenderer
+    from dataset.turns import TurnJudge, turned_about_vertical
+    from perception.touch_calibration import pose_error
+    from sim.world import SimWorld
+    from workcell.scene import load_scene
+
+    reader = DatasetReader(short_session)
+    scene = load_scene(reader.info.scene)
+    name = "master_chef_can"
+    truth = SimWorld(scene).object_to_world[[o.name for o in scene.objects].index(name)]
+    centre = truth[:3, :3] @ model_cloud(scene, name).mean(axis=0) + truth[:3, 3]
+    train = split_records(reader.records, reader.info.split_seed)["train"]
+    judge = TurnJudge(reader, train, TouchRenderer(reader, scene).residuals)
+    quarter_turn = turned_about_vertical(truth, centre, 0.5 * np.pi)
+    np.testing.assert_array_equal(judge.choose(name, [quarter_turn, truth]), truth)
+    refined = judge.refined(name, turned_about_vertical(truth, centre, np.radians(1.5)))
+    assert pose_error(refined, truth)[1] < 0.5
+
+
+def test_touches_fitted_and_drawn_in_two_processes_are_those_of_one(short_session: Path) -> None:
+    """``--jobs``: every touch is fitted and drawn alone, so sharing them out changes nothing."""
     from dataset.reader import DatasetReader
     from dataset.redepth import depth_map_params
     from dataset.touches import TouchPool, TouchRenderer, records_cut_at
@@ -376,9 +403,12 @@ def test_touches_fitted_in_two_processes_are_those_fitted_in_one(short_session: 
     records = [r for r in reader.records if r.object_name == name]
     moved = planar_transform(0.002, 0.4, -0.3) @ np.array(records[0].model_to_world)
     records = records_cut_at(records, {name: moved}, scene, params)
-    alone = TouchRenderer(reader, scene).touches(records)
+    renderer = TouchRenderer(reader, scene)
+    alone, alone_residuals = renderer.touches(records), renderer.residuals(records)
     with TouchPool(short_session, 2) as pool:
-        shared = pool.touches(records)
+        shared, shared_residuals = pool.touches(records), pool.residuals(records)
+    np.testing.assert_array_equal(shared_residuals, alone_residuals)
+    assert alone_residuals.shape == (len(records),) and (alone_residuals > 0).all()
     assert any(t is not None for t in alone)
     assert [t is None for t in shared] == [t is None for t in alone]
     for a, b in zip(alone, shared):
