@@ -831,3 +831,68 @@ def test_the_cuda_pass_cuts_the_same_surface_maps():
     )
     np.testing.assert_array_equal(on_cuda.depth_maps_m, on_cpu.depth_maps_m)
     np.testing.assert_array_equal(on_cuda.occupied, on_cpu.occupied)
+
+
+# --- level 0's fast path against the bin-by-bin path ----------------------------------------------
+
+
+def bin_by_bin_surface_map(samples, centres, bounds):
+    """perception.surface._surface_map with every bin answered by _plane_at, level 0's fast path
+    (_occupied_planes) left out: the reference the fast path keeps."""
+    from perception.surface import _answer_level, _knit, _pooled
+
+    (sy, _, _), (x_centres, z_centres) = samples, centres
+    rows, cols = sy.shape
+    bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
+    out, known = np.full(sy.shape, bounds[1]), np.zeros(sy.shape, bool)
+    level_samples, unknown, knit_level, level = samples, rows * cols, -1, 0
+    while unknown and (knit_level < 0 or level <= knit_level + 1):
+        if level > 0:
+            if level_samples[0].shape == (1, 1):
+                break
+            level_samples = _pooled(*level_samples)
+        if knit_level < 0 and _knit(level_samples[0]):
+            knit_level = level
+        tolerance = (bin_size if bin_size > 0.0 else 1.0) * (1 << level)
+        unknown -= _answer_level(level_samples, level, sy, centres, tolerance, bounds, out, known)
+        level += 1
+    return out, known
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    shape=st.tuples(st.integers(1, 30), st.integers(1, 30)),
+    occupancy=st.sampled_from([0.3, 0.7, 0.9, 1.0]),
+    slopes=st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0)),
+    curvature=st.floats(-200.0, 200.0),
+    step_m=st.sampled_from([0.0, 2e-4, 3e-3]),
+    noise_m=st.sampled_from([0.0, 2e-5, 1e-4]),
+    outline=st.tuples(st.floats(0.0, 2 * np.pi), st.floats(-1.0, 1.5)),
+)
+def test_property_level_0s_fast_path_answers_every_bin_as_the_bin_by_bin_path(
+    seed, shape, occupancy, slopes, curvature, step_m, noise_m, outline
+):
+    """Samples anywhere in their bins of a tilted, curved surface with a step and noise, bins left
+    empty at random (sampling gaps, lone bins) and beyond a straight outline (the surface's edge):
+    the map with level 0's fast path is the bin-by-bin path's, value and knowledge, bit for bit."""
+    from perception.surface import _surface_map
+
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    half_x, half_z, y_near, y_far = 0.012, 0.0095, -0.005, 0.01
+    x_edges, z_edges = bin_edges(half_x, cols), bin_edges(half_z, rows)
+    sx = x_edges[:-1][None, :] + rng.uniform(0.0, 1.0, shape) * np.diff(x_edges)[None, :]
+    sz = z_edges[:-1][:, None] + rng.uniform(0.0, 1.0, shape) * np.diff(z_edges)[:, None]
+    sy = slopes[0] * sx + slopes[1] * sz + curvature * (sx**2 + sz**2) + step_m * (sx > 0.3 * half_x)
+    sy = sy + rng.normal(0.0, noise_m, shape) if noise_m else sy
+    angle, reach = outline
+    beyond = np.cos(angle) * sx + np.sin(angle) * sz > reach * half_z
+    empty = (rng.uniform(size=shape) >= occupancy) | beyond
+    sy[empty], sx[empty], sz[empty] = np.inf, 0.0, 0.0
+    centres = (bin_centres(half_x, cols), bin_centres(half_z, rows))
+    out, known = np.empty(shape), np.empty(shape, bool)
+    _surface_map(sy, sx, sz, *centres, y_near, y_far, out, known)
+    reference, reference_known = bin_by_bin_surface_map((sy, sx, sz), centres, (y_near, y_far))
+    np.testing.assert_array_equal(known, reference_known)
+    np.testing.assert_array_equal(out, reference)
