@@ -14,6 +14,7 @@ collector resuming) removes the lone finger so the whole grasp is redone.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Sequence
@@ -38,6 +39,17 @@ from dataset.records import (
 )
 
 
+def _info_mismatch(root: Path, stored: DatasetInfo, given: DatasetInfo) -> str:
+    """Why a dataset cannot be resumed with ``given``: each field that differs from ``stored``,
+    and what to do (a resumed dataset must be one dataset: one normalisation, one scene, one code)."""
+    fields = [f.name for f in dataclasses.fields(DatasetInfo) if getattr(stored, f.name) != getattr(given, f.name)]
+    differences = "; ".join(f"{name} {getattr(stored, name)!r} there, {getattr(given, name)!r} now" for name in fields)
+    return (
+        f"{root}: dataset.json holds another dataset than this run makes ({differences}); "
+        "to make it again remove the directory or write to another one"
+    )
+
+
 class DatasetWriter:
     """Appends samples to a dataset directory; reopening an existing dataset resumes it.
 
@@ -56,7 +68,7 @@ class DatasetWriter:
             if meta_path.exists():
                 stored = read_info(meta_path)
                 if info is not None and info != stored:
-                    raise DatasetError(f"{self.root}: dataset.json holds {stored}, not the given {info}")
+                    raise DatasetError(_info_mismatch(self.root, stored, info))
                 self.info = stored
             else:
                 if info is None:

@@ -111,8 +111,17 @@ def test_resume_continues_and_refuses_duplicates(tmp_path: Path) -> None:
         write_sample(writer, 1, "left")
     write_sample(writer, 1, "right")
     assert [r.sample_id for r in DatasetReader(tmp_path).records] == ["mug-g001-left", "mug-g001-right"]
-    with pytest.raises(DatasetError, match="dataset.json holds"):
-        DatasetWriter(tmp_path, DatasetInfo(depth_range_m=(-0.01, 0.01)))
+    with pytest.raises(DatasetError, match="dataset.json holds another dataset") as refused:
+        DatasetWriter(tmp_path, dataclasses.replace(INFO, depth_range_m=(-0.01, 0.01), code_version="dtx 9.9"))
+    # Only what differs is named, as it is there and as it is now, and what to do.
+    message = str(refused.value)
+    assert (
+        "depth_range_m" in message
+        and "code_version 'test' there, 'dtx 9.9' now" in message
+        and "remove the directory" in message
+    )
+    assert "image_height" not in message
+    assert len(DatasetReader(tmp_path).records) == 2  # nothing written is lost
 
 
 def test_torn_manifest_tail_is_refused_by_reader_and_repaired_by_writer(tmp_path: Path) -> None:
