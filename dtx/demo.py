@@ -13,7 +13,8 @@
 
 Each step is the real command, run as a process; a step whose result is already there
 (a complete dataset, a finished checkpoint) is continued or skipped, so running the demo
-again resumes it.
+again resumes it. Only the code that began a demo resumes it: a calibration or a library made
+by other code would be kept unseen or refused halfway.
 """
 
 from __future__ import annotations
@@ -231,13 +232,35 @@ def _calibrated(session: Path, out: Path, library_samples: int, seed: int) -> tu
     return calibrated, library
 
 
+def begun_by_other_code(out: Path) -> str | None:
+    """The code version that began the demo in ``out`` (its session's ``dataset.json``) where it
+    is not this checkout's, else None (nothing there yet, or this code's own run)."""
+    from dataset.reader import read_info
+    from dataset.records import code_version
+
+    info = out / "session" / "dataset.json"
+    if not info.exists():
+        return None
+    begun = read_info(info).code_version
+    return begun if begun != code_version() else None
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
+    from dataset.records import code_version
     from dataset.touch_calibration import CALIBRATED_POSE_SIGMA_MM
     from models.real_presses import real_press_table
     from models.uncertainty import uncertainty_table
     from perception.density import DENSER_PER_CM3, PAPER_DENSITIES_PER_CM3
 
     out = Path(args.out)
+    begun = begun_by_other_code(out)
+    if begun is not None:
+        print(
+            f"error: {out} holds a demo begun by {begun}, this is {code_version()}: remove {out} "
+            "(or give --out DIR) to run this code's demo",
+            file=sys.stderr,
+        )
+        return 1
     train_dir, figures = out / "train", out / "figures"
     session, library = _calibrated(_collected(out / "session", args), out, args.library_samples, args.seed)
     train = ["train", str(session), "--config", args.config, "--out", str(train_dir)]

@@ -174,3 +174,29 @@ def test_the_demo_shows_a_long_command_wrapped_as_a_shell_continues_it() -> None
     assert len(lines) >= 3 and all(line.endswith(" \\") for line in lines[:-1])
     assert all(len(line) <= COMMAND_WIDTH for line in lines if "x" * 150 not in line)
     assert shlex.split(text.replace("\\\n", " ")) == ["$", "dtx", *command]
+
+
+def test_a_demo_begun_by_other_code_is_refused_before_any_step_and_left_as_it_is(tmp_path: Path) -> None:
+    """``make demo`` again after an update: the calibration and library of the code before would
+    be kept unseen or refused halfway, so the demo says so before it runs anything."""
+    import dataclasses
+    import json
+
+    from dataset.records import DatasetInfo, code_version
+    from dtx.demo import begun_by_other_code
+
+    session = tmp_path / "session"
+    session.mkdir()
+    assert begun_by_other_code(tmp_path) is None  # nothing begun yet
+    info = dataclasses.replace(DatasetInfo(), code_version=code_version())
+    (session / "dataset.json").write_text(json.dumps(info.to_json()))
+    assert begun_by_other_code(tmp_path) is None  # this code's own run resumes
+    other = dataclasses.replace(info, code_version="dtx 0.1.0 git 000000000000")
+    (session / "dataset.json").write_text(json.dumps(other.to_json()))
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    result = subprocess.run(
+        [sys.executable, "-m", "dtx.cli", "demo", "--out", str(tmp_path)], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 1 and "begun by dtx 0.1.0 git 000000000000" in result.stderr
+    assert f"remove {tmp_path}" in result.stderr and "== " not in result.stdout  # no step ran
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
