@@ -119,7 +119,8 @@ class TurnJudge:
     def refined(self, name: str, model_to_world: np.ndarray) -> np.ndarray:
         """``model_to_world`` (placed) turned about the vertical through its model's centre by
         the turn of :data:`FINE_TURNS_DEG` whose drawings match the frames best, and between two
-        steps where a parabola through the least sum of residuals and its neighbours puts it."""
+        steps where a parabola through the least sum of residuals and its neighbours puts it;
+        as it is where no turn matches them better than none."""
         records = touches_of_grasps(self.train, name, TURN_GRASPS)
         if not records:
             return model_to_world
@@ -131,6 +132,8 @@ class TurnJudge:
         )
         totals = found.reshape(len(poses), len(records)).sum(axis=1)
         best = int(np.argmin(totals))
+        if totals[best] >= totals[int(np.argmin(np.abs(FINE_TURNS_DEG)))]:
+            return model_to_world  # no turn matches the frames better (flat frames tell nothing)
         if 0 < best < len(totals) - 1:
             before, least, after = totals[best - 1 : best + 2]
             curvature = before - 2 * least + after

@@ -389,6 +389,9 @@ def test_the_frames_choose_a_cans_turn_about_its_axis(short_session: Path) -> No
     np.testing.assert_array_equal(judge.choose(name, [quarter_turn, truth]), truth)
     refined = judge.refined(name, turned_about_vertical(truth, centre, np.radians(1.5)))
     assert pose_error(refined, truth)[1] < 0.5
+    # Frames that tell nothing (every turn's residual alike) leave a placed object as it is.
+    untold = TurnJudge(reader, train, lambda records: np.ones(len(records)))
+    np.testing.assert_array_equal(untold.refined(name, truth), truth)
 
 
 def test_touches_fitted_and_drawn_in_two_processes_are_those_of_one(short_session: Path) -> None:
