@@ -120,7 +120,7 @@ class TurnJudge:
         """``model_to_world`` (placed) turned about the vertical through its model's centre by
         the turn of :data:`FINE_TURNS_DEG` whose drawings match the frames best, and between two
         steps where a parabola through the least sum of residuals and its neighbours puts it;
-        as it is where no turn matches them better than none."""
+        as it is where every turn matches them alike."""
         records = touches_of_grasps(self.train, name, TURN_GRASPS)
         if not records:
             return model_to_world
@@ -131,9 +131,9 @@ class TurnJudge:
             [r for pose in poses for r in records_cut_at(records, {name: pose}, self.scene, self.params)]
         )
         totals = found.reshape(len(poses), len(records)).sum(axis=1)
+        if not np.ptp(totals) > 0:
+            return model_to_world  # every turn alike: the frames tell nothing (argmin would take -2 deg)
         best = int(np.argmin(totals))
-        if totals[best] >= totals[int(np.argmin(np.abs(FINE_TURNS_DEG)))]:
-            return model_to_world  # no turn matches the frames better (flat frames tell nothing)
         if 0 < best < len(totals) - 1:
             before, least, after = totals[best - 1 : best + 2]
             curvature = before - 2 * least + after
