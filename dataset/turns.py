@@ -111,10 +111,7 @@ class TurnJudge:
         records = touches_of_grasps(self.train, name, TURN_GRASPS)
         if len(poses) == 1 or not records:
             return poses[0]
-        found = self.residuals(
-            [r for pose in poses for r in records_cut_at(records, {name: pose}, self.scene, self.params)]
-        )
-        return poses[int(np.argmin(found.reshape(len(poses), len(records)).sum(axis=1)))]
+        return poses[int(np.argmin(self._totals(name, poses, records)))]
 
     def refined(self, name: str, model_to_world: np.ndarray) -> np.ndarray:
         """``model_to_world`` (placed) turned about the vertical through its model's centre by
@@ -127,10 +124,7 @@ class TurnJudge:
         centre_world_m = transform_points(model_cloud(self.scene, name).mean(axis=0)[None], model_to_world)[0]
         turns_rad = np.radians(FINE_TURNS_DEG)
         poses = [turned_about_vertical(model_to_world, centre_world_m, turn) for turn in turns_rad]
-        found = self.residuals(
-            [r for pose in poses for r in records_cut_at(records, {name: pose}, self.scene, self.params)]
-        )
-        totals = found.reshape(len(poses), len(records)).sum(axis=1)
+        totals = self._totals(name, poses, records)
         if not np.ptp(totals) > 0:
             return model_to_world  # every turn alike: the frames tell nothing (argmin would take -2 deg)
         best = int(np.argmin(totals))
@@ -142,6 +136,13 @@ class TurnJudge:
                 model_to_world, centre_world_m, turns_rad[best] + step * (turns_rad[1] - turns_rad[0])
             )
         return poses[best]
+
+    def _totals(self, name: str, poses: list[np.ndarray], records: list[SampleRecord]) -> np.ndarray:
+        """Per pose of object ``name``, the sum of ``records``' residuals with their maps cut there."""
+        found = self.residuals(
+            [r for pose in poses for r in records_cut_at(records, {name: pose}, self.scene, self.params)]
+        )
+        return found.reshape(len(poses), len(records)).sum(axis=1)
 
 
 def turned_about_vertical(model_to_world: np.ndarray, centre_world_m: np.ndarray, turn_rad: float) -> np.ndarray:
