@@ -84,16 +84,18 @@ def register_again(
     reader = DatasetReader(session)
     scene = load_scene(reader.info.scene)
     train = split_records(reader.records, reader.info.split_seed)["train"]
-    registered = {}
+    objects = list(segmented_objects(reader, scene, depth_images_to_world(frames)))
+    registered = {
+        name: register_model(prepared, points, seed=reader.info.split_seed).model_to_world
+        for name, prepared, points in objects
+    }
     if not by_touches:
-        for name, prepared, points in segmented_objects(reader, scene, depth_images_to_world(frames)):
-            registered[name] = register_model(prepared, points, seed=reader.info.split_seed).model_to_world
         return registered
     with contextlib.ExitStack() as processes:
         fitter = touch_fitter(processes, reader, jobs)
         judge = TurnJudge(reader, train, fitter.residuals)
-        for name, prepared, points in segmented_objects(reader, scene, depth_images_to_world(frames)):
-            pose = register_model(prepared, points, seed=reader.info.split_seed).model_to_world
+        for name, prepared, points in objects:
+            pose = registered[name]
             registered[name] = judge.choose(name, [pose, *turns_alike(prepared, points, pose)])
         views = {f.header.frame_id: camera_views([f], scene, registered)[1] for f in frames}
         try:

@@ -49,11 +49,11 @@ class TouchRenderer:
 
     def __init__(self, reader: DatasetReader, scene: Scene) -> None:
         self.reader = reader
-        self.cut_params = depth_map_params(reader)[0]
+        self.cut_params = depth_map_params(reader)[0]  # the dataset's own: what residuals judge
         # A touch is placed by where its contact is: the nearest point of each bin keeps an edge
         # narrower than a bin in contact, where the surface at the bin centres can miss it (on the
         # demo session 347 of the training touches went unplaced that way against 328).
-        self.params = dataclasses.replace(depth_map_params(reader)[0], method="nearest_point")
+        self.params = dataclasses.replace(self.cut_params, method="nearest_point")
         self.geometry = scene.gripper_geometry()
         self.scene = scene
         self.renderer = scene_renderer(scene, size=self.params.shape, effects=False)
