@@ -473,6 +473,11 @@ def train(
                 log.validation(epoch, state.step, state.served, state.val)
                 save_checkpoint(state, checkpoint_path)
         log.close()
+        if dist.world > 1:
+            # Every rank returns the checkpoint only once rank 0 has written it, and the ranks
+            # leave the group together: a rank that tore its gloo group down while rank 0 was
+            # still validating aborted now and then ("terminate called without an active exception").
+            torch.distributed.barrier()
         return checkpoint_path
     finally:
         if dist.world > 1:

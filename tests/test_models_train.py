@@ -151,7 +151,7 @@ def test_config_files_load_and_bad_configs_are_refused(tmp_path: Path) -> None:
         TrainConfig.load(tmp_path / "missing.yaml")
 
 
-def test_runs_under_torchrun_with_two_gloo_processes(dataset: Path, tmp_path: Path) -> None:
+def test_runs_under_torchrun_with_two_gloo_processes_that_leave_together(dataset: Path, tmp_path: Path) -> None:
     script = tmp_path / "ddp_train.py"
     script.write_text(
         textwrap.dedent(f"""
@@ -161,7 +161,8 @@ def test_runs_under_torchrun_with_two_gloo_processes(dataset: Path, tmp_path: Pa
         from models.train import train
         config = TrainConfig(epochs=1, epochs_decay=0, batch_size=4, ndf=8, threads=1, max_steps=2,
                              generator=GeneratorConfig(ngf=8))
-        train({str(dataset)!r}, config, {str(tmp_path / "out")!r}, progress=False)
+        checkpoint = train({str(dataset)!r}, config, {str(tmp_path / "out")!r}, progress=False)
+        assert checkpoint.exists(), "a rank returned before rank 0 wrote the checkpoint"
     """)
     )
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
