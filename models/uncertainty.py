@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,8 @@ from models.errors import ModelConfigError
 
 LEVELS_PER_TANH_UNIT = 127.5  # network images are in [-1, 1]; tactile images in 0..255
 DECILES = 10
+# The deciles of u that per_object_uncertainty calls high: where a contact's error is.
+HIGH_DECILES = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,6 +237,43 @@ def uncertainty_statistics(
     }
 
 
+def per_object_uncertainty(
+    uncertainty: np.ndarray, estimate: np.ndarray, truth: np.ndarray, objects: Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """Whether u tells the objects apart (N x H x W u, images as in :func:`uncertainty_statistics`,
+    ``objects`` the N pairs' object names): per object, r(u, e) over its pixels, and where u is in
+    the set's top ``HIGH_DECILES`` deciles its share of those pixels, mean u and RMS(e) there. A u
+    that knows each object's error has RMS(e) / mean u near 1 on every object there; one that
+    learned the objects' mix says the same u on an object that misses by much and one that
+    misses by little."""
+    if len(objects) != len(uncertainty):
+        raise ModelConfigError(f"{len(objects)} object names for {len(uncertainty)} uncertainty maps")
+    u = uncertainty.ravel().astype(np.float64)
+    e = pixel_error_levels(estimate, truth).ravel().astype(np.float64)
+    high = np.zeros(u.size, bool)
+    high[np.concatenate(decile_groups(u)[-HIGH_DECILES:])] = True
+    pixel_object = np.repeat(np.asarray(objects), uncertainty[0].size)
+    figures: dict[str, dict[str, Any]] = {}
+    for name in sorted(set(objects)):
+        mine = pixel_object == name
+        there = mine & high
+        row: dict[str, Any] = {
+            "n": int(np.count_nonzero(np.asarray(objects) == name)),
+            "pearson_pixel": _pearson(u[mine], e[mine]),
+            "high_u_share": float(np.count_nonzero(there) / np.count_nonzero(high)),
+        }
+        if not np.isfinite(row["pearson_pixel"]):
+            row["pearson_pixel_undefined"] = "u or e is the same at every pixel of the object"
+        if there.any():
+            row["high_u_mean"] = float(u[there].mean())
+            row["high_e_rms"] = float(np.sqrt(np.mean(np.square(e[there]))))
+        else:
+            row["high_u_mean"] = row["high_e_rms"] = float("nan")
+            row["high_u_mean_undefined"] = row["high_e_rms_undefined"] = "no pixel of the object is in u's top deciles"
+        figures[name] = row
+    return figures
+
+
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     if len(a) < 2 or np.std(a) == 0 or np.std(b) == 0:
         return float("nan")
@@ -264,4 +304,11 @@ def uncertainty_table(figures: dict[str, Any]) -> list[str]:
         f"{'  mean u (levels)':28s}" + "".join(f"{d['u_mean']:>7.2f}" for d in figures["deciles"]),
         f"{'  RMS e / mean u':28s}" + "".join(f"{d['ratio']:>7.2f}" for d in figures["deciles"]),
     ]
+    if "objects" in figures:
+        lines.append(f"  per object: r(u, e); where u is in its top {HIGH_DECILES} deciles, its share, mean u, RMS e")
+        lines += [
+            f"    {name:24s} r {row['pearson_pixel']:6.3f}   share {row['high_u_share']:.2f}"
+            f"   u {row['high_u_mean']:5.2f}   e {row['high_e_rms']:5.2f}"
+            for name, row in figures["objects"].items()
+        ]
     return lines

@@ -27,9 +27,11 @@ from models.uncertainty import (
     UncertaintyNet,
     decile_groups,
     fit_uncertainty,
+    per_object_uncertainty,
     served_uncertainty_statistics,
     uncertainty_statistics,
 )
+from msgs import strict_json
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -84,6 +86,34 @@ def test_the_statistics_of_an_uncertainty_that_is_the_error() -> None:
     assert len(figures["deciles"]) == 10
     flat = uncertainty_statistics(np.ones((20, 16, 16)), estimate, truth, error.mean(axis=(1, 2)))
     assert np.isnan(flat["pearson_pixel"])  # a constant u predicts nothing: no correlation to give
+
+
+def test_per_object_figures_show_one_u_given_to_objects_that_miss_by_much_and_by_little() -> None:
+    """Four pairs each of a rough and a smooth object; u is 6 levels at each pair's contact (5 x 9
+    of its 10 x 10 pixels: together the set's top three deciles) and 0.5 elsewhere, on both. The
+    rough object misses by 8 levels there, the smooth by 1; a third object's u is low everywhere."""
+    rng = np.random.default_rng(2)
+    truth = rng.integers(60, 200, (12, 10, 10, 3), dtype=np.uint8)
+    miss = np.zeros((12, 10, 10, 1), int)
+    miss[:4, 2:7, :9] = 8
+    miss[4:8, 2:7, :9] = 1
+    estimate = (truth + miss).astype(np.uint8)
+    u = np.full((12, 10, 10), 0.5)
+    u[:8, 2:7, :9] = 6.0
+    objects = ["rough"] * 4 + ["smooth"] * 4 + ["flat"] * 4
+    figures = per_object_uncertainty(u, estimate, truth, objects)
+    assert list(figures) == ["flat", "rough", "smooth"]
+    rough, smooth = figures["rough"], figures["smooth"]
+    assert rough["high_u_mean"] == smooth["high_u_mean"] == pytest.approx(6.0)
+    assert rough["high_e_rms"] == pytest.approx(8.0) and smooth["high_e_rms"] == pytest.approx(1.0)
+    assert rough["high_u_share"] == smooth["high_u_share"] == pytest.approx(0.5)
+    assert rough["pearson_pixel"] == pytest.approx(1.0) and rough["n"] == 4
+    # The flat object's u is never high, and its error and u are the same everywhere: both said, in strict JSON.
+    flat = json.loads(strict_json.dumps(figures))["flat"]
+    assert flat["high_u_share"] == 0.0 and flat["high_u_mean"] is None and flat["high_e_rms"] is None
+    assert flat["pearson_pixel"] is None and "pearson_pixel_undefined" in flat and "high_u_mean_undefined" in flat
+    with pytest.raises(ModelConfigError, match="11 object names for 12"):
+        per_object_uncertainty(u, estimate, truth, objects[:-1])
 
 
 def test_the_network_learns_where_the_error_is() -> None:
