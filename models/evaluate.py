@@ -32,7 +32,7 @@ from models.networks import ModelConfigError, UNetGenerator
 from models.predictions import Predictions, predict_records
 from models.serving import predict
 from models.template_match import template_match
-from models.uncertainty import per_object_uncertainty, served_uncertainty_statistics, uncertainty_table
+from models.uncertainty import served_uncertainty_statistics, uncertainty_table
 from msgs.progress import Progress
 from perception.density import voxel_size_for_density
 from perception.errors import ImageComparisonError, PerceptionError
@@ -340,12 +340,12 @@ def full_analysis(predictions: Predictions, baseline_draws: int, template_px: in
         predictions.truth, predictions.estimate, predictions.objects, baseline_draws, seed
     )
     result["uncertainty"] = served_uncertainty_statistics(
-        predictions.uncertainty, predictions.estimate, predictions.truth, 1.0 - np.asarray(result["ssim_model"])
+        predictions.uncertainty,
+        predictions.estimate,
+        predictions.truth,
+        1.0 - np.asarray(result["ssim_model"]),
+        predictions.objects,
     )
-    if predictions.uncertainty is not None:
-        result["uncertainty"]["objects"] = per_object_uncertainty(
-            predictions.uncertainty, predictions.estimate, predictions.truth, predictions.objects
-        )
     return result
 
 

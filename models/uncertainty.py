@@ -29,7 +29,7 @@ from models.errors import ModelConfigError
 
 LEVELS_PER_TANH_UNIT = 127.5  # network images are in [-1, 1]; tactile images in 0..255
 DECILES = 10
-# The deciles of u that per_object_uncertainty calls high: where a contact's error is.
+# The deciles of u that the per-object figures call high: where a contact's error is.
 HIGH_DECILES = 3
 
 
@@ -213,19 +213,27 @@ def fit_uncertainty(
 
 
 def uncertainty_statistics(
-    uncertainty: np.ndarray, estimate: np.ndarray, truth: np.ndarray, region_dissimilarity: np.ndarray
+    uncertainty: np.ndarray,
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    region_dissimilarity: np.ndarray,
+    objects: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """How well u (N x H x W, levels) predicts the error of ``estimate`` against ``truth`` (N x H x
     W x 3 uint8): Pearson r(u, e) over pixels; per region r(mean u, ``region_dissimilarity``, 1 -
-    SSIM); and per decile of u its mean, RMS(e) and their ratio (1: calibrated)."""
+    SSIM); per decile of u its mean, RMS(e) and their ratio (1: calibrated); and, given the N
+    pairs' ``objects`` names, each object's figures (:func:`_per_object`)."""
+    if objects is not None and len(objects) != len(uncertainty):
+        raise ModelConfigError(f"{len(objects)} object names for {len(uncertainty)} uncertainty maps")
     error = pixel_error_levels(estimate, truth)
     u, e = uncertainty.ravel().astype(np.float64), error.ravel().astype(np.float64)
+    groups = decile_groups(u)
     deciles = []
-    for group in decile_groups(u):
-        mean_u, rms_e = float(u[group].mean()), float(np.sqrt(np.mean(np.square(e[group]))))
+    for group in groups:
+        mean_u, rms_e = float(u[group].mean()), _rms(e[group])
         deciles.append({"u_mean": mean_u, "e_rms": rms_e, "ratio": rms_e / mean_u if mean_u > 0 else float("nan")})
     region_u = uncertainty.reshape(len(uncertainty), -1).mean(axis=1)
-    return {
+    figures = {
         "n": len(uncertainty),
         "u_mean_levels": float(u.mean()),
         "e_mean_levels": float(e.mean()),
@@ -235,43 +243,45 @@ def uncertainty_statistics(
         "decile_ratio_min": min(d["ratio"] for d in deciles),
         "decile_ratio_max": max(d["ratio"] for d in deciles),
     }
+    if objects is not None:
+        high = np.zeros(u.size, bool)
+        high[np.concatenate(groups[-HIGH_DECILES:])] = True
+        figures["objects"] = _per_object(u, e, high, np.asarray(objects), uncertainty[0].size)
+    return figures
 
 
-def per_object_uncertainty(
-    uncertainty: np.ndarray, estimate: np.ndarray, truth: np.ndarray, objects: Sequence[str]
+def _per_object(
+    u: np.ndarray, e: np.ndarray, high: np.ndarray, objects: np.ndarray, pixels_per_pair: int
 ) -> dict[str, dict[str, Any]]:
-    """Whether u tells the objects apart (N x H x W u, images as in :func:`uncertainty_statistics`,
-    ``objects`` the N pairs' object names): per object, r(u, e) over its pixels, and where u is in
-    the set's top ``HIGH_DECILES`` deciles its share of those pixels, mean u and RMS(e) there. A u
+    """Whether u tells the objects apart (u, e and ``high`` flat, one entry a pixel, pair by pair;
+    ``objects`` the pairs' names): per object, its pairs, r(u, e) over its pixels, and where u is ``high`` (the
+    set's top ``HIGH_DECILES`` deciles) its share of those pixels, mean u and RMS(e) there. A u
     that knows each object's error has RMS(e) / mean u near 1 on every object there; one that
     learned the objects' mix says the same u on an object that misses by much and one that
     misses by little."""
-    if len(objects) != len(uncertainty):
-        raise ModelConfigError(f"{len(objects)} object names for {len(uncertainty)} uncertainty maps")
-    u = uncertainty.ravel().astype(np.float64)
-    e = pixel_error_levels(estimate, truth).ravel().astype(np.float64)
-    high = np.zeros(u.size, bool)
-    high[np.concatenate(decile_groups(u)[-HIGH_DECILES:])] = True
-    pixel_object = np.repeat(np.asarray(objects), uncertainty[0].size)
+    pixel_object = np.repeat(objects, pixels_per_pair)
     figures: dict[str, dict[str, Any]] = {}
     for name in sorted(set(objects)):
         mine = pixel_object == name
         there = mine & high
         row: dict[str, Any] = {
-            "n": int(np.count_nonzero(np.asarray(objects) == name)),
+            "n": int(np.count_nonzero(objects == name)),
             "pearson_pixel": _pearson(u[mine], e[mine]),
             "high_u_share": float(np.count_nonzero(there) / np.count_nonzero(high)),
         }
         if not np.isfinite(row["pearson_pixel"]):
             row["pearson_pixel_undefined"] = "u or e is the same at every pixel of the object"
         if there.any():
-            row["high_u_mean"] = float(u[there].mean())
-            row["high_e_rms"] = float(np.sqrt(np.mean(np.square(e[there]))))
+            row["high_u_mean"], row["high_e_rms"] = float(u[there].mean()), _rms(e[there])
         else:
             row["high_u_mean"] = row["high_e_rms"] = float("nan")
             row["high_u_mean_undefined"] = row["high_e_rms_undefined"] = "no pixel of the object is in u's top deciles"
         figures[name] = row
     return figures
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
@@ -284,13 +294,17 @@ UNCERTAINTY_ABSENT = "the checkpoint serves no uncertainty (trained before it; d
 
 
 def served_uncertainty_statistics(
-    uncertainty: np.ndarray | None, estimate: np.ndarray, truth: np.ndarray, region_dissimilarity: np.ndarray
+    uncertainty: np.ndarray | None,
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    region_dissimilarity: np.ndarray,
+    objects: Sequence[str] | None = None,
 ) -> dict[str, Any]:
-    """models.uncertainty.uncertainty_statistics of the served uncertainty; ``absent`` with the
-    reason when the checkpoint has none."""
+    """:func:`uncertainty_statistics` of the served uncertainty; ``absent`` with the reason when
+    the checkpoint has none."""
     if uncertainty is None:
         return {"absent": UNCERTAINTY_ABSENT}
-    return uncertainty_statistics(uncertainty, estimate, truth, region_dissimilarity)
+    return uncertainty_statistics(uncertainty, estimate, truth, region_dissimilarity, objects)
 
 
 def uncertainty_table(figures: dict[str, Any]) -> list[str]:

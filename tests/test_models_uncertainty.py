@@ -27,7 +27,6 @@ from models.uncertainty import (
     UncertaintyNet,
     decile_groups,
     fit_uncertainty,
-    per_object_uncertainty,
     served_uncertainty_statistics,
     uncertainty_statistics,
 )
@@ -101,7 +100,7 @@ def test_per_object_figures_show_one_u_given_to_objects_that_miss_by_much_and_by
     u = np.full((12, 10, 10), 0.5)
     u[:8, 2:7, :9] = 6.0
     objects = ["rough"] * 4 + ["smooth"] * 4 + ["flat"] * 4
-    figures = per_object_uncertainty(u, estimate, truth, objects)
+    figures = uncertainty_statistics(u, estimate, truth, np.zeros(12), objects)["objects"]
     assert list(figures) == ["flat", "rough", "smooth"]
     rough, smooth = figures["rough"], figures["smooth"]
     assert rough["high_u_mean"] == smooth["high_u_mean"] == pytest.approx(6.0)
@@ -113,7 +112,7 @@ def test_per_object_figures_show_one_u_given_to_objects_that_miss_by_much_and_by
     assert flat["high_u_share"] == 0.0 and flat["high_u_mean"] is None and flat["high_e_rms"] is None
     assert flat["pearson_pixel"] is None and "pearson_pixel_undefined" in flat and "high_u_mean_undefined" in flat
     with pytest.raises(ModelConfigError, match="11 object names for 12"):
-        per_object_uncertainty(u, estimate, truth, objects[:-1])
+        uncertainty_statistics(u, estimate, truth, np.zeros(12), objects[:-1])
 
 
 def test_the_network_learns_where_the_error_is() -> None:
