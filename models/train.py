@@ -475,8 +475,8 @@ def train(
         log.close()
         if dist.world > 1:
             # Every rank returns the checkpoint only once rank 0 has written it, and the ranks
-            # leave the group together: a rank that tore its gloo group down while rank 0 was
-            # still validating aborted now and then ("terminate called without an active exception").
+            # leave the group together. A rank that left first returned a path not yet written; a
+            # CI run of this job once aborted in gloo too, cause unknown (docs/measurements.md).
             torch.distributed.barrier()
         return checkpoint_path
     finally:
