@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from perception.binning import min_y_per_bin
+from perception.binning import fill_sampling_gaps, min_y_per_bin
 from perception.density import PAPER_DENSITIES_PER_CM3, downsample_to_density
 from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import PerceptionError
@@ -33,7 +33,7 @@ from perception.registration import (
     sample_model_cloud,
 )
 from perception.segmentation import segment_object, segmentation_params_for
-from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps
+from perception.surface import DEPTH_MAP_METHODS
 from sim.registration_check import register_check, render_depth_images, scene_with_object
 from sim.world import SimWorld
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose

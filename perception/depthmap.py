@@ -48,11 +48,11 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from perception.binning import bin_edges, cut_kernel, region_groups
+from perception.binning import bin_edges, cut_kernel, fill_sampling_gaps, region_groups
 from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, check_transforms
-from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps, surface_maps
+from perception.surface import DEPTH_MAP_METHODS, surface_maps
 from perception.threads import run_shares
 from workcell.kinematics import GripperGeometry
 

@@ -79,7 +79,7 @@ def depth_maps_on_device(
     float64, model to gel), kept inside ``bounds`` = (half_x, half_z, y_near, y_far) (inclusive,
     metres), their minimum gel y per bin of ``shape`` = (rows, cols), empty bins y_far and
     sampling gaps filled (``fill_min_neighbours`` 1..8; 0: none) as
-    perception.depthmap.fill_sampling_gaps fills them. Returns (depth-maps (regions, rows, cols)
+    perception.binning.fill_sampling_gaps fills them. Returns (depth-maps (regions, rows, cols)
     float32 m, occupied bool, points kept per region int64)."""
     min_y, counts, _ = _min_y_per_region(points, starts, ends, runs, model_to_gel, bounds, shape, keep_points=False)
     occupied = torch.isfinite(min_y)
@@ -124,7 +124,7 @@ def front_points_on_device(
 
 
 def _filled(depth_maps: torch.Tensor, occupied: torch.Tensor, min_neighbours: int) -> torch.Tensor:
-    """perception.depthmap.fill_sampling_gaps on (regions, rows, cols) tensors: an empty bin with
+    """perception.binning.fill_sampling_gaps on (regions, rows, cols) tensors: an empty bin with
     at least ``min_neighbours`` of its 8 neighbours occupied takes their minimum. Counts and
     minima are exact in any order, so the maps are the NumPy function's."""
     rows, cols = depth_maps.shape[-2:]

@@ -17,12 +17,12 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from perception.binning import min_y_per_bin
+from perception.binning import fill_sampling_gaps, min_y_per_bin
 from perception.depthmap import DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError, PerceptionError
 from perception.gripper_centring import centre_between_gels
 from perception.normalisation import denormalise_depth_map
-from perception.surface import DEPTH_MAP_METHODS, fill_sampling_gaps
+from perception.surface import DEPTH_MAP_METHODS
 from workcell.kinematics import GripperGeometry, gel_poses_world, grasp_to_tcp_pose
 from workcell.parts import GripperSpec
 
