@@ -17,8 +17,12 @@ Two rules, chosen per checkpoint (``DepthMapParams.method``):
   one is off by more than half a bin, the sample farthest in height from the bin's own goes: the
   far face of a step). An empty bin is answered only from samples around its centre (within their convex
   hull: interpolation, never extrapolation); an occupied bin's plane may reach the half bin to
-  its centre, and where no plane fits it holds its nearest point. A bin no level can answer is
-  left empty (y_far) and not ``known``.
+  its centre. Where its own sample continues no surface around it, the bin is read as a gap in
+  the front surface (a small object's far side showing through a bin its front left unsampled)
+  when the front-most samples around surround its centre, else it holds its nearest point. A bin
+  no level can answer is left empty (y_far) and not ``known``.
+  Where the surface bends, level 0's planes are read again from quadrics
+  (:mod:`perception.surface_bend`).
 
 Sparse clouds: the samples are pooled into cells of 2, 4, 8 ... bins (the front-most of each
 cell), and a bin the finer levels left empty is answered by the planes of coarser cells, up to
@@ -40,6 +44,7 @@ import numba
 import numpy as np
 
 from perception.errors import DepthMapError
+from perception.surface_bend import bend_corrected
 from perception.threads import run_shares
 
 DEPTH_MAP_METHODS = ("surface", "nearest_point")
@@ -83,11 +88,13 @@ def _pooled(sy: np.ndarray, sx: np.ndarray, sz: np.ndarray) -> tuple[np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True)
-def _anchor(sy: np.ndarray, sx: np.ndarray, sz: np.ndarray, cell_r: int, cell_c: int) -> tuple[float, float, float]:
+def _anchor(
+    sy: np.ndarray, sx: np.ndarray, sz: np.ndarray, cell_r: int, cell_c: int, front: bool
+) -> tuple[float, float, float]:
     """The sample whose surface a plane at (cell_r, cell_c) continues: the cell's own, or the
-    front-most of the 3 x 3 cells around it where it has none (+inf y: none)."""
+    front-most of the 3 x 3 cells around it where it has none or ``front`` (+inf y: none)."""
     ay, ax, az = sy[cell_r, cell_c], sx[cell_r, cell_c], sz[cell_r, cell_c]
-    if not np.isfinite(ay):
+    if front or not np.isfinite(ay):
         for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
             for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
                 if np.isfinite(sy[r, c]) and _front(sy[r, c], sx[r, c], sz[r, c], ay, ax, az):
@@ -115,6 +122,7 @@ def _plane_at(
     centre_z: float,
     tolerance: float,
     inside: bool,
+    front: bool,
     kept: np.ndarray,
 ) -> float:
     """The surface's y at (centre_x, centre_z) from the samples of the 3 x 3 cells around
@@ -125,7 +133,7 @@ def _plane_at(
     (the far face of a step); at
     least three, not on one line, and with ``inside`` around the centre (:func:`_surrounds`).
     ``kept``: (3, 9) scratch for their offsets from the centre and the anchor."""
-    ay, ax, az = _anchor(sy, sx, sz, cell_r, cell_c)
+    ay, ax, az = _anchor(sy, sx, sz, cell_r, cell_c, front)
     if not np.isfinite(ay):
         return np.nan
     n = 0
@@ -371,11 +379,17 @@ def _answer_level(
             own = level == 0 and sy[r, c] < np.inf
             if known[r, c] or (not own and _lonely(level_y, r >> level, c >> level)):
                 continue  # no sample around: _plane_at's NaN, at a fraction of the call's cost
+            cell_r, cell_c = r >> level, c >> level
             y = _plane_at(
-                level_y, level_x, level_z, r >> level, c >> level, x_centres[c], z_centres[r], tolerance, not own, kept
+                level_y, level_x, level_z, cell_r, cell_c, x_centres[c], z_centres[r], tolerance, not own, False, kept
             )
             if own and not np.isfinite(y):
-                y = sy[r, c]  # the bin's own nearest point where no plane can be fitted
+                # A bin whose own sample continues no surface around it may be a gap in the
+                # front surface through which a face behind shows (a small object's far side):
+                # where the front-most samples around it surround its centre, their plane.
+                y = _plane_at(level_y, level_x, level_z, r, c, x_centres[c], z_centres[r], tolerance, True, True, kept)
+                if not y < sy[r, c]:
+                    y = sy[r, c]  # the bin's own nearest point where no plane can be fitted
             if np.isfinite(y):
                 out[r, c] = min(max(y, bounds[0]), bounds[1])
                 known[r, c] = True
@@ -402,14 +416,17 @@ def _surface_map(
     z_centres: np.ndarray,
     y_near: float,
     y_far: float,
+    bin_size: float,
     out: np.ndarray,
     known: np.ndarray,
+    planar: np.ndarray,
 ) -> None:
     """One map's surface (module docstring): ``out`` (rows, cols) y at the bin centres, clamped to
-    [y_near, y_far], y_far and ``known`` False where no level can say. Levels are answered up to
-    one above the first whose samples are knit (:func:`_knit`): the cloud's own spacing."""
+    [y_near, y_far], y_far and ``known`` False where no level can say (``bin_size``: level 0's
+    cell, :func:`level_0_tolerance`); ``planar`` where level 0's
+    plane answered (not a bin's own nearest point). Levels are answered up to one above the first
+    whose samples are knit (:func:`_knit`): the cloud's own spacing."""
     rows, cols = sy.shape
-    bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
     out[:, :] = y_far
     known[:, :] = False
     level_y, level_x, level_z = sy, sx, sz
@@ -421,12 +438,21 @@ def _surface_map(
             level_y, level_x, level_z = _pooled(level_y, level_x, level_z)
         if knit_level < 0 and _knit(level_y):
             knit_level = level
-        tolerance = (bin_size if bin_size > 0.0 else 1.0) * (1 << level)
+        tolerance = bin_size * (1 << level)
         centres, bounds = (x_centres, z_centres), (y_near, y_far)
         if level == 0:
             unknown -= _occupied_planes((sy, sx, sz), centres, tolerance, bounds, out, known)
         unknown -= _answer_level((level_y, level_x, level_z), level, sy, centres, tolerance, bounds, out, known)
+        if level == 0:
+            planar[:, :] = known & (out != sy)
         level += 1
+
+
+def level_0_tolerance(x_centres: np.ndarray, z_centres: np.ndarray) -> float:
+    """The finest level's cell size (m): the larger bin side (1 for a single bin)."""
+    cols, rows = len(x_centres), len(z_centres)
+    bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
+    return float(bin_size if bin_size > 0.0 else 1.0)
 
 
 def bin_centres(half_m: float, count: int) -> np.ndarray:
@@ -454,13 +480,17 @@ def surface_maps(
     regions, rows, cols = sample_y.shape
     out = np.empty(sample_y.shape)
     known = np.empty(sample_y.shape, np.bool_)
+    planar = np.empty(sample_y.shape, np.bool_)
     sample_x = np.ascontiguousarray(sample_x_m, np.float64)
     sample_z = np.ascontiguousarray(sample_z_m, np.float64)
     x_centres, z_centres = bin_centres(half_x, cols), bin_centres(half_z, rows)
+    bin_size = level_0_tolerance(x_centres, z_centres)
 
     def answer(first: int, stop: int) -> None:
         for k in range(first, stop):
-            _surface_map(sample_y[k], sample_x[k], sample_z[k], x_centres, z_centres, y_near, y_far, out[k], known[k])
+            samples = (sample_y[k], sample_x[k], sample_z[k])
+            _surface_map(*samples, x_centres, z_centres, y_near, y_far, bin_size, out[k], known[k], planar[k])
+            bend_corrected(samples, (x_centres, z_centres), (bin_size, MAX_SLOPE), (y_near, y_far), out[k], planar[k])
 
     edges = np.linspace(0, regions, min(max(threads, 1), regions) + 1).astype(int)
     run_shares(answer, [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])])
