@@ -33,7 +33,8 @@ class GeneratorConfig:
     to the last layer's output, so the network draws only what the contact changes;
     prior: the input carries 3 more channels, the physics prior's image of the same depth-map
     (models.prior), which is also added to the output (in tanh's input units): the network
-    learns the correction to physics."""
+    learns the correction to physics; prior_drawn_at: where the prior's renderer draws
+    (models.prior.PRIOR_DRAWN_AT)."""
 
     in_channels: int = 1
     out_channels: int = 3
@@ -45,6 +46,7 @@ class GeneratorConfig:
     dropout_blocks: int = 3
     background: bool = False
     prior: bool = False
+    prior_drawn_at: str = "grid"
 
     @property
     def input_channels(self) -> int:
@@ -63,6 +65,8 @@ class GeneratorConfig:
                 f"pad_to={self.pad_to} must be >= image_size={self.image_size} and a "
                 f"multiple of 2**num_downs={2**self.num_downs}"
             )
+        if self.prior_drawn_at not in ("grid", "sensor"):
+            raise ModelConfigError(f"prior_drawn_at must be 'grid' or 'sensor', got {self.prior_drawn_at!r}")
         if not 0.0 <= self.dropout < 1.0:
             raise ModelConfigError(f"dropout must be in [0, 1), got {self.dropout}")
         if not 0 <= self.dropout_blocks <= self.num_downs - 2:

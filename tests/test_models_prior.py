@@ -128,3 +128,33 @@ def test_a_dataset_larger_than_one_rendering_call_is_drawn_in_calls(
     with pytest.raises(ModelConfigError, match="pixels a call"):
         prior.channels(np.broadcast_to(maps[:1], (7000, BINS, BINS)))  # one call still refuses past the limit
     np.testing.assert_array_equal(models.data.network_input(maps, (-0.0015, FAR_M), config, prior), whole)
+
+
+def test_a_prior_drawn_at_the_sensors_pixels_is_the_scene_renderers_image_area_averaged() -> None:
+    """``drawn_at="sensor"``: each image is the scene's GelSight (its own 120 x 160 pixels) fed
+    the depth-map, then brought to the grid as every target image is (dataset.images.resize_rgb);
+    a spec that names no place was drawn at the grid (every checkpoint before it)."""
+    from dataset.images import resize_rgb
+    from sim.gelsight import scene_renderer
+    from workcell.scene import load_scene
+
+    spec = PriorSpec(SCENE, CROP_M, drawn_at="sensor")
+    sensor = PhysicsPrior(spec, BINS)
+    presses = np.concatenate([ball_press((1.0, -0.5)), ball_press((-2.0, 1.5), radius_mm=3.0, depth_mm=1.2)])
+    drawn = render_depth_maps(scene_renderer(load_scene(SCENE), effects=False), presses, (CROP_M[0], CROP_M[2]))
+    expected = np.stack([resize_rgb(image, BINS, BINS) for image in drawn])
+    np.testing.assert_array_equal(sensor.images(presses), expected)
+    grid = PhysicsPrior(PriorSpec(SCENE, CROP_M), BINS)
+    assert np.abs(grid.images(presses).astype(int) - expected.astype(int)).max() > 5  # the grid's differ
+    assert PriorSpec.from_dict(spec.to_dict()) == spec
+    old = spec.to_dict()
+    del old["drawn_at"]
+    assert PriorSpec.from_dict(old).drawn_at == "grid"
+
+
+@pytest.mark.parametrize("drawn_at", ["camera", "", "GRID"])
+def test_a_prior_drawn_anywhere_else_is_refused(drawn_at: str) -> None:
+    with pytest.raises(ModelConfigError, match="drawn at"):
+        PhysicsPrior(PriorSpec(SCENE, CROP_M, drawn_at=drawn_at), BINS)
+    with pytest.raises(ModelConfigError, match="prior_drawn_at"):
+        GeneratorConfig(prior=True, prior_drawn_at=drawn_at).validate()

@@ -165,3 +165,19 @@ def test_a_renderer_that_spreads_on_a_coarser_grid_is_refused() -> None:
     large = PhysicsPrior(PriorSpec(SCENE, CROP_M), 256)
     with pytest.raises(ModelConfigError, match="coarser grid"):
         large.on("cuda")
+
+
+def test_a_prior_drawn_at_the_sensors_pixels_is_the_same_on_a_device() -> None:
+    """Drawn at the GelSight's 120 x 160 pixels and area-averaged to the grid: the tensor form's
+    average (OpenCV's INTER_AREA as two matrices) gives the CPU's levels within the stated
+    tolerance, a level apart where the two round an average differently."""
+    sensor = PhysicsPrior(PriorSpec(SCENE, CROP_M, pose_sigma_mm=0.5, drawn_at="sensor"), 100)
+    assert sensor.renderer.config.shape == (120, 160)
+    tensor = PhysicsPrior.on(sensor, "cpu")
+    tensor._tensor = TensorPrior(sensor.renderer, (CROP_M[0], CROP_M[2]))  # the cuda form, on the CPU
+    maps = analytic_contact_maps(12, seed=3, y_far_m=FAR_M)
+    for sigma_mm in (0.0, 0.5):
+        cpu, device = sensor.images(maps, sigma_mm), tensor.images(maps, sigma_mm)
+        assert device.shape == cpu.shape == (12, 100, 100, 3)
+        apart = np.abs(cpu.astype(int) - device.astype(int))
+        assert np.mean(apart == 0) >= 0.99 and np.mean(apart <= 1) >= MIN_EQUAL
