@@ -80,8 +80,9 @@ YCB = sorted(str(p) for p in (Path(__file__).resolve().parent.parent / "assets" 
 
 
 # The prior a collection session on the default scene gives (models.prior): its GelSight, and
-# its depth-maps' crop (the sensed 19.9 x 14.9 mm plus 2 mm margins; y range -5..10 mm).
-SESSION_PRIOR = PriorSpec(scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 0.015, 0.01894))
+# its depth-maps' crop (the sensed 19.9 x 14.9 mm plus 2 mm margins; y range -5..10 mm), drawn
+# at the sensor's pixels as the demo's config draws it.
+SESSION_PRIOR = PriorSpec(scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 0.015, 0.01894), drawn_at="sensor")
 
 
 def write_checkpoint(
@@ -96,7 +97,7 @@ def write_checkpoint(
     seeded generator of width ``width``, correcting the default scene's physics prior if asked,
     whose depth-maps are by default ``pose_sigma_mm`` off in the gel plane."""
     torch.manual_seed(seed)
-    config = TrainConfig(generator=GeneratorConfig(ngf=width, prior=prior))
+    config = TrainConfig(generator=GeneratorConfig(ngf=width, prior=prior, prior_drawn_at=SESSION_PRIOR.drawn_at))
     torch.save(
         {
             "generator": UNetGenerator(config.generator).state_dict(),
