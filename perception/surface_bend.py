@@ -27,10 +27,11 @@ import numpy as np
 # the surface curves enough for the plane's chord to matter and the quadric reads it again: a
 # sphere of under ~3 mm radius on the default 0.24 x 0.19 mm bins (a 2 mm ball bends 28 um along a
 # row). A gentler surface keeps its planes, whose chords are a few um (a 6 mm sphere at most 13
-# um, 2-8 at the median), about what the renderer draws (a 3 um texture changes no image); at 2,
+# um, 2-8 at the median), about what the renderer draws (a 3 um texture changes no image). At 2,
 # 5 and 10 um the quadric also read a faceted mesh's kinks, 1-6 um apart (the YCB can: 4,064,
-# 2,507 and 1,287 bins of a grasp's map, 1.5, 0.95 and 0.62 ms; at 20 um 371 bins, 0.21 ms),
-# and the real presses scored the same at all four.
+# 2,507 and 1,287 bins of a grasp's map, 1.5, 0.95 and 0.62 ms; at 20 um 371 bins, 0.21 ms,
+# before the Cholesky solve and the border rule: now 331 bins, 0.14 ms), and the real presses
+# scored the same at all four.
 FLAT_BEND_M = 20e-6
 # The quadric is kept where every sample it stands on is within this fraction of the bins' size
 # of it (24 um at 0.24 mm bins: a 2 mm ball's samples lie within 0.1 um of theirs up to 45 deg, a
@@ -49,16 +50,17 @@ Grids = tuple[np.ndarray, np.ndarray, np.ndarray]  # a map's samples: y, x, z
 @numba.njit(cache=True, nogil=True)
 def _curved(planes: np.ndarray, r: int, c: int) -> bool:
     """Whether level 0's plane values around bin (r, c) bend by more than FLAT_BEND_M: a second
-    difference along a row, a column or a diagonal of the 3 x 3 bins (a neighbour not answered
-    by a plane, NaN, counts as bent: a rim or a crop face, where the quadric's own fit decides)."""
+    difference along a row, a column or a diagonal of the 3 x 3 bins, where both neighbours are
+    planes (a bin on the map's border, or beside a rim, bends along the lines it has)."""
     rows, cols = planes.shape
     if r == 0 or c == 0 or r == rows - 1 or c == cols - 1:
-        return True
+        return False
     centre = 2.0 * planes[r, c]
-    bend = max(abs(planes[r, c - 1] - centre + planes[r, c + 1]), abs(planes[r - 1, c] - centre + planes[r + 1, c]))
-    bend = max(bend, abs(planes[r - 1, c - 1] - centre + planes[r + 1, c + 1]))
-    bend = max(bend, abs(planes[r - 1, c + 1] - centre + planes[r + 1, c - 1]))
-    return not bend <= FLAT_BEND_M  # NaN: bent
+    # A NaN (a line without two planes) compares False: that line does not bend.
+    bent = abs(planes[r, c - 1] - centre + planes[r, c + 1]) > FLAT_BEND_M
+    bent |= abs(planes[r - 1, c] - centre + planes[r + 1, c]) > FLAT_BEND_M
+    bent |= abs(planes[r - 1, c - 1] - centre + planes[r + 1, c + 1]) > FLAT_BEND_M
+    return bent | (abs(planes[r - 1, c + 1] - centre + planes[r + 1, c - 1]) > FLAT_BEND_M)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -95,35 +97,36 @@ def _quadric_at(
                 n += 1
     if n < _MIN_QUADRIC_SAMPLES:
         return np.nan
-    normal[:, :] = 0.0
+    normal[:, :] = 0.0  # the lower triangle of the normal equations, the right-hand side beside
     for k in range(n):
         u, v = kept[0, k], kept[1, k]
         terms[0], terms[1], terms[2], terms[3], terms[4], terms[5] = 1.0, u, v, u * u, u * v, v * v
         for a in range(6):
-            for b in range(6):
+            for b in range(a + 1):
                 normal[a, b] += terms[a] * terms[b]
             normal[a, 6] += terms[a] * kept[2, k]
     largest = 0.0
     for a in range(6):
         largest = max(largest, normal[a, a])
-    for a in range(6):  # Gaussian elimination, partial pivoting
-        pivot = a
-        for b in range(a + 1, 6):
-            if abs(normal[b, a]) > abs(normal[pivot, a]):
-                pivot = b
-        if not abs(normal[pivot, a]) > _MIN_PIVOT_RATIO * largest:
-            return np.nan
-        for k in range(7):
-            normal[a, k], normal[pivot, k] = normal[pivot, k], normal[a, k]
-        for b in range(a + 1, 6):
-            factor = normal[b, a] / normal[a, a]
-            for k in range(a, 7):
-                normal[b, k] -= factor * normal[a, k]
-    for a in range(5, -1, -1):
+    for j in range(6):  # LDL^T in place: L below the diagonal, D on it (symmetric positive definite)
+        for k in range(j):
+            normal[j, j] -= normal[j, k] * normal[j, k] * normal[k, k]
+        if not normal[j, j] > _MIN_PIVOT_RATIO * largest:
+            return np.nan  # the samples do not pin six terms
+        for i in range(j + 1, 6):
+            for k in range(j):
+                normal[i, j] -= normal[i, k] * normal[j, k] * normal[k, k]
+            normal[i, j] /= normal[j, j]
+    for a in range(6):  # L z = b, then D L^T x = z
         total = normal[a, 6]
-        for k in range(a + 1, 6):
+        for k in range(a):
             total -= normal[a, k] * solution[k]
-        solution[a] = total / normal[a, a]
+        solution[a] = total
+    for a in range(5, -1, -1):
+        total = solution[a] / normal[a, a]
+        for k in range(a + 1, 6):
+            total -= normal[k, a] * solution[k]
+        solution[a] = total
     fit = QUADRIC_FIT_FRACTION * tolerance
     low, high = np.inf, -np.inf
     for k in range(n):
