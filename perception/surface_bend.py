@@ -78,12 +78,12 @@ def _quadric_at(
     the surface of the plane's value ``plane_y`` at the centre (a height change within max_slope
     times the distance plus the bins' size, ``reach`` = (bin size, max_slope): the plane's own
     rule, perception.surface._continues), or NaN where they cannot say: under
-    _MIN_QUADRIC_SAMPLES, too close to a conic to pin six terms, or one off the quadric by over
-    QUADRIC_FIT_FRACTION of the bin size (a rim, a crease, a noisy cloud: the plane stays).
-    ``scratch``: (3, 9) samples kept, (6, 7) the normal equations augmented by the right-hand
-    side, 6 terms and 6 coefficients."""
+    _MIN_QUADRIC_SAMPLES, too close to a conic to pin six terms (:func:`_quadric`), or one off the
+    quadric by over QUADRIC_FIT_FRACTION of the bin size (a rim, a crease, a noisy cloud: the
+    plane stays). ``scratch``: (3, 9) samples kept, (6, 7) the normal equations augmented by the
+    right-hand side, 6 terms and 6 coefficients."""
     sy, sx, sz = samples
-    kept, normal, terms, solution = scratch
+    kept, _, _, solution = scratch
     tolerance, max_slope = reach
     n = 0
     for i in range(max(r - 1, 0), min(r + 2, sy.shape[0])):
@@ -95,8 +95,28 @@ def _quadric_at(
                 kept[1, n] = (sz[i, j] - centre[1]) / tolerance
                 kept[2, n] = sy[i, j] - plane_y
                 n += 1
-    if n < _MIN_QUADRIC_SAMPLES:
+    if n < _MIN_QUADRIC_SAMPLES or not _quadric(n, scratch):
         return np.nan
+    fit = QUADRIC_FIT_FRACTION * tolerance
+    low, high = np.inf, -np.inf
+    for k in range(n):
+        u, v = kept[0, k], kept[1, k]
+        fitted = solution[0] + solution[1] * u + solution[2] * v
+        fitted += solution[3] * u * u + solution[4] * u * v + solution[5] * v * v
+        if not abs(kept[2, k] - fitted) <= fit:
+            return np.nan
+        low, high = min(low, kept[2, k]), max(high, kept[2, k])
+    # Within the samples' heights (give or take the fit): a quadric bridging a step overshoots it.
+    return plane_y + solution[0] if low - fit <= solution[0] <= high + fit else np.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _quadric(n: int, scratch: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> bool:
+    """The least-squares quadric's six coefficients through the first ``n`` (u, v, y) columns of
+    the scratch's samples, into its coefficients: the normal equations' lower triangle solved as
+    LDL^T (symmetric positive definite); False where a pivot falls under _MIN_PIVOT_RATIO of the
+    largest diagonal term (the samples do not pin six terms)."""
+    kept, normal, terms, solution = scratch
     normal[:, :] = 0.0  # the lower triangle of the normal equations, the right-hand side beside
     for k in range(n):
         u, v = kept[0, k], kept[1, k]
@@ -108,11 +128,11 @@ def _quadric_at(
     largest = 0.0
     for a in range(6):
         largest = max(largest, normal[a, a])
-    for j in range(6):  # LDL^T in place: L below the diagonal, D on it (symmetric positive definite)
+    for j in range(6):  # LDL^T in place: L below the diagonal, D on it
         for k in range(j):
             normal[j, j] -= normal[j, k] * normal[j, k] * normal[k, k]
         if not normal[j, j] > _MIN_PIVOT_RATIO * largest:
-            return np.nan  # the samples do not pin six terms
+            return False
         for i in range(j + 1, 6):
             for k in range(j):
                 normal[i, j] -= normal[i, k] * normal[j, k] * normal[k, k]
@@ -127,17 +147,7 @@ def _quadric_at(
         for k in range(a + 1, 6):
             total -= normal[k, a] * solution[k]
         solution[a] = total
-    fit = QUADRIC_FIT_FRACTION * tolerance
-    low, high = np.inf, -np.inf
-    for k in range(n):
-        u, v = kept[0, k], kept[1, k]
-        fitted = solution[0] + solution[1] * u + solution[2] * v
-        fitted += solution[3] * u * u + solution[4] * u * v + solution[5] * v * v
-        if not abs(kept[2, k] - fitted) <= fit:
-            return np.nan
-        low, high = min(low, kept[2, k]), max(high, kept[2, k])
-    # Within the samples' heights (give or take the fit): a quadric bridging a step overshoots it.
-    return plane_y + solution[0] if low - fit <= solution[0] <= high + fit else np.nan
+    return True
 
 
 @numba.njit(cache=True, nogil=True)
