@@ -39,8 +39,6 @@ def area_matrix(source: int, target: int) -> np.ndarray:
     """OpenCV's INTER_AREA resize of one axis from ``source`` to ``target`` pixels (as
     dataset.images.resize_rgb shrinks an image) as a target x source float32 matrix: the resize
     of each unit vector. It is separable, so an image's is rows @ image @ cols.T."""
-    if source == target:
-        return np.eye(source, dtype=np.float32)
     return cv2.resize(np.eye(source), (source, target), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
@@ -131,9 +129,7 @@ class PhysicsPrior:
         self.device = "cpu"
         self._tensor: TensorPrior | None = None
         self._image_units = IMAGE_UNITS  # on the prior's device
-        # The area average to the grid as (rows, cols) matrices, for the tensor form.
-        height, width = self.renderer.config.shape
-        self._area = (torch.from_numpy(area_matrix(height, self.size)), torch.from_numpy(area_matrix(width, self.size)))
+        self._area: tuple[torch.Tensor, torch.Tensor] | None = None  # the tensor form's (on)
 
     def on(self, device: str) -> "PhysicsPrior":
         """This prior drawing on ``device``: "cpu" with the renderer's own NumPy and OpenCV
@@ -144,7 +140,16 @@ class PhysicsPrior:
         moved.device = device
         moved._tensor = None if device == "cpu" else TensorPrior(self.renderer, self._crop_xz_m, device)
         moved._image_units = IMAGE_UNITS.to(device)
-        moved._area = (self._area[0].to(device), self._area[1].to(device))
+        # The area average to the grid as (rows, cols) matrices, where the renderer draws more pixels.
+        height, width = self.renderer.config.shape
+        moved._area = (
+            None
+            if (height, width) == (self.size, self.size)
+            else (
+                torch.from_numpy(area_matrix(height, self.size)).to(device),
+                torch.from_numpy(area_matrix(width, self.size)).to(device),
+            )
+        )
         return moved
 
     @property
@@ -225,7 +230,7 @@ class PhysicsPrior:
         except GelSightRenderError as err:
             raise ModelConfigError(f"physics prior: {err}") from err
         levels = tensor.images(torch.as_tensor(maps).to(self.device), sigma_mm)
-        if levels.shape[-2:] == (self.size, self.size):
+        if self._area is None:
             return levels
         rows, cols = self._area
         return torch.round(rows @ levels @ cols.T)

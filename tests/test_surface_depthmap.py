@@ -895,11 +895,11 @@ def test_the_cuda_pass_cuts_the_same_surface_maps():
 def bin_by_bin_surface_map(samples, centres, bounds):
     """perception.surface._surface_map with every bin answered by _plane_at, level 0's fast path
     (_occupied_planes) left out: the reference the fast path keeps."""
-    from perception.surface import _answer_level, _knit, _pooled
+    from perception.surface import _answer_level, _knit, _pooled, level_0_tolerance
 
-    (sy, _, _), (x_centres, z_centres) = samples, centres
+    sy = samples[0]
     rows, cols = sy.shape
-    bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
+    bin_size = level_0_tolerance(*centres)
     out, known = np.full(sy.shape, bounds[1]), np.zeros(sy.shape, bool)
     level_samples, unknown, knit_level, level = samples, rows * cols, -1, 0
     while unknown and (knit_level < 0 or level <= knit_level + 1):
@@ -909,7 +909,7 @@ def bin_by_bin_surface_map(samples, centres, bounds):
             level_samples = _pooled(*level_samples)
         if knit_level < 0 and _knit(level_samples[0]):
             knit_level = level
-        tolerance = (bin_size if bin_size > 0.0 else 1.0) * (1 << level)
+        tolerance = bin_size * (1 << level)
         unknown -= _answer_level(level_samples, level, sy, centres, tolerance, bounds, out, known)
         if level == 0:
             planar = known & (out != sy)
