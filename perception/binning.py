@@ -17,8 +17,10 @@ from perception.errors import DepthMapError
 # Points are transformed in chunks of this many and binned in batches of at least this many
 # (cut_kernel): the bin indices of a batch are computed without a branch, and the rare batch
 # holding a value within rounding of a bin edge is binned again by comparing with the edges (a
-# branch per point, even never taken, made the loop 4x slower).
-_CHUNK = 256
+# branch per point, even never taken, made the loop 4x slower). Each binning call passes a dozen
+# arrays, each counted in and out: at 512 rather than 256 a planner's region (~50,000 points kept)
+# takes half the calls, its kernel 5 % less time (0.415 -> 0.395 ms on the YCB cracker box).
+_CHUNK = 512
 
 
 @numba.njit(cache=True, nogil=True)
