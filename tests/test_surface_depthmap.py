@@ -4,8 +4,9 @@ bin holds the object's surface at the bin's centre, along the gel normal.
 Checked against analytic truth (tilted planes, spheres, cylinders, a step) and against Open3D
 ray casting of a mesh; against the nearest-point rule, which errs by about half a bin times the
 slope; under voxel thinning; for what it must not invent (beyond a cloud's extent, a ring's hole,
-a cloud too sparse for a plane); and for the same maps on every path (one map, the indexed batch
-on 1 or 2 threads or cut in runs, the torch pass).
+a cloud too sparse for a plane, an open mesh's hole, a degenerate triangle's surface); and for the
+same maps on every path (one map, the indexed batch on 1 or 2 threads or cut in runs, the torch
+pass).
 
 Every cloud lies in the gel frame (model and gel poses the identity) unless a test says otherwise.
 The measured figures quoted next to the tolerances are those of the 100 x 100 default map
@@ -39,7 +40,7 @@ from perception.depthmap import (
 from perception.depthmap_tensor import front_points_on_device, points_on_device
 from perception.errors import DepthMapError, OutOfReachError
 from perception.pointcloud import VoxelIndex
-from perception.registration import sample_model_cloud
+from perception.registration import RegistrationError, sample_model_cloud
 from perception.surface import DEPTH_MAP_METHODS, bin_centres
 from workcell.kinematics import GripperGeometry
 
@@ -692,6 +693,73 @@ def test_property_a_cloud_too_sparse_for_a_plane_is_not_made_into_one(seed, coun
     np.testing.assert_array_equal(surface.occupied, holds)
     assert np.all(surface.depth_map_m[~holds] == np.float32(Y_FAR))
     np.testing.assert_array_equal(surface.depth_map_m[holds], nearest.depth_map_m[holds])
+
+
+HOLE_RADIUS_M = 0.003
+
+
+def _box_with_a_hole(path: Path, degenerate: bool = False) -> o3d.geometry.TriangleMesh:
+    """A 30 mm box whose near face (y = 0.5 mm, facing the gel) is open: its triangles (legs of
+    0.47 mm) within HOLE_RADIUS_M of the gel's centre are taken out, so the mesh is not
+    watertight; ``degenerate``: zero-area triangles added (a repeated vertex, three in a line)
+    across the hole. Written to ``path``, as a lab's mesh file would be."""
+    box = o3d.geometry.TriangleMesh.create_box(0.03, 0.03, 0.03).subdivide_midpoint(number_of_iterations=6)
+    box.translate([-0.015, 0.0005, -0.015])
+    vertices, triangles = np.asarray(box.vertices), np.asarray(box.triangles)
+    centroids = vertices[triangles].mean(axis=1)
+    near_face = np.abs(centroids[:, 1] - 0.0005) < 1e-9
+    open_mesh = triangles[~(near_face & (np.hypot(centroids[:, 0], centroids[:, 2]) < HOLE_RADIUS_M))]
+    if degenerate:
+        extra = len(vertices) + np.arange(4)
+        vertices = np.vstack(
+            [vertices, [[-0.001, 0.0005, 0.0], [0.0, 0.0005, 0.0], [0.001, 0.0005, 0.0], [0.0, 0.0005, 0.001]]]
+        )
+        open_mesh = np.vstack([open_mesh, [extra[0], extra[1], extra[2]], [extra[3], extra[3], extra[1]]])
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(open_mesh))
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    return mesh
+
+
+def test_an_open_mesh_is_read_where_it_has_surface_and_left_empty_where_it_has_none(tmp_path):
+    """A mesh that is not watertight, its near face holed across the gel's centre (the box's far
+    side 30 mm behind, out of the crop): every bin half a millimetre outside the hole reads the
+    face within 1 um, and every bin 0.6 mm inside it (its edge is jagged by the 0.47 mm triangles)
+    is left empty, y_far: no lid is made up over it (measured: empty up to 2.7 mm from the centre,
+    exact from 3.3 mm)."""
+    _box_with_a_hole(tmp_path / "open_box.ply")
+    points = sample_model_cloud(tmp_path / "open_box.ply", 0.1e-3, seed=0).points_m
+    surface = contact_depth_map(points, np.eye(4), np.eye(4), GEOMETRY, SURFACE)
+    from_centre = np.hypot(CX, CZ)
+    face = from_centre > HOLE_RADIUS_M + 0.0005
+    hole = from_centre < HOLE_RADIUS_M - 0.0006
+    assert face.sum() > 9000 and hole.sum() > 250
+    assert surface.occupied[face].all()
+    assert np.abs(surface.depth_map_m[face] - 0.0005).max() < 1e-6
+    assert not surface.occupied[hole].any()
+    assert np.all(surface.depth_map_m[hole] == np.float32(Y_FAR))
+
+
+def test_degenerate_triangles_add_no_surface_and_a_mesh_of_only_them_is_refused(tmp_path):
+    """Zero-area triangles (a repeated vertex, three vertices in a line) across the hole of the
+    open box: the model cloud and its map are the same as without them, the hole still empty;
+    a mesh of nothing else has no surface to sample: RegistrationError naming its area."""
+    plain = sample_model_cloud(_write(tmp_path, "plain.ply", _box_with_a_hole), 0.1e-3, seed=0).points_m
+    with_degenerate = sample_model_cloud(
+        _write(tmp_path, "degenerate.ply", lambda p: _box_with_a_hole(p, degenerate=True)), 0.1e-3, seed=0
+    ).points_m
+    np.testing.assert_array_equal(with_degenerate, plain)
+    only = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector([[0.0, 0.0, 0.0], [0.001, 0.0, 0.0], [0.002, 0.0, 0.0]]),
+        o3d.utility.Vector3iVector([[0, 1, 2], [0, 0, 1]]),
+    )
+    o3d.io.write_triangle_mesh(str(tmp_path / "only.ply"), only)
+    with pytest.raises(RegistrationError, match="surface area 0.0 m"):
+        sample_model_cloud(tmp_path / "only.ply", 0.1e-3)
+
+
+def _write(directory: Path, name: str, make) -> Path:
+    make(directory / name)
+    return directory / name
 
 
 # --- the front-most point of a bin and its tie rule ----------------------------------------------
