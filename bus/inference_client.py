@@ -14,7 +14,8 @@ launch file's ``peers:``, remote.
 checkpoint's calibrated estimate of the RMS of |estimate - truth| (the channels' mean); None
 when the checkpoint has none (the reply's ``uncertainty_status`` ``absent``), never zeros.
 ``last_reply`` is the whole reply: ``region_uncertainty``, ``serves`` (network | prior),
-``region_status``, ``model``...
+``region_status``, ``region_points`` and ``region_surface_bins`` (how much geometry each estimate
+rests on: a thinned cloud's regions hold fewer), ``model``...
 
 ``pose_sigma_mm``: how far off in the gel plane (mm, one sigma) the geometry may be, e.g. the
 registration's uncertainty after a touch calibration; 0 for exact geometry; None for the

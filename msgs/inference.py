@@ -56,6 +56,13 @@ class TactileEstimateReply(Message):
     ``"absent"`` for a checkpoint trained before the uncertainty existed; then ``uncertainty``
     is empty (0 x H x W) and ``region_uncertainty`` is [] (never zeros passed off as certain).
 
+    ``region_points[i]``: the cloud's points in gel i's contact volume (points requests; -1 for a
+    depth-map sent as one). ``region_surface_bins[i]``: how many bins of region i's depth-map hold
+    a surface within ``depth_range_m`` (below y_far); the others hold y_far: nothing there within
+    the range, or, from a cloud, too few points to say where the surface is (perception.surface
+    leaves such a bin empty rather than make a surface up). Few of either say the estimate rests on
+    little geometry: the default model's clouds put about five points in a bin.
+
     ``region_status[i]`` is ``"ok"``, or ``"out_of_reach"`` when gel i does not reach the
     cloud (points requests only): a planner asks about many candidate poses at once, and one
     that misses the object is an answer about that pose, not a fault of the batch. Its image
@@ -70,7 +77,7 @@ class TactileEstimateReply(Message):
     """
 
     SCHEMA = "dtx.inference.TactileEstimateReply"
-    VERSION = 5
+    VERSION = 6
 
     images: np.ndarray = empty((0, 100, 100, 3), np.uint8)
     uncertainty: np.ndarray = empty((0, 100, 100), np.float32)
@@ -81,6 +88,8 @@ class TactileEstimateReply(Message):
     latency_ms: float = 0.0
     region_status: list[str] = dataclasses.field(default_factory=list)
     region_errors: list[str] = dataclasses.field(default_factory=list)
+    region_points: list[int] = dataclasses.field(default_factory=list)
+    region_surface_bins: list[int] = dataclasses.field(default_factory=list)
     depth_range_m: list[float] = dataclasses.field(default_factory=list)
     cloud_id: str = ""
     worker: str = ""

@@ -5,13 +5,10 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
   frame), or a cloud with ``gel_poses`` (N x 4 x 4, gel to world), from which the depth-maps
   are cut as the patch extractor cuts them (perception.depthmap, y range = the checkpoint's
   depth_range_m), all N in one pass over a spatial index of the cloud.
-- Cloud handles: a planner asks about one registered cloud with request after request of
-  candidate poses, and a 0.1 mm model cloud is 10^7 points (~130 MB). The reply to a request
-  with ``points`` names the cloud (``cloud_id``, SHA-256 of its dtype, shape and bytes: the same
-  on every worker); later requests send only that id. The worker keeps the spatial index of its
-  last ``index_cache`` clouds (building one takes ~1-5 s); an id it does not hold (evicted, or
-  a respawned worker) is refused with code ``unknown_cloud``, and the client sends the points
-  again.
+- Cloud handles: the reply to a request with ``points`` names the cloud (``cloud_id``, SHA-256 of
+  its dtype, shape and bytes: the same on every worker); later requests send only that id. A worker
+  keeps the spatial index of its last ``index_cache`` clouds (~1-5 s to build each); an id it does
+  not hold is refused with ``unknown_cloud``, and the client sends the points again.
 - Batching: requests from every client that arrive within ``batch_window_ms`` of the oldest
   waiting one (and all that queued while the previous batch ran) go through the network
   together, in forward passes of at most ``max_batch`` regions; each client gets its own
@@ -22,18 +19,18 @@ msgs.TactileEstimateReply) with the trained pix2pix generator, for the grasp pla
 - ``uncertainty``, in every reply: per pixel u (levels 0..255), the checkpoint's calibrated RMS
   of |estimate - truth| (models.uncertainty) from each pass's input and served estimate, on the
   node's device; ``region_uncertainty`` each region's mean u. A checkpoint without one: status
-  ``absent``, the array empty (never zeros). ``dropout_samples`` other than 1 is refused.
+  ``absent``, the array empty (never zeros).
+- ``region_points`` and ``region_surface_bins``: each region's cloud points in its contact volume
+  and its map's bins holding a surface, how much geometry the estimate rests on.
 - ``pose_sigma_mm``: the in-plane pose uncertainty (mm) of the request's geometry, which a
   model with a physics prior blurs its prior's image by (models.prior): 0 for exact geometry,
   up to ``MAX_POSE_SIGMA_MM``; negative for the checkpoint's default. The reply says which it used.
-- A bad request (shape, dtype, NaN/inf, empty, too many regions, points or points x regions,
-  both or neither input, gel poses that are not rigid transforms, a pose_sigma_mm that is not
-  finite or above the bound, dropout_samples other than 1) gets an
-  error reply with code ``bad_request``; a wrong schema is refused by the bus. The node keeps
-  serving. A gel that does not reach the cloud is answered per region (``region_status``
-  ``out_of_reach``, the empty map's estimate), not by failing the request.
-- Scaling out: start several of these nodes; clients' DEALER sockets round-robin over every
-  server of the name (launch/serve.yaml).
+- A bad request (shape, dtype, NaN/inf, empty, too many regions, points or points x regions, both
+  or neither input, gel poses that are not rigid transforms, a pose_sigma_mm that is not finite or
+  above the bound, dropout_samples other than 1) gets an error reply with code ``bad_request``; a
+  wrong schema is refused by the bus. The node keeps serving. A gel that does not reach the cloud
+  is answered per region (``region_status`` ``out_of_reach``, the empty map's estimate).
+- Scaling out: start several of these nodes; clients round-robin over them (launch/serve.yaml).
 
 Params: ``checkpoint`` (models/train.py format), ``serves`` ("": the checkpoint's choice; network or
 prior override it, prior only for a checkpoint with one), ``runtime`` (onnxrt | eager), ``precision``
@@ -295,14 +292,12 @@ class InferenceNode(Node):
         if not ready:
             return
         sigmas = [self._pose_sigma_mm(job.request) for job in ready]
-        images, uncertainty, point_counts = self._estimates(sources, sigmas)
+        images, uncertainty, point_counts, surface_bins = self._estimates(sources, sigmas)
         offsets = np.cumsum([0] + [len(source) for source in sources])
         for i, job in enumerate(ready):
             rows = slice(offsets[i], offsets[i + 1])
-            errors = [
-                f"region {k}: no model point in the contact volume: the gel does not reach the object" if c == 0 else ""
-                for k, c in enumerate(point_counts[i])
-            ]
+            missed = "no model point in the contact volume: the gel does not reach the object"
+            errors = [f"region {k}: {missed}" if c == 0 else "" for k, c in enumerate(point_counts[i])]
             if uncertainty is None:  # a checkpoint trained before the uncertainty: absent, never zeros
                 u, status, region_u = np.zeros((0, *images.shape[1:3]), np.float32), "absent", []
             else:
@@ -319,6 +314,8 @@ class InferenceNode(Node):
                     latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
                     region_status=["out_of_reach" if e else "ok" for e in errors],
                     region_errors=errors,
+                    region_points=[int(c) for c in point_counts[i]],
+                    region_surface_bins=[int(b) for b in surface_bins[i]],
                     depth_range_m=[float(y) for y in self.depth_range_m],
                     cloud_id=clouds[i],
                     worker=self.name,
@@ -328,14 +325,17 @@ class InferenceNode(Node):
 
     def _estimates(
         self, sources: list[np.ndarray | PlannedCut], sigmas: list[float]
-    ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray]]:
+    ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray], list[np.ndarray]]:
         """(the served images, their uncertainty u in levels or None where the checkpoint has
-        none, the points each region's gel met: -1 for a depth-map sent as one) of every region
+        none, the points each region's gel met: -1 for a depth-map sent as one, the bins of each
+        region's map holding a surface below y_far) of every region
         of the requests' ``sources``, in passes of at most ``max_batch`` spread over the lanes
         (``forward_pass_parts``, ``thread_split``). On the CPU each lane cuts its pass's maps,
         draws their prior and serves them; on a GPU this thread draws each pass's input while
         the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
+        surface_bins = [np.zeros(len(source), np.int64) for source in sources]
+        y_far = np.float32(self.depth_range_m[1])  # as an empty bin holds it
 
         def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
             maps = []
@@ -344,9 +344,11 @@ class InferenceNode(Node):
                 if isinstance(source, PlannedCut):
                     patches = source.cut(first, stop, self.split.input_threads)
                     point_counts[i][first:stop] = patches.point_counts
-                    maps.append((patches.depth_maps_m, sigmas[i]))
+                    part = patches.depth_maps_m
                 else:
-                    maps.append((source[first:stop], sigmas[i]))
+                    part = source[first:stop]
+                surface_bins[i][first:stop] = np.count_nonzero((part < y_far).reshape(len(part), -1), axis=1)
+                maps.append((part, sigmas[i]))
             return self._network_input(maps)
 
         def drawn_and_served(parts: list[tuple[int, int, int]]) -> tuple[np.ndarray, np.ndarray | None]:
@@ -362,9 +364,8 @@ class InferenceNode(Node):
                 self.forward_passes += 1
         served = [output.result() for output in outputs]
         images = np.concatenate([estimate for estimate, _ in served])
-        if self.uncertainty is None:
-            return images, None, point_counts
-        return images, np.concatenate([u for _, u in served if u is not None]), point_counts
+        u = None if self.uncertainty is None else np.concatenate([u for _, u in served if u is not None])
+        return images, u, point_counts, surface_bins
 
     def _serve_pass(self, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
         """One pass, in a lane: the served estimate of network input ``x`` (the network's, or the

@@ -348,6 +348,39 @@ def test_a_gel_out_of_reach_is_answered_for_its_region_and_the_others_are_served
     np.testing.assert_array_equal(images[1], empty[0])  # what the gel feels touching nothing
 
 
+def test_each_region_says_how_many_points_and_surface_bins_its_estimate_rests_on(
+    registry: Registry, checkpoint: Path
+) -> None:
+    """A plane 0.5 mm into the gel at 0.1 mm points holds every bin; the same plane with a 6 mm
+    hole holds the hole's bins empty (the surface rule makes no lid over it) and says how many are
+    left; a gel out of reach holds none; a depth-map sent as one counts its bins below y_far and no
+    points (-1). The counts are those of the patch extractor's maps of the same cloud."""
+    _, depth_range_m = load_generator(checkpoint)
+    x, z = np.meshgrid(np.arange(-0.015, 0.015, 1e-4), np.arange(-0.012, 0.012, 1e-4))
+    plane = np.stack([x.ravel(), np.full(x.size, -0.0005), z.ravel()], axis=1)
+    holed = plane[np.hypot(plane[:, 0], plane[:, 2]) > 0.003]
+    away = np.eye(4)
+    away[1, 3] = -1.0
+    geometry = load_scene(InferenceNode.Params.scene).gripper_geometry()
+    params = DepthMapParams(y_range_m=depth_range_m)
+    sent = np.full((1, 100, 100), depth_range_m[1], np.float32)
+    sent[0, :, :30] = -0.0005
+    with serving(registry, checkpoint), planner(registry) as client:
+        client.estimate_at(plane, np.stack([np.eye(4), away]))
+        whole = client.last_reply
+        client.estimate_at(holed, np.eye(4)[None])
+        with_hole = client.last_reply
+        client.estimate(sent)
+        from_map = client.last_reply
+    assert whole is not None and with_hole is not None and from_map is not None
+    expected = [contact_depth_map(cloud, np.eye(4), np.eye(4), geometry, params) for cloud in (plane, holed)]
+    assert whole.region_points == [expected[0].point_count, 0] and whole.region_surface_bins == [10_000, 0]
+    surface = int(np.count_nonzero(expected[1].depth_map_m < np.float32(depth_range_m[1])))
+    assert with_hole.region_points == [expected[1].point_count] and with_hole.region_surface_bins == [surface]
+    assert 10_000 - 626 <= surface < 10_000 - 500  # the 6 mm hole covers 626 bins; its edge bins are known
+    assert from_map.region_points == [-1] and from_map.region_surface_bins == [3_000]
+
+
 def test_every_bad_request_gets_an_error_reply_and_the_server_serves_on(registry: Registry, checkpoint: Path) -> None:
     limits = {"max_regions": 4, "max_points": 1000, "max_point_visits": 2000}
     with serving(registry, checkpoint, **limits), contextlib.closing(Bus("planner", registry)) as bus:

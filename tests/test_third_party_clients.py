@@ -123,6 +123,7 @@ def test_the_node_planner_gets_the_python_clients_images_byte_for_byte(
     assert result["a"][0] == ["|u1", [3, 100, 100, 3]] and result["region_status"] == ["ok"] * 3
     assert images_path.read_bytes() == np.ascontiguousarray(images).tobytes()
     assert result["pose_sigma_mm"] == 1.0  # the checkpoint's default
+    assert (result["region_points"], result["region_surface_bins"]) == ([-1] * 3, reply.region_surface_bins)
     assert (result["uncertainty_status"], result["serves"]) == ("ok", "network")
     node_u = np.frombuffer(uncertainty_path.read_bytes(), "<f4").reshape(3, 100, 100)
     np.testing.assert_allclose(node_u, uncertainty, rtol=1e-5)
@@ -187,8 +188,9 @@ def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(
     served: tuple[Path, Registry], tmp_path: Path
 ) -> None:
     """§3's cloud handle from the page alone: six requests about one cloud over two workers carry
-    its points twice (once to each), then the id; the images are the Python client's, byte for
-    byte; an id no worker holds is refused with unknown_cloud."""
+    its points twice (once to each), then the id; the images and each region's points and surface
+    bins are the Python client's, byte for byte; an id no worker holds is refused with
+    unknown_cloud."""
     bus_dir, registry = served
     x, z = np.meshgrid(np.linspace(-0.012, 0.012, 120), np.linspace(-0.015, 0.015, 120))
     points = np.stack([x.ravel(), np.full(x.size, -0.0005), z.ravel()], axis=1).astype("<f4")
@@ -215,6 +217,9 @@ def test_the_node_planner_sends_a_cloud_once_per_worker_and_then_its_id(
             images, _ = client.estimate_at(cloud, poses)
     assert cloud.id == result["cloud_id"] and len(cloud.held_by) == 2
     assert (tmp_path / "images.u8").read_bytes() == np.ascontiguousarray(images).tobytes()
+    reply = client.last_reply
+    assert reply is not None and result["region_points"] == reply.region_points
+    assert result["region_surface_bins"] == reply.region_surface_bins and reply.region_points[2] == 0
 
 
 def test_the_node_planner_loses_no_request_when_a_worker_is_killed(served: tuple[Path, Registry]) -> None:

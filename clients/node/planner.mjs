@@ -257,7 +257,8 @@ async function images(mapsPath, n, outPath, sigmaMm, uncertaintyPath) {
   if (uncertaintyPath && d.uncertainty_status === "ok") writeFileSync(uncertaintyPath, replyArray(reply, "uncertainty"));
   return { schema: reply.header.s, a: reply.header.a, region_status: d.region_status,
            pose_sigma_mm: d.pose_sigma_mm, serves: d.serves, uncertainty_status: d.uncertainty_status,
-           region_uncertainty: d.region_uncertainty, ranking: rankRegions(d, contactSignal(pixels, n)) };
+           region_uncertainty: d.region_uncertainty, region_points: d.region_points,
+           region_surface_bins: d.region_surface_bins, ranking: rankRegions(d, contactSignal(pixels, n)) };
 }
 
 /** 28 requests, each broken one way (§2, §3); every one must get an error reply. */
@@ -389,8 +390,10 @@ async function cloud(pointsPath, p3, posesPath, n, count, outPath) {
   const unknown = await planner.call(cloudRequest(points, p3, poses, n, "0".repeat(64), false));
   planner.close();
   writeFileSync(outPath, replyArray(last, "images"));
+  // §3's geometry counts: how many points and surface bins each estimate rests on.
+  const { region_points: regionPoints, region_surface_bins: surfaceBins } = last.header.d;
   return { cloud_id: cloudId, with_points: withPoints, id_only: idOnly, refused, worker: last.header.d.worker,
-           unknown_id: unknown?.header.d?.code };
+           unknown_id: unknown?.header.d?.code, region_points: regionPoints, region_surface_bins: surfaceBins };
 }
 
 const [mode, ...args] = process.argv.slice(2);
