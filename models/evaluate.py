@@ -35,6 +35,7 @@ from models.template_match import template_match
 from models.uncertainty import served_uncertainty_statistics, uncertainty_table
 from msgs.progress import Progress
 from perception.density import voxel_size_for_density
+from perception.depthmap import surface_bins
 from perception.errors import ImageComparisonError, PerceptionError
 from perception.ssim import WINDOW, psnr_rgb, ssim_pairs_rgb, ssim_rgb
 
@@ -308,9 +309,12 @@ def evaluate(
         result["density"] = []
         full_contact = contact_ssim(predictions.truth, predictions.truth_deformation, predictions.estimate)
         empty_contact = _empty_map_contact(generator, depth_range_m, predictions) if density else None
+        result["surface_bins_mean"] = float(surface_bins(predictions.depth_maps_m, depth_range_m[1]).mean())
         for points_per_cm3, depth in density_maps.items():
-            estimate = predict(generator, depth.result(), depth_range_m)
-            result["density"].append(_density_row(points_per_cm3, predictions, estimate, full_contact, empty_contact))
+            maps = depth.result()
+            estimate = predict(generator, maps, depth_range_m)
+            row = _density_row(points_per_cm3, predictions, estimate, full_contact, empty_contact)
+            result["density"].append({**row, "surface_bins_mean": float(surface_bins(maps, depth_range_m[1]).mean())})
             shown.note(f"last: {points_per_cm3:g} points/cm³")
             shown.update()
     shown.close()
@@ -455,6 +459,14 @@ def summary_table(result: dict[str, Any]) -> str:
     if not result["objects"]:
         lines.append("per-object statistics: no object has 2 pairs")
     lines += uncertainty_table(result["uncertainty"]) if "uncertainty" in result else []
+    lines += _density_lines(result)
+    return "\n".join(lines)
+
+
+def _density_lines(result: dict[str, Any]) -> list[str]:
+    """The summary table's density rows: SSIM beside the paper's, PSNR, the contact windows and
+    the bins holding a surface, then the full cloud's bins."""
+    lines = []
     for row in result["density"]:
         paper = row["paper_ssim_mean"]
         lines.append(
@@ -463,5 +475,8 @@ def summary_table(result: dict[str, Any]) -> str:
             + (f"   PSNR {row['psnr_db_mean']:.2f} dB" if "psnr_db_mean" in row else "")
             + (f"   contact {row['contact_ssim_mean']:.4f}" if "contact_ssim_mean" in row else "")
             + (f" (full cloud better: p {row['contact_p_full_better']:.1e})" if "contact_p_full_better" in row else "")
+            + (f"   surface bins {row['surface_bins_mean']:.0f}" if "surface_bins_mean" in row else "")
         )
-    return "\n".join(lines)
+    if result["density"] and "surface_bins_mean" in result:
+        lines.append(f"{'surface bins, full cloud':28s}{result['surface_bins_mean']:>13.0f}")
+    return lines

@@ -77,7 +77,7 @@ from models.uncertainty import ServedUncertainty
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
 from nodes.inference_passes import forward_pass_parts, max_batch_on, thread_split
 from nodes.inference_requests import BadRequest, UnknownCloud, check_params, checked_regions, checked_serves, cloud_id
-from perception.depthmap import DepthMapParams, PlannedCut, contact_depth_maps, plan_contact_cut
+from perception.depthmap import DepthMapParams, PlannedCut, contact_depth_maps, plan_contact_cut, surface_bins
 from perception.depthmap_tensor import points_on_device
 from perception.errors import PerceptionError
 from perception.pointcloud import VoxelIndex
@@ -292,7 +292,7 @@ class InferenceNode(Node):
         if not ready:
             return
         sigmas = [self._pose_sigma_mm(job.request) for job in ready]
-        images, uncertainty, point_counts, surface_bins = self._estimates(sources, sigmas)
+        images, uncertainty, point_counts, surfaces = self._estimates(sources, sigmas)
         offsets = np.cumsum([0] + [len(source) for source in sources])
         for i, job in enumerate(ready):
             rows = slice(offsets[i], offsets[i + 1])
@@ -315,7 +315,7 @@ class InferenceNode(Node):
                     region_status=["out_of_reach" if e else "ok" for e in errors],
                     region_errors=errors,
                     region_points=[int(c) for c in point_counts[i]],
-                    region_surface_bins=[int(b) for b in surface_bins[i]],
+                    region_surface_bins=[int(b) for b in surfaces[i]],
                     depth_range_m=[float(y) for y in self.depth_range_m],
                     cloud_id=clouds[i],
                     worker=self.name,
@@ -334,8 +334,7 @@ class InferenceNode(Node):
         draws their prior and serves them; on a GPU this thread draws each pass's input while
         the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
-        surface_bins = [np.zeros(len(source), np.int64) for source in sources]
-        y_far = np.float32(self.depth_range_m[1])  # as an empty bin holds it
+        surface = [np.zeros(len(source), np.int64) for source in sources]
 
         def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
             maps = []
@@ -347,7 +346,7 @@ class InferenceNode(Node):
                     part = patches.depth_maps_m
                 else:
                     part = source[first:stop]
-                surface_bins[i][first:stop] = np.count_nonzero((part < y_far).reshape(len(part), -1), axis=1)
+                surface[i][first:stop] = surface_bins(part, self.depth_range_m[1])
                 maps.append((part, sigmas[i]))
             return self._network_input(maps)
 
@@ -365,7 +364,7 @@ class InferenceNode(Node):
         served = [output.result() for output in outputs]
         images = np.concatenate([estimate for estimate, _ in served])
         u = None if self.uncertainty is None else np.concatenate([u for _, u in served if u is not None])
-        return images, u, point_counts, surface_bins
+        return images, u, point_counts, surface
 
     def _serve_pass(self, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
         """One pass, in a lane: the served estimate of network input ``x`` (the network's, or the

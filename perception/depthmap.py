@@ -311,6 +311,14 @@ def _cut(
     )
 
 
+def surface_bins(depth_maps_m: np.ndarray, y_far_m: float) -> np.ndarray:
+    """How many bins of each depth-map (N x H x W, metres) hold a surface: a y below ``y_far_m``,
+    compared in float32 as the maps hold it. The others are empty: nothing within the depth range
+    there, or a cloud too thin to say where the surface is (perception.surface). (N,) int64."""
+    maps = np.asarray(depth_maps_m)
+    return np.count_nonzero(maps.reshape(len(maps), -1) < np.float32(y_far_m), axis=1).astype(np.int64)
+
+
 def _model_to_gels(model_to_world: np.ndarray, gels_to_world: np.ndarray) -> np.ndarray:
     """(N, 4, 4) float64 model-to-gel transforms, each composed in float64, of transforms the
     caller has checked (rigid)."""

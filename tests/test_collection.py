@@ -35,6 +35,7 @@ from models.evaluate import CONTACT_LEVELS, evaluate, predict_dataset
 from models.networks import GeneratorConfig, UNetGenerator
 from msgs import strict_json
 from nodes.collector import CollectorNode
+from perception.depthmap import surface_bins
 from perception.ssim import ssim_rgb
 from report.ceiling import RUNGS, CeilingError, format_table, information_ceiling
 from sim.cli import main as sim_cli
@@ -288,6 +289,10 @@ def test_depth_maps_made_again_from_the_recorded_model_poses(tmp_path: Path, rep
     result, _ = evaluate(generator, depth_range_m, collected.root, split="all", density=[10.0], progress=False)
     on_dataset = predict_dataset(generator, depth_range_m, sparse.root, split="all")
     assert result["density"][0]["ssim_mean"] == pytest.approx(ssim_rgb(on_dataset.truth, on_dataset.estimate).mean())
+    # How much of the maps the thinned cloud leaves empty, counted as the inference node counts it.
+    thinned_bins = surface_bins(on_dataset.depth_maps_m, depth_range_m[1]).mean()
+    assert result["density"][0]["surface_bins_mean"] == pytest.approx(thinned_bins)
+    assert thinned_bins < result["surface_bins_mean"] <= 10_000
 
 
 def test_densities_made_again_in_two_processes_are_those_made_in_one(tmp_path: Path, replayed: Path) -> None:
