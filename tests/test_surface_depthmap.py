@@ -23,7 +23,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
@@ -248,6 +248,9 @@ def small_ball(seed, radius, depth_fraction, centre_xz):
     depth=st.floats(0.0005, 0.0018),
     centre_xz=st.tuples(st.floats(-0.003, 0.003), st.floats(-0.003, 0.003)),
 )
+# Found by this test: at 43 deg on the smallest ball the quadric's correction of the chord is 80
+# um, over the quarter bin (72 um) the correction was once held to; the plane stayed 71 um off.
+@example(seed=48, radius=0.0015, depth=0.0010615857539590934, centre_xz=(0.0013903754005558885, 0.0))
 def test_property_a_small_ball_is_read_within_microns_where_it_is_at_most_45_deg_steep(seed, radius, depth, centre_xz):
     """A 1.5-3 mm ball (the real presses' is 2 mm) pressed 0.5-1.8 mm (its lowest point inside
     the y range), up to its equator, at the model clouds' spacing: where it is at
