@@ -313,8 +313,10 @@ def evaluate(
         for points_per_cm3, depth in density_maps.items():
             maps = depth.result()
             estimate = predict(generator, maps, depth_range_m)
-            row = _density_row(points_per_cm3, predictions, estimate, full_contact, empty_contact)
-            result["density"].append({**row, "surface_bins_mean": float(surface_bins(maps, depth_range_m[1]).mean())})
+            bins = surface_bins(maps, depth_range_m[1])
+            result["density"].append(
+                _density_row(points_per_cm3, predictions, estimate, bins, full_contact, empty_contact)
+            )
             shown.note(f"last: {points_per_cm3:g} points/cm³")
             shown.update()
     shown.close()
@@ -380,11 +382,17 @@ def _empty_map_contact(
 
 
 def _density_row(
-    points_per_cm3: float, full: Predictions, estimate: np.ndarray, full_contact: np.ndarray, empty: np.ndarray | None
+    points_per_cm3: float,
+    full: Predictions,
+    estimate: np.ndarray,
+    bins: np.ndarray,
+    full_contact: np.ndarray,
+    empty: np.ndarray | None,
 ) -> dict[str, Any]:
     """The density table's row for ``estimate``, the estimates of ``full``'s pairs from their
-    depth-maps at ``points_per_cm3``; the full cloud's contact-window SSIM (``full_contact``) for
-    the test of what the density costs, an empty map's (``empty``) for what the cloud is worth."""
+    depth-maps at ``points_per_cm3``, whose bins holding a surface are ``bins`` (one count a map);
+    the full cloud's contact-window SSIM (``full_contact``) for the test of what the density
+    costs, an empty map's (``empty``) for what the cloud is worth."""
     mean, se = _mean_se(ssim_rgb(full.truth, estimate))
     psnr_mean, psnr_se = _mean_se(psnr_rgb(full.truth, estimate))
     row = {
@@ -394,6 +402,7 @@ def _density_row(
         "psnr_db_mean": psnr_mean,
         "psnr_db_se": psnr_se,
         "paper_ssim_mean": PAPER_DENSITY_SSIM.get(points_per_cm3),
+        "surface_bins_mean": float(np.mean(bins)),
     }
     contact = contact_ssim(full.truth, full.truth_deformation, estimate)
     if len(contact) >= 2:

@@ -314,8 +314,8 @@ class InferenceNode(Node):
                     latency_ms=(time.monotonic() - job.arrived) * 1e3,  # queue, window and passes
                     region_status=["out_of_reach" if e else "ok" for e in errors],
                     region_errors=errors,
-                    region_points=[int(c) for c in point_counts[i]],
-                    region_surface_bins=[int(b) for b in surfaces[i]],
+                    region_points=point_counts[i].tolist(),
+                    region_surface_bins=surfaces[i].tolist(),
                     depth_range_m=[float(y) for y in self.depth_range_m],
                     cloud_id=clouds[i],
                     worker=self.name,

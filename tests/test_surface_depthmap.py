@@ -701,11 +701,11 @@ def test_property_a_cloud_too_sparse_for_a_plane_is_not_made_into_one(seed, coun
 HOLE_RADIUS_M = 0.003
 
 
-def _box_with_a_hole(path: Path, degenerate: bool = False) -> o3d.geometry.TriangleMesh:
+def _box_with_a_hole(path: Path, degenerate: bool = False) -> Path:
     """A 30 mm box whose near face (y = 0.5 mm, facing the gel) is open: its triangles (legs of
     0.47 mm) within HOLE_RADIUS_M of the gel's centre are taken out, so the mesh is not
     watertight; ``degenerate``: zero-area triangles added (a repeated vertex, three in a line)
-    across the hole. Written to ``path``, as a lab's mesh file would be."""
+    across the hole. Written to ``path`` (returned), as a lab's mesh file would be."""
     box = o3d.geometry.TriangleMesh.create_box(0.03, 0.03, 0.03).subdivide_midpoint(number_of_iterations=6)
     box.translate([-0.015, 0.0005, -0.015])
     vertices, triangles = np.asarray(box.vertices), np.asarray(box.triangles)
@@ -720,7 +720,7 @@ def _box_with_a_hole(path: Path, degenerate: bool = False) -> o3d.geometry.Trian
         open_mesh = np.vstack([open_mesh, [extra[0], extra[1], extra[2]], [extra[3], extra[3], extra[1]]])
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(open_mesh))
     o3d.io.write_triangle_mesh(str(path), mesh)
-    return mesh
+    return path
 
 
 def test_an_open_mesh_is_read_where_it_has_surface_and_left_empty_where_it_has_none(tmp_path):
@@ -729,8 +729,7 @@ def test_an_open_mesh_is_read_where_it_has_surface_and_left_empty_where_it_has_n
     face within 1 um, and every bin 0.6 mm inside it (its edge is jagged by the 0.47 mm triangles)
     is left empty, y_far: no lid is made up over it (measured: empty up to 2.7 mm from the centre,
     exact from 3.3 mm)."""
-    _box_with_a_hole(tmp_path / "open_box.ply")
-    points = sample_model_cloud(tmp_path / "open_box.ply", 0.1e-3, seed=0).points_m
+    points = sample_model_cloud(_box_with_a_hole(tmp_path / "open_box.ply"), 0.1e-3, seed=0).points_m
     surface = contact_depth_map(points, np.eye(4), np.eye(4), GEOMETRY, SURFACE)
     from_centre = np.hypot(CX, CZ)
     face = from_centre > HOLE_RADIUS_M + 0.0005
@@ -744,12 +743,11 @@ def test_an_open_mesh_is_read_where_it_has_surface_and_left_empty_where_it_has_n
 
 def test_degenerate_triangles_add_no_surface_and_a_mesh_of_only_them_is_refused(tmp_path):
     """Zero-area triangles (a repeated vertex, three vertices in a line) across the hole of the
-    open box: the model cloud and its map are the same as without them, the hole still empty;
+    open box: the model cloud is the same as without them (so is every map cut from it);
     a mesh of nothing else has no surface to sample: RegistrationError naming its area."""
-    plain = sample_model_cloud(_write(tmp_path, "plain.ply", _box_with_a_hole), 0.1e-3, seed=0).points_m
-    with_degenerate = sample_model_cloud(
-        _write(tmp_path, "degenerate.ply", lambda p: _box_with_a_hole(p, degenerate=True)), 0.1e-3, seed=0
-    ).points_m
+    plain = sample_model_cloud(_box_with_a_hole(tmp_path / "plain.ply"), 0.1e-3, seed=0).points_m
+    degenerate = _box_with_a_hole(tmp_path / "degenerate.ply", degenerate=True)
+    with_degenerate = sample_model_cloud(degenerate, 0.1e-3, seed=0).points_m
     np.testing.assert_array_equal(with_degenerate, plain)
     only = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector([[0.0, 0.0, 0.0], [0.001, 0.0, 0.0], [0.002, 0.0, 0.0]]),
@@ -758,11 +756,6 @@ def test_degenerate_triangles_add_no_surface_and_a_mesh_of_only_them_is_refused(
     o3d.io.write_triangle_mesh(str(tmp_path / "only.ply"), only)
     with pytest.raises(RegistrationError, match="surface area 0.0 m"):
         sample_model_cloud(tmp_path / "only.ply", 0.1e-3)
-
-
-def _write(directory: Path, name: str, make) -> Path:
-    make(directory / name)
-    return directory / name
 
 
 # --- the front-most point of a bin and its tie rule ----------------------------------------------
