@@ -67,6 +67,36 @@ def test_a_calibration_makes_each_decile_of_its_own_fit_close_to_calibrated(
         assert 0.7 < ratio < 1.4
 
 
+@settings(max_examples=200, deadline=None)
+@given(
+    knots=st.lists(st.floats(0.01, 100.0), min_size=1, max_size=12),
+    scale=st.lists(st.floats(0.05, 20.0), min_size=12, max_size=12),
+    seed=st.integers(0, 2**31 - 1),
+    float64=st.booleans(),
+)
+def test_a_calibration_is_np_interp_to_the_bit(
+    knots: list[float], scale: list[float], seed: int, float64: bool
+) -> None:
+    """apply is (raw * np.interp(raw, levels, scale)).astype(float32) exactly: on the knots (equal
+    ones too), a float's step either side of them, between them, outside them, at 0, inf and NaN."""
+    levels = sorted(knots)
+    calibration = Calibration(tuple(levels), tuple(scale[: len(levels)]))
+    rng = np.random.default_rng(seed)
+    dtype = np.float64 if float64 else np.float32
+    on = np.asarray(levels, dtype)
+    raw = np.concatenate(
+        [
+            on,
+            np.nextafter(on, dtype(np.inf)),
+            np.nextafter(on, dtype(0)),
+            rng.uniform(0.0, 120.0, 500).astype(dtype),
+            np.array([0.0, np.inf, np.nan], dtype),
+        ]
+    ).reshape(-1, 1)
+    expected = (raw * np.interp(raw, calibration.raw_levels, calibration.scale)).astype(np.float32)
+    np.testing.assert_array_equal(calibration.apply(raw), expected)
+
+
 def test_a_constant_sigma_is_calibrated_to_the_rms_error() -> None:
     error = np.abs(np.random.default_rng(0).normal(size=1000)) * 3
     calibration = Calibration.fit(np.ones(1000, np.float32), error)
