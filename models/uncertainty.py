@@ -139,9 +139,9 @@ def _calibrated(raw: np.ndarray, levels: np.ndarray, scale: np.ndarray, out: np.
     scale[j]) / (levels[j + 1] - levels[j]), times the value's distance from its lower knot, plus
     that knot's scale; a value on a knot takes its scale, one outside them the end's (NaN stays
     NaN); of equal knots (Calibration.fit can round two deciles' means to one) the last is the
-    value's. Why not np.interp: it bisects the knots for each of a served region's 10,000 values and
-    took 0.04-0.13 ms a region; with ten knots, counting those at or below a value is a compiled
-    pass without a branch, the same bits at about a third of the time."""
+    value's. Why not np.interp: it bisects the knots for each of a served region's 10,000 values,
+    0.05 ms a region (0.13 for values spread over its range); with ten knots, counting those at or
+    below a value is a compiled pass without a branch: the same bits in half the time."""
     last = levels.shape[0] - 1
     slopes = np.zeros(max(last, 1))
     for j in range(last):
