@@ -163,5 +163,7 @@ def session_prior(reader: DatasetReader, config: GeneratorConfig, pose_sigma_mm:
         return None
     if reader.info.depth_crop_m is None or not reader.info.scene:
         raise ModelConfigError(f"{reader.root} does not record its scene and depth crop, which a physics prior needs")
-    spec = PriorSpec(reader.info.scene, reader.info.depth_crop_m, pose_sigma_mm, config.prior_drawn_at)
+    spec = PriorSpec(
+        reader.info.scene, reader.info.depth_crop_m, pose_sigma_mm, config.prior_drawn_at, config.prior_drawn_rows
+    )
     return PhysicsPrior(spec, config.image_size)

@@ -34,7 +34,8 @@ class GeneratorConfig:
     prior: the input carries 3 more channels, the physics prior's image of the same depth-map
     (models.prior), which is also added to the output (in tanh's input units): the network
     learns the correction to physics; prior_drawn_at: where the prior's renderer draws
-    (models.prior.PRIOR_DRAWN_AT)."""
+    (models.prior.PRIOR_DRAWN_AT), and prior_drawn_rows the rows of square pixels it draws the
+    sensor's field on (0: the sensor's own; models.prior.PriorSpec)."""
 
     in_channels: int = 1
     out_channels: int = 3
@@ -47,6 +48,7 @@ class GeneratorConfig:
     background: bool = False
     prior: bool = False
     prior_drawn_at: str = "grid"
+    prior_drawn_rows: int = 0
 
     @property
     def input_channels(self) -> int:
@@ -67,6 +69,13 @@ class GeneratorConfig:
             )
         if self.prior_drawn_at not in ("grid", "sensor"):
             raise ModelConfigError(f"prior_drawn_at must be 'grid' or 'sensor', got {self.prior_drawn_at!r}")
+        rows = self.prior_drawn_rows
+        if not (isinstance(rows, int) and not isinstance(rows, bool) and rows >= 0):
+            raise ModelConfigError(f"prior_drawn_rows must be an integer >= 0 (0: the sensor's own), got {rows!r}")
+        if rows and self.prior_drawn_at != "sensor":
+            raise ModelConfigError(
+                f"prior_drawn_rows ({rows}) draws the sensor's field: it needs prior_drawn_at 'sensor'"
+            )
         if not 0.0 <= self.dropout < 1.0:
             raise ModelConfigError(f"dropout must be in [0, 1), got {self.dropout}")
         if not 0 <= self.dropout_blocks <= self.num_downs - 2:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from typing import Any
 
 import cv2
@@ -32,7 +33,7 @@ from sim.gelsight import (
     render_depth_maps,
     scene_renderer,
 )
-from workcell.scene import SceneError, load_scene
+from workcell.scene import Scene, SceneError, load_scene
 
 
 def area_matrix(source: int, target: int) -> np.ndarray:
@@ -68,6 +69,7 @@ class PriorSpec:
     depth_crop_m: tuple[float, float, float]
     pose_sigma_mm: float = 0.0
     drawn_at: str = "grid"  # PRIOR_DRAWN_AT; a checkpoint that names none was drawn at its grid
+    drawn_rows: int = 0  # drawn at the sensor: the rows of square pixels over its field (0: its own)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -75,6 +77,7 @@ class PriorSpec:
             "depth_crop_m": list(self.depth_crop_m),
             "pose_sigma_mm": self.pose_sigma_mm,
             "drawn_at": self.drawn_at,
+            "drawn_rows": self.drawn_rows,
         }
 
     @staticmethod
@@ -86,18 +89,37 @@ class PriorSpec:
                 depth_crop_m=crop,  # type: ignore[arg-type]
                 pose_sigma_mm=float(data.get("pose_sigma_mm", 0.0)),
                 drawn_at=str(data.get("drawn_at", "grid")),
+                drawn_rows=int(data.get("drawn_rows", 0)),
             )
         except (KeyError, TypeError, ValueError, OverflowError) as err:
             raise ModelConfigError(f"a physics prior needs a scene and a 3-value depth_crop_m, got {data!r}") from err
 
 
 # Where the prior's renderer draws an image: "grid", at the model's image size (the field's
-# pixels 0.2 x 0.15 mm on the default 100 x 100), or "sensor", at the GelSight's own pixels
-# (0.12 mm), area-averaged to the grid as every target image is (dataset.images.resize_rgb). The
-# shading is not linear in the slopes, so the two differ wherever a contact bends faster than
-# the grid's pixels: on the 30 real presses of a 2 mm ball, window SSIM 0.883 at the grid and
-# 0.888 at the sensor's pixels, at twice the pixels' cost (docs/measurements.md).
+# pixels 0.2 x 0.15 mm on the default 100 x 100), or "sensor", over the GelSight's field on square
+# pixels (its own 0.12 mm ones, or ``drawn_rows`` of them), area-averaged to the grid as every
+# target image is (dataset.images.resize_rgb). On the 30 real presses of a 2 mm ball, window SSIM
+# 0.883 at the grid, 0.888 at the sensor's 120 x 160 and at 84 x 112 (0.18 mm), which costs half
+# the sensor's pixels (docs/measurements.md).
 PRIOR_DRAWN_AT = ("grid", "sensor")
+
+
+def sensor_pixels(scene: Scene, rows: int) -> tuple[int, int] | None:
+    """The (rows, columns) of square pixels that cover ``scene``'s GelSight field in ``rows``
+    rows, or None for 0 (its own pixels); ModelConfigError where ``rows`` is not an integer of at
+    most the sensor's rows (and at least 3) that divides its field into whole columns too."""
+    height, width = scene.gelsight.image_height, scene.gelsight.image_width
+    step = height // math.gcd(height, width)  # rows whose columns are whole
+    integer = isinstance(rows, (int, np.integer)) and not isinstance(rows, bool)
+    if integer and rows == 0:
+        return None
+    if not (integer and 3 <= rows <= height and rows % step == 0):
+        raise ModelConfigError(
+            f"the prior's drawn rows must be 0 (the sensor's own {height} x {width}) or a multiple of {step} "
+            f"from 3 to {height} (square pixels in whole columns), got {rows!r}"
+        )
+    return int(rows), int(rows) * width // height
+
 
 # An 8-bit level in the network's image units, as the CPU computes it from the uint8 image.
 IMAGE_UNITS = torch.from_numpy(np.arange(256, dtype=np.uint8).astype(np.float32) / 127.5 - 1.0)
@@ -123,9 +145,12 @@ class PhysicsPrior:
         checked_pose_sigma_mm(spec.pose_sigma_mm, "the prior's pose_sigma_mm")
         if spec.drawn_at not in PRIOR_DRAWN_AT:
             raise ModelConfigError(f"the prior is drawn at one of {PRIOR_DRAWN_AT}, got {spec.drawn_at!r}")
+        if spec.drawn_at == "grid" and spec.drawn_rows:
+            raise ModelConfigError(f"the prior's drawn rows ({spec.drawn_rows}) draw the sensor's field, not the grid")
         self.spec = spec
         self.size = int(size)
-        self.renderer = scene_renderer(scene, size=None if spec.drawn_at == "sensor" else (size, size), effects=False)
+        drawn = (size, size) if spec.drawn_at == "grid" else sensor_pixels(scene, spec.drawn_rows)
+        self.renderer = scene_renderer(scene, size=drawn, effects=False)
         self.device = "cpu"
         self._tensor: TensorPrior | None = None
         self._image_units = IMAGE_UNITS  # on the prior's device

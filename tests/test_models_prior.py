@@ -152,6 +152,46 @@ def test_a_prior_drawn_at_the_sensors_pixels_is_the_scene_renderers_image_area_a
     assert PriorSpec.from_dict(old).drawn_at == "grid"
 
 
+def test_a_prior_drawn_on_fewer_square_pixels_is_that_renderers_image_area_averaged() -> None:
+    """``drawn_rows``: the sensor's 14.9 x 19.9 mm field drawn on 84 x 112 square pixels by the
+    scene's GelSight at that size, then brought to the grid as the sensor's own would be; a spec
+    that names no rows was drawn on the sensor's own (every checkpoint before it)."""
+    from dataset.images import resize_rgb
+    from sim.gelsight import scene_renderer
+    from workcell.scene import load_scene
+
+    spec = PriorSpec(SCENE, CROP_M, drawn_at="sensor", drawn_rows=84)
+    prior = PhysicsPrior(spec, BINS)
+    assert prior.renderer.config.shape == (84, 112)
+    assert prior.renderer.pixel_pitch_mm[0] == pytest.approx(prior.renderer.pixel_pitch_mm[1])
+    presses = np.concatenate([ball_press((1.0, -0.5)), ball_press((-2.0, 1.5), radius_mm=3.0, depth_mm=1.2)])
+    renderer = scene_renderer(load_scene(SCENE), size=(84, 112), effects=False)
+    drawn = render_depth_maps(renderer, presses, (CROP_M[0], CROP_M[2]))
+    np.testing.assert_array_equal(prior.images(presses), np.stack([resize_rgb(image, BINS, BINS) for image in drawn]))
+    sensor = PhysicsPrior(PriorSpec(SCENE, CROP_M, drawn_at="sensor"), BINS).images(presses)
+    assert np.abs(prior.images(presses).astype(int) - sensor.astype(int)).mean() < 1.0  # the same contact
+    assert PriorSpec.from_dict(spec.to_dict()) == spec
+    old = spec.to_dict()
+    del old["drawn_rows"]
+    assert PriorSpec.from_dict(old).drawn_rows == 0
+
+
+@pytest.mark.parametrize("rows", [85, 2, 0.5, 123, -3, True, "84"])
+def test_drawn_rows_that_do_not_make_square_pixels_of_the_field_are_refused(rows: object) -> None:
+    with pytest.raises(ModelConfigError, match="drawn rows must be 0 .* or a multiple of 3 from 3 to 120"):
+        PhysicsPrior(PriorSpec(SCENE, CROP_M, drawn_at="sensor", drawn_rows=rows), BINS)  # type: ignore[arg-type]
+
+
+def test_drawn_rows_at_the_grid_are_refused() -> None:
+    with pytest.raises(ModelConfigError, match="not the grid"):
+        PhysicsPrior(PriorSpec(SCENE, CROP_M, drawn_at="grid", drawn_rows=84), BINS)
+    with pytest.raises(ModelConfigError, match="needs prior_drawn_at 'sensor'"):
+        GeneratorConfig(prior=True, prior_drawn_rows=84).validate()
+    for rows in (-1, True, 1.5):
+        with pytest.raises(ModelConfigError, match="prior_drawn_rows must be an integer"):
+            GeneratorConfig(prior=True, prior_drawn_at="sensor", prior_drawn_rows=rows).validate()  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("drawn_at", ["camera", "", "GRID"])
 def test_a_prior_drawn_anywhere_else_is_refused(drawn_at: str) -> None:
     with pytest.raises(ModelConfigError, match="drawn at"):
