@@ -81,8 +81,10 @@ YCB = sorted(str(p) for p in (Path(__file__).resolve().parent.parent / "assets" 
 
 # The prior a collection session on the default scene gives (models.prior): its GelSight, and
 # its depth-maps' crop (the sensed 19.9 x 14.9 mm plus 2 mm margins; y range -5..10 mm), drawn
-# at the sensor's pixels as the demo's config draws it.
-SESSION_PRIOR = PriorSpec(scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 0.015, 0.01894), drawn_at="sensor")
+# over the sensor's field on 84 rows of square pixels, as the demo's config draws it.
+SESSION_PRIOR = PriorSpec(
+    scene="scenes/ycb_three.yaml", depth_crop_m=(0.02392, 0.015, 0.01894), drawn_at="sensor", drawn_rows=84
+)
 
 
 def write_checkpoint(
@@ -97,7 +99,11 @@ def write_checkpoint(
     seeded generator of width ``width``, correcting the default scene's physics prior if asked,
     whose depth-maps are by default ``pose_sigma_mm`` off in the gel plane."""
     torch.manual_seed(seed)
-    config = TrainConfig(generator=GeneratorConfig(ngf=width, prior=prior, prior_drawn_at=SESSION_PRIOR.drawn_at))
+    config = TrainConfig(
+        generator=GeneratorConfig(
+            ngf=width, prior=prior, prior_drawn_at=SESSION_PRIOR.drawn_at, prior_drawn_rows=SESSION_PRIOR.drawn_rows
+        )
+    )
     torch.save(
         {
             "generator": UNetGenerator(config.generator).state_dict(),
