@@ -99,8 +99,8 @@ class PriorSpec:
 # pixels 0.2 x 0.15 mm on the default 100 x 100), or "sensor", over the GelSight's field on square
 # pixels (its own 0.12 mm ones, or ``drawn_rows`` of them), area-averaged to the grid as every
 # target image is (dataset.images.resize_rgb). On the 30 real presses of a 2 mm ball, window SSIM
-# 0.883 at the grid, 0.888 at the sensor's 120 x 160 and at 84 x 112 (0.18 mm), which costs half
-# the sensor's pixels (docs/measurements.md).
+# 0.883 at the grid, 0.888 at the sensor's 120 x 160 and 0.888 at 84 x 112 (0.18 mm), half the
+# sensor's pixels and half their cost (docs/measurements.md).
 PRIOR_DRAWN_AT = ("grid", "sensor")
 
 

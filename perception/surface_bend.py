@@ -80,14 +80,13 @@ def _quadric_at(
     reach: tuple[float, float],
     scratch: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> float:
-    """The surface's y at ``centre`` (x, z) from the quadric y = h + gx u + gz v + a u² + b u v +
-    c v² (u, v: offsets in bins) through the samples of the 3 x 3 bins around (r, c), a bin off
-    the map's border, that continue
-    the surface of the plane's value ``plane_y`` at the centre (a height change within max_slope
-    times the distance plus the bins' size, ``reach`` = (bin size, max_slope): the plane's own
-    rule, perception.surface._continues), or NaN where they cannot say: under
-    _MIN_QUADRIC_SAMPLES, too close to a conic to pin six terms (:func:`_quadric`), or one off the
-    quadric by over QUADRIC_FIT_FRACTION of the bin size (a rim, a crease, a noisy cloud: the
+    """The surface's y at ``centre`` (x, z) from the quadric y = h + gx u + gz v + a u² + b u v + c
+    v² (u, v: offsets in bins) through the samples of the 3 x 3 bins around (r, c), a bin off the
+    map's border, that continue the surface of the plane's value ``plane_y`` at the centre (a height
+    change within max_slope times the distance plus the bins' size, ``reach`` = (bin size,
+    max_slope): the plane's own rule, perception.surface._continues), or NaN where they cannot say:
+    under _MIN_QUADRIC_SAMPLES, too close to a conic to pin six terms (:func:`_quadric`), or one off
+    the quadric by over QUADRIC_FIT_FRACTION of the bin size (a rim, a crease, a noisy cloud: the
     plane stays). ``scratch``: (3, 9) samples kept, (6, 7) the normal equations augmented by the
     right-hand side, and 6 coefficients."""
     sy, sx, sz = samples

@@ -167,9 +167,10 @@ def test_a_prior_drawn_on_fewer_square_pixels_is_that_renderers_image_area_avera
     presses = np.concatenate([ball_press((1.0, -0.5)), ball_press((-2.0, 1.5), radius_mm=3.0, depth_mm=1.2)])
     renderer = scene_renderer(load_scene(SCENE), size=(84, 112), effects=False)
     drawn = render_depth_maps(renderer, presses, (CROP_M[0], CROP_M[2]))
-    np.testing.assert_array_equal(prior.images(presses), np.stack([resize_rgb(image, BINS, BINS) for image in drawn]))
+    images = prior.images(presses)
+    np.testing.assert_array_equal(images, np.stack([resize_rgb(image, BINS, BINS) for image in drawn]))
     sensor = PhysicsPrior(PriorSpec(SCENE, CROP_M, drawn_at="sensor"), BINS).images(presses)
-    assert np.abs(prior.images(presses).astype(int) - sensor.astype(int)).mean() < 1.0  # the same contact
+    assert np.abs(images.astype(int) - sensor.astype(int)).mean() < 1.0  # the same contact
     assert PriorSpec.from_dict(spec.to_dict()) == spec
     old = spec.to_dict()
     del old["drawn_rows"]
