@@ -202,6 +202,46 @@ def _bin_kept(
         _keep_least_y(kept[0], count, flat, front[0])
 
 
+# Added to a cell's half-size when testing it against a crop: a point's cell comes from a
+# rounded floor((p - origin) / cell), so a point may lie a few ulps (~1e-12 m at 1 km) outside it.
+_CELL_MARGIN_M = 1e-6
+
+
+@numba.njit(cache=True, nogil=True)
+def cells_meeting_crops(
+    corners: np.ndarray,
+    owner: np.ndarray,
+    cell_m: float,
+    model_to_gel: np.ndarray,
+    bounds: tuple[float, float, float, float],
+) -> np.ndarray:
+    """Which cells (low ``corners`` (n, 3), m) can hold a point of their gel's crop box
+    (``model_to_gel[owner[i]]``: cell i's gel, (N, 4, 4)). The index hands out the cells of a cube
+    around the crop's reach (~40 mm across for a 24 x 19 x 4 mm crop), several times the points
+    the crop holds; a cell is dropped when one of the gel's axes separates it from the box (the
+    separating-axis test on the box's own axes: conservative, it never drops a cell that meets
+    the box), so the kernel, which crops each point exactly, gives the same maps. Compiled: in
+    NumPy, each cell's gel transform gathered and the test's dozen passes took 0.45 ms of a
+    64-gel request's plan."""
+    half_x, half_z, y_near, y_far = bounds
+    half_cell = 0.5 * cell_m + _CELL_MARGIN_M
+    meets = np.empty(corners.shape[0], np.bool_)
+    for i in range(corners.shape[0]):
+        g = model_to_gel[owner[i]]
+        cx, cy, cz = corners[i, 0] + 0.5 * cell_m, corners[i, 1] + 0.5 * cell_m, corners[i, 2] + 0.5 * cell_m
+        # The cell's centre and half-extent along each of the gel's axes.
+        x, reach_x = g[0, 0] * cx + g[0, 1] * cy + g[0, 2] * cz + g[0, 3], abs(g[0, 0]) + abs(g[0, 1]) + abs(g[0, 2])
+        y, reach_y = g[1, 0] * cx + g[1, 1] * cy + g[1, 2] * cz + g[1, 3], abs(g[1, 0]) + abs(g[1, 1]) + abs(g[1, 2])
+        z, reach_z = g[2, 0] * cx + g[2, 1] * cy + g[2, 2] * cz + g[2, 3], abs(g[2, 0]) + abs(g[2, 1]) + abs(g[2, 2])
+        meets[i] = (
+            (abs(x) <= half_x + half_cell * reach_x)
+            & (abs(z) <= half_z + half_cell * reach_z)
+            & (y >= y_near - half_cell * reach_y)
+            & (y <= y_far + half_cell * reach_y)
+        )
+    return meets
+
+
 def bin_edges(half_m: float, count: int) -> np.ndarray:
     """The ``count + 1`` float64 edges of ``count`` equal bins over [-half_m, half_m]."""
     return np.linspace(-half_m, half_m, count + 1)

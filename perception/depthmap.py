@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from perception.binning import bin_edges, cut_kernel, fill_sampling_gaps, region_groups
+from perception.binning import bin_edges, cells_meeting_crops, cut_kernel, fill_sampling_gaps, region_groups
 from perception.errors import DepthMapError, OutOfReachError
 from perception.normalisation import normalise_depth_map
 from perception.pointcloud import VoxelIndex, check_transform, check_transforms
@@ -363,32 +363,6 @@ def contact_depth_map(
     )
 
 
-# Added to a cell's half-size when testing it against a crop: a point's cell comes from a
-# rounded floor((p - origin) / cell), so a point may lie a few ulps (~1e-12 m at 1 km) outside it.
-_CELL_MARGIN_M = 1e-6
-
-
-def _cells_meeting_crops(
-    corners: np.ndarray, cell_m: float, model_to_gel: np.ndarray, bounds: tuple[float, float, float, float]
-) -> np.ndarray:
-    """Which cells (low ``corners`` (n, 3), m) can hold a point of their gel's crop box
-    (``model_to_gel`` (n, 4, 4): each cell's gel). The index hands out the cells of a cube
-    around the crop's reach (~40 mm across for a 24 x 19 x 4 mm crop), several times the points
-    the crop holds; a cell is dropped when one of the gel's axes separates it from the box (the
-    separating-axis test on the box's own axes: conservative, it never drops a cell that meets
-    the box), so the kernel, which crops each point exactly, gives the same maps."""
-    half_x, half_z, y_near, y_far = bounds
-    rotation = model_to_gel[:, :3, :3]
-    centres = np.einsum("nij,nj->ni", rotation, corners + 0.5 * cell_m) + model_to_gel[:, :3, 3]  # gel frame
-    reach = (0.5 * cell_m + _CELL_MARGIN_M) * np.abs(rotation).sum(axis=2)  # the cell's half-extent per gel axis
-    return (
-        (np.abs(centres[:, 0]) <= half_x + reach[:, 0])
-        & (np.abs(centres[:, 2]) <= half_z + reach[:, 2])
-        & (centres[:, 1] >= y_near - reach[:, 1])
-        & (centres[:, 1] <= y_far + reach[:, 1])
-    )
-
-
 def contact_depth_maps(
     model: VoxelIndex,
     model_to_world: np.ndarray,
@@ -477,7 +451,7 @@ def plan_contact_cut(
     world_to_model = np.linalg.inv(model_pose)
     centres = gels[:, :3, 3] @ world_to_model[:3, :3].T + world_to_model[:3, 3]
     owner, starts, ends, corners = model.cells_within_many(centres, reach)
-    meets = _cells_meeting_crops(corners, model.cell_m, model_to_gel[owner], bounds)
+    meets = cells_meeting_crops(corners, owner, model.cell_m, model_to_gel, bounds)
     owner, starts, ends = owner[meets], starts[meets].astype(np.int64), ends[meets].astype(np.int64)
     runs = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=len(gels)))]).astype(np.int64)
     visits = int(np.sum(ends - starts))

@@ -501,6 +501,37 @@ def test_float32_points_give_the_map_of_their_float64_values(method):
     np.testing.assert_array_equal(wide.occupied, narrow.occupied)
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    offset=st.sampled_from([0.0, 1e3, -2e4]),
+    cell=st.sampled_from([0.001, 0.005, 0.05]),
+)
+def test_property_a_planned_cut_keeps_every_cell_that_holds_a_point_of_its_gels_crop(seed, offset, cell):
+    """The separating-axis test drops a cell only when no point of it can lie in its gel's crop:
+    every point inside a crop (transformed as the cut's kernel does) is in a cell the plan
+    keeps for that gel, gels turned every way and a km from the origin; and it drops cells, so
+    that the test is one."""
+    from perception.binning import cells_meeting_crops
+    from perception.pointcloud import VoxelIndex
+
+    rng = np.random.default_rng(seed)
+    index = VoxelIndex(offset + rng.uniform(-0.03, 0.03, (20000, 3)), cell)
+    gels = np.stack([random_pose(rng, offset) for _ in range(4)])
+    model_to_gel = np.linalg.inv(gels)
+    half_x, half_z, y_near, y_far = bounds = crop_bounds(GEOMETRY, DepthMapParams())
+    owner, starts, ends, corners = index.cells_within_many(gels[:, :3, 3], 0.1)
+    meets = cells_meeting_crops(corners, owner, index.cell_m, model_to_gel, bounds)
+    assert not meets.all()
+    for gel, to_gel in enumerate(model_to_gel):
+        points = index.points_m @ to_gel[:3, :3].T + to_gel[:3, 3]
+        x, y, z = points.T
+        inside = np.flatnonzero((np.abs(x) <= half_x) & (np.abs(z) <= half_z) & (y >= y_near) & (y <= y_far))
+        kept = [(s, e) for s, e, m, o in zip(starts, ends, meets, owner) if m and o == gel]
+        assert inside.size  # each crop lies within the cloud's cube
+        assert all(any(s <= i < e for s, e in kept) for i in inside)
+
+
 def test_batched_maps_name_the_region_that_misses_and_bound_the_work():
     from perception.depthmap import contact_depth_maps
     from perception.pointcloud import VoxelIndex

@@ -177,19 +177,26 @@ def test_voxel_index_hands_out_every_point_of_the_ball(seed, radius_m, cell_m, o
     offset_m=st.sampled_from([0.0, 1e3]),
 )
 def test_voxel_index_answers_many_balls_as_it_answers_each(seed, balls, points, radius_m, cell_m, offset_m):
-    """The batched look-up gives each ball exactly the runs, in the order, one query gives: the
-    boxes enumerated together, or ball by ball when they outgrow the occupied cells (few points,
-    a huge radius); centres inside, outside and far from the cloud."""
+    """The batched look-up gives each ball exactly the runs, in the order, one query gives, and
+    both are every occupied cell of the ball's box of cells, keys ascending (here found by
+    testing every occupied cell): boxes searched column by column, or scanned when they outgrow
+    the occupied cells (few points, a huge radius); centres inside, outside and far from the cloud."""
     rng = np.random.default_rng(seed)
     index = VoxelIndex(rng.uniform(-0.05, 0.05, size=(points, 3)) + offset_m, cell_m)
     centres = offset_m + rng.uniform(-0.08, 0.08, size=(balls, 3))
     owner, starts, ends, corners = index.cells_within_many(centres, radius_m)
     assert np.all(np.diff(owner) >= 0)
+    occupied = np.stack(np.unravel_index(index.keys, tuple(index.shape)), axis=1)
     for ball, centre in enumerate(centres):
         mine = owner == ball
         expected = index.slices_within(centre, radius_m)
         np.testing.assert_array_equal(starts[mine], expected[0])
         np.testing.assert_array_equal(ends[mine], expected[1])
+        with np.errstate(invalid="ignore"):  # inf - inf where the radius is inf: NaN, not in any box
+            low = np.floor((centre - radius_m - index.origin_m) / cell_m)
+            high = np.floor((centre + radius_m - index.origin_m) / cell_m)
+        inside = np.all((occupied >= low) & (occupied <= high), axis=1) | (radius_m == np.inf)
+        np.testing.assert_array_equal(expected[0], index.starts[inside])
         cells = np.floor((corners[mine] - index.origin_m) / cell_m + 0.5).astype(np.int64)
         np.testing.assert_array_equal(
             np.ravel_multi_index(cells.T, index.shape), index.keys[np.searchsorted(index.starts, expected[0])]
