@@ -156,6 +156,29 @@ def test_image_scaling_round_trips(images: np.ndarray) -> None:
     np.testing.assert_array_equal(to_uint8_rgb(image_target(images)), images)
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    units=arrays(
+        np.float32,
+        st.tuples(st.integers(1, 3), st.integers(1, 4), st.integers(1, 6), st.integers(1, 9)),
+        elements=st.one_of(
+            st.floats(-1.5, 1.5, width=32),
+            st.sampled_from([-1.0, 1.0, 0.0, -0.0, -0.99, 0.99, np.inf, -np.inf, 1e30, -1e30]),
+            # Exactly between two levels after the scale: rounding takes the even one.
+            st.integers(0, 254).map(lambda level: np.float32((level + 0.5) / 127.5 - 1.0)),
+        ),
+    )
+)
+def test_property_images_are_levelled_as_pytorch_levels_them(units: np.ndarray) -> None:
+    """The compiled levelling gives PyTorch's round((x + 1) * 127.5), clipped to 0..255, in float32,
+    for any channels and sizes: levels, halves, out of range, infinities; channels last."""
+    tensor = torch.from_numpy(units)
+    expected = ((tensor + 1.0) * 127.5).round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+    levels = to_uint8_rgb(tensor)
+    assert levels.flags.c_contiguous
+    np.testing.assert_array_equal(levels, expected)
+
+
 def test_learned_background_is_where_the_generator_starts() -> None:
     """With ``background`` the generator draws only the change from a learned image: with its
     last layer silent it returns exactly the image it was started from."""
