@@ -131,13 +131,18 @@ def colour_change(
                 slope_x[c], slope_y[c], h[c], magnitude[c], direction[c], tan_edges, direction_edges
             )
             b, pixel = i_mag * n + i_dir, r * cols + c
+            # The pixel's terms read once for its three channels: the compiler cannot prove that
+            # the store to ``change`` leaves ``terms`` alone, and read them again for each (a
+            # load-bound loop: 0.101 -> 0.083 ms an 84 x 112 image, the same bits).
+            p0, p1, p2 = terms[pixel, 0], terms[pixel, 1], terms[pixel, 2]
+            p3, p4, p5 = terms[pixel, 3], terms[pixel, 4], terms[pixel, 5]
             for k in range(3):
-                t0 = coeffs[b, k, 0] * terms[pixel, 0]
-                t1 = coeffs[b, k, 1] * terms[pixel, 1]
-                t2 = coeffs[b, k, 2] * terms[pixel, 2]
-                t3 = coeffs[b, k, 3] * terms[pixel, 3]
-                t4 = coeffs[b, k, 4] * terms[pixel, 4]
-                t5 = coeffs[b, k, 5] * terms[pixel, 5]
+                t0 = coeffs[b, k, 0] * p0
+                t1 = coeffs[b, k, 1] * p1
+                t2 = coeffs[b, k, 2] * p2
+                t3 = coeffs[b, k, 3] * p3
+                t4 = coeffs[b, k, 4] * p4
+                t5 = coeffs[b, k, 5] * p5
                 colour = ((t0 + t4) + (t1 + t5)) + (t2 + t3)
                 change[r, c, k] += gain * (colour - flat_colour[pixel, k])
     return change
