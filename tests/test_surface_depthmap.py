@@ -1019,3 +1019,31 @@ def test_property_level_0s_fast_path_answers_every_bin_as_the_bin_by_bin_path(
     np.testing.assert_array_equal(known, reference_known)
     np.testing.assert_array_equal(planar, reference_planar)
     np.testing.assert_array_equal(out, reference)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    dropped=st.lists(st.integers(0, 8), max_size=2, unique=True),
+    scale=st.sampled_from([1e-6, 1e-4, 1e-2]),
+)
+def test_property_the_quadric_is_the_least_squares_quadric_of_its_samples(seed, dropped, scale):
+    """The bend pass's solve (normal equations, then LDL^T in scalars) gives the least-squares
+    quadric of seven to nine samples spread over the 3 x 3 bins (u, v in bins, y in m at any
+    scale), as NumPy's least squares does; samples on one line do not pin six terms."""
+    from perception.surface_bend import _normal_equations, _quadric
+
+    rng = np.random.default_rng(seed)
+    cells = [cell for cell in range(9) if cell not in dropped]
+    u = np.array([cell % 3 - 1.0 for cell in cells]) + rng.uniform(-0.5, 0.5, len(cells))
+    v = np.array([cell // 3 - 1.0 for cell in cells]) + rng.uniform(-0.5, 0.5, len(cells))
+    terms = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+    y = terms @ rng.normal(0.0, scale, 6) + rng.normal(0.0, 0.01 * scale, len(cells))
+    kept = np.zeros((3, 9))
+    kept[:, : len(cells)] = u, v, y
+    pinned, solution = _quadric(_normal_equations(len(cells), kept))
+    assert pinned
+    expected = np.linalg.lstsq(terms, y, rcond=None)[0]
+    np.testing.assert_allclose(solution, expected, rtol=0.0, atol=1e-9 * scale)
+    kept[1, : len(cells)] = 0.5 * kept[0, : len(cells)] + 0.25  # every sample on one line
+    assert not _quadric(_normal_equations(len(cells), kept))[0]
