@@ -75,7 +75,7 @@ from models.runtime import CudaUnavailable, Runner, int8_ssim_loss, network_runn
 from models.serving import prior_images
 from models.uncertainty import ServedUncertainty
 from msgs.inference import TactileEstimateReply, TactileEstimateRequest
-from nodes.inference_passes import forward_pass_parts, max_batch_on, thread_split
+from nodes.inference_passes import ServedRegions, forward_pass_parts, max_batch_on, thread_split
 from nodes.inference_requests import BadRequest, UnknownCloud, check_params, checked_regions, checked_serves, cloud_id
 from perception.depthmap import DepthMapParams, PlannedCut, contact_depth_maps, plan_contact_cut, surface_bins
 from perception.depthmap_tensor import points_on_device
@@ -292,20 +292,19 @@ class InferenceNode(Node):
         if not ready:
             return
         sigmas = [self._pose_sigma_mm(job.request) for job in ready]
-        images, uncertainty, point_counts, surfaces = self._estimates(sources, sigmas)
+        served, point_counts, surfaces = self._estimates(sources, sigmas)
         offsets = np.cumsum([0] + [len(source) for source in sources])
         for i, job in enumerate(ready):
             rows = slice(offsets[i], offsets[i + 1])
             missed = "no model point in the contact volume: the gel does not reach the object"
             errors = [f"region {k}: {missed}" if c == 0 else "" for k, c in enumerate(point_counts[i])]
-            if uncertainty is None:  # a checkpoint trained before the uncertainty: absent, never zeros
-                u, status, region_u = np.zeros((0, *images.shape[1:3]), np.float32), "absent", []
+            if served.uncertainty is None:  # a checkpoint trained before the uncertainty: absent, never zeros
+                u, status, region_u = np.zeros((0, *served.images.shape[1:3]), np.float32), "absent", []
             else:
-                u, status = uncertainty[rows], "ok"
-                region_u = [float(m) for m in u.reshape(len(u), -1).mean(axis=1, dtype=np.float64)]
+                u, status, region_u = served.uncertainty[rows], "ok", served.region_uncertainty[rows].tolist()
             job.future.set_result(
                 TactileEstimateReply(
-                    images=images[rows],
+                    images=served.images[rows],
                     uncertainty=u,
                     uncertainty_status=status,
                     region_uncertainty=region_u,
@@ -325,16 +324,16 @@ class InferenceNode(Node):
 
     def _estimates(
         self, sources: list[np.ndarray | PlannedCut], sigmas: list[float]
-    ) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray], list[np.ndarray]]:
-        """(the served images, their uncertainty u in levels or None where the checkpoint has
-        none, the points each region's gel met: -1 for a depth-map sent as one, the bins of each
-        region's map holding a surface below y_far) of every region
-        of the requests' ``sources``, in passes of at most ``max_batch`` spread over the lanes
-        (``forward_pass_parts``, ``thread_split``). On the CPU each lane cuts its pass's maps,
-        draws their prior and serves them; on a GPU this thread draws each pass's input while
-        the lane serves the one before."""
+    ) -> tuple[ServedRegions, list[np.ndarray], list[np.ndarray]]:
+        """(what is served for every region of the requests' ``sources``, in order; the points
+        each region's gel met: -1 for a depth-map sent as one; the bins of each region's map
+        holding a surface below y_far), in passes of at most ``max_batch`` spread over the lanes
+        (``forward_pass_parts``, ``thread_split``), each writing its rows of the reply. On the
+        CPU each lane cuts its pass's maps, draws their prior and serves them; on a GPU this
+        thread draws each pass's input while the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
         surface = [np.zeros(len(source), np.int64) for source in sources]
+        served = ServedRegions.empty(sum(len(s) for s in sources), self.config.image_size, self.uncertainty is not None)
 
         def draw(parts: list[tuple[int, int, int]]) -> torch.Tensor:
             maps = []
@@ -350,31 +349,35 @@ class InferenceNode(Node):
                 maps.append((part, sigmas[i]))
             return self._network_input(maps)
 
-        def drawn_and_served(parts: list[tuple[int, int, int]]) -> tuple[np.ndarray, np.ndarray | None]:
-            return self._serve_pass(draw(parts))
+        def drawn_and_served(parts: list[tuple[int, int, int]], rows: slice) -> None:
+            self._serve_pass(draw(parts), served, rows)
 
-        outputs = []
+        outputs, first_row = [], 0
         for parts in forward_pass_parts([len(source) for source in sources], self.max_batch, self.split.lanes):
+            rows = slice(first_row, first_row + sum(stop - first for _, first, stop in parts))
+            first_row = rows.stop
             if self.split.input_in_lanes:
-                outputs.append(self._lanes.submit(drawn_and_served, parts))
+                outputs.append(self._lanes.submit(drawn_and_served, parts, rows))
             else:
-                outputs.append(self._lanes.submit(self._serve_pass, draw(parts)))
+                outputs.append(self._lanes.submit(self._serve_pass, draw(parts), served, rows))
             if self.network is not None:
                 self.forward_passes += 1
-        served = [output.result() for output in outputs]
-        images = np.concatenate([estimate for estimate, _ in served])
-        u = None if self.uncertainty is None else np.concatenate([u for _, u in served if u is not None])
-        return images, u, point_counts, surface
+        for output in outputs:
+            output.result()
+        return served, point_counts, surface
 
-    def _serve_pass(self, x: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None]:
+    def _serve_pass(self, x: torch.Tensor, served: ServedRegions, rows: slice) -> None:
         """One pass, in a lane: the served estimate of network input ``x`` (the network's, or the
-        prior's ``x`` carries) as the reply sends it (N x H x W x 3 uint8), and its u or None."""
+        prior's ``x`` carries) as the reply sends it, and its u, into ``served``'s ``rows``."""
         if self.network is None:
             estimate = prior_images(self.generator, x)
         else:
             estimate = torch.from_numpy(self.network(x))
-        u = None if self.uncertainty is None else self.uncertainty.levels(x, estimate)
-        return np.ascontiguousarray(to_uint8_rgb(estimate)), u
+        served.images[rows] = to_uint8_rgb(estimate)
+        if served.uncertainty is not None and self.uncertainty is not None:
+            u = served.uncertainty[rows]
+            u[...] = self.uncertainty.levels(x, estimate)
+            served.region_uncertainty[rows] = u.reshape(len(u), -1).mean(axis=1, dtype=np.float64)
 
     def _prior_on_device(self, prior: PhysicsPrior | None) -> PhysicsPrior | None:
         """The physics prior drawing where the network computes: on CUDA as batched tensor

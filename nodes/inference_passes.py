@@ -103,3 +103,22 @@ def forward_pass_parts(regions: list[int], max_batch: int, lanes: int = 1) -> li
             room -= stop - first
             first = stop
     return passes
+
+
+@dataclasses.dataclass(frozen=True)
+class ServedRegions:
+    """What a batch's regions are answered with, in request order, each lane writing its passes'
+    rows: the reply's images (N x H x W x 3 uint8), their u (N x H x W float32 levels) and each
+    region's mean u, or None for a checkpoint without the uncertainty. Written in place, not
+    joined from the passes: a 64-region request's 4.5 MB copied once less, in the lanes rather
+    than after them."""
+
+    images: np.ndarray
+    uncertainty: np.ndarray | None
+    region_uncertainty: np.ndarray
+
+    @staticmethod
+    def empty(regions: int, size: int, uncertainty: bool) -> "ServedRegions":
+        """Room for ``regions`` size x size answers, with their u where ``uncertainty``."""
+        u = np.empty((regions, size, size), np.float32) if uncertainty else None
+        return ServedRegions(np.empty((regions, size, size, 3), np.uint8), u, np.empty(regions))
