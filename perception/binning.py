@@ -4,7 +4,9 @@ One pass over the model points transforms them to a gel frame, crops them to its
 and keeps the minimum y per x-z bin, by the bin rule of :mod:`perception.depthmap`'s module
 docstring (bin i holds [edge_i, edge_i+1), the far crop edge belongs to the last bin). The
 kernels are what ``dtx bench perception`` and ``dtx bench serve`` time; :func:`region_groups`
-shares their regions out (among threads here, among chunks in perception.depthmap_tensor).
+shares their regions out (among threads here, among chunks in perception.depthmap_tensor), and
+:func:`cells_meeting_crops` says which of the index's cells a gel's crop can reach before any
+point is read.
 """
 
 from __future__ import annotations
@@ -90,22 +92,22 @@ def _keep_front_points(
     the same memory seen as int64, made once by the caller).
 
     A bin's three values side by side: one cache line a point rather than one in each of three
-    80 kB arrays, which a 100 x 100 map's do not fit the L1 cache with (the kernel 0.39 -> 0.36 ms
+    80 kB arrays, which a 100 x 100 map's do not fit the L1 cache with (the kernel 0.39 -> 0.35 ms
     a region on the YCB cracker box, copying each region's in and out). The x and z are taken by
     a bit mask, not a branch (which the compiler makes of any select here): a new front-most point
     is about as likely as not, and the mispredicted branches cost a region's cut 0.54 -> 0.46 ms.
     Ties (equal y) are rare: a branch."""
     y, x, z, x_bits, z_bits = kept
-    places, place_bits = front
+    fronts, front_bits = front
     for i in range(count):
         b = flat[i]
-        yi, front_y = y[i], places[b, 0]
-        if yi == front_y and (x[i] < places[b, 1] or (x[i] == places[b, 1] and z[i] < places[b, 2])):
-            places[b, 1], places[b, 2] = x[i], z[i]
+        yi, front_y = y[i], fronts[b, 0]
+        if yi == front_y and (x[i] < fronts[b, 1] or (x[i] == fronts[b, 1] and z[i] < fronts[b, 2])):
+            fronts[b, 1], fronts[b, 2] = x[i], z[i]
         new = -np.int64(yi < front_y)
-        place_bits[b, 1] = (x_bits[i] & new) | (place_bits[b, 1] & ~new)
-        place_bits[b, 2] = (z_bits[i] & new) | (place_bits[b, 2] & ~new)
-        places[b, 0] = min(front_y, yi)  # front_y where equal, as the rule keeps it
+        front_bits[b, 1] = (x_bits[i] & new) | (front_bits[b, 1] & ~new)
+        front_bits[b, 2] = (z_bits[i] & new) | (front_bits[b, 2] & ~new)
+        fronts[b, 0] = min(front_y, yi)  # front_y where equal, as the rule keeps it
 
 
 @numba.njit(cache=True, nogil=True)
