@@ -326,11 +326,10 @@ class InferenceNode(Node):
         self, sources: list[np.ndarray | PlannedCut], sigmas: list[float]
     ) -> tuple[ServedRegions, list[np.ndarray], list[np.ndarray]]:
         """(what is served for every region of the requests' ``sources``, in order; the points
-        each region's gel met: -1 for a depth-map sent as one; the bins of each region's map
-        holding a surface below y_far), in passes of at most ``max_batch`` spread over the lanes
-        (``forward_pass_parts``, ``thread_split``), each writing its rows of the reply. On the
-        CPU each lane cuts its pass's maps, draws their prior and serves them; on a GPU this
-        thread draws each pass's input while the lane serves the one before."""
+        each region's gel met, -1 for a depth-map sent as one; the bins of each region's map with
+        a surface below y_far), in passes of at most ``max_batch`` over the lanes, each writing its
+        rows of the reply. On the CPU each lane cuts its pass's maps, draws their prior and serves
+        them; on a GPU this thread draws each pass's input while the lane serves the one before."""
         point_counts = [np.full(len(source), -1, np.int64) for source in sources]
         surface = [np.zeros(len(source), np.int64) for source in sources]
         served = ServedRegions.empty(sum(len(s) for s in sources), self.config.image_size, self.uncertainty is not None)
