@@ -410,4 +410,4 @@ class VoxelIndex:
         """(box, slot) of the occupied cells in each box lo..hi ((N, 3), inclusive; hi < lo on an
         axis: none), box by box and keys ascending in each: indices into keys/starts/ends
         (:func:`_slots_in_boxes_kernel`)."""
-        return _slots_in_boxes_kernel(self.keys, self.shape.astype(np.int64), lo, hi)
+        return _slots_in_boxes_kernel(self.keys, self.shape, lo, hi)
