@@ -57,7 +57,12 @@ def fit_for_serving(path: Path, serves: str = "", seed: int = 0) -> Path:
 
 @contextlib.contextmanager
 def serving(registry: Registry, checkpoint: Path, **params: Any) -> Iterator[InferenceNode]:
-    node = InferenceNode("inference", {"checkpoint": str(checkpoint), "threads": 1, **params}, registry=registry)
+    """The node on the CPU unless a test names its device: the node's default (auto) would serve
+    on a GPU host's CUDA, in another arithmetic than the CPU references here and in one pass at
+    a time, where the CPU's lanes split a request."""
+    node = InferenceNode(
+        "inference", {"checkpoint": str(checkpoint), "threads": 1, "device": "cpu", **params}, registry=registry
+    )
     thread = threading.Thread(target=node.spin)
     thread.start()
     try:
@@ -81,15 +86,19 @@ def reference(checkpoint: Path, maps: np.ndarray) -> np.ndarray:
         return to_uint8_rgb(generator(network_input(maps, depth_range_m, generator.config, generator.prior)))
 
 
-def served_reference(checkpoint: Path, maps: np.ndarray, serves: str) -> tuple[np.ndarray, np.ndarray]:
-    """What a checkpoint serving ``serves`` answers, computed here: its images (the generator's in
-    eager PyTorch, or the prior's as models.serving draws them) and their uncertainty u."""
+def served_reference(
+    checkpoint: Path, maps: np.ndarray, serves: str, device: str = "cpu"
+) -> tuple[np.ndarray, np.ndarray]:
+    """What a checkpoint serving ``serves`` answers, computed here on ``device``: its images (the
+    generator's in eager PyTorch, or the prior's as models.serving draws them) and their
+    uncertainty u."""
     generator, depth_range_m = load_generator(checkpoint)
     assert generator.uncertainty is not None
+    prior = generator.prior.on(device) if generator.prior is not None and device != "cpu" else generator.prior
     with torch.inference_mode():
-        x = network_input(maps, depth_range_m, generator.config, generator.prior)
-        estimate = prior_images(generator, x) if serves == "prior" else generator(x)
-        return to_uint8_rgb(estimate), generator.uncertainty.levels(x, estimate)
+        x = network_input(maps, depth_range_m, generator.config, prior).to(device)
+        estimate = prior_images(generator, x) if serves == "prior" else generator.to(device)(x)
+        return to_uint8_rgb(estimate.cpu()), generator.uncertainty.to(device).levels(x, estimate)
 
 
 @pytest.mark.parametrize("runtime", ["onnxrt", "eager"])
@@ -228,6 +237,29 @@ def test_a_checkpoint_serving_its_prior_never_runs_the_network(
     np.testing.assert_array_equal(images, expected_images)
     np.testing.assert_allclose(uncertainty, expected_u, rtol=1e-4, atol=1e-4)
     assert reply.uncertainty_status == "ok" and len(reply.region_uncertainty) == 3
+
+
+@pytest.mark.skipif(bool(cuda_missing("eager")), reason="no CUDA device")
+@pytest.mark.parametrize("serves", ["network", "prior"])
+def test_on_cuda_the_served_images_and_u_are_what_the_checkpoint_computes_there(
+    registry: Registry, tmp_path: Path, serves: str
+) -> None:
+    """On a GPU the node draws the prior, runs the network and u there, in passes of 2: the
+    checkpoint's own answer on that device (the CPU's differs by CUDA's arithmetic, within
+    tests/test_prior_tensor.py's bounds), a level apart where a pass's width changes the sums."""
+    checkpoint = fit_for_serving(write_checkpoint(tmp_path / "fitted.pt", width=8, prior=True), serves=serves)
+    maps = depth_maps(5, seed=2)
+    with (
+        serving(registry, checkpoint, runtime="eager", device="cuda", max_batch=2) as node,
+        planner(registry) as client,
+    ):
+        images, uncertainty = client.estimate(maps)
+        reply = client.last_reply
+    assert reply is not None and uncertainty is not None and reply.serves == serves and "cuda" in reply.model
+    assert node.forward_passes == (3 if serves == "network" else 0)
+    expected_images, expected_u = served_reference(checkpoint, maps, serves, "cuda")
+    assert np.abs(images.astype(int) - expected_images).max() <= 1
+    np.testing.assert_allclose(uncertainty, expected_u, rtol=1e-3, atol=1e-3)
 
 
 def test_the_node_param_serves_overrides_the_checkpoints_choice(registry: Registry, tmp_path: Path) -> None:
