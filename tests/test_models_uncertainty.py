@@ -78,7 +78,8 @@ def test_a_calibration_is_np_interp_to_the_bit(
     knots: list[float], scale: list[float], seed: int, float64: bool
 ) -> None:
     """apply is (raw * np.interp(raw, levels, scale)).astype(float32) exactly: on the knots (equal
-    ones too), a float's step either side of them, between them, outside them, at 0, inf and NaN."""
+    ones too), a float's step either side of them, between them, outside them, at 0, inf and NaN;
+    so is its tensor form, on the CPU and on a GPU where there is one."""
     levels = sorted(knots)
     calibration = Calibration(tuple(levels), tuple(scale[: len(levels)]))
     rng = np.random.default_rng(seed)
@@ -95,6 +96,10 @@ def test_a_calibration_is_np_interp_to_the_bit(
     ).reshape(-1, 1)
     expected = (raw * np.interp(raw, calibration.raw_levels, calibration.scale)).astype(np.float32)
     np.testing.assert_array_equal(calibration.apply(raw), expected)
+    for device in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
+        on_device = calibration.apply_on_device(torch.from_numpy(raw).to(device))
+        assert on_device.dtype == torch.float32 and on_device.device.type == device
+        np.testing.assert_array_equal(on_device.cpu().numpy(), expected)
 
 
 def test_a_constant_sigma_is_calibrated_to_the_rms_error() -> None:
