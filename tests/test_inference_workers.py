@@ -14,6 +14,7 @@ from benchmarks.serve import depth_maps, write_checkpoint
 from bus.inference_client import SERVICE, TactileClient
 from bus.pubsub import Bus
 from bus.registry import Registry
+from models.runtime import cuda_missing
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,4 +48,6 @@ def test_two_workers_from_the_launch_file_both_serve(registry: Registry, bus_dir
     # the first requests leave misses those, so both must serve but not necessarily equally.
     assert set(served_by) == {"inference_1", "inference_2"}, (served_by, output)
     assert launcher.returncode == 0, output
-    assert "[inference_1] INFO loaded tiny.pt (ngf 8, onnxrt fp32, cpu)" in output
+    # The launch file's device is auto: CUDA where this machine's ONNX Runtime has it.
+    device = "cpu" if cuda_missing("onnxrt") else "cuda"
+    assert f"[inference_1] INFO loaded tiny.pt (ngf 8, onnxrt fp32, {device})" in output
