@@ -120,7 +120,7 @@ class Calibration:
         """:meth:`apply` as tensor operations where ``raw`` is (a GPU's: only u's float32 leaves
         it, not the raw sigma for a host pass, which took 4.4-4.9 ms of a 64-region request on a
         lent H200's host): the same float64 steps, each its own operation (no fused multiply-add),
-        so the same bits (tests/test_served_uncertainty.py)."""
+        so the same bits (tests/test_models_uncertainty.py)."""
         last = len(self.raw_levels) - 1
         levels = torch.tensor(self.raw_levels, dtype=torch.float64, device=raw.device)
         scale = torch.tensor(self.scale, dtype=torch.float64, device=raw.device)
