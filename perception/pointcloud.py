@@ -219,7 +219,7 @@ def _cell_keys(points: np.ndarray, origin: np.ndarray, cell_m: float, shape: np.
 
 
 @numba.njit(cache=True, nogil=True)
-def _slots_in_boxes_kernel(
+def _slots_in_boxes(
     keys: np.ndarray, shape: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """(box, slot) of the ``keys`` (ascending row-major cell keys of a grid of ``shape``) whose
@@ -389,7 +389,7 @@ class VoxelIndex:
 
         Why batched: a planner's request asks about hundreds of gels, and a query per gel costs
         ~0.1 ms of Python and NumPy calls on a few hundred cells; here they are one pass."""
-        owner, slot = self._slots_in_boxes(*self._cell_boxes(*_checked_balls(centres_m, radius_m, single=False)))
+        owner, slot = self._slots_in_balls(centres_m, radius_m, single=False)
         cells = np.stack(np.unravel_index(self.keys[slot], tuple(self.shape)), axis=1)
         return owner, self.starts[slot], self.ends[slot], self.origin_m + cells * self.cell_m
 
@@ -404,10 +404,11 @@ class VoxelIndex:
 
     def _slots_within(self, centre_m: np.ndarray, radius_m: float) -> np.ndarray:
         """Indices into keys/starts/ends of the occupied cells :meth:`within` reads."""
-        return self._slots_in_boxes(*self._cell_boxes(*_checked_balls(centre_m, radius_m, single=True)))[1]
+        return self._slots_in_balls(centre_m, radius_m, single=True)[1]
 
-    def _slots_in_boxes(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(box, slot) of the occupied cells in each box lo..hi ((N, 3), inclusive; hi < lo on an
-        axis: none), box by box and keys ascending in each: indices into keys/starts/ends
-        (:func:`_slots_in_boxes_kernel`)."""
-        return _slots_in_boxes_kernel(self.keys, self.shape, lo, hi)
+    def _slots_in_balls(self, centres_m: np.ndarray, radius_m: float, single: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(ball, slot) of the occupied cells in each ball's box of cells (the balls checked as
+        ``single`` or many), ball by ball and keys ascending in each: indices into
+        keys/starts/ends (:func:`_slots_in_boxes`)."""
+        lo, hi = self._cell_boxes(*_checked_balls(centres_m, radius_m, single=single))
+        return _slots_in_boxes(self.keys, self.shape, lo, hi)
