@@ -94,7 +94,7 @@ def served_reference(
     uncertainty u."""
     generator, depth_range_m = load_generator(checkpoint)
     assert generator.uncertainty is not None
-    prior = generator.prior.on(device) if generator.prior is not None and device != "cpu" else generator.prior
+    prior = None if generator.prior is None else generator.prior.on(device)
     with torch.inference_mode():
         x = network_input(maps, depth_range_m, generator.config, prior).to(device)
         estimate = prior_images(generator, x) if serves == "prior" else generator.to(device)(x)
