@@ -377,9 +377,9 @@ def _answer_level(
             # A bin's own points put its centre within half a bin of the samples: its plane may
             # reach that far beyond them (the crop's faces, a rim); an empty bin's may not.
             own = level == 0 and sy[r, c] < np.inf
-            if known[r, c] or (not own and _lonely(level_y, r >> level, c >> level)):
-                continue  # no sample around: _plane_at's NaN, at a fraction of the call's cost
             cell_r, cell_c = r >> level, c >> level
+            if known[r, c] or (not own and _one_sided(level_samples, cell_r, cell_c, x_centres[c], z_centres[r])):
+                continue
             y = _plane_at(
                 level_y, level_x, level_z, cell_r, cell_c, x_centres[c], z_centres[r], tolerance, not own, False, kept
             )
@@ -398,13 +398,17 @@ def _answer_level(
 
 
 @numba.njit(cache=True, nogil=True)
-def _lonely(sy: np.ndarray, cell_r: int, cell_c: int) -> bool:
-    """Whether none of the 3 x 3 cells around (cell_r, cell_c) holds a sample."""
+def _one_sided(samples: _Grids, cell_r: int, cell_c: int, centre_x: float, centre_z: float) -> bool:
+    """Whether no samples (y, x, z) of the 3 x 3 cells around (cell_r, cell_c) surround the centre
+    (centre_x, centre_z): none there, or all on one side of it in x or z. _plane_at's NaN for an
+    empty bin, at a fraction of its cost (59-79 % of its calls on the YCB planner's maps)."""
+    (sy, sx, sz), (low_x, high_x, low_z, high_z) = samples, (np.inf, -np.inf, np.inf, -np.inf)
     for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
         for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
             if sy[r, c] < np.inf:
-                return False
-    return True
+                dx, dz = sx[r, c] - centre_x, sz[r, c] - centre_z
+                low_x, high_x, low_z, high_z = min(low_x, dx), max(high_x, dx), min(low_z, dz), max(high_z, dz)
+    return (high_x < 0.0) | (low_x > 0.0) | (high_z < 0.0) | (low_z > 0.0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -478,11 +482,8 @@ def surface_maps(
     if sample_y.ndim != 3 or sample_x_m.shape != sample_y.shape or sample_z_m.shape != sample_y.shape:
         raise DepthMapError(f"samples must be three (regions, rows, cols) grids, got {sample_y.shape}")
     regions, rows, cols = sample_y.shape
-    out = np.empty(sample_y.shape)
-    known = np.empty(sample_y.shape, np.bool_)
-    planar = np.empty(sample_y.shape, np.bool_)
-    sample_x = np.ascontiguousarray(sample_x_m, np.float64)
-    sample_z = np.ascontiguousarray(sample_z_m, np.float64)
+    out, known, planar = np.empty(sample_y.shape), np.empty(sample_y.shape, bool), np.empty(sample_y.shape, bool)
+    sample_x, sample_z = (np.ascontiguousarray(grid, np.float64) for grid in (sample_x_m, sample_z_m))
     x_centres, z_centres = bin_centres(half_x, cols), bin_centres(half_z, rows)
     bin_size = level_0_tolerance(x_centres, z_centres)
 

@@ -1024,6 +1024,52 @@ def test_property_level_0s_fast_path_answers_every_bin_as_the_bin_by_bin_path(
 @settings(max_examples=60, deadline=None)
 @given(
     seed=st.integers(0, 2**32 - 1),
+    shape=st.tuples(st.integers(1, 24), st.integers(1, 24)),
+    occupancy=st.sampled_from([0.2, 0.6, 1.0]),
+    outline=st.tuples(st.floats(0.0, 2 * np.pi), st.floats(-1.0, 1.0)),
+    on_centres=st.sampled_from([0.0, 0.3]),
+    level=st.integers(0, 2),
+)
+def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_empty_bin(
+    seed, shape, occupancy, outline, on_centres, level
+):
+    """The levels skip an empty bin whose samples around lie on one side of its centre in x or
+    z (_one_sided): at every bin and level where that holds, _plane_at's answer for an empty bin
+    is NaN, so the skip changes no map. Samples beyond a straight outline are gone (an edge), and
+    some lie exactly on a bin centre's line (the boundary case of one side)."""
+    from perception.surface import _one_sided, _plane_at, _pooled, level_0_tolerance
+
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    half_x, half_z = 0.012, 0.0095
+    centres = (bin_centres(half_x, cols), bin_centres(half_z, rows))
+    x_edges, z_edges = bin_edges(half_x, cols), bin_edges(half_z, rows)
+    sx = x_edges[:-1][None, :] + rng.uniform(0.0, 1.0, shape) * np.diff(x_edges)[None, :]
+    sz = z_edges[:-1][:, None] + rng.uniform(0.0, 1.0, shape) * np.diff(z_edges)[:, None]
+    snapped = rng.uniform(size=shape) < on_centres
+    sx = np.where(snapped, np.broadcast_to(centres[0][None, :], shape), sx)
+    sz = np.where(rng.uniform(size=shape) < on_centres, np.broadcast_to(centres[1][:, None], shape), sz)
+    sy = 0.3 * sx - 0.2 * sz + 50.0 * (sx**2 + sz**2)
+    angle, reach = outline
+    empty = (rng.uniform(size=shape) >= occupancy) | (np.cos(angle) * sx + np.sin(angle) * sz > reach * half_z)
+    sy[empty], sx[empty], sz[empty] = np.inf, 0.0, 0.0
+    samples = (sy, sx, sz)
+    for _ in range(level):
+        samples = _pooled(*samples)
+    tolerance = level_0_tolerance(*centres) * (1 << level)
+    kept = np.empty((3, 9))
+    for r in range(rows):
+        for c in range(cols):
+            if _one_sided(samples, r >> level, c >> level, centres[0][c], centres[1][r]):
+                y = _plane_at(
+                    *samples, r >> level, c >> level, centres[0][c], centres[1][r], tolerance, True, False, kept
+                )
+                assert np.isnan(y), (r, c)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
     dropped=st.lists(st.integers(0, 8), max_size=2, unique=True),
     scale=st.sampled_from([1e-6, 1e-4, 1e-2]),
 )
