@@ -1067,6 +1067,80 @@ def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_e
                 assert np.isnan(y), (r, c)
 
 
+def least_squares_bend(samples, centres, bin_size, out, planar, bounds):
+    """perception.surface_bend.bend_corrected's rule written plainly with NumPy's least squares,
+    bin by bin: the reference its vector loop keeps."""
+    from perception.surface import MAX_SLOPE
+    from perception.surface_bend import (
+        FLAT_BEND_M,
+        MAX_BEND_CORRECTION,
+        QUADRIC_FIT_FRACTION,
+    )
+
+    sy, sx, sz = samples
+    planes = np.where(planar, out, np.nan)
+    corrected = out.copy()
+    fit = QUADRIC_FIT_FRACTION * bin_size
+    for r in range(1, sy.shape[0] - 1):
+        for c in range(1, sy.shape[1] - 1):
+            around = planes[r - 1 : r + 2, c - 1 : c + 2]
+            lines = [around[1, 0] + around[1, 2], around[0, 1] + around[2, 1], around[0, 0] + around[2, 2]]
+            bends = np.abs(np.array([*lines, around[0, 2] + around[2, 0]]) - 2.0 * around[1, 1]) > FLAT_BEND_M
+            if np.isnan(planes[r, c]) or not bends.any():
+                continue
+            y, x, z = (grid[r - 1 : r + 2, c - 1 : c + 2].ravel() for grid in (sy, sx, sz))
+            dx, dz, dy = x - centres[0][c], z - centres[1][r], y - planes[r, c]
+            step = np.abs(dy) - bin_size
+            keep = np.isfinite(y) & ((step <= 0.0) | (step**2 <= MAX_SLOPE**2 * (dx**2 + dz**2)))
+            u, v, dy = dx[keep] / bin_size, dz[keep] / bin_size, dy[keep]
+            terms = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+            if keep.sum() < 7 or np.linalg.matrix_rank(terms) < 6:
+                continue
+            solution = np.linalg.lstsq(terms, dy, rcond=None)[0]
+            fits = np.all(np.abs(dy - terms @ solution) <= fit)
+            if fits and dy.min() - fit <= solution[0] <= dy.max() + fit:
+                if abs(solution[0]) <= MAX_BEND_CORRECTION * bin_size:
+                    corrected[r, c] = np.clip(planes[r, c] + solution[0], *bounds)
+    return corrected
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    shape=st.tuples(st.integers(3, 24), st.integers(3, 24)),
+    radius_m=st.floats(0.0008, 0.005),
+    occupancy=st.sampled_from([0.8, 1.0]),
+    step_m=st.sampled_from([0.0, 1e-4, 1.2e-3]),
+    noise_m=st.sampled_from([0.0, 3e-6, 3e-5]),
+)
+def test_property_the_bend_pass_reads_each_bending_bin_as_the_least_squares_quadric(
+    seed, shape, radius_m, occupancy, step_m, noise_m
+):
+    """A ball's cap, with a step, noise and empty bins at random: the bend pass (its bins' quadrics
+    solved side by side in one vector loop) gives each bin what a bin-by-bin least-squares fit
+    with its rules gives (the samples it keeps, the fit, the heights, the largest correction)."""
+    from perception.surface import MAX_SLOPE, _surface_map, level_0_tolerance
+    from perception.surface_bend import bend_corrected
+
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    half_x, half_z, bounds = 0.012 * cols / 100, 0.0095 * rows / 100, (-0.005, 0.01)
+    centres = (bin_centres(half_x, cols), bin_centres(half_z, rows))
+    x_edges, z_edges = bin_edges(half_x, cols), bin_edges(half_z, rows)
+    sx = x_edges[:-1][None, :] + rng.uniform(0.0, 1.0, shape) * np.diff(x_edges)[None, :]
+    sz = z_edges[:-1][:, None] + rng.uniform(0.0, 1.0, shape) * np.diff(z_edges)[:, None]
+    flat = np.minimum(sx**2 + sz**2, 0.8 * radius_m**2)
+    sy = radius_m - np.sqrt(radius_m**2 - flat) + step_m * (sx > 0.0) + rng.normal(0.0, noise_m + 1e-30, shape)
+    empty = rng.uniform(size=shape) >= occupancy
+    sy[empty], sx[empty], sz[empty] = np.inf, 0.0, 0.0
+    bin_size = level_0_tolerance(*centres)
+    out, known, planar = np.empty(shape), np.empty(shape, bool), np.empty(shape, bool)
+    _surface_map(sy, sx, sz, *centres, *bounds, bin_size, out, known, planar)
+    expected = least_squares_bend((sy, sx, sz), centres, bin_size, out, planar, bounds)
+    bend_corrected((sy, sx, sz), centres, (bin_size, MAX_SLOPE), bounds, out, planar)
+    np.testing.assert_allclose(out, expected, rtol=0.0, atol=1e-12)
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     seed=st.integers(0, 2**32 - 1),
@@ -1074,10 +1148,11 @@ def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_e
     scale=st.sampled_from([1e-6, 1e-4, 1e-2]),
 )
 def test_property_the_quadric_is_the_least_squares_quadric_of_its_samples(seed, dropped, scale):
-    """The bend pass's solve (normal equations, then LDL^T in scalars) gives the least-squares
-    quadric of seven to nine samples spread over the 3 x 3 bins (u, v in bins, y in m at any
-    scale), as NumPy's least squares does; samples on one line do not pin six terms."""
-    from perception.surface_bend import _normal_equations, _quadric
+    """The bend pass's solve (normal equations of the nine samples, a dropped one weighing 0, then
+    LDL^T in scalars) gives the least-squares quadric of seven to nine samples spread over the
+    3 x 3 bins (u, v in bins, y in m at any scale), as NumPy's least squares does; samples on one
+    line do not pin six terms."""
+    from perception.surface_bend import _normal_equations, _solved
 
     rng = np.random.default_rng(seed)
     cells = [cell for cell in range(9) if cell not in dropped]
@@ -1085,11 +1160,13 @@ def test_property_the_quadric_is_the_least_squares_quadric_of_its_samples(seed, 
     v = np.array([cell // 3 - 1.0 for cell in cells]) + rng.uniform(-0.5, 0.5, len(cells))
     terms = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
     y = terms @ rng.normal(0.0, scale, 6) + rng.normal(0.0, 0.01 * scale, len(cells))
-    kept = np.zeros((3, 9))
-    kept[:, : len(cells)] = u, v, y
-    pinned, solution = _quadric(_normal_equations(len(cells), kept))
+
+    def nine(u: np.ndarray, v: np.ndarray) -> tuple:
+        kept = dict(zip(cells, zip(u.tolist(), v.tolist(), y.tolist(), [1.0] * len(cells))))
+        return tuple(kept.get(cell, (0.0, 0.0, 0.0, 0.0)) for cell in range(9))
+
+    pinned, solution = _solved(_normal_equations(nine(u, v)))
     assert pinned
     expected = np.linalg.lstsq(terms, y, rcond=None)[0]
     np.testing.assert_allclose(solution, expected, rtol=0.0, atol=1e-9 * scale)
-    kept[1, : len(cells)] = 0.5 * kept[0, : len(cells)] + 0.25  # every sample on one line
-    assert not _quadric(_normal_equations(len(cells), kept))[0]
+    assert not _solved(_normal_equations(nine(u, 0.5 * u + 0.25)))[0]  # every sample on one line
