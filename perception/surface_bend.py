@@ -16,7 +16,7 @@ Why by hand: a six-term least-squares fit per bin over nine samples, on the thre
 the maps, is one small compiled loop; it is solved only where the surface bends (a flat face costs
 the bend test alone; the YCB scans at 0.1 mm bend in 500-2,270 bins of a planner's map, from the
 cracker box to the drill), those bins side by side in one vector loop: 0.08-0.20 ms a map on one
-core (an Intel Xeon with AVX2; bin by bin 0.12-0.33). Self-contained, called from Python after
+core (an Intel Xeon; bin by bin 0.12-0.33). Self-contained, called from Python after
 each map's levels: numba's cache does not see a change in another file's jitted callee.
 """
 
@@ -74,7 +74,7 @@ def _curved(planes: np.ndarray, r: int, c: int) -> bool:
 
 # The bend pass in three steps: the bins that bend are listed and their 3 x 3 samples copied
 # side by side (bend_corrected), then each bin's quadric is solved in one loop over those bins
-# (_quadric_values) that the compiler makes vector code of (four bins at a time in AVX2): no
+# (_quadric_values) that the compiler makes vector code of (four bins a 256-bit vector): no
 # branch (a sample's keep test and a pivot's check are masks; an unpinned quadric's divisions
 # run, on inf or NaN, and are not used, hence error_model="numpy": a division by zero gives inf,
 # not an exception), the nine samples written out, every sum in scalars and no array passed to a
