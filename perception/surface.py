@@ -406,9 +406,11 @@ def _one_sided(samples: _Grids, cell_r: int, cell_c: int, centre_x: float, centr
     for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
         for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
             if sy[r, c] < np.inf:
-                dx, dz = sx[r, c] - centre_x, sz[r, c] - centre_z
-                low_x, high_x, low_z, high_z = min(low_x, dx), max(high_x, dx), min(low_z, dz), max(high_z, dz)
-    return (high_x < 0.0) | (low_x > 0.0) | (high_z < 0.0) | (low_z > 0.0)
+                low_x, high_x = min(low_x, sx[r, c]), max(high_x, sx[r, c])
+                low_z, high_z = min(low_z, sz[r, c]), max(high_z, sz[r, c])
+    # The coordinates themselves, not _plane_at's offsets from the centre: a rounded difference
+    # has the exact difference's sign, so each side's test is the same.
+    return (high_x < centre_x) | (low_x > centre_x) | (high_z < centre_z) | (low_z > centre_z)
 
 
 @numba.njit(cache=True, nogil=True)

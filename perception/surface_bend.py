@@ -77,8 +77,9 @@ def _curved(planes: np.ndarray, r: int, c: int) -> bool:
 # (_quadric_values) that the compiler makes vector code of (four bins a 256-bit vector): no
 # branch (a sample's keep test and a pivot's check are masks; an unpinned quadric's divisions
 # run, on inf or NaN, and are not used, hence error_model="numpy": a division by zero gives inf,
-# not an exception), the nine samples written out, every sum in scalars and no array passed to a
-# helper (a tuple of arrays was reference-counted in the loop and kept it scalar). The same sums
+# not an exception), the nine samples written out (a loop over them, also numba.literal_unroll's,
+# kept the loop scalar), every sum in scalars and no array passed to a helper (a tuple of arrays
+# was reference-counted in the loop and kept it scalar). The same sums
 # in the same order, to the bits of the bin-by-bin pass it replaced on the YCB planner's 320
 # maps, at 0.6-0.7 x its time (a drill map 0.33 -> 0.20 ms).
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
@@ -181,10 +182,6 @@ def _quadric_values(
         within = (low - fit <= solution[0]) & (solution[0] <= high + fit)
         kept = pinned & (sums[0][0] >= _MIN_QUADRIC_SAMPLES) & fits & within
         values[b] = plane_ys[b] + solution[0] if kept else np.nan
-
-
-# The nine samples written out where they are summed and checked: a loop over them (also
-# numba.literal_unroll's) kept the bins' loop scalar, 1.2 x as slow as bin by bin.
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
