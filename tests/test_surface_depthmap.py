@@ -1084,9 +1084,8 @@ def least_squares_bend(samples, centres, bin_size, out, planar, bounds):
     for r in range(1, sy.shape[0] - 1):
         for c in range(1, sy.shape[1] - 1):
             around = planes[r - 1 : r + 2, c - 1 : c + 2]
-            lines = [around[1, 0] + around[1, 2], around[0, 1] + around[2, 1], around[0, 0] + around[2, 2]]
-            bends = np.abs(np.array([*lines, around[0, 2] + around[2, 0]]) - 2.0 * around[1, 1]) > FLAT_BEND_M
-            if np.isnan(planes[r, c]) or not bends.any():
+            ends = around.ravel()[[3, 1, 0, 2]] + around.ravel()[[5, 7, 8, 6]]  # a row, a column, two diagonals
+            if np.isnan(planes[r, c]) or not (np.abs(ends - 2.0 * planes[r, c]) > FLAT_BEND_M).any():
                 continue
             y, x, z = (grid[r - 1 : r + 2, c - 1 : c + 2].ravel() for grid in (sy, sx, sz))
             dx, dz, dy = x - centres[0][c], z - centres[1][r], y - planes[r, c]
@@ -1130,7 +1129,7 @@ def test_property_the_bend_pass_reads_each_bending_bin_as_the_least_squares_quad
     sx = x_edges[:-1][None, :] + rng.uniform(0.0, 1.0, shape) * np.diff(x_edges)[None, :]
     sz = z_edges[:-1][:, None] + rng.uniform(0.0, 1.0, shape) * np.diff(z_edges)[:, None]
     flat = np.minimum(sx**2 + sz**2, 0.8 * radius_m**2)
-    sy = radius_m - np.sqrt(radius_m**2 - flat) + step_m * (sx > 0.0) + rng.normal(0.0, noise_m + 1e-30, shape)
+    sy = radius_m - np.sqrt(radius_m**2 - flat) + step_m * (sx > 0.0) + rng.normal(0.0, noise_m, shape)
     empty = rng.uniform(size=shape) >= occupancy
     sy[empty], sx[empty], sz[empty] = np.inf, 0.0, 0.0
     bin_size = level_0_tolerance(*centres)
