@@ -291,6 +291,12 @@ def bin_edges(half_m: float, count: int) -> np.ndarray:
     return np.linspace(-half_m, half_m, count + 1)
 
 
+def bin_centres(half_m: float, count: int) -> np.ndarray:
+    """The ``count`` float64 centres of equal bins over [-half_m, half_m]: their edges' midpoints."""
+    edges = bin_edges(half_m, count)
+    return 0.5 * (edges[:-1] + edges[1:])
+
+
 def min_y_per_bin(
     x_m: np.ndarray, z_m: np.ndarray, y_m: np.ndarray, half_x_m: float, half_z_m: float, shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:

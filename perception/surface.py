@@ -43,6 +43,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from perception.binning import bin_centres
 from perception.errors import DepthMapError
 from perception.surface_bend import bend_corrected
 from perception.threads import run_shares
@@ -459,13 +460,6 @@ def level_0_tolerance(x_centres: np.ndarray, z_centres: np.ndarray) -> float:
     cols, rows = len(x_centres), len(z_centres)
     bin_size = max(x_centres[1] - x_centres[0] if cols > 1 else 0.0, z_centres[1] - z_centres[0] if rows > 1 else 0.0)
     return float(bin_size if bin_size > 0.0 else 1.0)
-
-
-def bin_centres(half_m: float, count: int) -> np.ndarray:
-    """The ``count`` float64 centres of equal bins over [-half_m, half_m] (their edges'
-    midpoints, perception.binning.bin_edges)."""
-    edges = np.linspace(-half_m, half_m, count + 1)
-    return 0.5 * (edges[:-1] + edges[1:])
 
 
 def surface_maps(

@@ -28,7 +28,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from perception.binning import bin_edges, cut_kernel, min_y_per_bin
+from perception.binning import bin_centres, bin_edges, cut_kernel, min_y_per_bin
 from perception.density import downsample_to_density
 from perception.depthmap import (
     DepthMapParams,
@@ -41,7 +41,7 @@ from perception.depthmap_tensor import front_points_on_device, points_on_device
 from perception.errors import DepthMapError, OutOfReachError
 from perception.pointcloud import VoxelIndex
 from perception.registration import RegistrationError, sample_model_cloud
-from perception.surface import DEPTH_MAP_METHODS, bin_centres
+from perception.surface import DEPTH_MAP_METHODS
 from workcell.kinematics import GripperGeometry
 
 GEOMETRY = GripperGeometry()
