@@ -76,9 +76,7 @@ def _pooled(sy: np.ndarray, sx: np.ndarray, sz: np.ndarray) -> tuple[np.ndarray,
     """The front-most sample of each 2 x 2 cell of (rows, cols) sample grids (+inf y: none)."""
     rows, cols = sy.shape
     out_rows, out_cols = (rows + 1) // 2, (cols + 1) // 2
-    py = np.full((out_rows, out_cols), np.inf)
-    px = np.zeros((out_rows, out_cols))
-    pz = np.zeros((out_rows, out_cols))
+    py, px, pz = np.full((out_rows, out_cols), np.inf), np.zeros((out_rows, out_cols)), np.zeros((out_rows, out_cols))
     for r in range(rows):
         for c in range(cols):
             if np.isfinite(sy[r, c]) and _front(
@@ -131,9 +129,9 @@ def _plane_at(
     :func:`_anchor`'s surface (a height change within MAX_SLOPE times their distance plus
     ``tolerance``, the cells' size), then those the plane through them fits, dropping the one
     farthest in height from the anchor while one is off by over RESIDUAL_FRACTION of ``tolerance``
-    (the far face of a step); at
-    least three, not on one line, and with ``inside`` around the centre (:func:`_surrounds`).
-    ``kept``: (3, 9) scratch for their offsets from the centre and the anchor."""
+    (the far face of a step); at least three, not on one line, and with ``inside`` around the
+    centre (:func:`_surrounds`). ``kept``: (3, 9) scratch for their offsets from the centre and
+    the anchor."""
     ay, ax, az = _anchor(sy, sx, sz, cell_r, cell_c, front)
     if not np.isfinite(ay):
         return np.nan
@@ -293,10 +291,10 @@ def _row_planes(
 ) -> None:
     """The fast path for the occupied bins (r, c + 1) of row ``r`` of samples inside a border of
     none (+inf y), ``centres`` (x_centres, the row's z; x_centres[c] the bin's x): ``ys[c]`` the y
-    :func:`_plane_at` gives, to the bit (the same sums in the same order, and
-    :func:`_plane_of_moments` as _plane), where ``fits[c]``: its first plane fits every sample it keeps. For vector code,
-    no branch: the 3 x 3 written out, unsigned indices (a possibly negative one is a branch), and
-    the divisors guarded where the bin fails anyway (a division that may raise is a branch)."""
+    :func:`_plane_at` gives, to the bit (the same sums in the same order, and _plane_of_moments as
+    _plane), where ``fits[c]``: its first plane fits every sample it keeps. For vector code, no
+    branch: the 3 x 3 written out, unsigned indices (a possibly negative one is a branch), and the
+    divisors guarded where the bin fails anyway (a division that may raise is a branch)."""
     x_centres, centre_z = centres
     samples = (sy, sx, sz)
     one, two = np.uint64(1), np.uint64(2)
@@ -374,12 +372,15 @@ def _answer_level(
     kept = np.empty((3, 9))
     answered = 0
     for r in range(sy.shape[0]):
+        extent_of, extent = -1, (np.inf, -np.inf, np.inf, -np.inf)
         for c in range(sy.shape[1]):
             # A bin's own points put its centre within half a bin of the samples: its plane may
             # reach that far beyond them (the crop's faces, a rim); an empty bin's may not.
             own = level == 0 and sy[r, c] < np.inf
             cell_r, cell_c = r >> level, c >> level
-            if known[r, c] or (not own and _one_sided(level_samples, cell_r, cell_c, x_centres[c], z_centres[r])):
+            if not (own or known[r, c] or cell_c == extent_of):  # a cell's bins in a row share it
+                extent_of, extent = cell_c, _extent(level_samples, cell_r, cell_c)
+            if known[r, c] or (not own and _one_sided(extent, x_centres[c], z_centres[r])):
                 continue
             y = _plane_at(
                 level_y, level_x, level_z, cell_r, cell_c, x_centres[c], z_centres[r], tolerance, not own, False, kept
@@ -399,18 +400,24 @@ def _answer_level(
 
 
 @numba.njit(cache=True, nogil=True)
-def _one_sided(samples: _Grids, cell_r: int, cell_c: int, centre_x: float, centre_z: float) -> bool:
-    """Whether no samples (y, x, z) of the 3 x 3 cells around (cell_r, cell_c) surround the centre
-    (centre_x, centre_z): none there, or all on one side of it in x or z. _plane_at's NaN for an
-    empty bin, at a fraction of its cost (59-79 % of its calls on the YCB planner's maps)."""
+def _extent(samples: _Grids, cell_r: int, cell_c: int) -> tuple[float, float, float, float]:
+    """(low x, high x, low z, high z) of the samples (y, x, z) of the 3 x 3 cells around (cell_r, cell_c)."""
     (sy, sx, sz), (low_x, high_x, low_z, high_z) = samples, (np.inf, -np.inf, np.inf, -np.inf)
     for r in range(max(cell_r - 1, 0), min(cell_r + 2, sy.shape[0])):
         for c in range(max(cell_c - 1, 0), min(cell_c + 2, sy.shape[1])):
             if sy[r, c] < np.inf:
                 low_x, high_x = min(low_x, sx[r, c]), max(high_x, sx[r, c])
                 low_z, high_z = min(low_z, sz[r, c]), max(high_z, sz[r, c])
-    # The coordinates themselves, not _plane_at's offsets from the centre: a rounded difference
-    # has the exact difference's sign, so each side's test is the same.
+    return low_x, high_x, low_z, high_z
+
+
+@numba.njit(cache=True, nogil=True)
+def _one_sided(extent: tuple[float, float, float, float], centre_x: float, centre_z: float) -> bool:
+    """Whether samples of that :func:`_extent` cannot surround the centre (centre_x, centre_z):
+    none, or all on one side of it in x or z. _plane_at's NaN for an empty bin, at a fraction of
+    its cost (59-79 % of its calls on the YCB planner's maps). The coordinates themselves, not
+    _plane_at's offsets from the centre: a rounded difference has the exact difference's sign."""
+    low_x, high_x, low_z, high_z = extent
     return (high_x < centre_x) | (low_x > centre_x) | (high_z < centre_z) | (low_z > centre_z)
 
 
@@ -430,9 +437,8 @@ def _surface_map(
 ) -> None:
     """One map's surface (module docstring): ``out`` (rows, cols) y at the bin centres, clamped to
     [y_near, y_far], y_far and ``known`` False where no level can say (``bin_size``: level 0's
-    cell, :func:`level_0_tolerance`); ``planar`` where level 0's
-    plane answered (not a bin's own nearest point). Levels are answered up to one above the first
-    whose samples are knit (:func:`_knit`): the cloud's own spacing."""
+    cell, :func:`level_0_tolerance`); ``planar`` where level 0's plane answered (not a bin's own
+    nearest point). Levels: up to one above the first whose samples are knit (:func:`_knit`)."""
     rows, cols = sy.shape
     out[:, :] = y_far
     known[:, :] = False

@@ -1034,10 +1034,10 @@ def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_e
     seed, shape, occupancy, outline, on_centres, level
 ):
     """The levels skip an empty bin whose samples around lie on one side of its centre in x or
-    z (_one_sided): at every bin and level where that holds, _plane_at's answer for an empty bin
+    z (_extent, _one_sided): at every bin and level where that holds, _plane_at's answer for an empty bin
     is NaN, so the skip changes no map. Samples beyond a straight outline are gone (an edge), and
     some lie exactly on a bin centre's line (the boundary case of one side)."""
-    from perception.surface import _one_sided, _plane_at, _pooled, level_0_tolerance
+    from perception.surface import _extent, _one_sided, _plane_at, _pooled, level_0_tolerance
 
     rng = np.random.default_rng(seed)
     rows, cols = shape
@@ -1060,7 +1060,7 @@ def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_e
     kept = np.empty((3, 9))
     for r in range(rows):
         for c in range(cols):
-            if _one_sided(samples, r >> level, c >> level, centres[0][c], centres[1][r]):
+            if _one_sided(_extent(samples, r >> level, c >> level), centres[0][c], centres[1][r]):
                 y = _plane_at(
                     *samples, r >> level, c >> level, centres[0][c], centres[1][r], tolerance, True, False, kept
                 )
