@@ -369,8 +369,7 @@ def _answer_level(
     ``level_samples`` (y, x, z), cells of 2**level bins; ``sy`` the bins' own samples); returns
     how many. ``bounds``: (y_near, y_far), the range ``out`` is clamped to."""
     (level_y, level_x, level_z), (x_centres, z_centres) = level_samples, centres
-    kept = np.empty((3, 9))
-    answered = 0
+    kept, answered = np.empty((3, 9)), 0
     for r in range(sy.shape[0]):
         extent_of, extent = -1, (np.inf, -np.inf, np.inf, -np.inf)
         for c in range(sy.shape[1]):
@@ -378,10 +377,13 @@ def _answer_level(
             # reach that far beyond them (the crop's faces, a rim); an empty bin's may not.
             own = level == 0 and sy[r, c] < np.inf
             cell_r, cell_c = r >> level, c >> level
-            if not (own or known[r, c] or cell_c == extent_of):  # a cell's bins in a row share it
-                extent_of, extent = cell_c, _extent(level_samples, cell_r, cell_c)
-            if known[r, c] or (not own and _one_sided(extent, x_centres[c], z_centres[r])):
+            if known[r, c]:
                 continue
+            if not own:
+                if cell_c != extent_of:  # the bins of a cell in one row share its samples' extent
+                    extent_of, extent = cell_c, _extent(level_samples, cell_r, cell_c)
+                if _one_sided(extent, x_centres[c], z_centres[r]):
+                    continue
             y = _plane_at(
                 level_y, level_x, level_z, cell_r, cell_c, x_centres[c], z_centres[r], tolerance, not own, False, kept
             )
@@ -413,10 +415,9 @@ def _extent(samples: _Grids, cell_r: int, cell_c: int) -> tuple[float, float, fl
 
 @numba.njit(cache=True, nogil=True)
 def _one_sided(extent: tuple[float, float, float, float], centre_x: float, centre_z: float) -> bool:
-    """Whether samples of that :func:`_extent` cannot surround the centre (centre_x, centre_z):
-    none, or all on one side of it in x or z. _plane_at's NaN for an empty bin, at a fraction of
-    its cost (59-79 % of its calls on the YCB planner's maps). The coordinates themselves, not
-    _plane_at's offsets from the centre: a rounded difference has the exact difference's sign."""
+    """Whether samples of that :func:`_extent` cannot surround the centre (centre_x, centre_z): none,
+    or all on one side of it in x or z: _plane_at's NaN for an empty bin (59-79 % of its calls on the
+    YCB planner's maps). Coordinates, not offsets: a rounded difference keeps the exact one's sign."""
     low_x, high_x, low_z, high_z = extent
     return (high_x < centre_x) | (low_x > centre_x) | (high_z < centre_z) | (low_z > centre_z)
 
@@ -439,11 +440,11 @@ def _surface_map(
     [y_near, y_far], y_far and ``known`` False where no level can say (``bin_size``: level 0's
     cell, :func:`level_0_tolerance`); ``planar`` where level 0's plane answered (not a bin's own
     nearest point). Levels: up to one above the first whose samples are knit (:func:`_knit`)."""
-    rows, cols = sy.shape
     out[:, :] = y_far
     known[:, :] = False
     level_y, level_x, level_z = sy, sx, sz
-    unknown, knit_level, level = rows * cols, -1, 0
+    centres, bounds = (x_centres, z_centres), (y_near, y_far)
+    unknown, knit_level, level = sy.size, -1, 0
     while unknown and (knit_level < 0 or level <= knit_level + 1):
         if level > 0:
             if level_y.shape[0] == 1 and level_y.shape[1] == 1:
@@ -452,7 +453,6 @@ def _surface_map(
         if knit_level < 0 and _knit(level_y):
             knit_level = level
         tolerance = bin_size * (1 << level)
-        centres, bounds = (x_centres, z_centres), (y_near, y_far)
         if level == 0:
             unknown -= _occupied_planes((sy, sx, sz), centres, tolerance, bounds, out, known)
         unknown -= _answer_level((level_y, level_x, level_z), level, sy, centres, tolerance, bounds, out, known)

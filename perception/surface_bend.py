@@ -16,8 +16,8 @@ Why by hand: a six-term least-squares fit per bin over nine samples, on the thre
 the maps, is one small compiled loop; it is solved only where the surface bends (a flat face costs
 the bend test alone; the YCB scans at 0.1 mm bend in 500-2,270 bins of a planner's map, from the
 cracker box to the drill), those bins side by side in one vector loop: 0.08-0.20 ms a map on one
-core (an Intel Xeon; bin by bin 0.12-0.33). Self-contained, called from Python after
-each map's levels: numba's cache does not see a change in another file's jitted callee.
+core (an Intel Xeon; bin by bin 0.12-0.33). Self-contained, called from Python after each map's
+levels: numba's cache does not see a change in another file's jitted callee.
 """
 
 from __future__ import annotations
@@ -79,9 +79,9 @@ def _curved(planes: np.ndarray, r: int, c: int) -> bool:
 # run, on inf or NaN, and are not used, hence error_model="numpy": a division by zero gives inf,
 # not an exception), the nine samples written out (a loop over them, also numba.literal_unroll's,
 # kept the loop scalar), every sum in scalars and no array passed to a helper (a tuple of arrays
-# was reference-counted in the loop and kept it scalar). The same sums
-# in the same order, to the bits of the bin-by-bin pass it replaced on the YCB planner's 320
-# maps, at 0.6-0.7 x its time (a drill map 0.33 -> 0.20 ms).
+# was reference-counted in the loop and kept it scalar). The same sums in the same order, to the
+# bits of the bin-by-bin pass it replaced on the YCB planner's 320 maps, at 0.6-0.7 x its time (a
+# drill map 0.33 -> 0.20 ms).
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _sample(point: tuple[float, float, float], at: tuple[float, float, float], reach: tuple[float, float]) -> _Sample:
     """A sample ``point`` (y, x, z; +inf y: none) as the quadric of the bin ``at`` (plane_y, centre
