@@ -1033,11 +1033,13 @@ def test_property_level_0s_fast_path_answers_every_bin_as_the_bin_by_bin_path(
 def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_empty_bin(
     seed, shape, occupancy, outline, on_centres, level
 ):
-    """The levels skip an empty bin whose samples around lie on one side of its centre in x or
-    z (_extent, _one_sided): at every bin and level where that holds, _plane_at's answer for an empty bin
-    is NaN, so the skip changes no map. Samples beyond a straight outline are gone (an edge), and
-    some lie exactly on a bin centre's line (the boundary case of one side)."""
-    from perception.surface import _extent, _one_sided, _plane_at, _pooled, level_0_tolerance
+    """The levels skip an empty bin whose samples around lie on one side of its centre in x or z
+    (_extent, _one_sided): at every bin and level where that holds, _plane_at's answer for an
+    empty bin is NaN, so the skip changes no map; and the level, whose bins of a cell in one row
+    share one extent, answers every empty bin as _plane_at asked there does. Samples beyond a
+    straight outline are gone (an edge), and some lie exactly on a bin centre's line (the
+    boundary case of one side)."""
+    from perception.surface import _answer_level, _extent, _one_sided, _plane_at, _pooled, level_0_tolerance
 
     rng = np.random.default_rng(seed)
     rows, cols = shape
@@ -1065,6 +1067,19 @@ def test_property_where_the_samples_around_lie_on_one_side_no_plane_answers_an_e
                     *samples, r >> level, c >> level, centres[0][c], centres[1][r], tolerance, True, False, kept
                 )
                 assert np.isnan(y), (r, c)
+
+    # The level's answers for the empty bins (level 0's occupied ones given as known) against
+    # _plane_at asked at each of them.
+    bounds = (-1.0, 1.0)
+    out, known = np.full(shape, bounds[1]), (sy < np.inf) if level == 0 else np.zeros(shape, bool)
+    expected, expected_known = out.copy(), known.copy()
+    for r, c in zip(*np.nonzero(~known)):
+        y = _plane_at(*samples, r >> level, c >> level, centres[0][c], centres[1][r], tolerance, True, False, kept)
+        if np.isfinite(y):
+            expected[r, c], expected_known[r, c] = min(max(y, bounds[0]), bounds[1]), True
+    _answer_level(samples, level, sy, centres, tolerance, bounds, out, known)
+    np.testing.assert_array_equal(known, expected_known)
+    np.testing.assert_array_equal(out, expected)
 
 
 def least_squares_bend(samples, centres, bin_size, out, planar, bounds):
