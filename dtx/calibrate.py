@@ -117,6 +117,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     touches.add_argument("--json", action="store_true", help="the report as JSON")
     touches.set_defaults(func=exit_1_on(DatasetError, PerceptionError, FileExistsError, OSError)(_touches))
     _add_gelsight(commands)
+    _add_uncertainty(commands)
 
 
 def _gelsight(args: argparse.Namespace) -> int:
@@ -159,3 +160,48 @@ def _add_gelsight(commands: argparse._SubParsersAction) -> None:
     gelsight.add_argument("--force", action="store_true", help="replace an existing --out directory")
     gelsight.add_argument("--json", action="store_true", help="the report as JSON")
     gelsight.set_defaults(func=exit_1_on(GelSightRenderError, FileExistsError, OSError)(_gelsight))
+
+
+def _uncertainty(args: argparse.Namespace) -> int:
+    from models.calibrate_uncertainty import calibrate_sensor_floor  # noqa: PLC0415
+    from models.uncertainty import uncertainty_table  # noqa: PLC0415
+
+    options = {"ball_radius_mm": args.ball_radius_mm, "mm_per_px": args.mm_per_px}
+    report = calibrate_sensor_floor(args.checkpoint, args.presses, args.out, args.force, **options)
+    if args.json:
+        print(strict_json.dumps(report))
+        return 0
+    presses = report["presses"]
+    print(
+        f"sensor floor from {presses['presses']} presses of {presses['file']}: mean {report['floor_mean_levels']:.2f}, "
+        f"most {report['floor_max_levels']:.2f} levels"
+    )
+    print("u on these presses as the checkpoint served it:")
+    print("\n".join(uncertainty_table(report["served_before"])))
+    if report["leave_one_out"] is not None:
+        print("u with the floor, each press's fitted on the other presses:")
+        print("\n".join(uncertainty_table(report["leave_one_out"])))
+    print(f"wrote {report['out']}: it serves this sensor (dtx serve / launch checkpoint:={report['out']})")
+    return 0
+
+
+def _add_uncertainty(commands: argparse._SubParsersAction) -> None:
+    from models.errors import ModelConfigError  # noqa: PLC0415
+
+    uncertainty = commands.add_parser(
+        "uncertainty",
+        help="give a checkpoint's served uncertainty the floor of the lab's own GelSight, from its ball presses",
+        description="Serve the checkpoint on the presses, fit per pixel the sensor's error beyond the checkpoint's "
+        "u (the light that changes frame to frame), report u on each press with the floor fitted on the others, "
+        "and write the checkpoint with the floor to --out: every reply of it then carries sqrt(u^2 + floor^2).",
+    )
+    uncertainty.add_argument("checkpoint", help="a checkpoint that serves an uncertainty (dtx fit-serving)")
+    uncertainty.add_argument(
+        "presses", metavar="PRESSES.npz", help="the lab's ball presses (layout of assets/gelsight/ball_presses.npz)"
+    )
+    uncertainty.add_argument("--out", required=True, help="the checkpoint to write (the input is left as it is)")
+    uncertainty.add_argument("--mm-per-px", type=float, help="the frames' scale (default: the file's mm_per_px)")
+    uncertainty.add_argument("--ball-radius-mm", type=float, help="the ball's radius (default: the file's)")
+    uncertainty.add_argument("--force", action="store_true", help="replace an existing --out checkpoint")
+    uncertainty.add_argument("--json", action="store_true", help="the report as JSON")
+    uncertainty.set_defaults(func=exit_1_on(ModelConfigError, FileExistsError, OSError)(_uncertainty))

@@ -222,6 +222,10 @@ def load_generator(path: str | os.PathLike[str]) -> tuple[UNetGenerator, tuple[f
         )
     if "uncertainty" in state:
         generator.uncertainty = ServedUncertainty.from_state(state["uncertainty"])
+        floor = generator.uncertainty.floor
+        size = config.generator.image_size
+        if floor is not None and floor.levels.shape != (size, size):
+            raise ModelConfigError(f"{path}: its sensor floor is {floor.levels.shape}, its images {size} x {size}")
     # A checkpoint trained before the surface rule names no method: its maps were nearest points.
     generator.depth_map_method = str(state.get("depth_map_method", "nearest_point"))
     if generator.depth_map_method not in DEPTH_MAP_METHODS:

@@ -352,6 +352,8 @@ def full_analysis(predictions: Predictions, baseline_draws: int, template_px: in
         1.0 - np.asarray(result["ssim_model"]),
         predictions.objects,
     )
+    if predictions.sensor_floor is not None:  # u then carries a real sensor's light, wider than a session's error
+        result["uncertainty"]["sensor_floor"] = predictions.sensor_floor
     return result
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -32,6 +33,8 @@ class Predictions:
     depth_crop_m: tuple[float, float, float] | None = None
     # The uncertainty served with each estimate (N x H x W, image levels); None: the checkpoint has none.
     uncertainty: np.ndarray | None = None
+    # The source of the real sensor's floor that u carries (models.sensor_floor), if it carries one.
+    sensor_floor: dict[str, Any] | None = None
 
 
 def predict_records(
@@ -57,6 +60,7 @@ def predict_records(
         truth_deformation=np.stack([deformation_map(s.tactile_diff_rgb) for s in samples]),
         estimate=estimate,
         uncertainty=uncertainty,
+        sensor_floor=None if generator.uncertainty is None else generator.uncertainty.floor_source(),
         model_to_gel=[None if r.model_to_gel is None else np.array(r.model_to_gel) for r in records],
         scene=reader.info.scene,
         depth_crop_m=reader.info.depth_crop_m,
@@ -76,6 +80,7 @@ def joined(parts: Sequence[Predictions], sample_ids: Sequence[str]) -> Predictio
         truth_deformation=np.concatenate([p.truth_deformation for p in parts]),
         estimate=np.concatenate([p.estimate for p in parts]),
         uncertainty=None if any(u is None for u in uncertainty) else np.concatenate(uncertainty),  # type: ignore[arg-type]
+        sensor_floor=parts[0].sensor_floor,  # one checkpoint's predictions
         model_to_gel=[m for p in parts for m in p.model_to_gel],
         scene=parts[0].scene if one_scene else "",
         depth_crop_m=parts[0].depth_crop_m if one_scene else None,

@@ -32,7 +32,9 @@ side ``WINDOW_RADII`` contact radii around the press, cut from both images:
 Location: the truth's press window is searched for in each estimate (OpenCV TM_CCOEFF_NORMED)
 and the distance from the match to the annotated place is given in mm.
 
-The real frames are for evaluation only: nothing here fits anything to them.
+The real frames are for evaluation only: nothing here fits anything to them. The uncertainty a
+lab's own presses would give the checkpoint (models.sensor_floor) is scored press by press with
+the floor fitted on the other presses only.
 """
 
 from __future__ import annotations
@@ -48,8 +50,9 @@ import numpy as np
 from dataset.images import resize_rgb
 from models.errors import ModelConfigError
 from models.networks import UNetGenerator
+from models.sensor_floor import press_uncertainty_statistics, presses_digest
 from models.serving import predict, predict_served
-from models.uncertainty import served_uncertainty_statistics, uncertainty_table
+from models.uncertainty import uncertainty_table
 from perception.depthmap import MODEL_POINT_SPACING_M, DepthMapParams, contact_depth_map, crop_bounds
 from perception.errors import DepthMapError
 from perception.ssim import WINDOW, psnr_rgb, ssim_rgb
@@ -198,8 +201,8 @@ def evaluate_real_presses(
     seed: int = 0,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Scores of every estimate on every press (module docstring): the JSON of ``dtx evaluate
-    --real-presses`` and the images behind it (for figures). The ball and the scale are the
-    file's own (``sim.gelsight_check.load_ball_presses``) unless given.
+    --real-presses`` and the images behind it (for figures; ``uncertainty_own``: the checkpoint's
+    u without a sensor floor, where it has a u). The ball and the scale are the file's own (``sim.gelsight_check.load_ball_presses``) unless given.
 
     Contract: ``ball_radius_mm`` in BALL_RADIUS_RANGE_MM, ``mm_per_px`` in
     sim.gelsight.PIXEL_PITCH_RANGE_MM, ``margin_m`` in [0, MAX_MARGIN_M], ``seed`` an integer >= 0,
@@ -226,7 +229,7 @@ def evaluate_real_presses(
     depth_maps = np.stack([press_depth_map(g, ball_radius_mm, geometry, params, cloud) for g in geometries])
     empty = np.full((1, *grid), depth_range_m[1], dtype=np.float32)
     # The press is placed by its annotation, not by a registration: its geometry is exact.
-    model, uncertainty = predict_served(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0)
+    model, own_uncertainty = predict_served(generator, depth_maps, depth_range_m, pose_sigma_mm=0.0, sensor_floor=False)
     images = {
         "truth": np.stack([resize_rgb(f, *grid) for f in presses.frames]),
         "depth_maps_m": depth_maps,
@@ -241,10 +244,11 @@ def evaluate_real_presses(
     height, width = presses.background.shape[:2]
     scores = _score_presses(images, geometries, others, (height * mm_per_px, width * mm_per_px))
     settings = {"ball_radius_mm": ball_radius_mm, "mm_per_px": mm_per_px, "window_radii": WINDOW_RADII, "seed": seed}
-    summary = _summary(scores, geometries, presses)
-    summary["uncertainty"] = served_uncertainty_statistics(
-        uncertainty, model, images["truth"], 1.0 - np.asarray(scores["full_ssim"]["model"])
+    dissimilarity = 1.0 - np.asarray(scores["full_ssim"]["model"])
+    summary = _summary(scores, geometries, presses) | press_uncertainty_statistics(
+        generator.uncertainty, own_uncertainty, model, images["truth"], dissimilarity, presses_digest(path)
     )
+    images |= {} if own_uncertainty is None else {"uncertainty_own": own_uncertainty}
     return {"n": n, "file": str(path), **settings, **summary}, images
 
 
@@ -412,8 +416,16 @@ def real_press_table(result: dict[str, Any]) -> str:
             f"{result['window_psnr_db'][key]:>8.1f} dB  {result['full_psnr_db'][key]:>6.1f} dB  "
             f"{'—' if location is None else format(location, '.2f'):>21}"
         )
-    if "uncertainty" in result:
-        lines += uncertainty_table(result["uncertainty"])
+    served = result.get("uncertainty", {})
+    if served.get("fitted_on_these_presses"):
+        lines.append(
+            "as served, with a sensor floor fitted on these very presses (its own fit, not a held-out figure):"
+        )
+    lines += uncertainty_table(served) if served else []
+    if "uncertainty_lab_floor" in result:
+        lines.append("with a floor of this sensor's light fitted on the other presses (dtx calibrate uncertainty):")
+        lines += uncertainty_table(result["uncertainty_lab_floor"])
+        lines.append(f"  ({result['uncertainty_lab_floor']['pearson_region_note']})")
     return "\n".join(lines)
 
 

@@ -92,13 +92,15 @@ def predict_served(
     depth_range_m: tuple[float, float],
     batch: int = 64,
     pose_sigma_mm: float | None = None,
+    sensor_floor: bool = True,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """N x H x W depth-maps (m) -> what the checkpoint serves (``generator.serves``: its
     network's or its prior's image), N x H x W x 3 uint8, and the uncertainty served beside it (N x H x W
     float32, image levels; None when the checkpoint has none). ``pose_sigma_mm``: the maps'
     in-plane pose error for a physics prior (None: the model's default, its training session's).
     ``batch``: regions a forward pass, an integer in [1, MAX_PREDICT_BATCH]; otherwise
-    ModelConfigError."""
+    ModelConfigError. ``sensor_floor`` False: the checkpoint's own u, without the floor of a lab's
+    sensor (models.sensor_floor) that it may carry."""
     if not (isinstance(batch, (int, np.integer)) and not isinstance(batch, bool) and 1 <= batch <= MAX_PREDICT_BATCH):
         raise ModelConfigError(f"batch must be an integer in [1, {MAX_PREDICT_BATCH}], got {batch!r}")
     generator.eval()
@@ -108,7 +110,7 @@ def predict_served(
         estimate = served_images(generator, x[i : i + batch], generator.serves)
         images.append(to_uint8_rgb(estimate))
         if generator.uncertainty is not None:
-            uncertainty.append(generator.uncertainty.levels(x[i : i + batch], estimate))
+            uncertainty.append(generator.uncertainty.levels(x[i : i + batch], estimate, sensor_floor))
     return np.concatenate(images), (np.concatenate(uncertainty) if uncertainty else None)
 
 
@@ -185,6 +187,8 @@ def fit_serving(
     uncertainty = fit_uncertainty(
         x_train, estimate_train, torch.from_numpy(error_train), x_val, estimate_val, error_val, config, log
     )
+    if "sensor_floor" in state.get("uncertainty", {}):
+        log("the lab's sensor floor goes with the u it was fitted beside: dtx calibrate uncertainty fits it again")
     state |= {"serves": serves, "serving_figures": figures, "uncertainty": uncertainty.to_state()}
     save_atomic(state, path)
     return {"serves": serves, **figures}

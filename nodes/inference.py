@@ -184,8 +184,8 @@ class InferenceNode(Node):
             served = f"(ngf {ngf}, {self.device}) serves the prior: no network pass"
         else:
             served = f"(ngf {ngf}, {p.runtime} {self.precision}, {self.device}) serves the network"
-        absent = " (its uncertainty absent)" if self.uncertainty is None else ""
-        return f"{Path(p.checkpoint).name} {served}{absent} on {self.name}"
+        trust = " (its uncertainty absent)" if self.uncertainty is None else self.uncertainty.reply_note()
+        return f"{Path(p.checkpoint).name} {served}{trust} on {self.name}"
 
     def _runner(self, generator: UNetGenerator) -> tuple[str, Runner | None]:
         """(the precision served, the network's runner); ("", None) serving the prior, for which

@@ -213,6 +213,26 @@ def test_a_checkpoint_with_an_uncertainty_serves_it_in_every_reply(
     assert len(reply.region_uncertainty) == 5
 
 
+def test_a_checkpoint_with_a_sensor_floor_serves_it_and_names_its_presses(registry: Registry, tmp_path: Path) -> None:
+    """A checkpoint dtx calibrate uncertainty wrote: every reply's u is the checkpoint's own u with
+    the lab sensor's floor added in quadrature, and the reply's model names the presses."""
+    checkpoint = fit_for_serving(write_checkpoint(tmp_path / "lab.pt", width=8))
+    state = load_checkpoint(checkpoint)
+    floor = np.linspace(0.0, 20.0, 100 * 100, dtype=np.float32).reshape(100, 100)
+    source = {"file": "lab_presses.npz", "presses": 30, "sha256": "0" * 64}
+    state["uncertainty"]["sensor_floor"] = {"levels": torch.from_numpy(floor), "source": source}
+    save_atomic(state, checkpoint)
+    maps = depth_maps(3, seed=4)
+    with serving(registry, checkpoint, runtime="eager") as _, planner(registry) as client:
+        _, uncertainty = client.estimate(maps)
+        reply = client.last_reply
+    assert reply is not None and uncertainty is not None
+    assert "its uncertainty with the floor of the sensor of lab_presses.npz" in reply.model
+    _, expected = served_reference(checkpoint, maps, "network")
+    np.testing.assert_allclose(uncertainty, expected, rtol=1e-4, atol=1e-4)
+    assert np.all(uncertainty >= floor * (1 - 1e-6)) and uncertainty[:, -1, -1].min() > 19.99
+
+
 def test_a_checkpoint_serving_its_prior_never_runs_the_network(
     registry: Registry, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -193,14 +193,16 @@ COMMANDS: dict[str, Callable[[Inputs], list[str]]] = {
     ],
 }
 # These need whole collection sessions or a fit (minutes here): tests/test_collection.py,
-# tests/test_touch_calibration.py, tests/test_sim_gelsight_fit.py and tests/test_models_uncertainty.py
-# (a trained checkpoint and its dataset), which run them anyway, parse each one's output as strictly.
+# tests/test_touch_calibration.py, tests/test_sim_gelsight_fit.py, tests/test_models_uncertainty.py
+# and tests/test_models_sensor_floor.py (a trained checkpoint with its uncertainty), which run them
+# anyway, parse each one's output as strictly.
 IN_COLLECTION_TESTS = {
     "sim ceiling",
     "bench collect",
     "bench fuzz",
     "calibrate touches",
     "calibrate gelsight",
+    "calibrate uncertainty",
     "fit-serving",
 }
 # Commands that print JSON whether asked or not.

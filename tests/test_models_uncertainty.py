@@ -249,6 +249,15 @@ def test_fit_serving_writes_what_is_served_and_its_uncertainty(
 
     x = network_input(depth, depth_range, generator.config, generator.prior)
     assert np.array_equal(to_uint8_rgb(served_images(generator, x, "prior")), to_uint8_rgb(prior_images(generator, x)))
+    # Fitted again, a lab sensor's floor goes with the u it was fitted beside, and the log says so.
+    state = torch.load(fitted, weights_only=True)
+    state["uncertainty"]["sensor_floor"] = {"levels": torch.ones(100, 100), "source": {"file": "lab.npz"}}
+    torch.save(state, fitted)
+    capsys.readouterr()
+    assert args.func(args) == 0
+    assert "sensor floor goes with the u" in capsys.readouterr().err
+    refitted, _ = load_generator(fitted)
+    assert refitted.uncertainty is not None and refitted.uncertainty.floor is None
     # A checkpoint that says it serves a prior it does not have is refused on load.
     state = torch.load(fitted, weights_only=True)
     state["serves"] = "oracle"
