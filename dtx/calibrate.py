@@ -150,15 +150,8 @@ def _add_gelsight(commands: argparse._SubParsersAction) -> None:
         "and the renderer's physical parameters, report k-fold scores on presses each fit never saw, and write "
         "a calibration directory (gelsight: calibration_dir: DIR in a scene file).",
     )
-    gelsight.add_argument(
-        "presses", metavar="PRESSES.npz", help="background, frames (layout of assets/gelsight/ball_presses.npz)"
-    )
-    gelsight.add_argument("--out", required=True, help="calibration directory to write")
+    _add_press_arguments(gelsight, "calibration directory to write", "directory")
     gelsight.add_argument("--folds", type=int, default=3, metavar="K", help="k-fold split of the presses (default 3)")
-    gelsight.add_argument("--mm-per-px", type=float, help="the frames' scale (default: the file's mm_per_px)")
-    gelsight.add_argument("--ball-radius-mm", type=float, help="the ball's radius (default: the file's ball_radius_mm)")
-    gelsight.add_argument("--force", action="store_true", help="replace an existing --out directory")
-    gelsight.add_argument("--json", action="store_true", help="the report as JSON")
     gelsight.set_defaults(func=exit_1_on(GelSightRenderError, FileExistsError, OSError)(_gelsight))
 
 
@@ -196,12 +189,17 @@ def _add_uncertainty(commands: argparse._SubParsersAction) -> None:
         "and write the checkpoint with the floor to --out: every reply of it then carries sqrt(u^2 + floor^2).",
     )
     uncertainty.add_argument("checkpoint", help="a checkpoint that serves an uncertainty (dtx fit-serving)")
-    uncertainty.add_argument(
-        "presses", metavar="PRESSES.npz", help="the lab's ball presses (layout of assets/gelsight/ball_presses.npz)"
-    )
-    uncertainty.add_argument("--out", required=True, help="the checkpoint to write (the input is left as it is)")
-    uncertainty.add_argument("--mm-per-px", type=float, help="the frames' scale (default: the file's mm_per_px)")
-    uncertainty.add_argument("--ball-radius-mm", type=float, help="the ball's radius (default: the file's)")
-    uncertainty.add_argument("--force", action="store_true", help="replace an existing --out checkpoint")
-    uncertainty.add_argument("--json", action="store_true", help="the report as JSON")
+    _add_press_arguments(uncertainty, "the checkpoint to write (the input is left as it is)", "checkpoint")
     uncertainty.set_defaults(func=exit_1_on(ModelConfigError, FileExistsError, OSError)(_uncertainty))
+
+
+def _add_press_arguments(parser: argparse.ArgumentParser, out_help: str, out_kind: str) -> None:
+    """What every command fitted on a lab's ball presses takes: the file, its scale and ball, --out."""
+    parser.add_argument(
+        "presses", metavar="PRESSES.npz", help="background, frames (layout of assets/gelsight/ball_presses.npz)"
+    )
+    parser.add_argument("--out", required=True, help=out_help)
+    parser.add_argument("--mm-per-px", type=float, help="the frames' scale (default: the file's mm_per_px)")
+    parser.add_argument("--ball-radius-mm", type=float, help="the ball's radius (default: the file's ball_radius_mm)")
+    parser.add_argument("--force", action="store_true", help=f"replace an existing --out {out_kind}")
+    parser.add_argument("--json", action="store_true", help="the report as JSON")
