@@ -174,7 +174,7 @@ def _uncertainty(args: argparse.Namespace) -> int:
     if report["leave_one_out"] is not None:
         print("u with the floor, each press's fitted on the other presses:")
         print("\n".join(uncertainty_table(report["leave_one_out"])))
-    print(f"wrote {report['out']}: it serves this sensor (dtx serve / launch checkpoint:={report['out']})")
+    print(f"wrote {report['out']}: it serves this sensor (dtx launch launch/serve.yaml checkpoint:={report['out']})")
     return 0
 
 
