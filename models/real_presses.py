@@ -65,7 +65,7 @@ from sim.gelsight import (
 )
 from sim.gelsight_check import BallPresses, ball_gap_map, load_ball_presses, press_depth_mm
 from workcell.kinematics import GripperGeometry
-from workcell.scene import Scene, load_scene
+from workcell.scene import Scene, SceneError, load_scene
 
 WINDOW_RADII = 3.0
 RANDOM_FRAMES = 15
@@ -272,7 +272,7 @@ def _load_presses(
         presses = load_ball_presses(path, mm_per_px, ball_radius_mm)
         scene = load_scene(scene) if isinstance(scene, (str, os.PathLike)) else scene
         renderer = scene_renderer(scene, effects=False)
-    except GelSightRenderError as err:
+    except (GelSightRenderError, SceneError) as err:
         raise ModelConfigError(str(err)) from err
     height, width = presses.background.shape[:2]
     if renderer.config.shape != (height, width):

@@ -189,7 +189,7 @@ def test_a_labs_raw_presses_are_evaluated_at_the_finders_centres(checkpoint: Pat
 def test_bad_options_and_a_missing_file_get_exit_2(checkpoint: Path, tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
     add_commands(parser.add_subparsers())
-    for extra in (["--ball-radius-mm", "0"], ["--mm-per-px", "nan"]):
+    for extra in (["--ball-radius-mm", "0"], ["--mm-per-px", "nan"], ["--scene", str(tmp_path / "none.yaml")]):
         args = parser.parse_args(["evaluate", str(checkpoint), "--real-presses", str(PRESSES), *extra])
         assert args.func(args) == 2
     args = parser.parse_args(["evaluate", str(checkpoint), "--real-presses", str(tmp_path / "none.npz")])
