@@ -159,7 +159,7 @@ def _uncertainty(args: argparse.Namespace) -> int:
     from models.calibrate_uncertainty import calibrate_sensor_floor  # noqa: PLC0415
     from models.uncertainty import uncertainty_table  # noqa: PLC0415
 
-    options = {"ball_radius_mm": args.ball_radius_mm, "mm_per_px": args.mm_per_px}
+    options = {"scene": args.scene, "ball_radius_mm": args.ball_radius_mm, "mm_per_px": args.mm_per_px}
     report = calibrate_sensor_floor(args.checkpoint, args.presses, args.out, args.force, **options)
     if args.json:
         print(strict_json.dumps(report))
@@ -190,6 +190,11 @@ def _add_uncertainty(commands: argparse._SubParsersAction) -> None:
     )
     uncertainty.add_argument("checkpoint", help="a checkpoint that serves an uncertainty (dtx fit-serving)")
     _add_press_arguments(uncertainty, "the checkpoint to write (the input is left as it is)", "checkpoint")
+    uncertainty.add_argument(
+        "--scene",
+        default="scenes/ycb_three.yaml",
+        help="scene whose gripper and GelSight the presses are seen with, as dtx evaluate takes it (default ycb_three)",
+    )
     uncertainty.set_defaults(func=exit_1_on(ModelConfigError, FileExistsError, OSError)(_uncertainty))
 
 

@@ -192,6 +192,15 @@ def test_a_checkpoint_without_an_uncertainty_or_bad_presses_get_a_clear_error(
     assert "serves no uncertainty" in capsys.readouterr().err and not out.exists()
     assert _calibrate([str(checkpoint_with_uncertainty), str(tmp_path / "none.npz"), "--out", str(out)]) == 1
     assert "none.npz" in capsys.readouterr().err and not out.exists()
+    assert _calibrate([str(checkpoint_with_uncertainty), str(PRESSES), "--out", str(out), "--scene", "none.yaml"]) == 1
+    assert "none.yaml" in capsys.readouterr().err and not out.exists()
+    other_sensor = tmp_path / "other_sensor.npz"
+    with np.load(PRESSES) as data:
+        twice = {key: np.repeat(np.repeat(data[key], 2, -3), 2, -2) for key in ("background", "frames")}
+        np.savez(other_sensor, background=twice["background"], frames=twice["frames"][:4])
+    half_pitch = ["--mm-per-px", "0.06225"]  # a sensor of twice the pixels over the same gel
+    assert _calibrate([str(checkpoint_with_uncertainty), str(other_sensor), "--out", str(out), *half_pitch]) == 1
+    assert "the scene's GelSight" in capsys.readouterr().err and not out.exists()
     one = tmp_path / "one.npz"
     with np.load(PRESSES) as data:
         np.savez(one, **{key: data[key][:1] if data[key].ndim and len(data[key]) == 30 else data[key] for key in data})
