@@ -55,8 +55,9 @@ class DropoutSpread:
         self.sampled, self.samples = sampling_copy(generator), samples
 
     @torch.inference_mode()
-    def levels(self, network_input: torch.Tensor, estimate: torch.Tensor) -> np.ndarray:
-        """N x H x W float32 spread (levels) for ``network_input``; ``estimate`` is not needed."""
+    def levels(self, network_input: torch.Tensor, estimate: torch.Tensor, sensor_floor: bool = True) -> np.ndarray:
+        """N x H x W float32 spread (levels) for ``network_input``; ``estimate`` is not needed, nor
+        ``sensor_floor``: the spread had no sensor's floor."""
         passes = torch.stack([self.sampled(network_input) for _ in range(self.samples)])
         return (passes.std(dim=0).mean(dim=1) * LEVELS_PER_TANH_UNIT).float().numpy()
 
