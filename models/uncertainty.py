@@ -193,7 +193,8 @@ class SensorFloor:
 
     def __post_init__(self) -> None:
         levels = self.levels
-        if levels.ndim != 2 or levels.dtype != np.float32 or not np.all(np.isfinite(levels)) or levels.min() < 0:
+        shaped = levels.ndim == 2 and levels.size > 0 and levels.dtype == np.float32
+        if not (shaped and np.all(np.isfinite(levels)) and levels.min() >= 0):
             raise ModelConfigError(
                 f"a sensor floor is an H x W float32 map of finite levels >= 0, got {levels.dtype} {levels.shape}"
             )
@@ -255,7 +256,7 @@ class ServedUncertainty:
         return (
             ""
             if self.floor is None
-            else f" (its uncertainty with the floor of the sensor of {self.floor.source['file']})"
+            else f" (its uncertainty with the floor of the sensor of {self.floor.source.get('file', 'unnamed presses')})"
         )
 
     def to_state(self) -> dict[str, Any]:

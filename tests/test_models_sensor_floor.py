@@ -86,6 +86,7 @@ def test_a_floor_is_refused_bad_presses(error: np.ndarray, own: np.ndarray, mess
         np.full((4, 4), np.nan, np.float32),
         np.ones((4, 4), np.float64),
         np.ones((2, 4, 4), np.float32),
+        np.ones((0, 0), np.float32),
     ],
 )
 def test_a_damaged_floor_is_refused(levels_map: np.ndarray) -> None:
@@ -111,6 +112,7 @@ def test_each_held_out_press_gets_what_a_checkpoint_fitted_on_the_others_serves_
         # The same batch as the evaluation's: a convolution's last bit may depend on it.
         assert np.array_equal(floored.levels(x, estimate)[i], held_out[i])
         assert np.array_equal(floored.levels(x, estimate, sensor_floor=False), own)
+    assert floored.reply_note().endswith("floor of the sensor of unnamed presses)") and plain.reply_note() == ""
     again = ServedUncertainty.from_state(floored.to_state())
     assert again.floor is not None and np.array_equal(again.levels(x, estimate), floored.levels(x, estimate))
 
