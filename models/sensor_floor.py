@@ -100,9 +100,10 @@ def press_uncertainty_statistics(
     figures = uncertainty_statistics(
         own_levels if floor is None else floor.added(own_levels), estimate, truth, region_dissimilarity
     )
-    if floor is not None:
-        figures["sensor_floor"] = dict(floor.source)
-        figures["fitted_on_these_presses"] = floor.source.get("sha256") == presses_sha256
+    source = served.floor_source()
+    if source is not None:
+        figures["sensor_floor"] = source
+        figures["fitted_on_these_presses"] = source.get("sha256") == presses_sha256
     out = {"uncertainty": figures}
     if len(own_levels) > MIN_PRESSES:
         error = pixel_error_levels(estimate, truth)

@@ -172,8 +172,8 @@ def _refuse(constant: str) -> None:
     raise AssertionError(f"not strict JSON: {constant}")
 
 
-def test_an_evaluation_names_the_floor_it_serves_and_prints_the_held_out_table(
-    checkpoint_with_uncertainty: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+def test_a_real_press_evaluation_prints_the_held_out_floors_table(
+    checkpoint_with_uncertainty: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     parser = argparse.ArgumentParser()
     add_model_commands(parser.add_subparsers())
@@ -221,7 +221,7 @@ def test_a_floor_of_another_size_than_the_images_is_refused_on_load(
         load_generator(bad)
 
 
-def test_a_sessions_evaluation_says_which_sensor_floor_its_u_carries(
+def test_a_sessions_predictions_name_the_sensor_floor_their_u_carries(
     checkpoint_with_uncertainty: Path, tmp_path: Path
 ) -> None:
     from dataset.contact_library import write_contact_library
