@@ -8,7 +8,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
-import json
 import os
 import subprocess
 import sys
@@ -16,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_sim_gelsight_fit import _calibrate, _not_json, synthetic_presses, write_press_file
+from test_json_output import strict_loads
+from test_sim_gelsight_fit import _calibrate, synthetic_presses, write_press_file
 
 from models.checkpoint import TrainConfig, load_generator
 from models.networks import GeneratorConfig
@@ -63,7 +63,7 @@ def test_the_calibration_of_another_frame_size_and_the_scene_it_prints(lab: Lab)
     assert lab.block == (
         f"{{image_height: 240, image_width: 320, mm_per_px: 0.0634, calibration_dir: {lab.calibration}}}"
     )
-    report = json.loads((lab.calibration / "report.json").read_text(), parse_constant=_not_json)
+    report = strict_loads((lab.calibration / "report.json").read_text())
     assert report["frame_shape"] == [240, 320] and report["used"] == list(range(24))
     k_fold = report["k_fold"]
     # The shipped tables rendered against this sensor's own background are a reference too.

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -22,10 +21,7 @@ from models.train import train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_dataset_format import ShadingRenderer
-
-
-def refuse_non_finite(constant: str) -> None:
-    raise AssertionError(f"dtx evaluate --json printed {constant}, which strict JSON readers refuse")
+from test_json_output import strict_loads
 
 
 def blob_images(n: int, seed: int) -> np.ndarray:
@@ -103,7 +99,7 @@ def test_evaluate_cli_writes_json_and_figures(tmp_path: Path, capsys: pytest.Cap
         ]
     )
     assert args.func(args) == 0
-    result = json.loads(capsys.readouterr().out, parse_constant=refuse_non_finite)  # strict JSON only
+    result = strict_loads(capsys.readouterr().out)  # strict JSON only
     for key in (
         "ssim_model_mean",
         "ssim_model_se",

@@ -5,7 +5,6 @@ and bad input refused with nothing written."""
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +13,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from test_json_output import strict_loads
 
 from benchmarks.serve import write_checkpoint
 from dtx.calibrate import add_commands as add_calibrate_commands
@@ -146,7 +146,7 @@ def test_dtx_calibrate_uncertainty_writes_a_checkpoint_that_serves_the_floor(
     before = checkpoint_with_uncertainty.read_bytes()
     out = tmp_path / "floored.pt"
     assert _calibrate([str(checkpoint_with_uncertainty), str(PRESSES), "--out", str(out), "--json"]) == 0
-    report = json.loads(capsys.readouterr().out, parse_constant=_refuse)  # strict JSON: no NaN
+    report = strict_loads(capsys.readouterr().out)  # strict JSON: no NaN
     assert checkpoint_with_uncertainty.read_bytes() == before  # the input is left as it is
     assert report["presses"]["presses"] == 30 and report["presses"]["file"] == PRESSES.name
     assert report["leave_one_out"]["n"] == 30 and len(report["leave_one_out"]["deciles"]) == 10
@@ -166,10 +166,6 @@ def test_dtx_calibrate_uncertainty_writes_a_checkpoint_that_serves_the_floor(
     written = out.read_bytes()
     assert _calibrate([str(checkpoint_with_uncertainty), str(PRESSES), "--out", str(out)]) == 1
     assert "exists" in capsys.readouterr().err and out.read_bytes() == written
-
-
-def _refuse(constant: str) -> None:
-    raise AssertionError(f"not strict JSON: {constant}")
 
 
 def test_a_real_press_evaluation_prints_the_held_out_floors_table(

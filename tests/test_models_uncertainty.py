@@ -11,6 +11,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_json_output import strict_loads
 
 from dataset.records import DatasetError
 from models.checkpoint import TrainConfig, load_generator
@@ -233,7 +234,7 @@ def test_fit_serving_writes_what_is_served_and_its_uncertainty(
     args = parser.parse_args(["fit-serving", str(fitted), str(library), "--json"])
     assert args.func(args) == 0
     # Strict JSON alone on stdout (tests/test_json_output.py): the fit's progress goes to stderr.
-    figures = json.loads(capsys.readouterr().out, parse_constant=_refuse)
+    figures = strict_loads(capsys.readouterr().out)
     assert figures["serves"] in ("network", "prior")
     generator, depth_range = load_generator(fitted)
     assert generator.serves == figures["serves"] and isinstance(generator.uncertainty, ServedUncertainty)
@@ -264,10 +265,6 @@ def test_fit_serving_writes_what_is_served_and_its_uncertainty(
     torch.save(state, tmp_path / "bad.pt")
     with pytest.raises(ModelConfigError, match="serves 'oracle'"):
         load_generator(tmp_path / "bad.pt")
-
-
-def _refuse(constant: str) -> None:
-    raise AssertionError(f"not strict JSON: {constant}")
 
 
 def test_fit_serving_refuses_a_dataset_it_cannot_fit_on(prior_checkpoint: tuple[Path, Path], tmp_path: Path) -> None:

@@ -4,7 +4,6 @@ rendered here by the renderer with known truth (and the shipped file where it is
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from typing import Any
 
@@ -12,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_json_output import strict_loads
 
 from dtx.calibrate import add_commands
 from sim.gelsight import GelSightConfig, GelSightRenderer, GelSightRenderError, scene_renderer
@@ -94,9 +94,9 @@ def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path
     monkeypatch.setattr("sim.gelsight_fit.FIT_EVALUATIONS", 1)  # the search's first simplex only
     out = tmp_path / "calibration"
     assert _calibrate(path, out, "--folds", "2", "--json") == 0
-    report = json.loads((out / "report.json").read_text(), parse_constant=_not_json)
+    report = strict_loads((out / "report.json").read_text())
     printed = capsys.readouterr()
-    assert json.loads(printed.out, parse_constant=_not_json) == report  # --json: strict, the file's
+    assert strict_loads(printed.out) == report  # --json: strict, the file's
     assert "calibrate gelsight: 4/4 fits (100 %)" in printed.err  # 2 folds, the half, all: progress on stderr
     assert report["used"] == list(range(24)) and report["left_out"] == {}
     assert report["k_fold"]["crop"] > report["k_fold"]["background_crop"]
@@ -116,10 +116,6 @@ def test_calibrate_command_writes_a_directory_scenes_and_the_check_read(tmp_path
 def _scene_with_calibration(directory) -> str:
     text = open("scenes/ideal.yaml").read()
     return text.replace("gelsight:\n", f"gelsight:\n  calibration_dir: {directory}\n", 1)
-
-
-def _not_json(constant: str) -> None:
-    raise ValueError(f"{constant} is not JSON")
 
 
 def _calibrate(path, out, *options: str) -> int:
