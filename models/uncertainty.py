@@ -253,10 +253,11 @@ class ServedUncertainty:
 
     def reply_note(self) -> str:
         """What a reply's ``model`` adds of this uncertainty: the sensor whose floor it carries."""
+        source = self.floor_source()
         return (
             ""
-            if self.floor is None
-            else f" (its uncertainty with the floor of the sensor of {self.floor.source.get('file', 'unnamed presses')})"
+            if source is None
+            else f" (its uncertainty with the floor of the sensor of {source.get('file', 'unnamed presses')})"
         )
 
     def to_state(self) -> dict[str, Any]:

@@ -17,6 +17,7 @@ import subprocess
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -33,7 +34,7 @@ def refuse(constant: str) -> None:
     raise AssertionError(f"not strict JSON: {constant}")
 
 
-def strict_loads(text: str) -> object:
+def strict_loads(text: str) -> Any:
     return json.loads(text, parse_constant=refuse)
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -144,7 +143,7 @@ def test_per_object_figures_show_one_u_given_to_objects_that_miss_by_much_and_by
     assert rough["high_u_share"] == smooth["high_u_share"] == pytest.approx(0.5)
     assert rough["pearson_pixel"] == pytest.approx(1.0) and rough["n"] == 4
     # The flat object's u is never high, and its error and u are the same everywhere: both said, in strict JSON.
-    flat = json.loads(strict_json.dumps(figures))["flat"]
+    flat = strict_loads(strict_json.dumps(figures))["flat"]
     assert flat["high_u_share"] == 0.0 and flat["high_u_mean"] is None and flat["high_e_rms"] is None
     assert flat["pearson_pixel"] is None and "pearson_pixel_undefined" in flat and "high_u_mean_undefined" in flat
     with pytest.raises(ModelConfigError, match="11 object names for 12"):
